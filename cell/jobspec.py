@@ -1,0 +1,260 @@
+"""The job file: TOML parsed into pydantic models, unknown keys forbidden.
+
+Lengths in ``[job]``, ``[cell]``, ``[report]`` and the ``[sim]`` deviations are in
+the job's ``units`` and are converted to metres by :func:`load_job`; keys whose
+name carries a unit (``focal_length_mm``, ``pixel_size_um``, ``..._deg``,
+``..._px``, ``..._s``) are in that unit. Relative paths are relative to the job
+file's folder. Every problem is a ``JobSpecError`` naming the file and the key.
+"""
+from __future__ import annotations
+
+import csv
+import math
+import tomllib
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from scipy.spatial.transform import Rotation
+
+from calibration.camera import Intrinsics, make_pose
+from calibration.errors import JobSpecError
+from planning.part import UNITS_TO_M
+
+__all__ = ["JobSpec", "Pose", "load_job", "pose_matrix"]
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class Pose(_Strict):
+    """A rigid transform: translation ``xyz`` (job units) and rotation ``rpy_deg``.
+
+    ``rpy_deg`` are roll, pitch, yaw about the fixed x, y, z axes (degrees), i.e.
+    ``R = Rz(yaw) @ Ry(pitch) @ Rx(roll)``.
+    """
+
+    xyz: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    rpy_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+
+class ScaleBar(_Strict):
+    a: str
+    b: str
+    length: float = Field(gt=0, description="calibrated length between a and b, job units")
+    sigma: float = Field(default=0.0, ge=0, description="its standard uncertainty, job units")
+
+
+class JobSection(_Strict):
+    name: str = Field(min_length=1)
+    mesh: str
+    units: Literal["m", "mm", "cm", "um", "in", "ft"]
+    targets: str | None = None
+    n_targets: int | None = Field(default=None, gt=0, le=100_000)
+    n_coded: int = Field(default=8, ge=0, le=250)
+    target_diameter: float = Field(default=6.0, gt=0, description="retro dot diameter, job units")
+    coded_size: float = Field(default=20.0, gt=0, description="ArUco marker side, job units")
+    seed: int = 0
+    scale_bar: ScaleBar | None = None
+
+    @model_validator(mode="after")
+    def _targets_or_count(self):
+        if (self.targets is None) == (self.n_targets is None):
+            raise ValueError("give exactly one of 'targets' (a CSV file) or 'n_targets' (a count to sample)")
+        return self
+
+
+class CameraSection(_Strict):
+    width: int = Field(gt=0, le=100_000)
+    height: int = Field(gt=0, le=100_000)
+    pixel_size_um: float = Field(gt=0, le=100)
+    focal_length_mm: float = Field(gt=0, le=2000)
+    cx_px: float | None = None
+    cy_px: float | None = None
+    k1: float = 0.0
+    k2: float = 0.0
+    k3: float = 0.0
+    p1: float = 0.0
+    p2: float = 0.0
+    sigma_px: float = Field(default=0.05, gt=0, description="image measurement standard deviation")
+    near: float = Field(gt=0, description="depth of field, nearest sharp distance, job units")
+    far: float = Field(gt=0, description="depth of field, farthest sharp distance, job units")
+    device: str | None = Field(default=None, description="OpenCV device index or GStreamer pipeline (real cell)")
+    exposure_s: float = Field(default=0.002, gt=0)
+
+    @model_validator(mode="after")
+    def _dof(self):
+        if self.far <= self.near:
+            raise ValueError("camera.far must be greater than camera.near")
+        return self
+
+
+class Obstacle(_Strict):
+    name: str
+    size: tuple[float, float, float]
+    pose: Pose = Pose()
+
+    @field_validator("size")
+    @classmethod
+    def _positive(cls, v):
+        if min(v) <= 0:
+            raise ValueError("obstacle size must be positive")
+        return v
+
+
+class CellSection(_Strict):
+    robot: Literal["ur5e", "ur10e"] = "ur5e"
+    backend: Literal["sim", "ur"] = "sim"
+    host: str = "127.0.0.1"
+    light_port: str | None = Field(default=None, description="serial port of the light controller (real cell)")
+    base_from_part: Pose
+    flange_from_cam: Pose
+    table_z: float = 0.0
+    obstacles: list[Obstacle] = []
+    camera_box: tuple[float, float, float] = (80.0, 80.0, 120.0)
+    max_joint_speed_rad_s: float = Field(default=1.0, gt=0, le=3.2)
+    max_joint_accel_rad_s2: float = Field(default=1.5, gt=0, le=40)
+    max_tcp_speed_m_s: float = Field(default=0.25, gt=0, le=1.0)
+    max_tcp_accel_m_s2: float = Field(default=1.0, gt=0, le=10)
+    settle_s: float = Field(default=0.2, ge=0)
+    elbow_limit_deg: float = Field(default=180.0, gt=0, le=360)
+
+
+class PlanningSection(_Strict):
+    mode: Literal["fixed", "cheapest"] = "fixed"
+    n_stations: int = Field(default=16, ge=2, le=200)
+    max_stations: int = Field(default=40, ge=2, le=200)
+    required_sigma: float | None = Field(default=None, gt=0, description="job units; default tolerance/10")
+    min_rays: int = Field(default=3, ge=2)
+    incidence_max_deg: float = Field(default=60.0, gt=0, lt=90)
+    criterion: Literal["worst", "mean", "max_axis", "trace"] = "worst"
+    distance_min: float | None = Field(default=None, gt=0, description="job units; default from the camera")
+    distance_max: float | None = Field(default=None, gt=0)
+    elevation_min_deg: float = Field(default=15.0, ge=-90, le=90)
+    elevation_max_deg: float = Field(default=85.0, ge=-90, le=90)
+    n_candidates: int = Field(default=2000, ge=50, le=50_000)
+    population: int = Field(default=80, ge=4, le=10_000)
+    generations: int = Field(default=150, ge=1, le=100_000)
+    margin_px: float = Field(default=30.0, ge=0)
+
+
+class ReportSection(_Strict):
+    tolerance: float = Field(gt=0, description="default tolerance on a target's deviation, job units")
+    sigma_factor: float = Field(default=3.0, gt=0, description="deviation significant beyond k sigma")
+
+
+class SimSection(_Strict):
+    image_sigma_px: float = Field(default=0.03, ge=0)
+    seed: int = 0
+    deviations: str | None = Field(default=None, description="CSV id,dx,dy,dz in job units")
+    motion: Literal["instant", "timed"] = "instant"
+    time_scale: float = Field(default=1.0, gt=0)
+    noise: float = Field(default=1.0, ge=0, description="sensor noise scale (1 = nominal)")
+    base_from_part_error: Pose | None = Field(default=None, description="true placement minus nominal (tests)")
+    flange_from_cam_error: Pose | None = None
+
+
+class JobSpec(_Strict):
+    """A whole job file, validated. Use :func:`load_job` to read one."""
+
+    job: JobSection
+    camera: CameraSection
+    cell: CellSection
+    planning: PlanningSection = PlanningSection()
+    report: ReportSection
+    sim: SimSection = SimSection()
+
+    # --- derived values, in SI ---
+    @property
+    def scale(self) -> float:
+        """Job units -> metres."""
+        return UNITS_TO_M[self.job.units]
+
+    def intrinsics(self) -> Intrinsics:
+        c = self.camera
+        return Intrinsics.from_focal_length(
+            c.focal_length_mm * 1e-3, c.pixel_size_um * 1e-6, c.width, c.height,
+            cx_px=c.cx_px, cy_px=c.cy_px, k1=c.k1, k2=c.k2, k3=c.k3, p1=c.p1, p2=c.p2,
+        )
+
+    def base_from_part(self) -> np.ndarray:
+        return pose_matrix(self.cell.base_from_part, self.scale)
+
+    def flange_from_cam(self) -> np.ndarray:
+        return pose_matrix(self.cell.flange_from_cam, self.scale)
+
+
+def pose_matrix(pose: Pose, scale: float) -> np.ndarray:
+    """4x4 transform of a :class:`Pose` with its translation scaled to metres."""
+    R = Rotation.from_euler("xyz", pose.rpy_deg, degrees=True).as_matrix()
+    return make_pose(R, np.asarray(pose.xyz) * scale)
+
+
+def _format_validation_error(path: Path, err: ValidationError) -> str:
+    e = err.errors()[0]
+    loc = ".".join(str(x) for x in e["loc"]) or "(top level)"
+    kind = e["type"]
+    if kind == "extra_forbidden":
+        return f"{path}: unknown key '{loc}'"
+    if kind == "missing":
+        return f"{path}: missing required key '{loc}'"
+    if kind == "literal_error":
+        return f"{path}: '{loc}' = {e.get('input')!r}: {e['msg']}"
+    msg = e["msg"].removeprefix("Value error, ")
+    if "input" in e and not isinstance(e["input"], dict):
+        return f"{path}: '{loc}' = {e['input']!r}: {msg}"
+    return f"{path}: '{loc}': {msg}"
+
+
+def load_job(path: str | Path) -> tuple[JobSpec, Path]:
+    """Read and validate a job file. Returns ``(spec, folder)`` where relative paths resolve.
+
+    Raises:
+        JobSpecError: one line naming the file and the problem.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise JobSpecError(f"{path}: job file not found")
+    try:
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise JobSpecError(f"{path}: not valid TOML ({exc})") from None
+    try:
+        spec = JobSpec.model_validate(data)
+    except ValidationError as err:
+        raise JobSpecError(_format_validation_error(path, err)) from None
+    folder = path.resolve().parent
+    if spec.job.scale_bar is not None and spec.job.targets is None:
+        pass  # ids of sampled targets are known only after sampling; checked at LOAD
+    return spec, folder
+
+
+def resolve(folder: Path, rel: str) -> Path:
+    p = Path(rel)
+    return p if p.is_absolute() else folder / p
+
+
+def load_deviations(path: Path, ids: list[str], scale: float) -> np.ndarray:
+    """Read the ``[sim] deviations`` CSV ``id,dx,dy,dz`` (job units) -> (n, 3) metres aligned with ``ids``."""
+    if not path.is_file():
+        raise JobSpecError(f"{path}: deviations file not found")
+    index = {t: i for i, t in enumerate(ids)}
+    out = np.zeros((len(ids), 3))
+    with path.open(newline="") as f:
+        reader = csv.DictReader(f)
+        need = ("id", "dx", "dy", "dz")
+        if not reader.fieldnames or any(c not in reader.fieldnames for c in need):
+            raise JobSpecError(f"{path}: deviations CSV needs columns id,dx,dy,dz")
+        for lineno, row in enumerate(reader, 2):
+            if row["id"] not in index:
+                raise JobSpecError(f"{path}:{lineno}: unknown target id {row['id']!r}")
+            try:
+                d = [float(row[c]) for c in ("dx", "dy", "dz")]
+            except ValueError as exc:
+                raise JobSpecError(f"{path}:{lineno}: {exc}") from None
+            if not all(math.isfinite(v) for v in d):
+                raise JobSpecError(f"{path}:{lineno}: non-finite deviation")
+            out[index[row["id"]]] = np.asarray(d) * scale
+    return out

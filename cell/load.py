@@ -1,0 +1,99 @@
+"""LOAD: the job file, the part (mesh + targets), the camera and the cell, checked together."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from calibration.camera import Intrinsics
+from calibration.errors import JobSpecError
+from cell.jobspec import JobSpec, load_deviations, load_job, resolve
+from planning.part import Part, load_part
+
+
+@dataclass
+class LoadedJob:
+    """Everything LOAD produces, in SI units.
+
+    Attributes:
+        spec: the validated job file.
+        path: the job file.
+        folder: where its relative paths resolve.
+        part: mesh and targets (metres, part frame).
+        intrinsics: the nominal camera.
+        deviations: (n, 3) true displacement of each target for the simulated cell (metres).
+        tolerance_m: (n,) tolerance per target.
+        scale_bar: ``(index_a, index_b, length_m, sigma_m)`` or None.
+    """
+
+    spec: JobSpec
+    path: Path
+    folder: Path
+    part: Part
+    intrinsics: Intrinsics
+    deviations: np.ndarray
+    tolerance_m: np.ndarray
+    scale_bar: tuple[int, int, float, float] | None
+
+    def summary(self) -> dict:
+        s = self.spec
+        return {
+            "job": {"name": s.job.name, "file": str(self.path), "units": s.job.units, "seed": s.job.seed},
+            "part": self.part.summary(),
+            "camera": self.intrinsics.to_dict() | {"sigma_px": s.camera.sigma_px},
+            "cell": {"robot": s.cell.robot, "backend": s.cell.backend, "obstacles": len(s.cell.obstacles)},
+            "scale_bar": None
+            if self.scale_bar is None
+            else {"a": s.job.scale_bar.a, "b": s.job.scale_bar.b, "length_m": self.scale_bar[2]},
+            "sim_deviations": int((np.linalg.norm(self.deviations, axis=1) > 0).sum()),
+        }
+
+
+def load(job_path: str | Path) -> LoadedJob:
+    """Read, validate and load a job. Raises an ``InputError`` subclass with one clear line."""
+    spec, folder = load_job(job_path)
+    s = spec.scale
+    j = spec.job
+    part = load_part(
+        resolve(folder, j.mesh),
+        j.units,
+        targets_csv=resolve(folder, j.targets) if j.targets else None,
+        n_targets=j.n_targets,
+        seed=j.seed,
+        n_coded=j.n_coded,
+        name=j.name,
+        target_diameter_m=j.target_diameter * s,
+        coded_size_m=j.coded_size * s,
+    )
+    ids = part.targets.ids
+    scale_bar = None
+    if j.scale_bar is not None:
+        index = part.targets.index()
+        for key in (j.scale_bar.a, j.scale_bar.b):
+            if key not in index:
+                raise JobSpecError(f"{job_path}: job.scale_bar names target {key!r}, which the part does not have")
+        a, b = index[j.scale_bar.a], index[j.scale_bar.b]
+        nominal = float(np.linalg.norm(part.targets.xyz[a] - part.targets.xyz[b]))
+        length = j.scale_bar.length * s
+        if abs(nominal - length) > max(0.01 * length, 1e-3):
+            raise JobSpecError(
+                f"{job_path}: job.scale_bar length {j.scale_bar.length} {j.units} differs from the CAD distance "
+                f"{nominal / s:.4f} {j.units} between {j.scale_bar.a} and {j.scale_bar.b} by more than 1%"
+            )
+        scale_bar = (a, b, length, j.scale_bar.sigma * s)
+    deviations = np.zeros((len(ids), 3))
+    if spec.sim.deviations:
+        deviations = load_deviations(resolve(folder, spec.sim.deviations), ids, s)
+    tol = part.targets.tolerance_m.copy()
+    tol[~np.isfinite(tol)] = spec.report.tolerance * s
+    return LoadedJob(
+        spec=spec,
+        path=Path(job_path),
+        folder=folder,
+        part=part,
+        intrinsics=spec.intrinsics(),
+        deviations=deviations,
+        tolerance_m=tol,
+        scale_bar=scale_bar,
+    )

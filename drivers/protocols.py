@@ -1,0 +1,117 @@
+"""Capabilities of the cell's devices as small typed Protocols.
+
+The state machine in ``cell/`` sees only these; the real drivers in ``drivers/``
+and the simulation in ``sim_backend/`` both satisfy them, so the simulated and the
+real cell run the same code path. Units are SI: metres, radians, seconds.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class SafetyStatus:
+    """What the controller says about safety.
+
+    ``normal`` is True only when the robot may move: no protective stop, no
+    emergency stop, no fault, and the program/script is running.
+    """
+
+    normal: bool
+    protective_stop: bool = False
+    emergency_stop: bool = False
+    fault: bool = False
+    program_running: bool = True
+    detail: str = ""
+
+
+@dataclass(frozen=True)
+class RobotState:
+    """One reading of the robot.
+
+    Attributes:
+        joints_rad: (6,) measured joint positions.
+        base_from_flange: (4, 4) measured flange pose in the robot base frame.
+        safety: safety status at the time of the reading.
+        timestamp_s: controller time of the reading (seconds); freshness is judged by it.
+    """
+
+    joints_rad: np.ndarray
+    base_from_flange: np.ndarray
+    safety: SafetyStatus
+    timestamp_s: float
+
+
+@runtime_checkable
+class Robot(Protocol):
+    """A 6-axis arm that carries the camera."""
+
+    def connect(self) -> None:
+        """Open the connection; raises ``NotConnectedError`` if it cannot."""
+
+    def close(self) -> None:
+        """Close the connection; safe to call twice."""
+
+    def move_joints(self, joints_rad: np.ndarray, speed_rad_s: float, accel_rad_s2: float) -> RobotState:
+        """Move in joint space to ``joints_rad: (6,)`` and block until there.
+
+        Raises ``LimitError`` before sending anything if the command exceeds the cell's
+        limits, ``ProtectiveStopError`` if the controller stops, ``MotionError`` on
+        any other failure or on the driver's own deadline. Returns the state at arrival.
+        """
+
+    def move_pose(self, base_from_flange: np.ndarray, speed_m_s: float, accel_m_s2: float) -> RobotState:
+        """Move linearly to the flange pose ``base_from_flange: (4, 4)``; as :meth:`move_joints`."""
+
+    def stop(self) -> None:
+        """Decelerate and stop now. Never raises for a robot already stopped."""
+
+    def state(self) -> RobotState:
+        """The latest reading; raises ``NotConnectedError`` if it is stale."""
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One captured image and what is known about it.
+
+    Attributes:
+        image: (height, width) uint8 or uint16 grey image.
+        timestamp_s: capture time (host clock, seconds).
+        exposure_s: exposure time used.
+        meta: anything else the device reports (serial, gain, frame id).
+    """
+
+    image: np.ndarray
+    timestamp_s: float
+    exposure_s: float
+    meta: dict = field(default_factory=dict)
+
+
+@runtime_checkable
+class Camera(Protocol):
+    """An image source."""
+
+    def connect(self) -> None: ...
+
+    def close(self) -> None: ...
+
+    def capture(self) -> Frame:
+        """Take one image now (or on the next trigger); raises ``DriverError`` on failure."""
+
+
+@runtime_checkable
+class Light(Protocol):
+    """A light/strobe controller (typically on a serial line)."""
+
+    def connect(self) -> None: ...
+
+    def close(self) -> None: ...
+
+    def set_intensity(self, fraction: float) -> None:
+        """Set the light's intensity in ``[0, 1]``."""
+
+    def strobe(self, duration_s: float) -> None:
+        """Fire one flash of ``duration_s`` (and the camera trigger wired to it)."""

@@ -1,0 +1,472 @@
+"""The part to inspect: its CAD mesh and its targets, loaded and checked.
+
+trimesh loads several kinds of broken file silently (a truncated STL or random
+bytes as an *empty* mesh, a NaN vertex dropped, an OBJ face index 0 wrapped to
+the last vertex); every check here turns such a file into a ``PartError`` that
+names the file and the problem. Everything inside is in metres.
+"""
+from __future__ import annotations
+
+import csv
+import struct
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+from calibration.errors import PartError
+
+__all__ = ["UNITS_TO_M", "Targets", "Part", "load_mesh", "load_targets", "sample_targets", "load_part", "make_bracket", "mesh_health"]
+
+UNITS_TO_M = {"m": 1.0, "mm": 1e-3, "cm": 1e-2, "um": 1e-6, "in": 0.0254, "ft": 0.3048}
+
+#: Plausible overall size (bounding-box diagonal) of an inspected part, metres.
+SIZE_RANGE_M = (1e-3, 5.0)
+#: How far a target may lie from the mesh surface, as a fraction of the part's size.
+ON_SURFACE_TOL = 2e-3
+
+
+@dataclass
+class Targets:
+    """Targets on the part, in the part frame (metres).
+
+    Attributes:
+        ids: (n,) target identifiers.
+        xyz: (n, 3) float nominal centres.
+        normals: (n, 3) float unit outward normals.
+        kind: (n,) str, ``"retro"`` (retro-reflective dot) or ``"coded"`` (ArUco marker).
+        tolerance_m: (n,) float, nan where the job's default applies.
+        code: (n,) int ArUco id of coded targets, -1 for retro targets.
+    """
+
+    ids: list[str]
+    xyz: np.ndarray
+    normals: np.ndarray
+    kind: np.ndarray
+    tolerance_m: np.ndarray
+    code: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+    def index(self) -> dict[str, int]:
+        return {t: i for i, t in enumerate(self.ids)}
+
+    def subset(self, mask: np.ndarray) -> "Targets":
+        idx = np.flatnonzero(mask) if np.asarray(mask).dtype == bool else np.asarray(mask)
+        return Targets(
+            ids=[self.ids[i] for i in idx],
+            xyz=self.xyz[idx],
+            normals=self.normals[idx],
+            kind=self.kind[idx],
+            tolerance_m=self.tolerance_m[idx],
+            code=self.code[idx],
+        )
+
+
+@dataclass
+class Part:
+    """A part: mesh (metres, part frame) and targets.
+
+    Attributes:
+        name: the part's name.
+        mesh: the CAD surface.
+        targets: the targets to measure.
+        target_diameter_m: diameter of a retro-reflective dot.
+        coded_size_m: side of a coded (ArUco) marker, quiet zone excluded.
+    """
+
+    name: str
+    mesh: trimesh.Trimesh
+    targets: Targets
+    target_diameter_m: float = 0.006
+    coded_size_m: float = 0.02
+    source: str = ""
+    _sphere: tuple | None = field(default=None, repr=False)
+
+    @property
+    def centre(self) -> np.ndarray:
+        """(3,) centre of the bounding box."""
+        return self.mesh.bounds.mean(axis=0)
+
+    @property
+    def radius(self) -> float:
+        """Radius of the sphere about :attr:`centre` that holds the whole mesh."""
+        return float(np.linalg.norm(self.mesh.vertices - self.centre, axis=1).max())
+
+    def summary(self) -> dict:
+        lo, hi = self.mesh.bounds
+        kinds, counts = np.unique(self.targets.kind, return_counts=True)
+        return {
+            "name": self.name,
+            "source": self.source,
+            "targets": len(self.targets),
+            "targets_by_kind": {str(k): int(c) for k, c in zip(kinds, counts)},
+            "bbox_min_m": lo.tolist(),
+            "bbox_max_m": hi.tolist(),
+            "size_m": (hi - lo).tolist(),
+            "mesh": mesh_health(self.mesh),
+            "target_diameter_m": self.target_diameter_m,
+            "coded_size_m": self.coded_size_m,
+        }
+
+
+def mesh_health(mesh: trimesh.Trimesh) -> dict:
+    """Facts about a mesh that an engineer checks before trusting it."""
+    return {
+        "vertices": int(len(mesh.vertices)),
+        "faces": int(len(mesh.faces)),
+        "watertight": bool(mesh.is_watertight),
+        "winding_consistent": bool(mesh.is_winding_consistent),
+        "area_m2": float(mesh.area),
+        "volume_m3": float(mesh.volume) if mesh.is_watertight else None,
+        "degenerate_faces": int((mesh.area_faces <= 1e-18).sum()),
+    }
+
+
+# --- mesh -------------------------------------------------------------------
+
+
+def _check_stl_header(path: Path, data: bytes) -> None:
+    """Binary STL: the face count in the header must match the file's length."""
+    if data[:5].lower() == b"solid" and b"facet" in data[:1000]:
+        return  # ASCII STL
+    if len(data) < 84:
+        raise PartError(f"{path}: STL file is truncated ({len(data)} bytes, a binary STL needs at least 84)")
+    (n,) = struct.unpack("<I", data[80:84])
+    expected = 84 + 50 * n
+    if n == 0:
+        raise PartError(f"{path}: binary STL header says it has 0 faces")
+    if len(data) != expected:
+        raise PartError(
+            f"{path}: binary STL header says {n} faces ({expected} bytes) but the file has {len(data)} bytes: "
+            "truncated or corrupt"
+        )
+
+
+def _check_obj_indices(path: Path, text: str) -> None:
+    """OBJ: face indices are 1-based (or negative); 0 or out of range is an error."""
+    n_v = 0
+    for lineno, line in enumerate(text.splitlines(), 1):
+        if line.startswith("v "):
+            n_v += 1
+        elif line.startswith("f "):
+            for tok in line.split()[1:]:
+                head = tok.split("/")[0]
+                try:
+                    idx = int(head)
+                except ValueError:
+                    raise PartError(f"{path}:{lineno}: face index {head!r} is not an integer") from None
+                if idx == 0:
+                    raise PartError(f"{path}:{lineno}: face index 0 (OBJ indices start at 1)")
+                if idx > n_v or idx < -n_v:
+                    raise PartError(f"{path}:{lineno}: face index {idx} out of range (only {n_v} vertices so far)")
+
+
+def _check_raw_vertices(path: Path, data: bytes, suffix: str) -> None:
+    """Find non-finite vertex coordinates that trimesh would drop silently."""
+    if suffix == ".stl" and not (data[:5].lower() == b"solid" and b"facet" in data[:1000]):
+        n = struct.unpack("<I", data[80:84])[0]
+        rec = np.frombuffer(data[84 : 84 + 50 * n], dtype=np.dtype([("n", "<f4", 3), ("v", "<f4", 9), ("a", "<u2")]))
+        bad = ~np.isfinite(rec["v"]).all(axis=1)
+        if bad.any():
+            raise PartError(f"{path}: face {int(np.flatnonzero(bad)[0])} has a non-finite (NaN/inf) vertex coordinate")
+    elif suffix in (".obj", ".stl", ".ply"):
+        text = data.decode("latin-1")
+        for lineno, line in enumerate(text.splitlines(), 1):
+            s = line.strip().lower()
+            if s.startswith(("v ", "vertex ")) and ("nan" in s or "inf" in s):
+                raise PartError(f"{path}:{lineno}: non-finite (NaN/inf) vertex coordinate")
+
+
+def load_mesh(path: str | Path, units: str) -> trimesh.Trimesh:
+    """Load a CAD mesh (STL, OBJ, PLY, GLB), check it, and scale it to metres.
+
+    Raises:
+        PartError: the file is missing, unreadable, empty, has non-finite vertices,
+            bad face indices, or a size that is absurd for the stated ``units``.
+    """
+    path = Path(path)
+    if units not in UNITS_TO_M:
+        raise PartError(f"{path}: unknown units {units!r} (use one of {', '.join(UNITS_TO_M)})")
+    if not path.is_file():
+        raise PartError(f"{path}: mesh file not found")
+    suffix = path.suffix.lower()
+    if suffix not in (".stl", ".obj", ".ply", ".glb", ".gltf", ".off"):
+        raise PartError(f"{path}: unsupported mesh format {suffix!r} (use STL, OBJ, PLY or GLB)")
+    data = path.read_bytes()
+    if not data:
+        raise PartError(f"{path}: file is empty")
+    if suffix == ".stl":
+        _check_stl_header(path, data)
+    if suffix == ".obj":
+        _check_obj_indices(path, data.decode("latin-1"))
+    _check_raw_vertices(path, data, suffix)
+    try:
+        loaded = trimesh.load(str(path), force="mesh", process=False)
+    except Exception as exc:  # trimesh raises many types on corrupt files
+        raise PartError(f"{path}: cannot read mesh ({type(exc).__name__}: {exc})") from None
+    if not isinstance(loaded, trimesh.Trimesh):
+        raise PartError(f"{path}: file holds no triangle mesh")
+    mesh = loaded
+    if len(mesh.faces) == 0 or len(mesh.vertices) == 0:
+        raise PartError(f"{path}: mesh is empty (no faces): the file is corrupt or not a mesh")
+    if not np.isfinite(mesh.vertices).all():
+        raise PartError(f"{path}: mesh has non-finite (NaN/inf) vertex coordinates")
+    if mesh.faces.max() >= len(mesh.vertices) or mesh.faces.min() < 0:
+        raise PartError(f"{path}: face indices out of range")
+    mesh = trimesh.Trimesh(vertices=mesh.vertices * UNITS_TO_M[units], faces=mesh.faces, process=True)
+    if len(mesh.faces) == 0 or mesh.area <= 0:
+        raise PartError(f"{path}: mesh has no area (all faces degenerate)")
+    diag = float(np.linalg.norm(mesh.extents))
+    lo, hi = SIZE_RANGE_M
+    if not lo <= diag <= hi:
+        raise PartError(
+            f"{path}: part is {diag:.4g} m across with units={units!r}, outside {lo}..{hi} m: are the units right?"
+        )
+    return mesh
+
+
+# --- targets ------------------------------------------------------------------
+
+_REQUIRED = ("id", "x", "y", "z", "nx", "ny", "nz")
+
+
+def load_targets(path: str | Path, units: str) -> Targets:
+    """Read ``id,x,y,z,nx,ny,nz[,kind][,tolerance][,code]`` (lengths in ``units``)."""
+    path = Path(path)
+    if not path.is_file():
+        raise PartError(f"{path}: targets file not found")
+    scale = UNITS_TO_M[units]
+    with path.open(newline="") as f:
+        reader = csv.DictReader(f)
+        cols = [c.strip() for c in (reader.fieldnames or [])]
+        missing = [c for c in _REQUIRED if c not in cols]
+        if missing:
+            raise PartError(f"{path}: targets CSV lacks column(s) {', '.join(missing)} (needs id,x,y,z,nx,ny,nz)")
+        ids, xyz, nrm, kind, tol, code = [], [], [], [], [], []
+        for lineno, row in enumerate(reader, 2):
+            row = {k.strip(): (v or "").strip() for k, v in row.items() if k is not None}
+            try:
+                p = [float(row[c]) for c in ("x", "y", "z")]
+                n = [float(row[c]) for c in ("nx", "ny", "nz")]
+                t = float(row["tolerance"]) * scale if row.get("tolerance") else np.nan
+                c = int(row["code"]) if row.get("code") else -1
+            except ValueError as exc:
+                raise PartError(f"{path}:{lineno}: {exc}") from None
+            if not np.isfinite(p + n).all():
+                raise PartError(f"{path}:{lineno}: non-finite coordinate or normal")
+            k = row.get("kind") or ("coded" if c >= 0 else "retro")
+            if k not in ("retro", "coded"):
+                raise PartError(f"{path}:{lineno}: kind {k!r} is neither 'retro' nor 'coded'")
+            if k == "coded" and c < 0:
+                raise PartError(f"{path}:{lineno}: coded target {row['id']!r} needs a 'code' (ArUco id)")
+            ids.append(row["id"])
+            xyz.append(p)
+            nrm.append(n)
+            kind.append(k)
+            tol.append(t)
+            code.append(c)
+    if not ids:
+        raise PartError(f"{path}: no targets")
+    nrm_a = np.array(nrm, dtype=float)
+    lengths = np.linalg.norm(nrm_a, axis=1)
+    if (lengths < 1e-9).any():
+        raise PartError(f"{path}: target {ids[int(np.argmin(lengths))]!r} has a zero normal")
+    return Targets(
+        ids=ids,
+        xyz=np.array(xyz, dtype=float) * scale,
+        normals=nrm_a / lengths[:, None],
+        kind=np.array(kind),
+        tolerance_m=np.array(tol, dtype=float),
+        code=np.array(code, dtype=int),
+    )
+
+
+def check_targets(mesh: trimesh.Trimesh, targets: Targets, source: str = "targets") -> None:
+    """Duplicate ids, targets off the surface, normals pointing into the part -> ``PartError``."""
+    seen: dict[str, int] = {}
+    for i, t in enumerate(targets.ids):
+        if t in seen:
+            raise PartError(f"{source}: duplicate target id {t!r}")
+        seen[t] = i
+    codes = targets.code[targets.code >= 0]
+    if len(np.unique(codes)) != len(codes):
+        raise PartError(f"{source}: two coded targets share the same ArUco code")
+    closest, dist, tri = trimesh.proximity.closest_point(mesh, targets.xyz)
+    tol = ON_SURFACE_TOL * float(np.linalg.norm(mesh.extents))
+    off = np.flatnonzero(dist > tol)
+    if len(off):
+        i = int(off[np.argmax(dist[off])])
+        raise PartError(
+            f"{source}: {len(off)} target(s) are off the part's surface, e.g. {targets.ids[i]!r} "
+            f"{dist[i] * 1e3:.2f} mm away (tolerance {tol * 1e3:.2f} mm): wrong units or wrong file?"
+        )
+    face_n = mesh.face_normals[tri]
+    inward = np.flatnonzero(np.einsum("ij,ij->i", face_n, targets.normals) < -0.5)
+    if len(inward):
+        raise PartError(
+            f"{source}: {len(inward)} target normal(s) point into the part, e.g. {targets.ids[int(inward[0])]!r}"
+        )
+
+
+def sample_targets(
+    mesh: trimesh.Trimesh,
+    n: int,
+    rng: np.random.Generator,
+    *,
+    n_coded: int = 0,
+    min_spacing_m: float | None = None,
+    edge_clearance_m: float = 0.0,
+    min_normal_z: float | None = None,
+) -> Targets:
+    """Sample ``n`` targets on the surface, well spread (Poisson-disc like).
+
+    Faces are drawn by area; candidates closer than ``min_spacing_m`` to an earlier
+    target are rejected. The first ``n_coded`` targets (spread out) are coded, with
+    ArUco ids 0..n_coded-1. Faces whose normal's z is below ``min_normal_z`` (e.g.
+    the face the part stands on) get no targets. Deterministic for a given ``rng``.
+    """
+    if n <= 0:
+        raise PartError(f"cannot sample {n} targets")
+    if min_spacing_m is None:
+        min_spacing_m = 0.6 * np.sqrt(mesh.area / n)
+    n_cand = max(20 * n, 2000)
+    area = mesh.area_faces.copy()
+    if min_normal_z is not None:
+        area[mesh.face_normals[:, 2] < min_normal_z] = 0.0
+    area /= area.sum()
+    faces = rng.choice(len(mesh.faces), size=n_cand, p=area)
+    r = rng.random((n_cand, 2))
+    flip = r.sum(axis=1) > 1
+    r[flip] = 1 - r[flip]
+    tri = mesh.triangles[faces]
+    pts = tri[:, 0] + r[:, :1] * (tri[:, 1] - tri[:, 0]) + r[:, 1:] * (tri[:, 2] - tri[:, 0])
+    nrm = mesh.face_normals[faces]
+    if edge_clearance_m > 0:
+        # keep away from the face's edges so a dot lies flat on one facet
+        keep = _facet_clearance(mesh, pts, faces) >= edge_clearance_m
+        pts, nrm = pts[keep], nrm[keep]
+    chosen: list[int] = []
+    for spacing in (min_spacing_m, 0.7 * min_spacing_m, 0.5 * min_spacing_m, 0.0):
+        chosen = []
+        tree_pts: list[np.ndarray] = []
+        for i in range(len(pts)):
+            if len(chosen) >= n:
+                break
+            if spacing > 0 and tree_pts:
+                d = np.linalg.norm(np.asarray(tree_pts) - pts[i], axis=1).min()
+                if d < spacing:
+                    continue
+            chosen.append(i)
+            tree_pts.append(pts[i])
+        if len(chosen) >= n:
+            break
+    if len(chosen) < n:
+        raise PartError(f"could not place {n} targets on the surface")
+    sel = np.array(chosen)
+    xyz, normals = pts[sel], nrm[sel]
+    # coded targets: farthest-point spread among the samples
+    coded_idx: list[int] = []
+    if n_coded:
+        coded_idx = [0]
+        d = np.linalg.norm(xyz - xyz[0], axis=1)
+        for _ in range(1, n_coded):
+            j = int(np.argmax(d))
+            coded_idx.append(j)
+            d = np.minimum(d, np.linalg.norm(xyz - xyz[j], axis=1))
+    kind = np.full(n, "retro", dtype=object)
+    code = np.full(n, -1, dtype=int)
+    for c, j in enumerate(coded_idx):
+        kind[j] = "coded"
+        code[j] = c
+    ids = [f"C{code[i]}" if kind[i] == "coded" else f"T{i:04d}" for i in range(n)]
+    return Targets(ids=ids, xyz=xyz, normals=normals, kind=kind.astype(str), tolerance_m=np.full(n, np.nan), code=code)
+
+
+def _facet_clearance(mesh: trimesh.Trimesh, pts: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Distance from each point to the boundary of the planar facet holding its face."""
+    face_to_facet = np.full(len(mesh.faces), -1)
+    for k, f in enumerate(mesh.facets):
+        face_to_facet[f] = k
+    out = np.full(len(pts), np.inf)
+    boundaries = mesh.facets_boundary
+    for i, (p, f) in enumerate(zip(pts, faces)):
+        k = face_to_facet[f]
+        if k < 0:
+            edges = np.array([[0, 1], [1, 2], [2, 0]])
+            seg = mesh.vertices[mesh.faces[f]][edges]
+        else:
+            seg = mesh.vertices[boundaries[k]]
+        a, b = seg[:, 0], seg[:, 1]
+        ab = b - a
+        t = np.clip(np.einsum("ij,ij->i", p - a, ab) / np.maximum(np.einsum("ij,ij->i", ab, ab), 1e-30), 0, 1)
+        out[i] = np.linalg.norm(a + t[:, None] * ab - p, axis=1).min()
+    return out
+
+
+def load_part(
+    mesh_path: str | Path,
+    units: str,
+    targets_csv: str | Path | None = None,
+    n_targets: int | None = None,
+    seed: int = 0,
+    n_coded: int = 0,
+    *,
+    name: str | None = None,
+    target_diameter_m: float = 0.006,
+    coded_size_m: float = 0.02,
+) -> Part:
+    """Load and check a part: mesh plus targets (from a CSV, or ``n_targets`` sampled with ``seed``)."""
+    mesh = load_mesh(mesh_path, units)
+    if targets_csv is not None:
+        targets = load_targets(targets_csv, units)
+        source = str(targets_csv)
+    elif n_targets:
+        clearance = max(target_diameter_m, coded_size_m * 0.75 if n_coded else 0.0)
+        targets = sample_targets(
+            mesh, int(n_targets), np.random.default_rng(seed), n_coded=n_coded, edge_clearance_m=clearance
+        )
+        source = f"{n_targets} targets sampled with seed {seed}"
+    else:
+        raise PartError(f"{mesh_path}: give a targets file or a number of targets to sample")
+    check_targets(mesh, targets, source)
+    return Part(
+        name=name or Path(mesh_path).stem,
+        mesh=mesh,
+        targets=targets,
+        target_diameter_m=target_diameter_m,
+        coded_size_m=coded_size_m,
+        source=str(mesh_path),
+    )
+
+
+def make_bracket() -> trimesh.Trimesh:
+    """The example part, in metres: an L-bracket with a pocket and a rib (self-occluding).
+
+    Base plate 0.30 x 0.20 x 0.03 m with a 0.12 x 0.08 x 0.02 m pocket, an upright
+    wall 0.30 x 0.03 x 0.15 m along the back edge, and a triangular rib between them.
+    The part frame's origin is at the centre of the base plate's bottom face.
+    """
+    from trimesh import creation
+
+    base = creation.box(extents=(0.30, 0.20, 0.03))
+    base.apply_translation((0, 0, 0.015))
+    pocket = creation.box(extents=(0.12, 0.08, 0.021))
+    pocket.apply_translation((0.05, -0.02, 0.03 - 0.01 + 0.0005))
+    wall = creation.box(extents=(0.30, 0.03, 0.15))
+    wall.apply_translation((0, 0.085, 0.03 + 0.075))
+    rib = trimesh.Trimesh(
+        vertices=np.array(
+            [[-0.01, 0.07, 0.03], [-0.01, -0.04, 0.03], [-0.01, 0.07, 0.16],
+             [0.01, 0.07, 0.03], [0.01, -0.04, 0.03], [0.01, 0.07, 0.16]]
+        ),
+        faces=np.array([[0, 2, 1], [3, 4, 5], [0, 1, 4], [0, 4, 3], [1, 2, 5], [1, 5, 4], [0, 3, 5], [0, 5, 2]]),
+    )
+    rib.apply_translation((-0.09, 0, 0))
+    # manifold3d does the booleans: a watertight solid with no internal faces
+    solid = trimesh.boolean.union([base, wall, rib], engine="manifold", check_volume=False)
+    solid = trimesh.boolean.difference([solid, pocket], engine="manifold", check_volume=False)
+    solid.merge_vertices()
+    return solid

@@ -1,0 +1,191 @@
+"""The one simulated world of the sim cell.
+
+The world holds the *true* state of the simulated cell: the part as it really is
+(CAD targets plus their true deviations), where it really sits (``true_base_from_part``),
+the camera's true mounting on the flange (``true_flange_from_cam``), and the robot's
+current joints and flange pose. :class:`~sim_backend.sim_robot.SimRobot` writes the
+robot's pose into it; :class:`~sim_backend.sim_camera.SimCamera` renders from it.
+
+"True" and "nominal" are kept apart: the job states a nominal ``base_from_part`` and
+``flange_from_cam``; the world may differ from them (to test hand-eye calibration and
+part placement). Only the world's *true* values reach the renderer.
+
+Conventions fixed here (the measurement code must follow them, see ``marker_axes``):
+
+* A target is a flat disc (retro-reflective) or a square ArUco marker (coded) centred on
+  its point, lying in the plane through the point perpendicular to its outward normal.
+* In-plane axes of a target: ``e1`` is the part's +x axis projected onto the plane (the
+  part's +y if the normal is within ~8 degrees of x), ``e2 = -n x e1``. Seen from the front
+  (looking against ``n``), ``e1`` points to the right of the marker image and ``e2`` down,
+  so a marker is not mirrored; its corners, in OpenCV ArUco order (top-left, top-right,
+  bottom-right, bottom-left of the marker image), are ``c + (-a, -a), (a, -a), (a, a),
+  (-a, a)`` in ``(e1, e2)`` with ``a = coded_size_m / 2`` (the outer edge of the black
+  border). The marker's centre (the target point) is the intersection of its diagonals.
+"""
+from __future__ import annotations
+
+import threading
+from typing import Any
+
+import numpy as np
+
+from calibration.camera import Intrinsics, invert
+from calibration.errors import InputError
+
+__all__ = ["World", "marker_axes", "marker_corners"]
+
+
+def marker_axes(normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """In-plane axes ``(e1, e2)`` of targets with unit ``normals: (n, 3)``; each (n, 3).
+
+    ``e1`` = part +x projected onto the target plane (part +y when the normal is almost
+    parallel to x); ``e2 = -n x e1``, so that ``(e1, e2, -n)`` is right-handed.
+    """
+    n = np.asarray(normals, dtype=float).reshape(-1, 3)
+    ref = np.where((np.abs(n[:, 0]) > 0.99)[:, None], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0])
+    e1 = ref - np.sum(ref * n, axis=1, keepdims=True) * n
+    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+    e2 = np.cross(-n, e1)
+    return e1, e2
+
+
+def marker_corners(centres: np.ndarray, normals: np.ndarray, side_m: float) -> np.ndarray:
+    """Corners of square markers of side ``side_m``, ArUco order (TL, TR, BR, BL), (n, 4, 3)."""
+    c = np.asarray(centres, dtype=float).reshape(-1, 3)
+    e1, e2 = marker_axes(normals)
+    a = side_m / 2.0
+    signs = np.array([[-1.0, -1.0], [1.0, -1.0], [1.0, 1.0], [-1.0, 1.0]])
+    return c[:, None, :] + a * (signs[None, :, 0, None] * e1[:, None, :] + signs[None, :, 1, None] * e2[:, None, :])
+
+
+def _check_pose(T: Any, name: str) -> np.ndarray:
+    T = np.asarray(T, dtype=float)
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        raise InputError(f"{name} must be a finite 4x4 transform, got shape {T.shape}")
+    R = T[:3, :3]
+    if np.max(np.abs(R.T @ R - np.eye(3))) > 1e-6 or np.linalg.det(R) < 0:
+        raise InputError(f"{name} is not a rigid transform (rotation part not orthonormal)")
+    return T.copy()
+
+
+class World:
+    """The true state of the simulated cell.
+
+    Args:
+        part: a ``planning.part.Part`` (``mesh`` in metres, ``targets`` with ``xyz``,
+            ``normals``, ``kind``, ``code``, ``ids``; ``target_diameter_m``, ``coded_size_m``).
+        base_from_part: (4, 4) nominal placement of the part, as the job states it.
+        flange_from_cam: (4, 4) nominal hand-eye transform, as the job states it.
+        intrinsics: the camera's true interior orientation (the renderer uses it).
+        deviations: (n, 3) metres, true displacement of each target from CAD (part frame);
+            zeros by default.
+        true_base_from_part, true_flange_from_cam: (4, 4) the real values; default to the
+            nominal ones.
+        seed: seed of the world's random streams (each device takes its own child stream).
+    """
+
+    def __init__(
+        self,
+        part: Any,
+        base_from_part: np.ndarray,
+        flange_from_cam: np.ndarray,
+        intrinsics: Intrinsics,
+        deviations: np.ndarray | None = None,
+        *,
+        true_base_from_part: np.ndarray | None = None,
+        true_flange_from_cam: np.ndarray | None = None,
+        seed: int = 0,
+    ) -> None:
+        self.part = part
+        n = len(part.targets.xyz)
+        self.base_from_part = _check_pose(base_from_part, "base_from_part")
+        self.flange_from_cam = _check_pose(flange_from_cam, "flange_from_cam")
+        self.true_base_from_part = _check_pose(
+            self.base_from_part if true_base_from_part is None else true_base_from_part, "true_base_from_part"
+        )
+        self.true_flange_from_cam = _check_pose(
+            self.flange_from_cam if true_flange_from_cam is None else true_flange_from_cam, "true_flange_from_cam"
+        )
+        self.intrinsics = intrinsics
+        if deviations is None:
+            deviations = np.zeros((n, 3))
+        deviations = np.asarray(deviations, dtype=float)
+        if deviations.shape != (n, 3) or not np.all(np.isfinite(deviations)):
+            raise InputError(
+                f"deviations must be a finite ({n}, 3) array in metres (one row per target), got {deviations.shape}"
+            )
+        self.deviations = deviations
+        self._seeds = np.random.SeedSequence(seed)
+        self.lock = threading.RLock()
+        self.joints_rad = np.zeros(6)
+        self.base_from_flange = np.eye(4)
+        self.light_fraction = 1.0  # illumination of the strobe, [0, 1]; a sim light may set it
+        self._intersector = None
+
+    # --- the part as it really is -----------------------------------------
+    @property
+    def true_xyz(self) -> np.ndarray:
+        """(n, 3) true target positions in the part frame: CAD + deviations."""
+        return np.asarray(self.part.targets.xyz, dtype=float) + self.deviations
+
+    @property
+    def normals(self) -> np.ndarray:
+        """(n, 3) unit target normals in the part frame (the CAD ones)."""
+        return np.asarray(self.part.targets.normals, dtype=float)
+
+    def true_marker_corners(self) -> np.ndarray:
+        """(n, 4, 3) true corners of every target's marker square (meaningful for coded ones)."""
+        return marker_corners(self.true_xyz, self.normals, float(self.part.coded_size_m))
+
+    def spawn_rng(self) -> np.random.Generator:
+        """A fresh independent random stream derived from the world's seed."""
+        return np.random.default_rng(self._seeds.spawn(1)[0])
+
+    # --- robot state ----------------------------------------------------------
+    def set_robot(self, joints_rad: np.ndarray, base_from_flange: np.ndarray) -> None:
+        """Written by the robot: its actual joints (6,) and flange pose (4, 4)."""
+        with self.lock:
+            self.joints_rad = np.array(joints_rad, dtype=float)
+            self.base_from_flange = np.array(base_from_flange, dtype=float)
+
+    def true_part_from_cam(self) -> np.ndarray:
+        """(4, 4) where the camera really is, in the part frame, at the current robot pose."""
+        with self.lock:
+            base_from_flange = self.base_from_flange.copy()
+        return invert(self.true_base_from_part) @ base_from_flange @ self.true_flange_from_cam
+
+    # --- ray casting ------------------------------------------------------------
+    @property
+    def intersector(self):
+        """Ray-mesh intersector of the part (Embree when available, else trimesh's NumPy one)."""
+        if self._intersector is None:
+            try:
+                from trimesh.ray.ray_pyembree import RayMeshIntersector
+            except ImportError:  # pragma: no cover - embreex is a dependency
+                from trimesh.ray.ray_triangle import RayMeshIntersector
+            self._intersector = RayMeshIntersector(self.part.mesh)
+        return self._intersector
+
+    def first_hit(self, origins: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """First intersection of rays with the part's mesh.
+
+        Args:
+            origins: (m, 3) or (3,) ray origins, part frame.
+            directions: (m, 3) ray directions (need not be unit).
+        Returns:
+            distance: (m,) distance along the unit ray to the first hit (``inf`` if none).
+            tri: (m,) index of the hit triangle (-1 if none).
+        """
+        d = np.asarray(directions, dtype=float).reshape(-1, 3)
+        d = d / np.linalg.norm(d, axis=1, keepdims=True)
+        o = np.broadcast_to(np.asarray(origins, dtype=float), d.shape)
+        dist = np.full(len(d), np.inf)
+        tri = np.full(len(d), -1, dtype=np.int64)
+        if len(d) == 0:
+            return dist, tri
+        loc, idx_ray, idx_tri = self.intersector.intersects_location(o, d, multiple_hits=False)
+        if len(idx_ray):
+            dd = np.einsum("ij,ij->i", loc - o[idx_ray], d[idx_ray])
+            dist[idx_ray] = dd
+            tri[idx_ray] = idx_tri
+        return dist, tri

@@ -1,0 +1,115 @@
+"""Job files: validated, unknown keys forbidden, units converted; the CLI says what and where in one line."""
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from calibration.errors import JobSpecError
+from cell.jobspec import load_job
+from cell.load import load
+
+EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "bracket"
+
+
+@pytest.fixture()
+def job_dir(tmp_path):
+    for f in EXAMPLE.iterdir():
+        if f.is_file():
+            shutil.copy(f, tmp_path / f.name)
+    return tmp_path
+
+
+def _edit(job_dir, old, new):
+    p = job_dir / "job.toml"
+    text = p.read_text()
+    assert old in text
+    p.write_text(text.replace(old, new, 1))
+    return p
+
+
+def test_example_job_loads_in_si_units():
+    job = load(EXAMPLE / "job.toml")
+    assert job.spec.scale == 1e-3
+    np.testing.assert_allclose(job.spec.base_from_part()[:3, 3], [0.7, 0.0, 0.0])
+    assert job.intrinsics.fx_px == pytest.approx(8e-3 / 3.45e-6)
+    assert job.part.target_diameter_m == pytest.approx(0.005)
+    assert 100 <= len(job.part.targets) <= 300
+    assert np.count_nonzero(np.linalg.norm(job.deviations, axis=1)) == 6
+    assert job.tolerance_m.min() == pytest.approx(5e-5)
+    assert job.scale_bar is not None and job.scale_bar[2] == pytest.approx(0.3178836)
+
+
+@pytest.mark.parametrize("old,new,message", [
+    ('seed = 7', 'seed = 7\ncolour = "red"', "unknown key 'job.colour'"),
+    ('name = "bracket"\n', '', "missing required key 'job.name'"),
+    ('width = 2448', 'width = "wide"', "'camera.width' = 'wide'"),
+    ('units = "mm"', 'units = "furlong"', "'job.units' = 'furlong'"),
+    ('far = 700.0', 'far = 100.0', "camera.far must be greater"),
+    ('targets = "targets.csv"', 'targets = "targets.csv"\nn_targets = 5', "exactly one of 'targets'"),
+])
+def test_bad_job_file_is_one_line_naming_the_key(job_dir, old, new, message):
+    p = _edit(job_dir, old, new)
+    with pytest.raises(JobSpecError) as e:
+        load_job(p)
+    assert message in str(e.value) and str(p) in str(e.value) and "\n" not in str(e.value)
+
+
+def test_not_toml(job_dir):
+    p = job_dir / "job.toml"
+    p.write_text("[job\nname=")
+    with pytest.raises(JobSpecError, match="not valid TOML"):
+        load_job(p)
+
+
+def test_scale_bar_naming_an_unknown_target(job_dir):
+    p = _edit(job_dir, 'a = "C0"', 'a = "C99"')
+    with pytest.raises(JobSpecError, match="C99"):
+        load(p)
+
+
+def _cli(*args, cwd=None):
+    env = dict(os.environ, PYTHONPATH=str(EXAMPLE.parents[1]))
+    return subprocess.run([sys.executable, "-m", "cell.cli", *map(str, args)], capture_output=True, text=True,
+                          cwd=cwd, env=env, timeout=120)
+
+
+def test_cli_check_prints_summary_and_json():
+    r = _cli("check", EXAMPLE / "job.toml", "--json")
+    assert r.returncode == 0, r.stderr
+    doc = json.loads(r.stdout)
+    assert doc["part"]["targets"] == 200 and doc["part"]["mesh"]["watertight"] is True
+    assert "check  OK" in r.stderr
+
+
+@pytest.mark.parametrize("case", ["unknown_key", "missing_mesh", "truncated_stl", "targets_missing_column",
+                                  "furlong"])
+def test_cli_bad_input_exits_2_with_one_line_and_no_traceback(job_dir, case):
+    if case == "unknown_key":
+        _edit(job_dir, "[camera]", "[camera]\nzoom = 2")
+    elif case == "missing_mesh":
+        (job_dir / "bracket.stl").unlink()
+    elif case == "truncated_stl":
+        data = (job_dir / "bracket.stl").read_bytes()
+        (job_dir / "bracket.stl").write_bytes(data[:200])
+    elif case == "targets_missing_column":
+        lines = (job_dir / "targets.csv").read_text().splitlines()
+        (job_dir / "targets.csv").write_text("\n".join(",".join(l.split(",")[:6]) for l in lines) + "\n")
+    elif case == "furlong":
+        _edit(job_dir, 'units = "mm"', 'units = "furlong"')
+    r = _cli("check", job_dir / "job.toml")
+    assert r.returncode == 2
+    lines = [l for l in r.stderr.splitlines() if l.strip()]
+    assert len(lines) == 1 and lines[0].startswith("cell: error: "), r.stderr
+    assert "Traceback" not in r.stderr
+    files_before = sorted(p.name for p in job_dir.iterdir())
+    assert files_before == sorted(p.name for p in job_dir.iterdir())
+
+
+def test_cli_usage_error_exits_2():
+    r = _cli("frobnicate")
+    assert r.returncode == 2
