@@ -50,9 +50,17 @@ class LoadedJob:
         }
 
 
-def load(job_path: str | Path) -> LoadedJob:
-    """Read, validate and load a job. Raises an ``InputError`` subclass with one clear line."""
+def load(job_path: str | Path, overrides: dict[str, str] | None = None) -> LoadedJob:
+    """Read, validate and load a job. Raises an ``InputError`` subclass with one clear line.
+
+    ``overrides`` maps ``"section.key"`` to a replacement file path (an archived job
+    points its mesh, targets and deviations at its own copies).
+    """
     spec, folder = load_job(job_path)
+    for key, value in (overrides or {}).items():
+        section, name = key.split(".")
+        sub = getattr(spec, section).model_copy(update={name: value})
+        spec = spec.model_copy(update={section: sub})
     s = spec.scale
     j = spec.job
     part = load_part(

@@ -74,9 +74,10 @@ def target_information(
     m, n = len(T), len(xyz)
     if visible.shape != (m, n):
         raise PlanningError(f"target_information: visible has shape {visible.shape}, expected ({m}, {n})")
-    w = 1.0 / np.broadcast_to(np.asarray(sigma_px, dtype=float), (n,)) ** 2
-    if not np.all(np.isfinite(w)) or np.any(w <= 0):
-        raise PlanningError("target_information: sigma_px must be positive and finite")
+    sig = np.broadcast_to(np.asarray(sigma_px, dtype=float), (n,))
+    if not np.all(np.isfinite(sig)) or np.any(sig <= 0):
+        raise PlanningError(f"target_information: sigma_px must be positive and finite, got {sigma_px!r}")
+    w = 1.0 / sig**2
     cam_from_part = invert(T)
     out = np.zeros((m, n, 6), dtype=dtype)
     for i in range(m):

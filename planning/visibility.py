@@ -27,6 +27,7 @@ import hashlib
 import json
 import os
 import tempfile
+import zipfile
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -167,6 +168,8 @@ class Occluder:
         _, index_ray, locations = self._numpy.intersects_id(
             starts, d, multiple_hits=True, return_locations=True
         )
+        locations = np.asarray(locations, dtype=float).reshape(-1, 3)
+        index_ray = np.asarray(index_ray, dtype=np.intp)
         t = np.einsum("ij,ij->i", locations - starts[index_ray], d[index_ray])
         eps = 1e-9 * max(1.0, float(self.mesh.scale))
         inside = (t > eps) & (t < length[index_ray] - eps)
@@ -363,14 +366,15 @@ class VisibilityDB:
         n = len(part.targets.xyz)
         if path.is_file():
             try:
-                with np.load(path, allow_pickle=False) as z:
-                    ok = str(z["key"]) == key and z["visible"].shape == (len(genes), n)
-                    if ok:
-                        if progress is not None:
-                            progress("visibility (cached)", 1.0)
-                        return cls(genes=genes, part_from_cam=sphere.poses(genes), visible=z["visible"].astype(bool),
-                                   key=key, sphere=sphere, options=options, from_cache=True)
-            except (OSError, ValueError, KeyError, EOFError):
+                with open(path, "rb") as fh, np.load(fh, allow_pickle=False) as z:
+                    visible = z["visible"].astype(bool)
+                    ok = str(z["key"]) == key and visible.shape == (len(genes), n)
+                if ok:
+                    if progress is not None:
+                        progress("visibility (cached)", 1.0)
+                    return cls(genes=genes, part_from_cam=sphere.poses(genes), visible=visible,
+                               key=key, sphere=sphere, options=options, from_cache=True)
+            except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
                 pass  # damaged: rebuild below
         T = sphere.poses(genes)
         visible = compute_visibility(part, intr, T, options, backend=backend, progress=progress)

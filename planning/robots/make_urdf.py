@@ -144,7 +144,7 @@ def _rpy_z_to(direction: np.ndarray) -> tuple[float, float, float]:
 
 
 def _f(x: float) -> str:
-    return f"{x:.10g}"
+    return repr(float(x)) if x != 0 else "0"
 
 
 def urdf_text(p: URParams) -> str:

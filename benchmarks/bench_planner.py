@@ -1,0 +1,184 @@
+"""Benchmark of the network planner on the example part (the bracket).
+
+For 8, 16 and 29 stations it compares the planned network's worst-target sigma with
+(i) the best single-ring or two-ring convergent network of the same size found by
+sweeping elevation(s) and radius, and (ii) random networks; and it times planning
+29 stations x ~1000 targets with the visibility database built from scratch.
+
+Every network (planned, ring, random) is scored the same way: fresh ray casting at its
+poses, float64 limiting error propagation (``covariance_for_network``), sigma =
+sqrt(trace(cov)), worst over the targets that *some* network of valid candidates can
+measure with ``min_rays`` rays (the planner's measurable set).  A ring or random network
+that measures a target with fewer than ``min_rays`` rays is infeasible; for those the
+worst sigma over the targets with at least 2 rays is also reported (a lenient figure).
+
+    .venv/bin/python benchmarks/bench_planner.py [--quick] [--json out.json]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from calibration.camera import Intrinsics  # noqa: E402
+from planning.part import Part, make_bracket, sample_targets  # noqa: E402
+from planning.planner import PlannerOptions, plan_network  # noqa: E402
+from planning.stations import N_GENES, ViewingSphere  # noqa: E402
+from planning.uncertainty import covariance_for_network  # noqa: E402
+from planning.visibility import VisibilityOptions, compute_visibility  # noqa: E402
+
+
+def example_part(n_targets: int = 1000, seed: int = 0) -> Part:
+    """The bracket with ``n_targets`` targets on its non-downward faces (it sits on them)."""
+    mesh = make_bracket()
+    targets = sample_targets(mesh, n_targets, np.random.default_rng(seed), edge_clearance_m=0.006, min_normal_z=-0.1)
+    return Part("bracket", mesh, targets)
+
+
+def example_camera() -> Intrinsics:
+    """5 MP industrial camera, 3.45 um pixels, 12 mm lens."""
+    return Intrinsics.from_focal_length(0.012, 3.45e-6, 2448, 2048)
+
+
+def score(part, intr, genes, sphere, vis_opts, sigma_px, min_rays, cols) -> dict:
+    """Exact worst-target sigma of the network ``genes: (k, N_GENES)`` over targets ``cols``."""
+    T = sphere.poses(genes)
+    vis = compute_visibility(part, intr, T, vis_opts)
+    cov, n_rays = covariance_for_network(intr, T, part.targets.xyz, vis, sigma_px, min_rays=2)
+    sig = np.sqrt(np.trace(cov, axis1=1, axis2=2))[cols]
+    nr = n_rays[cols]
+    feasible = bool(np.all(nr >= min_rays) and np.all(np.isfinite(sig)))
+    finite = np.isfinite(sig)
+    return {
+        "worst_m": float(np.max(sig)) if feasible else float("inf"),
+        "worst_lenient_m": float(np.max(sig[finite])) if finite.any() else float("inf"),
+        "feasible": feasible,
+        "min_rays_seen": int(nr.min()),
+    }
+
+
+def ring_genes(k: int, elevations: list[float], distance: float, phase: float = 0.0) -> np.ndarray:
+    """``k`` stations on rings (split as evenly as possible) at ``elevations``, looking at the centre."""
+    counts = [k // len(elevations) + (1 if i < k % len(elevations) else 0) for i in range(len(elevations))]
+    rows = []
+    for r, (el, c) in enumerate(zip(elevations, counts)):
+        az = phase + (r * np.pi / c if len(elevations) > 1 else 0.0) + 2 * np.pi * np.arange(c) / c
+        az = np.mod(az + np.pi, 2 * np.pi) - np.pi
+        g = np.zeros((c, N_GENES))
+        g[:, 0], g[:, 1], g[:, 2] = az, el, distance
+        rows.append(g)
+    return np.vstack(rows)
+
+
+def best_ring(part, intr, k, sphere, vis_opts, sigma_px, min_rays, cols, quick=False) -> dict:
+    els = np.deg2rad(np.arange(10, 86, 15 if quick else 5))
+    dists = np.linspace(sphere.distance_min_m, sphere.distance_max_m, 3 if quick else 5)
+    best = {"worst_m": np.inf, "worst_lenient_m": np.inf}
+    n = 0
+    for d in dists:
+        configs = [[e] for e in els] + [[e1, e2] for i, e1 in enumerate(els) for e2 in els[i + 1:]]
+        for elevs in configs:
+            s = score(part, intr, ring_genes(k, list(elevs), d), sphere, vis_opts, sigma_px, min_rays, cols)
+            n += 1
+            if s["worst_m"] < best["worst_m"]:
+                best.update(worst_m=s["worst_m"], elevations_deg=np.rad2deg(elevs).round(1).tolist(), distance_m=float(d))
+            if s["worst_lenient_m"] < best["worst_lenient_m"]:
+                best.update(worst_lenient_m=s["worst_lenient_m"],
+                            lenient_elevations_deg=np.rad2deg(elevs).round(1).tolist(), lenient_distance_m=float(d))
+    best["n_networks"] = n
+    return best
+
+
+def random_networks(part, intr, k, sphere, vis_opts, sigma_px, min_rays, cols, n, rng) -> dict:
+    worst, lenient, feas = [], [], []
+    s0, s1 = np.sin(sphere.elevation_min_rad), np.sin(sphere.elevation_max_rad)
+    for _ in range(n):
+        g = np.zeros((k, N_GENES))
+        g[:, 0] = rng.uniform(sphere.azimuth_min_rad, sphere.azimuth_max_rad, k)
+        g[:, 1] = np.arcsin(rng.uniform(s0, s1, k))  # uniform over the band's area
+        g[:, 2] = rng.uniform(sphere.distance_min_m, sphere.distance_max_m, k)
+        s = score(part, intr, g, sphere, vis_opts, sigma_px, min_rays, cols)
+        worst.append(s["worst_m"])
+        lenient.append(s["worst_lenient_m"])
+        feas.append(s["feasible"])
+    return {
+        "median_worst_m": float(np.median(worst)),
+        "median_worst_lenient_m": float(np.median(lenient)),
+        "fraction_feasible": float(np.mean(feas)),
+        "n_networks": n,
+    }
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="coarser sweeps, fewer random networks")
+    ap.add_argument("--json", type=Path, help="write the figures here")
+    ap.add_argument("--sizes", type=int, nargs="*", default=[8, 16, 29])
+    ap.add_argument("--seed", type=int, default=1)
+    args = ap.parse_args(argv)
+
+    part, intr = example_part(), example_camera()
+    opts = PlannerOptions(allow_unmeasurable=True)
+    sphere = ViewingSphere.for_part(part, intr)
+    sphere = ViewingSphere(**{**sphere.to_dict(), "max_roll_rad": 0.0, "max_offset_m": 0.0})
+    vis_opts = VisibilityOptions(incidence_max_rad=opts.incidence_max_rad)
+    out: dict = {"n_targets": len(part.targets), "sigma_px": opts.sigma_px, "min_rays": opts.min_rays, "sizes": {}}
+
+    # timing: 29 stations, visibility database built from scratch (empty cache)
+    with tempfile.TemporaryDirectory() as cache:
+        t0 = time.perf_counter()
+        plan = plan_network(part, intr, PlannerOptions(n_stations=29, allow_unmeasurable=True),
+                            np.random.default_rng(args.seed), cache_dir=cache, seed=args.seed)
+        wall = time.perf_counter() - t0
+    out["timing_29"] = {"wall_s": wall, **{k: round(v, 3) for k, v in plan.timing.items()},
+                        "generations": plan.search["generations"], "stopped_because": plan.search["stopped_because"]}
+    print(f"timing 29 stations x {len(part.targets)} targets (cold cache): {wall:.2f} s  {plan.timing}", flush=True)
+
+    with tempfile.TemporaryDirectory() as cache:
+        for k in args.sizes:
+            t0 = time.perf_counter()
+            plan = plan_network(part, intr, PlannerOptions(n_stations=k, allow_unmeasurable=True),
+                                np.random.default_rng(args.seed), cache_dir=cache, seed=args.seed)
+            t_plan = time.perf_counter() - t0
+            ids = part.targets.index()
+            cols = np.array(sorted(set(range(len(part.targets))) - {ids[t] for t in plan.unmeasurable_target_ids}))
+            planned = score(part, intr, plan.genes, sphere, vis_opts, opts.sigma_px, opts.min_rays, cols)
+            ring = best_ring(part, intr, k, sphere, vis_opts, opts.sigma_px, opts.min_rays, cols, args.quick)
+            rnd = random_networks(part, intr, k, sphere, vis_opts, opts.sigma_px, opts.min_rays, cols,
+                                  30 if args.quick else 100, np.random.default_rng(1000 + k))
+            row = {
+                "planned_worst_m": planned["worst_m"],
+                "planned_feasible": planned["feasible"],
+                "planned_min_rays": planned["min_rays_seen"],
+                "plan_s": t_plan,
+                "n_measurable_targets": int(len(cols)),
+                "best_ring": ring,
+                "random": rnd,
+                "ratio_to_best_ring": planned["worst_m"] / ring["worst_m"],
+                "ratio_to_best_ring_lenient": planned["worst_m"] / ring["worst_lenient_m"],
+                "ratio_to_median_random_lenient": planned["worst_m"] / rnd["median_worst_lenient_m"],
+            }
+            out["sizes"][k] = row
+            print(
+                f"k={k:2d}: planned {planned['worst_m'] * 1e6:7.2f} um (feasible={planned['feasible']}, "
+                f"min rays {planned['min_rays_seen']}) | best feasible ring {ring['worst_m'] * 1e6:7.2f} um "
+                f"(lenient {ring['worst_lenient_m'] * 1e6:.2f}) ratio {row['ratio_to_best_ring']:.3f} | random median "
+                f"{rnd['median_worst_m'] * 1e6:.2f} um (lenient {rnd['median_worst_lenient_m'] * 1e6:.2f}, feasible "
+                f"{rnd['fraction_feasible']:.2f}) ratio {row['ratio_to_median_random_lenient']:.3f} | "
+                f"{len(cols)} targets | plan {t_plan:.1f} s",
+                flush=True,
+            )
+    if args.json:
+        args.json.write_text(json.dumps(out, indent=2, default=lambda v: None))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,180 @@
+"""The inspection report: report.json (the contract) and report.html (one self-contained file).
+
+report.json follows ARCHITECTURE.md: ``job``, ``images``, ``sigma0_px``, ``targets``
+[{id, nominal, measured, cov, deviation, deviation_norm_m, tolerance_m, pass,
+predicted_sigma_m, achieved_sigma_m}], plus ``verdict`` and the time per stage.
+Figures are PNGs rendered with matplotlib (Agg) and embedded as data URIs, so the
+HTML opens anywhere, offline, as one file.
+"""
+from __future__ import annotations
+
+import base64
+import html
+import io
+from typing import Any
+
+import numpy as np
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+from mpl_toolkits.mplot3d.art3d import Poly3DCollection  # noqa: E402
+
+
+def _png(fig) -> str:
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
+    plt.close(fig)
+    return base64.b64encode(buf.getvalue()).decode()
+
+
+def _mesh_axes(ax, mesh, alpha=0.18):
+    tris = mesh.vertices[mesh.faces] * 1000.0
+    ax.add_collection3d(Poly3DCollection(tris, facecolor=(0.6, 0.65, 0.7, alpha), edgecolor=(0.3, 0.3, 0.35, 0.25),
+                                         linewidths=0.3))
+
+
+def _equal_3d(ax, pts):
+    lo, hi = pts.min(axis=0), pts.max(axis=0)
+    c, r = (lo + hi) / 2, (hi - lo).max() / 2
+    for set_lim, ci in zip((ax.set_xlim, ax.set_ylim, ax.set_zlim), c):
+        set_lim(ci - r, ci + r)
+    ax.set_box_aspect((1, 1, 1))
+
+
+def figure_network(mesh, stations_part_from_cam: np.ndarray, xyz: np.ndarray) -> str:
+    """Part, targets and camera stations (as small pyramids looking at the part)."""
+    fig = plt.figure(figsize=(6.5, 5.5))
+    ax = fig.add_subplot(projection="3d")
+    _mesh_axes(ax, mesh)
+    ax.scatter(*(xyz * 1000).T, s=4, c="k")
+    pts = [xyz * 1000]
+    for k, T in enumerate(stations_part_from_cam):
+        c = T[:3, 3] * 1000
+        R = T[:3, :3]
+        s = 40.0
+        corners = [c + s * (R @ np.array([x, y, 1.5])) for x, y in ((-1, -0.8), (1, -0.8), (1, 0.8), (-1, 0.8))]
+        for p in corners:
+            ax.plot(*np.c_[c, p], color="tab:blue", lw=0.7)
+        ax.plot(*np.array(corners + corners[:1]).T, color="tab:blue", lw=0.7)
+        ax.text(*c, str(k + 1), fontsize=6, color="tab:blue")
+        pts.append(c[None])
+    _equal_3d(ax, np.vstack(pts))
+    ax.set_xlabel("x [mm]")
+    ax.set_ylabel("y [mm]")
+    ax.set_zlabel("z [mm]")
+    ax.set_title(f"Network: {len(stations_part_from_cam)} stations")
+    return _png(fig)
+
+
+def figure_deviations(mesh, nominal: np.ndarray, dev_norm: np.ndarray, tol: np.ndarray, passed: np.ndarray) -> str:
+    """Targets on the part coloured by |deviation| / tolerance; failures ringed in red."""
+    fig = plt.figure(figsize=(6.5, 5.5))
+    ax = fig.add_subplot(projection="3d")
+    _mesh_axes(ax, mesh, alpha=0.12)
+    ratio = dev_norm / tol
+    sc = ax.scatter(*(nominal * 1000).T, c=np.clip(ratio, 0, 2), cmap="RdYlGn_r", vmin=0, vmax=2, s=18)
+    bad = ~passed
+    if bad.any():
+        ax.scatter(*(nominal[bad] * 1000).T, s=90, facecolors="none", edgecolors="red", linewidths=1.2)
+    fig.colorbar(sc, ax=ax, shrink=0.7, label="|deviation| / tolerance")
+    _equal_3d(ax, nominal * 1000)
+    ax.set_title("Deviation from CAD")
+    return _png(fig)
+
+
+def figure_ellipsoids(mesh, measured: np.ndarray, cov: np.ndarray) -> str:
+    """Error ellipsoids (scaled so the largest is 1/25 of the part), as their three principal axes."""
+    fig = plt.figure(figsize=(6.5, 5.5))
+    ax = fig.add_subplot(projection="3d")
+    _mesh_axes(ax, mesh, alpha=0.1)
+    w, V = np.linalg.eigh(cov)
+    axes = np.sqrt(np.clip(w, 0, None))
+    size = np.ptp(measured, axis=0).max()
+    scale = size / 25 / max(axes.max(), 1e-12)
+    for p, a, v in zip(measured * 1000, axes * scale * 1000, V):
+        for k, col in zip(range(3), ("tab:red", "tab:green", "tab:blue")):
+            d = v[:, k] * a[k]
+            ax.plot(*np.c_[p - d, p + d], color=col, lw=1.0)
+    _equal_3d(ax, measured * 1000)
+    ax.set_title(f"Error ellipsoids (1 sigma axes x {scale:.0f})")
+    return _png(fig)
+
+
+def figure_sigma(predicted: np.ndarray, achieved: np.ndarray) -> str:
+    fig, ax = plt.subplots(figsize=(5, 4))
+    ok = np.isfinite(predicted) & np.isfinite(achieved)
+    ax.scatter(predicted[ok] * 1e6, achieved[ok] * 1e6, s=8)
+    hi = max(np.nanmax(predicted[ok], initial=0), np.nanmax(achieved[ok], initial=0)) * 1e6 * 1.1
+    ax.plot([0, hi], [0, hi], "k--", lw=0.8, label="achieved = predicted")
+    ax.set_xlabel("predicted sigma [um] (plan)")
+    ax.set_ylabel("achieved sigma [um] (bundle)")
+    ax.legend()
+    ax.set_title("Predicted vs achieved precision")
+    return _png(fig)
+
+
+def figure_residuals(residuals_px: np.ndarray) -> str:
+    fig, ax = plt.subplots(figsize=(5, 4))
+    r = residuals_px[np.isfinite(residuals_px).all(axis=1)]
+    ax.hist(r.ravel(), bins=60, color="tab:gray")
+    ax.set_xlabel("image residual [px] (u and v)")
+    ax.set_ylabel("count")
+    ax.set_title(f"Residuals: rms {np.sqrt(np.mean(r ** 2)):.3f} px, {len(r)} observations")
+    return _png(fig)
+
+
+_CSS = """
+body{font-family:system-ui,-apple-system,Segoe UI,Roboto,sans-serif;margin:24px;color:#222;max-width:1200px}
+.verdict{font-size:28px;font-weight:700;padding:14px 20px;border-radius:8px;color:#fff;display:inline-block}
+.PASS{background:#1a7f37}.FAIL{background:#cf222e}.INCOMPLETE{background:#9a6700}
+table{border-collapse:collapse;font-size:13px}td,th{border:1px solid #ccc;padding:3px 7px;text-align:right}
+th{background:#f3f3f3}td.l{text-align:left}tr.fail td{background:#ffebe9}
+.figs img{max-width:560px;margin:6px;border:1px solid #ddd}.kv td{text-align:left}
+"""
+
+
+def _fmt_um(v: Any) -> str:
+    return "" if v is None or not np.isfinite(v) else f"{v * 1e6:.1f}"
+
+
+def render_html(doc: dict, figures: dict[str, str]) -> str:
+    """The self-contained HTML report."""
+    j = doc["job"]
+    verdict = doc["verdict"]
+    n_fail = sum(not t["pass"] for t in doc["targets"])
+    rows = []
+    for t in sorted(doc["targets"], key=lambda t: (t["pass"], -(t["deviation_norm_m"] or 0))):
+        cls = "" if t["pass"] else ' class="fail"'
+        rows.append(
+            f"<tr{cls}><td class=l>{html.escape(t['id'])}</td>"
+            + "".join(f"<td>{v * 1000:.4f}</td>" for v in t["measured"])
+            + "".join(f"<td>{v * 1e6:.1f}</td>" for v in t["deviation"])
+            + f"<td>{_fmt_um(t['deviation_norm_m'])}</td><td>{_fmt_um(t['tolerance_m'])}</td>"
+            f"<td>{_fmt_um(t['achieved_sigma_m'])}</td><td>{_fmt_um(t['predicted_sigma_m'])}</td>"
+            f"<td>{t['n_images']}</td><td class=l>{'PASS' if t['pass'] else 'FAIL'}</td></tr>"
+        )
+    stages = "".join(f"<tr><td class=l>{html.escape(k)}</td><td>{v:.2f}</td></tr>" for k, v in doc["stage_times_s"].items())
+    figs = "".join(f'<img alt="{html.escape(k)}" src="data:image/png;base64,{v}">' for k, v in figures.items())
+    facts = {
+        "Job": j["id"], "Part": j.get("part", ""), "Seed": j["seed"], "Started": j["started"],
+        "Finished": j["finished"], "Images": doc["images"], "sigma0 [px]": f"{doc['sigma0_px']:.3f}",
+        "Datum": doc.get("datum", ""), "Cell calibration": doc.get("cell_calibration", {}).get("status", "unknown"),
+        "Versions": ", ".join(f"{k} {v}" for k, v in j["versions"].items()),
+    }
+    kv = "".join(f"<tr><td><b>{html.escape(k)}</b></td><td>{html.escape(str(v))}</td></tr>" for k, v in facts.items())
+    return f"""<!DOCTYPE html>
+<html lang="en"><head><meta charset="utf-8"><title>Inspection report {html.escape(j['id'])}</title>
+<style>{_CSS}</style></head><body>
+<h1>Inspection report: {html.escape(j['name'])}</h1>
+<div class="verdict {verdict}" id="verdict">{verdict}: {len(doc['targets']) - n_fail} of {len(doc['targets'])} targets within tolerance</div>
+<h2>Job</h2><table class="kv">{kv}</table>
+<h2>Figures</h2><div class="figs">{figs}</div>
+<h2>Targets</h2>
+<table id="targets"><tr><th>id</th><th>x [mm]</th><th>y [mm]</th><th>z [mm]</th><th>dx [um]</th><th>dy [um]</th>
+<th>dz [um]</th><th>|d| [um]</th><th>tol [um]</th><th>sigma [um]</th><th>predicted [um]</th><th>images</th><th></th></tr>
+{''.join(rows)}</table>
+<h2>Time per stage</h2><table class="kv">{stages}</table>
+</body></html>
+"""

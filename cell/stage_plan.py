@@ -1,0 +1,65 @@
+"""PLAN and VALIDATE: design the network, then prove the robot can execute it."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from calibration.errors import PlanningError, ReachabilityError
+from cell.load import LoadedJob
+from cell.setup import collision_world, planner_options, robot_model
+from planning.planner import NetworkPlan, cheapest_network, plan_network
+from planning.reachability import ReachabilityDB
+from planning.visibility import VisibilityDB, default_cache_dir
+
+
+def make_plan(job: LoadedJob, progress=None, cache_dir: Path | None = None) -> tuple[NetworkPlan, dict]:
+    """Design the network for a job: visibility database, reachability database, evolutionary search.
+
+    Returns the plan and facts about the databases (candidates, reachable, cached).
+    """
+    cache_dir = Path(cache_dir) if cache_dir is not None else default_cache_dir()
+    opts = planner_options(job)
+    report = progress or (lambda s, f: None)
+    from dataclasses import replace
+
+    from planning.visibility import VisibilityOptions
+
+    vis_opts = replace(opts.visibility or VisibilityOptions(), incidence_max_rad=opts.incidence_max_rad)
+    sphere = replace(opts.sphere, max_roll_rad=0.0, max_offset_m=0.0)
+    db = VisibilityDB.load_or_build(job.part, job.intrinsics, sphere, vis_opts, opts.n_candidates, cache_dir, report,
+                                    n_shells=opts.n_shells, backend=opts.backend)
+    report("reachability", 0.0)
+    robot = robot_model(job)
+    reach = ReachabilityDB.load_or_build(robot, job.spec.base_from_part(), job.spec.flange_from_cam(),
+                                         db.part_from_cam, collision_world(job), cache_dir=cache_dir)
+    report("reachability", 1.0)
+    reachable = reach.reachable
+    n_ok = int(reachable.sum())
+    useful = db.visible.any(axis=1)
+    if n_ok == 0 or not (reachable & useful).any():
+        reasons = {}
+        for r in reach.result.reason[~reachable]:
+            reasons[str(r).split(":")[0]] = reasons.get(str(r).split(":")[0], 0) + 1
+        top = ", ".join(f"{v} {k}" for k, v in sorted(reasons.items(), key=lambda kv: -kv[1])[:3])
+        bfp = job.spec.base_from_part()[:3, 3]
+        raise ReachabilityError(
+            f"{job.path}: the robot ({job.spec.cell.robot}) reaches none of the {len(reachable)} candidate stations "
+            f"around the part placed at {np.round(bfp, 3).tolist()} m ({top}): move the part closer "
+            "(cell.base_from_part) or use a larger robot"
+        )
+    fn = cheapest_network if job.spec.planning.mode == "cheapest" else plan_network
+    try:
+        plan = fn(job.part, job.intrinsics, opts, np.random.default_rng(job.spec.job.seed), reachable=reachable,
+                  cache_dir=cache_dir, progress=report, seed=job.spec.job.seed, db=db)
+    except PlanningError as exc:
+        if not isinstance(exc, ReachabilityError) and (~reachable & useful).sum() > 0.5 * useful.sum():
+            raise ReachabilityError(
+                f"{exc} ({int((~reachable & useful).sum())} of {int(useful.sum())} useful candidate stations are "
+                "out of the robot's reach or collide)"
+            ) from None
+        raise
+    facts = {"candidates": int(len(reachable)), "reachable": n_ok, "visibility_cached": bool(getattr(db, "loaded", False)),
+             "reachability_cached": bool(reach.loaded)}
+    return plan, facts

@@ -1,0 +1,475 @@
+"""VALIDATE: turn a network of stations into an executable, collision-checked robot plan.
+
+Steps (``validate_plan``):
+
+1. Flange targets ``base_from_flange = base_from_part @ part_from_cam @ inv(flange_from_cam)``
+   and every IK branch of each; branches outside the joint limits or in collision are
+   dropped. A station with none left is a ReachabilityError naming it and why.
+2. Order: the stations are toured in joint space from ``start_q`` (nearest neighbour, then
+   2-opt) with the move time of a synchronised trapezoidal joint move as the distance.
+3. Branches: for that order, a shortest path over the branches of every station (Viterbi)
+   chooses the branch sequence with the least total move time, so the arm keeps its
+   configuration unless changing it pays. Order and branches are refined in turn.
+4. Every move (linear in joint space, as ``moveJ``) is checked for collisions by
+   conservative advancement: from each checked configuration the arm may move by the
+   measured clearance before it can touch anything, bounded by the joint displacement
+   times each joint's lever arm. A colliding move forbids that branch pair and step 3
+   is repeated; if no branch pair works, a ReachabilityError names the move.
+5. Cycle time: the sum of the move times plus a settle/capture time per station.
+"""
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from calibration.errors import InputError, ReachabilityError
+from planning.kinematics import CollisionWorld, RobotModel
+from planning.reachability import branch_scores, flange_targets
+
+__all__ = ["MotionLimits", "MoveCheck", "ExecutionPlan", "validate_plan", "move_time", "apply_to_plan", "stations_from_plan"]
+
+
+@dataclass(frozen=True)
+class MotionLimits:
+    """The cell's motion limits for joint moves.
+
+    Attributes:
+        joint_speed_rad_s: scalar or (6,) joint speed used for moves (capped by the robot's
+            own maxima). UR's moveJ default is 1.05 rad/s.
+        joint_accel_rad_s2: scalar or (6,) joint acceleration (UR's moveJ default 1.4 rad/s^2).
+        settle_s: time spent at each station (settling, strobe and capture).
+        return_to_start: the cycle ends back at start_q.
+        min_joint_margin_rad: branches closer than this to a joint limit are not used.
+        check_resolution_rad: smallest joint step of the move collision check (where the
+            clearance is smaller than the motion bound of this step, the check falls back
+            to sampling at this step).
+    """
+
+    joint_speed_rad_s: float | Sequence[float] = 1.05
+    joint_accel_rad_s2: float | Sequence[float] = 1.4
+    settle_s: float = 0.5
+    return_to_start: bool = True
+    min_joint_margin_rad: float = 0.0
+    check_resolution_rad: float = 0.005
+
+
+@dataclass(frozen=True)
+class MoveCheck:
+    """Collision check of one joint move.
+
+    Attributes:
+        start, end: labels of the endpoints ("start" or a station id).
+        free: no collision along the move.
+        min_distance_m: smallest clearance measured along the move.
+        pair: the closest (or colliding) pair of bodies.
+        at_fraction: where along the move the smallest clearance (or the collision) was.
+        n_checks: configurations checked.
+        duration_s: move time under the motion limits.
+    """
+
+    start: str
+    end: str
+    free: bool
+    min_distance_m: float
+    pair: tuple[str, str]
+    at_fraction: float
+    n_checks: int
+    duration_s: float
+
+
+@dataclass(frozen=True)
+class ExecutionPlan:
+    """A validated plan.
+
+    Attributes:
+        ids: (k,) station ids, input order.
+        order: (k,) station indices in visiting sequence.
+        joints: (k, 6) joint targets (rad) per station, input order.
+        base_from_flange: (k, 4, 4) flange targets per station, input order.
+        branch: (k,) IK branch used per station.
+        start_q: (6,) joints the cycle starts from.
+        moves: MoveCheck per move in visiting sequence (start -> first ... [-> start]).
+        cycle_time_s: estimated time of one cycle.
+    """
+
+    ids: list[str]
+    order: np.ndarray
+    joints: np.ndarray
+    base_from_flange: np.ndarray
+    branch: np.ndarray
+    start_q: np.ndarray
+    moves: list[MoveCheck] = field(default_factory=list)
+    cycle_time_s: float = 0.0
+
+    @property
+    def rank(self) -> np.ndarray:
+        """(k,) position of each station (input order) in the visiting sequence."""
+        r = np.empty(len(self.order), dtype=int)
+        r[self.order] = np.arange(len(self.order))
+        return r
+
+    @property
+    def joint_path(self) -> np.ndarray:
+        """(n, 6) the waypoints in visiting sequence, start_q first (and last if returning)."""
+        path = [self.start_q] + [self.joints[i] for i in self.order]
+        if self.moves and self.moves[-1].end == "start":
+            path.append(self.start_q)
+        return np.array(path)
+
+
+# ----------------------------------------------------------------------------------------
+# kernels
+# ----------------------------------------------------------------------------------------
+
+
+def move_time(dq: np.ndarray, speed: np.ndarray, accel: np.ndarray) -> np.ndarray:
+    """Duration (s) of synchronised trapezoidal joint moves.
+
+    Each joint alone needs ``2 sqrt(d / a)`` (triangular profile, d < v^2 / a) or
+    ``d / v + v / a``; a joint move lasts as long as its slowest joint.
+
+    Args:
+        dq: (..., 6) joint displacements (rad).
+        speed, accel: (6,) limits.
+    Returns:
+        (...,) seconds.
+    """
+    d = np.abs(np.asarray(dq, dtype=float))
+    tri = d < speed**2 / accel
+    t = np.where(tri, 2.0 * np.sqrt(d / accel), d / speed + speed / accel)
+    t = np.where(d > 0, t, 0.0)
+    return np.max(t, axis=-1)
+
+
+def _two_opt(cost: np.ndarray, tour: list[int], closed: bool) -> list[int]:
+    """Improve a tour over nodes 1..n starting at node 0 by 2-opt moves (cost: (n+1, n+1))."""
+    path = [0] + tour + ([0] if closed else [])
+    improved = True
+    while improved:
+        improved = False
+        n = len(path)
+        for i in range(1, n - 1):
+            for j in range(i + 1, n if not closed else n - 1):
+                a, b = path[i - 1], path[i]
+                c = path[j]
+                nxt = path[j + 1] if j + 1 < n else None
+                before = cost[a, b] + (cost[c, nxt] if nxt is not None else 0.0)
+                after = cost[a, c] + (cost[b, nxt] if nxt is not None else 0.0)
+                if after < before - 1e-12:
+                    path[i:j + 1] = path[i:j + 1][::-1]
+                    improved = True
+    return path[1:-1] if closed else path[1:]
+
+
+def _tour(cost: np.ndarray, closed: bool) -> list[int]:
+    """Nearest-neighbour tour from node 0 over nodes 1..n, then 2-opt."""
+    n = cost.shape[0] - 1
+    left = set(range(1, n + 1))
+    tour, cur = [], 0
+    while left:
+        nxt = min(left, key=lambda j: (cost[cur, j], j))
+        tour.append(nxt)
+        left.remove(nxt)
+        cur = nxt
+    return _two_opt(cost, tour, closed)
+
+
+def _viterbi(
+    cand: list[np.ndarray], start_q: np.ndarray, closed: bool, speed: np.ndarray, accel: np.ndarray,
+    forbidden: set[tuple[int, int, int]], wrap: bool,
+) -> tuple[list[int], float]:
+    """Cheapest branch per step along a fixed sequence.
+
+    Args:
+        cand: per step, (b_t, 6) candidate joints.
+        forbidden: (step t, branch at t-1, branch at t) transitions known to collide
+            (t = 0 is the move from the start, t = len(cand) the move back).
+    Returns:
+        chosen candidate index per step, total cost.
+    """
+    def dist(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        d = b[None, :, :] - a[:, None, :]
+        if wrap:
+            d = np.pi - np.mod(np.pi - d, 2 * np.pi)
+        return move_time(d, speed, accel)
+
+    prev = start_q[None]
+    acc = np.zeros(1)
+    back: list[np.ndarray] = []
+    for t, c in enumerate(cand):
+        step = acc[:, None] + dist(prev, c)
+        for (ft, fa, fb) in forbidden:
+            if ft == t:
+                step[fa if t > 0 else 0, fb] = np.inf
+        back.append(np.argmin(step, axis=0))
+        acc = np.min(step, axis=0)
+        prev = c
+    if closed:
+        last = dist(prev, start_q[None])[:, 0]
+        for (ft, fa, _fb) in forbidden:
+            if ft == len(cand):
+                last[fa] = np.inf
+        acc = acc + last
+    j = int(np.argmin(acc))
+    total = float(acc[j])
+    chosen = [j]
+    for t in range(len(cand) - 1, 0, -1):
+        j = int(back[t][j])
+        chosen.append(j)
+    return chosen[::-1], total
+
+
+def _lever_arms(robot: RobotModel) -> np.ndarray:
+    """(6,) bound on the distance of any robot or tool point from each joint's axis (m)."""
+    p = robot.params
+    tool = 0.0
+    for t in robot.tools:
+        corners = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)]) * 0.5 * np.asarray(t.size_m)
+        pts = corners @ t.flange_from_box[:3, :3].T + t.flange_from_box[:3, 3]
+        tool = max(tool, float(np.max(np.linalg.norm(pts, axis=1))))
+    r_max = max(p.radius_m) + p.shoulder_offset_m
+    lengths = np.abs(np.asarray(p.a)) + np.abs(np.asarray(p.d))
+    return np.array([lengths[i:].sum() for i in range(6)]) + tool + r_max
+
+
+def _check_move(
+    robot: RobotModel, world: CollisionWorld, qa: np.ndarray, qb: np.ndarray, levers: np.ndarray,
+    resolution_rad: float, labels: tuple[str, str], duration_s: float,
+) -> MoveCheck:
+    """Conservative-advancement collision check of the joint-linear move qa -> qb."""
+    dq = qb - qa
+    # any point moves at most sum_i lever_i |dq_i| * ds; two robot bodies may approach at twice that
+    speed_bound = 2.0 * float(np.sum(levers * np.abs(dq)))
+    max_dq = float(np.max(np.abs(dq)))
+    min_ds = 1.0 if max_dq <= resolution_rad else resolution_rad / max_dq
+    s, n = 0.0, 0
+    best = (np.inf, ("", ""), 0.0)
+    while True:
+        rep = robot.check_collision(qa + s * dq, world)
+        n += 1
+        if rep.distance_m < best[0] or not rep.free:
+            best = (rep.distance_m, rep.pair, s)
+        if not rep.free:
+            return MoveCheck(labels[0], labels[1], False, float(rep.distance_m), rep.pair, s, n, duration_s)
+        if s >= 1.0:
+            break
+        room = rep.distance_m - world.clearance_m
+        ds = room / speed_bound if speed_bound > 0 else 1.0
+        s = min(1.0, s + max(ds, min_ds))
+    return MoveCheck(labels[0], labels[1], True, float(best[0]), best[1], float(best[2]), n, duration_s)
+
+
+# ----------------------------------------------------------------------------------------
+# validate_plan
+# ----------------------------------------------------------------------------------------
+
+
+def validate_plan(
+    robot: RobotModel,
+    part_from_cam: np.ndarray,
+    base_from_part: np.ndarray,
+    flange_from_cam: np.ndarray,
+    world: CollisionWorld | None,
+    limits: MotionLimits | None = None,
+    start_q: np.ndarray | None = None,
+    ids: Sequence[str] | None = None,
+    max_repairs: int = 20,
+) -> ExecutionPlan:
+    """Choose IK branches and an order for the stations, check the moves, time the cycle.
+
+    Args:
+        robot: the arm with its tool boxes.
+        part_from_cam: (k, 4, 4) stations.
+        base_from_part: (4, 4) part placement.
+        flange_from_cam: (4, 4) hand-eye.
+        world: the cell (part, table, obstacles); None skips collision checks.
+        limits: motion limits (speed, acceleration, settle time).
+        start_q: (6,) joints at the start of the cycle (default: arm up, camera down).
+        ids: (k,) station labels for messages (default "S0", "S1", ...).
+    Returns:
+        ExecutionPlan.
+    Raises:
+        ReachabilityError: a station has no IK branch within the limits and free of
+            collision, or a move collides whatever the branches.
+        InputError: malformed arguments.
+    """
+    lim = limits or MotionLimits()
+    pfc = np.asarray(part_from_cam, dtype=float)
+    if pfc.ndim != 3 or pfc.shape[1:] != (4, 4) or len(pfc) == 0:
+        raise InputError(f"validate_plan needs (k, 4, 4) stations, got shape {pfc.shape}")
+    k = len(pfc)
+    ids = [f"S{i}" for i in range(k)] if ids is None else [str(x) for x in ids]
+    if len(ids) != k:
+        raise InputError(f"{len(ids)} station ids for {k} stations")
+    start = np.array([0.0, -np.pi / 2, np.pi / 2, -np.pi / 2, -np.pi / 2, 0.0]) if start_q is None else np.asarray(start_q, dtype=float)
+    if not robot.within_limits(start):
+        raise InputError(f"start joints {np.round(start, 3).tolist()} are outside the joint limits of the {robot.name}")
+    speed = np.minimum(np.broadcast_to(np.asarray(lim.joint_speed_rad_s, dtype=float), (6,)), robot.max_velocity)
+    accel = np.broadcast_to(np.asarray(lim.joint_accel_rad_s2, dtype=float), (6,))
+    if np.any(speed <= 0) or np.any(accel <= 0):
+        raise InputError(f"joint speed and acceleration limits must be positive, got {speed} / {accel}")
+
+    if world is not None:
+        rep = robot.check_collision(start, world)
+        if not rep:
+            raise ReachabilityError(
+                f"start configuration collides ({rep.pair[0]} vs {rep.pair[1]}): move the robot or give another start_q"
+            )
+
+    # 1. candidate branches per station
+    bff = flange_targets(base_from_part, pfc, flange_from_cam)
+    sol = robot.ik_many(bff, q_ref=start)
+    margin = robot.joint_margin(np.where(sol.exists[..., None], sol.q, 0.0))
+    ok = sol.within_limits & (margin >= lim.min_joint_margin_rad)
+    free = np.zeros_like(ok)
+    if world is not None and ok.any():
+        free[ok] = robot.collision_free_many(sol.q[ok], world)
+    else:
+        free = ok.copy()
+    problems = []
+    for i in range(k):
+        if free[i].any():
+            continue
+        if not sol.within_limits[i].any():
+            why = f"no IK solution ({sol.failure[i]})" if not sol.exists[i].any() else "every IK branch is outside the joint limits"
+        elif not ok[i].any():
+            why = f"every IK branch is closer than {lim.min_joint_margin_rad:.3f} rad to a joint limit"
+        else:
+            b = int(np.argmax(np.where(ok[i], branch_scores(robot, sol.q[i]), -np.inf)))
+            rep = robot.check_collision(sol.q[i, b], world)
+            why = f"every IK branch collides (best: {rep.pair[0]} vs {rep.pair[1]}, {rep.distance_m * 1000:.0f} mm)"
+        problems.append(f"station {ids[i]}: {why}")
+    if problems:
+        raise ReachabilityError(
+            "; ".join(problems) + ". Move the part (base_from_part), remove obstacles, or re-plan with reachability."
+        )
+    branches = [np.flatnonzero(free[i]) for i in range(k)]
+    cand = [sol.q[i, branches[i]] for i in range(k)]
+
+    # 2-3. order and branch choice, refined in turn
+    nodes_q = [start[None]] + cand
+    cost = np.zeros((k + 1, k + 1))
+    for a in range(k + 1):
+        for b in range(k + 1):
+            if a != b:
+                d = nodes_q[b][None, :, :] - nodes_q[a][:, None, :]
+                d = np.pi - np.mod(np.pi - d, 2 * np.pi)
+                cost[a, b] = float(np.min(move_time(d, speed, accel)))
+    seq = [s - 1 for s in _tour(cost, lim.return_to_start)]
+    forbidden: set[tuple[int, int, int]] = set()
+    choice, _ = _viterbi([cand[s] for s in seq], start, lim.return_to_start, speed, accel, forbidden, wrap=True)
+    for _ in range(2):
+        chosen_nodes = np.zeros((k + 1, 6))
+        chosen_nodes[0] = start
+        for s, c in zip(seq, choice):
+            chosen_nodes[s + 1] = cand[s][c]
+        d = chosen_nodes[None] - chosen_nodes[:, None]
+        cost2 = move_time(np.pi - np.mod(np.pi - d, 2 * np.pi), speed, accel)
+        new_seq = [s - 1 for s in _two_opt(cost2, [s + 1 for s in seq], lim.return_to_start)]
+        if new_seq == seq:
+            break
+        seq = new_seq
+        choice, _ = _viterbi([cand[s] for s in seq], start, lim.return_to_start, speed, accel, forbidden, wrap=True)
+
+    # 4. unwrap along the path and check every move; forbid colliding branch pairs
+    levers = _lever_arms(robot)
+    for _attempt in range(max_repairs + 1):
+        path = [start]
+        for s, c in zip(seq, choice):
+            path.append(robot.nearest_equivalent(cand[s][c], path[-1]))
+        labels = ["start"] + [ids[s] for s in seq]
+        if lim.return_to_start:
+            path.append(start)
+            labels.append("start")
+        moves: list[MoveCheck] = []
+        bad = None
+        for t in range(len(path) - 1):
+            dur = float(move_time(path[t + 1] - path[t], speed, accel))
+            if world is None:
+                mc = MoveCheck(labels[t], labels[t + 1], True, float("nan"), ("", ""), 0.0, 0, dur)
+            else:
+                mc = _check_move(robot, world, path[t], path[t + 1], levers, lim.check_resolution_rad, (labels[t], labels[t + 1]), dur)
+            moves.append(mc)
+            if not mc.free:
+                bad = t
+                break
+        if bad is None:
+            break
+        ca = choice[bad - 1] if bad > 0 else 0
+        cb = choice[bad] if bad < len(seq) else 0
+        key = (bad, ca, cb)
+        n_options = (len(cand[seq[bad - 1]]) if bad > 0 else 1) * (len(cand[seq[bad]]) if bad < len(seq) else 1)
+        forbidden.add(key)
+        if len([f for f in forbidden if f[0] == bad]) >= n_options or _attempt == max_repairs:
+            mc = moves[-1]
+            raise ReachabilityError(
+                f"move {mc.start} -> {mc.end} collides ({mc.pair[0]} vs {mc.pair[1]} at {mc.at_fraction:.0%} of the move) "
+                f"with every IK branch pair tried: add a via station, move the part, or remove the obstacle"
+            )
+        choice, total = _viterbi([cand[s] for s in seq], start, lim.return_to_start, speed, accel, forbidden, wrap=True)
+        if not np.isfinite(total):
+            mc = moves[-1]
+            raise ReachabilityError(
+                f"move {mc.start} -> {mc.end} collides ({mc.pair[0]} vs {mc.pair[1]}) and no other branch sequence is free"
+            )
+
+    joints = np.zeros((k, 6))
+    branch = np.zeros(k, dtype=int)
+    for pos, (s, c) in enumerate(zip(seq, choice)):
+        joints[s] = path[pos + 1]
+        branch[s] = branches[s][c]
+    cycle = float(sum(mv.duration_s for mv in moves) + k * lim.settle_s)
+    return ExecutionPlan(
+        ids=ids, order=np.array(seq, dtype=int), joints=joints, base_from_flange=bff, branch=branch,
+        start_q=start, moves=moves, cycle_time_s=cycle,
+    )
+
+
+# ----------------------------------------------------------------------------------------
+# plan.json
+# ----------------------------------------------------------------------------------------
+
+
+def stations_from_plan(plan: dict) -> tuple[list[str], np.ndarray]:
+    """Station ids and part_from_cam (k, 4, 4) from a plan.json document."""
+    try:
+        stations = plan["stations"]
+        ids = [str(s["id"]) for s in stations]
+        pfc = np.array([s["part_from_cam"] for s in stations], dtype=float).reshape(-1, 4, 4)
+    except (KeyError, TypeError, ValueError) as exc:
+        raise InputError(f"plan.json: stations need 'id' and a 4x4 'part_from_cam' ({exc})") from exc
+    return ids, pfc
+
+
+def apply_to_plan(plan: dict, ep: ExecutionPlan) -> dict:
+    """A copy of plan.json with each station's base_from_flange, joints and order (0-based
+    position in the cycle) filled in, and an ``execution`` summary (cycle time, moves)."""
+    out = dict(plan)
+    rank = ep.rank
+    by_id = {sid: i for i, sid in enumerate(ep.ids)}
+    stations = []
+    for st in plan["stations"]:
+        i = by_id[str(st["id"])]
+        st2 = dict(st)
+        st2["base_from_flange"] = ep.base_from_flange[i].tolist()
+        st2["joints"] = ep.joints[i].tolist()
+        st2["order"] = int(rank[i])
+        stations.append(st2)
+    out["stations"] = stations
+    out["execution"] = {
+        "start_q": ep.start_q.tolist(),
+        "sequence": [ep.ids[i] for i in ep.order],
+        "cycle_time_s": ep.cycle_time_s,
+        "moves": [
+            {
+                "from": mv.start, "to": mv.end, "duration_s": mv.duration_s, "free": mv.free,
+                "min_distance_m": mv.min_distance_m if np.isfinite(mv.min_distance_m) else None,
+                "closest": list(mv.pair), "n_checks": mv.n_checks,
+            }
+            for mv in ep.moves
+        ],
+    }
+    return out
+

@@ -1,0 +1,597 @@
+"""Network design: the EPOCA evolutionary search over stations on the viewing sphere.
+
+``plan_network(part, intr, options, rng)`` answers one of two questions:
+
+* ``mode="fixed"``: the best network of ``n_stations`` stations (every control bit on);
+* ``mode="cheapest"``: the network with the fewest stations (at most ``n_stations``)
+  whose every target reaches its required precision (``required_sigma_m``, or the
+  target's tolerance / ``tolerance_ratio``), read off a Pareto front of station count
+  versus precision found by non-dominated sorting (:func:`cheapest_network`).
+
+The pipeline (seed Fig. 3): candidate stations on the viewing sphere -> visibility
+database (ray casting, field of view, incidence angle, depth of field; cached) ->
+per candidate x target information ``J^T J / sigma^2`` -> evolutionary search whose
+fitness is the limiting-error-propagation criterion evaluated on the database ->
+the final stations re-evaluated *exactly* (fresh ray casting at their continuous poses,
+float64 covariance).
+
+Constraint handling as in the seed: a station that snaps to a candidate which sees no
+target, or which the robot cannot reach (``reachable``), is corrected to the nearest
+valid candidate (Lamarckian: its genes are rewritten); the incidence angle is enforced
+per target by the visibility test; a network in which some target is measured by fewer
+than ``min_rays`` stations is infeasible and ranks below every feasible one by its
+shortfall of rays (the seed's predetermined penalty, graded).
+
+Genes searched: azimuth, elevation, distance (:mod:`planning.stations`).  Roll and the
+look-at offsets are held at zero during the search, because the database holds its
+candidates at zero roll and offset and so the fitness cannot see them.
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field, replace
+from typing import Callable
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from calibration.camera import Intrinsics
+from calibration.errors import InputError, PlanningError
+from planning.evolution import Evaluation, EvolutionOptions, evolve
+from planning.stations import N_GENES, ViewingSphere
+from planning.uncertainty import (
+    CRITERIA,
+    NetworkEval,
+    covariance_for_network,
+    criterion,
+    evaluate_networks,
+    target_information,
+)
+from planning.visibility import VisibilityDB, VisibilityOptions, compute_visibility
+
+__all__ = ["PlannerOptions", "NetworkPlan", "plan_network", "cheapest_network", "required_sigma"]
+
+Progress = Callable[[str, float], None]
+_IU = (np.array([0, 0, 0, 1, 1, 2]), np.array([0, 1, 2, 1, 2, 2]))
+MODES = ("fixed", "cheapest")
+
+
+@dataclass
+class PlannerOptions:
+    """What to plan and how to search.
+
+    Attributes:
+        n_stations: stations of the network ("fixed"), or the most allowed ("cheapest").
+        min_rays: fewest stations that must measure every target (data sufficiency).
+        incidence_max_rad: largest angle between a target's normal and its line of sight.
+        criterion: "worst" | "mean" | "max_axis" | "trace" (see planning.uncertainty).
+        sigma_px: image measurement standard deviation (pixels).
+        mode: "fixed" | "cheapest".
+        required_sigma_m: "cheapest": required sigma per target (scalar or (n,)); None ->
+            each target's tolerance / ``tolerance_ratio``.
+        tolerance_ratio: sigma <= tolerance / this (the "1/10 rule").
+        default_tolerance_m: tolerance for targets whose own is nan.
+        population, generations, stall_generations, time_limit_s: the search's size and
+            stopping criteria.
+        eta_c, eta_m, p_crossover, p_mutation, p_bit_flip, tournament_size, n_elite:
+            operators (see planning.evolution.EvolutionOptions).
+        visibility: measurability limits (its incidence angle is replaced by
+            ``incidence_max_rad``); None: defaults.
+        sphere: where stations may lie; None: ViewingSphere.for_part.
+        n_candidates, n_shells: size of the visibility database.
+        backend: ray casting, "embree" | "numpy".
+        allow_unmeasurable: if False, a target that fewer than ``min_rays`` valid
+            candidates can measure is an error; if True it is left out and listed.
+    """
+
+    n_stations: int = 16
+    min_rays: int = 3
+    incidence_max_rad: float = float(np.deg2rad(60.0))
+    criterion: str = "worst"
+    sigma_px: float = 0.05
+    mode: str = "fixed"
+    required_sigma_m: float | np.ndarray | None = None
+    tolerance_ratio: float = 10.0
+    default_tolerance_m: float | None = None
+    population: int = 80
+    generations: int = 150
+    stall_generations: int = 30
+    time_limit_s: float | None = None
+    eta_c: float = 15.0
+    eta_m: float = 20.0
+    p_crossover: float = 0.9
+    p_mutation: float | None = None
+    p_bit_flip: float | None = None
+    tournament_size: int = 2
+    n_elite: int = 2
+    visibility: VisibilityOptions | None = None
+    sphere: ViewingSphere | None = None
+    n_candidates: int = 3000
+    n_shells: int = 3
+    backend: str = "embree"
+    allow_unmeasurable: bool = False
+
+    def check(self) -> None:
+        """Raise InputError naming the first bad option."""
+        if self.mode not in MODES:
+            raise InputError(f"planning option mode={self.mode!r}: use one of {', '.join(MODES)}")
+        if self.criterion not in CRITERIA:
+            raise InputError(f"planning option criterion={self.criterion!r}: use one of {', '.join(CRITERIA)}")
+        if self.min_rays < 2:
+            raise InputError(f"planning option min_rays={self.min_rays}: a target needs at least 2 rays")
+        if self.n_stations < self.min_rays:
+            raise InputError(
+                f"planning option n_stations={self.n_stations} is below min_rays={self.min_rays}: "
+                "no network could measure a target often enough; raise n_stations"
+            )
+        if not 0 < self.incidence_max_rad <= math.pi / 2:
+            raise InputError(f"planning option incidence_max_rad={self.incidence_max_rad}: must be in (0, pi/2]")
+        if not self.sigma_px > 0:
+            raise InputError(f"planning option sigma_px={self.sigma_px}: must be > 0")
+        if self.population < 4 or self.generations < 0:
+            raise InputError("planning options: population must be >= 4 and generations >= 0")
+        if self.mode == "fixed" and self.n_elite >= self.population:
+            raise InputError("planning options: n_elite must be smaller than the population")
+
+    def evolution_options(self) -> EvolutionOptions:
+        return EvolutionOptions(
+            population=self.population,
+            generations=self.generations,
+            stall_generations=self.stall_generations,
+            time_limit_s=self.time_limit_s,
+            eta_c=self.eta_c,
+            eta_m=self.eta_m,
+            p_crossover=self.p_crossover,
+            p_mutation=self.p_mutation,
+            p_bit_flip=self.p_bit_flip,
+            tournament_size=self.tournament_size,
+            n_elite=self.n_elite,
+            fix_bits=self.mode == "fixed",
+            align_gene=0,
+        )
+
+
+@dataclass
+class NetworkPlan:
+    """A planned network and its predicted precision (the content of plan.json).
+
+    Attributes:
+        seed: the seed the search's generator was made from (None if not given).
+        criterion: the criterion minimised; mode: "fixed" | "cheapest".
+        intrinsics: the camera; sigma_px: image noise assumed (pixels).
+        min_rays, incidence_max_rad: the constraints planned for.
+        station_ids: (k,) str; part_from_cam: (k, 4, 4); genes: (k, N_GENES).
+        target_ids: (n,) str; xyz, normals: (n, 3).
+        cov: (n, 3, 3) predicted covariance (m^2), exact for the final stations; nan
+            where a target is measured by fewer than ``min_rays`` stations.
+        n_rays: (n,) int; seen_by: per target the ids of the stations that measure it.
+        predicted_sigma_max_m, predicted_sigma_mean_m: over the targets,
+            sigma = sqrt(trace(cov)) (inf if some target is not measurable).
+        history: one dict per generation (best, mean, n_active, n_feasible, ...).
+        pareto_front: "cheapest": [{n_stations, value}] of the final front.
+        required_sigma_m: (n,) the requirement in "cheapest" mode, else None.
+        unmeasurable_target_ids: targets left out of the search (allow_unmeasurable).
+        timing: seconds per stage.
+        search: summary (stopped_because, n_evaluations, which poses were kept, ...).
+    """
+
+    seed: int | None
+    criterion: str
+    mode: str
+    intrinsics: Intrinsics
+    sigma_px: float
+    min_rays: int
+    incidence_max_rad: float
+    station_ids: list[str]
+    part_from_cam: np.ndarray
+    genes: np.ndarray
+    target_ids: list[str]
+    xyz: np.ndarray
+    normals: np.ndarray
+    cov: np.ndarray
+    n_rays: np.ndarray
+    seen_by: list[list[str]]
+    predicted_sigma_max_m: float
+    predicted_sigma_mean_m: float
+    history: list[dict] = field(default_factory=list)
+    pareto_front: list[dict] = field(default_factory=list)
+    required_sigma_m: np.ndarray | None = None
+    unmeasurable_target_ids: list[str] = field(default_factory=list)
+    timing: dict = field(default_factory=dict)
+    search: dict = field(default_factory=dict)
+
+    @property
+    def sigma(self) -> np.ndarray:
+        """(n,) sqrt(trace(cov)) per target (m), inf where not measurable."""
+        s = np.sqrt(np.trace(self.cov, axis1=1, axis2=2))
+        return np.where(np.isfinite(s), s, np.inf)
+
+    def to_plan_dict(self) -> dict:
+        """The plan.json document (ARCHITECTURE.md "plan.json"), JSON-ready."""
+        i = self.intrinsics
+        cov_list = [None if not np.all(np.isfinite(c)) else c.tolist() for c in self.cov]
+        return {
+            "seed": self.seed,
+            "criterion": self.criterion,
+            "mode": self.mode,
+            "camera": {
+                "fx_px": i.fx_px, "fy_px": i.fy_px, "cx_px": i.cx_px, "cy_px": i.cy_px,
+                "width": i.width, "height": i.height, "sigma_px": self.sigma_px,
+                "k1": i.k1, "k2": i.k2, "k3": i.k3, "p1": i.p1, "p2": i.p2,
+            },
+            "min_rays": self.min_rays,
+            "incidence_max_rad": self.incidence_max_rad,
+            "stations": [
+                {"id": sid, "part_from_cam": T.tolist(), "genes": g.tolist()}
+                for sid, T, g in zip(self.station_ids, self.part_from_cam, self.genes)
+            ],
+            "targets": [
+                {
+                    "id": tid, "xyz": x.tolist(), "normal": nrm.tolist(), "seen_by": list(sb),
+                    "predicted_cov": c, "n_rays": int(nr),
+                    **({} if self.required_sigma_m is None else {"required_sigma_m": float(self.required_sigma_m[j])}),
+                }
+                for j, (tid, x, nrm, sb, c, nr) in enumerate(
+                    zip(self.target_ids, self.xyz, self.normals, self.seen_by, cov_list, self.n_rays)
+                )
+            ],
+            "predicted_sigma_max_m": _json_float(self.predicted_sigma_max_m),
+            "predicted_sigma_mean_m": _json_float(self.predicted_sigma_mean_m),
+            "unmeasurable_target_ids": list(self.unmeasurable_target_ids),
+            "history": [{k: _json_float(v) for k, v in row.items()} for row in self.history],
+            "pareto_front": [{k: _json_float(v) for k, v in row.items()} for row in self.pareto_front],
+            "timing": dict(self.timing),
+            "search": {k: _json_float(v) for k, v in self.search.items()},
+        }
+
+    @classmethod
+    def from_plan_dict(cls, d: dict) -> "NetworkPlan":
+        """Read a plan.json document back (extra keys, e.g. added by VALIDATE, are ignored)."""
+        try:
+            cam = d["camera"]
+            intr = Intrinsics(
+                fx_px=float(cam["fx_px"]), fy_px=float(cam["fy_px"]), cx_px=float(cam["cx_px"]),
+                cy_px=float(cam["cy_px"]), width=int(cam["width"]), height=int(cam["height"]),
+                **{k: float(cam.get(k, 0.0)) for k in ("k1", "k2", "k3", "p1", "p2")},
+            )
+            st = d["stations"]
+            tg = d["targets"]
+            cov = np.array([np.full((3, 3), np.nan) if t["predicted_cov"] is None else t["predicted_cov"] for t in tg],
+                           dtype=float).reshape(-1, 3, 3)
+            station_ids = [str(s["id"]) for s in st]
+            seen_by = [[str(x) for x in t["seen_by"]] for t in tg]
+            req = [t.get("required_sigma_m") for t in tg]
+            return cls(
+                seed=d.get("seed"),
+                criterion=str(d["criterion"]),
+                mode=str(d.get("mode", "fixed")),
+                intrinsics=intr,
+                sigma_px=float(cam["sigma_px"]),
+                min_rays=int(d["min_rays"]),
+                incidence_max_rad=float(d["incidence_max_rad"]),
+                station_ids=station_ids,
+                part_from_cam=np.array([s["part_from_cam"] for s in st], dtype=float).reshape(-1, 4, 4),
+                genes=np.array([s.get("genes", [np.nan] * N_GENES) for s in st], dtype=float).reshape(-1, N_GENES),
+                target_ids=[str(t["id"]) for t in tg],
+                xyz=np.array([t["xyz"] for t in tg], dtype=float).reshape(-1, 3),
+                normals=np.array([t["normal"] for t in tg], dtype=float).reshape(-1, 3),
+                cov=cov,
+                n_rays=np.array([t.get("n_rays", len(s)) for t, s in zip(tg, seen_by)], dtype=int),
+                seen_by=seen_by,
+                predicted_sigma_max_m=_float_back(d["predicted_sigma_max_m"]),
+                predicted_sigma_mean_m=_float_back(d["predicted_sigma_mean_m"]),
+                history=list(d.get("history", [])),
+                pareto_front=list(d.get("pareto_front", [])),
+                required_sigma_m=None if any(r is None for r in req) or not req else np.array(req, dtype=float),
+                unmeasurable_target_ids=list(d.get("unmeasurable_target_ids", [])),
+                timing=dict(d.get("timing", {})),
+                search=dict(d.get("search", {})),
+            )
+        except (KeyError, TypeError, ValueError) as exc:
+            raise InputError(f"plan.json is not a valid plan ({type(exc).__name__}: {exc}); re-run `cell plan`") from exc
+
+
+def _json_float(v):
+    if isinstance(v, (float, np.floating)):
+        v = float(v)
+        return v if math.isfinite(v) else None
+    if isinstance(v, np.integer):
+        return int(v)
+    return v
+
+
+def _float_back(v) -> float:
+    return float("inf") if v is None else float(v)
+
+
+def required_sigma(part, options: PlannerOptions) -> np.ndarray:
+    """Required sigma per target (m), (n,): ``required_sigma_m`` or tolerance / ratio."""
+    n = len(part.targets.xyz)
+    if options.required_sigma_m is not None:
+        req = np.broadcast_to(np.asarray(options.required_sigma_m, dtype=float), (n,)).copy()
+    else:
+        tol = np.asarray(part.targets.tolerance_m, dtype=float).copy()
+        if options.default_tolerance_m is not None:
+            tol[np.isnan(tol)] = options.default_tolerance_m
+        if np.any(np.isnan(tol)):
+            raise InputError(
+                "planning mode 'cheapest' needs a required precision: set required_sigma_m, or give every "
+                "target a tolerance (targets file or [report] default tolerance)"
+            )
+        req = tol / options.tolerance_ratio
+    if np.any(~(req > 0)):
+        raise InputError("required precision must be positive for every target")
+    return req
+
+
+# --- the search problem ----------------------------------------------------------------
+
+
+class _Problem:
+    """Evaluates populations on the visibility database (see module docstring)."""
+
+    def __init__(self, db: VisibilityDB, info: np.ndarray, vis: np.ndarray, valid: np.ndarray,
+                 options: PlannerOptions, required: np.ndarray | None):
+        self.db, self.info, self.vis = db, info, vis
+        self.opt = options
+        self.required = required
+        self.valid_idx = np.flatnonzero(valid)
+        tree = cKDTree(db.eyes[valid])
+        _, nearest_valid = tree.query(db.eyes)
+        self.repair = np.where(valid, np.arange(len(valid)), self.valid_idx[nearest_valid])
+
+    def snap(self, genes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Candidate index of each station after correction, and whether it was corrected."""
+        idx = self.db.nearest(genes)
+        fixed = self.repair[idx]
+        return fixed, fixed != idx
+
+    def __call__(self, genes: np.ndarray, bits: np.ndarray) -> Evaluation:
+        genes = genes.copy()
+        idx, corrected = self.snap(genes)
+        genes[corrected] = self.db.genes[idx[corrected]]
+        stations = np.where(bits, idx, -1)
+        ev = evaluate_networks(self.info, stations, self.opt.min_rays, visible=self.vis)
+        violation = _violation(ev)
+        if self.opt.mode == "fixed":
+            objectives = criterion(ev, self.opt.criterion, penalty=0.0)[:, None]
+        else:
+            ratio = np.max(np.where(ev.sufficient, ev.sigma / self.required, 0.0), axis=1)
+            objectives = np.column_stack([bits.sum(axis=1).astype(float), ratio])
+        return Evaluation(objectives, violation, genes, bits)
+
+
+def _violation(ev: NetworkEval) -> np.ndarray:
+    """(p,) shortfall of rays summed over targets, plus one per target with singular geometry."""
+    short = np.maximum(ev.min_rays - ev.n_rays, 0).sum(axis=1)
+    singular = np.count_nonzero(~ev.sufficient & (ev.n_rays >= ev.min_rays), axis=1)
+    return (short + singular).astype(float)
+
+
+def _initial_population(problem: _Problem, k: int, P: int, mode: str, min_rays: int,
+                        rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Random networks of distinct valid candidates; bits on ("fixed") or of random density."""
+    v = problem.valid_idx
+    if len(v) >= k:
+        pick = np.argsort(rng.random((P, len(v))), axis=1)[:, :k]
+    else:
+        pick = rng.integers(0, len(v), size=(P, k))
+    genes = problem.db.genes[v[pick]].copy()
+    if mode == "fixed":
+        bits = np.ones((P, k), dtype=bool)
+    else:
+        density = rng.uniform(min(1.0, min_rays / k), 1.0, size=(P, 1))
+        bits = rng.random((P, k)) < density
+        short = bits.sum(axis=1) < min_rays
+        bits[short, :min_rays] = True
+    return genes, bits
+
+
+def _exact(part, intr: Intrinsics, options: PlannerOptions, vis_opts: VisibilityOptions, genes: np.ndarray,
+           sphere: ViewingSphere, cols: np.ndarray) -> dict:
+    """Fresh ray casting and float64 covariance for one network; scored like the search."""
+    T = sphere.poses(genes)
+    visible = compute_visibility(part, intr, T, vis_opts, backend=options.backend)
+    cov, n_rays = covariance_for_network(
+        intr, T, part.targets.xyz, visible, options.sigma_px, min_rays=options.min_rays
+    )
+    c6 = cov[:, _IU[0], _IU[1]][cols][None]
+    sig = np.sqrt(np.trace(cov, axis1=1, axis2=2))[cols][None]
+    ok = np.isfinite(sig)
+    ev = NetworkEval(cov6=c6, sigma=np.where(ok, sig, np.inf), n_rays=n_rays[cols][None], sufficient=ok,
+                     min_rays=options.min_rays)
+    return {"T": T, "visible": visible, "cov": cov, "n_rays": n_rays, "violation": float(_violation(ev)[0]),
+            "score": float(criterion(ev, options.criterion, penalty=0.0)[0]), "sigma": np.where(ok, sig, np.inf)[0]}
+
+
+# --- entry points -----------------------------------------------------------------------------
+
+
+def plan_network(
+    part,
+    intr: Intrinsics,
+    options: PlannerOptions,
+    rng: np.random.Generator | None = None,
+    reachable: np.ndarray | None = None,
+    cache_dir=None,
+    progress: Progress | None = None,
+    *,
+    seed: int | None = None,
+    db: VisibilityDB | None = None,
+) -> NetworkPlan:
+    """Design a network (see module docstring); the same inputs and seed give the same plan.
+
+    Args:
+        part: planning.part.Part (mesh, targets with xyz, normals, ids, tolerance_m).
+        intr: the camera.
+        options: :class:`PlannerOptions` (``mode`` chooses fixed size or cheapest).
+        rng: the search's generator; None: ``numpy.random.default_rng(seed)``.
+        reachable: (m,) bool aligned with the visibility database's candidates, or None.
+        cache_dir: where the visibility database is cached (None: default cache).
+        progress: called as ``progress(stage, fraction)``.
+        seed: recorded in the plan (and used when ``rng`` is None).
+        db: a visibility database already built for this part, camera and options.
+    Returns:
+        :class:`NetworkPlan`.
+    Raises:
+        InputError: bad options.  PlanningError: no valid station, targets that cannot be
+        measured by ``min_rays`` stations, or (cheapest) no network reaches the precision.
+    """
+    options.check()
+    if rng is None:
+        rng = np.random.default_rng(seed)
+    report = progress or (lambda stage, fraction: None)
+    timing: dict[str, float] = {}
+    t_all = t0 = time.perf_counter()
+    vis_opts = replace(options.visibility or VisibilityOptions(), incidence_max_rad=options.incidence_max_rad)
+    sphere = options.sphere or (db.sphere if db is not None else ViewingSphere.for_part(part, intr))
+    # search azimuth, elevation and distance only (see module docstring)
+    sphere = replace(sphere, max_roll_rad=0.0, max_offset_m=0.0)
+    if db is None:
+        db = VisibilityDB.load_or_build(part, intr, sphere, vis_opts, options.n_candidates, cache_dir, report,
+                                        n_shells=options.n_shells, backend=options.backend)
+    timing["visibility_s"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    m, n = db.visible.shape
+    valid = db.visible.any(axis=1)
+    if reachable is not None:
+        reachable = np.asarray(reachable, dtype=bool)
+        if reachable.shape != (m,):
+            raise PlanningError(f"reachable has shape {reachable.shape}; it must be aligned with the {m} candidates")
+        valid &= reachable
+    if not valid.any():
+        raise PlanningError(
+            "no candidate station both sees a target and is reachable: check the viewing sphere, "
+            "the part's placement and the robot's reach"
+        )
+    seen = db.visible[valid].sum(axis=0)
+    measurable = seen >= options.min_rays
+    ids = list(part.targets.ids)
+    if not measurable.all():
+        bad = [ids[j] for j in np.flatnonzero(~measurable)]
+        if not options.allow_unmeasurable:
+            raise PlanningError(
+                f"{len(bad)} target(s) cannot be measured by {options.min_rays} valid stations "
+                f"(e.g. {', '.join(bad[:5])}): lower min_rays, raise incidence_max_rad, widen the viewing "
+                "sphere, or set allow_unmeasurable to plan without them"
+            )
+    cols = np.flatnonzero(measurable)
+    if cols.size == 0:
+        raise PlanningError("no target can be measured by min_rays valid stations")
+    xyz = np.asarray(part.targets.xyz, dtype=float)
+    vis = db.visible[:, cols]
+    info = target_information(intr, db.part_from_cam, xyz[cols], vis, options.sigma_px)
+    report("information", 1.0)
+    required = required_sigma(part, options) if options.mode == "cheapest" else None
+    problem = _Problem(db, info, vis, valid, options, None if required is None else required[cols])
+    timing["information_s"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    k, P = options.n_stations, options.population
+    g0, b0 = _initial_population(problem, k, P, options.mode, options.min_rays, rng)
+    lower, upper = sphere.lower, sphere.upper
+    periodic = np.zeros(N_GENES, dtype=bool)
+    periodic[0] = (upper[0] - lower[0]) >= 2 * math.pi - 1e-9
+    res = evolve(problem, lower, upper, g0, b0, options.evolution_options(), rng, periodic=periodic,
+                 progress=lambda f, row: report("search", f))
+    timing["search_s"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    pareto: list[dict] = []
+    if options.mode == "fixed":
+        chosen = 0
+    else:
+        front = res.pareto_front()
+        by_count: dict[int, int] = {}
+        for i in front:
+            c = int(res.objectives[i, 0])
+            if c not in by_count or res.objectives[i, 1] < res.objectives[by_count[c], 1]:
+                by_count[c] = i
+        pareto = [{"n_stations": c, "sigma_ratio_max": float(res.objectives[i, 1])} for c, i in sorted(by_count.items())]
+        ok = [(c, i) for c, i in sorted(by_count.items()) if res.objectives[i, 1] <= 1.0]
+        if not ok:
+            best = min(pareto, key=lambda r: r["sigma_ratio_max"], default=None)
+            raise PlanningError(
+                f"no network of at most {k} stations reaches the required precision"
+                + (f" (best: sigma/required = {best['sigma_ratio_max']:.2f} with {best['n_stations']} stations)" if best else "")
+                + ": raise n_stations, relax the requirement, or lower sigma_px"
+            )
+        chosen = ok[0][1]
+    bits = res.bits[chosen]
+    genes = res.genes[chosen][bits]
+    snapped = db.genes[problem.snap(genes)[0]]
+    # exact evaluation of the continuous stations and of their database neighbours; keep the better
+    variants = {"continuous": _exact(part, intr, options, vis_opts, genes, sphere, cols)}
+    if not np.allclose(snapped, genes):
+        variants["snapped"] = _exact(part, intr, options, vis_opts, snapped, sphere, cols)
+    if options.mode == "cheapest":
+        for v in variants.values():
+            v["score"] = float(np.max(v["sigma"] / required[cols]))
+    kept = min(variants, key=lambda name: (variants[name]["violation"], variants[name]["score"]))
+    final = variants[kept]
+    final_genes = genes if kept == "continuous" else snapped
+    report("final", 1.0)
+    timing["final_s"] = time.perf_counter() - t0
+    timing["total_s"] = time.perf_counter() - t_all
+
+    order = np.lexsort((final_genes[:, 2], final_genes[:, 1], final_genes[:, 0]))
+    T, final_genes, visible = final["T"][order], final_genes[order], final["visible"][order]
+    station_ids = [f"S{i + 1:03d}" for i in range(len(order))]
+    cov, n_rays = final["cov"], final["n_rays"]
+    sig = np.sqrt(np.trace(cov, axis1=1, axis2=2))
+    sig_cols = sig[cols]
+    finite = np.isfinite(sig_cols)
+    return NetworkPlan(
+        seed=seed,
+        criterion=options.criterion,
+        mode=options.mode,
+        intrinsics=intr,
+        sigma_px=float(options.sigma_px),
+        min_rays=int(options.min_rays),
+        incidence_max_rad=float(options.incidence_max_rad),
+        station_ids=station_ids,
+        part_from_cam=T,
+        genes=final_genes,
+        target_ids=ids,
+        xyz=xyz.copy(),
+        normals=np.asarray(part.targets.normals, dtype=float).copy(),
+        cov=cov,
+        n_rays=n_rays,
+        seen_by=[[station_ids[i] for i in np.flatnonzero(visible[:, j])] for j in range(n)],
+        predicted_sigma_max_m=float(np.max(sig_cols)) if finite.all() else float("inf"),
+        predicted_sigma_mean_m=float(np.mean(sig_cols)) if finite.all() else float("inf"),
+        history=res.history,
+        pareto_front=pareto,
+        required_sigma_m=required,
+        unmeasurable_target_ids=[ids[j] for j in np.flatnonzero(~measurable)],
+        timing=timing,
+        search={
+            "stopped_because": res.stopped_because,
+            "generations": len(res.history) - 1,
+            "n_evaluations": res.n_evaluations,
+            "n_candidates": int(m),
+            "n_valid_candidates": int(valid.sum()),
+            "visibility_key": db.key,
+            "visibility_from_cache": bool(db.from_cache),
+            "poses_kept": kept,
+            "search_fitness": float(res.objectives[chosen, -1]),
+            "exact_fitness": final["score"],
+            "exact_violation": final["violation"],
+        },
+    )
+
+
+def cheapest_network(
+    part,
+    intr: Intrinsics,
+    options: PlannerOptions,
+    rng: np.random.Generator | None = None,
+    reachable: np.ndarray | None = None,
+    cache_dir=None,
+    progress: Progress | None = None,
+    **kwargs,
+) -> NetworkPlan:
+    """The fewest stations (at most ``options.n_stations``) meeting the required precision."""
+    return plan_network(part, intr, replace(options, mode="cheapest"), rng, reachable, cache_dir, progress, **kwargs)

@@ -1,0 +1,619 @@
+"""SimCamera: renders the grey image that the camera at the robot's pose would see.
+
+What is rendered (all from the world's *true* state):
+
+* the part: a dim Lambertian shading lit by a ring light at the camera, from a coarse
+  ray-cast depth/normal render (one ray per ``background_step_px`` block, bilinearly
+  upsampled; cheap, and smooth under the targets);
+* retro-reflective targets: flat discs of ``part.target_diameter_m`` in the plane of the
+  target normal, projected exactly: every pixel corner is mapped through the camera's
+  undistortion and intersected with the disc's plane, pixels near the rim are
+  supersampled (``supersample`` x ``supersample`` area coverage); bright, with a retro
+  gain that falls off as ``cos(incidence) ** falloff_exponent``;
+* coded targets: ArUco markers (``cv2.aruco.DICT_4X4_250``, 4x4 bits, one black border
+  cell, one white quiet-zone cell around it) of side ``part.coded_size_m`` (black border's
+  outer edge), axes as :func:`sim_backend.world.marker_axes`, textured by the same exact
+  inverse mapping (which includes the lens distortion, so no ``warpPerspective`` is needed);
+* occlusion by the part's mesh: rays from the camera to the centre and rim of each target
+  (Embree); fully hidden targets are not rendered, partly hidden ones get a per-pixel
+  visibility mask (and are listed as ``partial``);
+* then a Gaussian lens blur (``blur_sigma_px``), photon (shot) and read noise, black level,
+  clipping and quantisation to ``bit_depth`` bits (uint8, or uint16 above 8 bits).
+
+Image-plane jitter: ``image_sigma_px`` (the job's ``[sim] image_sigma_px``) displaces each
+rendered target's whole image by an independent N(0, sigma^2) offset per image and axis,
+modelling what is not rendered (print defects, uneven lighting, vibration). Zero by default.
+
+``Frame.meta["sim_truth"]`` carries the true pose and projections: for tests only; the cell
+must never use it to measure.
+"""
+from __future__ import annotations
+
+import math
+import threading
+import time
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from calibration.camera import Intrinsics, invert, project
+from calibration.errors import DriverError, InputError, NotConnectedError
+from drivers.protocols import Frame
+from sim_backend.world import World, marker_axes
+
+__all__ = [
+    "ARUCO_DICTIONARY",
+    "Photometry",
+    "Sensor",
+    "RenderOptions",
+    "UndistortionLattice",
+    "aruco_texture",
+    "disc_coverage",
+    "marker_coverage",
+    "apply_sensor",
+    "SimCamera",
+]
+
+ARUCO_DICTIONARY = cv2.aruco.DICT_4X4_250
+_MARKER_CELLS = 6  # 4 data bits + 1 black border cell each side
+_QUIET_CELLS = 1  # white quiet zone around the marker, in cells
+
+
+@dataclass(frozen=True)
+class Photometry:
+    """Scene brightness as fractions of the sensor's full scale, at ``reference_exposure_s``,
+    ``reference_distance_m``, full light and normal incidence."""
+
+    retro_level: float = 0.70
+    part_level: float = 0.08
+    ambient_level: float = 0.005
+    marker_black_level: float = 0.03
+    falloff_exponent: float = 2.0
+    max_incidence_rad: float = math.radians(85.0)
+    reference_distance_m: float = 0.7
+    reference_exposure_s: float = 0.002
+
+
+@dataclass(frozen=True)
+class Sensor:
+    """Sensor and lens: ``full_well_e`` electrons = full scale; noise off gives a clean image."""
+
+    bit_depth: int = 8
+    full_well_e: float = 10000.0
+    read_noise_e: float = 10.0
+    black_level: float = 0.01
+    blur_sigma_px: float = 0.7
+    noise: bool = True
+
+    def __post_init__(self) -> None:
+        if not 8 <= self.bit_depth <= 16:
+            raise InputError(f"sensor bit_depth must be 8..16, got {self.bit_depth}")
+
+
+@dataclass(frozen=True)
+class RenderOptions:
+    """How the image is computed (not what the scene is)."""
+
+    supersample: int = 8
+    adaptive: bool = True  # supersample only the pixels that the rim/edges cross
+    background_step_px: int = 8
+    lattice_step_px: float = 4.0
+    occlusion_rim_samples: int = 8
+    occlusion_tolerance_m: float = 5e-4
+    image_sigma_px: float = 0.0
+    window_margin_px: int = 2
+
+
+# --- pixel -> ray --------------------------------------------------------------
+
+
+class UndistortionLattice:
+    """Undistorted normalised coordinates of any pixel position, from a cached lattice.
+
+    The undistortion is solved exactly (Gauss-Newton) on a lattice every ``step_px`` pixels
+    and interpolated bilinearly between (error ~ step^2 * d2(distortion) / 8: below 1e-3 px
+    at 4 px for a lens with |k1| ~ 0.1). Without distortion the map is exact and linear.
+    """
+
+    def __init__(self, intr: Intrinsics, step_px: float = 4.0, margin_px: float = 16.0) -> None:
+        self.intr = intr
+        self.step = float(step_px)
+        self.exact = not intr.has_distortion
+        if self.exact:
+            return
+        self.u0 = -0.5 - margin_px
+        self.v0 = -0.5 - margin_px
+        nu = int(math.ceil((intr.width + 2 * margin_px) / self.step)) + 2
+        nv = int(math.ceil((intr.height + 2 * margin_px) / self.step)) + 2
+        uu, vv = np.meshgrid(self.u0 + self.step * np.arange(nu), self.v0 + self.step * np.arange(nv))
+        xy = intr.pixel_to_normalised(np.stack([uu, vv], axis=-1).reshape(-1, 2))
+        self.grid = xy.reshape(nv, nu, 2)
+
+    def __call__(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """``u, v: (...)`` pixel positions -> (..., 2) undistorted normalised coordinates."""
+        intr = self.intr
+        if self.exact:
+            return np.stack([(u - intr.cx_px) / intr.fx_px, (v - intr.cy_px) / intr.fy_px], axis=-1)
+        nv, nu = self.grid.shape[:2]
+        gx = (u - self.u0) / self.step
+        gy = (v - self.v0) / self.step
+        ix = np.clip(np.floor(gx).astype(np.int64), 0, nu - 2)
+        iy = np.clip(np.floor(gy).astype(np.int64), 0, nv - 2)
+        fx = (gx - ix)[..., None]  # outside the lattice: linear extrapolation of the edge cell
+        fy = (gy - iy)[..., None]
+        g = self.grid
+        return (
+            (1 - fy) * ((1 - fx) * g[iy, ix] + fx * g[iy, ix + 1])
+            + fy * ((1 - fx) * g[iy + 1, ix] + fx * g[iy + 1, ix + 1])
+        )
+
+
+def _plane_coords(xy: np.ndarray, centre_c: np.ndarray, e1_c: np.ndarray, e2_c: np.ndarray, n_c: np.ndarray) -> np.ndarray:
+    """Intersect rays ``(x, y, 1)`` with target planes, in-plane coordinates (metres).
+
+    Args:
+        xy: (k, ..., 2) normalised ray coordinates, one block per target.
+        centre_c, e1_c, e2_c, n_c: (k, 3) target centre, in-plane axes, normal (camera frame).
+    Returns:
+        (k, ..., 2) ``(s, t)`` along ``(e1, e2)`` from the centre; 1e3 where a ray misses.
+    """
+    k = xy.shape[0]
+    shape = (k,) + (1,) * (xy.ndim - 2)
+    x, y = xy[..., 0], xy[..., 1]
+
+    def dot_ray(a: np.ndarray) -> np.ndarray:
+        return x * a[:, 0].reshape(shape) + y * a[:, 1].reshape(shape) + a[:, 2].reshape(shape)
+
+    denom = dot_ray(n_c)
+    num = np.sum(centre_c * n_c, axis=1).reshape(shape)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        tt = num / denom
+    ok = np.isfinite(tt) & (tt > 0)
+    c1 = np.sum(centre_c * e1_c, axis=1).reshape(shape)
+    c2 = np.sum(centre_c * e2_c, axis=1).reshape(shape)
+    s = np.where(ok, tt * dot_ray(e1_c) - c1, 1e3)
+    t = np.where(ok, tt * dot_ray(e2_c) - c2, 1e3)
+    return np.stack([s, t], axis=-1)
+
+
+def _subpixel_weights(n: int) -> np.ndarray:
+    """Bilinear weights of ``n x n`` sub-pixel centres on the corners (00, 01, 10, 11), (n*n, 4)."""
+    a = (np.arange(n) + 0.5) / n
+    fy, fx = np.meshgrid(a, a, indexing="ij")
+    fx, fy = fx.ravel(), fy.ravel()
+    return np.stack([(1 - fy) * (1 - fx), (1 - fy) * fx, fy * (1 - fx), fy * fx], axis=1)
+
+
+def _corner_blocks(st: np.ndarray, idx: tuple[np.ndarray, ...]) -> np.ndarray:
+    """Plane coords of the 4 corners of the pixels ``idx = (k, i, j)``, (b, 4, 2)."""
+    k, i, j = idx
+    return np.stack([st[k, i, j], st[k, i, j + 1], st[k, i + 1, j], st[k, i + 1, j + 1]], axis=1)
+
+
+def _pixel_lattice(lattice: UndistortionLattice, u0: np.ndarray, v0: np.ndarray, h: int, w: int, shift: np.ndarray) -> np.ndarray:
+    """Normalised coords of the pixel corners of windows at ``(u0, v0)`` (k,), (k, h+1, w+1, 2)."""
+    U = u0[:, None] + np.arange(w + 1) - 0.5 - shift[:, 0:1]
+    V = v0[:, None] + np.arange(h + 1) - 0.5 - shift[:, 1:2]
+    return lattice(np.broadcast_to(U[:, None, :], (len(u0), h + 1, w + 1)), np.broadcast_to(V[:, :, None], (len(u0), h + 1, w + 1)))
+
+
+def disc_coverage(
+    lattice: UndistortionLattice,
+    u0: np.ndarray,
+    v0: np.ndarray,
+    h: int,
+    w: int,
+    centre_c: np.ndarray,
+    normal_c: np.ndarray,
+    e1_c: np.ndarray,
+    e2_c: np.ndarray,
+    radius_m: float,
+    shift_px: np.ndarray,
+    supersample: int = 8,
+    adaptive: bool = True,
+) -> np.ndarray:
+    """Fraction of each pixel covered by the image of a disc, for k windows of h x w pixels.
+
+    Args:
+        u0, v0: (k,) int pixel index of each window's top-left pixel.
+        centre_c, normal_c, e1_c, e2_c: (k, 3) disc centre, normal and in-plane axes (camera frame).
+        shift_px: (k, 2) image-plane displacement of each disc's image (jitter), pixels.
+    Returns:
+        (k, h, w) float coverage in [0, 1].
+    """
+    st = _plane_coords(_pixel_lattice(lattice, u0, v0, h, w, shift_px), centre_c, e1_c, e2_c, normal_c)
+    c00, c01, c10, c11 = st[:, :-1, :-1], st[:, :-1, 1:], st[:, 1:, :-1], st[:, 1:, 1:]
+    centre = 0.25 * (c00 + c01 + c10 + c11)
+    half_diag = 0.5 * np.maximum(np.linalg.norm(c00 - c11, axis=-1), np.linalg.norm(c01 - c10, axis=-1)) * 1.02
+    rho = np.linalg.norm(centre, axis=-1)
+    cov = (rho < radius_m).astype(float)
+    boundary = np.abs(rho - radius_m) <= half_diag if adaptive else np.ones_like(rho, dtype=bool)
+    idx = np.nonzero(boundary)
+    if len(idx[0]):
+        W = _subpixel_weights(supersample).astype(np.float32)
+        C = _corner_blocks(st, idx).astype(np.float32)
+        r2 = np.float32(radius_m * radius_m)
+        out = np.empty(len(idx[0]))
+        for a in range(0, len(out), 32768):
+            s = C[a : a + 32768, :, 0] @ W.T
+            t = C[a : a + 32768, :, 1] @ W.T
+            out[a : a + 32768] = np.mean(s * s + t * t <= r2, axis=1)
+        cov[idx] = out
+    return cov
+
+
+def aruco_texture(code: int) -> np.ndarray:
+    """(8, 8) float texture, 1 = white, of ArUco ``code`` (DICT_4X4_250) with its quiet zone."""
+    d = cv2.aruco.getPredefinedDictionary(ARUCO_DICTIONARY)
+    n_codes = d.bytesList.shape[0]
+    if not 0 <= int(code) < n_codes:
+        raise InputError(f"coded target id {code} is outside DICT_4X4_250 (0..{n_codes - 1}); renumber the coded targets")
+    img = cv2.aruco.generateImageMarker(d, int(code), _MARKER_CELLS, borderBits=1)
+    return np.pad(img.astype(float) / 255.0, _QUIET_CELLS, constant_values=1.0)
+
+
+def marker_coverage(
+    lattice: UndistortionLattice,
+    u0: np.ndarray,
+    v0: np.ndarray,
+    h: int,
+    w: int,
+    centre_c: np.ndarray,
+    normal_c: np.ndarray,
+    e1_c: np.ndarray,
+    e2_c: np.ndarray,
+    side_m: float,
+    textures: np.ndarray,
+    shift_px: np.ndarray,
+    supersample: int = 8,
+    adaptive: bool = True,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Coverage of coded-marker patches (marker + quiet zone) for k windows.
+
+    Args:
+        side_m: marker side (outer edge of the black border).
+        textures: (k, G, G) 1 = white cells, G = 8 (marker + quiet zone).
+    Returns:
+        alpha: (k, h, w) fraction of each pixel covered by the patch.
+        white: (k, h, w) fraction of each pixel covered by white cells.
+    """
+    G = textures.shape[1]
+    cell = side_m / _MARKER_CELLS
+    half = 0.5 * G * cell
+    st = _plane_coords(_pixel_lattice(lattice, u0, v0, h, w, shift_px), centre_c, e1_c, e2_c, normal_c)
+    ab = (st + half) / cell  # cell coordinates, patch spans [0, G)
+    c00, c01, c10, c11 = ab[:, :-1, :-1], ab[:, :-1, 1:], ab[:, 1:, :-1], ab[:, 1:, 1:]
+    centre = 0.25 * (c00 + c01 + c10 + c11)
+    hd = 0.5 * np.maximum(np.linalg.norm(c00 - c11, axis=-1), np.linalg.norm(c01 - c10, axis=-1)) * 1.02
+    a, b = centre[..., 0], centre[..., 1]
+    outside = (a < -hd) | (a > G + hd) | (b < -hd) | (b > G + hd)
+    uniform = (np.abs(a - np.round(a)) > hd) & (np.abs(b - np.round(b)) > hd)
+    ia = np.clip(np.floor(a).astype(np.int64), 0, G - 1)
+    ib = np.clip(np.floor(b).astype(np.int64), 0, G - 1)
+    inside = ~outside & (a >= 0) & (a < G) & (b >= 0) & (b < G)
+    kk = np.broadcast_to(np.arange(len(u0))[:, None, None], a.shape)
+    alpha = inside.astype(float)
+    white = np.where(inside, textures[kk, ib, ia], 0.0)
+    boundary = ~outside & ~uniform if adaptive else np.ones_like(a, dtype=bool)
+    idx = np.nonzero(boundary)
+    if len(idx[0]):
+        W = _subpixel_weights(supersample)
+        C = _corner_blocks(ab, idx)
+        al = np.empty(len(idx[0]))
+        wh = np.empty(len(idx[0]))
+        for s0 in range(0, len(al), 32768):
+            sl = slice(s0, s0 + 32768)
+            sa = C[sl, :, 0] @ W.T
+            sb = C[sl, :, 1] @ W.T
+            ins = (sa >= 0) & (sa < G) & (sb >= 0) & (sb < G)
+            ja = np.clip(np.floor(sa).astype(np.int64), 0, G - 1)
+            jb = np.clip(np.floor(sb).astype(np.int64), 0, G - 1)
+            tex = textures[idx[0][sl, None], jb, ja]
+            al[sl] = ins.mean(axis=1)
+            wh[sl] = np.where(ins, tex, 0.0).mean(axis=1)
+        alpha[idx] = al
+        white[idx] = wh
+    return alpha, white
+
+
+def apply_sensor(img: np.ndarray, sensor: Sensor, rng: np.random.Generator | None) -> np.ndarray:
+    """Blurred irradiance ``img: (h, w)`` (fraction of full scale) -> quantised sensor image.
+
+    Adds the black level, photon noise (Gaussian approximation of Poisson, variance = electrons)
+    and read noise when ``sensor.noise`` (then ``rng`` is required), clips and rounds.
+    Returns (h, w) uint8 for 8 bits, uint16 otherwise.
+    """
+    full = float(2**sensor.bit_depth - 1)
+    x = np.asarray(img, dtype=np.float32)
+    if sensor.noise:
+        if rng is None:
+            raise ValueError("apply_sensor with noise needs an rng")
+        electrons = np.maximum(x, 0.0) * np.float32(sensor.full_well_e)
+        sigma = np.sqrt(electrons + np.float32(sensor.read_noise_e**2))
+        electrons += sigma * rng.standard_normal(x.shape, dtype=np.float32)
+        x = electrons * np.float32(1.0 / sensor.full_well_e)
+    x = (x + np.float32(sensor.black_level)) * np.float32(full)
+    np.clip(x, 0.0, full, out=x)
+    return np.rint(x).astype(np.uint8 if sensor.bit_depth == 8 else np.uint16)
+
+
+# --- the scene ---------------------------------------------------------------------
+
+
+@dataclass
+class _Visible:
+    """Targets selected for rendering in one image."""
+
+    index: np.ndarray  # (m,) target indices
+    partial: np.ndarray  # (m,) bool: partly occluded
+    occluded: np.ndarray  # indices of targets in view but fully hidden
+    truncated: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=int))
+
+
+class SimCamera:
+    """A camera in the simulated world; satisfies ``drivers.protocols.Camera``.
+
+    Args:
+        world: the simulated world (its true pose, part and intrinsics are used).
+        photometry, sensor, options: see the dataclasses above.
+        rng: random stream for noise and jitter (default: a child stream of the world's seed).
+        exposure_s: exposure time; brightness scales with it.
+    """
+
+    def __init__(
+        self,
+        world: World,
+        *,
+        photometry: Photometry = Photometry(),
+        sensor: Sensor = Sensor(),
+        options: RenderOptions = RenderOptions(),
+        rng: np.random.Generator | None = None,
+        exposure_s: float = 0.002,
+    ) -> None:
+        self.world = world
+        self.photometry = photometry
+        self.sensor = sensor
+        self.options = options
+        self.rng = world.spawn_rng() if rng is None else rng
+        self.exposure_s = float(exposure_s)
+        self.intr = world.intrinsics
+        self.lattice = UndistortionLattice(self.intr, options.lattice_step_px)
+        self._bg_rays = self._background_rays()
+        self._connected = False
+        self._fail_captures = 0
+        self._frame_id = 0
+        self._lock = threading.Lock()
+        targets = world.part.targets
+        self._coded = np.asarray(targets.kind) == "coded"
+        self._textures = {int(c): aruco_texture(int(c)) for c in np.asarray(targets.code)[self._coded]}
+
+    # --- Camera protocol ---------------------------------------------------
+    def connect(self) -> None:
+        self._connected = True
+
+    def close(self) -> None:
+        self._connected = False
+
+    def capture(self) -> Frame:
+        """Render, expose and quantise one image at the world's current true pose."""
+        with self._lock:
+            if not self._connected:
+                raise NotConnectedError("sim camera: not connected; call connect() first")
+            if self._fail_captures:
+                self._fail_captures -= 1
+                raise DriverError("sim camera: frame timeout (injected fault); retry the capture")
+            image, truth = self.render()
+            self._frame_id += 1
+            meta = {
+                "frame_id": self._frame_id,
+                "device": "sim",
+                "bit_depth": self.sensor.bit_depth,
+                "sim_truth": truth,
+            }
+            return Frame(image=image, timestamp_s=time.time(), exposure_s=self.exposure_s, meta=meta)
+
+    # --- fault injection -----------------------------------------------------
+    def inject_capture_failure(self, n: int = 1) -> None:
+        """The next ``n`` captures raise ``DriverError`` (a frame timeout)."""
+        self._fail_captures += int(n)
+
+    def inject_disconnect(self) -> None:
+        """The connection drops: captures raise ``NotConnectedError`` until ``connect()``."""
+        self._connected = False
+
+    # --- rendering ---------------------------------------------------------------
+    def render(self, part_from_cam: np.ndarray | None = None, *, noise: bool | None = None, quantise: bool = True):
+        """Render the image seen from ``part_from_cam`` (default: the world's true camera pose).
+
+        Returns ``(image, truth)``: the quantised image (or, with ``quantise=False``, the
+        blurred noise-free irradiance as float32 fractions of full scale) and a dict of the
+        true pose, ids, kinds and projections of the rendered targets.
+        """
+        if part_from_cam is None:
+            part_from_cam = self.world.true_part_from_cam()
+        part_from_cam = np.asarray(part_from_cam, dtype=float)
+        cam_from_part = invert(part_from_cam)
+        ph, opt = self.photometry, self.options
+        light = float(self.world.light_fraction) * self.exposure_s / ph.reference_exposure_s
+        img = self._render_background(part_from_cam, light)
+        vis = self._select(part_from_cam, cam_from_part)
+        targets = self.world.part.targets
+        xyz = self.world.true_xyz
+        ids = np.asarray(targets.ids)
+        shift = np.zeros((len(vis.index), 2))
+        if opt.image_sigma_px > 0 and len(vis.index):
+            shift = opt.image_sigma_px * self.rng.standard_normal((len(vis.index), 2))
+        self._draw_targets(img, vis, cam_from_part, shift, light)
+        if self.sensor.blur_sigma_px > 0:
+            img = cv2.GaussianBlur(img, (0, 0), self.sensor.blur_sigma_px, borderType=cv2.BORDER_REFLECT)
+        uv = project(self.intr, cam_from_part, xyz[vis.index]) if len(vis.index) else np.zeros((0, 2))
+        coded = self._coded[vis.index]
+        corners_uv = {}
+        if coded.any():
+            corners = self.world.true_marker_corners()[vis.index[coded]]
+            cuv = project(self.intr, cam_from_part, corners.reshape(-1, 3)).reshape(-1, 4, 2)
+            corners_uv = {str(i): c.tolist() for i, c in zip(ids[vis.index[coded]], cuv)}
+        truth = {
+            "part_from_cam": part_from_cam.tolist(),
+            "ids": ids[vis.index].tolist(),
+            "kind": np.asarray(targets.kind)[vis.index].tolist(),
+            "uv": uv.tolist(),
+            "shift_px": shift.tolist(),
+            "partial_ids": ids[vis.index[vis.partial]].tolist(),
+            "occluded_ids": ids[vis.occluded].tolist(),
+            "truncated_ids": ids[vis.truncated].tolist(),
+            "marker_corners_uv": corners_uv,
+        }
+        if not quantise:
+            return img, truth
+        use_noise = self.sensor.noise if noise is None else noise
+        sensor = self.sensor if use_noise == self.sensor.noise else _with_noise(self.sensor, use_noise)
+        return apply_sensor(img, sensor, self.rng), truth
+
+    def _background_rays(self) -> tuple[np.ndarray, tuple[int, int]]:
+        intr, s = self.intr, self.options.background_step_px
+        gw, gh = int(math.ceil(intr.width / s)), int(math.ceil(intr.height / s))
+        u = (np.arange(gw) + 0.5) * intr.width / gw - 0.5
+        v = (np.arange(gh) + 0.5) * intr.height / gh - 0.5
+        uu, vv = np.meshgrid(u, v)
+        xy = intr.pixel_to_normalised(np.stack([uu, vv], axis=-1).reshape(-1, 2))
+        return np.column_stack([xy, np.ones(len(xy))]), (gh, gw)
+
+    def _render_background(self, part_from_cam: np.ndarray, light: float) -> np.ndarray:
+        """Dim Lambertian part under the ring light, (h, w) float32 fraction of full scale."""
+        ph, intr = self.photometry, self.intr
+        rays, (gh, gw) = self._bg_rays
+        d = rays @ part_from_cam[:3, :3].T
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        dist, tri = self.world.first_hit(part_from_cam[:3, 3], d)
+        shade = np.full(len(d), float(ph.ambient_level))
+        hit = tri >= 0
+        if hit.any():
+            n = np.asarray(self.world.part.mesh.face_normals)[tri[hit]]
+            cos = np.abs(np.sum(n * d[hit], axis=1))
+            shade[hit] += light * ph.part_level * cos * (ph.reference_distance_m / dist[hit]) ** 2
+        small = shade.reshape(gh, gw).astype(np.float32)
+        return cv2.resize(small, (intr.width, intr.height), interpolation=cv2.INTER_LINEAR)
+
+    def _select(self, part_from_cam: np.ndarray, cam_from_part: np.ndarray) -> _Visible:
+        """Targets in front, facing the camera, in the image, and not fully occluded."""
+        w = self.world
+        xyz, nrm = w.true_xyz, w.normals
+        C = part_from_cam[:3, 3]
+        to_cam = C - xyz
+        dist = np.linalg.norm(to_cam, axis=1)
+        cos_inc = np.sum(nrm * to_cam, axis=1) / dist
+        Xc = xyz @ cam_from_part[:3, :3].T + cam_from_part[:3, 3]
+        cand = np.nonzero((Xc[:, 2] > 0.01) & (cos_inc > math.cos(self.photometry.max_incidence_rad)))[0]
+        if len(cand):
+            reach = self._extent(cand) / Xc[cand, 2] * max(self.intr.fx_px, self.intr.fy_px)
+            uv = project(self.intr, cam_from_part, xyz[cand])
+            ok = np.isfinite(uv).all(axis=1) & self.intr.in_image(uv, margin_px=-reach - 2)
+            cand = cand[ok]
+        # occlusion: centre + rim samples
+        m = self.options.occlusion_rim_samples
+        ang = 2 * np.pi * np.arange(m) / m
+        e1, e2 = marker_axes(nrm[cand])
+        rim = 0.95 * self._extent(cand)[:, None, None] * (np.cos(ang)[None, :, None] * e1[:, None] + np.sin(ang)[None, :, None] * e2[:, None])
+        pts = np.concatenate([xyz[cand][:, None], xyz[cand][:, None] + rim], axis=1)  # (c, m+1, 3)
+        dirs = pts.reshape(-1, 3) - C
+        hit, _ = w.first_hit(C, dirs)
+        tol = self.options.occlusion_tolerance_m + np.linalg.norm(w.deviations[cand], axis=1)
+        seen = (hit.reshape(len(cand), m + 1) >= np.linalg.norm(dirs, axis=1).reshape(len(cand), m + 1) - tol[:, None])
+        n_seen = seen.sum(axis=1)
+        keep = n_seen > 0
+        return _Visible(index=cand[keep], partial=n_seen[keep] < m + 1, occluded=cand[~keep])
+
+    def _extent(self, idx: np.ndarray) -> np.ndarray:
+        """(k,) in-plane radius (m) of targets ``idx``: disc radius, or half the patch diagonal."""
+        part = self.world.part
+        half_patch = 0.5 * part.coded_size_m * (_MARKER_CELLS + 2 * _QUIET_CELLS) / _MARKER_CELLS * math.sqrt(2)
+        return np.where(self._coded[idx], half_patch, 0.5 * part.target_diameter_m)
+
+    def _windows(self, idx: np.ndarray, cam_from_part: np.ndarray, shift: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Pixel windows (u0, v0, w, h) that hold each target's image, (k,) ints each."""
+        xyz, nrm = self.world.true_xyz[idx], self.world.normals[idx]
+        e1, e2 = marker_axes(nrm)
+        m = 24
+        ang = 2 * np.pi * np.arange(m) / m
+        r = self._extent(idx)[:, None, None]
+        rim = xyz[:, None] + r * (np.cos(ang)[None, :, None] * e1[:, None] + np.sin(ang)[None, :, None] * e2[:, None])
+        uv = project(self.intr, cam_from_part, rim.reshape(-1, 3)).reshape(len(idx), m, 2) + shift[:, None]
+        mg = self.options.window_margin_px
+        lo = np.floor(uv.min(axis=1)).astype(int) - mg
+        hi = np.ceil(uv.max(axis=1)).astype(int) + mg
+        return lo[:, 0], lo[:, 1], hi[:, 0] - lo[:, 0] + 1, hi[:, 1] - lo[:, 1] + 1
+
+    def _draw_targets(self, img: np.ndarray, vis: _Visible, cam_from_part: np.ndarray, shift: np.ndarray, light: float) -> None:
+        if not len(vis.index):
+            return
+        w, ph, opt = self.world, self.photometry, self.options
+        idx = vis.index
+        R, t = cam_from_part[:3, :3], cam_from_part[:3, 3]
+        centre_c = w.true_xyz[idx] @ R.T + t
+        e1, e2 = marker_axes(w.normals[idx])
+        n_c, e1_c, e2_c = w.normals[idx] @ R.T, e1 @ R.T, e2 @ R.T
+        dist = np.linalg.norm(centre_c, axis=1)
+        cos_inc = np.clip(-np.sum(n_c * centre_c, axis=1) / dist, 0.0, 1.0)
+        illum = light * (ph.reference_distance_m / dist) ** 2
+        level = ph.retro_level * illum * cos_inc**ph.falloff_exponent
+        black = ph.marker_black_level * illum * cos_inc
+        u0, v0, ww, hh = self._windows(idx, cam_from_part, shift)
+        H, W = img.shape
+        truncated = (u0 < 0) | (v0 < 0) | (u0 + ww > W) | (v0 + hh > H)
+        vis.truncated = idx[truncated]
+        coded = self._coded[idx]
+        # one vectorised call per group of equal (bucketed) window size and kind
+        bw, bh = 8 * np.ceil(ww / 8).astype(int), 8 * np.ceil(hh / 8).astype(int)
+        for is_coded in (False, True):
+            sel_kind = coded == is_coded
+            for gw_, gh_ in sorted(set(zip(bw[sel_kind], bh[sel_kind]))):
+                g = np.nonzero(sel_kind & (bw == gw_) & (bh == gh_))[0]
+                args = (self.lattice, u0[g], v0[g], gh_, gw_, centre_c[g], n_c[g], e1_c[g], e2_c[g])
+                if is_coded:
+                    tex = np.stack([self._textures[int(c)] for c in np.asarray(w.part.targets.code)[idx[g]]])
+                    alpha, white = marker_coverage(*args, float(w.part.coded_size_m), tex, shift[g], opt.supersample, opt.adaptive)
+                else:
+                    alpha = disc_coverage(*args, 0.5 * float(w.part.target_diameter_m), shift[g], opt.supersample, opt.adaptive)
+                    white = alpha
+                for j, k in enumerate(g):
+                    a, wh = alpha[j], white[j]
+                    if vis.partial[k]:
+                        vm = self._visibility_mask(u0[k], v0[k], gh_, gw_, idx[k], cam_from_part, shift[k])
+                        a, wh = a * vm, wh * vm
+                    self._compose(img, u0[k], v0[k], a, wh, level[k], black[k])
+
+    def _visibility_mask(self, u0: int, v0: int, h: int, w: int, target: int, cam_from_part: np.ndarray, shift: np.ndarray) -> np.ndarray:
+        """(h, w) 1 where the ray through the pixel centre reaches the target's plane unoccluded."""
+        part_from_cam = invert(cam_from_part)
+        uu, vv = np.meshgrid(u0 + np.arange(w) - shift[0], v0 + np.arange(h) - shift[1])
+        xy = self.lattice(uu, vv).reshape(-1, 2)
+        d = np.column_stack([xy, np.ones(len(xy))]) @ part_from_cam[:3, :3].T
+        C = part_from_cam[:3, 3]
+        P0, n = self.world.true_xyz[target], self.world.normals[target]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            lam = np.sum((P0 - C) * n) / (d @ n)
+        reach = lam * np.linalg.norm(d, axis=1)
+        hit, _ = self.world.first_hit(C, d)
+        tol = self.options.occlusion_tolerance_m + np.linalg.norm(self.world.deviations[target])
+        return (hit >= reach - tol).reshape(h, w).astype(float)
+
+    @staticmethod
+    def _compose(img: np.ndarray, u0: int, v0: int, alpha: np.ndarray, white: np.ndarray, level: float, black: float) -> None:
+        H, W = img.shape
+        h, w = alpha.shape
+        a0, b0 = max(u0, 0), max(v0, 0)
+        a1, b1 = min(u0 + w, W), min(v0 + h, H)
+        if a1 <= a0 or b1 <= b0:
+            return
+        al = alpha[b0 - v0 : b1 - v0, a0 - u0 : a1 - u0]
+        wh = white[b0 - v0 : b1 - v0, a0 - u0 : a1 - u0]
+        patch = img[b0:b1, a0:a1]
+        patch[...] = patch * (1 - al) + wh * level + (al - wh) * black
+
+
+def _with_noise(sensor: Sensor, noise: bool) -> Sensor:
+    from dataclasses import replace
+
+    return replace(sensor, noise=noise)

@@ -1,0 +1,205 @@
+"""Limiting error propagation: the predicted covariance against finite differences and Monte Carlo."""
+import numpy as np
+import pytest
+
+from calibration.camera import Intrinsics, invert, look_at, project, project_with_jacobians
+from calibration.errors import PlanningError
+from planning.uncertainty import (
+    CRITERIA,
+    covariance_for_network,
+    criterion,
+    eigvalsh_6,
+    ellipsoid_axes,
+    evaluate_networks,
+    sym_from_6,
+    target_information,
+)
+
+INTR = Intrinsics(fx_px=3500.0, fy_px=3480.0, cx_px=1230.0, cy_px=1010.0, width=2448, height=2048,
+                  k1=-0.08, k2=0.02, p1=3e-4, p2=-2e-4)
+SIGMA_PX = 0.3
+
+
+def ring(n: int, distance: float, elevation_deg: float, az0_deg: float = 0.0, span_deg: float = 360.0):
+    """``n`` cameras looking at the origin, azimuths over ``span_deg``; (n, 4, 4) part_from_cam."""
+    az = np.deg2rad(az0_deg + (np.arange(n) * span_deg / n if span_deg >= 360 else np.linspace(0, span_deg, n)))
+    el = np.deg2rad(elevation_deg)
+    eyes = distance * np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.full_like(az, np.sin(el))], 1)
+    return np.stack([look_at(e, np.zeros(3)) for e in eyes])
+
+
+NETWORKS = {
+    "weak pair": ring(2, 0.8, 40.0, span_deg=6.0),  # 6 deg convergence
+    "convergent pair": ring(2, 0.8, 30.0, span_deg=90.0),
+    "8 stations": ring(8, 0.8, 45.0),
+}
+POINTS = np.array([[0.0, 0.0, 0.0], [0.03, -0.02, 0.01], [-0.04, 0.03, -0.02]])
+
+
+def fd_point_jacobian(T, X, h=1e-7):
+    J = np.zeros((2, 3))
+    for k in range(3):
+        d = np.zeros(3)
+        d[k] = h
+        J[:, k] = (project(INTR, invert(T), (X + d)[None])[0] - project(INTR, invert(T), (X - d)[None])[0]) / (2 * h)
+    return J
+
+
+@pytest.mark.parametrize("name", list(NETWORKS))
+def test_covariance_equals_inverse_normal_matrix_from_finite_differences(name):
+    T = NETWORKS[name]
+    vis = np.ones((len(T), len(POINTS)), dtype=bool)
+    cov, n_rays = covariance_for_network(INTR, T, POINTS, vis, SIGMA_PX)
+    np.testing.assert_array_equal(n_rays, len(T))
+    for j, X in enumerate(POINTS):
+        N = sum(fd_point_jacobian(Ti, X).T @ fd_point_jacobian(Ti, X) for Ti in T) / SIGMA_PX**2
+        np.testing.assert_allclose(cov[j], np.linalg.inv(N), rtol=1e-5, atol=1e-6 * np.abs(cov[j]).max())
+
+
+def triangulate(T, uv_obs, X0, iterations=6):
+    """Gauss-Newton on reprojection error, vectorised over trials. ``uv_obs: (k, trials, 2)``; (trials, 3)."""
+    X = np.repeat(X0[None], uv_obs.shape[1], axis=0)
+    cam_from_part = invert(T)
+    for _ in range(iterations):
+        H = np.zeros((len(X), 3, 3))
+        g = np.zeros((len(X), 3))
+        for i in range(len(T)):
+            uv, J, _ = project_with_jacobians(INTR, cam_from_part[i], X)
+            r = uv_obs[i] - uv
+            H += np.einsum("tri,trj->tij", J, J)
+            g += np.einsum("tri,tr->ti", J, r)
+        X = X + np.linalg.solve(H, g[..., None])[..., 0]
+    return X
+
+
+@pytest.mark.parametrize("name", list(NETWORKS))
+def test_monte_carlo_triangulation_matches_predicted_covariance(name):
+    T = NETWORKS[name]
+    rng = np.random.default_rng(list(NETWORKS).index(name))
+    trials = 4000
+    vis = np.ones((len(T), len(POINTS)), dtype=bool)
+    cov, _ = covariance_for_network(INTR, T, POINTS, vis, SIGMA_PX)
+    for j, X in enumerate(POINTS):
+        clean = np.stack([project(INTR, invert(Ti), X[None])[0] for Ti in T])  # (k, 2)
+        uv_obs = clean[:, None, :] + rng.normal(scale=SIGMA_PX, size=(len(T), trials, 2))
+        est = triangulate(T, uv_obs, X)
+        emp = np.cov(est.T)
+        # variance along each predicted principal axis, and the whole whitened matrix
+        axes, dirs = ellipsoid_axes(cov[j])
+        emp_axes = np.sqrt(np.einsum("ij,ik,kj->j", dirs, emp, dirs))
+        np.testing.assert_allclose(emp_axes, axes, rtol=0.10)
+        L = np.linalg.cholesky(np.linalg.inv(cov[j]))
+        W = L.T @ emp @ L
+        assert np.abs(W - np.eye(3)).max() < 0.10
+        assert np.linalg.norm(est.mean(0) - X) < 4 * np.sqrt(np.trace(cov[j]) / trials) + 1e-9
+
+
+def test_weak_pair_is_much_worse_in_depth_than_convergent_pair():
+    vis = np.ones((2, 1), dtype=bool)
+    weak, _ = covariance_for_network(INTR, NETWORKS["weak pair"], POINTS[:1], vis, SIGMA_PX)
+    strong, _ = covariance_for_network(INTR, NETWORKS["convergent pair"], POINTS[:1], vis, SIGMA_PX)
+    aw, _ = ellipsoid_axes(weak)
+    as_, _ = ellipsoid_axes(strong)
+    assert aw[0, 0] / aw[0, 2] > 10 and as_[0, 0] / as_[0, 2] < 3
+    assert aw[0, 0] > 5 * as_[0, 0]
+
+
+def candidate_scene(seed=0, m=60, n=40):
+    rng = np.random.default_rng(seed)
+    T = np.concatenate([ring(m // 3, d, el, az0_deg=rng.uniform(0, 30)) for d, el in ((0.7, 20), (0.8, 45), (0.9, 70))])
+    xyz = rng.uniform(-0.05, 0.05, (n, 3))
+    vis = rng.random((len(T), n)) < 0.6
+    return T, xyz, vis
+
+
+def test_population_evaluation_equals_exact_per_network_covariance():
+    T, xyz, vis = candidate_scene()
+    rng = np.random.default_rng(1)
+    stations = np.stack([rng.choice(len(T), 6, replace=False) for _ in range(25)])
+    stations[::4, 2] = -1  # some cameras switched off
+    info64 = target_information(INTR, T, xyz, vis, SIGMA_PX, dtype=np.float64)
+    info32 = target_information(INTR, T, xyz, vis, SIGMA_PX)
+    ev64 = evaluate_networks(info64, stations, min_rays=2, workers=2, chunk=4)
+    ev32 = evaluate_networks(info32, stations, min_rays=2, visible=vis)
+    for p, st in enumerate(stations):
+        on = st[st >= 0]
+        cov, n_rays = covariance_for_network(INTR, T[on], xyz, vis[on], SIGMA_PX)
+        np.testing.assert_array_equal(ev64.n_rays[p], n_rays)
+        np.testing.assert_array_equal(ev64.sufficient[p], n_rays >= 2)
+        ok = n_rays >= 2
+        np.testing.assert_allclose(ev64.cov[p][ok], cov[ok], rtol=1e-8, atol=1e-12 * np.nanmax(np.abs(cov)))
+        np.testing.assert_allclose(ev32.sigma[p][ok], np.sqrt(np.trace(cov[ok], axis1=1, axis2=2)), rtol=1e-3)
+        assert np.all(np.isinf(ev64.sigma[p][~ok])) and np.all(np.isnan(ev64.cov6[p][~ok]))
+
+
+def test_insufficient_data_makes_the_criterion_infinite_or_penalised():
+    T = NETWORKS["8 stations"]
+    xyz = POINTS
+    vis = np.ones((8, 3), dtype=bool)
+    vis[1:, 2] = False  # target 2 seen by station 0 only
+    info = target_information(INTR, T, xyz, vis, SIGMA_PX)
+    ev = evaluate_networks(info, np.arange(8)[None], min_rays=2)
+    np.testing.assert_array_equal(ev.n_rays[0], [8, 8, 1])
+    np.testing.assert_array_equal(ev.n_insufficient, [1])
+    assert np.isinf(criterion(ev, "worst"))[0]
+    value = criterion(ev, "worst", penalty=1.0)[0]
+    assert value == pytest.approx(ev.sigma[0, :2].max() + 1.0)
+    ev3 = evaluate_networks(info, np.arange(8)[None], min_rays=9)
+    assert ev3.n_insufficient[0] == 3 and np.isinf(criterion(ev3, "mean")[0])
+
+
+def test_criteria_follow_their_definitions():
+    T, xyz, vis = candidate_scene(seed=2)
+    vis[:] = True
+    info = target_information(INTR, T, xyz, vis, SIGMA_PX, dtype=np.float64)
+    stations = np.random.default_rng(3).integers(0, len(T), (10, 5))
+    ev = evaluate_networks(info, stations)
+    cov = ev.cov
+    tr = np.trace(cov, axis1=2, axis2=3)
+    big = np.sqrt(np.linalg.eigvalsh(cov)[..., -1])
+    np.testing.assert_allclose(criterion(ev, "worst"), np.sqrt(tr).max(1), rtol=1e-10)
+    np.testing.assert_allclose(criterion(ev, "mean"), np.sqrt(tr).mean(1), rtol=1e-10)
+    np.testing.assert_allclose(criterion(ev, "trace"), tr.mean(1), rtol=1e-10)
+    np.testing.assert_allclose(criterion(ev, "max_axis"), big.max(1), rtol=1e-6)
+    assert set(CRITERIA) == {"worst", "mean", "max_axis", "trace"}
+    with pytest.raises(PlanningError, match="criterion"):
+        criterion(ev, "best")
+
+
+def test_a_candidate_listed_twice_counts_once():
+    T, xyz, vis = candidate_scene(seed=4)
+    info = target_information(INTR, T, xyz, vis, SIGMA_PX, dtype=np.float64)
+    a = evaluate_networks(info, np.array([[3, 7, 11, 30]]))
+    b = evaluate_networks(info, np.array([[3, 7, 11, 30, 7, 7, -1]]))
+    np.testing.assert_array_equal(a.n_rays, b.n_rays)
+    np.testing.assert_allclose(a.sigma, b.sigma)
+    c = evaluate_networks(info, np.array([[3, 7, 11, 30, 7]]), count_duplicates=True)
+    assert np.all(c.n_rays >= a.n_rays) and np.any(c.n_rays > a.n_rays)
+
+
+def test_closed_form_eigenvalues_and_ellipsoid_axes():
+    rng = np.random.default_rng(6)
+    A = rng.normal(size=(500, 3, 3))
+    S = A @ np.swapaxes(A, 1, 2) + 1e-3 * np.eye(3)
+    s6 = S[:, [0, 0, 0, 1, 1, 2], [0, 1, 2, 1, 2, 2]]
+    np.testing.assert_allclose(sym_from_6(s6), S)
+    np.testing.assert_allclose(eigvalsh_6(s6), np.linalg.eigvalsh(S)[:, ::-1], rtol=1e-7, atol=1e-9)
+    np.testing.assert_allclose(eigvalsh_6(np.array([2.0, 0, 0, 2.0, 0, 2.0])), [2.0, 2.0, 2.0])
+    axes, dirs = ellipsoid_axes(np.diag([1e-8, 9e-8, 4e-8]))
+    np.testing.assert_allclose(axes, [3e-4, 2e-4, 1e-4])
+    np.testing.assert_allclose(np.abs(dirs), np.eye(3)[:, [1, 2, 0]], atol=1e-12)
+    axes, _ = ellipsoid_axes(np.full((2, 3, 3), np.nan))
+    assert np.all(np.isnan(axes))
+
+
+def test_bad_inputs_raise_planning_error():
+    T, xyz, vis = candidate_scene()
+    info = target_information(INTR, T, xyz, vis, SIGMA_PX)
+    with pytest.raises(PlanningError, match="out of range"):
+        evaluate_networks(info, np.array([[0, len(T)]]))
+    with pytest.raises(PlanningError, match="min_rays"):
+        evaluate_networks(info, np.array([[0, 1]]), min_rays=1)
+    with pytest.raises(PlanningError, match="visible"):
+        target_information(INTR, T, xyz, vis[:, :3], SIGMA_PX)
+    with pytest.raises(PlanningError, match="sigma"):
+        target_information(INTR, T, xyz, vis, 0.0)
