@@ -48,6 +48,9 @@ __all__ = [
     "BundleResult",
     "bundle_adjust",
     "CAMERA_MODELS",
+    "SyntheticNetwork",
+    "simulate_network",
+    "project_observations",
 ]
 
 #: our name -> (COLMAP model, parameter names in COLMAP order)
@@ -91,7 +94,9 @@ class BundleOptions:
         max_iterations: pycolmap (Ceres) iterations.
         num_threads: Ceres threads.
         snooping: run data snooping with re-adjustment.
-        alpha: significance level of one data-snooping test.
+        alpha: family-wise significance level of data snooping over the whole network
+            (each observation is tested at ``alpha / q``, so a clean network keeps all its observations
+            with probability ``1 - alpha``).
         max_rejections: at most this many observations removed.
         datum_iterations: Gauss-Newton iterations for scale bars and control targets.
     """
@@ -101,7 +106,7 @@ class BundleOptions:
     max_iterations: int = 100
     num_threads: int = 2
     snooping: bool = True
-    alpha: float = 0.001
+    alpha: float = 0.01
     max_rejections: int = 20
     datum_iterations: int = 10
 
@@ -407,30 +412,40 @@ def _linearise(
         Jp = Jp.copy()
         Jp[is_linked] = 0.0
     slot = np.where(is_linked, 0, lay.uslot[obs_target])
-    nu = len(lay.unlinked)
-    # camera side
-    Ncc = np.zeros((p, p))
-    bc = np.zeros(p)
+    # camera side: pose and interior blocks by image, linked points by scatter
     HH = np.einsum("qia,qib->qab", Jc, Jc)
-    if not np.any(is_linked) and k == 0:
-        blocks = _segment_sum(HH[:, :6, :6], obs_image, m)
-        for j in range(m):
-            Ncc[6 * j : 6 * j + 6, 6 * j : 6 * j + 6] = blocks[j]
-    else:
-        np.add.at(Ncc, (cidx[:, :, None], cidx[:, None, :]), HH * (np.abs(HH) > 0))
-    np.add.at(bc, cidx, np.einsum("qia,qi->qa", Jc, r))
-    # point side
+    Ncc = np.zeros((p, p))
+    PP = _segment_sum(HH[:, :6, :6], obs_image, m)
+    for j in range(m):
+        Ncc[6 * j : 6 * j + 6, 6 * j : 6 * j + 6] = PP[j]
+    if k:
+        PI = _segment_sum(HH[:, :6, 6 : 6 + k], obs_image, m).reshape(6 * m, k)
+        Ncc[: 6 * m, 6 * m : 6 * m + k] = PI
+        Ncc[6 * m : 6 * m + k, : 6 * m] = PI.T
+        Ncc[6 * m : 6 * m + k, 6 * m : 6 * m + k] = HH[:, 6 : 6 + k, 6 : 6 + k].sum(axis=0)
+    if np.any(is_linked):
+        lmask = np.zeros((W, W), dtype=bool)
+        lmask[6 + k :, :] = True
+        lmask[:, 6 + k :] = True
+        cl = cidx[is_linked]
+        np.add.at(Ncc, (cl[:, :, None], cl[:, None, :]), HH[is_linked] * lmask)
+    bc = np.bincount(cidx.ravel(), weights=np.einsum("qia,qi->qa", Jc, r).ravel(), minlength=p)
+    # point side (unlinked points)
+    nu = len(lay.unlinked)
+    un = ~is_linked
     Npp = _segment_sum(np.einsum("qia,qib->qab", Jp, Jp), slot, max(nu, 1))[:nu]
     bp = _segment_sum(np.einsum("qia,qi->qa", Jp, r), slot, max(nu, 1))[:nu]
+    E = np.einsum("qia,qib->qab", Jp[un], Jc[un, :, : 6 + k])  # (qu, 3, 6 + k)
     Npc = np.zeros((nu, 3, p))
-    E = np.einsum("qia,qib->qab", Jp, Jc)  # (q, 3, W)
-    un = ~is_linked
-    np.add.at(Npc, (slot[un, None, None], np.arange(3)[None, :, None], cidx[un, None, :]), E[un])
+    # one observation per (target, image): the pose blocks are assigned, not summed
+    Npc[slot[un][:, None, None], np.arange(3)[None, :, None], cidx[un][:, None, :6]] = E[:, :, :6]
+    if k:
+        Npc[:, :, 6 * m : 6 * m + k] = _segment_sum(E[:, :, 6:], slot[un], max(nu, 1))[:nu]
     # extra observations
     extra = []
     if config.control is not None and len(config.control.index):
         ci = np.asarray(config.control.index)
-        sig = np.broadcast_to(np.asarray(config.control.sigma_m, dtype=float).reshape(len(ci), -1), (len(ci), 3))
+        sig = _control_sigma(config.control)
         keep = (lay.uslot[ci] >= 0) | (lay.lslot[ci] >= 0)
         for i, xyz, s in zip(ci[keep], np.asarray(config.control.xyz)[keep], sig[keep]):
             res = (xyz - state.points[i]) / s
@@ -478,6 +493,20 @@ def _linearise(
     dp = np.einsum("nab,nb->na", Dinv, bp) - V @ dc
     r_extra = np.concatenate(extra) if extra else np.zeros(0)
     return _Linear(r, r_extra, Dinv, V, Sigma, dc, dp, Jp, Jc, cidx, slot, defect)
+
+
+def _control_sigma(control: ControlPoints) -> np.ndarray:
+    """Per-axis standard deviations of the control targets, (k, 3)."""
+    k = len(control.index)
+    s = np.asarray(control.sigma_m, dtype=float)
+    if s.ndim == 0:
+        s = np.full(k, float(s))
+    if s.ndim == 1:
+        s = s[:, None]
+    out = np.broadcast_to(s, (k, 3)).astype(float)
+    if np.any(~(out > 0)):
+        raise CalibrationError("bundle: control target standard deviations must be positive")
+    return out
 
 
 def _apply_step(state: _State, lin: _Linear, lay: _Layout) -> _State:
@@ -657,7 +686,7 @@ def bundle_adjust(
     rejected = np.zeros(len(obs_image), dtype=bool)
     state = _State(intrinsics, poses0, x0.copy())
     timings = {"pycolmap_solve": 0.0, "datum": 0.0, "covariance": 0.0}
-    thr = chi2.isf(options.alpha, 2)
+    thr = chi2.isf(options.alpha / len(obs_image), 2)
     while True:
         act_obs = ~rejected
         counts = np.bincount(obs_target[act_obs], minlength=n)
@@ -721,8 +750,6 @@ def _result(state, lin, stats, lay, T, rejected, act_obs, obs_image, obs_target,
     n = lay.n
     s02 = stats["s02"]
     factor = s02 if options.a_posteriori else 1.0
-    var_px = options.sigma_px**2  # cofactors are in units of the a priori variance: no scaling needed
-    del var_px
     # per-point representation: x = D-part + A dc
     nu, p = len(lay.unlinked), lay.p
     D = np.zeros((n, 3, 3))
@@ -767,3 +794,62 @@ def _result(state, lin, stats, lay, T, rejected, act_obs, obs_image, obs_target,
         residuals=res, test_statistic=T, redundancy=red, rejected=rejected, dof=int(stats["dof"]),
         datum=config.datum, converged=bool(converged), summary=report, timings=timings,
     )
+
+
+# --- synthetic networks with known truth (tests, benchmarks, planning checks) ----------------
+
+
+@dataclass(frozen=True)
+class SyntheticNetwork:
+    """A simulated convergent network: truth and noisy observations.
+
+    Attributes:
+        intrinsics: true interior orientation.
+        cam_from_part: (m, 4, 4) true poses.
+        points: (n, 3) true targets.
+        obs_image, obs_target: (q,) observation indices; obs_uv: (q, 2) noisy pixels; sigma_px: the noise.
+    """
+
+    intrinsics: Intrinsics
+    cam_from_part: np.ndarray
+    points: np.ndarray
+    obs_image: np.ndarray
+    obs_target: np.ndarray
+    obs_uv: np.ndarray
+    sigma_px: float
+
+
+def simulate_network(
+    rng: np.random.Generator,
+    n_targets: int = 200,
+    n_images: int = 12,
+    intrinsics: Intrinsics | None = None,
+    sigma_px: float = 0.05,
+    size_m: float = 0.3,
+    distance_m: float = 0.8,
+    points: np.ndarray | None = None,
+) -> SyntheticNetwork:
+    """Targets in a box of side ``size_m`` seen by ``n_images`` cameras on a ring looking at its centre.
+
+    Each camera sees the targets whose projection lies in the image (no occlusion); pixel noise is
+    Gaussian with ``sigma_px``. Cameras are rolled at random so the interior orientation is determinable.
+    """
+    from calibration.camera import invert, look_at, project
+
+    intr = intrinsics or Intrinsics(fx_px=3000.0, fy_px=3000.0, cx_px=1223.5, cy_px=1023.5, width=2448, height=2048)
+    pts = rng.uniform(-size_m / 2, size_m / 2, (n_targets, 3)) if points is None else np.asarray(points, float)
+    poses = []
+    for j in range(n_images):
+        az = 2 * np.pi * j / n_images + rng.uniform(-0.1, 0.1)
+        el = 0.5 + 0.35 * np.sin(3 * az)
+        eye = distance_m * np.array([np.cos(az) * np.cos(el), np.sin(az) * np.cos(el), np.sin(el)])
+        poses.append(invert(look_at(eye, rng.normal(0, 0.01, 3), roll_rad=rng.uniform(-np.pi, np.pi))))
+    poses = np.array(poses)
+    oi, ot, ouv = [], [], []
+    for j in range(n_images):
+        uv = project(intr, poses[j], pts)
+        vis = np.flatnonzero(intr.in_image(uv, margin_px=5.0))
+        oi.append(np.full(len(vis), j))
+        ot.append(vis)
+        ouv.append(uv[vis] + rng.normal(0.0, sigma_px, (len(vis), 2)))
+    return SyntheticNetwork(intr, poses, pts, np.concatenate(oi), np.concatenate(ot), np.vstack(ouv), sigma_px)

@@ -1,7 +1,7 @@
 """The CLI's commands, each a thin layer over the packages below."""
 from __future__ import annotations
 
-from calibration.errors import CellError
+import json
 
 
 def _human_check(doc: dict, out) -> None:
@@ -35,21 +35,122 @@ def check(args, out) -> int:
     return 0
 
 
-def _not_yet(name: str):
-    raise CellError(f"'cell {name}' is not available in this build yet")
-
-
 def plan(args, out) -> int:
-    _not_yet("plan")
+    from cell.jobfolder import atomic_write_json
+    from cell.load import load
+    from cell.stage_plan import make_plan
+
+    job = load(args.job)
+    out.say(f"planning {job.part.name}: {len(job.part.targets)} targets, mode {job.spec.planning.mode}")
+    p, facts = make_plan(job, progress=out.progress)
+    doc = p.to_plan_dict() | {"databases": facts}
+    atomic_write_json(args.out, doc)
+    png = args.png or args.out.with_suffix(".png")
+    from planning.plot import plot_plan
+
+    plot_plan(job.part, p, png)
+    summary = {"status": "ok", "plan": str(args.out), "picture": str(png), "stations": len(p.station_ids),
+               "predicted_sigma_max_m": p.predicted_sigma_max_m, "predicted_sigma_mean_m": p.predicted_sigma_mean_m,
+               "timing": p.timing, "databases": facts}
+    out.result(summary, lambda d: out.say(
+        f"plan   {d['stations']} stations, predicted sigma max {d['predicted_sigma_max_m'] * 1e6:.1f} um, "
+        f"mean {d['predicted_sigma_mean_m'] * 1e6:.1f} um -> {d['plan']} (picture {d['picture']})"))
+    return 0
+
+
+def _confirm(args, out, what: str) -> None:
+    """Moving a real robot (or resuming) needs the operator's yes."""
+    import sys
+
+    from calibration.errors import InputError
+
+    if args.yes:
+        return
+    if sys.stdin.isatty():
+        answer = input(f"{what} Type 'yes' to go on: ").strip().lower()
+        if answer == "yes":
+            return
+    raise InputError(f"{what} Confirm with --yes.")
+
+
+def _finish(result, out) -> int:
+    from cell.states import State
+
+    doc = {"status": result.status.value, "job_id": result.job_id, "folder": str(result.folder),
+           "reason": result.reason, "stage_times_s": result.stage_times_s}
+    rep = result.folder / "report.html"
+    if result.status == State.DONE:
+        doc["report"] = str(rep)
+        try:
+            doc["verdict"] = json.loads((result.folder / "report.json").read_text())["verdict"]
+        except (OSError, KeyError, ValueError):
+            pass
+    def human(d):
+        line = f"job {d['job_id']}  {d['status']}"
+        if d["status"] == "DONE":
+            line += f"  {d.get('verdict', '')}  report: {d['report']}"
+        else:
+            line += f"  {d['reason']}"
+        out.say(line)
+    out.result(doc, human)
+    return result.exit_code
 
 
 def run(args, out) -> int:
-    _not_yet("run")
+    from cell.job import start_job
+
+    backend = args.backend
+    if (backend or "") == "ur":
+        _confirm(args, out, "This job moves the robot.")
+    return _finish(start_job(args.job, args.archive, backend, out), out)
 
 
 def resume(args, out) -> int:
-    _not_yet("resume")
+    from cell.job import resume_job
+
+    _confirm(args, out, f"Resuming {args.job_id} moves the robot from its measured pose.")
+    return _finish(resume_job(args.job_id, args.archive, out), out)
 
 
 def archive(args, out) -> int:
-    _not_yet("archive")
+    from calibration.errors import InputError
+    from cell.archive import Archive
+
+    a = Archive(args.archive)
+    if args.action == "list":
+        a.reindex()
+        rows = a.list()
+        def human(d):
+            for r in d["jobs"]:
+                out.say(f"{r['id']:<40} {r['status']:<9} {r.get('verdict') or '':<10} "
+                        f"{(r.get('failed') if r.get('failed') is not None else ''):>4} failed of {r.get('targets') or '?'}")
+            if not d["jobs"]:
+                out.say(f"no jobs in {args.archive}")
+        out.result({"jobs": rows}, human)
+        return 0
+    if args.action == "show":
+        if len(args.ids) != 1:
+            raise InputError("cell archive show takes one job id")
+        doc = a.show(args.ids[0])
+        out.result(doc, lambda d: out.say(json.dumps(d, indent=1, default=str)))
+        return 0
+    if args.action == "compare":
+        doc = a.compare(args.ids)
+        def human(d):
+            out.say(f"part {d['part']}: {len(d['targets'])} targets in {len(d['jobs'])} jobs; "
+                    f"{len(d['drifting'])} drift beyond 3 sigma: {', '.join(d['drifting'][:20])}")
+            for r in d["targets"]:
+                if r["drift_significant"] or not all(r["pass"]):
+                    out.say(f"  {r['id']:<8} |d| um " + " ".join(f"{v * 1e6:7.1f}" for v in r["deviation_norm_m"])
+                            + f"  drift {r['drift_m'] * 1e6:.1f} um")
+        out.result(doc, human)
+        return 0
+    if args.action == "verify":
+        if len(args.ids) != 1:
+            raise InputError("cell archive verify takes one job id")
+        problems = a.verify(args.ids[0])
+        doc = {"job_id": args.ids[0], "intact": not problems, "problems": problems}
+        out.result(doc, lambda d: out.say(f"{d['job_id']}: " + ("manifest intact" if d["intact"] else
+                                                              "; ".join(d["problems"]))))
+        return 0 if not problems else 1
+    raise InputError(f"unknown archive action {args.action!r}")

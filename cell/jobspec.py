@@ -83,6 +83,7 @@ class CameraSection(_Strict):
     far: float = Field(gt=0, description="depth of field, farthest sharp distance, job units")
     device: str | None = Field(default=None, description="OpenCV device index or GStreamer pipeline (real cell)")
     exposure_s: float = Field(default=0.002, gt=0)
+    self_calibrate: bool = Field(default=True, description="refine focal length, principal point, radial distortion")
 
     @model_validator(mode="after")
     def _dof(self):

@@ -28,7 +28,10 @@ from calibration.errors import InputError, ReachabilityError
 from planning.kinematics import CollisionWorld, RobotModel
 from planning.reachability import branch_scores, flange_targets
 
-__all__ = ["MotionLimits", "MoveCheck", "ExecutionPlan", "validate_plan", "move_time", "apply_to_plan", "stations_from_plan"]
+__all__ = [
+    "MotionLimits", "MoveCheck", "ExecutionPlan", "validate_plan", "move_time", "check_move", "apply_to_plan",
+    "stations_from_plan", "lever_arms",
+]
 
 
 @dataclass(frozen=True)
@@ -221,7 +224,7 @@ def _viterbi(
     return chosen[::-1], total
 
 
-def _lever_arms(robot: RobotModel) -> np.ndarray:
+def lever_arms(robot: RobotModel) -> np.ndarray:
     """(6,) bound on the distance of any robot or tool point from each joint's axis (m)."""
     p = robot.params
     tool = 0.0
@@ -234,7 +237,7 @@ def _lever_arms(robot: RobotModel) -> np.ndarray:
     return np.array([lengths[i:].sum() for i in range(6)]) + tool + r_max
 
 
-def _check_move(
+def check_move(
     robot: RobotModel, world: CollisionWorld, qa: np.ndarray, qb: np.ndarray, levers: np.ndarray,
     resolution_rad: float, labels: tuple[str, str], duration_s: float,
 ) -> MoveCheck:
@@ -374,7 +377,7 @@ def validate_plan(
         choice, _ = _viterbi([cand[s] for s in seq], start, lim.return_to_start, speed, accel, forbidden, wrap=True)
 
     # 4. unwrap along the path and check every move; forbid colliding branch pairs
-    levers = _lever_arms(robot)
+    levers = lever_arms(robot)
     for _attempt in range(max_repairs + 1):
         path = [start]
         for s, c in zip(seq, choice):
@@ -390,7 +393,7 @@ def validate_plan(
             if world is None:
                 mc = MoveCheck(labels[t], labels[t + 1], True, float("nan"), ("", ""), 0.0, 0, dur)
             else:
-                mc = _check_move(robot, world, path[t], path[t + 1], levers, lim.check_resolution_rad, (labels[t], labels[t + 1]), dur)
+                mc = check_move(robot, world, path[t], path[t + 1], levers, lim.check_resolution_rad, (labels[t], labels[t + 1]), dur)
             moves.append(mc)
             if not mc.free:
                 bad = t

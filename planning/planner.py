@@ -50,7 +50,7 @@ from planning.uncertainty import (
 )
 from planning.visibility import VisibilityDB, VisibilityOptions, compute_visibility
 
-__all__ = ["PlannerOptions", "NetworkPlan", "plan_network", "cheapest_network", "required_sigma"]
+__all__ = ["PlannerOptions", "NetworkPlan", "plan_network", "cheapest_network", "required_sigma", "greedy_cover"]
 
 Progress = Callable[[str, float], None]
 _IU = (np.array([0, 0, 0, 1, 1, 2]), np.array([0, 1, 2, 1, 2, 2]))
@@ -83,6 +83,8 @@ class PlannerOptions:
         backend: ray casting, "embree" | "numpy".
         allow_unmeasurable: if False, a target that fewer than ``min_rays`` valid
             candidates can measure is an error; if True it is left out and listed.
+        greedy_fraction: share of the initial population built by :func:`greedy_cover`
+            (randomised set multicover); the rest is random.
     """
 
     n_stations: int = 16
@@ -111,6 +113,7 @@ class PlannerOptions:
     n_shells: int = 3
     backend: str = "embree"
     allow_unmeasurable: bool = False
+    greedy_fraction: float = 0.25
 
     def check(self) -> None:
         """Raise InputError naming the first bad option."""
@@ -369,15 +372,52 @@ def _violation(ev: NetworkEval) -> np.ndarray:
     return (short + singular).astype(float)
 
 
+def greedy_cover(visible: np.ndarray, candidates: np.ndarray, k: int, min_rays: int,
+                 rng: np.random.Generator, noise: float = 0.3) -> np.ndarray:
+    """A randomised greedy network of ``k`` distinct candidates covering targets ``min_rays`` times.
+
+    Set multicover heuristic: each step takes the candidate with the largest (noisy)
+    gain, the sum over the targets it sees of their remaining shortfall of rays weighted
+    by rarity (1 / how many candidates see the target); once every target is covered,
+    the gain is the sum of ``1 / rays so far`` (rays go to the weakest targets).
+
+    Args:
+        visible: (m, n) bool; candidates: (c,) int allowed rows of ``visible``.
+        noise: relative multiplicative noise on the gains (diversity between networks).
+    Returns:
+        (k,) int candidate indices (repeats only if fewer than ``k`` candidates exist).
+    """
+    V = visible[candidates].astype(np.float32)
+    rarity = 1.0 / np.maximum(V.sum(axis=0), 1.0)
+    count = np.zeros(V.shape[1], dtype=np.float32)
+    chosen: list[int] = []
+    free = np.ones(len(candidates), dtype=bool)
+    for _ in range(k):
+        short = np.maximum(min_rays - count, 0.0)
+        w = short * rarity if short.any() else 1.0 / (1.0 + count)
+        gain = (V @ w) * (1.0 + noise * rng.random(len(candidates)))
+        gain[~free] = -1.0
+        c = int(np.argmax(gain))
+        chosen.append(c)
+        count += V[c]
+        free[c] = False
+        if not free.any():
+            free[:] = True
+    return candidates[np.array(chosen)]
+
+
 def _initial_population(problem: _Problem, k: int, P: int, mode: str, min_rays: int,
-                        rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """Random networks of distinct valid candidates; bits on ("fixed") or of random density."""
+                        rng: np.random.Generator, greedy_fraction: float) -> tuple[np.ndarray, np.ndarray]:
+    """Initial networks: a fraction by :func:`greedy_cover`, the rest random distinct valid candidates.
+
+    Bits are all on ("fixed") or of random density with at least ``min_rays`` on
+    ("cheapest"; greedy networks there are built for a random station count).
+    """
     v = problem.valid_idx
     if len(v) >= k:
-        pick = np.argsort(rng.random((P, len(v))), axis=1)[:, :k]
+        pick = v[np.argsort(rng.random((P, len(v))), axis=1)[:, :k]]
     else:
-        pick = rng.integers(0, len(v), size=(P, k))
-    genes = problem.db.genes[v[pick]].copy()
+        pick = v[rng.integers(0, len(v), size=(P, k))]
     if mode == "fixed":
         bits = np.ones((P, k), dtype=bool)
     else:
@@ -385,7 +425,12 @@ def _initial_population(problem: _Problem, k: int, P: int, mode: str, min_rays: 
         bits = rng.random((P, k)) < density
         short = bits.sum(axis=1) < min_rays
         bits[short, :min_rays] = True
-    return genes, bits
+    n_greedy = int(round(greedy_fraction * P))
+    for i in range(n_greedy):
+        size = k if mode == "fixed" else int(rng.integers(min_rays, k + 1))
+        pick[i, :size] = greedy_cover(problem.vis, v, size, min_rays, rng)
+        bits[i] = np.arange(k) < size
+    return problem.db.genes[pick].copy(), bits
 
 
 def _exact(part, intr: Intrinsics, options: PlannerOptions, vis_opts: VisibilityOptions, genes: np.ndarray,
@@ -490,7 +535,7 @@ def plan_network(
 
     t0 = time.perf_counter()
     k, P = options.n_stations, options.population
-    g0, b0 = _initial_population(problem, k, P, options.mode, options.min_rays, rng)
+    g0, b0 = _initial_population(problem, k, P, options.mode, options.min_rays, rng, options.greedy_fraction)
     lower, upper = sphere.lower, sphere.upper
     periodic = np.zeros(N_GENES, dtype=bool)
     periodic[0] = (upper[0] - lower[0]) >= 2 * math.pi - 1e-9

@@ -181,7 +181,7 @@ class ViewingSphere:
         fill: float = 0.7,
         distance_ratio: tuple[float, float] = (0.75, 1.5),
         clearance_m: float = 0.05,
-        elevation_min_rad: float = np.deg2rad(5.0),
+        elevation_min_rad: float = float(np.deg2rad(5.0)),
         elevation_max_rad: float = np.pi / 2,
         max_offset_fraction: float = 0.25,
         max_roll_rad: float = np.pi / 2,
@@ -207,10 +207,10 @@ class ViewingSphere:
             centre=tuple(np.asarray(part.centre, dtype=float)),
             distance_min_m=d_min,
             distance_max_m=d_max,
-            elevation_min_rad=elevation_min_rad,
-            elevation_max_rad=elevation_max_rad,
-            max_offset_m=max_offset_fraction * radius,
-            max_roll_rad=max_roll_rad,
+            elevation_min_rad=float(elevation_min_rad),
+            elevation_max_rad=float(elevation_max_rad),
+            max_offset_m=float(max_offset_fraction * radius),
+            max_roll_rad=float(max_roll_rad),
         )
 
     def to_dict(self) -> dict:

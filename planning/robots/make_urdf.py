@@ -121,13 +121,14 @@ def _segments(p: URParams) -> dict[str, list[tuple[np.ndarray, np.ndarray, float
             (v(0, 0, so), v(a2, 0, so), r_up),
             (v(a2, 0, so + r_el * 0.5), v(a2, 0, so - eo), r_el),
         ],
-        # forearm tube, then the wrist 1 housing along its axis up to the wrist 2 axis
-        "forearm_link": [
-            (v(0, 0, so - eo), v(a3, 0, so - eo), r_fo),
-            (v(a3, 0, so - eo), v(a3, 0, d4), r_wr),
+        # forearm tube
+        "forearm_link": [(v(0, 0, so - eo), v(a3, 0, so - eo), r_fo)],
+        # wrist 1 housing along its own axis up to the wrist 2 axis (coaxial with the joint,
+        # so it may ride on this link), then the wrist 2 housing along the wrist 2 axis (-y)
+        "wrist_1_link": [
+            (v(0, 0, so - eo), v(0, 0, d4), r_wr),
+            (v(0, 0, d4), v(0, -d5 + r_wr, d4), r_wr),
         ],
-        # wrist 2 housing along the wrist 2 axis (-y in this frame)
-        "wrist_1_link": [(v(0, 0, d4), v(0, -d5 + r_wr, d4), r_wr)],
         # wrist 3 housing along the wrist 3 axis (+y in this frame), short of the flange face
         "wrist_2_link": [(v(0, 0, d5), v(0, d6 - 0.015, d5), r_wr)],
         # flange disc

@@ -1,0 +1,120 @@
+"""Open the cell's devices for a job: the simulated cell, or a real UR + camera + light.
+
+The stages see only the Protocols of ``drivers.protocols``. With ``--backend ur``
+in tests, the robot is the real ur-rtde client talking to the loopback UR
+controller and the camera is the simulated one, following the pose the robot
+reports (so a whole job runs through the real driver path).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from calibration.errors import InputError
+from cell.jobspec import pose_matrix
+from cell.load import LoadedJob
+from drivers.protocols import Camera, Light, Robot
+
+
+@dataclass
+class Devices:
+    robot: Robot
+    camera: Camera
+    light: Light | None = None
+    world: object | None = None  # the simulated world, when there is one
+    _closers: list = field(default_factory=list)
+
+    def close(self) -> None:
+        for c in reversed(self._closers):
+            try:
+                c()
+            except Exception:  # closing must never raise over the job's own outcome
+                pass
+        self._closers.clear()
+
+
+def sim_world(job: LoadedJob):
+    """The simulated world: the true part (CAD + deviations), its true placement and hand-eye."""
+    from sim_backend.world import World
+
+    s = job.spec
+    k = s.scale
+    true_bfp = s.base_from_part()
+    true_ffc = s.flange_from_cam()
+    if s.sim.base_from_part_error is not None:
+        true_bfp = true_bfp @ pose_matrix(s.sim.base_from_part_error, k)
+    if s.sim.flange_from_cam_error is not None:
+        true_ffc = true_ffc @ pose_matrix(s.sim.flange_from_cam_error, k)
+    return World(job.part, s.base_from_part(), s.flange_from_cam(), job.intrinsics, job.deviations,
+                  true_base_from_part=true_bfp, true_flange_from_cam=true_ffc, seed=s.sim.seed)
+
+
+def _sim_camera(job: LoadedJob, world):
+    from sim_backend.sim_camera import Sensor, SimCamera
+
+    sensor = Sensor()
+    if job.spec.sim.noise != 1.0:
+        from dataclasses import replace
+
+        sensor = replace(sensor, **{f: getattr(sensor, f) * job.spec.sim.noise for f in ("read_noise_e",) if hasattr(sensor, f)})
+    return SimCamera(world, sensor=sensor, exposure_s=job.spec.camera.exposure_s)
+
+
+def open_devices(job: LoadedJob, backend: str, *, seed_offset: int = 0) -> Devices:
+    s = job.spec
+    if backend == "sim":
+        from sim_backend.sim_robot import SimRobot
+        from cell.setup import robot_model
+
+        world = sim_world(job)
+        robot = SimRobot(world, robot_model(job), motion=s.sim.motion, time_scale=s.sim.time_scale)
+        camera = _sim_camera(job, world)
+        d = Devices(robot=robot, camera=camera, world=world)
+    elif backend == "ur":
+        from drivers.ur import CellLimits, URRobot
+
+        limits = CellLimits(max_joint_speed_rad_s=s.cell.max_joint_speed_rad_s,
+                            max_joint_accel_rad_s2=s.cell.max_joint_accel_rad_s2,
+                            max_tcp_speed_m_s=s.cell.max_tcp_speed_m_s, max_tcp_accel_m_s2=s.cell.max_tcp_accel_m_s2)
+        robot = URRobot(s.cell.host, limits=limits)
+        if s.camera.device is not None:
+            from drivers.opencv_camera import OpenCVCamera
+
+            camera = OpenCVCamera(s.camera.device, exposure_s=s.camera.exposure_s)
+            world = None
+        else:
+            # no real camera configured: the simulated camera follows the real robot's reported pose
+            world = sim_world(job)
+            camera = _FollowingCamera(_sim_camera(job, world), robot, world)
+        light = None
+        if s.cell.light_port:
+            from drivers.serial_light import SerialLight
+
+            light = SerialLight(s.cell.light_port)
+        d = Devices(robot=robot, camera=camera, light=light, world=world)
+    else:
+        raise InputError(f"unknown backend {backend!r} (use sim or ur)")
+    for dev in (d.robot, d.camera, d.light):
+        if dev is not None:
+            dev.connect()
+            d._closers.append(dev.close)
+    return d
+
+
+class _FollowingCamera:
+    """A simulated camera that renders from the pose a (real-driver) robot reports."""
+
+    def __init__(self, camera, robot, world):
+        self.camera, self.robot, self.world = camera, robot, world
+
+    def connect(self) -> None:
+        self.camera.connect()
+
+    def close(self) -> None:
+        self.camera.close()
+
+    def capture(self):
+        st = self.robot.state()
+        self.world.set_robot(np.asarray(st.joints_rad), np.asarray(st.base_from_flange))
+        return self.camera.capture()

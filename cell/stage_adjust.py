@@ -1,0 +1,89 @@
+"""ADJUST: the rigorous bundle adjustment, initialised from the Faugeras-Toscani results."""
+from __future__ import annotations
+
+import io
+import json
+import time
+
+import numpy as np
+
+from calibration.bundle import BundleConfig, BundleOptions, ScaleBar, bundle_adjust
+from calibration.camera import Intrinsics
+from calibration.errors import CalibrationError
+from cell.jobfolder import atomic_write_bytes
+
+
+def observation_arrays(job, obs_doc: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    index = job.part.targets.index()
+    img, tgt, uv = [], [], []
+    for k, o in enumerate(obs_doc["images"]):
+        for tid, p in zip(o["ids"], o["uv"]):
+            img.append(k)
+            tgt.append(index[tid])
+            uv.append(p)
+    return np.asarray(img, dtype=int), np.asarray(tgt, dtype=int), np.asarray(uv, dtype=float).reshape(-1, 2)
+
+
+def initial_intrinsics(job, cal_doc: dict) -> Intrinsics:
+    """Median of the per-image Faugeras-Toscani interior orientations (robust to a weak image)."""
+    nominal = job.intrinsics
+    if not job.spec.camera.self_calibrate:
+        return nominal
+    a = np.median([[r["alpha_u"], r["alpha_v"], r["u0"], r["v0"]] for r in cal_doc["images"]], axis=0)
+    # the linear method has no distortion and little focal accuracy per image: keep it only if plausible
+    if abs(a[0] / nominal.fx_px - 1) > 0.1 or abs(a[2] - nominal.cx_px) > 0.1 * nominal.width:
+        return nominal
+    f = 0.5 * (a[0] + a[1])
+    return Intrinsics(f, f, a[2], a[3], nominal.width, nominal.height, k1=nominal.k1, k2=nominal.k2,
+                      pixel_size_m=nominal.pixel_size_m)
+
+
+def run_bundle(ctx) -> dict:
+    job = ctx.job
+    obs = json.loads(ctx.folder.file("observations.json").read_text())
+    cal = json.loads(ctx.folder.file("calibration.json").read_text())
+    obs_image, obs_target, obs_uv = observation_arrays(job, obs)
+    poses0 = np.array([r["cam_from_part"] for r in cal["images"]], dtype=float)
+    intr0 = initial_intrinsics(job, cal)
+    scale_bars = ()
+    if job.scale_bar is not None:
+        a, b, length, sigma = job.scale_bar
+        scale_bars = (ScaleBar(a, b, length, max(sigma, 1e-7)),)
+    sc = job.spec.camera.self_calibrate
+    config = BundleConfig(camera_model="RADIAL" if sc else "PINHOLE", refine_focal_length=sc,
+                          refine_principal_point=sc, refine_distortion=sc, scale_bars=scale_bars)
+    options = BundleOptions(sigma_px=job.spec.camera.sigma_px)
+    t0 = time.perf_counter()
+    res = bundle_adjust(obs_image, obs_target, obs_uv, intr0, poses0, job.part.targets.xyz, options, config)
+    dt = time.perf_counter() - t0
+    if not res.converged:
+        raise CalibrationError(f"bundle adjustment did not converge: {res.summary}")
+    ids = job.part.targets.ids
+    n_img = np.bincount(obs_target[~res.rejected], minlength=len(ids))
+    rejected = [{"image": obs["images"][int(i)]["image"], "target": ids[int(t)], "residual_px": r}
+                for i, t, r, bad in zip(obs_image, obs_target, res.residuals, res.rejected) if bad]
+    axes, dirs = res.error_ellipsoids()
+    # keep the full covariance for the report's alignment (exact propagation)
+    buf = io.BytesIO()
+    np.savez_compressed(buf, D=res.covariance.D, U=res.covariance.U, C=res.covariance.C)
+    atomic_write_bytes(ctx.folder.file("bundle_covariance.npz"), buf.getvalue())
+    return {
+        "datum": res.datum,
+        "sigma0_px": res.sigma0_px,
+        "dof": res.dof,
+        "converged": res.converged,
+        "summary": res.summary,
+        "time_s": dt,
+        "timings": res.timings,
+        "n_observations": int(len(obs_uv)),
+        "n_rejected": int(res.rejected.sum()),
+        "rejected": rejected,
+        "intrinsics": res.intrinsics.to_dict(),
+        "intrinsics_refined": list(res.intrinsics_names),
+        "intrinsics_sigma": np.sqrt(np.diag(res.intrinsics_cov)).tolist() if len(res.intrinsics_names) else [],
+        "images": [{"image": o["image"], "station": o["station"], "cam_from_part": T}
+                   for o, T in zip(obs["images"], res.cam_from_part)],
+        "residuals_px": res.residuals,
+        "targets": [{"id": tid, "xyz": p, "cov": c, "n_images": int(k), "ellipsoid_axes_m": ax,
+                     "ellipsoid_dirs": d} for tid, p, c, k, ax, d in zip(ids, res.points, res.cov, n_img, axes, dirs)],
+    }

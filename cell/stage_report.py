@@ -1,0 +1,96 @@
+"""REPORT: align to CAD, judge each target against its tolerance, write report.json and report.html."""
+from __future__ import annotations
+
+import json
+import platform
+from importlib import metadata
+
+import numpy as np
+
+from calibration.alignment import PointCovariance, align_to_cad
+from cell import report as R
+from cell.jobfolder import atomic_write_bytes, atomic_write_json, utc_now
+
+
+def _versions() -> dict:
+    out = {"python": platform.python_version()}
+    for pkg in ("inspection-cell", "numpy", "scipy", "trimesh", "pin", "pycolmap", "opencv-contrib-python-headless",
+                "ur-rtde", "mcap"):
+        try:
+            out[pkg] = metadata.version(pkg)
+        except metadata.PackageNotFoundError:
+            pass
+    return out
+
+
+def write_report(ctx) -> str:
+    job = ctx.job
+    f = ctx.folder
+    bundle = json.loads(f.file("bundle.json").read_text())
+    plan = json.loads(f.file("plan.json").read_text())
+    ids = job.part.targets.ids
+    nominal = job.part.targets.xyz
+    measured = np.array([t["xyz"] for t in bundle["targets"]], dtype=float)
+    cov = np.array([t["cov"] if t["cov"] is not None else np.full((3, 3), np.nan) for t in bundle["targets"]], dtype=float)
+    with np.load(f.file("bundle_covariance.npz")) as z:
+        pc = PointCovariance(z["D"], z["U"], z["C"])
+    # the fit uses every measured target: a robust alternative would down-weight failures; with few
+    # deviating targets among many the least-squares fit is barely moved by them
+    ok = np.isfinite(measured).all(axis=1)
+    al = align_to_cad(measured, pc, nominal, with_scale=False, fit_mask=ok)
+    tol = job.tolerance_m
+    dev_norm = np.linalg.norm(al.deviation, axis=1)
+    level = al.sigma_level()
+    k = job.spec.report.sigma_factor
+    predicted = {t["id"]: (np.sqrt(np.trace(t["predicted_cov"])) if t["predicted_cov"] is not None else np.nan)
+                 for t in plan["targets"]}
+    achieved = np.sqrt(np.trace(cov, axis1=1, axis2=2))
+    passed = ok & (dev_norm <= tol)
+    n_img = [t["n_images"] for t in bundle["targets"]]
+    targets = []
+    for j, tid in enumerate(ids):
+        targets.append({
+            "id": tid, "kind": str(job.part.targets.kind[j]), "nominal": nominal[j], "measured": al.aligned[j],
+            "cov": al.deviation_cov[j], "measured_cov": cov[j], "deviation": al.deviation[j],
+            "deviation_norm_m": dev_norm[j], "tolerance_m": tol[j], "pass": bool(passed[j]),
+            "significance_sigma": level[j], "significant": bool(level[j] > k),
+            "predicted_sigma_m": predicted.get(tid, np.nan), "achieved_sigma_m": achieved[j], "n_images": n_img[j],
+        })
+    recs = list(f.records())
+    started = next((r["t"] for r in recs if r["event"] == "created"), recs[0]["t"])
+    times = {}
+    for r in recs:
+        if r["event"] == "stage_done":
+            times[r["stage"]] = times.get(r["stage"], 0.0) + r["duration_s"]
+    verdict = "PASS" if passed.all() else ("FAIL" if ok.all() else "INCOMPLETE")
+    doc = {
+        "job": {"id": f.job_id, "name": job.spec.job.name, "part": job.part.name, "seed": job.spec.job.seed,
+                "sim_seed": job.spec.sim.seed if ctx.backend == "sim" else None, "backend": ctx.backend,
+                "status": "DONE", "started": started, "finished": utc_now(), "versions": _versions()},
+        "verdict": verdict,
+        "images": len(bundle["images"]),
+        "sigma0_px": bundle["sigma0_px"],
+        "datum": bundle["datum"],
+        "alignment": {"part_from_measured": al.part_from_measured, "rms_m": al.rms_m, "scale": al.scale},
+        "intrinsics": bundle["intrinsics"],
+        "n_observations": bundle["n_observations"],
+        "n_rejected": bundle["n_rejected"],
+        "predicted_sigma_max_m": plan["predicted_sigma_max_m"],
+        "achieved_sigma_max_m": float(np.nanmax(achieved)),
+        "stage_times_s": times,
+        "cell_calibration": {"status": "not verified", "detail": "no reverification record for this cell"},
+        "targets": targets,
+    }
+    figs = {
+        "network": R.figure_network(job.part.mesh, np.array([s["part_from_cam"] for s in plan["stations"]]), nominal),
+        "deviations": R.figure_deviations(job.part.mesh, nominal, np.nan_to_num(dev_norm, nan=np.inf), tol, passed),
+        "ellipsoids": R.figure_ellipsoids(job.part.mesh, np.where(ok[:, None], al.aligned, nominal), np.nan_to_num(cov)),
+        "sigma": R.figure_sigma(np.array([t["predicted_sigma_m"] for t in targets], dtype=float), achieved),
+        "residuals": R.figure_residuals(np.asarray(bundle["residuals_px"], dtype=float)),
+    }
+    # the REPORT stage's own time is not known yet: the report lists the stages before it
+    atomic_write_json(f.file("report.json"), doc)
+    from cell.jobfolder import to_jsonable
+
+    atomic_write_bytes(f.file("report.html"), R.render_html(to_jsonable(doc), figs).encode())
+    return verdict
