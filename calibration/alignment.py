@@ -58,7 +58,8 @@ class PointCovariance:
         """Per-point 3x3 covariance, (n, 3, 3)."""
         if self.U.shape[2] == 0:
             return self.D.copy()
-        UC = self.U @ self.C
+        n, _, r = self.U.shape
+        UC = (self.U.reshape(3 * n, r) @ self.C).reshape(n, 3, r)
         out = self.D + np.einsum("nar,nbr->nab", UC, self.U)
         return 0.5 * (out + np.swapaxes(out, 1, 2))
 

@@ -36,6 +36,11 @@ import numpy as np
 import pycolmap
 from scipy.stats import chi2
 
+try:  # BLAS threads fight with Ceres' threads on small machines: small dense algebra runs faster on one
+    from threadpoolctl import threadpool_limits
+except ImportError:  # pragma: no cover - optional
+    threadpool_limits = None
+
 from calibration.alignment import PointCovariance, helmert_basis, similarity_fit
 from calibration.camera import Intrinsics, exp_se3, skew
 from calibration.errors import CalibrationError
@@ -99,6 +104,8 @@ class BundleOptions:
             with probability ``1 - alpha``).
         max_rejections: at most this many observations removed.
         datum_iterations: Gauss-Newton iterations for scale bars and control targets.
+        blas_threads: BLAS threads for the covariance algebra (None: leave as is). One is the fastest
+            for networks of up to a few thousand targets on a 2-core machine (needs threadpoolctl).
     """
 
     sigma_px: float = 0.05
@@ -109,6 +116,7 @@ class BundleOptions:
     alpha: float = 0.01
     max_rejections: int = 20
     datum_iterations: int = 10
+    blas_threads: int | None = 1
 
 
 @dataclass(frozen=True)
@@ -473,7 +481,7 @@ def _linearise(
         extra.append(np.array([res]))
     # Schur complement on the points
     Dinv = np.linalg.inv(Npp)
-    V = Dinv @ Npc
+    V = np.einsum("nab,nbp->nap", Dinv, Npc)
     V2 = V.reshape(-1, p)
     S = Ncc - Npc.reshape(-1, p).T @ V2
     bred = bc - V2.T @ bp.reshape(-1)
@@ -558,8 +566,7 @@ def _pycolmap_solve(state: _State, obs_image, obs_target, obs_uv, active_pts, co
     for i in np.flatnonzero(active_pts):
         sel = by_target[tstarts[i] : tstarts[i + 1]]
         track = pycolmap.Track()
-        for o in sel:
-            track.add_element(int(obs_image[o]) + 1, int(p2d_idx[o]))
+        track.add_elements([pycolmap.TrackElement(int(a) + 1, int(b)) for a, b in zip(obs_image[sel], p2d_idx[sel])])
         pid[i] = rec.add_point3D(state.points[i], track)
     opts = pycolmap.BundleAdjustmentOptions()
     opts.print_summary = False
@@ -670,6 +677,13 @@ def bundle_adjust(
     """
     options = options or BundleOptions()
     config = config or BundleConfig()
+    if options.blas_threads is not None and threadpool_limits is not None:
+        with threadpool_limits(options.blas_threads, user_api="blas"):
+            return _bundle_adjust(obs_image, obs_target, obs_uv, intrinsics, cam_from_part, points, options, config)
+    return _bundle_adjust(obs_image, obs_target, obs_uv, intrinsics, cam_from_part, points, options, config)
+
+
+def _bundle_adjust(obs_image, obs_target, obs_uv, intrinsics, cam_from_part, points, options, config) -> BundleResult:
     t_start = time.perf_counter()
     obs_image = np.asarray(obs_image, dtype=int)
     obs_target = np.asarray(obs_target, dtype=int)
@@ -724,17 +738,39 @@ def _statistics(lin: _Linear, lay: _Layout, n_obs: int) -> dict:
     if dof <= 0:
         raise CalibrationError(f"bundle: no redundancy ({dof} degrees of freedom); more images or targets are needed")
     s02 = r2 / dof
-    VS = lin.V @ lin.Sigma  # (nu, 3, p)
+    nu, p = lin.V.shape[0], lin.Sigma.shape[0]
+    m, k = lay.m, lay.k
+    VS = (lin.V.reshape(-1, p) @ lin.Sigma).reshape(nu, 3, p)
     Qpp = lin.Dinv + np.einsum("nar,nbr->nab", VS, lin.V)
     sl, ci = lin.slot, lin.cidx
-    Qpc = -VS[sl[:, None, None], np.arange(3)[None, :, None], ci[:, None, :]]  # (q, 3, w)
-    Qcc = lin.Sigma[ci[:, :, None], ci[:, None, :]]  # (q, w, w)
-    Jp, Jc = lin.Jp, lin.Jc
+    img = ci[:, 0] // 6
+    w = 6 + k
+    # Q blocks each observation needs, gathered from contiguous per-image blocks
+    Qpc = np.empty((len(sl), 3, w))
+    VSr = np.ascontiguousarray(VS[:, :, : 6 * m].reshape(nu, 3, m, 6).transpose(0, 2, 1, 3))
+    Qpc[:, :, :6] = -VSr[sl, img]
+    Sr = lin.Sigma[: 6 * m, : 6 * m].reshape(m, 6, m, 6)
+    Qcc = np.empty((len(sl), w, w))
+    Qcc[:, :6, :6] = Sr[np.arange(m), :, np.arange(m), :][img]
+    if k:
+        Qpc[:, :, 6:] = -VS[:, :, 6 * m : 6 * m + k][sl]
+        SI = lin.Sigma[: 6 * m, 6 * m : 6 * m + k].reshape(m, 6, k)[img]
+        Qcc[:, :6, 6:] = SI
+        Qcc[:, 6:, :6] = np.swapaxes(SI, 1, 2)
+        Qcc[:, 6:, 6:] = lin.Sigma[6 * m : 6 * m + k, 6 * m : 6 * m + k]
+    Jp, Jc = lin.Jp, lin.Jc[:, :, :w]
+    Qsl = Qpp[sl]
     A = (
-        np.einsum("qia,qab,qjb->qij", Jp, Qpp[sl], Jp)
-        + 2 * np.einsum("qia,qab,qjb->qij", Jp, Qpc, Jc)
-        + np.einsum("qia,qab,qjb->qij", Jc, Qcc, Jc)
+        np.einsum("qib,qjb->qij", np.einsum("qia,qab->qib", Jp, Qsl), Jp)
+        + 2 * np.einsum("qib,qjb->qij", np.einsum("qia,qab->qib", Jp, Qpc), Jc)
+        + np.einsum("qib,qjb->qij", np.einsum("qia,qab->qib", Jc, Qcc), Jc)
     )
+    linked = np.any(lin.cidx[:, w:] != 0, axis=1) | np.any(lin.Jc[:, :, w:] != 0, axis=(1, 2))
+    if np.any(linked):  # observations of scale-bar targets: the general (slow) gather, on few rows
+        cl = lin.cidx[linked]
+        Jl = lin.Jc[linked]
+        Ql = lin.Sigma[cl[:, :, None], cl[:, None, :]]
+        A[linked] = np.einsum("qib,qjb->qij", np.einsum("qia,qab->qib", Jl, Ql), Jl)
     A = 0.5 * (A + np.swapaxes(A, 1, 2))
     Qvv = np.eye(2) - A
     red = 0.5 * np.trace(Qvv, axis1=1, axis2=2)
@@ -742,7 +778,7 @@ def _statistics(lin: _Linear, lay: _Layout, n_obs: int) -> dict:
     det = np.where(det > 1e-12, det, np.nan)  # observations without redundancy cannot be tested
     v = lin.r_img
     T = (Qvv[:, 1, 1] * v[:, 0] ** 2 - 2 * Qvv[:, 0, 1] * v[:, 0] * v[:, 1] + Qvv[:, 0, 0] * v[:, 1] ** 2) / det
-    return {"s02": s02, "dof": dof, "T": T, "redundancy": red, "VS": VS}
+    return {"s02": s02, "dof": dof, "T": T, "redundancy": red}
 
 
 def _result(state, lin, stats, lay, T, rejected, act_obs, obs_image, obs_target, obs_uv, options, config,

@@ -112,33 +112,67 @@ def acquire(ctx) -> None:
 # --- MEASURE -------------------------------------------------------------------------------
 
 
+def _inside_any(uv: np.ndarray, quads: np.ndarray, grow: float = 1.0) -> np.ndarray:
+    """Which points ``uv: (k, 2)`` lie inside any of the quadrilaterals ``quads: (c, 4, 2)``."""
+    inside = np.zeros(len(uv), dtype=bool)
+    for q in quads:
+        c = q.mean(axis=0)
+        poly = ((q - c) * grow + c).astype(np.float32)
+        inside |= np.array([cv2.pointPolygonTest(poly, (float(u), float(v)), False) >= 0 for u, v in uv], dtype=bool)
+    return inside
+
+
 def measure(ctx) -> None:
-    """Detect, centre and identify the targets in every image."""
+    """Detect, centre and identify the targets in every image.
+
+    Coded targets name themselves (their centre is the intersection of the marker's
+    diagonals: the exact image of its centre under perspective); dots are named by
+    projecting the nominal targets with the robot's pose and the hand-eye, refined by
+    the coded targets (solvePnP) where at least four are seen.
+    """
     from calibration.targets import DetectionOptions, detect_coded_targets, detect_retro_targets, identify_targets
 
     job = ctx.job
     acq = _read(ctx, "acquisition.json")
     t = job.part.targets
+    ids_all = t.ids
+    code_to_index = {int(c): i for i, c in enumerate(t.code) if c >= 0}
     bfp, ffc = job.spec.base_from_part(), job.spec.flange_from_cam()
     opts = DetectionOptions()
+    max_dist = 25.0
     out = []
     for k, im in enumerate(acq["images"]):
         ctx.progress("measure", k / len(acq["images"]))
         img = cv2.imread(str(ctx.folder.file(im["image"])), cv2.IMREAD_UNCHANGED)
         if img is None:
             raise CalibrationError(f"{im['image']}: cannot read the image")
-        part_from_cam = invert(bfp) @ np.asarray(im["base_from_flange"]) @ ffc
-        cam_from_part = invert(part_from_cam)
-        coded = detect_coded_targets(img)
+        cam_from_part = invert(invert(bfp) @ np.asarray(im["base_from_flange"], dtype=float) @ ffc)
+        codes, corners, centres = detect_coded_targets(img)
+        known = np.array([c in code_to_index for c in codes], dtype=bool)
+        codes, centres = codes[known], centres[known]
         det = detect_retro_targets(img, opts)
-        ids, uv = identify_targets(det, coded, t, job.intrinsics, cam_from_part, part=job.part)
-        out.append({"station": im["station"], "image": im["image"], "ids": ids, "uv": uv,
-                    "n_detected": int(len(det.uv)), "n_coded": int(len(coded[0]))})
-        ctx.log.detections(im["station"], ids, uv)
+        # a dot inside a coded marker's square (grown by a third) is part of the marker, not a target
+        keep = ~_inside_any(det.uv, corners[known], grow=1.33)
+        det_uv = det.uv[keep]
+        match = identify_targets(det_uv, t.xyz, t.code, job.intrinsics, cam_from_part, max_dist,
+                                 coded_ids=codes, coded_uv=centres)
+        names, uv = [], []
+        for c, p in zip(codes, centres):
+            names.append(ids_all[code_to_index[int(c)]])
+            uv.append(p)
+        for m, p in zip(match, det_uv):
+            if m >= 0 and t.code[m] < 0:
+                names.append(ids_all[int(m)])
+                uv.append(p)
+        out.append({"station": im["station"], "image": im["image"], "ids": names,
+                    "uv": np.asarray(uv, dtype=float).reshape(-1, 2), "n_dots": int(len(det_uv)),
+                    "n_coded": int(len(codes)), "n_unidentified": int((match < 0).sum())})
+        ctx.log.detections(im["station"], names, np.asarray(uv).reshape(-1, 2))
     ctx.progress("measure", 1.0)
     atomic_write_json(ctx.folder.file("observations.json"), {"images": out})
     n = [len(o["ids"]) for o in out]
-    ctx.say(f"  {sum(n)} observations in {len(out)} images ({min(n)}..{max(n)} per image)")
+    ctx.say(f"  {sum(n)} observations in {len(out)} images ({min(n)}..{max(n)} per image), "
+            f"{sum(o['n_unidentified'] for o in out)} dots unidentified")
 
 
 # --- CALIBRATE -----------------------------------------------------------------------------

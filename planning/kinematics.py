@@ -21,6 +21,7 @@ from __future__ import annotations
 import hashlib
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import TYPE_CHECKING
 
 import coal
@@ -116,9 +117,9 @@ class CollisionWorld:
     obstacles: tuple[BoxObstacle, ...] = ()
     clearance_m: float = 0.0
 
-    @property
+    @cached_property
     def key(self) -> str:
-        """A hash of the contents (for caches)."""
+        """A hash of the contents (for caches; computed once, the world is immutable)."""
         h = hashlib.sha256()
         if self.part_mesh is not None:
             h.update(np.ascontiguousarray(self.part_mesh.vertices, dtype=np.float64).tobytes())
@@ -517,14 +518,14 @@ class RobotModel:
                 out[i] = "joint limits: every IK branch is outside the joint limits"
             elif np.all(code[i] == 1):
                 out[i] = (
-                    f"too close to the base axis (wrist {r5[i]:.3f} m from it < {p.d[3]:.3f} m)"
+                    f"too close to the base axis: wrist {r5[i]:.3f} m from it < {p.d[3]:.3f} m"
                 )
             elif dist[i] > p.reach_m:
-                out[i] = f"out of reach ({dist[i]:.3f} m > {p.reach_m:.3f} m from the shoulder)"
+                out[i] = f"out of reach {dist[i]:.3f} m > {p.reach_m:.3f} m from the shoulder"
             else:
                 out[i] = (
-                    f"out of reach for this orientation ({dist[i]:.3f} m from the shoulder; "
-                    f"the forearm and upper arm span {planar:.3f} m)"
+                    f"out of reach for this orientation: {dist[i]:.3f} m from the shoulder, "
+                    f"the upper arm and forearm span {planar:.3f} m"
                 )
         return out
 

@@ -455,15 +455,13 @@ def make_bracket() -> trimesh.Trimesh:
     base.apply_translation((0, 0, 0.015))
     pocket = creation.box(extents=(0.12, 0.08, 0.021))
     pocket.apply_translation((0.05, -0.02, 0.03 - 0.01 + 0.0005))
-    wall = creation.box(extents=(0.30, 0.03, 0.15))
-    wall.apply_translation((0, 0.085, 0.03 + 0.075))
-    rib = trimesh.Trimesh(
-        vertices=np.array(
-            [[-0.01, 0.07, 0.03], [-0.01, -0.04, 0.03], [-0.01, 0.07, 0.16],
-             [0.01, 0.07, 0.03], [0.01, -0.04, 0.03], [0.01, 0.07, 0.16]]
-        ),
-        faces=np.array([[0, 2, 1], [3, 4, 5], [0, 1, 4], [0, 4, 3], [1, 2, 5], [1, 5, 4], [0, 3, 5], [0, 5, 2]]),
-    )
+    # solids overlap (no coplanar contact faces) so the union leaves no internal faces
+    wall = creation.box(extents=(0.30, 0.03, 0.16))
+    wall.apply_translation((0, 0.085, 0.02 + 0.08))
+    rib = trimesh.convex.convex_hull(np.array(
+        [[-0.01, 0.08, 0.02], [-0.01, -0.04, 0.02], [-0.01, 0.08, 0.16],
+         [0.01, 0.08, 0.02], [0.01, -0.04, 0.02], [0.01, 0.08, 0.16]]
+    ))
     rib.apply_translation((-0.09, 0, 0))
     # manifold3d does the booleans: a watertight solid with no internal faces
     solid = trimesh.boolean.union([base, wall, rib], engine="manifold", check_volume=False)

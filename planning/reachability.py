@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import re
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -89,7 +90,7 @@ class ReachabilityResult:
         n = int(self.reachable.sum())
         kinds: dict[str, int] = {}
         for r in self.reason[~self.reachable]:
-            k = str(r).split(" (")[0].split(":")[0]
+            k = re.match(r"[a-z ]*", str(r)).group(0).strip()
             kinds[k] = kinds.get(k, 0) + 1
         tail = ", ".join(f"{v} {k}" for k, v in sorted(kinds.items(), key=lambda kv: -kv[1]))
         return f"{n}/{m} stations reachable" + (f" ({tail})" if tail else "")
@@ -158,8 +159,8 @@ def reachability_mask(
     reason = np.array(sol.failure, dtype=object)
     for i in np.flatnonzero((n_ok == 0) & sol.within_limits.any(axis=1)):
         reason[i] = (
-            f"joint limits (best margin {np.max(np.where(sol.within_limits[i], margin[i], -np.inf)):.3f} rad "
-            f"< required {opt.min_joint_margin_rad:.3f} rad)"
+            f"joint limits: best margin {np.max(np.where(sol.within_limits[i], margin[i], -np.inf)):.3f} rad "
+            f"< required {opt.min_joint_margin_rad:.3f} rad"
         )
     chosen = np.full(m, -1)
     check = opt.check_collisions and world is not None

@@ -40,8 +40,8 @@ def test_example_job_loads_in_si_units():
     assert job.part.target_diameter_m == pytest.approx(0.005)
     assert 100 <= len(job.part.targets) <= 300
     assert np.count_nonzero(np.linalg.norm(job.deviations, axis=1)) == 6
-    assert job.tolerance_m.min() == pytest.approx(5e-5)
-    assert job.scale_bar is not None and job.scale_bar[2] == pytest.approx(0.3178836)
+    assert job.tolerance_m.min() == pytest.approx(2.5e-4)
+    assert job.scale_bar is not None and job.scale_bar[2] == pytest.approx(0.2751536)
 
 
 @pytest.mark.parametrize("old,new,message", [

@@ -21,7 +21,7 @@ def _stl_bytes(mesh: trimesh.Trimesh) -> bytes:
 def test_bracket_is_a_watertight_self_occluding_solid(bracket):
     assert bracket.is_watertight and bracket.is_winding_consistent
     # the pocket makes the volume smaller than the union of base, wall and rib
-    assert 0.0025 < bracket.volume < 0.0030
+    assert 0.0028 < bracket.volume < 0.0033
     # self-occlusion: some faces are not on the convex hull
     assert bracket.convex_hull.volume > bracket.volume * 1.5
 

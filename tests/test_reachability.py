@@ -74,7 +74,7 @@ def test_part_placed_out_of_reach_fails_with_a_clear_message():
     pfc = _stations(40, np.random.default_rng(3))
     res = reachability_mask(robot, bfp, FLANGE_FROM_CAM, pfc, world)
     assert not res.reachable.any()
-    assert all(r.startswith("out of reach (") and "> 0.850 m" in r for r in res.reason)
+    assert all(r.startswith("out of reach ") and "> 0.850 m from the shoulder" in r for r in res.reason)
     assert "0/40 stations reachable (40 out of reach)" == res.summary()
 
 

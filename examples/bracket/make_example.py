@@ -18,10 +18,39 @@ from planning.part import make_bracket, sample_targets
 HERE = Path(__file__).resolve().parent
 
 
+def _measurable(mesh, targets):
+    """Keep the targets that at least 4 reachable candidate stations of the example cell can measure
+    (as an engineer places targets where the cell can see them)."""
+    from dataclasses import replace
+
+    from cell.load import load
+    from cell.setup import collision_world, planner_options, robot_model
+    from planning.part import Part
+    from planning.reachability import ReachabilityDB
+    from planning.visibility import VisibilityDB
+
+    job = load(HERE / "job.toml")
+    part = Part("bracket", mesh, targets, job.part.target_diameter_m, job.part.coded_size_m)
+    job.part = part
+    o = planner_options(job)
+    sphere = replace(o.sphere, max_roll_rad=0.0, max_offset_m=0.0)
+    vis = replace(o.visibility, incidence_max_rad=o.incidence_max_rad)
+    db = VisibilityDB.load_or_build(part, job.intrinsics, sphere, vis, o.n_candidates)
+    reach = ReachabilityDB.load_or_build(robot_model(job), job.spec.base_from_part(), job.spec.flange_from_cam(),
+                                         db.part_from_cam, collision_world(job))
+    keep = db.visible[reach.reachable].sum(axis=0) >= 4
+    idx = np.flatnonzero(keep)
+    out = targets.subset(idx)
+    # renumber the retro targets so ids stay T0000..; coded keep their codes
+    out.ids = [f"C{c}" if k == "coded" else f"T{i:04d}" for i, (k, c) in enumerate(zip(out.kind, out.code))]
+    return out
+
+
 def main() -> None:
     mesh = make_bracket()
     rng = np.random.default_rng(20261121)
-    targets = sample_targets(mesh, 200, rng, n_coded=8, edge_clearance_m=0.012, min_normal_z=-0.5)
+    targets = sample_targets(mesh, 230, rng, n_coded=8, edge_clearance_m=0.012, min_normal_z=-0.5)
+    targets = _measurable(mesh, targets).subset(np.arange(200))
     mm = mesh.copy()
     mm.apply_scale(1000.0)
     mm.export(HERE / "bracket.stl")
@@ -31,16 +60,16 @@ def main() -> None:
         for i, t in enumerate(targets.ids):
             p = targets.xyz[i] * 1000.0
             n = targets.normals[i]
-            tol = 0.05 if targets.kind[i] == "retro" else ""
+            tol = 0.25 if targets.kind[i] == "retro" else ""
             w.writerow([t, *(f"{v:.4f}" for v in p), *(f"{v:.6f}" for v in n), targets.kind[i], tol, targets.code[i]])
-    # deviations: 6 retro targets pushed out along their normal by 0.15-0.4 mm
+    # deviations: 6 retro targets pushed out along their normal: 3 within tolerance, 3 beyond
     retro = np.flatnonzero(targets.kind == "retro")
     pick = rng.choice(retro, size=6, replace=False)
     with (HERE / "deviations.csv").open("w", newline="") as f:
         w = csv.writer(f)
         w.writerow(["id", "dx", "dy", "dz"])
         for k, i in enumerate(sorted(pick)):
-            d = targets.normals[i] * (0.15 + 0.05 * k)
+            d = targets.normals[i] * (0.12, 0.16, 0.2, 0.4, 0.5, 0.6)[k]
             w.writerow([targets.ids[i], *(f"{v:.4f}" for v in d)])
     c0, c1 = (np.flatnonzero(targets.code == c)[0] for c in (0, 1))
     print(f"scale bar C0-C1 length {np.linalg.norm(targets.xyz[c0] - targets.xyz[c1]) * 1000:.4f} mm")

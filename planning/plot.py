@@ -1,0 +1,157 @@
+"""A picture of a planned network: the part, the stations and the scaled error ellipsoids.
+
+``plot_plan(part, plan, path_png)`` writes one PNG (matplotlib, Agg backend, no display
+needed) with four panels: the network around the part (camera centres and viewing
+directions), the part with the predicted error ellipsoids magnified and coloured by
+sigma, the search history, and the distribution of the target sigmas.
+"""
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+from matplotlib import cm  # noqa: E402
+from matplotlib.colors import Normalize  # noqa: E402
+from mpl_toolkits.mplot3d.art3d import Line3DCollection, Poly3DCollection  # noqa: E402
+
+from planning.uncertainty import ellipsoid_axes  # noqa: E402
+
+__all__ = ["plot_plan", "ellipsoid_surfaces"]
+
+
+def ellipsoid_surfaces(centres: np.ndarray, axes: np.ndarray, dirs: np.ndarray, scale: float,
+                       n_az: int = 10, n_el: int = 6) -> np.ndarray:
+    """Quadrilaterals tiling scaled ellipsoids; (e * n_az * n_el, 4, 3).
+
+    Args:
+        centres: (e, 3); axes: (e, 3) semi-axes (m); dirs: (e, 3, 3) unit axes as columns.
+        scale: magnification of the semi-axes.
+    """
+    az = np.linspace(0, 2 * np.pi, n_az + 1)
+    el = np.linspace(-np.pi / 2, np.pi / 2, n_el + 1)
+    A, E = np.meshgrid(az, el, indexing="ij")
+    unit = np.stack([np.cos(E) * np.cos(A), np.cos(E) * np.sin(A), np.sin(E)], axis=-1)  # (n_az+1, n_el+1, 3)
+    # points: centre + dirs @ (scale * axes * unit)
+    pts = centres[:, None, None, :] + np.einsum("eij,eabj->eabi", dirs, scale * axes[:, None, None, :] * unit[None])
+    quads = np.stack([pts[:, :-1, :-1], pts[:, 1:, :-1], pts[:, 1:, 1:], pts[:, :-1, 1:]], axis=3)
+    return quads.reshape(-1, 4, 3)
+
+
+def _set_equal(ax, pts: np.ndarray) -> None:
+    lo, hi = pts.min(axis=0), pts.max(axis=0)
+    c, r = 0.5 * (lo + hi), 0.5 * float(np.max(hi - lo)) or 1.0
+    ax.set_xlim(c[0] - r, c[0] + r)
+    ax.set_ylim(c[1] - r, c[1] + r)
+    ax.set_zlim(c[2] - r, c[2] + r)
+    ax.set_box_aspect((1, 1, 1))
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.set_zlabel("z (m)")
+
+
+def _mesh(ax, mesh) -> None:
+    tri = np.asarray(mesh.vertices)[np.asarray(mesh.faces)]
+    ax.add_collection3d(Poly3DCollection(tri, facecolor=(0.75, 0.75, 0.78, 0.35), edgecolor=(0.4, 0.4, 0.45, 0.3),
+                                         linewidths=0.3))
+
+
+def plot_plan(part, plan, path_png, *, max_ellipsoids: int = 400, title: str | None = None) -> Path:
+    """Draw ``plan`` (a :class:`planning.planner.NetworkPlan`) around ``part`` into ``path_png``.
+
+    The ellipsoids (1 sigma, from ``plan.cov``) are magnified so the largest is ~6% of
+    the part's size; the factor is printed on the panel. With more than
+    ``max_ellipsoids`` targets the worst ones and an even sample of the rest are drawn.
+    The file is written atomically. Returns the path.
+    """
+    path_png = Path(path_png)
+    fig = plt.figure(figsize=(14, 10), dpi=100)
+    try:
+        xyz = np.asarray(plan.xyz, dtype=float)
+        T = np.asarray(plan.part_from_cam, dtype=float)
+        eyes = T[:, :3, 3]
+        size = float(np.ptp(np.asarray(part.mesh.vertices), axis=0).max())
+        sigma = np.asarray(plan.sigma, dtype=float)
+        finite = np.isfinite(sigma)
+
+        # 1: the network
+        ax = fig.add_subplot(2, 2, 1, projection="3d")
+        _mesh(ax, part.mesh)
+        arrow = 0.25 * float(np.median(np.linalg.norm(eyes - xyz.mean(axis=0), axis=1))) if len(eyes) else size
+        ax.add_collection3d(Line3DCollection(np.stack([eyes, eyes + arrow * T[:, :3, 2]], axis=1),
+                                             colors="tab:blue", linewidths=1.0))
+        ax.scatter(*eyes.T, color="tab:blue", s=18, depthshade=False)
+        for sid, e in zip(plan.station_ids, eyes):
+            ax.text(*e, sid, fontsize=6, color="tab:blue")
+        ax.scatter(*xyz.T, s=2, c=np.where(finite, "k", "r"), depthshade=False)
+        _set_equal(ax, np.vstack([eyes, xyz]) if len(eyes) else xyz)
+        ax.set_title(f"{len(eyes)} stations ({plan.mode}, criterion {plan.criterion}, min rays {plan.min_rays})")
+
+        # 2: scaled error ellipsoids on the part
+        ax = fig.add_subplot(2, 2, 2, projection="3d")
+        _mesh(ax, part.mesh)
+        if finite.any():
+            idx = np.flatnonzero(finite)
+            if len(idx) > max_ellipsoids:
+                worst = idx[np.argsort(sigma[idx])[::-1][: max_ellipsoids // 4]]
+                rest = np.setdiff1d(idx, worst)
+                sample = rest[np.linspace(0, len(rest) - 1, max_ellipsoids - len(worst)).astype(int)]
+                idx = np.concatenate([worst, sample])
+            axes, dirs = ellipsoid_axes(np.asarray(plan.cov)[idx])
+            scale = 0.06 * size / float(np.max(axes))
+            norm = Normalize(vmin=float(sigma[finite].min()) * 1e6, vmax=float(sigma[finite].max()) * 1e6)
+            quads = ellipsoid_surfaces(xyz[idx], axes, dirs, scale)
+            colours = cm.viridis(norm(np.repeat(sigma[idx] * 1e6, len(quads) // len(idx))))
+            ax.add_collection3d(Poly3DCollection(quads, facecolors=colours, edgecolors="none"))
+            fig.colorbar(cm.ScalarMappable(norm=norm, cmap="viridis"), ax=ax, shrink=0.6, label="sigma (um)")
+            ax.set_title(f"error ellipsoids (1 sigma) x {scale:,.0f}")
+        bad = ~finite
+        if bad.any():
+            ax.scatter(*xyz[bad].T, s=12, color="r", depthshade=False, label="not measurable")
+            ax.legend(loc="upper left", fontsize=7)
+        _set_equal(ax, np.asarray(part.mesh.vertices))
+
+        # 3: search history
+        ax = fig.add_subplot(2, 2, 3)
+        hist = [h for h in plan.history if h.get("best") is not None and np.isfinite(h.get("best") or np.inf)]
+        if hist:
+            g = [h["generation"] for h in hist]
+            ax.plot(g, [h["best"] * 1e6 for h in hist], label="best")
+            mean = [(h["generation"], h["mean"] * 1e6) for h in hist if h.get("mean") is not None
+                    and np.isfinite(h["mean"])]
+            if mean:
+                ax.plot(*zip(*mean), label="mean (feasible)", alpha=0.7)
+            ax.set_yscale("log")
+            ax.legend()
+        ax.set_xlabel("generation")
+        ax.set_ylabel("fitness (um)" if plan.mode == "fixed" else "sigma / required")
+        ax.set_title("search history")
+        ax.grid(True, alpha=0.3)
+
+        # 4: sigma per target
+        ax = fig.add_subplot(2, 2, 4)
+        if finite.any():
+            ax.hist(sigma[finite] * 1e6, bins=40, color="tab:green")
+        ax.set_xlabel("target sigma = sqrt(trace(cov)) (um)")
+        ax.set_ylabel("targets")
+        ax.set_title(f"max {plan.predicted_sigma_max_m * 1e6:.2f} um, mean {plan.predicted_sigma_mean_m * 1e6:.2f} um"
+                     + (f", {int(bad.sum())} not measurable" if bad.any() else ""))
+        fig.suptitle(title or f"network plan: {getattr(part, 'name', '')} (seed {plan.seed})")
+        fig.tight_layout()
+        path_png.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=path_png.parent, prefix=path_png.name + ".", suffix=".tmp")
+        try:
+            with os.fdopen(fd, "wb") as f:
+                fig.savefig(f, format="png")
+            os.replace(tmp, path_png)
+        except BaseException:
+            Path(tmp).unlink(missing_ok=True)
+            raise
+    finally:
+        plt.close(fig)
+    return path_png

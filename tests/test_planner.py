@@ -1,0 +1,256 @@
+"""The network planner on a small synthetic scene with known geometry (fixed seeds)."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import trimesh
+
+from calibration.camera import Intrinsics
+from calibration.errors import InputError, PlanningError
+from planning.part import Part, Targets, sample_targets
+from planning.planner import NetworkPlan, PlannerOptions, cheapest_network, greedy_cover, plan_network
+from planning.plot import plot_plan
+from planning.stations import N_GENES, ViewingSphere
+from planning.uncertainty import covariance_for_network
+from planning.visibility import VisibilityDB, VisibilityOptions, compute_visibility
+
+
+def _box_part(n_targets: int = 60, seed: int = 0) -> Part:
+    """A 0.20 x 0.15 x 0.08 m block with a 0.05 m tall step on top (self-occluding)."""
+    base = trimesh.creation.box(extents=(0.20, 0.15, 0.08))
+    base.apply_translation((0, 0, 0.04))
+    step = trimesh.creation.box(extents=(0.06, 0.15, 0.05))
+    step.apply_translation((0.07, 0, 0.105))
+    mesh = trimesh.boolean.union([base, step], engine="manifold", check_volume=False)
+    targets = sample_targets(mesh, n_targets, np.random.default_rng(seed), edge_clearance_m=0.004, min_normal_z=-0.1)
+    return Part("block", mesh, targets)
+
+
+def _bottom_target(part: Part) -> Part:
+    """The part plus one target on its bottom face (normal -z): no station above can see it."""
+    t = part.targets
+    extra = Targets(
+        ids=t.ids + ["BOTTOM"],
+        xyz=np.vstack([t.xyz, [[0.0, 0.0, 0.0]]]),
+        normals=np.vstack([t.normals, [[0.0, 0.0, -1.0]]]),
+        kind=np.append(t.kind, "retro"),
+        tolerance_m=np.append(t.tolerance_m, np.nan),
+        code=np.append(t.code, -1),
+    )
+    return Part(part.name, part.mesh, extra)
+
+
+@pytest.fixture(scope="module")
+def scene():
+    part = _box_part()
+    intr = Intrinsics(fx_px=2000.0, fy_px=2000.0, cx_px=639.5, cy_px=511.5, width=1280, height=1024)
+    return part, intr
+
+
+def _options(**kw) -> PlannerOptions:
+    base = dict(n_stations=8, min_rays=3, population=24, generations=25, stall_generations=25,
+                n_candidates=450, sigma_px=0.1)
+    base.update(kw)
+    return PlannerOptions(**base)
+
+
+@pytest.fixture(scope="module")
+def fixed_plan(scene, tmp_path_factory):
+    part, intr = scene
+    cache = tmp_path_factory.mktemp("cache")
+    stages = []
+    plan = plan_network(part, intr, _options(), np.random.default_rng(3), cache_dir=cache,
+                        progress=lambda s, f: stages.append((s, f)), seed=3)
+    return plan, cache, stages
+
+
+def test_fixed_plan_measures_every_target_with_min_rays_and_reports_exact_covariance(scene, fixed_plan):
+    part, intr = scene
+    plan, _, _ = fixed_plan
+    assert len(plan.station_ids) == 8 and plan.part_from_cam.shape == (8, 4, 4)
+    assert np.all(plan.n_rays >= 3)
+    # the covariance is the exact one for the stations in the plan, recomputed from scratch
+    vis = compute_visibility(part, intr, plan.part_from_cam, VisibilityOptions(incidence_max_rad=plan.incidence_max_rad))
+    cov, n_rays = covariance_for_network(intr, plan.part_from_cam, part.targets.xyz, vis, 0.1, min_rays=3)
+    assert np.array_equal(n_rays, plan.n_rays)
+    assert np.allclose(cov, plan.cov, rtol=1e-9, atol=0)
+    sig = np.sqrt(np.trace(cov, axis1=1, axis2=2))
+    assert np.isclose(plan.predicted_sigma_max_m, sig.max()) and np.isclose(plan.predicted_sigma_mean_m, sig.mean())
+    # seen_by names exactly the stations whose fresh visibility includes the target
+    for j, ids in enumerate(plan.seen_by):
+        assert ids == [plan.station_ids[i] for i in np.flatnonzero(vis[:, j])]
+    # the stations are the poses of their genes
+    sphere = ViewingSphere.for_part(part, intr)
+    assert np.allclose(sphere.poses(plan.genes), plan.part_from_cam)
+
+
+def test_history_records_every_generation_and_best_never_worsens(fixed_plan):
+    plan, _, stages = fixed_plan
+    best = [h["best"] for h in plan.history]
+    assert len(best) == plan.search["generations"] + 1
+    assert all(a >= b for a, b in zip(best, best[1:]))
+    assert all(h["n_active"] == 8 for h in plan.history)
+    names = [s for s, _ in stages]
+    assert names[0].startswith("visibility") and "search" in names and names[-1] == "final"
+    assert [f for s, f in stages if s == "search"][-1] == pytest.approx(1.0) or plan.search["stopped_because"] != "generations"
+
+
+def test_same_seed_gives_the_same_plan(scene, fixed_plan):
+    part, intr = scene
+    plan, cache, _ = fixed_plan
+    again = plan_network(part, intr, _options(), np.random.default_rng(3), cache_dir=cache, seed=3)
+    assert np.array_equal(again.part_from_cam, plan.part_from_cam)
+    assert again.predicted_sigma_max_m == plan.predicted_sigma_max_m
+    other = plan_network(part, intr, _options(), np.random.default_rng(4), cache_dir=cache, seed=4)
+    assert not np.array_equal(other.part_from_cam, plan.part_from_cam)
+
+
+def test_planned_network_beats_random_networks_of_the_same_size(scene, fixed_plan):
+    part, intr = scene
+    plan, _, _ = fixed_plan
+    sphere = ViewingSphere.for_part(part, intr)
+    rng = np.random.default_rng(99)
+    opts = VisibilityOptions(incidence_max_rad=plan.incidence_max_rad)
+    worst = []
+    for _ in range(30):
+        g = np.zeros((8, N_GENES))
+        g[:, 0] = rng.uniform(-np.pi, np.pi, 8)
+        g[:, 1] = np.arcsin(rng.uniform(np.sin(sphere.elevation_min_rad), 1.0, 8))
+        g[:, 2] = rng.uniform(sphere.distance_min_m, sphere.distance_max_m, 8)
+        T = sphere.poses(g)
+        cov, _ = covariance_for_network(intr, T, part.targets.xyz, compute_visibility(part, intr, T, opts), 0.1, 3)
+        s = np.sqrt(np.trace(cov, axis1=1, axis2=2))
+        worst.append(np.inf if np.any(~np.isfinite(s)) else s.max())
+    assert plan.predicted_sigma_max_m < 0.5 * np.median(worst)
+    assert plan.predicted_sigma_max_m <= min(worst)
+
+
+def test_unreachable_candidates_are_never_used(scene, fixed_plan):
+    part, intr = scene
+    _, cache, _ = fixed_plan
+    sphere = ViewingSphere.for_part(part, intr)
+    db = VisibilityDB.load_or_build(part, intr, sphere, VisibilityOptions(incidence_max_rad=np.deg2rad(60)),
+                                    450, cache)
+    # the robot cannot reach a 1.5 rad wedge of azimuths, where the unconstrained plan puts stations
+    reachable = ~((db.genes[:, 0] > -0.5) & (db.genes[:, 0] < 1.0))
+    assert not np.all(reachable[db.nearest(fixed_plan[0].genes)])
+    plan = plan_network(part, intr, _options(), np.random.default_rng(5), reachable=reachable, cache_dir=cache)
+    assert np.all(reachable[db.nearest(plan.genes)])
+    assert np.all(plan.n_rays >= 3)
+
+
+def test_plan_dict_has_the_contract_keys_and_round_trips(fixed_plan):
+    plan, _, _ = fixed_plan
+    d = json.loads(json.dumps(plan.to_plan_dict(), allow_nan=False))
+    for key in ("seed", "criterion", "camera", "min_rays", "incidence_max_rad", "stations", "targets",
+                "predicted_sigma_max_m", "predicted_sigma_mean_m"):
+        assert key in d
+    assert set(d["camera"]) >= {"fx_px", "fy_px", "cx_px", "cy_px", "width", "height", "sigma_px"}
+    assert d["seed"] == 3 and d["criterion"] == "worst" and d["min_rays"] == 3
+    assert {"id", "part_from_cam"} <= set(d["stations"][0]) and np.shape(d["stations"][0]["part_from_cam"]) == (4, 4)
+    t0 = d["targets"][0]
+    assert {"id", "xyz", "normal", "seen_by", "predicted_cov"} <= set(t0)
+    assert np.isclose(np.sqrt(np.trace(t0["predicted_cov"])), plan.sigma[0])
+    assert np.isclose(d["predicted_sigma_max_m"], max(np.sqrt(np.trace(t["predicted_cov"])) for t in d["targets"]))
+    back = NetworkPlan.from_plan_dict(d)
+    assert back.station_ids == plan.station_ids and back.target_ids == plan.target_ids
+    assert np.array_equal(back.part_from_cam, plan.part_from_cam) and np.array_equal(back.cov, plan.cov)
+    assert back.seen_by == plan.seen_by and back.intrinsics == plan.intrinsics
+    assert back.predicted_sigma_max_m == plan.predicted_sigma_max_m
+
+
+def test_reading_a_broken_plan_dict_raises_input_error(fixed_plan):
+    d = fixed_plan[0].to_plan_dict()
+    del d["stations"]
+    with pytest.raises(InputError, match="plan.json"):
+        NetworkPlan.from_plan_dict(d)
+
+
+def test_cheapest_network_is_the_smallest_on_the_front_that_meets_the_requirement(scene, fixed_plan):
+    part, intr = scene
+    plan8, cache, _ = fixed_plan
+    # a requirement the 8-station plan meets with some margin
+    required = 1.3 * plan8.predicted_sigma_max_m
+    opts = _options(n_stations=10, population=40, generations=40, stall_generations=40, required_sigma_m=required)
+    plan = cheapest_network(part, intr, opts, np.random.default_rng(7), cache_dir=cache)
+    k = len(plan.station_ids)
+    assert plan.mode == "cheapest" and 3 <= k <= 10
+    assert np.all(plan.sigma <= required) and np.all(plan.n_rays >= 3)
+    front = plan.pareto_front
+    counts = [r["n_stations"] for r in front]
+    assert counts == sorted(counts) and k in counts
+    assert all(r["sigma_ratio_max"] > 1.0 for r in front if r["n_stations"] < k)
+    # non-dominated: more stations must buy better precision
+    ratios = [r["sigma_ratio_max"] for r in front]
+    assert all(a > b for a, b in zip(ratios, ratios[1:]))
+    # a looser requirement never needs more stations
+    loose = cheapest_network(part, intr, opts.__class__(**{**opts.__dict__, "required_sigma_m": 3 * required}),
+                             np.random.default_rng(7), cache_dir=cache)
+    assert len(loose.station_ids) <= k
+
+
+def test_cheapest_network_derives_the_requirement_from_tolerances(scene, fixed_plan):
+    part, intr = scene
+    _, cache, _ = fixed_plan
+    opts = _options(n_stations=10, mode="cheapest", default_tolerance_m=10 * 2 * fixed_plan[0].predicted_sigma_max_m)
+    plan = plan_network(part, intr, opts, np.random.default_rng(2), cache_dir=cache)
+    assert np.allclose(plan.required_sigma_m, 2 * fixed_plan[0].predicted_sigma_max_m)
+    assert np.all(plan.sigma <= plan.required_sigma_m)
+    with pytest.raises(InputError, match="required precision"):
+        plan_network(part, intr, _options(mode="cheapest"), np.random.default_rng(2), cache_dir=cache)
+
+
+def test_an_unreachable_precision_raises_planning_error(scene, fixed_plan):
+    part, intr = scene
+    _, cache, _ = fixed_plan
+    opts = _options(n_stations=5, mode="cheapest", required_sigma_m=1e-9, generations=5)
+    with pytest.raises(PlanningError, match="no network of at most 5 stations"):
+        plan_network(part, intr, opts, np.random.default_rng(2), cache_dir=cache)
+
+
+def test_a_target_no_station_can_see_is_an_error_unless_allowed(scene, tmp_path):
+    part, intr = scene
+    part2 = _bottom_target(part)
+    with pytest.raises(PlanningError, match="BOTTOM"):
+        plan_network(part2, intr, _options(generations=3), np.random.default_rng(0), cache_dir=tmp_path)
+    plan = plan_network(part2, intr, _options(generations=3, allow_unmeasurable=True), np.random.default_rng(0),
+                        cache_dir=tmp_path)
+    assert plan.unmeasurable_target_ids == ["BOTTOM"]
+    j = plan.target_ids.index("BOTTOM")
+    assert plan.n_rays[j] == 0 and np.all(np.isnan(plan.cov[j]))
+    d = json.loads(json.dumps(plan.to_plan_dict(), allow_nan=False))
+    assert d["targets"][j]["predicted_cov"] is None
+
+
+def test_bad_options_raise_input_error(scene):
+    part, intr = scene
+    for bad in (dict(mode="best"), dict(criterion="median"), dict(min_rays=1), dict(n_stations=2),
+                dict(incidence_max_rad=2.0)):
+        with pytest.raises(InputError):
+            plan_network(part, intr, _options(**bad), np.random.default_rng(0))
+
+
+def test_greedy_cover_reaches_min_rays_when_enough_stations_exist():
+    rng = np.random.default_rng(0)
+    # 40 candidates x 30 targets, each target seen by exactly 4 candidates arranged in blocks of 10 targets
+    vis = np.zeros((40, 30), dtype=bool)
+    for c in range(40):
+        vis[c, (c % 3) * 10:(c % 3) * 10 + 10] = rng.random() < 0.3 or c < 12
+    cand = np.arange(40)
+    chosen = greedy_cover(vis, cand, 9, 3, rng)
+    assert len(set(chosen.tolist())) == 9
+    assert np.all(vis[chosen].sum(axis=0) >= 3)
+
+
+def test_plot_plan_writes_a_picture(scene, fixed_plan, tmp_path):
+    import matplotlib.image as mpimg
+
+    part, _ = scene
+    path = plot_plan(part, fixed_plan[0], tmp_path / "plan.png")
+    assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    img = mpimg.imread(path)
+    assert img.shape[0] > 500 and img.shape[1] > 700
+    assert img[..., :3].std() > 0.05  # not a blank canvas
+    assert not list(tmp_path.glob("*.tmp"))
