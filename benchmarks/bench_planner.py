@@ -8,11 +8,13 @@ sweeping elevation(s) and radius, and (ii) random networks; and it times plannin
 Every network (planned, ring, random) is scored the same way: fresh ray casting at its
 poses, float64 limiting error propagation (``covariance_for_network``), sigma =
 sqrt(trace(cov)), worst over the targets that *some* network of valid candidates can
-measure with ``min_rays`` rays (the planner's measurable set).  A ring or random network
+measure with ``min_rays`` rays (the planner's measurable set).  The exact fewest stations
+that can give every measurable target 3 (or 2) rays is computed (set multicover MILP); a
+size below it is planned and compared with ``min_rays = 2``.  A ring or random network
 that measures a target with fewer than ``min_rays`` rays is infeasible; for those the
 worst sigma over the targets with at least 2 rays is also reported (a lenient figure).
 
-    .venv/bin/python benchmarks/bench_planner.py [--quick] [--json out.json]
+    .venv/bin/python benchmarks/bench_planner.py [--quick] [--json out.json] [--png DIR]
 """
 from __future__ import annotations
 
@@ -32,7 +34,7 @@ from planning.part import Part, make_bracket, sample_targets  # noqa: E402
 from planning.planner import PlannerOptions, plan_network  # noqa: E402
 from planning.stations import N_GENES, ViewingSphere  # noqa: E402
 from planning.uncertainty import covariance_for_network  # noqa: E402
-from planning.visibility import VisibilityOptions, compute_visibility  # noqa: E402
+from planning.visibility import VisibilityDB, VisibilityOptions, compute_visibility  # noqa: E402
 
 
 def example_part(n_targets: int = 1000, seed: int = 0) -> Part:
@@ -116,12 +118,27 @@ def random_networks(part, intr, k, sphere, vis_opts, sigma_px, min_rays, cols, n
     }
 
 
+def min_stations_for_cover(visible: np.ndarray, min_rays: int, time_limit_s: float = 120.0) -> int | None:
+    """Fewest candidates covering every target ``min_rays`` times (exact set multicover, HiGHS MILP).
+
+    ``visible: (m, n)`` bool over the measurable targets. A lower bound for any network on
+    the database's candidates (continuous stations could differ marginally). None if not solved.
+    """
+    from scipy.optimize import Bounds, LinearConstraint, milp
+
+    m = visible.shape[0]
+    res = milp(np.ones(m), constraints=LinearConstraint(visible.T.astype(float), lb=min_rays),
+               integrality=np.ones(m), bounds=Bounds(0, 1), options={"time_limit": time_limit_s})
+    return int(round(res.fun)) if res.status == 0 else None
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="coarser sweeps, fewer random networks")
     ap.add_argument("--json", type=Path, help="write the figures here")
     ap.add_argument("--sizes", type=int, nargs="*", default=[8, 16, 29])
     ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--png", type=Path, help="write a picture of each plan into this folder")
     args = ap.parse_args(argv)
 
     part, intr = example_part(), example_camera()
@@ -142,18 +159,31 @@ def main(argv=None) -> int:
     print(f"timing 29 stations x {len(part.targets)} targets (cold cache): {wall:.2f} s  {plan.timing}", flush=True)
 
     with tempfile.TemporaryDirectory() as cache:
+        db = VisibilityDB.load_or_build(part, intr, sphere, vis_opts, opts.n_candidates, cache)
+        measurable = db.visible.sum(axis=0) >= opts.min_rays
+        bounds = {r: min_stations_for_cover(db.visible[:, measurable], r) for r in (2, 3)}
+        out["min_stations_for_min_rays"] = bounds
+        print(f"fewest database stations covering all {int(measurable.sum())} measurable targets: "
+              f"{bounds[2]} for 2 rays, {bounds[3]} for 3 rays", flush=True)
         for k in args.sizes:
+            # below the exact lower bound no network can give every target 3 rays: plan for 2
+            min_rays = opts.min_rays if bounds[3] is None or k >= bounds[3] else 2
             t0 = time.perf_counter()
-            plan = plan_network(part, intr, PlannerOptions(n_stations=k, allow_unmeasurable=True),
+            plan = plan_network(part, intr, PlannerOptions(n_stations=k, min_rays=min_rays, allow_unmeasurable=True),
                                 np.random.default_rng(args.seed), cache_dir=cache, seed=args.seed)
             t_plan = time.perf_counter() - t0
+            if args.png:
+                from planning.plot import plot_plan
+
+                plot_plan(part, plan, args.png / f"plan_{k}.png")
             ids = part.targets.index()
             cols = np.array(sorted(set(range(len(part.targets))) - {ids[t] for t in plan.unmeasurable_target_ids}))
-            planned = score(part, intr, plan.genes, sphere, vis_opts, opts.sigma_px, opts.min_rays, cols)
-            ring = best_ring(part, intr, k, sphere, vis_opts, opts.sigma_px, opts.min_rays, cols, args.quick)
-            rnd = random_networks(part, intr, k, sphere, vis_opts, opts.sigma_px, opts.min_rays, cols,
+            planned = score(part, intr, plan.genes, sphere, vis_opts, opts.sigma_px, min_rays, cols)
+            ring = best_ring(part, intr, k, sphere, vis_opts, opts.sigma_px, min_rays, cols, args.quick)
+            rnd = random_networks(part, intr, k, sphere, vis_opts, opts.sigma_px, min_rays, cols,
                                   30 if args.quick else 100, np.random.default_rng(1000 + k))
             row = {
+                "min_rays": min_rays,
                 "planned_worst_m": planned["worst_m"],
                 "planned_feasible": planned["feasible"],
                 "planned_min_rays": planned["min_rays_seen"],
@@ -167,7 +197,7 @@ def main(argv=None) -> int:
             }
             out["sizes"][k] = row
             print(
-                f"k={k:2d}: planned {planned['worst_m'] * 1e6:7.2f} um (feasible={planned['feasible']}, "
+                f"k={k:2d} min_rays={min_rays}: planned {planned['worst_m'] * 1e6:7.2f} um (feasible={planned['feasible']}, "
                 f"min rays {planned['min_rays_seen']}) | best feasible ring {ring['worst_m'] * 1e6:7.2f} um "
                 f"(lenient {ring['worst_lenient_m'] * 1e6:.2f}) ratio {row['ratio_to_best_ring']:.3f} | random median "
                 f"{rnd['median_worst_m'] * 1e6:.2f} um (lenient {rnd['median_worst_lenient_m'] * 1e6:.2f}, feasible "

@@ -50,6 +50,9 @@ class DetectionOptions:
         margin_px: the blob is grown by this many pixels for the centroid.
         min_peak_snr: smallest (peak - background) / noise.
         subsample: stride of the subsample used for background and noise.
+        background_kernel_px: side of the square opening that estimates the local
+            background (a white top-hat), larger than the largest dot; 0 for one global
+            background level (a dark, uniform scene).
     """
 
     threshold_sigma: float = 8.0
@@ -61,6 +64,7 @@ class DetectionOptions:
     margin_px: int = 2
     min_peak_snr: float = 10.0
     subsample: int = 7
+    background_kernel_px: int = 41
 
 
 @dataclass(frozen=True)
@@ -111,9 +115,20 @@ def detect_retro_targets(image: np.ndarray, options: DetectionOptions | None = N
     """Sub-pixel centres of bright dots in ``image: (h, w) uint8/uint16``."""
     o = options or DetectionOptions()
     image = _check_image(image)
-    bg, noise = _background_noise(image, o.subsample)
-    thr = o.threshold if o.threshold is not None else bg + o.threshold_sigma * noise
-    mask = (image > thr).astype(np.uint8)
+    if o.background_kernel_px > 0:
+        # the part's own diffuse surface is brighter than the threshold in places: threshold the
+        # white top-hat (image minus its opening), which keeps only structures smaller than the kernel
+        kern = cv2.getStructuringElement(cv2.MORPH_RECT, (o.background_kernel_px, o.background_kernel_px))
+        tophat = cv2.morphologyEx(image, cv2.MORPH_TOPHAT, kern)
+        _, noise = _background_noise(tophat, o.subsample)
+        noise = max(noise, _background_noise(image, o.subsample)[1])
+        thr = o.threshold if o.threshold is not None else o.threshold_sigma * noise
+        mask = (tophat > thr).astype(np.uint8)
+        bg = float(np.median(image[:: o.subsample, :: o.subsample]))
+    else:
+        bg, noise = _background_noise(image, o.subsample)
+        thr = o.threshold if o.threshold is not None else bg + o.threshold_sigma * noise
+        mask = (image > thr).astype(np.uint8)
     n_lab, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8, ltype=cv2.CV_32S)
     empty = Detections(np.zeros((0, 2)), np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0), noise)
     if n_lab <= 1:

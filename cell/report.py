@@ -135,8 +135,18 @@ th{background:#f3f3f3}td.l{text-align:left}tr.fail td{background:#ffebe9}
 """
 
 
+def _num(v: Any, scale: float, digits: int) -> str:
+    return "&mdash;" if v is None or not np.isfinite(v) else f"{v * scale:.{digits}f}"
+
+
 def _fmt_um(v: Any) -> str:
     return "" if v is None or not np.isfinite(v) else f"{v * 1e6:.1f}"
+
+
+def _status(t: dict) -> str:
+    if t["measured"][0] is None:
+        return "NOT MEASURED"
+    return "PASS" if t["pass"] else "FAIL"
 
 
 def render_html(doc: dict, figures: dict[str, str]) -> str:
@@ -149,11 +159,11 @@ def render_html(doc: dict, figures: dict[str, str]) -> str:
         cls = "" if t["pass"] else ' class="fail"'
         rows.append(
             f"<tr{cls}><td class=l>{html.escape(t['id'])}</td>"
-            + "".join(f"<td>{v * 1000:.4f}</td>" for v in t["measured"])
-            + "".join(f"<td>{v * 1e6:.1f}</td>" for v in t["deviation"])
+            + "".join(f"<td>{_num(v, 1000, 4)}</td>" for v in t["measured"])
+            + "".join(f"<td>{_num(v, 1e6, 1)}</td>" for v in t["deviation"])
             + f"<td>{_fmt_um(t['deviation_norm_m'])}</td><td>{_fmt_um(t['tolerance_m'])}</td>"
             f"<td>{_fmt_um(t['achieved_sigma_m'])}</td><td>{_fmt_um(t['predicted_sigma_m'])}</td>"
-            f"<td>{t['n_images']}</td><td class=l>{'PASS' if t['pass'] else 'FAIL'}</td></tr>"
+            f"<td>{t['n_images']}</td><td class=l>{_status(t)}</td></tr>"
         )
     stages = "".join(f"<tr><td class=l>{html.escape(k)}</td><td>{v:.2f}</td></tr>" for k, v in doc["stage_times_s"].items())
     figs = "".join(f'<img alt="{html.escape(k)}" src="data:image/png;base64,{v}">' for k, v in figures.items())

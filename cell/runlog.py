@@ -161,7 +161,7 @@ def read_messages(path: Path) -> Iterator[tuple[str, dict]]:
     """Every complete message of a run log, even one cut off by a crash: ``(topic, message)``."""
     with open(path, "rb") as f:
         reader = NonSeekingReader(f, validate_crcs=False)
-        it = reader.iter_messages()
+        it = reader.iter_messages(log_time_order=False)  # in file order: a torn tail does not hide the rest
         while True:
             try:
                 _schema, channel, message = next(it)

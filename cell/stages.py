@@ -138,8 +138,16 @@ def measure(ctx) -> None:
     ids_all = t.ids
     code_to_index = {int(c): i for i, c in enumerate(t.code) if c >= 0}
     bfp, ffc = job.spec.base_from_part(), job.spec.flange_from_cam()
+    from planning.visibility import Occluder, VisibilityOptions, compute_visibility
+
     opts = DetectionOptions()
     max_dist = 25.0
+    # which targets can be in view at all from the approximate pose: a dot hidden behind the part must
+    # not be offered to the matcher, or it steals the detection of a visible neighbour
+    seeable = VisibilityOptions(margin_px=0.0, incidence_max_rad=np.deg2rad(85.0), min_target_px=1.0)
+    occluder = Occluder(job.part.mesh)
+    poses = np.array([invert(bfp) @ np.asarray(im["base_from_flange"], dtype=float) @ ffc for im in acq["images"]])
+    in_view = compute_visibility(job.part, job.intrinsics, poses, seeable, occluder=occluder)
     out = []
     for k, im in enumerate(acq["images"]):
         ctx.progress("measure", k / len(acq["images"]))
@@ -154,8 +162,10 @@ def measure(ctx) -> None:
         # a dot inside a coded marker's square (grown by a third) is part of the marker, not a target
         keep = ~_inside_any(det.uv, corners[known], grow=1.33)
         det_uv = det.uv[keep]
-        match = identify_targets(det_uv, t.xyz, t.code, job.intrinsics, cam_from_part, max_dist,
-                                 coded_ids=codes, coded_uv=centres)
+        cand = np.flatnonzero(in_view[k] | (t.code >= 0))
+        sub = identify_targets(det_uv, t.xyz[cand], t.code[cand], job.intrinsics, cam_from_part, max_dist,
+                               coded_ids=codes, coded_uv=centres)
+        match = np.where(sub >= 0, cand[np.maximum(sub, 0)], -1)
         names, uv = [], []
         for c, p in zip(codes, centres):
             names.append(ids_all[code_to_index[int(c)]])

@@ -320,6 +320,9 @@ class EvolutionOptions:
         fix_bits: keep every control bit on (a network of exactly ``k`` stations).
         align_gene: before crossover, order each individual's slots by this gene (e.g.
             azimuth) so that slot i of two parents are neighbours on the sphere (None: off).
+        p_reset: per-slot probability that a child's station is redrawn uniformly within
+            the bounds (random-reset mutation: long jumps that polynomial mutation with a
+            large eta_m rarely makes).
     """
 
     population: int = 80
@@ -337,6 +340,7 @@ class EvolutionOptions:
     n_elite: int = 2
     fix_bits: bool = False
     align_gene: int | None = 0
+    p_reset: float = 0.0
 
 
 @dataclass
@@ -414,6 +418,11 @@ def _offspring(
     child_bits = np.concatenate([b1, b2])
     pm = opt.p_mutation if opt.p_mutation is not None else min(1.0, 2.0 / (k * G))
     child_genes = polynomial_mutation(child_genes, lo, hi, opt.eta_m, pm, rng, periodic=per)
+    if opt.p_reset > 0:
+        g = child_genes.reshape(-1, k, G)
+        reset = rng.random((g.shape[0], k)) < opt.p_reset
+        g[reset] = rng.uniform(lower, upper, size=(int(reset.sum()), G))
+        child_genes = g.reshape(-1, k * G)
     if opt.fix_bits:
         child_bits = np.ones_like(child_bits)
     else:

@@ -74,8 +74,9 @@ class PlannerOptions:
         default_tolerance_m: tolerance for targets whose own is nan.
         population, generations, stall_generations, time_limit_s: the search's size and
             stopping criteria.
-        eta_c, eta_m, p_crossover, p_mutation, p_bit_flip, tournament_size, n_elite:
-            operators (see planning.evolution.EvolutionOptions).
+        eta_c, eta_m, p_crossover, p_mutation, p_bit_flip, tournament_size, n_elite,
+            p_reset: operators (see planning.evolution.EvolutionOptions); p_reset None:
+            0.5 / n_stations (about one station in two children jumps anywhere).
         visibility: measurability limits (its incidence angle is replaced by
             ``incidence_max_rad``); None: defaults.
         sphere: where stations may lie; None: ViewingSphere.for_part.
@@ -107,6 +108,7 @@ class PlannerOptions:
     p_bit_flip: float | None = None
     tournament_size: int = 2
     n_elite: int = 2
+    p_reset: float | None = None
     visibility: VisibilityOptions | None = None
     sphere: ViewingSphere | None = None
     n_candidates: int = 3000
@@ -152,6 +154,7 @@ class PlannerOptions:
             n_elite=self.n_elite,
             fix_bits=self.mode == "fixed",
             align_gene=0,
+            p_reset=(0.5 / self.n_stations) if self.p_reset is None else self.p_reset,
         )
 
 

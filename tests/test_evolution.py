@@ -277,3 +277,22 @@ def test_multi_objective_search_returns_a_front_of_station_count_versus_error():
     pts = {(int(res.objectives[i, 0]), round(float(res.objectives[i, 1]), 6)) for i in front}
     # the true front is n stations -> error 1/n for n = 1..6
     assert pts == {(n, round(1.0 / n, 6)) for n in range(1, k + 1)}
+
+
+def test_random_reset_mutation_redraws_stations_uniformly_within_bounds():
+    lower, upper = np.array([-1.0, 2.0]), np.array([1.0, 6.0])
+    seen = []
+
+    def evaluate(genes, bits):
+        seen.append(genes.copy())
+        return Evaluation(np.zeros((len(genes), 1)), np.zeros(len(genes)), genes, bits)
+
+    rng = np.random.default_rng(0)
+    g0 = np.tile([0.0, 4.0], (200, 5, 1))  # every station at the same point
+    opt = EvolutionOptions(population=200, generations=1, stall_generations=5, p_crossover=0.0,
+                           p_mutation=0.0, p_reset=1.0, n_elite=0, fix_bits=True)
+    evolve(evaluate, lower, upper, g0, np.ones((200, 5), bool), opt, rng)
+    children = seen[1].reshape(-1, 2)
+    assert np.all(children >= lower) and np.all(children <= upper)
+    assert np.allclose(children.mean(axis=0), [0.0, 4.0], atol=0.1)
+    assert np.allclose(children.std(axis=0), (upper - lower) / np.sqrt(12), rtol=0.05)

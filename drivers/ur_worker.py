@@ -1,0 +1,267 @@
+"""The child process of :class:`drivers.ur.URRobot`: the ur-rtde client lives here.
+
+Run as ``python -m drivers.ur_worker FD`` where FD is one end of a socket pair
+wrapped as a ``multiprocessing.connection.Connection``. Requests are dicts with an
+``op``; each gets one reply ``{"ok": True, "value": ...}`` or ``{"ok": False,
+"error": <name of a DriverError subclass>, "message": ...}``, except ``interrupt``
+(sent by ``URRobot.stop`` during a move), which stops the arm and gets no reply.
+
+Moves are sent asynchronously to the controller; the child then polls the RTDE
+state until the arm is at the target, checking on every poll: an interrupt from
+the parent, the safety bits, the program's runtime state, the freshness of the
+RTDE timestamp, and the move's deadline; and it kicks the controller's watchdog,
+as it does while idle. When the pipe closes, the child exits at once.
+"""
+from __future__ import annotations
+
+import math
+import os
+import sys
+import time
+from multiprocessing.connection import Connection
+
+BIT_PROTECTIVE_STOP, BIT_ROBOT_ESTOP, BIT_ESTOP = 2, 6, 7
+RUNTIME_PLAYING = 2
+RECEIVE_VARIABLES = ["timestamp", "actual_q", "actual_qd", "actual_TCP_pose", "safety_status_bits",
+                     "runtime_state", "robot_mode", "safety_mode"]
+RUNTIME_NAMES = {0: "stopping", 1: "stopped", 2: "playing", 3: "pausing", 4: "paused", 5: "resuming"}
+
+
+class _Fail(Exception):
+    """A failure to send back: ``kind`` names a ``calibration.errors`` class."""
+
+    def __init__(self, kind: str, message: str):
+        super().__init__(message)
+        self.kind, self.message = kind, message
+
+
+def _rotvec_angle_between(a, b) -> float:
+    """Angle (rad) between two rotations given as rotation vectors ``(3,)``."""
+    def quat(r):
+        th = math.sqrt(sum(x * x for x in r))
+        if th < 1e-12:
+            return (1.0, 0.0, 0.0, 0.0)
+        s = math.sin(th / 2) / th
+        return (math.cos(th / 2), r[0] * s, r[1] * s, r[2] * s)
+
+    qa, qb = quat(a), quat(b)
+    dot = abs(sum(x * y for x, y in zip(qa, qb)))
+    return 2.0 * math.acos(min(1.0, dot))
+
+
+class Worker:
+    def __init__(self, conn: Connection):
+        self.conn = conn
+        self.ctrl = None
+        self.rcv = None
+        self.opts: dict = {}
+        self._last_ts = None
+        self._last_change = 0.0
+        self._last_kick = 0.0
+        self._interrupted = False
+
+    # ------------------------------------------------------------ main loop
+    def run(self) -> None:
+        while True:
+            try:
+                period = self._kick_period() if self.ctrl is not None else 1.0
+                if not self.conn.poll(period):
+                    self._idle()
+                    continue
+                msg = self.conn.recv()
+            except (EOFError, OSError):
+                os._exit(0)  # parent gone: no teardown of the client (it can crash), just leave
+            op = msg.get("op")
+            if op == "interrupt":
+                self._try_stop()
+                continue
+            try:
+                reply = {"ok": True, "value": getattr(self, f"op_{op}")(msg)}
+            except _Fail as exc:
+                reply = {"ok": False, "error": exc.kind, "message": exc.message}
+            except (RuntimeError, ValueError, TypeError) as exc:  # ur-rtde raises these
+                reply = {"ok": False, "error": "DriverError", "message": f"ur-rtde: {exc}"}
+            try:
+                self.conn.send(reply)
+            except (OSError, ValueError):
+                os._exit(0)
+            if op == "close":
+                sys.stdout.flush()
+                os._exit(0)
+
+    def _kick_period(self) -> float:
+        return 0.25 / self.opts["watchdog_hz"]
+
+    def _idle(self) -> None:
+        if self.rcv is None:
+            return
+        try:
+            self._kick()
+        except _Fail:
+            pass  # reported on the next request
+
+    def _kick(self) -> None:
+        """Kick the controller's watchdog if due (only while the program runs: else it would just fail)."""
+        now = time.monotonic()
+        if now - self._last_kick < self._kick_period():
+            return
+        if self.rcv.getRuntimeState() == RUNTIME_PLAYING and not self._stopped_bits():
+            self.ctrl.kickWatchdog()
+        self._last_kick = now
+
+    # ------------------------------------------------------------ state
+    def _stopped_bits(self) -> int:
+        bits = int(self.rcv.getSafetyStatusBits())
+        return bits & ((1 << BIT_PROTECTIVE_STOP) | (1 << BIT_ESTOP) | (1 << BIT_ROBOT_ESTOP))
+
+    def _state(self) -> dict:
+        """The latest RTDE reading; ``NotConnectedError`` if its timestamp has stopped advancing."""
+        if self.rcv is None:
+            raise _Fail("NotConnectedError", "not connected; call connect()")
+        ts = float(self.rcv.getTimestamp())
+        now = time.monotonic()
+        if ts != self._last_ts:
+            self._last_ts, self._last_change = ts, now
+        elif now - self._last_change > self.opts["stale_after_s"]:
+            raise _Fail("NotConnectedError",
+                        f"RTDE data stale: controller timestamp {ts:.3f} s has not advanced for "
+                        f"{now - self._last_change:.2f} s (connection lost?); call connect() once the link is back")
+        return {"timestamp": ts, "q": list(self.rcv.getActualQ()), "qd": list(self.rcv.getActualQd()),
+                "pose": list(self.rcv.getActualTCPPose()), "safety_bits": int(self.rcv.getSafetyStatusBits()),
+                "runtime_state": int(self.rcv.getRuntimeState())}
+
+    @staticmethod
+    def _check_safe(state: dict, when: str) -> None:
+        bits = state["safety_bits"]
+        if bits & ((1 << BIT_ESTOP) | (1 << BIT_ROBOT_ESTOP)):
+            raise _Fail("ProtectiveStopError", f"emergency stop {when} (safety_status_bits={bits:#x}); release it, "
+                        "check the cell, then reconnect; the move is not resumed")
+        if bits & (1 << BIT_PROTECTIVE_STOP):
+            raise _Fail("ProtectiveStopError", f"protective stop {when} (safety_status_bits={bits:#x}); "
+                        "unlock it on the pendant, check the cell, then reconnect; the move is not resumed")
+        rs = state["runtime_state"]
+        if rs != RUNTIME_PLAYING:
+            raise _Fail("MotionError", f"the control script is not running on the controller {when} "
+                        f"(runtime_state={rs}, {RUNTIME_NAMES.get(rs, '?')}); nothing more is sent; "
+                        "check the pendant log, then reconnect to upload the script again")
+
+    def _wait_fresh(self, timeout_s: float) -> dict:
+        end = time.monotonic() + timeout_s
+        first = float(self.rcv.getTimestamp())
+        while float(self.rcv.getTimestamp()) == first:
+            if time.monotonic() > end:
+                raise _Fail("NotConnectedError", f"no RTDE data within {timeout_s:.1f} s of connecting")
+            time.sleep(0.002)
+        return self._state()
+
+    # ------------------------------------------------------------ operations
+    def op_connect(self, msg: dict) -> dict:
+        self.opts = msg
+        import rtde_control
+        import rtde_receive
+
+        host, freq = msg["host"], float(msg["frequency_hz"])
+        try:
+            self.ctrl = rtde_control.RTDEControlInterface(host, freq)
+            self.rcv = rtde_receive.RTDEReceiveInterface(host, freq, RECEIVE_VARIABLES)
+        except RuntimeError as exc:
+            raise _Fail("NotConnectedError", f"ur-rtde could not connect to {host}: {exc}") from None
+        state = self._wait_fresh(2.0)
+        self._check_safe(state, "after connecting")
+        if not self.ctrl.setTcp([0.0] * 6):
+            raise _Fail("DriverError", "setTcp([0]*6) failed: the flange is the TCP of this driver")
+        if not self.ctrl.setWatchdog(float(msg["watchdog_hz"])):
+            raise _Fail("DriverError", "arming the controller's RTDE watchdog failed")
+        self._last_kick = time.monotonic()
+        return self._state()
+
+    def op_state(self, msg: dict) -> dict:
+        return self._state()
+
+    def op_close(self, msg: dict) -> None:
+        if self.ctrl is not None and self.rcv is not None and self.rcv.getRuntimeState() == RUNTIME_PLAYING:
+            self.ctrl.stopScript()
+        return None
+
+    def op_stop(self, msg: dict) -> dict:
+        self._try_stop()
+        return self._state()
+
+    def op_move_joints(self, msg: dict) -> dict:
+        return self._move(msg, joint_space=True)
+
+    def op_move_pose(self, msg: dict) -> dict:
+        return self._move(msg, joint_space=False)
+
+    def _try_stop(self) -> None:
+        """Decelerate to rest (async stop, kicked and bounded); never raises."""
+        try:
+            state = self._state()
+            if state["runtime_state"] != RUNTIME_PLAYING or self._stopped_bits():
+                return
+            self.ctrl.stopJ(float(self.opts["stop_decel"]), True)
+            end = time.monotonic() + 2.0 + max(abs(v) for v in state["qd"]) / float(self.opts["stop_decel"])
+            while time.monotonic() < end:
+                self._kick()
+                state = self._state()
+                if max(abs(v) for v in state["qd"]) < 1e-4:
+                    return
+                time.sleep(0.004)
+        except (_Fail, RuntimeError):
+            return
+
+    def _move(self, msg: dict, joint_space: bool) -> dict:
+        target, speed, accel = list(msg["target"]), float(msg["speed"]), float(msg["accel"])
+        deadline = time.monotonic() + float(msg["deadline_s"])
+        self._drain_interrupts()
+        state = self._state()
+        self._check_safe(state, "before the move")
+        sent = (self.ctrl.moveJ(target, speed, accel, True) if joint_space
+                else self.ctrl.moveL(target, speed, accel, True))
+        if not sent:
+            state = self._state()
+            self._check_safe(state, "when the move was sent")
+            raise _Fail("MotionError", "the controller did not accept the move (ur-rtde returned False)")
+        while True:
+            if self._drain_interrupts():
+                self._try_stop()
+                raise _Fail("MotionError", "move stopped on request before reaching its target")
+            self._kick()
+            state = self._state()
+            self._check_safe(state, "during the move")
+            if not self.ctrl.getAsyncOperationProgressEx().isAsyncOperationRunning() and \
+                    self._arrived(state, target, joint_space):
+                return state
+            if time.monotonic() > deadline:
+                self._try_stop()
+                raise _Fail("MotionError", f"move did not reach its target within its deadline of "
+                            f"{msg['deadline_s']:.2f} s; the arm was stopped")
+            time.sleep(0.004)
+
+    def _arrived(self, state: dict, target: list, joint_space: bool) -> bool:
+        tol = float(self.opts["position_tol"])
+        if max(abs(v) for v in state["qd"]) > 1e-3:
+            return False
+        if joint_space:
+            return max(abs(a - b) for a, b in zip(state["q"], target)) <= tol
+        pose = state["pose"]
+        if math.dist(pose[:3], target[:3]) > tol:
+            return False
+        return _rotvec_angle_between(pose[3:], target[3:]) <= float(self.opts["orientation_tol"])
+
+    def _drain_interrupts(self) -> bool:
+        """Consume pending ``interrupt`` messages (the parent sends nothing else during a move)."""
+        seen = False
+        while self.conn.poll(0):
+            msg = self.conn.recv()
+            if msg.get("op") == "interrupt":
+                seen = True
+        return seen
+
+
+def main(argv: list[str]) -> None:
+    Worker(Connection(int(argv[1]))).run()
+
+
+if __name__ == "__main__":
+    main(sys.argv)
