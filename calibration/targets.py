@@ -313,3 +313,35 @@ def identify_targets(
         cand = front[intr.in_image(proj[front], margin_px=-max_dist_px)]
         match = _match(det_uv, proj, cand, max_dist_px, ratio)
     return match
+
+
+def eccentricity_bias(
+    intr: Intrinsics, cam_from_part: np.ndarray, xyz: np.ndarray, normals: np.ndarray, radius_m: float
+) -> np.ndarray:
+    """Image offset of a circular target's ellipse centre from the projection of its centre, (n, 2) px.
+
+    A circle of ``radius_m`` on the plane through ``xyz: (n, 3)`` with normal ``normals: (n, 3)`` maps
+    to the image conic ``C' = H^-T diag(1, 1, -1) H^-1`` with ``H = K [r R e1, r R e2, R c + t]``;
+    the intensity centroid of a uniformly bright dot is that ellipse's centre, which under
+    perspective is not the image of the circle's centre (the eccentricity error, growing with the
+    target's size and its tilt). Subtract it from measured centres. Distortion is ignored: its
+    effect on this small offset is of second order.
+    """
+    xyz = np.asarray(xyz, dtype=float).reshape(-1, 3)
+    nrm = np.asarray(normals, dtype=float).reshape(-1, 3)
+    T = np.asarray(cam_from_part, dtype=float)
+    R, t = T[:3, :3], T[:3, 3]
+    a = np.where(np.abs(nrm[:, :1]) < 0.9, np.array([[1.0, 0.0, 0.0]]), np.array([[0.0, 1.0, 0.0]]))
+    e1 = np.cross(nrm, a)
+    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+    e2 = np.cross(nrm, e1)
+    K = intr.K
+    H = np.stack([radius_m * e1 @ R.T, radius_m * e2 @ R.T, xyz @ R.T + t], axis=2)  # (n, 3, 3) camera frame
+    H = K @ H
+    Hinv = np.linalg.inv(H)
+    C = np.einsum("nji,jk,nkl->nil", Hinv, np.diag([1.0, 1.0, -1.0]), Hinv)
+    A = C[:, :2, :2]
+    b = C[:, :2, 2]
+    centre = -np.linalg.solve(A, b[..., None])[..., 0]
+    proj = H[:, :2, 2] / H[:, 2:3, 2]
+    return centre - proj

@@ -34,10 +34,8 @@ class Devices:
         self._closers.clear()
 
 
-def sim_world(job: LoadedJob):
-    """The simulated world: the true part (CAD + deviations), its true placement and hand-eye."""
-    from sim_backend.world import World
-
+def _true_poses(job: LoadedJob) -> tuple[np.ndarray, np.ndarray]:
+    """The simulated cell's real part placement and hand-eye: nominal, times the [sim] errors."""
     s = job.spec
     k = s.scale
     true_bfp = s.base_from_part()
@@ -46,31 +44,27 @@ def sim_world(job: LoadedJob):
         true_bfp = true_bfp @ pose_matrix(s.sim.base_from_part_error, k)
     if s.sim.flange_from_cam_error is not None:
         true_ffc = true_ffc @ pose_matrix(s.sim.flange_from_cam_error, k)
-    return World(job.part, s.base_from_part(), s.flange_from_cam(), job.intrinsics, job.deviations,
-                  true_base_from_part=true_bfp, true_flange_from_cam=true_ffc, seed=s.sim.seed)
+    return true_bfp, true_ffc
 
 
-def _sim_camera(job: LoadedJob, world):
-    from sim_backend.sim_camera import Sensor, SimCamera
+def make_job_sim_cell(job: LoadedJob):
+    """The simulated cell of a job: the true part (CAD + deviations), its true placement and hand-eye."""
+    from cell.setup import robot_model
+    from sim_backend.factory import make_sim_cell
 
-    sensor = Sensor()
-    if job.spec.sim.noise != 1.0:
-        from dataclasses import replace
-
-        sensor = replace(sensor, **{f: getattr(sensor, f) * job.spec.sim.noise for f in ("read_noise_e",) if hasattr(sensor, f)})
-    return SimCamera(world, sensor=sensor, exposure_s=job.spec.camera.exposure_s)
+    s = job.spec
+    true_bfp, true_ffc = _true_poses(job)
+    return make_sim_cell(job.part, s.base_from_part(), s.flange_from_cam(), job.intrinsics, robot=robot_model(job),
+                         deviations=job.deviations, image_sigma_px=s.sim.image_sigma_px, seed=s.sim.seed,
+                         motion=s.sim.motion, time_scale=s.sim.time_scale, true_flange_from_cam=true_ffc,
+                         true_base_from_part=true_bfp)
 
 
 def open_devices(job: LoadedJob, backend: str, *, seed_offset: int = 0) -> Devices:
     s = job.spec
     if backend == "sim":
-        from sim_backend.sim_robot import SimRobot
-        from cell.setup import robot_model
-
-        world = sim_world(job)
-        robot = SimRobot(world, robot_model(job), motion=s.sim.motion, time_scale=s.sim.time_scale)
-        camera = _sim_camera(job, world)
-        d = Devices(robot=robot, camera=camera, world=world)
+        sim = make_job_sim_cell(job)
+        d = Devices(robot=sim.robot, camera=sim.camera, light=sim.light, world=sim.world)
     elif backend == "ur":
         from drivers.ur import CellLimits, URRobot
 
@@ -85,8 +79,9 @@ def open_devices(job: LoadedJob, backend: str, *, seed_offset: int = 0) -> Devic
             world = None
         else:
             # no real camera configured: the simulated camera follows the real robot's reported pose
-            world = sim_world(job)
-            camera = _FollowingCamera(_sim_camera(job, world), robot, world)
+            sim = make_job_sim_cell(job)
+            world = sim.world
+            camera = _FollowingCamera(sim.camera, robot, world)
         light = None
         if s.cell.light_port:
             from drivers.serial_light import SerialLight

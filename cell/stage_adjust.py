@@ -52,7 +52,8 @@ def run_bundle(ctx) -> dict:
     sc = job.spec.camera.self_calibrate
     config = BundleConfig(camera_model="RADIAL" if sc else "PINHOLE", refine_focal_length=sc,
                           refine_principal_point=sc, refine_distortion=sc, scale_bars=scale_bars)
-    options = BundleOptions(sigma_px=job.spec.camera.sigma_px)
+    # partly occluded dots are blunders too: allow data snooping to remove up to 5% of the observations
+    options = BundleOptions(sigma_px=job.spec.camera.sigma_px, max_rejections=max(20, len(obs_uv) // 20))
     t0 = time.perf_counter()
     res = bundle_adjust(obs_image, obs_target, obs_uv, intr0, poses0, job.part.targets.xyz, options, config)
     dt = time.perf_counter() - t0

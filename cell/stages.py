@@ -112,6 +112,27 @@ def acquire(ctx) -> None:
 # --- MEASURE -------------------------------------------------------------------------------
 
 
+def _rim_clear(occluder, xyz: np.ndarray, normals: np.ndarray, radius_m: float, eye: np.ndarray,
+               samples: int = 12, margin: float = 1.3) -> np.ndarray:
+    """Whether the whole rim of each dot (grown by ``margin``) is in view from ``eye``, (n,) bool.
+
+    A dot partly hidden by an edge of the part images as a clipped disc whose centroid is biased
+    by up to its radius; such an observation is dropped, not measured.
+    """
+    n = len(xyz)
+    if n == 0:
+        return np.zeros(0, dtype=bool)
+    a = np.where(np.abs(normals[:, :1]) < 0.9, np.array([[1.0, 0.0, 0.0]]), np.array([[0.0, 1.0, 0.0]]))
+    e1 = np.cross(normals, a)
+    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+    e2 = np.cross(normals, e1)
+    ang = np.linspace(0, 2 * np.pi, samples, endpoint=False)
+    rim = (xyz[:, None] + margin * radius_m * (np.cos(ang)[None, :, None] * e1[:, None] + np.sin(ang)[None, :, None]
+           * e2[:, None]) + 2e-4 * normals[:, None])
+    hit = occluder.occluded(rim.reshape(-1, 3), np.broadcast_to(eye, (n * samples, 3)))
+    return ~hit.reshape(n, samples).any(axis=1)
+
+
 def _inside_any(uv: np.ndarray, quads: np.ndarray, grow: float = 1.0) -> np.ndarray:
     """Which points ``uv: (k, 2)`` lie inside any of the quadrilaterals ``quads: (c, 4, 2)``."""
     inside = np.zeros(len(uv), dtype=bool)
@@ -130,7 +151,8 @@ def measure(ctx) -> None:
     projecting the nominal targets with the robot's pose and the hand-eye, refined by
     the coded targets (solvePnP) where at least four are seen.
     """
-    from calibration.targets import DetectionOptions, detect_coded_targets, detect_retro_targets, identify_targets
+    from calibration.targets import (DetectionOptions, detect_coded_targets, detect_retro_targets, eccentricity_bias,
+                                     identify_targets)
 
     job = ctx.job
     acq = _read(ctx, "acquisition.json")
@@ -166,17 +188,24 @@ def measure(ctx) -> None:
         sub = identify_targets(det_uv, t.xyz[cand], t.code[cand], job.intrinsics, cam_from_part, max_dist,
                                coded_ids=codes, coded_uv=centres)
         match = np.where(sub >= 0, cand[np.maximum(sub, 0)], -1)
+        # coded targets identify the image (and refine its pose) but are not measured: OpenCV's
+        # sub-pixel marker corners are biased by 0.1-0.3 px, ten times the dots' precision
         names, uv = [], []
-        for c, p in zip(codes, centres):
-            names.append(ids_all[code_to_index[int(c)]])
-            uv.append(p)
-        for m, p in zip(match, det_uv):
-            if m >= 0 and t.code[m] < 0:
-                names.append(ids_all[int(m)])
-                uv.append(p)
+        dots = np.flatnonzero((match >= 0) & (t.code[np.maximum(match, 0)] < 0))
+        clear = _rim_clear(occluder, t.xyz[match[dots]], t.normals[match[dots]], job.part.target_diameter_m / 2,
+                           poses[k][:3, 3])
+        n_clipped = int((~clear).sum())
+        dots = dots[clear]
+        # the centroid of a dot's ellipse is not the image of its centre: remove that eccentricity
+        bias = eccentricity_bias(job.intrinsics, cam_from_part, t.xyz[match[dots]], t.normals[match[dots]],
+                                 job.part.target_diameter_m / 2)
+        for j, b in zip(dots, bias):
+            names.append(ids_all[int(match[j])])
+            uv.append(det_uv[j] - b)
         out.append({"station": im["station"], "image": im["image"], "ids": names,
                     "uv": np.asarray(uv, dtype=float).reshape(-1, 2), "n_dots": int(len(det_uv)),
-                    "n_coded": int(len(codes)), "n_unidentified": int((match < 0).sum())})
+                    "n_coded": int(len(codes)), "n_unidentified": int((match < 0).sum()),
+                    "n_partly_hidden": n_clipped})
         ctx.log.detections(im["station"], names, np.asarray(uv).reshape(-1, 2))
     ctx.progress("measure", 1.0)
     atomic_write_json(ctx.folder.file("observations.json"), {"images": out})

@@ -268,9 +268,11 @@ class URRobot:
     def _move(self, request: dict, expected_s: float) -> RobotState:
         deadline = 1.5 * expected_s + self.deadline_s
         request["deadline_s"] = deadline
+        # backstop on this side of the pipe: the child's deadline, then its bounded stop, then a margin
+        stop_allowance = 2.5 + self.limits.max_joint_speed_rad_s / self._options["stop_decel"]
         self._busy = True
         try:
-            reply = self._request(request, deadline + self.deadline_s)
+            reply = self._request(request, deadline + stop_allowance + self.deadline_s)
         finally:
             self._busy = False
         state = self._to_state(reply)

@@ -201,10 +201,11 @@ class Worker:
                 return
             self.ctrl.stopJ(float(self.opts["stop_decel"]), True)
             end = time.monotonic() + 2.0 + max(abs(v) for v in state["qd"]) / float(self.opts["stop_decel"])
-            while time.monotonic() < end:
+            while time.monotonic() < end:  # the async stop is an async operation: wait for its end
                 self._kick()
                 state = self._state()
-                if max(abs(v) for v in state["qd"]) < 1e-4:
+                if not self.ctrl.getAsyncOperationProgressEx().isAsyncOperationRunning() and \
+                        max(abs(v) for v in state["qd"]) < 1e-4:
                     return
                 time.sleep(0.004)
         except (_Fail, RuntimeError):

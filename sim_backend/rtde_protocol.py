@@ -1,13 +1,16 @@
-"""The public RTDE wire protocol (Universal Robots, port 30004), server side.
+"""The public RTDE wire protocol (Universal Robots, port 30004), server side, and the
+contract with ur-rtde's control script.
 
 Only what a controller needs to answer a client such as ur-rtde: framing, the
-package types, the variable table (name -> RTDE type), and recipes that pack
-outputs and unpack inputs. Everything is big-endian, as the RTDE guide states.
-
-A package is ``uint16 size`` (header included), ``uint8 type``, payload.
+package types, the variable table (name -> RTDE type), recipes that pack outputs
+and unpack inputs (everything big-endian, as the RTDE guide states; a package is
+``uint16 size`` (header included), ``uint8 type``, payload), a small threaded TCP
+service, and :func:`check_control_script`: the command ids and register layout of
+the script ur-rtde uploads, which the loopback controller plays.
 """
 from __future__ import annotations
 
+import re
 import select
 import socket
 import struct
@@ -263,3 +266,72 @@ def _close_quietly(conn: socket.socket) -> None:
     except OSError:
         pass
     conn.close()
+
+
+# ur-rtde's command ids that this controller plays, and what each block of the
+# uploaded script must contain for the ids and register layout to mean what we play.
+PLAYED_COMMANDS: dict[int, tuple[str, tuple[str, ...]]] = {
+    1: ("movej", ("q = q_from_input_float_registers(0)", "velocity = read_input_float_reg(6)",
+                  "acceleration = read_input_float_reg(7)", "async = read_input_integer_reg(1)",
+                  "movej(q, a=acceleration, v=velocity)")),
+    3: ("movel", ("pose = pose_from_input_float_registers(0)", "velocity = read_input_float_reg(6)",
+                  "acceleration = read_input_float_reg(7)", "async = read_input_integer_reg(1)",
+                  "movel(pose, a=acceleration, v=velocity)")),
+    29: ("set_tcp", ("pose = pose_from_input_float_registers(0)", "set_tcp(pose)")),
+    31: ("protective_stop", ("protective_stop()",)),
+    33: ("stopl", ("exec_stopl_stopj(cmd",)),
+    34: ("stopj", ("exec_stopl_stopj(cmd",)),
+    35: ("set_watchdog", ("watchdog_min_frequency = read_input_float_reg(0)",
+                          'rtde_set_watchdog("input_int_register_0", watchdog_min_frequency, "stop")')),
+    255: ("stop_script", ("Received stop script",)),
+}
+# Fragments outside the command blocks that the handshake relies on.
+SCRIPT_FRAGMENTS: tuple[str, ...] = (
+    "def signal_ready():\n        write_output_integer_reg(0, 1)",
+    "def signal_done_with_cmd():\n        write_output_integer_reg(0, 2)",
+    "cmd = read_input_integer_reg(0)",
+    "write_output_integer_reg(2, reg_value)",
+    "deceleration_rate = read_input_float_reg(0)\n      async = read_input_integer_reg(1)",
+    "if cmd != 255:\n              signal_done_with_cmd()",
+)
+
+
+class ScriptContractError(ValueError):
+    """The uploaded control script does not match the commands this controller plays."""
+
+
+def command_blocks(script: str) -> dict[int, str]:
+    """Command id -> text of its ``if/elif cmd == N:`` block in ``process_cmd``."""
+    start = script.find("def process_cmd(cmd):")
+    if start < 0:
+        raise ScriptContractError("no 'def process_cmd(cmd):' in the uploaded script")
+    body = script[start:]
+    marks = list(re.finditer(r"^\s*(?:if|elif) cmd == (\d+):", body, flags=re.M))
+    blocks = {}
+    for k, m in enumerate(marks):
+        end = marks[k + 1].start() if k + 1 < len(marks) else len(body)
+        blocks.setdefault(int(m.group(1)), body[m.end():end])
+    return blocks
+
+
+def check_control_script(script: str) -> int:
+    """Check ur-rtde's control script against :data:`PLAYED_COMMANDS`; return the register offset.
+
+    Raises ``ScriptContractError`` naming the first mismatch (an ur-rtde upgrade
+    that renumbered a command or moved an argument to another register).
+    """
+    blocks = command_blocks(script)
+    for cmd, (name, needles) in PLAYED_COMMANDS.items():
+        block = blocks.get(cmd)
+        if block is None:
+            raise ScriptContractError(f"command {cmd} ({name}) is missing from the uploaded script")
+        for needle in needles:
+            if needle not in block:
+                raise ScriptContractError(f"command {cmd} ({name}): expected '{needle}' in its block")
+    for needle in SCRIPT_FRAGMENTS:
+        if needle not in script:
+            raise ScriptContractError(f"expected '{needle}' in the uploaded script")
+    m = re.search(r"global reg_offset_int = (?:#[^\n]*\n)?\s*(\d+)", script)
+    if m is None:
+        raise ScriptContractError("no integer register offset injected into the script")
+    return int(m.group(1))

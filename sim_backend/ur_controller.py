@@ -4,7 +4,7 @@ It speaks the public RTDE protocol on port 30004, answers the dashboard server
 on 29999, and accepts URScript programs on 30003. The program that ur-rtde
 uploads (its ``rtde_control`` script) is not interpreted line by line: the
 controller checks that the script's command table is the one it knows
-(:func:`check_control_script`, the contract with the pinned ur-rtde version) and
+(:func:`sim_backend.rtde_protocol.check_control_script`, the contract with the pinned ur-rtde version) and
 then *plays* that script's register handshake: command id in
 ``input_int_register_0``, arguments in ``input_double_register_0..``, 1 (ready) /
 2 (done) in ``output_int_register_0``, async progress in ``output_int_register_2``.
@@ -35,7 +35,10 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from drivers.ur import matrix_to_pose, pose_to_matrix
+from drivers.ur import profile_duration as trapezoid_duration
 from sim_backend import rtde_protocol as rp
+from sim_backend.rtde_protocol import PLAYED_COMMANDS, ScriptContractError, check_control_script
 
 RTDE_PORT, DASHBOARD_PORT, SCRIPT_PORT = 30004, 29999, 30003
 
@@ -47,75 +50,6 @@ BIT_NORMAL, BIT_PROTECTIVE_STOP, BIT_ROBOT_ESTOP, BIT_ESTOP = 0, 2, 6, 7
 SAFETY_NORMAL, SAFETY_PROTECTIVE_STOP, SAFETY_ROBOT_EMERGENCY_STOP = 1, 3, 7
 ROBOT_MODE_RUNNING = 7
 JOINT_MODE_RUNNING = 253
-
-# ur-rtde's command ids that this controller plays, and what each block of the
-# uploaded script must contain for the ids and register layout to mean what we play.
-PLAYED_COMMANDS: dict[int, tuple[str, tuple[str, ...]]] = {
-    1: ("movej", ("q = q_from_input_float_registers(0)", "velocity = read_input_float_reg(6)",
-                  "acceleration = read_input_float_reg(7)", "async = read_input_integer_reg(1)",
-                  "movej(q, a=acceleration, v=velocity)")),
-    3: ("movel", ("pose = pose_from_input_float_registers(0)", "velocity = read_input_float_reg(6)",
-                  "acceleration = read_input_float_reg(7)", "async = read_input_integer_reg(1)",
-                  "movel(pose, a=acceleration, v=velocity)")),
-    29: ("set_tcp", ("pose = pose_from_input_float_registers(0)", "set_tcp(pose)")),
-    31: ("protective_stop", ("protective_stop()",)),
-    33: ("stopl", ("exec_stopl_stopj(cmd",)),
-    34: ("stopj", ("exec_stopl_stopj(cmd",)),
-    35: ("set_watchdog", ("watchdog_min_frequency = read_input_float_reg(0)",
-                          'rtde_set_watchdog("input_int_register_0", watchdog_min_frequency, "stop")')),
-    255: ("stop_script", ("Received stop script",)),
-}
-# Fragments outside the command blocks that the handshake relies on.
-SCRIPT_FRAGMENTS: tuple[str, ...] = (
-    "def signal_ready():\n        write_output_integer_reg(0, 1)",
-    "def signal_done_with_cmd():\n        write_output_integer_reg(0, 2)",
-    "cmd = read_input_integer_reg(0)",
-    "write_output_integer_reg(2, reg_value)",
-    "deceleration_rate = read_input_float_reg(0)\n      async = read_input_integer_reg(1)",
-    "if cmd != 255:\n              signal_done_with_cmd()",
-)
-
-
-class ScriptContractError(ValueError):
-    """The uploaded control script does not match the commands this controller plays."""
-
-
-def command_blocks(script: str) -> dict[int, str]:
-    """Command id -> text of its ``if/elif cmd == N:`` block in ``process_cmd``."""
-    start = script.find("def process_cmd(cmd):")
-    if start < 0:
-        raise ScriptContractError("no 'def process_cmd(cmd):' in the uploaded script")
-    body = script[start:]
-    marks = list(re.finditer(r"^\s*(?:if|elif) cmd == (\d+):", body, flags=re.M))
-    blocks = {}
-    for k, m in enumerate(marks):
-        end = marks[k + 1].start() if k + 1 < len(marks) else len(body)
-        blocks.setdefault(int(m.group(1)), body[m.end():end])
-    return blocks
-
-
-def check_control_script(script: str) -> int:
-    """Check ur-rtde's control script against :data:`PLAYED_COMMANDS`; return the register offset.
-
-    Raises ``ScriptContractError`` naming the first mismatch (an ur-rtde upgrade
-    that renumbered a command or moved an argument to another register).
-    """
-    blocks = command_blocks(script)
-    for cmd, (name, needles) in PLAYED_COMMANDS.items():
-        block = blocks.get(cmd)
-        if block is None:
-            raise ScriptContractError(f"command {cmd} ({name}) is missing from the uploaded script")
-        for needle in needles:
-            if needle not in block:
-                raise ScriptContractError(f"command {cmd} ({name}): expected '{needle}' in its block")
-    for needle in SCRIPT_FRAGMENTS:
-        if needle not in script:
-            raise ScriptContractError(f"expected '{needle}' in the uploaded script")
-    m = re.search(r"global reg_offset_int = (?:#[^\n]*\n)?\s*(\d+)", script)
-    if m is None:
-        raise ScriptContractError("no integer register offset injected into the script")
-    return int(m.group(1))
-
 
 # ---------------------------------------------------------------- motion kernels
 
@@ -141,29 +75,6 @@ def trapezoid(distance: float, v: float, a: float, t: np.ndarray | float) -> tup
     s_dec = v * t_dec - 0.5 * a * t_dec**2
     speed = np.where(tc < t_acc, a * tc, np.where(tc < t_acc + t_flat, v, v - a * t_dec))
     return np.minimum(s_acc + s_flat + s_dec, distance), np.where(tc >= total, 0.0, speed)
-
-
-def trapezoid_duration(distance: float, v: float, a: float) -> float:
-    """Duration (s) of :func:`trapezoid` for ``distance``."""
-    if distance <= 0.0:
-        return 0.0
-    if v * v / a >= distance:
-        return 2.0 * np.sqrt(distance / a)
-    return distance / v + v / a
-
-
-def pose_to_matrix(pose: np.ndarray) -> np.ndarray:
-    """UR pose vector ``(6,)`` [x, y, z, rx, ry, rz] (rotation vector) -> (4, 4)."""
-    pose = np.asarray(pose, dtype=float)
-    out = np.eye(4)
-    out[:3, :3] = Rotation.from_rotvec(pose[3:6]).as_matrix()
-    out[:3, 3] = pose[:3]
-    return out
-
-
-def matrix_to_pose(a_from_b: np.ndarray) -> np.ndarray:
-    """(4, 4) -> UR pose vector ``(6,)``."""
-    return np.concatenate([a_from_b[:3, 3], Rotation.from_matrix(a_from_b[:3, :3]).as_rotvec()])
 
 
 class _IKFailed(RuntimeError):
@@ -248,11 +159,13 @@ class _StopMotion:
 
 @dataclass(frozen=True)
 class ScriptCommand:
-    """One command the control script executed: id, name and its arguments."""
+    """One command the control script executed: id, name, arguments, and the input recipe
+    (register names) of the RTDE package that carried it."""
 
     cmd: int
     name: str
     args: dict
+    recipe: tuple[str, ...] = ()
 
 
 @dataclass
@@ -305,6 +218,7 @@ class LoopbackURController:
         self._script: _Script | None = None
         self._pending_program: str | None = None
         self._inputs: dict[str, object] = {}
+        self._command_recipe: tuple[str, ...] = ()
         self._out_int = np.zeros(48, dtype=np.int64)
         self._out_double = np.zeros(48)
         self._watchdog_var: str | None = None
@@ -322,6 +236,9 @@ class LoopbackURController:
 
     # ------------------------------------------------------------ lifecycle
     def start(self) -> LoopbackURController:
+        """Bind the three ports and start the control loop (``OSError`` if the address is taken)."""
+        if self._thread is not None:
+            return self
         try:
             self._services = [rp.TcpService(self.host, RTDE_PORT, self._serve_rtde, "rtde")]
             self._services.append(rp.TcpService(self.host, DASHBOARD_PORT, self._serve_dashboard, "dashboard"))
@@ -555,7 +472,7 @@ class LoopbackURController:
             args = {"tcp": d[:6].copy()}
         else:
             args = {}
-        self.commands.append(ScriptCommand(cmd, name, args))
+        self.commands.append(ScriptCommand(cmd, name, args, self._command_recipe))
         sc = self._script
         if cmd in (1, 3, 33, 34) and self._motion is not None and self._motion.is_async:
             self._write_async_progress(-1)  # stop_async_move(): the running async move is killed
@@ -566,10 +483,8 @@ class LoopbackURController:
             motion = _LinearMotion(base_from_tcp0, pose_to_matrix(d[:6]), self._q.copy(), d[6], d[7],
                                    self._flange_from_tcp.copy(), is_async)
             self._start_motion(motion, is_async)
-        elif cmd in (33, 34):
-            self._start_motion(_StopMotion(self._q.copy(), self._qd.copy(), d[0]), False)
-            if is_async:
-                sc.blocking = False
+        elif cmd in (33, 34):  # an async stop runs as an async operation of its own (the script's stop_thread)
+            self._start_motion(_StopMotion(self._q.copy(), self._qd.copy(), d[0], is_async), is_async)
         elif cmd == 29:
             self._flange_from_tcp = pose_to_matrix(d[:6])
         elif cmd == 31:
@@ -675,6 +590,9 @@ class LoopbackURController:
             values = recipe.unpack_values(payload)
             with self._lock:
                 self._inputs.update(values)
+                offset = self._script.reg_offset if self._script is not None else 0
+                if values.get(f"input_int_register_{offset}", 0) != 0:
+                    self._command_recipe = recipe.names
                 if self._watchdog_var is not None and self._watchdog_var in values:
                     self._watchdog_last = time.monotonic()
         else:

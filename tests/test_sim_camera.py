@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from calibration.camera import Intrinsics, invert, look_at, make_pose, project
+from calibration.camera import Intrinsics, invert, look_at, project
 from calibration.errors import DriverError, NotConnectedError
 from drivers.protocols import Camera
 from planning.part import Part, Targets
@@ -19,7 +19,7 @@ from sim_backend.sim_camera import (
     disc_coverage,
     marker_coverage,
 )
-from sim_backend.world import World, marker_axes, marker_corners
+from sim_backend.world import World, marker_axes
 
 # the default camera: 5 MP, 3.45 um pixels, 12 mm lens; a mild lens distortion
 INTR = Intrinsics.from_focal_length(0.012, 3.45e-6, 2448, 2048, k1=-0.08, k2=0.05, p1=2e-4, p2=-1e-4)

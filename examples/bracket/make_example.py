@@ -71,8 +71,11 @@ def main() -> None:
         for k, i in enumerate(sorted(pick)):
             d = targets.normals[i] * (0.12, 0.16, 0.2, 0.4, 0.5, 0.6)[k]
             w.writerow([targets.ids[i], *(f"{v:.4f}" for v in d)])
-    c0, c1 = (np.flatnonzero(targets.code == c)[0] for c in (0, 1))
-    print(f"scale bar C0-C1 length {np.linalg.norm(targets.xyz[c0] - targets.xyz[c1]) * 1000:.4f} mm")
+    # the scale bar: the two undeviated retro targets farthest apart (calibrated on a CMM, say)
+    ok = np.flatnonzero((targets.kind == "retro") & ~np.isin(np.arange(len(targets)), pick))
+    d = np.linalg.norm(targets.xyz[ok, None] - targets.xyz[None, ok], axis=2)
+    a, b = np.unravel_index(np.argmax(d), d.shape)
+    print(f"scale bar {targets.ids[ok[a]]}-{targets.ids[ok[b]]} length {d[a, b] * 1000:.4f} mm")
 
 
 if __name__ == "__main__":
