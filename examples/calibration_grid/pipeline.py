@@ -1,0 +1,276 @@
+"""The measurement chain shared by the two paper experiments (calibration grid, complex object).
+
+Images are *rendered* by the simulated camera (``sim_backend.sim_camera.SimCamera``) and measured
+by the cell's own code, the same steps as the MEASURE, CALIBRATE and ADJUST stages of a job
+(``cell/stages.py``), without a job folder:
+
+1. render the image seen from a station (discs with blur, shot and read noise, 8 bits);
+2. detect the dots (``detect_retro_targets``), name them by projecting the nominal targets with an
+   approximate pose (``identify_targets``: a robot pose / hand-held guess a few mm and a fraction of a
+   degree off), drop dots whose rim is partly hidden (``cell.stages._rim_clear``) and remove the
+   perspective eccentricity of the ellipse centre (``eccentricity_bias``);
+3. Faugeras-Toscani per image (``faugeras_toscani``): interior and exterior orientation;
+4. bundle adjustment (``bundle_adjust``) with covariance: error ellipsoids of every target.
+
+Metrics of a set of error ellipsoids (``ellipsoid_metrics``): 1-sigma semi-axes ``a >= b >= c``;
+volume ``4/3 pi a b c``; elongation ``a / c``; size ``sigma = sqrt(a^2 + b^2 + c^2)``;
+homogeneity = coefficient of variation of ``sigma`` over the targets (0: all the same size);
+isotropy = ``c / a`` (1: a sphere).
+
+Run nothing here; see ``run_experiment.py`` in each example folder.
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from calibration.bundle import BundleConfig, BundleOptions, BundleResult, bundle_adjust
+from calibration.camera import Intrinsics, exp_se3, invert
+from calibration.errors import CalibrationError
+from calibration.faugeras_toscani import FTResult, combine_intrinsics, faugeras_toscani
+from calibration.targets import DetectionOptions, detect_retro_targets, eccentricity_bias, identify_targets
+
+__all__ = [
+    "Observations",
+    "render_and_measure",
+    "calibrate_images",
+    "adjust_subset",
+    "ellipsoid_metrics",
+    "truth_consistency",
+    "plot_ellipsoids",
+]
+
+
+@dataclass
+class Observations:
+    """Measured image coordinates of a set of images.
+
+    Attributes:
+        obs_image: (q,) image index; obs_target: (q,) target index; obs_uv: (q, 2) pixels.
+        n_images: number of images; per_image: one dict of counts per image.
+        render_s, measure_s: total seconds spent rendering and measuring.
+    """
+
+    obs_image: np.ndarray
+    obs_target: np.ndarray
+    obs_uv: np.ndarray
+    n_images: int
+    per_image: list[dict] = field(default_factory=list)
+    render_s: float = 0.0
+    measure_s: float = 0.0
+
+    def subset(self, images: list[int] | np.ndarray) -> "Observations":
+        """The observations of ``images`` only, re-indexed 0..len(images)-1 in the given order."""
+        images = [int(i) for i in images]
+        remap = np.full(self.n_images, -1)
+        remap[images] = np.arange(len(images))
+        keep = remap[self.obs_image] >= 0
+        return Observations(remap[self.obs_image[keep]], self.obs_target[keep], self.obs_uv[keep], len(images),
+                            [self.per_image[i] for i in images])
+
+    def rays(self, n_targets: int) -> np.ndarray:
+        """(n,) number of images measuring each target."""
+        return np.bincount(self.obs_target, minlength=n_targets)
+
+
+def perturb_pose(cam_from_part: np.ndarray, rng: np.random.Generator, rot_rad: float, trans_m: float) -> np.ndarray:
+    """A pose off by N(0, rot_rad^2) per rotation axis and N(0, trans_m^2) per translation axis, (4, 4)."""
+    xi = np.concatenate([rng.normal(0.0, rot_rad, 3), rng.normal(0.0, trans_m, 3)])
+    return exp_se3(xi) @ cam_from_part
+
+
+def render_and_measure(
+    camera,
+    part,
+    intr: Intrinsics,
+    part_from_cam: np.ndarray,
+    rng: np.random.Generator,
+    *,
+    pose_error: tuple[float, float] = (math.radians(0.3), 0.003),
+    max_dist_px: float = 12.0,
+    detection: DetectionOptions | None = None,
+    save_images=None,
+) -> Observations:
+    """Render every station with ``camera`` (a SimCamera of ``part``) and measure the dots.
+
+    Args:
+        camera: ``SimCamera`` (its world holds ``part`` and the true intrinsics).
+        part: ``planning.part.Part`` (CAD nominal targets; retro dots only).
+        intr: the interior orientation used for identification (nominal values).
+        part_from_cam: (m, 4, 4) true stations.
+        rng: draws the approximate poses used for identification.
+        pose_error: (rotation rad, translation m) standard deviation of those approximate poses.
+        max_dist_px: identification gate.
+        save_images: a folder to write ``NNNN.png`` into, or None.
+    """
+    import cv2
+
+    from cell.stages import _rim_clear
+    from planning.visibility import Occluder
+
+    T = np.asarray(part_from_cam, dtype=float).reshape(-1, 4, 4)
+    t = part.targets
+    occluder = Occluder(part.mesh)
+    opts = detection or DetectionOptions()
+    radius = part.target_diameter_m / 2
+    oi, ot, ouv, per = [], [], [], []
+    t_render = t_measure = 0.0
+    for k, pfc in enumerate(T):
+        t0 = time.perf_counter()
+        image, truth = camera.render(pfc)
+        t1 = time.perf_counter()
+        if save_images is not None:
+            save_images.mkdir(parents=True, exist_ok=True)
+            cv2.imwrite(str(save_images / f"{k + 1:04d}.png"), image)
+        approx = perturb_pose(invert(pfc), rng, *pose_error)
+        det = detect_retro_targets(image, opts)
+        match = identify_targets(det.uv, t.xyz, t.code, intr, approx, max_dist_px)
+        dots = np.flatnonzero(match >= 0)
+        clear = _rim_clear(occluder, t.xyz[match[dots]], t.normals[match[dots]], radius, pfc[:3, 3])
+        dots = dots[clear]
+        bias = eccentricity_bias(intr, approx, t.xyz[match[dots]], t.normals[match[dots]], radius)
+        oi.append(np.full(len(dots), k))
+        ot.append(match[dots])
+        ouv.append(det.uv[dots] - bias)
+        per.append({"image": k + 1, "rendered": len(truth["ids"]), "detected": len(det), "measured": int(len(dots)),
+                    "unidentified": int((match < 0).sum()), "partly_hidden": int((~clear).sum())})
+        t_render += t1 - t0
+        t_measure += time.perf_counter() - t1
+    return Observations(np.concatenate(oi).astype(int), np.concatenate(ot).astype(int), np.vstack(ouv), len(T), per,
+                        t_render, t_measure)
+
+
+def calibrate_images(part, obs: Observations, width: int, height: int) -> tuple[list[FTResult], Intrinsics]:
+    """Faugeras-Toscani on every image (nominal 3-D targets), and the median interior orientation."""
+    res = []
+    for k in range(obs.n_images):
+        sel = obs.obs_image == k
+        try:
+            res.append(faugeras_toscani(part.targets.xyz[obs.obs_target[sel]], obs.obs_uv[sel], width, height))
+        except CalibrationError as exc:
+            raise CalibrationError(f"image {k + 1}: {exc}") from None
+    return res, combine_intrinsics(res)
+
+
+def adjust_subset(
+    obs: Observations,
+    images: list[int],
+    intr: Intrinsics,
+    cam_from_part0: np.ndarray,
+    points0: np.ndarray,
+    *,
+    sigma_px: float,
+    camera_model: str = "PINHOLE",
+    self_calibrate: bool = False,
+    a_posteriori: bool = False,
+) -> tuple[BundleResult, Observations]:
+    """Bundle adjustment of the images ``images`` (indices into ``obs``), free-network datum.
+
+    With ``self_calibrate`` the focal lengths, principal point and distortion of ``camera_model`` are
+    refined; otherwise the interior orientation is held at ``intr`` (a calibrated camera, as in the
+    seed). ``a_posteriori=False`` scales the covariance by ``sigma_px`` (a priori), so networks are
+    compared by their geometry alone.
+    """
+    sub = obs.subset(images)
+    config = BundleConfig(camera_model=camera_model, refine_focal_length=self_calibrate,
+                          refine_principal_point=self_calibrate,
+                          refine_distortion=self_calibrate and camera_model != "PINHOLE")
+    options = BundleOptions(sigma_px=sigma_px, a_posteriori=a_posteriori, max_rejections=max(20, len(sub.obs_uv) // 50))
+    res = bundle_adjust(sub.obs_image, sub.obs_target, sub.obs_uv, intr, np.asarray(cam_from_part0)[images],
+                        points0, options, config)
+    return res, sub
+
+
+def ellipsoid_metrics(cov: np.ndarray, mask: np.ndarray | None = None) -> dict:
+    """Size, shape and spread of the error ellipsoids ``cov: (n, 3, 3)`` (rows with nan skipped).
+
+    Returns medians over the targets (and a few maxima), lengths in micrometres, volumes in um^3.
+    """
+    cov = np.asarray(cov, dtype=float)
+    ok = np.all(np.isfinite(cov), axis=(1, 2))
+    if mask is not None:
+        ok &= np.asarray(mask, dtype=bool)
+    if not ok.any():
+        return {"n": 0}
+    w = np.clip(np.linalg.eigvalsh(cov[ok]), 0.0, None)  # ascending
+    ax = np.sqrt(w) * 1e6
+    a, b, c = ax[:, 2], ax[:, 1], ax[:, 0]
+    vol = 4.0 / 3.0 * np.pi * a * b * c
+    sigma = np.sqrt(a * a + b * b + c * c)
+    return {
+        "n": int(ok.sum()),
+        "volume_um3_median": float(np.median(vol)),
+        "volume_um3_max": float(np.max(vol)),
+        "elongation_median": float(np.median(a / np.maximum(c, 1e-300))),
+        "elongation_max": float(np.max(a / np.maximum(c, 1e-300))),
+        "major_axis_um_median": float(np.median(a)),
+        "major_axis_um_max": float(np.max(a)),
+        "sigma_um_median": float(np.median(sigma)),
+        "sigma_um_max": float(np.max(sigma)),
+        "homogeneity_cv": float(np.std(sigma) / np.mean(sigma)),
+        "isotropy_median": float(np.median(c / a)),
+    }
+
+
+def truth_consistency(res: BundleResult, truth_xyz: np.ndarray) -> dict:
+    """How the adjusted targets' true errors compare with their covariance.
+
+    The adjusted points are brought onto the truth by a similarity (the free network's datum is
+    arbitrary), then ``d^2 = e^T cov^-1 e`` per target: chi-square with 3 dof if the covariance is right
+    (``sigma0`` scaled). Returns the rms true error (um), the median ``d^2`` (2.37 expected) and the
+    fraction inside the 95% ellipsoid (0.95 expected).
+    """
+    from calibration.alignment import similarity_fit
+    from scipy.stats import chi2
+
+    ok = np.all(np.isfinite(res.points), axis=1)
+    s, R, tt = similarity_fit(res.points[ok], truth_xyz[ok], with_scale=True)
+    est = s * res.points[ok] @ R.T + tt
+    e = est - truth_xyz[ok]
+    cov = res.cov[ok] * s * s
+    cov = R @ cov @ R.T
+    d2 = np.einsum("ni,ni->n", e, np.linalg.solve(cov, e[..., None])[..., 0])
+    return {"rms_error_um": float(np.sqrt(np.mean(np.sum(e * e, axis=1))) * 1e6),
+            "median_d2": float(np.median(d2)), "inside_95": float(np.mean(d2 <= chi2.ppf(0.95, 3)))}
+
+
+def plot_ellipsoids(ax, part, cov: np.ndarray, points: np.ndarray, eyes: np.ndarray | None, scale: float,
+                    title: str, colour_max_um: float | None = None) -> None:
+    """Draw the part, its targets' error ellipsoids magnified ``scale`` times and the camera centres.
+
+    ``cov: (n, 3, 3)`` (nan rows drawn as red dots), ``points: (n, 3)``, ``eyes: (k, 3)`` or None.
+    """
+    from matplotlib import cm
+    from matplotlib.colors import Normalize
+    from mpl_toolkits.mplot3d.art3d import Poly3DCollection
+
+    from planning.plot import ellipsoid_surfaces
+    from planning.uncertainty import ellipsoid_axes
+
+    tri = np.asarray(part.mesh.vertices)[np.asarray(part.mesh.faces)]
+    ax.add_collection3d(Poly3DCollection(tri, facecolor=(0.8, 0.8, 0.83, 0.25), edgecolor=(0.5, 0.5, 0.55, 0.15),
+                                         linewidths=0.2))
+    ok = np.all(np.isfinite(cov), axis=(1, 2))
+    if ok.any():
+        axes, dirs = ellipsoid_axes(cov[ok])
+        sig = np.sqrt(np.sum(axes**2, axis=1)) * 1e6
+        norm = Normalize(vmin=0.0, vmax=colour_max_um or float(sig.max()))
+        quads = ellipsoid_surfaces(points[ok], axes, dirs, scale, n_az=8, n_el=5)
+        colours = cm.viridis(norm(np.repeat(sig, len(quads) // len(sig))))
+        ax.add_collection3d(Poly3DCollection(quads, facecolors=colours, edgecolors="none"))
+    if (~ok).any():
+        ax.scatter(*points[~ok].T, s=6, color="r", depthshade=False)
+    pts = np.asarray(part.mesh.vertices)
+    if eyes is not None and len(eyes):
+        ax.scatter(*np.asarray(eyes).T, s=14, color="tab:blue", depthshade=False)
+    lo, hi = pts.min(axis=0), pts.max(axis=0)
+    c, r = 0.5 * (lo + hi), 0.55 * float(np.max(hi - lo))
+    ax.set_xlim(c[0] - r, c[0] + r)
+    ax.set_ylim(c[1] - r, c[1] + r)
+    ax.set_zlim(c[2] - r, c[2] + r)
+    ax.set_box_aspect((1, 1, 1))
+    ax.set_title(title, fontsize=9)
+    ax.tick_params(labelsize=6)
