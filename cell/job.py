@@ -218,8 +218,9 @@ def resume_job(job_id: str, archive_root: Path, out) -> JobResult:
     # a session killed without a terminal record: record how it ended before going on
     terminal_seen = bool(recs) and recs[-1]["event"] == "terminal"
     if not terminal_seen:
-        folder.append("terminal", status="FAULTED", reason=f"{last_state.value}: the process ended without a terminal record (killed or crashed)")
+        # in the order a session that faults writes them: the transition, then its one terminal record
         folder.append("state", **{"from": last_state.value, "to": State.FAULTED.value, "cause": "process ended unexpectedly"})
+        folder.append("terminal", status="FAULTED", reason=f"{last_state.value}: the process ended without a terminal record (killed or crashed)")
         last_state = State.FAULTED
     job = load_from_folder(folder.path)
     backend = next((r.get("backend") for r in recs if r["event"] == "created"), job.spec.cell.backend)

@@ -320,6 +320,9 @@ class EvolutionOptions:
         fix_bits: keep every control bit on (a network of exactly ``k`` stations).
         align_gene: before crossover, order each individual's slots by this gene (e.g.
             azimuth) so that slot i of two parents are neighbours on the sphere (None: off).
+        plus_selection: one objective: parents and children compete for survival
+            ((mu + lambda), elitist by construction) instead of the generational
+            replacement with ``n_elite`` elites.
         p_reset: per-slot probability that a child's station is redrawn uniformly within
             the bounds (random-reset mutation: long jumps that polynomial mutation with a
             large eta_m rarely makes).
@@ -341,6 +344,7 @@ class EvolutionOptions:
     fix_bits: bool = False
     align_gene: int | None = 0
     p_reset: float = 0.0
+    plus_selection: bool = False
 
 
 @dataclass
@@ -531,7 +535,7 @@ def evolve(
         # variation
         # smaller is better; within a front, less crowded first (inf crowding -> +0)
         merit = rank.astype(float) + (0.5 / (1.0 + crowd) if multi else 0.0)
-        n_children = P if multi else P - opt.n_elite
+        n_children = P if (multi or opt.plus_selection) else P - opt.n_elite
         n_pairs = (n_children + 1) // 2
         parents = tournament(merit, 2 * n_pairs, opt.tournament_size, rng)
         ag, ab = _align(genes, bits, opt.align_gene)
@@ -547,6 +551,13 @@ def evolve(
             r = non_dominated_sort(F, V)
             c = crowding_distance(F, r)
             keep = np.lexsort((-c, r))[:P]
+            genes, bits, F, V = genes[keep], bits[keep], F[keep], V[keep]
+        elif opt.plus_selection:  # (mu + lambda) on one objective
+            genes = np.concatenate([genes, cev.genes])
+            bits = np.concatenate([bits, cev.bits])
+            F = np.concatenate([F, cev.objectives])
+            V = np.concatenate([V, cev.violation])
+            keep = _merit_order(F, V)[:P]
             genes, bits, F, V = genes[keep], bits[keep], F[keep], V[keep]
         else:  # generational with elitism
             e = opt.n_elite

@@ -109,6 +109,7 @@ class PlannerOptions:
     tournament_size: int = 2
     n_elite: int = 2
     p_reset: float | None = None
+    plus_selection: bool = False
     visibility: VisibilityOptions | None = None
     sphere: ViewingSphere | None = None
     n_candidates: int = 3000
@@ -155,6 +156,7 @@ class PlannerOptions:
             fix_bits=self.mode == "fixed",
             align_gene=0,
             p_reset=(0.5 / self.n_stations) if self.p_reset is None else self.p_reset,
+            plus_selection=self.plus_selection,
         )
 
 

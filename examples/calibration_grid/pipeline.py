@@ -37,6 +37,7 @@ __all__ = [
     "Observations",
     "render_and_measure",
     "calibrate_images",
+    "initial_poses",
     "adjust_subset",
     "ellipsoid_metrics",
     "truth_consistency",
@@ -82,6 +83,33 @@ def perturb_pose(cam_from_part: np.ndarray, rng: np.random.Generator, rot_rad: f
     return exp_se3(xi) @ cam_from_part
 
 
+def coarse_align(intr: Intrinsics, cam_from_part: np.ndarray, xyz: np.ndarray, det_uv: np.ndarray,
+                 iterations: int = 2) -> np.ndarray:
+    """Turn an approximate pose so that the projected targets ``xyz: (n, 3)`` overlay the dots ``det_uv: (k, 2)``.
+
+    The median displacement from each dot to its nearest projected target is, for a pose error below
+    half the targets' image spacing, the image shift of the whole pattern; a small rotation of the camera
+    about its x and y axes removes it (``du = fx * theta_y``, ``dv = -fy * theta_x``). (4, 4).
+    """
+    from scipy.spatial import cKDTree
+
+    from calibration.camera import project
+
+    T = np.asarray(cam_from_part, dtype=float)
+    if len(det_uv) < 3:
+        return T
+    for _ in range(iterations):
+        front = xyz @ T[2, :3] + T[2, 3] > 0
+        uv = project(intr, T, xyz[front])
+        uv = uv[np.all(np.isfinite(uv), axis=1)]
+        if len(uv) < 3:
+            return T
+        _, j = cKDTree(uv).query(det_uv)
+        du, dv = np.median(det_uv - uv[j], axis=0)
+        T = exp_se3(np.array([-dv / intr.fy_px, du / intr.fx_px, 0.0, 0.0, 0.0, 0.0])) @ T
+    return T
+
+
 def render_and_measure(
     camera,
     part,
@@ -89,8 +117,8 @@ def render_and_measure(
     part_from_cam: np.ndarray,
     rng: np.random.Generator,
     *,
-    pose_error: tuple[float, float] = (math.radians(0.3), 0.003),
-    max_dist_px: float = 12.0,
+    pose_error: tuple[float, float] = (math.radians(0.15), 0.002),
+    max_dist_px: float = 25.0,
     detection: DetectionOptions | None = None,
     save_images=None,
 ) -> Observations:
@@ -127,6 +155,7 @@ def render_and_measure(
             cv2.imwrite(str(save_images / f"{k + 1:04d}.png"), image)
         approx = perturb_pose(invert(pfc), rng, *pose_error)
         det = detect_retro_targets(image, opts)
+        approx = coarse_align(intr, approx, t.xyz, det.uv)
         match = identify_targets(det.uv, t.xyz, t.code, intr, approx, max_dist_px)
         dots = np.flatnonzero(match >= 0)
         clear = _rim_clear(occluder, t.xyz[match[dots]], t.normals[match[dots]], radius, pfc[:3, 3])
@@ -155,6 +184,37 @@ def calibrate_images(part, obs: Observations, width: int, height: int) -> tuple[
     return res, combine_intrinsics(res)
 
 
+def initial_poses(part, obs: Observations, intr: Intrinsics, robot_part_from_cam: np.ndarray,
+                  min_points: int = 8) -> tuple[np.ndarray, Intrinsics, int]:
+    """Starting values for the adjustment: Faugeras-Toscani per image where it can run.
+
+    An image with fewer than ``min_points`` measured targets, or whose targets are coplanar, cannot be
+    calibrated linearly; its pose is then solved by ``solvePnP`` from the robot's pose
+    ``robot_part_from_cam: (m, 4, 4)`` with the interior orientation ``intr`` (what the cell knows).
+    Returns ``cam_from_part (m, 4, 4)``, the median Faugeras-Toscani interior orientation, and how many
+    images fell back to PnP.
+    """
+    from calibration.targets import refine_pose_pnp
+
+    poses, ok = [], []
+    for k in range(obs.n_images):
+        sel = obs.obs_image == k
+        xyz, uv = part.targets.xyz[obs.obs_target[sel]], obs.obs_uv[sel]
+        try:
+            if len(uv) < min_points:
+                raise CalibrationError("too few points")
+            r = faugeras_toscani(xyz, uv, intr.width, intr.height)
+            poses.append(r.cam_from_part)
+            ok.append(r)
+        except CalibrationError:
+            if len(uv) < 4:
+                raise CalibrationError(f"image {k + 1}: {len(uv)} targets measured; cannot orient it") from None
+            poses.append(refine_pose_pnp(intr, invert(robot_part_from_cam[k]), xyz, uv))
+    if not ok:
+        raise CalibrationError("no image could be calibrated by Faugeras-Toscani")
+    return np.array(poses), combine_intrinsics(ok), obs.n_images - len(ok)
+
+
 def adjust_subset(
     obs: Observations,
     images: list[int],
@@ -178,7 +238,10 @@ def adjust_subset(
     config = BundleConfig(camera_model=camera_model, refine_focal_length=self_calibrate,
                           refine_principal_point=self_calibrate,
                           refine_distortion=self_calibrate and camera_model != "PINHOLE")
-    options = BundleOptions(sigma_px=sigma_px, a_posteriori=a_posteriori, max_rejections=max(20, len(sub.obs_uv) // 50))
+    # two images: a 2x2 block of an observation's cofactor matrix is singular (one redundant coordinate per
+    # target over four), so no observation can be tested; data snooping is off for pairs
+    options = BundleOptions(sigma_px=sigma_px, a_posteriori=a_posteriori, snooping=len(images) > 2,
+                            max_rejections=max(20, len(sub.obs_uv) // 50))
     res = bundle_adjust(sub.obs_image, sub.obs_target, sub.obs_uv, intr, np.asarray(cam_from_part0)[images],
                         points0, options, config)
     return res, sub
