@@ -723,8 +723,10 @@ def _bundle_adjust(obs_image, obs_target, obs_uv, intrinsics, cam_from_part, poi
         timings["covariance"] += t3 - t2
         T = np.full(len(obs_image), np.nan)
         T[act_obs] = stats["T"] / stats["s02"]
-        if not options.snooping or rejected.sum() >= options.max_rejections or np.nanmax(T) <= thr:
-            break
+        testable = np.isfinite(T)
+        if (not options.snooping or rejected.sum() >= options.max_rejections or not testable.any()
+                or np.nanmax(T) <= thr):
+            break  # nothing left to test (e.g. two images: no redundancy per observation) or nothing fails
         rejected[int(np.nanargmax(T))] = True
     return _result(state, lin, stats, lay, T, rejected, act_obs, obs_image, obs_target, obs_uv, options, config,
                    usable and (dconv or config.datum == "free"), report, timings, time.perf_counter() - t_start)

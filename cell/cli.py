@@ -92,6 +92,12 @@ def cmd_archive(args, out: Output) -> int:
     return archive(args, out)
 
 
+def cmd_calibrate(args, out: Output) -> int:
+    from cell.commands import calibrate
+
+    return calibrate(args, out)
+
+
 def build_parser() -> argparse.ArgumentParser:
     common = argparse.ArgumentParser(add_help=False)
     common.add_argument("--json", action="store_true", help="print one JSON document on stdout")
@@ -121,6 +127,14 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--archive", type=Path, default=Path("archive"))
     c.add_argument("--yes", action="store_true", help="confirm resuming from the measured robot pose")
     c.set_defaults(func=cmd_resume)
+
+    c = sub.add_parser("calibrate", parents=[common], help="calibrate the cell: hand-eye, or reverify with a scale bar")
+    c.add_argument("what", choices=["hand-eye", "reverify"])
+    c.add_argument("cell_file", type=Path, help="the cell file (CELL.toml)")
+    c.add_argument("--archive", type=Path, default=Path("archive"))
+    c.add_argument("--backend", choices=["sim", "ur"], help="override the cell file's backend")
+    c.add_argument("--yes", action="store_true", help="confirm moving the robot without asking")
+    c.set_defaults(func=cmd_calibrate)
 
     c = sub.add_parser("archive", parents=[common], help="list, show, compare, verify archived jobs")
     c.add_argument("action", choices=["list", "show", "compare", "verify"])

@@ -154,3 +154,18 @@ def archive(args, out) -> int:
                                                               "; ".join(d["problems"]))))
         return 0 if not problems else 1
     raise InputError(f"unknown archive action {args.action!r}")
+
+
+def calibrate(args, out) -> int:
+    from cell.cellcal import run_hand_eye, run_reverification
+
+    if (args.backend or "") == "ur":
+        _confirm(args, out, "This calibration moves the robot.")
+    if args.what == "hand-eye":
+        doc = run_hand_eye(args.cell_file, args.archive, out, backend=args.backend)
+    else:
+        doc = run_reverification(args.cell_file, args.archive, out, backend=args.backend)
+    out.result(doc, lambda d: out.say(json.dumps({k: v for k, v in d.items() if not isinstance(v, (list, dict))},
+                                                  default=str)))
+    passed = doc.get("passed", True)
+    return 0 if passed else 1

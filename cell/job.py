@@ -69,6 +69,9 @@ def _copy_inputs(job: LoadedJob, folder: Path) -> dict:
         dst = folder / "inputs" / f"{key.replace('.', '_')}{src.suffix}"
         atomic_write_bytes(dst, src.read_bytes())
         mapping[key] = str(dst.relative_to(folder))
+    if s.cell.cell_file is not None:  # the live cell file (its calibration changes): referenced, not copied
+        cf = Path(s.cell.cell_file)
+        mapping["cell.cell_file"] = str(cf if cf.is_absolute() else (job.folder / cf).resolve())
     atomic_write_json(folder / "inputs.json", mapping)
     return mapping
 
@@ -76,7 +79,7 @@ def _copy_inputs(job: LoadedJob, folder: Path) -> dict:
 def load_from_folder(folder: Path) -> LoadedJob:
     """Load a job from its archived copy (job.toml + inputs/)."""
     mapping = json.loads((folder / "inputs.json").read_text())
-    return load(folder / "job.toml", overrides={k: str(folder / v) for k, v in mapping.items()})
+    return load(folder / "job.toml", overrides={k: str(folder / v) for k, v in mapping.items()})  # abs paths stay
 
 
 class JobRunner:
@@ -225,6 +228,9 @@ def resume_job(job_id: str, archive_root: Path, out) -> JobResult:
     job = load_from_folder(folder.path)
     backend = next((r.get("backend") for r in recs if r["event"] == "created"), job.spec.cell.backend)
     folder.append("resumed", stage=start.value)
+    partial = folder.remove_partial_files()
+    if partial:
+        folder.append("note", text=f"removed {len(partial)} partial file(s) of an interrupted write: {', '.join(partial)}")
     out.say(f"job {job_id}: resuming at {start.value}")
     runner = JobRunner(archive, folder, job, backend, out, staged=False)
     return runner.run(start, resumed_from=last_state)

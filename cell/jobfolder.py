@@ -115,6 +115,19 @@ class JobFolder:
                 except json.JSONDecodeError:
                     break
 
+    def remove_partial_files(self) -> list[str]:
+        """Delete the temporary files of writes a killed session left unfinished (``.NAME.tmpPID``).
+
+        Such a file never became the file it was meant to be (the rename did not happen);
+        returns their paths relative to the folder.
+        """
+        gone = []
+        for p in sorted(self.path.rglob(".*.tmp*")):
+            if p.is_file():
+                p.unlink()
+                gone.append(str(p.relative_to(self.path)))
+        return gone
+
     # --- manifest -----------------------------------------------------------
     def write_manifest(self) -> dict:
         files = {}

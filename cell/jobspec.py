@@ -110,6 +110,7 @@ class CellSection(_Strict):
     backend: Literal["sim", "ur"] = "sim"
     host: str = "127.0.0.1"
     light_port: str | None = Field(default=None, description="serial port of the light controller (real cell)")
+    cell_file: str | None = Field(default=None, description="the cell's CELL.toml: its calibration status goes in the report")
     base_from_part: Pose
     flange_from_cam: Pose
     table_z: float = 0.0

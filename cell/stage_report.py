@@ -43,6 +43,21 @@ def robust_alignment(measured, pc, nominal, ok, tol, k, iterations: int = 5):
     return al, mask
 
 
+def _calibration_status(ctx) -> dict:
+    """Whether the cell was within its reverification interval and passed (from the archive)."""
+    from datetime import datetime, timezone
+
+    from cell.cellcal import calibration_status
+    from cell.jobspec import resolve
+
+    cf = ctx.job.spec.cell.cell_file
+    if cf is None:
+        return {"status": "not verified", "detail": "the job names no cell file ([cell] cell_file)"}
+    archive_root = ctx.folder.path.parent
+    doc = calibration_status(archive_root, resolve(ctx.job.folder, cf), datetime.now(timezone.utc))
+    return {k: doc.get(k) for k in ("status", "detail", "last")}
+
+
 def write_report(ctx) -> str:
     job = ctx.job
     f = ctx.folder
@@ -106,7 +121,7 @@ def write_report(ctx) -> str:
         "predicted_sigma_max_m": plan["predicted_sigma_max_m"],
         "achieved_sigma_max_m": float(np.nanmax(achieved)),
         "stage_times_s": times,
-        "cell_calibration": {"status": "not verified", "detail": "no reverification record for this cell"},
+        "cell_calibration": _calibration_status(ctx),
         "targets": targets,
         "not_measured": [ids[j] for j in np.flatnonzero(~ok & judged)],
         "coded_targets": [ids[j] for j in np.flatnonzero(coded)],

@@ -120,15 +120,16 @@ def plot_plan(part, plan, path_png, *, max_ellipsoids: int = 400, title: str | N
         ax = fig.add_subplot(2, 2, 3)
         hist = [h for h in plan.history if h.get("best") is not None and np.isfinite(h.get("best") or np.inf)]
         if hist:
-            g = [h["generation"] for h in hist]
-            ax.plot(g, [h["best"] * 1e6 for h in hist], label="best")
-            mean = [(h["generation"], h["mean"] * 1e6) for h in hist if h.get("mean") is not None
-                    and np.isfinite(h["mean"])]
+            g = [h.get("step", h["generation"]) for h in hist]
+            unit = 1e6 if plan.mode == "fixed" else 1.0
+            ax.plot(g, [h["best"] * unit for h in hist], label="best")
+            mean = [(h.get("step", h["generation"]), h["mean"] * unit) for h in hist if h.get("mean") is not None
+                    and np.isfinite(h["mean"]) and h.get("phase", "search") == "search"]
             if mean:
                 ax.plot(*zip(*mean), label="mean (feasible)", alpha=0.7)
             ax.set_yscale("log")
             ax.legend()
-        ax.set_xlabel("generation")
+        ax.set_xlabel("generation" if plan.mode == "fixed" else "generation (front search, then refining searches)")
         ax.set_ylabel("fitness (um)" if plan.mode == "fixed" else "sigma / required")
         ax.set_title("search history")
         ax.grid(True, alpha=0.3)

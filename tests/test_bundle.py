@@ -260,3 +260,15 @@ def test_duplicate_observation_is_refused():
     tgt[1] = tgt[0]
     with pytest.raises(CalibrationError, match="observed twice"):
         _run(replace(net, obs_target=tgt), *_start(rng, net))
+
+
+def test_two_image_network_adjusts_without_snooping_crash():
+    """With two images no single observation is testable: the adjustment must stop snooping, not crash."""
+    from calibration.bundle import BundleOptions, bundle_adjust, simulate_network
+
+    net = simulate_network(np.random.default_rng(3), n_targets=40, n_images=2)
+    res = bundle_adjust(net.obs_image, net.obs_target, net.obs_uv, net.intrinsics, net.cam_from_part,
+                        net.points + 1e-3, BundleOptions(sigma_px=net.sigma_px, snooping=True))
+    assert res.converged and not res.rejected.any()
+    err = np.linalg.norm(res.points - net.points, axis=1)
+    assert np.isfinite(err).all()

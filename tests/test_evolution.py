@@ -210,10 +210,12 @@ def _sphere_problem(target):
     return evaluate
 
 
-def test_evolve_converges_on_a_known_optimum_and_is_reproducible():
+@pytest.mark.parametrize("plus_selection", [False, True])
+def test_evolve_converges_on_a_known_optimum_and_is_reproducible(plus_selection):
     lower, upper = np.array([-5.0, -5.0]), np.array([5.0, 5.0])
     target = np.array([1.5, -2.0])
-    opt = EvolutionOptions(population=40, generations=200, stall_generations=300, fix_bits=True)
+    opt = EvolutionOptions(population=40, generations=200, stall_generations=300, fix_bits=True,
+                           plus_selection=plus_selection)
 
     def run(seed):
         rng = np.random.default_rng(seed)

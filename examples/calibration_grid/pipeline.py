@@ -38,6 +38,7 @@ __all__ = [
     "render_and_measure",
     "calibrate_images",
     "initial_poses",
+    "usable_images",
     "adjust_subset",
     "ellipsoid_metrics",
     "truth_consistency",
@@ -119,6 +120,7 @@ def render_and_measure(
     *,
     pose_error: tuple[float, float] = (math.radians(0.15), 0.002),
     max_dist_px: float = 25.0,
+    incidence_max_rad: float = math.radians(70.0),
     detection: DetectionOptions | None = None,
     save_images=None,
 ) -> Observations:
@@ -132,18 +134,22 @@ def render_and_measure(
         rng: draws the approximate poses used for identification.
         pose_error: (rotation rad, translation m) standard deviation of those approximate poses.
         max_dist_px: identification gate.
+        incidence_max_rad: only targets in view from the approximate pose at no more than this incidence (and
+            not hidden by the part) are offered to the matcher, as the cell's MEASURE stage does; a dot seen
+            at grazing incidence is a thin sliver whose centroid is not worth measuring.
         save_images: a folder to write ``NNNN.png`` into, or None.
     """
     import cv2
 
     from cell.stages import _rim_clear
-    from planning.visibility import Occluder
+    from planning.visibility import Occluder, VisibilityOptions, compute_visibility
 
     T = np.asarray(part_from_cam, dtype=float).reshape(-1, 4, 4)
     t = part.targets
     occluder = Occluder(part.mesh)
     opts = detection or DetectionOptions()
     radius = part.target_diameter_m / 2
+    seeable = VisibilityOptions(margin_px=0.0, incidence_max_rad=incidence_max_rad, min_target_px=1.0)
     oi, ot, ouv, per = [], [], [], []
     t_render = t_measure = 0.0
     for k, pfc in enumerate(T):
@@ -156,7 +162,9 @@ def render_and_measure(
         approx = perturb_pose(invert(pfc), rng, *pose_error)
         det = detect_retro_targets(image, opts)
         approx = coarse_align(intr, approx, t.xyz, det.uv)
-        match = identify_targets(det.uv, t.xyz, t.code, intr, approx, max_dist_px)
+        cand = np.flatnonzero(compute_visibility(part, intr, invert(approx)[None], seeable, occluder=occluder)[0])
+        sub = identify_targets(det.uv, t.xyz[cand], t.code[cand], intr, approx, max_dist_px)
+        match = np.where(sub >= 0, cand[np.maximum(sub, 0)], -1)
         dots = np.flatnonzero(match >= 0)
         clear = _rim_clear(occluder, t.xyz[match[dots]], t.normals[match[dots]], radius, pfc[:3, 3])
         dots = dots[clear]
@@ -207,12 +215,19 @@ def initial_poses(part, obs: Observations, intr: Intrinsics, robot_part_from_cam
             poses.append(r.cam_from_part)
             ok.append(r)
         except CalibrationError:
-            if len(uv) < 4:
-                raise CalibrationError(f"image {k + 1}: {len(uv)} targets measured; cannot orient it") from None
+            if len(uv) < 4:  # cannot be oriented: keep the robot's pose; leave the image out (usable_images)
+                poses.append(invert(robot_part_from_cam[k]))
+                continue
             poses.append(refine_pose_pnp(intr, invert(robot_part_from_cam[k]), xyz, uv))
     if not ok:
         raise CalibrationError("no image could be calibrated by Faugeras-Toscani")
     return np.array(poses), combine_intrinsics(ok), obs.n_images - len(ok)
+
+
+def usable_images(obs: Observations, min_targets: int = 6) -> list[int]:
+    """Indices of the images with at least ``min_targets`` measured targets (the others cannot be oriented)."""
+    counts = np.bincount(obs.obs_image, minlength=obs.n_images)
+    return [int(k) for k in np.flatnonzero(counts >= min_targets)]
 
 
 def adjust_subset(

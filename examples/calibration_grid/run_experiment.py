@@ -138,7 +138,8 @@ def image_sequence(part: Part, n_images: int = 20) -> np.ndarray:
     return np.array((fixed + rest)[:n_images])
 
 
-def run(out: Path, quick: bool = False, seed: int = 0, image_sigma_px: float = 0.05, write_docs: bool = True) -> dict:
+def run(out: Path, quick: bool = False, seed: int = 0, image_sigma_px: float = 0.05, write_docs: bool = True,
+        save_images: bool = False) -> dict:
     """Run the experiment; returns the results (also written to ``out/results.json``)."""
     from sim_backend.sim_camera import RenderOptions, SimCamera
     from sim_backend.world import World
@@ -152,7 +153,7 @@ def run(out: Path, quick: bool = False, seed: int = 0, image_sigma_px: float = 0
     camera = SimCamera(world, options=RenderOptions(image_sigma_px=image_sigma_px), exposure_s=EXPOSURE_S)
     rng = np.random.default_rng(seed + 1)
     obs = pipeline.render_and_measure(camera, part, intr_true, stations, rng, detection=DETECTION,
-                                      save_images=None if quick else out / "images")
+                                      save_images=out / "images" if save_images else None)
     n = len(part.targets)
     print(f"grid: {n} targets, {n_images} images rendered ({intr_true.width} x {intr_true.height}) and measured "
           f"in {obs.render_s:.1f} + {obs.measure_s:.1f} s; {len(obs.obs_uv)} observations "
@@ -383,8 +384,9 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=HERE)
     ap.add_argument("--quick", action="store_true", help="reduced grid and images (what the test runs)")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--save-images", action="store_true", help="write the rendered images to OUT/images/")
     a = ap.parse_args()
-    run(a.out, quick=a.quick, seed=a.seed, write_docs=not a.quick or a.out != HERE)
+    run(a.out, quick=a.quick, seed=a.seed, write_docs=not a.quick or a.out != HERE, save_images=a.save_images)
 
 
 if __name__ == "__main__":

@@ -1,0 +1,578 @@
+"""Calibrating the cell itself: the hand-eye job, the part placement estimate, the reverification job.
+
+* :func:`run_hand_eye` (``cell calibrate hand-eye CELL.toml``): stations around the calibration
+  artefact chosen for a well-conditioned hand-eye (D-optimal on the predicted information, among
+  the candidates the robot reaches without collision), ordered and collision-checked like an
+  inspection's; per image: dots detected, identified, centred (eccentricity), exterior orientation
+  by Faugeras-Toscani refined by resection; AX = XB by every closed-form method; then the joint
+  refinement on all observations with its covariance. ``flange_from_cam`` and the date go into
+  the cell file; everything is archived under ``<archive>/calibration/<id>/``.
+* :func:`estimate_part_placement`: a few images of the part's coded targets, then the placement
+  adjusted on every identified dot with the hand-eye held fixed.
+* :func:`run_reverification` (after VDI/VDE 2634 part 1): the scale bar in several positions;
+  its two targets triangulated in the robot base frame from the robot's poses and the hand-eye
+  (the cell measuring as a whole); the length measurement error of each position against
+  ``E_MPE``; archived. :func:`calibration_status` is what an inspection report states.
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+from datetime import datetime, timedelta, timezone
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from calibration.camera import Intrinsics, invert, project, project_with_jacobians
+from calibration.errors import CalibrationError, InputError, ReachabilityError
+from calibration.faugeras_toscani import faugeras_toscani
+from calibration.handeye import (HandEyeOptions, compare_methods, hand_eye_information, mean_pose, pose_error,
+                                 refine_hand_eye, select_stations)
+from calibration.targets import (DetectionOptions, detect_coded_targets, detect_retro_targets, eccentricity_bias,
+                                 identify_targets, refine_pose_pnp)
+from cell.cellfile import CellFile, load_cell_file, pose_from_matrix, write_flange_from_cam
+from cell.jobfolder import JobFolder, atomic_write_bytes, atomic_write_json, new_job_id, utc_now
+from cell.jobspec import CellSection, JobSection, JobSpec, Pose, ReportSection, SimSection, pose_matrix, resolve
+from cell.load import LoadedJob
+from planning.part import load_part
+from planning.stations import ViewingSphere
+from planning.visibility import Occluder, VisibilityOptions, compute_visibility
+
+__all__ = ["run_hand_eye", "run_reverification", "estimate_part_placement", "calibration_status",
+           "artefact_job", "measure_image", "plan_stations"]
+
+CAL_DIR = "calibration"
+
+
+# --- an artefact as a job: the robot, the cell's collision world and the sim follow from it ---------
+
+
+def artefact_job(cf: CellFile, folder: Path, cell_path: Path, *, name: str, mesh: str, targets: str,
+                 target_diameter: float, coded_size: float, placement: Pose, seed: int = 0) -> LoadedJob:
+    """A :class:`LoadedJob` whose part is a calibration artefact placed at ``placement`` (base frame)."""
+    c = cf.cell
+    cell = CellSection(**c.model_dump(exclude={"name", "units", "base_from_part", "flange_from_cam_date",
+                                               "flange_from_cam_record"}), base_from_part=placement)
+    sim = cf.sim.model_dump(exclude={"flange_from_cam_true"})
+    if cf.sim.flange_from_cam_true is not None:
+        true_x = pose_matrix(cf.sim.flange_from_cam_true, cf.scale)
+        sim["flange_from_cam_error"] = pose_from_matrix(invert(cf.flange_from_cam()) @ true_x, cf.scale)
+    spec = JobSpec(job=JobSection(name=name, mesh=str(resolve(folder, mesh)), units=c.units,
+                                  targets=str(resolve(folder, targets)), n_coded=0, target_diameter=target_diameter,
+                                  coded_size=coded_size, seed=seed),
+                   camera=cf.camera, cell=cell, report=ReportSection(tolerance=1.0), sim=SimSection(**sim))
+    k = spec.scale
+    part = load_part(resolve(folder, mesh), c.units, targets_csv=resolve(folder, targets), name=name,
+                     target_diameter_m=target_diameter * k, coded_size_m=coded_size * k)
+    n = len(part.targets)
+    return LoadedJob(spec=spec, path=Path(cell_path), folder=folder, part=part, intrinsics=spec.intrinsics(),
+                     deviations=np.zeros((n, 3)), tolerance_m=np.full(n, k), scale_bar=None)
+
+
+# --- stations ------------------------------------------------------------------------------------------
+
+
+def _candidates(job: LoadedJob, n: int, max_tilt_rad: float, rolls_rad: np.ndarray, incidence_max_rad: float):
+    """Candidate stations (part_from_cam (m, 4, 4)) in the depth of field, their visibility (m, n) and reachability."""
+    from planning.reachability import ReachabilityDB
+    from planning.visibility import default_cache_dir
+
+    from cell.setup import collision_world, robot_model
+
+    k = job.spec.scale
+    near, far = job.spec.camera.near * k, job.spec.camera.far * k
+    r = job.part.radius
+    sphere = ViewingSphere.for_part(job.part, job.intrinsics, elevation_min_rad=np.pi / 2 - max_tilt_rad)
+    d0, d1 = near + 0.35 * r, far - 0.35 * r
+    if d1 <= d0:
+        raise ReachabilityError(f"{job.part.name}: the artefact ({2 * r * 1000:.0f} mm across) does not fit in the "
+                                f"camera's depth of field {near * 1000:.0f}..{far * 1000:.0f} mm")
+    sphere = replace(sphere, distance_min_m=d0, distance_max_m=d1, max_roll_rad=np.pi, max_offset_m=0.0)
+    genes = sphere.candidates(n, n_shells=2)
+    genes = np.concatenate([np.column_stack([genes[:, :3], np.full(len(genes), rr), genes[:, 4:]]) for rr in rolls_rad])
+    P = sphere.poses(genes)
+    vis = compute_visibility(job.part, job.intrinsics, P, VisibilityOptions(
+        margin_px=20.0, near_m=near, far_m=far, incidence_max_rad=incidence_max_rad))
+    reach = ReachabilityDB.load_or_build(robot_model(job), job.spec.base_from_part(), job.spec.flange_from_cam(), P,
+                                         collision_world(job), cache_dir=default_cache_dir())
+    return P, vis, reach.reachable
+
+
+def _order(job: LoadedJob, P: np.ndarray, ids: list[str]) -> tuple[np.ndarray, list]:
+    """Joint targets (k, 6) in visiting order after collision-checked validation; and the execution plan."""
+    from planning.execution import MotionLimits, validate_plan
+
+    from cell.setup import collision_world, robot_model
+
+    c = job.spec.cell
+    ep = validate_plan(robot_model(job), P, job.spec.base_from_part(), job.spec.flange_from_cam(), collision_world(job),
+                       MotionLimits(joint_speed_rad_s=c.max_joint_speed_rad_s, joint_accel_rad_s2=c.max_joint_accel_rad_s2,
+                                    settle_s=c.settle_s), ids=ids)
+    return ep.order, ep
+
+
+def plan_stations(job: LoadedJob, k: int, *, kind: str, n_candidates: int = 300, max_tilt_rad: float = np.deg2rad(45),
+                  incidence_max_rad: float = np.deg2rad(55), sigma_px: float = 0.05, points: np.ndarray | None = None):
+    """Stations for a calibration job, returns ``(part_from_cam (k, 4, 4) in visiting order, execution plan)``.
+
+    ``kind="hand_eye"``: greedy D-optimal for the hand-eye (rolls of -90..90 deg add the rotation about
+    the optical axis). ``kind="points"``: greedy minimisation of the worst predicted covariance of
+    ``points`` (indices into the targets) by forward intersection, every point seen in every image.
+    """
+    coded = job.part.targets.kind == "coded"
+    rolls = np.deg2rad([-90.0, -45.0, 0.0, 45.0, 90.0]) if kind == "hand_eye" else np.deg2rad(np.arange(-60.0, 91.0, 30.0))
+    P, vis, ok = _candidates(job, n_candidates, max_tilt_rad, rolls, incidence_max_rad)
+    if kind == "hand_eye":
+        usable = ok & ((vis & ~coded).sum(axis=1) >= 12) & ((vis & coded).sum(axis=1) >= 4)
+        if usable.sum() < k:
+            raise ReachabilityError(f"{job.part.name}: only {int(usable.sum())} reachable stations see the artefact "
+                                    f"well (12 dots, 4 codes); {k} are needed: move the artefact closer to the robot")
+        xyz = job.part.targets.xyz
+        info = hand_eye_information(job.intrinsics, P, vis & ~coded, xyz, job.spec.flange_from_cam(),
+                                    job.spec.base_from_part(), sigma_px)
+        chosen, _ = select_stations(info, k, usable)
+    else:
+        pts = np.asarray(points, dtype=int)
+        usable = ok & vis[:, pts].all(axis=1) & ((vis & coded).sum(axis=1) >= 4)
+        if usable.sum() < k:
+            raise ReachabilityError(f"{job.part.name}: only {int(usable.sum())} reachable stations see both ends of "
+                                    f"the bar and 4 codes; {k} are needed: move the bar position")
+        chosen = _greedy_points(job.intrinsics, P, job.part.targets.xyz[pts], k, usable, sigma_px)
+    Pk = P[chosen]
+    order, ep = _order(job, Pk, [f"{kind}-{i:02d}" for i in range(k)])
+    return Pk[order], ep.joints[order]
+
+
+def _greedy_points(intr: Intrinsics, P: np.ndarray, xyz: np.ndarray, k: int, usable: np.ndarray, sigma_px: float):
+    """Choose ``k`` stations minimising the worst predicted sigma of the points (forward intersection)."""
+    m, n = len(P), len(xyz)
+    info = np.zeros((m, n, 3, 3))
+    for i in np.flatnonzero(usable):
+        _, Jp, _ = project_with_jacobians(intr, invert(P[i]), xyz)
+        info[i] = np.einsum("nki,nkj->nij", Jp, Jp) / sigma_px**2
+    N = np.broadcast_to(1e-2 * np.eye(3), (n, 3, 3)).copy()
+    chosen, ok = [], usable.copy()
+    for _ in range(k):
+        cand = np.flatnonzero(ok)
+        cov = np.linalg.inv(N[None] + info[cand])
+        worst = np.trace(cov, axis1=2, axis2=3).max(axis=1)
+        j = int(cand[int(np.argmin(worst))])
+        chosen.append(j)
+        N += info[j]
+        ok[j] = False
+    return np.array(chosen)
+
+
+# --- one image --------------------------------------------------------------------------------------------
+
+
+def measure_image(img: np.ndarray, part, intr: Intrinsics, cam_from_part_approx: np.ndarray, occluder: Occluder,
+                  eye_part: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Dots measured in one image: ``(target index (k,), uv (k, 2) eccentricity-corrected, cam_from_part used)``.
+
+    The coded targets identify the image (and refine the approximate pose by PnP); only the dots
+    are measured (OpenCV's marker corners are biased by 0.1-0.3 px on these images).
+    """
+    from cell.stages import _inside_any, _rim_clear
+
+    t = part.targets
+    code_to_index = {int(c): i for i, c in enumerate(t.code) if c >= 0}
+    codes, corners, centres = detect_coded_targets(img)
+    known = np.array([c in code_to_index for c in codes], dtype=bool)
+    pose = np.asarray(cam_from_part_approx, dtype=float)
+    det = detect_retro_targets(img, DetectionOptions())
+    keep = ~_inside_any(det.uv, corners[known], grow=1.33) if known.any() else np.ones(len(det.uv), dtype=bool)
+    det_uv = det.uv[keep]
+    match = identify_targets(det_uv, t.xyz, t.code, intr, pose, 25.0, coded_ids=codes[known], coded_uv=centres[known])
+    dots = np.flatnonzero((match >= 0) & (t.code[np.maximum(match, 0)] < 0))
+    if len(dots) >= 6:
+        pose = refine_pose_pnp(intr, pose, t.xyz[match[dots]], det_uv[dots])
+    eye = invert(pose)[:3, 3] if eye_part is None else eye_part
+    clear = _rim_clear(occluder, t.xyz[match[dots]], t.normals[match[dots]], part.target_diameter_m / 2, eye)
+    dots = dots[clear]
+    bias = eccentricity_bias(intr, pose, t.xyz[match[dots]], t.normals[match[dots]], part.target_diameter_m / 2)
+    return match[dots], det_uv[dots] - bias, pose
+
+
+def _capture(devices, q: np.ndarray, c) -> tuple[np.ndarray, np.ndarray]:
+    """Move to joints ``q``, capture; returns ``(image, base_from_flange measured)``."""
+    devices.robot.move_joints(q, c.max_joint_speed_rad_s, c.max_joint_accel_rad_s2)
+    st = devices.robot.state()
+    if not st.safety.normal:
+        raise CalibrationError(f"robot not in normal mode after the move ({st.safety.detail})")
+    if devices.light is not None:
+        devices.light.strobe(0.002)
+    frame = devices.camera.capture()
+    return frame.image, np.asarray(st.base_from_flange, dtype=float)
+
+
+def _record_folder(archive_root: Path, cell_name: str, kind: str) -> JobFolder:
+    root = Path(archive_root) / CAL_DIR
+    root.mkdir(parents=True, exist_ok=True)
+    rid = new_job_id(f"{cell_name}-{kind}")
+    k = 1
+    while (root / rid).exists():
+        k += 1
+        rid = f"{new_job_id(f'{cell_name}-{kind}')}-{k}"
+    (root / rid).mkdir()
+    return JobFolder(root / rid)
+
+
+def _save_image(folder: JobFolder, name: str, img: np.ndarray) -> None:
+    ok, png = cv2.imencode(".png", img)
+    if not ok:
+        raise CalibrationError(f"{name}: could not encode the image")
+    atomic_write_bytes(folder.file(name), png.tobytes())
+
+
+# --- the hand-eye job -----------------------------------------------------------------------------------------
+
+
+def run_hand_eye(cell_toml: Path, archive_root: Path, out, *, backend: str | None = None) -> dict:
+    """Calibrate ``flange_from_cam``; writes it (and the date) into ``cell_toml``. Returns the summary."""
+    from cell.devices import make_job_sim_cell, open_devices
+
+    cell_toml = Path(cell_toml)
+    cf, folder = load_cell_file(cell_toml)
+    he = cf.hand_eye
+    if he is None:
+        raise InputError(f"{cell_toml}: no [hand_eye] section (the calibration artefact)")
+    job = artefact_job(cf, folder, cell_toml, name="hand-eye-artefact", mesh=he.mesh, targets=he.targets,
+                       target_diameter=he.target_diameter, coded_size=he.coded_size, placement=he.placement, seed=he.seed)
+    backend = backend or cf.cell.backend
+    out.say(f"hand-eye: artefact {len(job.part.targets)} targets; planning {he.n_stations} stations")
+    P, joints = plan_stations(job, he.n_stations, kind="hand_eye", n_candidates=he.n_candidates,
+                              max_tilt_rad=np.deg2rad(he.max_tilt_deg), incidence_max_rad=np.deg2rad(he.incidence_max_deg),
+                              sigma_px=cf.camera.sigma_px)
+    rec = _record_folder(archive_root, cf.cell.name, "hand-eye")
+    rec.append("created", kind="hand_eye", cell=cf.cell.name, cell_file=str(cell_toml), backend=backend)
+    intr = job.intrinsics
+    X0, Y0 = job.spec.flange_from_cam(), job.spec.base_from_part()
+    occluder = Occluder(job.part.mesh)
+    devices = open_devices(job, backend)
+    truth = None
+    if backend == "sim":
+        truth = (devices.world.true_flange_from_cam.copy(), devices.world.true_base_from_part.copy())
+    B, A, img_idx, tgt_idx, uvs, per_image = [], [], [], [], [], []
+    try:
+        for i, q in enumerate(joints):
+            out.progress("hand-eye acquire", i / len(joints))
+            img, bff = _capture(devices, q, job.spec.cell)
+            name = f"images/{i:04d}.png"
+            _save_image(rec, name, img)
+            approx = invert(X0) @ invert(bff) @ Y0
+            tid, uv, pose = measure_image(img, job.part, intr, approx, occluder)
+            ft_ok = len(tid) >= 8
+            if ft_ok:
+                try:
+                    ft = faugeras_toscani(job.part.targets.xyz[tid], uv, intr.width, intr.height)
+                    A_i = refine_pose_pnp(intr, ft.cam_from_part, job.part.targets.xyz[tid], uv)
+                except CalibrationError as exc:
+                    rec.append("note", text=f"{name}: {exc}")
+                    ft_ok = False
+            per_image.append({"image": name, "n_dots": int(len(tid)), "base_from_flange": bff,
+                              "used": bool(ft_ok), "ft_rms_px": float(ft.rms_px) if ft_ok else None})
+            rec.append("station_done", image=name, n_dots=int(len(tid)), base_from_flange=bff)
+            if not ft_ok:
+                continue
+            k = len(B)
+            B.append(bff)
+            A.append(A_i)
+            img_idx.append(np.full(len(tid), k))
+            tgt_idx.append(tid)
+            uvs.append(uv)
+        out.progress("hand-eye acquire", 1.0)
+    finally:
+        devices.close()
+    if len(B) < 4:
+        raise CalibrationError(f"hand-eye: only {len(B)} images measured the artefact (need 4); check the light and "
+                               f"the artefact's placement in {cell_toml} [hand_eye] placement")
+    B, A = np.array(B), np.array(A)
+    img_idx, tgt_idx, uvs = np.concatenate(img_idx), np.concatenate(tgt_idx), np.concatenate(uvs)
+    sols = compare_methods(B, A)
+    best = sols[0]
+    res = refine_hand_eye(intr, B, img_idx, job.part.targets.xyz[tgt_idx], uvs, best.flange_from_cam,
+                          best.base_from_target, HandEyeOptions(sigma_px=cf.camera.sigma_px))
+    methods = []
+    for s in sols:
+        row = {"method": s.method, "backend": s.backend, "flange_from_cam": s.flange_from_cam,
+               "rms_translation_m": s.rms_translation_m, "rms_rotation_rad": s.rms_rotation_rad}
+        if truth is not None:
+            dt, dr = pose_error(s.flange_from_cam, truth[0])
+            row |= {"error_translation_m": dt, "error_rotation_rad": dr}
+        methods.append(row)
+    date = utc_now()
+    doc = {"kind": "hand_eye", "cell": cf.cell.name, "cell_file": str(cell_toml), "finished": date,
+           "backend": backend, "images": per_image, "n_images_used": int(len(B)), "n_observations": int(len(uvs)),
+           "methods": methods, "start_method": best.method,
+           "flange_from_cam": res.flange_from_cam, "flange_from_cam_before": X0,
+           "base_from_artefact": res.base_from_target, "covariance": res.cov,
+           "sigma_translation_m": res.sigma_translation_m, "sigma_rotation_rad": res.sigma_rotation_rad,
+           "sigma0_px": res.sigma0_px, "n_rejected": int(res.rejected.sum()), "dof": res.dof,
+           "per_image_rms_px": res.per_image_rms_px, "refinement": res.history,
+           "change_translation_m": pose_error(res.flange_from_cam, X0)[0],
+           "change_rotation_rad": pose_error(res.flange_from_cam, X0)[1]}
+    if truth is not None:
+        dt, dr = pose_error(res.flange_from_cam, truth[0])
+        doc["truth"] = {"flange_from_cam": truth[0], "error_translation_m": dt, "error_rotation_rad": dr,
+                        "placement_error_translation_m": pose_error(res.base_from_target, truth[1])[0]}
+    atomic_write_json(rec.file("hand_eye.json"), doc)
+    write_flange_from_cam(cell_toml, res.flange_from_cam, date, record=rec.job_id)
+    rec.append("cell_file_updated", flange_from_cam=res.flange_from_cam, date=date)
+    rec.append("terminal", status="DONE", reason="")
+    rec.write_manifest()
+    summary = {"status": "ok", "record": rec.job_id, "folder": str(rec.path), "date": date,
+               "flange_from_cam": res.flange_from_cam, "sigma_translation_m": res.sigma_translation_m,
+               "sigma_rotation_rad": res.sigma_rotation_rad, "sigma0_px": res.sigma0_px,
+               "methods": methods, "images": int(len(B)), "truth": doc.get("truth")}
+    st, sr = np.linalg.norm(res.sigma_translation_m), np.rad2deg(np.linalg.norm(res.sigma_rotation_rad))
+    out.say(f"hand-eye: {len(B)} images, sigma0 {res.sigma0_px:.3f} px; flange_from_cam +- {st * 1e3:.3f} mm, "
+            f"{sr:.4f} deg; written to {cell_toml} ({date})")
+    return summary
+
+
+# --- reverification (VDI/VDE 2634 part 1) --------------------------------------------------------------------
+
+
+def triangulate(intr: Intrinsics, cam_from_base: np.ndarray, uv: np.ndarray, start: np.ndarray,
+                sigma_px: float, iterations: int = 10) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Forward intersection of one point seen in ``cam_from_base: (m, 4, 4)`` at ``uv: (m, 2)``.
+
+    Returns ``(point (3,), covariance (3, 3) a priori from sigma_px, residuals (m, 2) px)``.
+    """
+    P = np.asarray(start, dtype=float).copy()
+    for _ in range(iterations):
+        r, J = [], []
+        for T, u in zip(cam_from_base, uv):
+            p, Jp, _ = project_with_jacobians(intr, T, P[None])
+            r.append(u - p[0])
+            J.append(Jp[0])
+        r, J = np.concatenate(r), np.concatenate(J)
+        N = J.T @ J
+        dP = np.linalg.solve(N, J.T @ r)
+        P += dP
+        if np.linalg.norm(dP) < 1e-10:
+            break
+    res = np.array([u - project(intr, T, P[None])[0] for T, u in zip(cam_from_base, uv)])
+    return P, sigma_px**2 * np.linalg.inv(N), res
+
+
+def _measure_position(cf: CellFile, folder: Path, cell_toml: Path, k: int, pose: Pose, rec: JobFolder, backend: str,
+                      out) -> dict:
+    from cell.devices import open_devices
+
+    rv = cf.reverification
+    job = artefact_job(cf, folder, cell_toml, name=f"scale-bar-{k}", mesh=rv.mesh, targets=rv.targets,
+                       target_diameter=rv.target_diameter, coded_size=rv.coded_size, placement=pose, seed=rv.seed + k)
+    index = job.part.targets.index()
+    for key in (rv.a, rv.b):
+        if key not in index:
+            raise InputError(f"{cell_toml}: reverification target {key!r} is not in {rv.targets}")
+    ia, ib = index[rv.a], index[rv.b]
+    P, joints = plan_stations(job, rv.stations_per_position, kind="points", points=np.array([ia, ib]), n_candidates=150,
+                              max_tilt_rad=np.deg2rad(40.0), sigma_px=cf.camera.sigma_px)
+    X, Y0 = job.spec.flange_from_cam(), job.spec.base_from_part()
+    intr = job.intrinsics
+    occluder = Occluder(job.part.mesh)
+    seen = {ia: [], ib: []}
+    devices = open_devices(job, backend)
+    try:
+        for i, q in enumerate(joints):
+            img, bff = _capture(devices, q, job.spec.cell)
+            name = f"images/p{k}_{i:02d}.png"
+            _save_image(rec, name, img)
+            tid, uv, pose_i = measure_image(img, job.part, intr, invert(X) @ invert(bff) @ Y0, occluder)
+            for t, u in zip(tid, uv):
+                if t in seen:
+                    seen[t].append((invert(X) @ invert(bff), u, invert(bff @ X) @ np.eye(4), pose_i))
+            rec.append("station_done", position=k, image=name, base_from_flange=bff, n_dots=int(len(tid)))
+    finally:
+        devices.close()
+    pts, covs, rms = [], [], []
+    for t in (ia, ib):
+        if len(seen[t]) < 2:
+            raise CalibrationError(f"reverification position {k}: target {job.part.targets.ids[t]} measured in "
+                                   f"{len(seen[t])} image(s), 2 needed; check the bar's position and the light")
+        C = np.array([s[0] for s in seen[t]])
+        uv = np.array([s[1] for s in seen[t]])
+        # start: the target seen through the first image's identified pose, in the base frame
+        start = invert(C[0]) @ invert(seen[t][0][3]) @ np.r_[job.part.targets.xyz[t], 1.0]
+        p, c, r = triangulate(intr, C, uv, start[:3], cf.camera.sigma_px)
+        pts.append(p)
+        covs.append(c)
+        rms.append(float(np.sqrt(np.mean(np.sum(r**2, axis=1)))))
+    d = pts[1] - pts[0]
+    L = float(np.linalg.norm(d))
+    u = d / L
+    sigma_L = float(np.sqrt(u @ (covs[0] + covs[1]) @ u))
+    L_cal = rv.length * cf.scale
+    err = L - L_cal
+    mpe = cf.mpe_m(L_cal)
+    return {"position": k, "base_from_bar_nominal": Y0, "images": int(len(joints)), "a": pts[0], "b": pts[1],
+            "length_m": L, "calibrated_length_m": L_cal, "error_m": err, "sigma_m": sigma_L, "mpe_m": mpe,
+            "ray_rms_px": max(rms), "pass": bool(abs(err) <= mpe)}
+
+
+def run_reverification(cell_toml: Path, archive_root: Path, out, *, backend: str | None = None) -> dict:
+    """Measure the scale bar in every position of ``[reverification]``; archive and return the result."""
+    cell_toml = Path(cell_toml)
+    cf, folder = load_cell_file(cell_toml)
+    rv = cf.reverification
+    if rv is None:
+        raise InputError(f"{cell_toml}: no [reverification] section (the scale bar and its positions)")
+    backend = backend or cf.cell.backend
+    rec = _record_folder(archive_root, cf.cell.name, "reverification")
+    rec.append("created", kind="reverification", cell=cf.cell.name, cell_file=str(cell_toml), backend=backend)
+    rows = []
+    for k, pose in enumerate(rv.positions):
+        out.progress("reverification", k / len(rv.positions))
+        row = _measure_position(cf, folder, cell_toml, k, pose, rec, backend, out)
+        rows.append(row)
+        out.say(f"  position {k}: L = {row['length_m'] * 1e3:.4f} mm, E = {row['error_m'] * 1e6:+.1f} um "
+                f"(MPE {row['mpe_m'] * 1e6:.1f} um, sigma {row['sigma_m'] * 1e6:.1f} um, rays {row['ray_rms_px']:.2f} px) "
+                f"{'pass' if row['pass'] else 'FAIL'}")
+    out.progress("reverification", 1.0)
+    passed = all(r["pass"] for r in rows)
+    worst = max(rows, key=lambda r: abs(r["error_m"]) / r["mpe_m"])
+    date = utc_now()
+    detail = (f"{sum(r['pass'] for r in rows)} of {len(rows)} positions within E_MPE; worst position "
+              f"{worst['position']}: E = {worst['error_m'] * 1e6:+.1f} um against {worst['mpe_m'] * 1e6:.1f} um")
+    if not passed:
+        detail += "; the cell measures lengths wrongly: recalibrate the hand-eye (cell calibrate hand-eye) and repeat"
+    doc = {"kind": "reverification", "standard": "VDI/VDE 2634 part 1 (length measurement error)",
+           "cell": cf.cell.name, "cell_file": str(cell_toml), "finished": date, "backend": backend,
+           "passed": passed, "detail": detail, "interval_days": rv.interval_days,
+           "flange_from_cam": cf.flange_from_cam(), "flange_from_cam_date": cf.cell.flange_from_cam_date,
+           "scale_bar": {"a": rv.a, "b": rv.b, "length_m": rv.length * cf.scale, "sigma_m": rv.sigma * cf.scale},
+           "positions": rows, "max_abs_error_m": max(abs(r["error_m"]) for r in rows)}
+    atomic_write_json(rec.file("reverification.json"), doc)
+    rec.append("terminal", status="DONE", reason="" if passed else "failed: " + detail)
+    rec.write_manifest()
+    out.say(f"reverification {'PASSED' if passed else 'FAILED'}: {detail}")
+    return {"status": "passed" if passed else "failed", "passed": passed, "record": rec.job_id,
+            "folder": str(rec.path), "date": date, "detail": detail, "positions": rows,
+            "max_abs_error_m": doc["max_abs_error_m"]}
+
+
+def _parse_time(v) -> datetime:
+    if isinstance(v, datetime):
+        return v if v.tzinfo else v.replace(tzinfo=timezone.utc)
+    if isinstance(v, (int, float)):
+        return datetime.fromtimestamp(v, timezone.utc)
+    d = datetime.fromisoformat(str(v))
+    return d if d.tzinfo else d.replace(tzinfo=timezone.utc)
+
+
+def calibration_status(archive_root: Path, cell_name_or_file, now) -> dict:
+    """The cell's reverification status for an inspection report.
+
+    ``cell_name_or_file``: the cell's name, or its cell file (then a reverification made with another
+    hand-eye than the file's current one does not count). ``now``: datetime, ISO string or epoch seconds.
+    Returns ``{"status": "verified"|"expired"|"failed"|"not verified", "last": record or None, "detail": str}``.
+    """
+    current_ffc = None
+    name = str(cell_name_or_file)
+    p = Path(str(cell_name_or_file))
+    if p.suffix == ".toml" and p.is_file():
+        cf, _ = load_cell_file(p)
+        name, current_ffc = cf.cell.name, cf.flange_from_cam()
+    root = Path(archive_root) / CAL_DIR
+    recs = []
+    if root.is_dir():
+        for f in root.glob("*/reverification.json"):
+            try:
+                d = json.loads(f.read_text())
+            except (OSError, ValueError):
+                continue
+            if d.get("cell") == name:
+                recs.append((_parse_time(d["finished"]), f.parent.name, d))
+    if not recs:
+        return {"status": "not verified", "last": None, "detail": f"no reverification of cell {name!r} in {root}"}
+    when, rid, d = max(recs, key=lambda r: r[0])
+    last = {"record": rid, "date": d["finished"], "passed": d["passed"], "max_abs_error_m": d.get("max_abs_error_m"),
+            "interval_days": d["interval_days"]}
+    now_t = _parse_time(now)
+    if current_ffc is not None:
+        dt, dr = pose_error(current_ffc, np.asarray(d["flange_from_cam"], dtype=float))
+        if dt > 1e-6 or dr > 1e-6:
+            return {"status": "not verified", "last": last,
+                    "detail": f"the hand-eye changed ({dt * 1e3:.3f} mm) after the last reverification {rid}: "
+                              "run the reverification again"}
+    if not d["passed"]:
+        return {"status": "failed", "last": last, "detail": f"last reverification {rid} failed: {d['detail']}"}
+    due = when + timedelta(days=float(d["interval_days"]))
+    if now_t > due:
+        return {"status": "expired", "last": last,
+                "detail": f"last reverification {rid} passed but its interval of {d['interval_days']:g} days ended "
+                          f"{due.isoformat(timespec='seconds')}"}
+    return {"status": "verified", "last": last,
+            "detail": f"reverification {rid} passed ({d['detail']}); due again {due.isoformat(timespec='seconds')}"}
+
+
+# --- part placement from a quick first image set -------------------------------------------------------------
+
+
+def estimate_part_placement(job: LoadedJob, devices, out, *, n_images: int = 4) -> tuple[np.ndarray, dict]:
+    """``base_from_part`` (4, 4) from a few images of the part, with the job's hand-eye held fixed.
+
+    Stations look at the nominal part centre from ``n_images`` azimuths (wide enough for a
+    placement off by centimetres); each image's pose comes from the coded targets (PnP), the dots
+    are then identified and the placement adjusted on all of them (:func:`refine_hand_eye` with X fixed).
+    """
+    P, joints = _placement_stations(job, n_images)
+    X, Y0 = job.spec.flange_from_cam(), job.spec.base_from_part()
+    intr = job.intrinsics
+    occluder = Occluder(job.part.mesh)
+    B, img_idx, tgt_idx, uvs, Ys = [], [], [], [], []
+    for i, q in enumerate(joints):
+        out.progress("placement", i / len(joints))
+        img, bff = _capture(devices, q, job.spec.cell)
+        tid, uv, pose = measure_image(img, job.part, intr, invert(X) @ invert(bff) @ Y0, occluder)
+        if len(tid) < 6:
+            continue
+        B.append(bff)
+        Ys.append(bff @ X @ pose)
+        img_idx.append(np.full(len(tid), len(B) - 1))
+        tgt_idx.append(tid)
+        uvs.append(uv)
+    out.progress("placement", 1.0)
+    if len(B) < 2:
+        raise CalibrationError(f"part placement: only {len(B)} image(s) identified the part (need 2): check that "
+                               "base_from_part is within a few centimetres and the coded targets are visible")
+    tgt = np.concatenate(tgt_idx)
+    res = refine_hand_eye(intr, np.array(B), np.concatenate(img_idx), job.part.targets.xyz[tgt], np.concatenate(uvs),
+                          X, mean_pose(np.array(Ys)),
+                          HandEyeOptions(sigma_px=job.spec.camera.sigma_px, fix_flange_from_cam=True))
+    Y = res.base_from_target
+    dt, dr = pose_error(Y, Y0)
+    sig_t = float(np.sqrt(np.trace(res.cov[9:, 9:])))
+    summary = {"base_from_part": Y, "images": len(B), "n_observations": int(len(tgt)), "sigma0_px": res.sigma0_px,
+               "sigma_translation_m": sig_t, "change_from_nominal_m": dt, "change_from_nominal_rad": dr}
+    out.say(f"placement: {len(B)} images, {len(tgt)} dots; part is {dt * 1e3:.2f} mm, {np.rad2deg(dr):.3f} deg from "
+            f"the job's base_from_part (+- {sig_t * 1e6:.1f} um)")
+    return Y, summary
+
+
+def _placement_stations(job: LoadedJob, n: int) -> tuple[np.ndarray, np.ndarray]:
+    from planning.reachability import ReachabilityDB
+
+    from cell.setup import collision_world, robot_model
+
+    k = job.spec.scale
+    near, far = job.spec.camera.near * k, job.spec.camera.far * k
+    sphere = ViewingSphere.for_part(job.part, job.intrinsics)
+    d = 0.5 * (near + far)
+    az = np.linspace(-np.pi, np.pi, 12, endpoint=False)
+    genes = np.array([[a, e, d, 0.0, 0.0, 0.0] for e in np.deg2rad([60.0, 45.0]) for a in az])
+    P = sphere.poses(genes)
+    reach = ReachabilityDB.load_or_build(robot_model(job), job.spec.base_from_part(), job.spec.flange_from_cam(), P,
+                                         collision_world(job))
+    ok = np.flatnonzero(reach.reachable)
+    if len(ok) < n:
+        raise ReachabilityError(f"part placement: only {len(ok)} of {len(P)} overview stations are reachable; "
+                                "move the part closer to the robot")
+    # spread in azimuth: every len(ok)/n-th reachable station
+    pick = ok[np.round(np.linspace(0, len(ok) - 1, n)).astype(int)]
+    order, ep = _order(job, P[pick], [f"placement-{i}" for i in range(n)])
+    return P[pick][order], ep.joints[order]

@@ -1,0 +1,204 @@
+"""The cell file (CELL.toml): what a cell is, independent of any part.
+
+Sections (lengths in the file's ``units`` unless the key names its unit; unknown keys are an error;
+relative paths are relative to the cell file's folder):
+
+* ``[cell]``: as a job file's ``[cell]`` (robot, backend, host, obstacles, limits,
+  ``flange_from_cam``) plus ``name``, ``units`` and, written by the hand-eye job,
+  ``flange_from_cam_date`` (ISO 8601, UTC) and ``flange_from_cam_record`` (its archive record).
+  ``base_from_part`` has no meaning for a cell and is not allowed.
+* ``[camera]``: as a job file's ``[camera]``.
+* ``[hand_eye]``: the calibration artefact (mesh, targets, dot and marker size), its approximate
+  ``placement`` in the base frame, the number of stations and the planning seed.
+* ``[reverification]``: the scale bar (mesh, targets, ``a``, ``b``, calibrated ``length`` and
+  its ``sigma``), the bar ``positions`` in the measuring volume, the maximum permissible length
+  measurement error ``E_MPE = max_permissible_error + max_permissible_error_per_length * L``
+  and the reverification ``interval_days``.
+* ``[sim]``: as a job file's ``[sim]``, but the simulated cell's real hand-eye is stated absolutely
+  (``flange_from_cam_true``: calibration rewrites ``flange_from_cam``, the truth stays); ``base_from_part_error``
+  is the artefacts' true placement error.
+
+:func:`write_flange_from_cam` rewrites only the hand-eye lines of ``[cell]`` (comments and every
+other line kept byte for byte), validates the result, and replaces the file atomically.
+"""
+from __future__ import annotations
+
+import re
+import tomllib
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from scipy.spatial.transform import Rotation
+
+from calibration.errors import JobSpecError
+from cell.jobfolder import atomic_write_bytes
+from cell.jobspec import CameraSection, CellSection, Pose, SimSection, _format_validation_error, pose_matrix
+from planning.part import UNITS_TO_M
+
+__all__ = ["CellFile", "load_cell_file", "write_flange_from_cam", "pose_from_matrix"]
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class CellFileCell(CellSection):
+    name: str = Field(min_length=1)
+    units: Literal["m", "mm", "cm", "um", "in", "ft"] = "mm"
+    base_from_part: None = None  # a cell has no part; jobs state where theirs is
+    flange_from_cam_date: str | None = Field(default=None, description="when flange_from_cam was calibrated")
+    flange_from_cam_record: str | None = Field(default=None, description="archive record of that calibration")
+
+
+class HandEyeSection(_Strict):
+    mesh: str
+    targets: str
+    target_diameter: float = Field(default=5.0, gt=0)
+    coded_size: float = Field(default=20.0, gt=0)
+    placement: Pose = Field(description="approximate base_from_artefact, file units")
+    n_stations: int = Field(default=14, ge=4, le=60)
+    n_candidates: int = Field(default=300, ge=20, le=20_000)
+    incidence_max_deg: float = Field(default=55.0, gt=0, lt=90)
+    max_tilt_deg: float = Field(default=45.0, gt=0, lt=90, description="largest camera tilt from the artefact normal")
+    seed: int = 0
+
+
+class ReverificationSection(_Strict):
+    mesh: str
+    targets: str
+    a: str
+    b: str
+    length: float = Field(gt=0, description="calibrated distance a-b, file units")
+    sigma: float = Field(default=0.0, ge=0)
+    target_diameter: float = Field(default=5.0, gt=0)
+    coded_size: float = Field(default=20.0, gt=0)
+    positions: list[Pose] = Field(min_length=1, description="base_from_bar in each position, file units")
+    stations_per_position: int = Field(default=5, ge=2, le=30)
+    max_permissible_error: float = Field(gt=0, description="E_MPE constant term, file units")
+    max_permissible_error_per_length: float = Field(default=0.0, ge=0, description="E_MPE term per unit length")
+    interval_days: float = Field(default=30.0, gt=0)
+    seed: int = 0
+
+
+class CellSimSection(SimSection):
+    flange_from_cam_true: Pose | None = Field(
+        default=None, description="the simulated cell's real hand-eye (absolute: the file's flange_from_cam changes "
+                                  "when calibrated, the truth does not); default: the file's")
+
+
+class CellFile(_Strict):
+    """A whole cell file, validated. Use :func:`load_cell_file`."""
+
+    cell: CellFileCell
+    camera: CameraSection
+    hand_eye: HandEyeSection | None = None
+    reverification: ReverificationSection | None = None
+    sim: CellSimSection = CellSimSection()
+
+    @model_validator(mode="after")
+    def _sim_has_no_deviations(self):
+        if self.sim.deviations is not None:
+            raise ValueError("sim.deviations belongs in a job file, not in a cell file")
+        if self.sim.flange_from_cam_error is not None:
+            raise ValueError("a cell file states the simulated hand-eye absolutely: use sim.flange_from_cam_true")
+        return self
+
+    @property
+    def scale(self) -> float:
+        return UNITS_TO_M[self.cell.units]
+
+    def flange_from_cam(self) -> np.ndarray:
+        return pose_matrix(self.cell.flange_from_cam, self.scale)
+
+    def mpe_m(self, length_m: float) -> float:
+        r = self.reverification
+        return r.max_permissible_error * self.scale + r.max_permissible_error_per_length * length_m
+
+
+def load_cell_file(path: str | Path) -> tuple[CellFile, Path]:
+    """Read and validate a cell file; returns ``(cell, folder)``. Raises JobSpecError naming file and key."""
+    path = Path(path)
+    if not path.is_file():
+        raise JobSpecError(f"{path}: cell file not found")
+    try:
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise JobSpecError(f"{path}: not valid TOML ({exc})") from None
+    try:
+        cf = CellFile.model_validate(data)
+    except ValidationError as err:
+        raise JobSpecError(_format_validation_error(path, err)) from None
+    return cf, path.resolve().parent
+
+
+def pose_from_matrix(T: np.ndarray, scale: float) -> Pose:
+    """The :class:`Pose` (file units, rpy degrees) of a 4x4 transform in metres."""
+    T = np.asarray(T, dtype=float)
+    rpy = Rotation.from_matrix(T[:3, :3]).as_euler("xyz", degrees=True)
+    return Pose(xyz=tuple(float(v) for v in T[:3, 3] / scale), rpy_deg=tuple(float(v) for v in rpy))
+
+
+def _fmt_pose(p: Pose) -> str:
+    xyz = ", ".join(f"{v:.5f}" for v in p.xyz)
+    rpy = ", ".join(f"{v:.7f}" for v in p.rpy_deg)
+    return f"{{ xyz = [{xyz}], rpy_deg = [{rpy}] }}"
+
+
+def _section_span(lines: list[str], name: str) -> tuple[int, int]:
+    head = re.compile(r"^\s*\[\s*" + re.escape(name) + r"\s*\]\s*(#.*)?$")
+    any_head = re.compile(r"^\s*\[")
+    start = next((i for i, ln in enumerate(lines) if head.match(ln)), None)
+    if start is None:
+        raise JobSpecError(f"cell file has no [{name}] section")
+    end = next((i for i in range(start + 1, len(lines)) if any_head.match(lines[i])), len(lines))
+    return start, end
+
+
+def write_flange_from_cam(path: str | Path, flange_from_cam: np.ndarray, date: str, record: str | None = None) -> CellFile:
+    """Write a calibrated hand-eye (4x4, metres) and its date into the cell file's ``[cell]``.
+
+    Only the lines ``flange_from_cam = ...``, ``flange_from_cam_date = ...`` and
+    ``flange_from_cam_record = ...`` are replaced (or added after ``flange_from_cam``); the
+    new text is validated before it atomically replaces the file, so a failure leaves the
+    old file. Returns the new, validated cell file.
+    """
+    path = Path(path)
+    cf, _ = load_cell_file(path)
+    text = path.read_text(encoding="utf-8")
+    nl = "\r\n" if "\r\n" in text else "\n"
+    lines = text.splitlines()
+    s, e = _section_span(lines, "cell")
+    keys = {"flange_from_cam": _fmt_pose(pose_from_matrix(flange_from_cam, cf.scale)),
+            "flange_from_cam_date": f'"{date}"'}
+    if record is not None:
+        keys["flange_from_cam_record"] = f'"{record}"'
+    found = {}
+    for i in range(s + 1, e):
+        m = re.match(r"^(\s*)(flange_from_cam(?:_date|_record)?)\s*=(.*)$", lines[i])
+        if m and m.group(2) in keys:
+            rest = m.group(3)
+            if m.group(2) == "flange_from_cam" and rest.count("{") != rest.count("}"):
+                raise JobSpecError(f"{path}:{i + 1}: [cell] flange_from_cam must be a one-line inline table to be "
+                                   "rewritten; put it on one line")
+            comment = ""
+            c = re.search(r"\}\s*(#.*)$" if m.group(2) == "flange_from_cam" else r"\"\s*(#.*)$", rest)
+            if c:
+                comment = "  " + c.group(1)
+            lines[i] = f"{m.group(1)}{m.group(2)} = {keys[m.group(2)]}{comment}"
+            found[m.group(2)] = i
+    if "flange_from_cam" not in found:
+        raise JobSpecError(f"{path}: [cell] has no flange_from_cam line to update")
+    at = found["flange_from_cam"]
+    for k in ("flange_from_cam_date", "flange_from_cam_record"):
+        if k in keys and k not in found:
+            at += 1
+            lines.insert(at, f"{k} = {keys[k]}")
+    new = nl.join(lines) + (nl if text.endswith(("\n", "\r\n")) else "")
+    try:
+        out = CellFile.model_validate(tomllib.loads(new))
+    except (tomllib.TOMLDecodeError, ValidationError) as exc:  # pragma: no cover - guarded by the edits above
+        raise JobSpecError(f"{path}: rewriting flange_from_cam would break the file ({exc}); left unchanged") from None
+    atomic_write_bytes(path, new.encode("utf-8"))
+    return out

@@ -1,0 +1,144 @@
+"""Calibrating the simulated cell: hand-eye, reverification, calibration status, the cell file."""
+from __future__ import annotations
+
+import re
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from calibration.errors import JobSpecError
+from cell.cellcal import calibration_status, run_hand_eye, run_reverification
+from cell.cellfile import load_cell_file, write_flange_from_cam
+from cell.jobspec import pose_matrix
+
+EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "cell"
+TRUE_FFC = "{ xyz = [1.2, 39.2, 91.5], rpy_deg = [0.3, -0.2, 0.4] }"
+
+
+class _Out:
+    def __init__(self):
+        self.lines = []
+
+    def say(self, s: str) -> None:
+        self.lines.append(s)
+
+    def progress(self, stage: str, fraction: float) -> None:
+        pass
+
+
+def _cell(tmp_path: Path, flange_from_cam: str | None = None, positions: int | None = None) -> Path:
+    for f in EXAMPLE.iterdir():
+        if f.suffix in (".toml", ".stl", ".csv"):
+            shutil.copy(f, tmp_path / f.name)
+    p = tmp_path / "cell.toml"
+    text = p.read_text()
+    if flange_from_cam is not None:
+        text = re.sub(r"(?m)^flange_from_cam = .*$", f"flange_from_cam = {flange_from_cam}", text)
+    if positions is not None:
+        head, rest = text.split("positions = [\n", 1)
+        body, tail = rest.split("]\nstations_per_position", 1)
+        keep = body.splitlines()[:positions]
+        text = head + "positions = [\n" + "\n".join(keep) + "\n]\nstations_per_position" + tail
+    p.write_text(text)
+    return p
+
+
+def test_hand_eye_job_recovers_the_true_hand_eye_and_writes_it_into_the_cell_file(tmp_path):
+    cell = _cell(tmp_path)
+    before = cell.read_text()
+    s = run_hand_eye(cell, tmp_path / "archive", _Out())
+    cf, _ = load_cell_file(cell)
+    truth = pose_matrix(cf.sim.flange_from_cam_true, cf.scale)
+    from calibration.handeye import pose_error
+
+    dt, dr = pose_error(cf.flange_from_cam(), truth)
+    assert dt < 0.5e-3 and np.rad2deg(dr) < 0.05  # the issue's figures
+    assert dt < 0.05e-3  # and in fact ten times better on the sim
+    assert cf.cell.flange_from_cam_date == s["date"]
+    # every closed-form method was compared, and each is already close
+    assert {m["method"] for m in s["methods"]} == {"tsai", "park", "horaud", "andreff", "daniilidis"}
+    assert all(m["error_translation_m"] < 0.5e-3 for m in s["methods"])
+    # uncertainty is stated and honest (error within 5 sigma)
+    sig = np.linalg.norm(s["sigma_translation_m"])
+    assert 0 < sig < 0.1e-3 and dt < 5 * sig + 2e-6
+    # only the hand-eye lines changed
+    kept = [ln for ln in before.splitlines() if not ln.startswith("flange_from_cam")]
+    assert all(ln in cell.read_text().splitlines() for ln in kept)
+    rec = tmp_path / "archive" / "calibration" / s["record"]
+    assert (rec / "hand_eye.json").exists() and (rec / "manifest.json").exists()
+
+
+@pytest.mark.slow
+def test_reverification_passes_a_calibrated_cell_and_fails_one_off_by_2_mm(tmp_path):
+    good = tmp_path / "good"
+    bad = tmp_path / "bad"
+    good.mkdir()
+    bad.mkdir()
+    archive = tmp_path / "archive"
+    rg = run_reverification(_cell(good, TRUE_FFC, positions=3), archive, _Out())
+    assert rg["passed"]
+    assert rg["max_abs_error_m"] < 20e-6
+    out = _Out()
+    off = "{ xyz = [3.2, 39.2, 91.5], rpy_deg = [0.3, -0.2, 0.4] }"  # 2 mm off along the flange x axis
+    cell_bad = _cell(bad, off, positions=3)
+    rb = run_reverification(cell_bad, archive, out)
+    assert not rb["passed"]
+    assert "recalibrate the hand-eye" in rb["detail"]
+    assert any("FAIL" in ln for ln in out.lines)
+    st = calibration_status(archive, cell_bad, "2030-01-01T00:00:00+00:00")
+    assert st["status"] == "failed"
+
+
+def _fake_record(archive: Path, name: str, passed: bool, finished: str, ffc) -> None:
+    import json
+
+    d = archive / "calibration" / f"{finished[:19].replace(':', '-')}-{name}-reverification"
+    d.mkdir(parents=True)
+    (d / "reverification.json").write_text(json.dumps({
+        "cell": name, "finished": finished, "passed": passed, "detail": "7 of 7", "interval_days": 30.0,
+        "flange_from_cam": np.asarray(ffc).tolist(), "max_abs_error_m": 1e-6}))
+
+
+def test_calibration_status_reports_verified_expired_failed_and_not_verified(tmp_path):
+    cell = _cell(tmp_path)
+    cf, _ = load_cell_file(cell)
+    archive = tmp_path / "archive"
+    assert calibration_status(archive, cell, "2026-01-01T00:00:00+00:00")["status"] == "not verified"
+    _fake_record(archive, cf.cell.name, True, "2026-01-01T00:00:00+00:00", cf.flange_from_cam())
+    assert calibration_status(archive, cell, "2026-01-20T00:00:00+00:00")["status"] == "verified"
+    assert calibration_status(archive, cf.cell.name, "2026-03-01T00:00:00+00:00")["status"] == "expired"
+    _fake_record(archive, cf.cell.name, False, "2026-01-25T00:00:00+00:00", cf.flange_from_cam())
+    assert calibration_status(archive, cell, "2026-01-26T00:00:00+00:00")["status"] == "failed"
+    # a new hand-eye invalidates the last reverification
+    X = cf.flange_from_cam().copy()
+    X[0, 3] += 1e-3
+    write_flange_from_cam(cell, X, "2026-01-27T00:00:00+00:00")
+    st = calibration_status(archive, cell, "2026-01-28T00:00:00+00:00")
+    assert st["status"] == "not verified" and "changed" in st["detail"]
+
+
+def test_cell_file_rejects_unknown_keys_and_a_relative_sim_hand_eye(tmp_path):
+    cell = _cell(tmp_path)
+    cell.write_text(cell.read_text().replace("[hand_eye]", "[hand_eye]\nbogus = 1"))
+    with pytest.raises(JobSpecError, match="unknown key 'hand_eye.bogus'"):
+        load_cell_file(cell)
+    cell = _cell(tmp_path)
+    cell.write_text(cell.read_text() + "flange_from_cam_error = { xyz = [1.0, 0.0, 0.0] }\n")
+    with pytest.raises(JobSpecError, match="flange_from_cam_true"):
+        load_cell_file(cell)
+
+
+def test_writing_the_hand_eye_keeps_comments_and_round_trips(tmp_path):
+    cell = _cell(tmp_path)
+    cf, _ = load_cell_file(cell)
+    X = cf.flange_from_cam() @ pose_matrix(cf.sim.flange_from_cam_true, 1e-3) @ np.linalg.inv(cf.flange_from_cam())
+    write_flange_from_cam(cell, X, "2026-02-02T00:00:00+00:00", record="r1")
+    text = cell.read_text()
+    assert "# the calibration artefact: a stepped target field" in text
+    cf2, _ = load_cell_file(cell)
+    assert np.allclose(cf2.flange_from_cam(), X, atol=1e-8)
+    assert cf2.cell.flange_from_cam_record == "r1"
+    write_flange_from_cam(cell, X, "2026-02-03T00:00:00+00:00")
+    assert sum(ln.startswith("flange_from_cam_date") for ln in cell.read_text().splitlines()) == 1

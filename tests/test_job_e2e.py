@@ -1,0 +1,184 @@
+"""Truth: the example job, run whole on the simulated cell with six injected deviations, finds
+them, states its uncertainty honestly against the known truth, and writes report.json as the
+contract in ARCHITECTURE.md says.
+
+The job runs once per test session (``cell run`` in a child process, ~30 s) and every test
+here reads its job folder.
+"""
+from __future__ import annotations
+
+import json
+from datetime import datetime
+from pathlib import Path
+
+import numpy as np
+import pytest
+from pydantic import BaseModel, ConfigDict, Field
+from scipy.stats import chi2
+
+from cell.runlog import read_messages
+from jobutil import example_run, mahalanobis, records, rigid_fit, run_cell, truth_xyz_m
+
+STAGES = ["LOAD", "PLAN", "VALIDATE", "ACQUIRE", "MEASURE", "CALIBRATE", "ADJUST", "REPORT"]
+Vec3 = tuple[float, float, float]
+MaybeVec3 = tuple[float, float, float] | tuple[None, None, None]  # a target no image measured
+Mat3 = tuple[Vec3, Vec3, Vec3]
+MaybeMat3 = Mat3 | tuple[tuple[None, None, None], tuple[None, None, None], tuple[None, None, None]]
+
+
+# --- the report.json contract (ARCHITECTURE.md); more fields are allowed around it ----------------
+
+
+class _Contract(BaseModel):
+    model_config = ConfigDict(extra="allow", strict=True)
+
+
+class JobContract(_Contract):
+    id: str = Field(min_length=1)
+    name: str = Field(min_length=1)
+    seed: int
+    status: str
+    started: str
+    finished: str
+    versions: dict[str, str]
+
+
+class TargetContract(_Contract):
+    id: str
+    nominal: Vec3
+    measured: MaybeVec3
+    cov: MaybeMat3
+    deviation: MaybeVec3
+    deviation_norm_m: float | None
+    tolerance_m: float = Field(gt=0)
+    pass_: bool = Field(alias="pass")
+    predicted_sigma_m: float | None
+    achieved_sigma_m: float | None
+
+
+class ReportContract(_Contract):
+    job: JobContract
+    images: int = Field(gt=0)
+    sigma0_px: float = Field(gt=0)
+    targets: list[TargetContract]
+
+
+@pytest.fixture(scope="module")
+def example(tmp_path_factory):
+    job, folder, run = example_run(tmp_path_factory)
+    return job, folder, run, json.loads((folder / "report.json").read_text())
+
+
+def _measured(report: dict) -> list[dict]:
+    return [t for t in report["targets"] if None not in t["measured"]]
+
+
+def _deviations(job: Path) -> dict[str, np.ndarray]:
+    ids, nominal, truth = truth_xyz_m(job)
+    return {i: truth[k] - nominal[k] for k, i in enumerate(ids) if np.any(truth[k] != nominal[k])}
+
+
+def test_example_job_runs_every_stage_once_and_ends_done(example):
+    job, folder, run, report = example
+    assert run.code == 0 and run.doc["status"] == "DONE" and run.doc["verdict"] == "FAIL"
+    recs = records(folder)
+    assert [r["stage"] for r in recs if r["event"] == "stage_done"] == STAGES
+    states = [r["to"] for r in recs if r["event"] == "state"]
+    assert states == STAGES + ["DONE"]
+    assert [r["event"] for r in recs].count("terminal") == 1 and recs[-1]["event"] == "terminal"
+    assert recs[-1]["status"] == "DONE"
+    verify = run_cell("archive", "verify", folder.name, "--archive", str(folder.parent))
+    assert verify.code == 0 and verify.doc["intact"], verify.doc
+    assert not any((folder.parent / ".incoming").iterdir())
+
+
+def test_report_json_follows_the_contract(example):
+    job, folder, run, report = example
+    doc = ReportContract.model_validate_json((folder / "report.json").read_text())
+    plan = json.loads((folder / "plan.json").read_text())
+    assert doc.job.id == folder.name and doc.job.name == "bracket" and doc.job.seed == 7 and doc.job.status == "DONE"
+    assert datetime.fromisoformat(doc.job.started) < datetime.fromisoformat(doc.job.finished)
+    assert {"python", "numpy", "inspection-cell"} <= set(doc.job.versions)
+    assert doc.images == len(plan["stations"]) == len(list((folder / "images").glob("*.png")))
+    # every retro target is judged once; the coded ones are identification aids
+    ids, nominal, _ = truth_xyz_m(job)
+    coded = set(report["coded_targets"])
+    assert sorted(t.id for t in doc.targets) == sorted(set(ids) - coded)
+    index = {t: k for k, t in enumerate(ids)}
+    for t in doc.targets:
+        np.testing.assert_allclose(t.nominal, nominal[index[t.id]], atol=1e-12)
+        assert t.tolerance_m == pytest.approx(0.25e-3)
+        if t.measured[0] is None:
+            assert t.id in report["not_measured"] and not t.pass_
+            continue
+        m, d, c = np.array(t.measured), np.array(t.deviation), np.array(t.cov)
+        np.testing.assert_allclose(d, m - np.array(t.nominal), atol=1e-12)
+        assert t.deviation_norm_m == pytest.approx(np.linalg.norm(d), rel=1e-9)
+        assert t.pass_ == (t.deviation_norm_m <= t.tolerance_m)
+        np.testing.assert_allclose(c, c.T, atol=1e-20)
+        assert np.linalg.eigvalsh(c).min() > 0, f"{t.id}: covariance not positive definite"
+        # the achieved sigma is sqrt(trace(cov)) of the point (before the CAD fit, which changes it little)
+        assert t.achieved_sigma_m == pytest.approx(np.sqrt(np.trace(c)), rel=0.1)
+    assert len(report["not_measured"]) <= 0.05 * len(doc.targets)
+
+
+def test_injected_deviations_beyond_tolerance_fail_and_those_within_are_significant(example):
+    job, folder, run, report = example
+    injected = _deviations(job)
+    assert len(injected) == 6
+    beyond = {i for i, d in injected.items() if np.linalg.norm(d) > 0.25e-3}
+    within = set(injected) - beyond
+    assert len(beyond) == 3 and len(within) == 3
+    measured = {t["id"]: t for t in _measured(report)}
+    assert set(injected) <= set(measured), "a target with an injected deviation was not measured"
+    failed = {i for i, t in measured.items() if not t["pass"]}
+    assert failed == beyond
+    assert all(measured[i]["significant"] for i in injected)
+    assert all(measured[i]["pass"] for i in within)
+    # the reported deviation is the injected one, to within a few sigma of the target
+    for i, d in injected.items():
+        t = measured[i]
+        m = mahalanobis((np.array(t["deviation"]) - d)[None], np.array(t["cov"])[None])[0]
+        assert m < 5.0, f"{i}: reported deviation {np.round(np.array(t['deviation']) * 1e6, 1)} um, injected " \
+                        f"{np.round(d * 1e6, 1)} um ({m:.1f} sigma apart)"
+    # false alarms: targets without a deviation flagged significant at 3 sigma (about 0.5 expected of ~190)
+    false = [i for i, t in measured.items() if t["significant"] and i not in injected]
+    assert len(false) <= 3, f"significant without a deviation: {false}"
+    assert report["verdict"] == "FAIL"
+
+
+def test_measured_coordinates_agree_with_truth_within_stated_covariance(example):
+    """CAD + deviations is the truth; a rigid fit to it leaves residuals the covariance explains."""
+    job, folder, run, report = example
+    ids, _, truth = truth_xyz_m(job)
+    index = {t: k for k, t in enumerate(ids)}
+    T = _measured(report)
+    measured = np.array([t["measured"] for t in T])
+    cov = np.array([t["cov"] for t in T])
+    true = truth[[index[t["id"]] for t in T]]
+    fit = rigid_fit(measured, true)
+    r = measured @ fit[:3, :3].T + fit[:3, 3] - true
+    m2 = mahalanobis(r, cov) ** 2
+    within = m2 <= chi2.ppf(0.9973, 3)  # the 3-sigma region of a 3-D normal
+    assert within.mean() >= 0.95, f"only {within.mean():.1%} of {len(T)} targets within 3 sigma of the truth"
+    # and the covariance is not inflated to pass: the mean squared normalised error of a 3-D normal is 3
+    assert 1.5 <= m2.mean() <= 6.0, f"mean squared normalised error {m2.mean():.2f} (3 expected)"
+    rms = np.sqrt((r**2).sum(axis=1).mean())
+    assert rms < 50e-6, f"rms error to the truth {rms * 1e6:.1f} um"
+    # the planner's predicted precision matches the achieved one on the whole
+    ratio = np.array([t["achieved_sigma_m"] / t["predicted_sigma_m"] for t in T if t["predicted_sigma_m"]])
+    assert 0.5 <= np.median(ratio) <= 2.0, f"achieved / predicted sigma: median {np.median(ratio):.2f}"
+    print(f"\n{len(T)} targets: {within.mean():.1%} within 3 sigma of the truth, mean m^2 {m2.mean():.2f}, "
+          f"rms {rms * 1e6:.1f} um; achieved/predicted sigma median {np.median(ratio):.2f}")
+
+
+def test_run_log_holds_every_transition_image_and_detection(example):
+    job, folder, run, report = example
+    msgs = list(read_messages(folder / "run.mcap"))
+    states = [m["to"] for t, m in msgs if t == "/state"]
+    assert states == STAGES + ["DONE"]
+    acq = json.loads((folder / "acquisition.json").read_text())["images"]
+    images = [m["frame_id"].removeprefix("camera/") for t, m in msgs if t == "/camera/image"]
+    assert images == [im["station"] for im in acq]
+    assert len([1 for t, _ in msgs if t == "/detections"]) == len(acq)
+    assert len([1 for t, _ in msgs if t == "/robot/joint_states"]) == len(acq)
