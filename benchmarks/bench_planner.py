@@ -146,21 +146,25 @@ def main(argv=None) -> int:
     ap.add_argument("--json", type=Path, help="write the figures here")
     ap.add_argument("--sizes", type=int, nargs="*", default=[8, 16, 29])
     ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--generations", type=int, help="search generations (default: the planner's)")
+    ap.add_argument("--stall", type=int, help="stall generations (default: the planner's)")
     ap.add_argument("--timing-only", action="store_true", help="only the 29-station timing run")
     ap.add_argument("--png", type=Path, help="write a picture of each plan into this folder")
     args = ap.parse_args(argv)
 
     part, intr = example_part(), example_camera()
+    search_kw = {k: v for k, v in (("generations", args.generations), ("stall_generations", args.stall)) if v}
     opts = PlannerOptions(allow_unmeasurable=True)
     sphere = ViewingSphere.for_part(part, intr)
     sphere = ViewingSphere(**{**sphere.to_dict(), "max_roll_rad": 0.0, "max_offset_m": 0.0})
     vis_opts = VisibilityOptions(incidence_max_rad=opts.incidence_max_rad)
-    out: dict = {"n_targets": len(part.targets), "sigma_px": opts.sigma_px, "min_rays": opts.min_rays, "sizes": {}}
+    out: dict = {"n_targets": len(part.targets), "sigma_px": opts.sigma_px, "min_rays": opts.min_rays,
+                 "search": search_kw, "sizes": {}}
 
     # timing: 29 stations, visibility database built from scratch (empty cache)
     with tempfile.TemporaryDirectory() as cache:
         t0, c0 = time.perf_counter(), time.process_time()
-        plan = plan_network(part, intr, PlannerOptions(n_stations=29, allow_unmeasurable=True),
+        plan = plan_network(part, intr, PlannerOptions(n_stations=29, allow_unmeasurable=True, **search_kw),
                             np.random.default_rng(args.seed), cache_dir=cache, seed=args.seed)
         wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     out["timing_29"] = {"wall_s": wall, "cpu_s": cpu, **{k: round(v, 3) for k, v in plan.timing.items()},
@@ -183,7 +187,8 @@ def main(argv=None) -> int:
             # below the exact lower bound no network can give every target 3 rays: plan for 2
             min_rays = opts.min_rays if bounds[3] is None or k >= bounds[3] else 2
             t0 = time.perf_counter()
-            plan = plan_network(part, intr, PlannerOptions(n_stations=k, min_rays=min_rays, allow_unmeasurable=True),
+            plan = plan_network(part, intr, PlannerOptions(n_stations=k, min_rays=min_rays, allow_unmeasurable=True,
+                                                           **search_kw),
                                 np.random.default_rng(args.seed), cache_dir=cache, seed=args.seed)
             t_plan = time.perf_counter() - t0
             if args.png:

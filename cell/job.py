@@ -8,7 +8,9 @@ is kept, with exactly one terminal record per session in its journal.
 """
 from __future__ import annotations
 
+import dataclasses
 import json
+import os
 import shutil
 import signal
 import time
@@ -155,7 +157,7 @@ class JobRunner:
         except CellError as exc:
             status, reason = State.FAULTED, f"{self.state.value}: {exc}"
             self._stop_robot(ctx)
-            if isinstance(exc, InputError) and self.staged:
+            if (isinstance(exc, InputError) or exc.exit_code == 2) and self.staged:  # bad input (e.g. out of reach)
                 log.close()
                 shutil.rmtree(self.folder.path, ignore_errors=True)
                 raise
@@ -198,9 +200,20 @@ def start_job(job_path: Path, archive_root: Path, backend: str | None, out) -> J
         incoming = archive.root / ".incoming" / job_id
     incoming.mkdir(parents=True)
     folder = JobFolder(incoming)
+    lock = folder.lock()
+    try:
+        return _start_staged(job_path, job, archive, folder, job_id, backend, out)
+    finally:
+        os.close(lock)
+
+
+def _start_staged(job_path: Path, job: LoadedJob, archive: Archive, folder: JobFolder, job_id: str,
+                  backend: str | None, out) -> JobResult:
+    incoming = folder.path
     folder.append("created", name=job.spec.job.name, job_file=str(job_path), backend=backend or job.spec.cell.backend)
     _copy_inputs(job, incoming)
-    job = load_from_folder(incoming)
+    # the staged copy is what runs; messages name the operator's job file
+    job = dataclasses.replace(load_from_folder(incoming), path=Path(job_path))
     runner = JobRunner(archive, folder, job, backend or job.spec.cell.backend, out, staged=True)
     out.say(f"job {job_id}  ({job.part.name}, {len(job.part.targets)} targets, backend {runner.backend})")
     return runner.run(State.LOAD)
@@ -210,6 +223,14 @@ def resume_job(job_id: str, archive_root: Path, out) -> JobResult:
     """``cell resume``: continue from the first stage that did not finish."""
     archive = Archive(archive_root)
     folder = archive.folder(job_id)
+    lock = folder.lock()  # refuses a job still running in another process
+    try:
+        return _resume_locked(job_id, archive, folder, out)
+    finally:
+        os.close(lock)
+
+
+def _resume_locked(job_id: str, archive: Archive, folder: JobFolder, out) -> JobResult:
     recs = list(folder.records())
     done = {r["stage"] for r in recs if r["event"] == "stage_done"}
     last_state = next((State(r["to"]) for r in reversed(recs) if r["event"] == "state"), State.CREATED)

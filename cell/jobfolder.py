@@ -115,6 +115,26 @@ class JobFolder:
                 except json.JSONDecodeError:
                     break
 
+    def lock(self) -> int:
+        """Take the job's session lock (``.lock``, an exclusive ``flock``); returns its file descriptor.
+
+        One process at a time runs a job: a second ``cell resume`` while a session still runs
+        would acquire the same stations twice. The lock goes with the process (also on SIGKILL).
+        Raises ``InputError`` if another process holds it.
+        """
+        import fcntl
+
+        from calibration.errors import InputError
+
+        fd = os.open(self.path / ".lock", os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            os.close(fd)
+            raise InputError(f"{self.job_id}: the job is running in another process; wait for it to end "
+                             "(or stop it) before resuming") from None
+        return fd
+
     def remove_partial_files(self) -> list[str]:
         """Delete the temporary files of writes a killed session left unfinished (``.NAME.tmpPID``).
 

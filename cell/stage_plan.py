@@ -60,6 +60,6 @@ def make_plan(job: LoadedJob, progress=None, cache_dir: Path | None = None) -> t
                 "out of the robot's reach or collide)"
             ) from None
         raise
-    facts = {"candidates": int(len(reachable)), "reachable": n_ok, "visibility_cached": bool(getattr(db, "loaded", False)),
+    facts = {"candidates": int(len(reachable)), "reachable": n_ok, "visibility_cached": bool(db.from_cache),
              "reachability_cached": bool(reach.loaded)}
     return plan, facts

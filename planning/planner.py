@@ -132,7 +132,6 @@ class PlannerOptions:
     allow_unmeasurable: bool = False
     greedy_fraction: float = 0.25
     cheapest_refine: int = 3
-    restarts: int = 0
 
     def check(self) -> None:
         """Raise InputError naming the first bad option."""
@@ -200,8 +199,8 @@ class NetworkPlan:
         cov: (n, 3, 3) predicted covariance (m^2), exact for the final stations; nan
             where a target is measured by fewer than ``min_rays`` stations.
         n_rays: (n,) int; seen_by: per target the ids of the stations that measure it.
-        predicted_sigma_max_m, predicted_sigma_mean_m: over the targets,
-            sigma = sqrt(trace(cov)) (inf if some target is not measurable).
+        predicted_sigma_max_m, predicted_sigma_mean_m: over the targets planned for (those
+            in ``unmeasurable_target_ids`` excluded), sigma = sqrt(trace(cov)).
         history: one dict per generation (best, mean, n_active, n_feasible, phase: "search"
             or "refine <k>", step: running index over the phases, ...).
         pareto_front: "cheapest": [{n_stations, sigma_ratio_max, phase}] of the front
@@ -596,11 +595,10 @@ def plan_network(
     history: list[dict] = []
     n_evaluations = [0]
 
-    def search(size: int, mode: str, objective: str, phase: str, seeds: list[np.ndarray] = (),
-               generations: int | None = None):
+    def search(size: int, mode: str, objective: str, phase: str, seeds: list[np.ndarray] = ()):
         """One evolutionary run; ``seeds`` are (size, G) networks put into the initial population."""
         problem.objective = objective
-        run_opts = replace(options, n_stations=size, mode=mode, generations=generations or options.generations)
+        run_opts = replace(options, n_stations=size, mode=mode)
         g0, b0 = _initial_population(problem, size, P, mode, options.min_rays, rng, options.greedy_fraction)
         for i, g in enumerate(seeds[: P // 4]):
             g0[P - 1 - i], b0[P - 1 - i] = g, True
@@ -617,14 +615,7 @@ def plan_network(
     networks: list[np.ndarray] = []  # best first: candidates for the plan, each (c, G)
     pareto: list[dict] = []
     if options.mode == "fixed":
-        runs = options.restarts + 1
-        gens = max(1, options.generations // runs)
-        res = search(k, "fixed", "criterion", "search", generations=gens)
-        for i in range(options.restarts):
-            # restart: a fresh population around the best so far (diversity back, elite kept)
-            r = search(k, "fixed", "criterion", f"restart {i + 1}", [res.genes[0]], generations=gens)
-            if (r.violation[0], r.objectives[0, 0]) <= (res.violation[0], res.objectives[0, 0]):
-                res = r
+        res = search(k, "fixed", "criterion", "search")
         networks = [res.genes[0]]
         search_values = [float(res.objectives[0, 0])]
     else:
@@ -684,6 +675,12 @@ def plan_network(
 
     for genes, search_fitness in zip(networks, search_values):  # cheapest: walk up until the exact check passes
         kept, final, final_genes = exact_variants(genes)
+        if options.mode == "fixed" and final["violation"] > 0:
+            short = int(np.count_nonzero(final["n_rays"][cols] < options.min_rays))
+            raise PlanningError(
+                f"no network of {k} stations found measures every target with {options.min_rays} rays "
+                f"(the best leaves {short} target(s) short): raise n_stations or lower min_rays"
+            )
         if options.mode == "fixed" or (final["violation"] == 0 and final["score"] <= 1.0):
             break
     else:

@@ -17,7 +17,8 @@ from pydantic import BaseModel, ConfigDict, Field
 from scipy.stats import chi2
 
 from cell.runlog import read_messages
-from jobutil import example_run, mahalanobis, records, rigid_fit, run_cell, truth_xyz_m
+from jobutil import (archive_entries, example_run, incoming_entries, job_variant, mahalanobis, records, rigid_fit,
+                     run_cell, truth_xyz_m)
 
 STAGES = ["LOAD", "PLAN", "VALIDATE", "ACQUIRE", "MEASURE", "CALIBRATE", "ADJUST", "REPORT"]
 Vec3 = tuple[float, float, float]
@@ -182,3 +183,66 @@ def test_run_log_holds_every_transition_image_and_detection(example):
     assert images == [im["station"] for im in acq]
     assert len([1 for t, _ in msgs if t == "/detections"]) == len(acq)
     assert len([1 for t, _ in msgs if t == "/robot/joint_states"]) == len(acq)
+
+
+# --- bad input: exit 2, one clear line, nothing half-written in the archive --------------------------
+
+
+def _truncate(path: Path) -> None:
+    b = path.read_bytes()
+    path.write_bytes(b[: len(b) // 2])
+
+
+def _replace(path: Path, old: str, new: str) -> None:
+    text = path.read_text()
+    assert old in text
+    path.write_text(text.replace(old, new))
+
+
+BAD_JOBS = {
+    # name: (job-file changes, edit of the copied files, text the error line must name)
+    "unknown_key": ({"job": {"colour": "red"}}, None, ("job.toml", "colour")),
+    "wrong_type": ({"planning": {"n_stations": "many"}}, None, ("job.toml", "planning.n_stations")),
+    "unknown_units": ({"job": {"units": "furlong"}}, None, ("job.toml", "job.units")),
+    "toml_syntax": (None, lambda d: _replace(d / "job.toml", "seed = 7", "seed = = 7"), ("job.toml", "TOML")),
+    "missing_mesh": ({"job": {"mesh": "nothere.stl"}}, None, ("nothere.stl", "not found")),
+    "truncated_mesh": (None, lambda d: _truncate(d / "bracket.stl"), ("bracket.stl", "truncated")),
+    "target_off_surface": (None, lambda d: _replace(d / "targets.csv", "T0004,85.8516,100.0000,",
+                                                    "T0004,85.8516,150.0000,"), ("targets.csv", "T0004")),
+    "unknown_deviation_target": (None, lambda d: (d / "deviations.csv").write_text("id,dx,dy,dz\nT9999,0,0,0.1\n"),
+                                 ("deviations.csv", "T9999")),
+    "part_out_of_reach": ({"cell": {"base_from_part": {"xyz": [3000.0, 0.0, 0.0], "rpy_deg": [0.0, 0.0, 90.0]}}},
+                          None, ("job.toml", "reach")),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD_JOBS))
+def test_bad_job_exits_2_with_one_line_and_leaves_nothing_in_the_archive(case, tmp_path):
+    changes, edit, names = BAD_JOBS[case]
+    job = job_variant(tmp_path / "job", changes)
+    if edit is not None:
+        edit(tmp_path / "job")
+    archive = tmp_path / "archive"
+    run = run_cell("run", str(job), "--archive", str(archive), timeout=120)
+    assert run.code == 2, f"exit {run.code}:\n{run.stderr[-2000:]}"
+    assert "Traceback" not in run.stderr
+    errors = [ln for ln in run.stderr.splitlines() if ln.startswith("cell: error: ")]
+    assert len(errors) == 1 and run.stderr.rstrip().splitlines()[-1] == errors[0], run.stderr
+    line = errors[0]
+    for word in names:
+        assert word in line, f"the error line does not name {word!r}: {line}"
+    assert ".incoming" not in line, f"the error names the staging copy, not the operator's file: {line}"
+    assert run.doc["status"] == "error" and run.doc["exit_code"] == 2 and run.doc["message"] in line
+    # nothing half-written: no job folder, an empty staging area, the operator's files untouched
+    assert archive_entries(archive) == set(), f"left in the archive: {archive_entries(archive)}"
+    assert incoming_entries(archive) == [], f"left in .incoming: {incoming_entries(archive)}"
+
+
+def test_resuming_a_finished_job_is_refused_and_changes_nothing(example):
+    job, folder, run, report = example
+    before = (folder / "journal.jsonl").read_bytes()
+    res = run_cell("resume", folder.name, "--archive", str(folder.parent), "--yes")
+    assert res.code == 2 and "already DONE" in res.stderr.strip().splitlines()[-1]
+    assert (folder / "journal.jsonl").read_bytes() == before
+    res = run_cell("resume", "no-such-job", "--archive", str(folder.parent), "--yes")
+    assert res.code == 2 and "no job 'no-such-job'" in res.stderr

@@ -130,15 +130,23 @@ def test_sigkill_during_acquisition_resumes_without_losing_or_duplicating_images
             folder = _wait_for_acquire(proc, archive, n_acq)
             if n_stations is None:
                 n_stations = len(json.loads((folder / "plan.json").read_text())["stations"])
+            if len(kills) == 1:  # once: a second session of a job that is still running is refused
+                n_resumed = sum(r["event"] == "resumed" for r in records(folder))
+                twice = run_cell("resume", folder.name, "--archive", str(archive), "--yes", env=env)
+                assert twice.code == 2 and "running in another process" in twice.stderr, twice.stderr
+                assert sum(r["event"] == "resumed" for r in records(folder)) == n_resumed
+                assert proc.poll() is None
             n_done = sum(1 for r in records(folder) if r["event"] == "station_done")
             n_start = sum(1 for r in records(folder) if r["event"] == "station_start")
             remaining = n_stations - n_done
             # a random moment of a station's cycle (move, capture, encode, write, log, journal): once this session
-            # has started its first station, within ~1.2 station cycles (as measured so far); sometimes while it opens
-            # its devices. Near the end only then, so that acquisition is still going on at every one of the kills
+            # has started its first station (a long move: every session starts at home) or its second, within
+            # ~0.8 station cycles (as measured so far); sometimes while it opens its devices. Near the end only
+            # then, so that acquisition is still going on at every one of the kills
             if remaining > 3 and rng.random() < 0.85:
-                _wait_for_records(proc, folder, "station_start", n_start + 1)
-                delay = rng.uniform(0.0, 1.2 * _station_cycle_s(folder))
+                m = int(rng.random() < 0.4)
+                _wait_for_records(proc, folder, "station_start", n_start + 1 + m)
+                delay = rng.uniform(0.0, 0.8 * _station_cycle_s(folder))
             else:
                 delay = rng.uniform(0.0, 0.3)
             time.sleep(delay)
@@ -199,9 +207,16 @@ def test_sigkill_during_acquisition_resumes_without_losing_or_duplicating_images
     cov = np.array([np.add(rep[i]["cov"], ref[i]["cov"]) for i in ids])
     m = mahalanobis(d, cov)
     level = norm.isf(chi2.sf(m**2, 3) / 2)  # equivalent one-dimensional sigma level
-    assert np.mean(level <= 3.0) >= 0.99, f"{np.sum(level > 3)} of {len(ids)} targets differ beyond 3 sigma"
-    assert level.max() <= 4.5, f"target {ids[int(np.argmax(level))]} differs by {level.max():.1f} sigma"
-    assert [t["pass"] for t in map(rep.get, ids)] == [t["pass"] for t in map(ref.get, ids)]
+    # the re-taken images carry new noise (and may see a target in one image more or less): the two runs differ
+    # like two measurements of the same part, ~0.3% of the targets beyond 3 sigma; none far beyond
+    assert np.mean(level <= 3.0) >= 0.97, f"{np.sum(level > 3)} of {len(ids)} targets differ beyond 3 sigma"
+    assert level.max() <= 5.0, f"target {ids[int(np.argmax(level))]} differs by {level.max():.1f} sigma"
+    # the same verdicts, but for a target whose deviation is within its uncertainty of the tolerance
+    for i in ids:
+        if rep[i]["pass"] != ref[i]["pass"]:
+            margin = abs(ref[i]["deviation_norm_m"] - ref[i]["tolerance_m"])
+            assert margin < 3 * np.hypot(rep[i]["achieved_sigma_m"], ref[i]["achieved_sigma_m"]), i
+    assert {i for i in ids if not rep[i]["pass"]} >= {"T0150", "T0182", "T0184"}  # injected beyond tolerance
     print(f"\n{N_KILLS} kills, {len(sessions)} sessions, {total_s:.1f} s in all; kill cycle "
           f"{np.mean(cycle_s):.2f} s mean ({np.min(cycle_s):.2f}..{np.max(cycle_s):.2f}); stations done after each kill "
           f"{progress}; last journal event before each kill {phases}; coordinate difference to the uninterrupted run: max {level.max():.2f} sigma, "

@@ -269,3 +269,11 @@ def test_plot_plan_writes_a_picture(scene, fixed_plan, tmp_path):
     assert img.shape[0] > 500 and img.shape[1] > 700
     assert img[..., :3].std() > 0.05  # not a blank canvas
     assert not list(tmp_path.glob("*.tmp"))
+
+
+def test_a_network_too_small_for_min_rays_is_an_error_not_a_silent_plan(scene, fixed_plan):
+    part, intr = scene
+    _, cache, _ = fixed_plan
+    # three stations would each have to see every target, including all four side faces
+    with pytest.raises(PlanningError, match="raise n_stations or lower min_rays"):
+        plan_network(part, intr, _options(n_stations=3, generations=10), np.random.default_rng(0), cache_dir=cache)
