@@ -80,6 +80,7 @@ def _copy_inputs(job: LoadedJob, folder: Path) -> dict:
 
 def load_from_folder(folder: Path) -> LoadedJob:
     """Load a job from its archived copy (job.toml + inputs/)."""
+    folder = Path(folder).resolve()
     mapping = json.loads((folder / "inputs.json").read_text())
     return load(folder / "job.toml", overrides={k: str(folder / v) for k, v in mapping.items()})  # abs paths stay
 
@@ -190,7 +191,7 @@ class JobRunner:
 def start_job(job_path: Path, archive_root: Path, backend: str | None, out) -> JobResult:
     """``cell run``: LOAD (before anything is written), then the whole job."""
     job = load(job_path)  # bad input fails here, before any folder exists
-    archive = Archive(archive_root)
+    archive = Archive(Path(archive_root).resolve())
     job_id = new_job_id(job.spec.job.name)
     incoming = archive.root / ".incoming" / job_id
     k = 1
@@ -221,7 +222,7 @@ def _start_staged(job_path: Path, job: LoadedJob, archive: Archive, folder: JobF
 
 def resume_job(job_id: str, archive_root: Path, out) -> JobResult:
     """``cell resume``: continue from the first stage that did not finish."""
-    archive = Archive(archive_root)
+    archive = Archive(Path(archive_root).resolve())
     folder = archive.folder(job_id)
     lock = folder.lock()  # refuses a job still running in another process
     try:

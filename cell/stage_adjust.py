@@ -29,7 +29,8 @@ def initial_intrinsics(job, cal_doc: dict) -> Intrinsics:
     nominal = job.intrinsics
     if not job.spec.camera.self_calibrate:
         return nominal
-    a = np.median([[r["alpha_u"], r["alpha_v"], r["u0"], r["v0"]] for r in cal_doc["images"]], axis=0)
+    a = np.median([[r["alpha_u"], r["alpha_v"], r["u0"], r["v0"]] for r in cal_doc["images"] if "alpha_u" in r],
+                  axis=0)
     # the linear method has no distortion and little focal accuracy per image: keep it only if plausible
     if abs(a[0] / nominal.fx_px - 1) > 0.1 or abs(a[2] - nominal.cx_px) > 0.1 * nominal.width:
         return nominal

@@ -284,8 +284,10 @@ def load_targets(path: str | Path, units: str) -> Targets:
     )
 
 
-def check_targets(mesh: trimesh.Trimesh, targets: Targets, source: str = "targets") -> None:
-    """Duplicate ids, targets off the surface, normals pointing into the part -> ``PartError``."""
+def check_targets(mesh: trimesh.Trimesh, targets: Targets, source: str = "targets", *,
+                  target_diameter_m: float = 0.0, coded_size_m: float = 0.0) -> None:
+    """Duplicate ids, targets off the surface, normals pointing into the part, dots under a coded
+    marker or overlapping each other -> ``PartError``."""
     seen: dict[str, int] = {}
     for i, t in enumerate(targets.ids):
         if t in seen:
@@ -303,6 +305,24 @@ def check_targets(mesh: trimesh.Trimesh, targets: Targets, source: str = "target
             f"{source}: {len(off)} target(s) are off the part's surface, e.g. {targets.ids[i]!r} "
             f"{dist[i] * 1e3:.2f} mm away (tolerance {tol * 1e3:.2f} mm): wrong units or wrong file?"
         )
+    if target_diameter_m > 0 and len(targets) > 1:
+        from scipy.spatial import cKDTree
+
+        pairs = cKDTree(targets.xyz).query_pairs(target_diameter_m * 1.5, output_type="ndarray")
+        if len(pairs):
+            a, b = pairs[0]
+            raise PartError(f"{source}: targets {targets.ids[a]!r} and {targets.ids[b]!r} overlap "
+                            f"({np.linalg.norm(targets.xyz[a] - targets.xyz[b]) * 1e3:.2f} mm apart)")
+    coded = np.flatnonzero(targets.kind == "coded")
+    if coded_size_m > 0 and len(coded):
+        reach = coded_size_m * (0.5 + 1 / 6) * np.sqrt(2) + target_diameter_m / 2  # marker + quiet zone corner
+        d = np.linalg.norm(targets.xyz[:, None] - targets.xyz[None, coded], axis=2)
+        d[coded, np.arange(len(coded))] = np.inf
+        bad = np.flatnonzero(d.min(axis=1) < reach)
+        if len(bad):
+            j = int(bad[0])
+            raise PartError(f"{source}: target {targets.ids[j]!r} lies under the coded marker "
+                            f"{targets.ids[int(coded[np.argmin(d[j])])]!r} (closer than {reach * 1e3:.1f} mm)")
     face_n = mesh.face_normals[tri]
     inward = np.flatnonzero(np.einsum("ij,ij->i", face_n, targets.normals) < -0.5)
     if len(inward):
@@ -320,13 +340,15 @@ def sample_targets(
     min_spacing_m: float | None = None,
     edge_clearance_m: float = 0.0,
     min_normal_z: float | None = None,
+    coded_clearance_m: float = 0.0,
 ) -> Targets:
     """Sample ``n`` targets on the surface, well spread (Poisson-disc like).
 
     Faces are drawn by area; candidates closer than ``min_spacing_m`` to an earlier
     target are rejected. The first ``n_coded`` targets (spread out) are coded, with
     ArUco ids 0..n_coded-1. Faces whose normal's z is below ``min_normal_z`` (e.g.
-    the face the part stands on) get no targets. Deterministic for a given ``rng``.
+    the face the part stands on) get no targets. Dots closer than ``coded_clearance_m`` to a coded
+    target are dropped (so fewer than ``n`` may be returned). Deterministic for a given ``rng``.
     """
     if n <= 0:
         raise PartError(f"cannot sample {n} targets")
@@ -381,6 +403,12 @@ def sample_targets(
     for c, j in enumerate(coded_idx):
         kind[j] = "coded"
         code[j] = c
+    if coded_idx and coded_clearance_m > 0:
+        # a dot under a coded marker's sticker (with its quiet zone) cannot be seen: drop it
+        d = np.linalg.norm(xyz[:, None] - xyz[None, coded_idx], axis=2).min(axis=1)
+        keep = (kind == "coded") | (d >= coded_clearance_m)
+        xyz, normals, kind, code = xyz[keep], normals[keep], kind[keep], code[keep]
+        n = int(keep.sum())
     ids = [f"C{code[i]}" if kind[i] == "coded" else f"T{i:04d}" for i in range(n)]
     return Targets(ids=ids, xyz=xyz, normals=normals, kind=kind.astype(str), tolerance_m=np.full(n, np.nan), code=code)
 
@@ -425,13 +453,15 @@ def load_part(
         source = str(targets_csv)
     elif n_targets:
         clearance = max(target_diameter_m, coded_size_m * 0.75 if n_coded else 0.0)
+        reach = coded_size_m * (0.5 + 1 / 6) * np.sqrt(2) + target_diameter_m / 2
         targets = sample_targets(
-            mesh, int(n_targets), np.random.default_rng(seed), n_coded=n_coded, edge_clearance_m=clearance
+            mesh, int(n_targets), np.random.default_rng(seed), n_coded=n_coded, edge_clearance_m=clearance,
+            coded_clearance_m=reach * 1.05 if n_coded else 0.0,
         )
         source = f"{n_targets} targets sampled with seed {seed}"
     else:
         raise PartError(f"{mesh_path}: give a targets file or a number of targets to sample")
-    check_targets(mesh, targets, source)
+    check_targets(mesh, targets, source, target_diameter_m=target_diameter_m, coded_size_m=coded_size_m)
     return Part(
         name=name or Path(mesh_path).stem,
         mesh=mesh,

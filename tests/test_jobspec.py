@@ -41,7 +41,7 @@ def test_example_job_loads_in_si_units():
     assert 100 <= len(job.part.targets) <= 300
     assert np.count_nonzero(np.linalg.norm(job.deviations, axis=1)) == 6
     assert job.tolerance_m.min() == pytest.approx(2.5e-4)
-    assert job.scale_bar is not None and job.scale_bar[2] == pytest.approx(0.3493128)
+    assert job.scale_bar is not None and job.scale_bar[2] == pytest.approx(0.3573936)
 
 
 @pytest.mark.parametrize("old,new,message", [
@@ -67,7 +67,7 @@ def test_not_toml(job_dir):
 
 
 def test_scale_bar_naming_an_unknown_target(job_dir):
-    p = _edit(job_dir, 'a = "T0128"', 'a = "C99"')
+    p = _edit(job_dir, 'a = "T0094"', 'a = "C99"')
     with pytest.raises(JobSpecError, match="C99"):
         load(p)
 

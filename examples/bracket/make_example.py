@@ -23,15 +23,18 @@ def _measurable(mesh, targets):
     (as an engineer places targets where the cell can see them)."""
     from dataclasses import replace
 
-    from cell.load import load
+    from cell.jobspec import load_job
+    from cell.load import LoadedJob
     from cell.setup import collision_world, planner_options, robot_model
     from planning.part import Part
     from planning.reachability import ReachabilityDB
     from planning.visibility import VisibilityDB
 
-    job = load(HERE / "job.toml")
-    part = Part("bracket", mesh, targets, job.part.target_diameter_m, job.part.coded_size_m)
-    job.part = part
+    spec, folder = load_job(HERE / "job.toml")  # the cell and camera of the example (not its targets)
+    k = spec.scale
+    part = Part("bracket", mesh, targets, spec.job.target_diameter * k, spec.job.coded_size * k)
+    job = LoadedJob(spec, HERE / "job.toml", folder, part, spec.intrinsics(), np.zeros((len(targets), 3)),
+                    np.full(len(targets), spec.report.tolerance * k), None)
     o = planner_options(job)
     sphere = replace(o.sphere, max_roll_rad=0.0, max_offset_m=0.0)
     vis = replace(o.visibility, incidence_max_rad=o.incidence_max_rad)
@@ -49,7 +52,8 @@ def _measurable(mesh, targets):
 def main() -> None:
     mesh = make_bracket()
     rng = np.random.default_rng(20261121)
-    targets = sample_targets(mesh, 230, rng, n_coded=8, edge_clearance_m=0.012, min_normal_z=-0.5)
+    targets = sample_targets(mesh, 250, rng, n_coded=8, edge_clearance_m=0.012, min_normal_z=-0.5,
+                             coded_clearance_m=0.02 * (0.5 + 1 / 6) * np.sqrt(2) + 0.0025 + 0.001)
     targets = _measurable(mesh, targets).subset(np.arange(200))
     mm = mesh.copy()
     mm.apply_scale(1000.0)
