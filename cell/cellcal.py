@@ -24,7 +24,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from calibration.camera import Intrinsics, invert, project, project_with_jacobians
+from calibration.camera import Intrinsics, invert, make_pose, project, project_with_jacobians
 from calibration.errors import CalibrationError, InputError, ReachabilityError
 from calibration.faugeras_toscani import faugeras_toscani
 from calibration.handeye import (HandEyeOptions, compare_methods, hand_eye_information, mean_pose, pose_error,
@@ -511,51 +511,248 @@ def calibration_status(archive_root: Path, cell_name_or_file, now) -> dict:
 
 
 # --- part placement from a quick first image set -------------------------------------------------------------
+#
+# The dots can only be named once the placement is known to a few pixels, so the placement is
+# found first from what names itself: the coded markers. Each marker gives its four corners (one
+# marker already fixes an image's pose; the bracket shows two or three of its five per overview
+# image, fewer than the four marker centres a centre-only PnP needs), the corners of all images are
+# adjusted together with the hand-eye held fixed, and only then are the dots named (by projecting
+# them with that placement, among the targets in view from it) and the placement adjusted on them.
+
+#: OpenCV's sub-pixel marker corners on these images: biased by 0.1-0.3 px.
+PLACEMENT_CORNER_SIGMA_PX = 0.3
+#: Largest distance between a dot and its prediction from the placement of the coded markers.
+PLACEMENT_MATCH_PX = 12.0
+#: A marker whose corners miss the joint placement by more (rms) is not where its code says.
+PLACEMENT_MARKER_RMS_PX = 3.0
 
 
 def estimate_part_placement(job: LoadedJob, devices, out, *, n_images: int = 4) -> tuple[np.ndarray, dict]:
     """``base_from_part`` (4, 4) from a few images of the part, with the job's hand-eye held fixed.
 
-    Stations look at the nominal part centre from ``n_images`` azimuths (wide enough for a
-    placement off by centimetres); each image's pose comes from the coded targets (PnP), the dots
-    are then identified and the placement adjusted on all of them (:func:`refine_hand_eye` with X fixed).
+    Stations look at the nominal part from ``n_images`` azimuths, chosen among the reachable ones
+    that see at least two coded markers. The placement comes first from the markers' corners
+    (:func:`_placement_from_codes`), then the dots are identified with it and the placement is
+    adjusted on every dot of every image (:func:`refine_hand_eye` with X fixed, Huber loss and
+    rejection); dots are named a second time with the adjusted placement.
+
+    Returns ``(base_from_part, summary)``; the summary has ``cov`` (6, 6) of ``xi = (omega, tau)``
+    with ``true = Exp(xi) @ base_from_part`` (base frame, rad and m), ``sigma_translation_m`` (3,)
+    of the part origin and ``sigma_rotation_rad`` (3,) about the base axes, ``coded`` (the marker
+    stage) and the figures of the adjustment.
     """
     P, joints = _placement_stations(job, n_images)
     X, Y0 = job.spec.flange_from_cam(), job.spec.base_from_part()
     intr = job.intrinsics
-    occluder = Occluder(job.part.mesh)
-    B, img_idx, tgt_idx, uvs, Ys = [], [], [], [], []
+    B, images = [], []
     for i, q in enumerate(joints):
-        out.progress("placement", i / len(joints))
+        out.progress("placement", i / (len(joints) + 1))
         img, bff = _capture(devices, q, job.spec.cell)
-        tid, uv, pose = measure_image(img, job.part, intr, invert(X) @ invert(bff) @ Y0, occluder)
-        if len(tid) < 6:
-            continue
+        images.append(img)
         B.append(bff)
-        Ys.append(bff @ X @ pose)
-        img_idx.append(np.full(len(tid), len(B) - 1))
-        tgt_idx.append(tid)
-        uvs.append(uv)
+    B = np.array(B)
+    markers = [_coded_markers(job, img) for img in images]
+    Y, coded = _placement_from_codes(job, B, markers)
+    occluder = Occluder(job.part.mesh)
+    dots = [_free_dots(img, m[2]) for img, m in zip(images, markers)]
+    for _pass in range(2):
+        img_idx, tgt_idx, uvs = [], [], []
+        for i, (b, d) in enumerate(zip(B, dots)):
+            tid, uv = _identify_dots(job, d, invert(X) @ invert(b) @ Y, occluder)
+            img_idx.append(np.full(len(tid), i))
+            tgt_idx.append(tid)
+            uvs.append(uv)
+        tgt = np.concatenate(tgt_idx)
+        if len(tgt) < 12:
+            raise CalibrationError(f"part placement: only {len(tgt)} dots identified in {len(B)} images (12 needed); "
+                                   "check the light and that the part's targets file matches the part")
+        res = refine_hand_eye(intr, B, np.concatenate(img_idx), job.part.targets.xyz[tgt], np.concatenate(uvs), X, Y,
+                              HandEyeOptions(sigma_px=job.spec.camera.sigma_px, fix_flange_from_cam=True))
+        Y = res.base_from_target
     out.progress("placement", 1.0)
-    if len(B) < 2:
-        raise CalibrationError(f"part placement: only {len(B)} image(s) identified the part (need 2): check that "
-                               "base_from_part is within a few centimetres and the coded targets are visible")
-    tgt = np.concatenate(tgt_idx)
-    res = refine_hand_eye(intr, np.array(B), np.concatenate(img_idx), job.part.targets.xyz[tgt], np.concatenate(uvs),
-                          X, mean_pose(np.array(Ys)),
-                          HandEyeOptions(sigma_px=job.spec.camera.sigma_px, fix_flange_from_cam=True))
-    Y = res.base_from_target
+    cov = res.cov[6:, 6:]
+    J_origin = np.hstack([-_skew3(Y[:3, 3]), np.eye(3)])  # d(origin) = omega x origin + tau
+    sig_t = np.sqrt(np.clip(np.diag(J_origin @ cov @ J_origin.T), 0.0, None))
+    sig_r = np.sqrt(np.clip(np.diag(cov[:3, :3]), 0.0, None))
     dt, dr = pose_error(Y, Y0)
-    sig_t = float(np.sqrt(np.trace(res.cov[9:, 9:])))
-    summary = {"base_from_part": Y, "images": len(B), "n_observations": int(len(tgt)), "sigma0_px": res.sigma0_px,
-               "sigma_translation_m": sig_t, "change_from_nominal_m": dt, "change_from_nominal_rad": dr}
-    out.say(f"placement: {len(B)} images, {len(tgt)} dots; part is {dt * 1e3:.2f} mm, {np.rad2deg(dr):.3f} deg from "
-            f"the job's base_from_part (+- {sig_t * 1e6:.1f} um)")
+    dt1, dr1 = pose_error(coded["base_from_part"], Y)
+    summary = {"base_from_part": Y, "cov": cov, "sigma_translation_m": sig_t, "sigma_rotation_rad": sig_r,
+               "images": int(len(B)), "n_observations": int(len(tgt)), "n_rejected": int(res.rejected.sum()),
+               "sigma0_px": res.sigma0_px, "per_image_rms_px": res.per_image_rms_px,
+               "change_from_nominal_m": dt, "change_from_nominal_rad": dr,
+               "coded": coded | {"error_m": dt1, "error_rad": dr1}, "stations_part_from_cam": P}
+    out.say(f"placement: {len(B)} images, {coded['n_markers']} marker views, {len(tgt)} dots "
+            f"({summary['n_rejected']} rejected), sigma0 {res.sigma0_px:.3f} px; the part is {dt * 1e3:.2f} mm, "
+            f"{np.rad2deg(dr):.3f} deg from the job's base_from_part (+- {np.linalg.norm(sig_t) * 1e6:.1f} um, "
+            f"{np.rad2deg(np.linalg.norm(sig_r)) * 3600:.1f} arcsec)")
     return Y, summary
 
 
+def _skew3(v: np.ndarray) -> np.ndarray:
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def _coded_markers(job: LoadedJob, img: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The part's markers in one image: ``(target index (k,), corners uv (k, 4, 2), every marker's corners)``.
+
+    A code that is not the part's, or that appears twice in the image, names nothing; every
+    detected marker's square still masks the dots inside it.
+    """
+    t = job.part.targets
+    code_to_index = {int(c): i for i, c in enumerate(t.code) if c >= 0}
+    codes, corners, _ = detect_coded_targets(img)
+    codes = np.asarray(codes, dtype=int)
+    once = {int(c) for c, n in zip(*np.unique(codes, return_counts=True)) if n == 1}
+    keep = [j for j, c in enumerate(codes) if int(c) in code_to_index and int(c) in once]
+    idx = np.array([code_to_index[int(codes[j])] for j in keep], dtype=int)
+    return idx, corners[keep].reshape(-1, 4, 2), corners.reshape(-1, 4, 2)
+
+
+def _marker_corners_part(job: LoadedJob, idx: np.ndarray) -> np.ndarray:
+    """Corners (k, 4, 3) of the markers of targets ``idx`` in the part frame, in OpenCV's ArUco order."""
+    from sim_backend.world import marker_corners
+
+    t = job.part.targets
+    return marker_corners(t.xyz[idx], t.normals[idx], float(job.part.coded_size_m))
+
+
+def _pnp_corners(intr: Intrinsics, xyz: np.ndarray, uv: np.ndarray, approx: np.ndarray) -> tuple[np.ndarray, float]:
+    """``cam_from_part`` (4, 4) from marker corners ``xyz: (q, 3)`` seen at ``uv: (q, 2)``, and its rms (px).
+
+    Candidates: Levenberg-Marquardt from ``approx``, and a global solution (IPPE's two for one
+    marker's four coplanar corners, SQPnP otherwise), each polished by Levenberg-Marquardt. The
+    smallest reprojection error wins; near-ties (the planar ambiguity) go to the one closest to ``approx``.
+    """
+    xyz = np.ascontiguousarray(xyz, dtype=np.float64)
+    uv = np.ascontiguousarray(uv, dtype=np.float64)
+    K, dist = intr.K, intr.dist_coeffs
+    starts = [(cv2.Rodrigues(np.asarray(approx[:3, :3], dtype=float))[0], approx[:3, 3].reshape(3, 1).copy())]
+    try:
+        flag = cv2.SOLVEPNP_IPPE if len(xyz) == 4 else cv2.SOLVEPNP_SQPNP
+        _, rv, tv, _ = cv2.solvePnPGeneric(xyz, uv, K, dist, flags=flag)
+        starts += list(zip(rv, tv))
+    except cv2.error:
+        pass
+    cands = []
+    for r0, t0 in starts:
+        ok, r, tt = cv2.solvePnP(xyz, uv, K, dist, np.array(r0, dtype=float).reshape(3, 1).copy(),
+                                 np.array(t0, dtype=float).reshape(3, 1).copy(), useExtrinsicGuess=True,
+                                 flags=cv2.SOLVEPNP_ITERATIVE)
+        if not ok:
+            continue
+        T = make_pose(cv2.Rodrigues(r)[0], tt.ravel())
+        if np.any(xyz @ T[2, :3] + T[2, 3] <= 0):
+            continue
+        rms = float(np.sqrt(np.mean(np.sum((project(intr, T, xyz) - uv) ** 2, axis=1))))
+        cands.append((rms, pose_error(T, approx)[1], T))
+    if not cands:
+        raise CalibrationError("part placement: no pose of the camera fits the coded markers' corners")
+    best = min(c[0] for c in cands)
+    rms, _, T = min((c for c in cands if c[0] <= 2.0 * best + 0.5), key=lambda c: c[1])
+    return T, rms
+
+
+def _placement_from_codes(job: LoadedJob, B: np.ndarray, markers: list) -> tuple[np.ndarray, dict]:
+    """``base_from_part`` from the coded markers' corners in every image, with the hand-eye held fixed.
+
+    Per image: PnP on the corners -> ``B_i X A_i``; start from the image that agrees best with the
+    others; then one adjustment on all the corners of all the images. A marker whose corners miss
+    the result by more than ``PLACEMENT_MARKER_RMS_PX`` (its code is on another target than the
+    targets file says, or the marker moved) is dropped and the adjustment repeated.
+    """
+    X, Y0 = job.spec.flange_from_cam(), job.spec.base_from_part()
+    intr = job.intrinsics
+    ids = job.part.targets.ids
+    obs = [(i, int(t), uv) for i, (idx, corners, _) in enumerate(markers) for t, uv in zip(idx, corners)]
+    dropped = []
+    for _round in range(3):
+        by_image = {}
+        for i, t, uv in obs:
+            by_image.setdefault(i, []).append((t, uv))
+        Ys = []
+        for i, ms in by_image.items():
+            xyz = _marker_corners_part(job, np.array([m[0] for m in ms])).reshape(-1, 3)
+            uv = np.array([m[1] for m in ms]).reshape(-1, 2)
+            A, rms = _pnp_corners(intr, xyz, uv, invert(X) @ invert(B[i]) @ Y0)
+            if rms < PLACEMENT_MARKER_RMS_PX:
+                Ys.append(B[i] @ X @ A)
+        if len(obs) < 2 or not Ys:
+            raise CalibrationError(f"part placement: {len(obs)} usable view(s) of the part's coded markers in "
+                                   f"{len(B)} images (2 needed); check that the markers are on the part and lit, and "
+                                   "that base_from_part is within a few centimetres")
+        Ys = np.array(Ys)
+        r = job.part.radius
+        spread = np.array([[sum(pose_error(a, b) * np.array([1.0, r])) for b in Ys] for a in Ys])
+        start = Ys[int(np.argmin(np.median(spread, axis=1)))]
+        img = np.repeat([o[0] for o in obs], 4)
+        xyz = _marker_corners_part(job, np.array([o[1] for o in obs])).reshape(-1, 3)
+        uv = np.array([o[2] for o in obs]).reshape(-1, 2)
+        res = refine_hand_eye(intr, B, img, xyz, uv, X, start,
+                              HandEyeOptions(sigma_px=PLACEMENT_CORNER_SIGMA_PX, fix_flange_from_cam=True))
+        Y = res.base_from_target
+        per_marker = np.sqrt(np.mean(np.sum(res.residuals.reshape(-1, 4, 2) ** 2, axis=2), axis=1))
+        bad = per_marker > PLACEMENT_MARKER_RMS_PX
+        if not bad.any():
+            break
+        dropped += [{"image": int(o[0]), "target": ids[o[1]], "code": int(job.part.targets.code[o[1]]),
+                     "rms_px": float(e)} for o, e, b in zip(obs, per_marker, bad) if b]
+        obs = [o for o, b in zip(obs, bad) if not b]
+    else:
+        raise CalibrationError("part placement: the coded markers disagree about where the part is; check the code "
+                               "column of the targets file against the markers on the part")
+    return Y, {"base_from_part": Y, "n_markers": len(obs), "images": len({o[0] for o in obs}),
+               "sigma0_px": res.sigma0_px, "max_marker_rms_px": float(per_marker.max()), "dropped": dropped}
+
+
+def _free_dots(img: np.ndarray, all_corners: np.ndarray) -> np.ndarray:
+    """Dot centres (k, 2) outside every detected marker's square (grown by a third)."""
+    from cell.stages import _inside_any
+
+    det = detect_retro_targets(img, DetectionOptions())
+    if len(all_corners) == 0:
+        return det.uv
+    return det.uv[~_inside_any(det.uv, all_corners, grow=1.33)]
+
+
+def _identify_dots(job: LoadedJob, det_uv: np.ndarray, cam_from_part: np.ndarray,
+                   occluder: Occluder) -> tuple[np.ndarray, np.ndarray]:
+    """Name the dots ``det_uv: (k, 2)`` with the pose ``cam_from_part``; ``(target index (m,), uv (m, 2))``.
+
+    Only dots in view from that pose are offered to the matcher (a hidden dot would steal a visible
+    neighbour's detection); dots seen more obliquely than the job's ``incidence_max_deg`` (their
+    centres are biased by up to 0.3 px on grazing views) and dots whose rim an edge of the part clips
+    are not measured; the centres are corrected for the eccentricity of the dot's ellipse.
+    """
+    from cell.stages import _rim_clear
+    from planning.visibility import VisibilityOptions
+
+    t = job.part.targets
+    intr = job.intrinsics
+    seeable = VisibilityOptions(margin_px=0.0, incidence_max_rad=np.deg2rad(85.0), min_target_px=1.0)
+    in_view = compute_visibility(job.part, intr, invert(cam_from_part)[None], seeable, occluder=occluder)[0]
+    cand = np.flatnonzero(in_view & (t.code < 0))
+    sub = identify_targets(det_uv, t.xyz[cand], t.code[cand], intr, cam_from_part, PLACEMENT_MATCH_PX)
+    ok = sub >= 0
+    tid, uv = cand[sub[ok]], det_uv[ok]
+    radius = job.part.target_diameter_m / 2
+    eye = invert(cam_from_part)[:3, 3]
+    sight = eye - t.xyz[tid]
+    cos_inc = np.sum(sight * t.normals[tid], axis=1) / np.linalg.norm(sight, axis=1)
+    steep = cos_inc >= np.cos(np.deg2rad(job.spec.planning.incidence_max_deg))
+    clear = _rim_clear(occluder, t.xyz[tid], t.normals[tid], radius, eye)
+    tid, uv = tid[clear & steep], uv[clear & steep]
+    return tid, uv - eccentricity_bias(intr, cam_from_part, t.xyz[tid], t.normals[tid], radius)
+
+
 def _placement_stations(job: LoadedJob, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Overview stations around the nominal part, ``(part_from_cam (n, 4, 4), joints (n, 6))`` in visiting order.
+
+    A grid of 24 (two elevations, 12 azimuths, mid depth of field); among the reachable ones that
+    see at least two coded markers with a wide margin (the part may be centimetres off), ``n``
+    spread in azimuth.
+    """
     from planning.reachability import ReachabilityDB
+    from planning.visibility import VisibilityOptions
 
     from cell.setup import collision_world, robot_model
 
@@ -568,11 +765,17 @@ def _placement_stations(job: LoadedJob, n: int) -> tuple[np.ndarray, np.ndarray]
     P = sphere.poses(genes)
     reach = ReachabilityDB.load_or_build(robot_model(job), job.spec.base_from_part(), job.spec.flange_from_cam(), P,
                                          collision_world(job))
-    ok = np.flatnonzero(reach.reachable)
+    coded = job.part.targets.kind == "coded"
+    vis = compute_visibility(job.part, job.intrinsics, P, VisibilityOptions(
+        margin_px=150.0, near_m=near, far_m=far, incidence_max_rad=np.deg2rad(60.0)))
+    n_codes = (vis & coded).sum(axis=1)
+    ok = np.flatnonzero(reach.reachable & (n_codes >= 2))
     if len(ok) < n:
-        raise ReachabilityError(f"part placement: only {len(ok)} of {len(P)} overview stations are reachable; "
-                                "move the part closer to the robot")
-    # spread in azimuth: every len(ok)/n-th reachable station
+        ok = np.flatnonzero(reach.reachable & (n_codes >= 1))
+    if len(ok) < n:
+        raise ReachabilityError(f"part placement: only {len(ok)} of {len(P)} overview stations are reachable and see "
+                                f"a coded marker ({n} needed); move the part closer to the robot or add coded markers")
+    # spread in azimuth: every len(ok)/n-th usable station
     pick = ok[np.round(np.linspace(0, len(ok) - 1, n)).astype(int)]
     order, ep = _order(job, P[pick], [f"placement-{i}" for i in range(n)])
     return P[pick][order], ep.joints[order]

@@ -92,6 +92,14 @@ def cmd_archive(args, out: Output) -> int:
     return archive(args, out)
 
 
+def cmd_locate(args, out: Output) -> int:
+    from cell.locate import locate_part
+
+    doc = locate_part(args.job, out, write=args.write)
+    out.result(doc)
+    return 0
+
+
 def cmd_calibrate(args, out: Output) -> int:
     from cell.commands import calibrate
 
@@ -127,6 +135,11 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--archive", type=Path, default=Path("archive"))
     c.add_argument("--yes", action="store_true", help="confirm resuming from the measured robot pose")
     c.set_defaults(func=cmd_resume)
+
+    c = sub.add_parser("locate", parents=[common], help="estimate where the part sits (base_from_part) from a few images")
+    c.add_argument("job", type=Path)
+    c.add_argument("--write", action="store_true", help="write the estimate into the job file's base_from_part")
+    c.set_defaults(func=cmd_locate)
 
     c = sub.add_parser("calibrate", parents=[common], help="calibrate the cell: hand-eye, or reverify with a scale bar")
     c.add_argument("what", choices=["hand-eye", "reverify"])

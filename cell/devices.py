@@ -71,7 +71,7 @@ def open_devices(job: LoadedJob, backend: str, *, seed_offset: int = 0) -> Devic
         limits = CellLimits(max_joint_speed_rad_s=s.cell.max_joint_speed_rad_s,
                             max_joint_accel_rad_s2=s.cell.max_joint_accel_rad_s2,
                             max_tcp_speed_m_s=s.cell.max_tcp_speed_m_s, max_tcp_accel_m_s2=s.cell.max_tcp_accel_m_s2)
-        robot = URRobot(s.cell.host, limits=limits)
+        robot = URRobot(s.cell.host, limits=limits, robot=s.cell.robot)
         if s.camera.device is not None:
             from drivers.opencv_camera import OpenCVCamera
 

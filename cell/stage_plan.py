@@ -40,8 +40,11 @@ def make_plan(job: LoadedJob, progress=None, cache_dir: Path | None = None) -> t
     useful = db.visible.any(axis=1)
     if n_ok == 0 or not (reachable & useful).any():
         reasons = {}
+        import re
+
         for r in reach.result.reason[~reachable]:
-            reasons[str(r).split(":")[0]] = reasons.get(str(r).split(":")[0], 0) + 1
+            kind = re.split(r"[:(]|\s\d", str(r))[0].strip()  # "out of reach 3.400 m > ..." -> "out of reach"
+            reasons[kind] = reasons.get(kind, 0) + 1
         top = ", ".join(f"{v} {k}" for k, v in sorted(reasons.items(), key=lambda kv: -kv[1])[:3])
         bfp = job.spec.base_from_part()[:3, 3]
         raise ReachabilityError(

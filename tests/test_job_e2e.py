@@ -199,6 +199,19 @@ def _replace(path: Path, old: str, new: str) -> None:
     path.write_text(text.replace(old, new))
 
 
+def _lift_first_retro_target(path: Path, by: float) -> None:
+    """Move the first retro target ``by`` job units along its normal: off the part's surface."""
+    lines = path.read_text().splitlines()
+    for k, line in enumerate(lines[1:], start=1):
+        row = line.split(",")
+        if row[7] == "retro":
+            xyz = np.array(row[1:4], dtype=float) + by * np.array(row[4:7], dtype=float)
+            row[1:4] = [f"{v:.4f}" for v in xyz]
+            lines[k] = ",".join(row)
+            break
+    path.write_text("\n".join(lines) + "\n")
+
+
 BAD_JOBS = {
     # name: (job-file changes, edit of the copied files, text the error line must name)
     "unknown_key": ({"job": {"colour": "red"}}, None, ("job.toml", "colour")),
@@ -207,8 +220,7 @@ BAD_JOBS = {
     "toml_syntax": (None, lambda d: _replace(d / "job.toml", "seed = 7", "seed = = 7"), ("job.toml", "TOML")),
     "missing_mesh": ({"job": {"mesh": "nothere.stl"}}, None, ("nothere.stl", "not found")),
     "truncated_mesh": (None, lambda d: _truncate(d / "bracket.stl"), ("bracket.stl", "truncated")),
-    "target_off_surface": (None, lambda d: _replace(d / "targets.csv", "T0004,85.8516,100.0000,",
-                                                    "T0004,85.8516,150.0000,"), ("targets.csv", "T0004")),
+    "target_off_surface": (None, lambda d: _lift_first_retro_target(d / "targets.csv", 50.0), ("targets.csv", "off")),
     "unknown_deviation_target": (None, lambda d: (d / "deviations.csv").write_text("id,dx,dy,dz\nT9999,0,0,0.1\n"),
                                  ("deviations.csv", "T9999")),
     "part_out_of_reach": ({"cell": {"base_from_part": {"xyz": [3000.0, 0.0, 0.0], "rpy_deg": [0.0, 0.0, 90.0]}}},
