@@ -66,11 +66,19 @@ def open_devices(job: LoadedJob, backend: str, *, seed_offset: int = 0) -> Devic
         sim = make_job_sim_cell(job)
         d = Devices(robot=sim.robot, camera=sim.camera, light=sim.light, world=sim.world)
     elif backend == "ur":
+        from cell.setup import robot_model
         from drivers.ur import CellLimits, URRobot
 
+        k = s.scale
+        reach = robot_model(job).params.reach_m
+        box_lo = (np.asarray(s.cell.workspace_min) * k if s.cell.workspace_min is not None
+                  else np.array([-reach, -reach, s.cell.table_z * k]))
+        box_hi = (np.asarray(s.cell.workspace_max) * k if s.cell.workspace_max is not None
+                  else np.array([reach, reach, reach + 0.2]))
         limits = CellLimits(max_joint_speed_rad_s=s.cell.max_joint_speed_rad_s,
                             max_joint_accel_rad_s2=s.cell.max_joint_accel_rad_s2,
-                            max_tcp_speed_m_s=s.cell.max_tcp_speed_m_s, max_tcp_accel_m_s2=s.cell.max_tcp_accel_m_s2)
+                            max_tcp_speed_m_s=s.cell.max_tcp_speed_m_s, max_tcp_accel_m_s2=s.cell.max_tcp_accel_m_s2,
+                            workspace_min_m=tuple(map(float, box_lo)), workspace_max_m=tuple(map(float, box_hi)))
         robot = URRobot(s.cell.host, limits=limits, robot=s.cell.robot)
         if s.camera.device is not None:
             from drivers.opencv_camera import OpenCVCamera

@@ -121,6 +121,8 @@ class CellSection(_Strict):
     max_tcp_speed_m_s: float = Field(default=0.25, gt=0, le=1.0)
     max_tcp_accel_m_s2: float = Field(default=1.0, gt=0, le=10)
     settle_s: float = Field(default=0.2, ge=0)
+    workspace_min: tuple[float, float, float] | None = Field(default=None, description="flange box, base frame, job units")
+    workspace_max: tuple[float, float, float] | None = Field(default=None, description="default: the robot's reach")
     elbow_limit_deg: float = Field(default=180.0, gt=0, le=360)
 
 

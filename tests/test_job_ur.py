@@ -98,7 +98,7 @@ def test_protective_stop_mid_job_faults_with_cause_and_resume_after_unlock_compl
     # the operator unlocks on the pendant and confirms: the job completes
     assert controller.unlock_protective_stop()
     r = run_cell("resume", folder.name, "--archive", str(archive), "--yes", timeout=300)
-    assert r.code == 0 and r.doc["status"] == "DONE", r.stderr[-2000:]
+    assert r.code == 0 and r.doc["status"] == "DONE", (r.doc, r.stderr[-2000:])
     done = _done(folder)
     plan = json.loads((folder / "plan.json").read_text())
     assert sorted(d["station"] for d in done) == sorted(s["id"] for s in plan["stations"])  # each exactly once

@@ -162,14 +162,14 @@ def run(out: Path, quick: bool = False, seed: int = 0, write_docs: bool = True) 
     intr = pulnix_tm9701()
     part = make_part(50 if quick else 120)
     n = len(part.targets)
-    n_planned = 12 if quick else 29
+    n_planned = 16 if quick else 29
     sphere = _sphere(part, intr)
     robot, cworld = _robot_and_world(part)
     vis_opts = VisibilityOptions(margin_px=8.0, incidence_max_rad=math.radians(60.0), min_target_px=3.0)
     options = PlannerOptions(n_stations=n_planned, min_rays=3, incidence_max_rad=math.radians(60.0), sigma_px=SIGMA_PX,
                              criterion="worst", visibility=vis_opts, sphere=sphere,
                              n_candidates=400 if quick else 1500, n_shells=2,
-                             population=30 if quick else 80, generations=20 if quick else 150,
+                             population=40 if quick else 80, generations=40 if quick else 150,
                              allow_unmeasurable=True)
     # planning from a cold cache: visibility database, reachability database, evolutionary search
     with tempfile.TemporaryDirectory() as cache:
