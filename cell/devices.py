@@ -40,7 +40,9 @@ def _true_poses(job: LoadedJob) -> tuple[np.ndarray, np.ndarray]:
     k = s.scale
     true_bfp = s.base_from_part()
     true_ffc = s.flange_from_cam()
-    if s.sim.base_from_part_error is not None:
+    if s.sim.base_from_part_true is not None:
+        true_bfp = pose_matrix(s.sim.base_from_part_true, k)
+    elif s.sim.base_from_part_error is not None:
         true_bfp = true_bfp @ pose_matrix(s.sim.base_from_part_error, k)
     if s.sim.flange_from_cam_error is not None:
         true_ffc = true_ffc @ pose_matrix(s.sim.flange_from_cam_error, k)

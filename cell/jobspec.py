@@ -158,6 +158,8 @@ class SimSection(_Strict):
     noise: float = Field(default=1.0, ge=0, description="sensor noise scale (1 = nominal)")
     base_from_part_error: Pose | None = Field(default=None, description="true placement minus nominal (tests)")
     flange_from_cam_error: Pose | None = None
+    base_from_part_true: Pose | None = Field(default=None, description="absolute true placement (wins over _error); "
+                                             "stays put when `cell locate --write` updates [cell] base_from_part")
 
 
 class JobSpec(_Strict):
