@@ -227,7 +227,7 @@ def run(out: Path, quick: bool = False, seed: int = 0, image_sigma_px: float = 0
     (out / "results.json").write_text(json.dumps(clean, indent=1))
     if write_docs:
         (out / "README.md").write_text(readme(clean))
-    print(f"runtime {clean['runtime_s']:.1f} s; wrote {out / 'results.json'}")
+    print(f"runtime {clean['runtime_s']:.1f} s; wrote {(out / 'results.json').name} in {out.name}/")
     return results
 
 

@@ -280,7 +280,7 @@ def run(out: Path, quick: bool = False, seed: int = 0, write_docs: bool = True) 
     (out / "results.json").write_text(json.dumps(results, indent=1))
     if write_docs:
         (out / "README.md").write_text(readme(results))
-    print(f"runtime {results['runtime_s']:.1f} s; wrote {out / 'results.json'}")
+    print(f"runtime {results['runtime_s']:.1f} s; wrote {(out / 'results.json').name} in {out.name}/")
     results["_covs"] = covs
     return results
 
