@@ -29,8 +29,8 @@ from calibration.errors import CalibrationError, InputError, ReachabilityError
 from calibration.faugeras_toscani import faugeras_toscani
 from calibration.handeye import (HandEyeOptions, compare_methods, hand_eye_information, pose_error,
                                  refine_hand_eye, reprojection_jacobian, select_stations)
-from calibration.targets import (DetectionOptions, detect_coded_targets, detect_retro_targets, eccentricity_bias,
-                                 identify_targets, refine_pose_pnp)
+from calibration.targets import DetectionOptions, detect_coded_targets, detect_retro_targets, refine_pose_pnp
+from cell import imaging
 from cell.cellfile import CellFile, load_cell_file, pose_from_matrix, write_flange_from_cam
 from cell.jobfolder import JobFolder, atomic_write_bytes, atomic_write_json, new_job_id, utc_now
 from cell.jobspec import CellSection, JobSection, JobSpec, Pose, ReportSection, SimSection, pose_matrix, resolve
@@ -167,32 +167,18 @@ def _greedy_points(intr: Intrinsics, P: np.ndarray, xyz: np.ndarray, k: int, usa
 # --- one image --------------------------------------------------------------------------------------------
 
 
-def measure_image(img: np.ndarray, part, intr: Intrinsics, cam_from_part_approx: np.ndarray, occluder: Occluder,
-                  eye_part: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def measure_image(img: np.ndarray, part, intr: Intrinsics, cam_from_part_approx: np.ndarray,
+                  occluder: Occluder) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Dots measured in one image: ``(target index (k,), uv (k, 2) eccentricity-corrected, cam_from_part used)``.
 
-    The coded targets identify the image (and refine the approximate pose by PnP); only the dots
-    are measured (OpenCV's marker corners are biased by 0.1-0.3 px on these images).
+    :func:`cell.imaging.measure_image` from the approximate pose; with six dots or more the pose is
+    refined by PnP on them and the dots are named and measured again from it.
     """
-    from cell.stages import _inside_any, _rim_clear
-
-    t = part.targets
-    code_to_index = {int(c): i for i, c in enumerate(t.code) if c >= 0}
-    codes, corners, centres = detect_coded_targets(img)
-    known = np.array([c in code_to_index for c in codes], dtype=bool)
-    pose = np.asarray(cam_from_part_approx, dtype=float)
-    det = detect_retro_targets(img, DetectionOptions())
-    keep = ~_inside_any(det.uv, corners[known], grow=1.33) if known.any() else np.ones(len(det.uv), dtype=bool)
-    det_uv = det.uv[keep]
-    match = identify_targets(det_uv, t.xyz, t.code, intr, pose, 25.0, coded_ids=codes[known], coded_uv=centres[known])
-    dots = np.flatnonzero((match >= 0) & (t.code[np.maximum(match, 0)] < 0))
-    if len(dots) >= 6:
-        pose = refine_pose_pnp(intr, pose, t.xyz[match[dots]], det_uv[dots])
-    eye = invert(pose)[:3, 3] if eye_part is None else eye_part
-    clear = _rim_clear(occluder, t.xyz[match[dots]], t.normals[match[dots]], part.target_diameter_m / 2, eye)
-    dots = dots[clear]
-    bias = eccentricity_bias(intr, pose, t.xyz[match[dots]], t.normals[match[dots]], part.target_diameter_m / 2)
-    return match[dots], det_uv[dots] - bias, pose
+    m, _ = imaging.measure_image(img, part, intr, cam_from_part_approx, occluder)
+    if len(m.target) >= 6:
+        pose = refine_pose_pnp(intr, m.cam_from_part, part.targets.xyz[m.target], m.uv)
+        m, _ = imaging.measure_image(img, part, intr, pose, occluder)
+    return m.target, m.uv, m.cam_from_part
 
 
 def _capture(devices, q: np.ndarray, c) -> tuple[np.ndarray, np.ndarray]:
@@ -231,7 +217,7 @@ def _save_image(folder: JobFolder, name: str, img: np.ndarray) -> None:
 
 def run_hand_eye(cell_toml: Path, archive_root: Path, out, *, backend: str | None = None) -> dict:
     """Calibrate ``flange_from_cam``; writes it (and the date) into ``cell_toml``. Returns the summary."""
-    from cell.devices import make_job_sim_cell, open_devices
+    from cell.devices import open_devices
 
     cell_toml = Path(cell_toml)
     cf, folder = load_cell_file(cell_toml)
@@ -752,12 +738,10 @@ def _placement_from_codes(job: LoadedJob, B: np.ndarray, markers: list, dots: li
 
 def _free_dots(img: np.ndarray, all_corners: np.ndarray) -> np.ndarray:
     """Dot centres (k, 2) outside every detected marker's square (grown by a third)."""
-    from cell.stages import _inside_any
-
     det = detect_retro_targets(img, DetectionOptions())
     if len(all_corners) == 0:
         return det.uv
-    return det.uv[~_inside_any(det.uv, all_corners, grow=1.33)]
+    return det.uv[~imaging.inside_any(det.uv, all_corners, grow=imaging.MARKER_GROW)]
 
 
 def _identify_dots(job: LoadedJob, det_uv: np.ndarray, cam_from_part: np.ndarray,
@@ -769,25 +753,12 @@ def _identify_dots(job: LoadedJob, det_uv: np.ndarray, cam_from_part: np.ndarray
     centres are biased by up to 0.3 px on grazing views) and dots whose rim an edge of the part clips
     are not measured; the centres are corrected for the eccentricity of the dot's ellipse.
     """
-    from cell.stages import _rim_clear
-    from planning.visibility import VisibilityOptions
-
     t = job.part.targets
-    intr = job.intrinsics
-    seeable = VisibilityOptions(margin_px=0.0, incidence_max_rad=np.deg2rad(85.0), min_target_px=1.0)
-    in_view = compute_visibility(job.part, intr, invert(cam_from_part)[None], seeable, occluder=occluder)[0]
-    cand = np.flatnonzero(in_view & (t.code < 0))
-    sub = identify_targets(det_uv, t.xyz[cand], t.code[cand], intr, cam_from_part, PLACEMENT_MATCH_PX)
-    ok = sub >= 0
-    tid, uv = cand[sub[ok]], det_uv[ok]
-    radius = job.part.target_diameter_m / 2
-    eye = invert(cam_from_part)[:3, 3]
-    sight = eye - t.xyz[tid]
-    cos_inc = np.sum(sight * t.normals[tid], axis=1) / np.linalg.norm(sight, axis=1)
+    m = imaging.name_dots(det_uv, job.part, job.intrinsics, cam_from_part, occluder, max_dist_px=PLACEMENT_MATCH_PX)
+    sight = invert(cam_from_part)[:3, 3] - t.xyz[m.target]
+    cos_inc = np.sum(sight * t.normals[m.target], axis=1) / np.linalg.norm(sight, axis=1)
     steep = cos_inc >= np.cos(np.deg2rad(job.spec.planning.incidence_max_deg))
-    clear = _rim_clear(occluder, t.xyz[tid], t.normals[tid], radius, eye)
-    tid, uv = tid[clear & steep], uv[clear & steep]
-    return tid, uv - eccentricity_bias(intr, cam_from_part, t.xyz[tid], t.normals[tid], radius)
+    return m.target[steep], m.uv[steep]
 
 
 def _placement_stations(job: LoadedJob, n: int) -> tuple[np.ndarray, np.ndarray]:

@@ -1,5 +1,8 @@
-"""Re-export of the cell's error hierarchy (defined in ``calibration.errors``)."""
-from calibration.errors import *  # noqa: F401,F403
-from calibration.errors import __dict__ as _d
+"""Re-export of the cell's error hierarchy (defined in ``calibration.errors``, docs/decisions/0002)."""
+from calibration.errors import (AbortRequested, CalibrationError, CellError, DriverError, InputError, JobSpecError,
+                                LimitError, MotionError, NotConnectedError, PartError, PlanningError,
+                                ProtectiveStopError, ReachabilityError)
 
-__all__ = [k for k, v in _d.items() if isinstance(v, type) and issubclass(v, BaseException)]
+__all__ = ["AbortRequested", "CalibrationError", "CellError", "DriverError", "InputError", "JobSpecError",
+           "LimitError", "MotionError", "NotConnectedError", "PartError", "PlanningError", "ProtectiveStopError",
+           "ReachabilityError"]

@@ -231,10 +231,7 @@ def load_job(path: str | Path) -> tuple[JobSpec, Path]:
         spec = JobSpec.model_validate(data)
     except ValidationError as err:
         raise JobSpecError(_format_validation_error(path, err)) from None
-    folder = path.resolve().parent
-    if spec.job.scale_bar is not None and spec.job.targets is None:
-        pass  # ids of sampled targets are known only after sampling; checked at LOAD
-    return spec, folder
+    return spec, path.resolve().parent  # scale-bar ids are checked at LOAD, once the targets are known
 
 
 def resolve(folder: Path, rel: str) -> Path:

@@ -14,7 +14,7 @@ import json
 import os
 import time
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Iterator
 
 from mcap.reader import NonSeekingReader
 from mcap.writer import CompressionType, Writer

@@ -1,7 +1,6 @@
 """PLAN and VALIDATE: design the network, then prove the robot can execute it."""
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np

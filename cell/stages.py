@@ -8,7 +8,7 @@ import time
 import cv2
 import numpy as np
 
-from calibration.camera import Intrinsics, invert
+from calibration.camera import invert
 from calibration.errors import CalibrationError, DriverError
 from cell.jobfolder import atomic_write_bytes, atomic_write_json, sha256_file
 
@@ -112,64 +112,20 @@ def acquire(ctx) -> None:
 # --- MEASURE -------------------------------------------------------------------------------
 
 
-def _rim_clear(occluder, xyz: np.ndarray, normals: np.ndarray, radius_m: float, eye: np.ndarray,
-               samples: int = 12, margin: float = 1.3) -> np.ndarray:
-    """Whether the whole rim of each dot (grown by ``margin``) is in view from ``eye``, (n,) bool.
-
-    A dot partly hidden by an edge of the part images as a clipped disc whose centroid is biased
-    by up to its radius; such an observation is dropped, not measured.
-    """
-    n = len(xyz)
-    if n == 0:
-        return np.zeros(0, dtype=bool)
-    a = np.where(np.abs(normals[:, :1]) < 0.9, np.array([[1.0, 0.0, 0.0]]), np.array([[0.0, 1.0, 0.0]]))
-    e1 = np.cross(normals, a)
-    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
-    e2 = np.cross(normals, e1)
-    ang = np.linspace(0, 2 * np.pi, samples, endpoint=False)
-    rim = (xyz[:, None] + margin * radius_m * (np.cos(ang)[None, :, None] * e1[:, None] + np.sin(ang)[None, :, None]
-           * e2[:, None]) + 2e-4 * normals[:, None])
-    hit = occluder.occluded(rim.reshape(-1, 3), np.broadcast_to(eye, (n * samples, 3)))
-    return ~hit.reshape(n, samples).any(axis=1)
-
-
-def _inside_any(uv: np.ndarray, quads: np.ndarray, grow: float = 1.0) -> np.ndarray:
-    """Which points ``uv: (k, 2)`` lie inside any of the quadrilaterals ``quads: (c, 4, 2)``."""
-    inside = np.zeros(len(uv), dtype=bool)
-    for q in quads:
-        c = q.mean(axis=0)
-        poly = ((q - c) * grow + c).astype(np.float32)
-        inside |= np.array([cv2.pointPolygonTest(poly, (float(u), float(v)), False) >= 0 for u, v in uv], dtype=bool)
-    return inside
-
-
 def measure(ctx) -> None:
-    """Detect, centre and identify the targets in every image.
+    """Detect, centre and identify the targets in every image (cell.imaging.measure_image).
 
-    Coded targets name themselves (their centre is the intersection of the marker's
-    diagonals: the exact image of its centre under perspective); dots are named by
-    projecting the nominal targets with the robot's pose and the hand-eye, refined by
-    the coded targets (solvePnP) where at least four are seen.
+    Dots are named by projecting the nominal targets with the robot's pose and the hand-eye, refined
+    by the coded targets (solvePnP) where at least four are seen; coded targets are not measured.
     """
-    from calibration.targets import (DetectionOptions, detect_coded_targets, detect_retro_targets, eccentricity_bias,
-                                     identify_targets)
+    from cell.imaging import measure_image
+    from planning.visibility import Occluder
 
     job = ctx.job
     acq = _read(ctx, "acquisition.json")
-    t = job.part.targets
-    ids_all = t.ids
-    code_to_index = {int(c): i for i, c in enumerate(t.code) if c >= 0}
+    ids_all = job.part.targets.ids
     bfp, ffc = job.spec.base_from_part(), job.spec.flange_from_cam()
-    from planning.visibility import Occluder, VisibilityOptions, compute_visibility
-
-    opts = DetectionOptions()
-    max_dist = 25.0
-    # which targets can be in view at all from the approximate pose: a dot hidden behind the part must
-    # not be offered to the matcher, or it steals the detection of a visible neighbour
-    seeable = VisibilityOptions(margin_px=0.0, incidence_max_rad=np.deg2rad(85.0), min_target_px=1.0)
     occluder = Occluder(job.part.mesh)
-    poses = np.array([invert(bfp) @ np.asarray(im["base_from_flange"], dtype=float) @ ffc for im in acq["images"]])
-    in_view = compute_visibility(job.part, job.intrinsics, poses, seeable, occluder=occluder)
     out = []
     for k, im in enumerate(acq["images"]):
         ctx.progress("measure", k / len(acq["images"]))
@@ -177,41 +133,17 @@ def measure(ctx) -> None:
         if img is None:
             raise CalibrationError(f"{im['image']}: cannot read the image")
         cam_from_part = invert(invert(bfp) @ np.asarray(im["base_from_flange"], dtype=float) @ ffc)
-        codes, corners, centres = detect_coded_targets(img)
-        known = np.array([c in code_to_index for c in codes], dtype=bool)
-        codes, centres = codes[known], centres[known]
-        det = detect_retro_targets(img, opts)
-        # a dot inside a coded marker's square (grown by a third) is part of the marker, not a target
-        keep = ~_inside_any(det.uv, corners[known], grow=1.33)
-        det_uv = det.uv[keep]
-        cand = np.flatnonzero(in_view[k] | (t.code >= 0))
-        sub = identify_targets(det_uv, t.xyz[cand], t.code[cand], job.intrinsics, cam_from_part, max_dist,
-                               coded_ids=codes, coded_uv=centres)
-        match = np.where(sub >= 0, cand[np.maximum(sub, 0)], -1)
-        # coded targets identify the image (and refine its pose) but are not measured: OpenCV's
-        # sub-pixel marker corners are biased by 0.1-0.3 px, ten times the dots' precision
-        names, uv = [], []
-        dots = np.flatnonzero((match >= 0) & (t.code[np.maximum(match, 0)] < 0))
-        clear = _rim_clear(occluder, t.xyz[match[dots]], t.normals[match[dots]], job.part.target_diameter_m / 2,
-                           poses[k][:3, 3])
-        n_clipped = int((~clear).sum())
-        dots = dots[clear]
-        # the centroid of a dot's ellipse is not the image of its centre: remove that eccentricity
-        bias = eccentricity_bias(job.intrinsics, cam_from_part, t.xyz[match[dots]], t.normals[match[dots]],
-                                 job.part.target_diameter_m / 2)
-        for j, b in zip(dots, bias):
-            names.append(ids_all[int(match[j])])
-            uv.append(det_uv[j] - b)
-        out.append({"station": im["station"], "image": im["image"], "ids": names,
-                    "uv": np.asarray(uv, dtype=float).reshape(-1, 2), "n_dots": int(len(det_uv)),
-                    "n_coded": int(len(codes)), "n_unidentified": int((match < 0).sum()),
-                    "n_partly_hidden": n_clipped})
-        ctx.log.detections(im["station"], names, np.asarray(uv).reshape(-1, 2))
+        m, counts = measure_image(img, job.part, job.intrinsics, cam_from_part, occluder)
+        names = [ids_all[int(i)] for i in m.target]
+        out.append({"station": im["station"], "image": im["image"], "ids": names, "uv": m.uv,
+                    "n_unidentified": m.n_unidentified, "n_partly_hidden": m.n_partly_hidden} | counts)
+        ctx.log.detections(im["station"], names, m.uv)
     ctx.progress("measure", 1.0)
     atomic_write_json(ctx.folder.file("observations.json"), {"images": out})
     n = [len(o["ids"]) for o in out]
-    ctx.say(f"  {sum(n)} observations in {len(out)} images ({min(n)}..{max(n)} per image), "
-            f"{sum(o['n_unidentified'] for o in out)} dots unidentified")
+    ctx.say(f"  {sum(n)} observations in {len(out)} images ({min(n)}..{max(n)} per image); "
+            f"{sum(o['n_partly_hidden'] for o in out)} partly hidden dots dropped, "
+            f"{sum(o['n_unidentified'] for o in out)} other blobs (marker pieces, edges) ignored")
 
 
 # --- CALIBRATE -----------------------------------------------------------------------------

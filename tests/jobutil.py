@@ -192,3 +192,16 @@ def example_run(tmp_path_factory) -> tuple[Path, Path, CellRun]:
     job, folder, run = _RUNS["example"]
     assert run.code == 0, f"the example job did not finish (exit {run.code}):\n{run.stderr[-3000:]}"
     return job, folder, run
+
+
+class RecordingOutput:
+    """Stands in for the CLI's Output in tests: records what a job says, ignores progress."""
+
+    def __init__(self):
+        self.lines: list[str] = []
+
+    def say(self, s: str) -> None:
+        self.lines.append(s)
+
+    def progress(self, stage: str, fraction: float) -> None:
+        pass

@@ -17,15 +17,7 @@ EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "cell"
 TRUE_FFC = "{ xyz = [1.2, 39.2, 91.5], rpy_deg = [0.3, -0.2, 0.4] }"
 
 
-class _Out:
-    def __init__(self):
-        self.lines = []
-
-    def say(self, s: str) -> None:
-        self.lines.append(s)
-
-    def progress(self, stage: str, fraction: float) -> None:
-        pass
+from jobutil import RecordingOutput as _Out  # noqa: E402
 
 
 def _cell(tmp_path: Path, flange_from_cam: str | None = None, positions: int | None = None) -> Path:

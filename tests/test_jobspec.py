@@ -101,13 +101,14 @@ def test_cli_bad_input_exits_2_with_one_line_and_no_traceback(job_dir, case):
         (job_dir / "targets.csv").write_text("\n".join(",".join(l.split(",")[:6]) for l in lines) + "\n")
     elif case == "furlong":
         _edit(job_dir, 'units = "mm"', 'units = "furlong"')
+    before = {p.name: p.read_bytes() for p in job_dir.iterdir()}
     r = _cli("check", job_dir / "job.toml")
     assert r.returncode == 2
     lines = [l for l in r.stderr.splitlines() if l.strip()]
     assert len(lines) == 1 and lines[0].startswith("cell: error: "), r.stderr
     assert "Traceback" not in r.stderr
-    files_before = sorted(p.name for p in job_dir.iterdir())
-    assert files_before == sorted(p.name for p in job_dir.iterdir())
+    # a check writes nothing: the job folder is byte for byte as it was
+    assert {p.name: p.read_bytes() for p in job_dir.iterdir()} == before
 
 
 def test_cli_usage_error_exits_2():

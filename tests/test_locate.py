@@ -23,15 +23,7 @@ EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "bracket"
 OFFSET = "{ xyz = [15.0, -10.0, 0.0], rpy_deg = [0.0, 0.0, 3.0] }"  # the real part vs the job's nominal
 
 
-class _Out:
-    def __init__(self):
-        self.lines = []
-
-    def say(self, s: str) -> None:
-        self.lines.append(s)
-
-    def progress(self, stage: str, fraction: float) -> None:
-        pass
+from jobutil import RecordingOutput as _Out  # noqa: E402
 
 
 def _job(tmp_path: Path, offset: str | None = OFFSET) -> Path:

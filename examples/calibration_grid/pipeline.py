@@ -7,7 +7,7 @@ by the cell's own code, the same steps as the MEASURE, CALIBRATE and ADJUST stag
 1. render the image seen from a station (discs with blur, shot and read noise, 8 bits);
 2. detect the dots (``detect_retro_targets``), name them by projecting the nominal targets with an
    approximate pose (``identify_targets``: a robot pose / hand-held guess a few mm and a fraction of a
-   degree off), drop dots whose rim is partly hidden (``cell.stages._rim_clear``) and remove the
+   degree off), drop dots whose rim is partly hidden (``cell.imaging.name_dots``) and remove the
    perspective eccentricity of the ellipse centre (``eccentricity_bias``);
 3. Faugeras-Toscani per image (``faugeras_toscani``): interior and exterior orientation;
 4. bundle adjustment (``bundle_adjust``) with covariance: error ellipsoids of every target.
@@ -31,7 +31,7 @@ from calibration.bundle import BundleConfig, BundleOptions, BundleResult, bundle
 from calibration.camera import Intrinsics, exp_se3, invert
 from calibration.errors import CalibrationError
 from calibration.faugeras_toscani import FTResult, combine_intrinsics, faugeras_toscani
-from calibration.targets import DetectionOptions, detect_retro_targets, eccentricity_bias, identify_targets
+from calibration.targets import DetectionOptions, detect_retro_targets
 
 __all__ = [
     "Observations",
@@ -141,15 +141,13 @@ def render_and_measure(
     """
     import cv2
 
-    from cell.stages import _rim_clear
-    from planning.visibility import Occluder, VisibilityOptions, compute_visibility
+    from cell.imaging import name_dots
+    from planning.visibility import Occluder
 
     T = np.asarray(part_from_cam, dtype=float).reshape(-1, 4, 4)
     t = part.targets
     occluder = Occluder(part.mesh)
     opts = detection or DetectionOptions()
-    radius = part.target_diameter_m / 2
-    seeable = VisibilityOptions(margin_px=0.0, incidence_max_rad=incidence_max_rad, min_target_px=1.0)
     oi, ot, ouv, per = [], [], [], []
     t_render = t_measure = 0.0
     for k, pfc in enumerate(T):
@@ -162,18 +160,14 @@ def render_and_measure(
         approx = perturb_pose(invert(pfc), rng, *pose_error)
         det = detect_retro_targets(image, opts)
         approx = coarse_align(intr, approx, t.xyz, det.uv)
-        cand = np.flatnonzero(compute_visibility(part, intr, invert(approx)[None], seeable, occluder=occluder)[0])
-        sub = identify_targets(det.uv, t.xyz[cand], t.code[cand], intr, approx, max_dist_px)
-        match = np.where(sub >= 0, cand[np.maximum(sub, 0)], -1)
-        dots = np.flatnonzero(match >= 0)
-        clear = _rim_clear(occluder, t.xyz[match[dots]], t.normals[match[dots]], radius, pfc[:3, 3])
-        dots = dots[clear]
-        bias = eccentricity_bias(intr, approx, t.xyz[match[dots]], t.normals[match[dots]], radius)
-        oi.append(np.full(len(dots), k))
-        ot.append(match[dots])
-        ouv.append(det.uv[dots] - bias)
-        per.append({"image": k + 1, "rendered": len(truth["ids"]), "detected": len(det), "measured": int(len(dots)),
-                    "unidentified": int((match < 0).sum()), "partly_hidden": int((~clear).sum())})
+        # the approximate pose (not the truth) decides what is in view and which rims are clipped
+        m = name_dots(det.uv, part, intr, approx, occluder, max_dist_px=max_dist_px,
+                      incidence_max_rad=incidence_max_rad)
+        oi.append(np.full(len(m.target), k))
+        ot.append(m.target)
+        ouv.append(m.uv)
+        per.append({"image": k + 1, "rendered": len(truth["ids"]), "detected": len(det), "measured": int(len(m.target)),
+                    "unidentified": m.n_unidentified, "partly_hidden": m.n_partly_hidden})
         t_render += t1 - t0
         t_measure += time.perf_counter() - t1
     return Observations(np.concatenate(oi).astype(int), np.concatenate(ot).astype(int), np.vstack(ouv), len(T), per,
