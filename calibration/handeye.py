@@ -7,7 +7,7 @@ flange at ``B_i = base_from_flange`` (the robot's reading) and its exterior orie
 
     Y = B_i X A_i          (equivalently (B_j^-1 B_i) X = X (A_j A_i^-1): AX = XB)
 
-Three steps (``calibrate_hand_eye``):
+Three steps (``cell.cellcal.run_hand_eye``):
 
 1. ``solve_opencv``: OpenCV's ``calibrateHandEye`` with each of its methods (Tsai-Lenz, Park,
    Horaud, Andreff, Daniilidis); ``Y`` follows from ``X`` as the chordal mean of ``B_i X A_i``.
@@ -28,11 +28,12 @@ Parametrisation (all perturbations in the convention of :func:`calibration.camer
 frame). With ``C_i = X0^-1 B_i^-1`` the pose of image ``i`` moves by the left perturbation
 ``-xi_X + Ad(C_i) xi_Y``, so the Jacobian is ``J_pose [-I, Ad(C_i)]``.
 
-Station choice (``hand_eye_information``, ``select_stations``): the same linearisation
-predicts the information ``J^T J / sigma^2`` that each candidate station adds; stations are
-chosen greedily to maximise the determinant of the hand-eye block's Schur complement
-(D-optimal for ``X`` with ``Y`` a nuisance), which favours large rotations about
-non-parallel axes as Tsai and Lenz prescribe, but weighs them by what the images really see.
+Conditioning of a set of stations (``hand_eye_information``, ``hand_eye_conditioning``): the
+same linearisation predicts the information ``J^T J / sigma^2`` that each station adds; its sum,
+reduced to ``X`` by the Schur complement (``Y`` a nuisance), predicts X's precision before any
+image is taken. With it, :func:`weakest_rotation` measures what the closed-form methods need:
+rotations about non-parallel axes (Tsai and Lenz). The stations themselves come from the
+network planner (``cell.cellcal.plan_stations``); these figures check them.
 """
 from __future__ import annotations
 
@@ -52,8 +53,8 @@ __all__ = [
     "HandEyeOptions",
     "HandEyeResult",
     "solve_opencv",
-    "solve_ax_xb",
-    "HAVE_CV2_HAND_EYE",
+    "MIN_WEAKEST_ROTATION_RAD",
+    "weakest_rotation",
     "compare_methods",
     "mean_pose",
     "pose_consistency",
@@ -62,7 +63,8 @@ __all__ = [
     "reprojection_jacobian",
     "refine_hand_eye",
     "hand_eye_information",
-    "select_stations",
+    "HandEyeConditioning",
+    "hand_eye_conditioning",
 ]
 
 #: OpenCV's hand-eye methods, by the name used in reports.
@@ -73,9 +75,6 @@ METHODS: dict[str, int] = {
     "andreff": cv2.CALIB_HAND_EYE_ANDREFF,
     "daniilidis": cv2.CALIB_HAND_EYE_DANIILIDIS,
 }
-
-#: The installed OpenCV binds ``calibrateHandEye`` (4.x does; the 5.0 Python wheel does not).
-HAVE_CV2_HAND_EYE = hasattr(cv2, "calibrateHandEye")
 
 # --- small SE(3) helpers ------------------------------------------------------------------
 
@@ -114,149 +113,31 @@ def pose_consistency(base_from_flange: np.ndarray, flange_from_cam: np.ndarray, 
     return np.linalg.norm(D[:, :3, 3], axis=1), rot
 
 
-# --- step 1: closed-form AX = XB -------------------------------------------------------------
-# NumPy versions of the methods behind cv2.calibrateHandEye, for OpenCV builds without the binding.
-# Motions between every pair of stations (i, j): M = B_j^-1 B_i (flange), N = A_j A_i^-1 (camera),
-# M X = X N. Rotation first (per method), then the common translation least squares
-# (R_M - I) t_X = R_X t_N - t_M.
+# --- conditioning of AX = XB -------------------------------------------------------------------
 
 
-def _motion_pairs(B: np.ndarray, A: np.ndarray, min_angle_rad: float = np.deg2rad(2.0)) -> tuple[np.ndarray, np.ndarray]:
-    i, j = np.triu_indices(len(B), 1)
-    M = invert(B[j]) @ B[i]
-    N = A[j] @ invert(A[i])
-    ang = np.linalg.norm(Rotation.from_matrix(M[:, :3, :3]).as_rotvec(), axis=1)
-    keep = ang > min_angle_rad
-    if keep.sum() < 2:
-        raise CalibrationError("hand-eye: fewer than two station pairs rotate by more than 2 degrees; "
-                               "choose stations that rotate the camera about different axes")
-    return M[keep], N[keep]
+def weakest_rotation(poses: np.ndarray) -> tuple[float, np.ndarray]:
+    """How well the relative motions of ``poses: (m, 4, 4)`` determine a hand-eye: ``(angle (rad), axis (3,))``.
 
-
-def _project_so3(R: np.ndarray) -> np.ndarray:
-    U, _, Vt = np.linalg.svd(R)
-    return U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
-
-
-def _rotation_tsai(M, N):
-    """Tsai-Lenz: modified Rodrigues vectors, skew(P_M + P_N) P' = P_N - P_M."""
-    def mrp(R):
-        rv = Rotation.from_matrix(R).as_rotvec()
-        th = np.linalg.norm(rv, axis=1, keepdims=True)
-        return 2 * np.sin(th / 2) * rv / np.maximum(th, 1e-300)
-    Pm, Pn = mrp(M[:, :3, :3]), mrp(N[:, :3, :3])
-    lhs = skew(Pm + Pn).reshape(-1, 3)
-    p1 = np.linalg.lstsq(lhs, (Pn - Pm).ravel(), rcond=None)[0]
-    p = 2 * p1 / np.sqrt(1 + p1 @ p1)
-    pp = p @ p
-    return (1 - pp / 2) * np.eye(3) + 0.5 * (np.outer(p, p) + np.sqrt(4 - pp) * skew(p))
-
-
-def _rotation_park(M, N):
-    """Park-Martin: alpha_M = R_X alpha_N for the rotation vectors; orthogonal Procrustes."""
-    a = Rotation.from_matrix(M[:, :3, :3]).as_rotvec()
-    b = Rotation.from_matrix(N[:, :3, :3]).as_rotvec()
-    return _project_so3(a.T @ b)
-
-
-def _quat_wxyz(R):
-    q = Rotation.from_matrix(R).as_quat()  # x, y, z, w
-    q = np.concatenate([q[:, 3:], q[:, :3]], axis=1)
-    return q * np.where(q[:, :1] < 0, -1.0, 1.0)
-
-
-def _qmat_left(q):
-    w, x, y, z = q.T
-    return np.stack([np.stack([w, -x, -y, -z], -1), np.stack([x, w, -z, y], -1),
-                     np.stack([y, z, w, -x], -1), np.stack([z, -y, x, w], -1)], axis=1)
-
-
-def _qmat_right(q):
-    w, x, y, z = q.T
-    return np.stack([np.stack([w, -x, -y, -z], -1), np.stack([x, w, z, -y], -1),
-                     np.stack([y, -z, w, x], -1), np.stack([z, y, -x, w], -1)], axis=1)
-
-
-def _rotation_horaud(M, N):
-    """Horaud-Dornaika: unit quaternion minimising sum |q_M q_X - q_X q_N|^2 (smallest eigenvector)."""
-    D = (_qmat_left(_quat_wxyz(M[:, :3, :3])) - _qmat_right(_quat_wxyz(N[:, :3, :3]))).reshape(-1, 4)
-    q = np.linalg.svd(D)[2][-1]
-    return Rotation.from_quat([q[1], q[2], q[3], q[0]]).as_matrix()
-
-
-def _rotation_andreff(M, N):
-    """Andreff: vec(R_M R_X - R_X R_N) = (I x R_M - R_N^T x I) vec(R_X) = 0, null vector, back onto SO(3)."""
-    I3 = np.eye(3)
-    L = np.concatenate([np.kron(I3, m[:3, :3]) - np.kron(n[:3, :3].T, I3) for m, n in zip(M, N)])
-    v = np.linalg.svd(L)[2][-1]
-    R = v.reshape(3, 3, order="F")
-    R = R * np.sign(np.linalg.det(R)) / abs(np.linalg.det(R)) ** (1 / 3)
-    return _project_so3(R)
-
-
-def _dq(T):
-    """Dual quaternions (w, x, y, z) of transforms ``T: (k, 4, 4)``: real (k, 4), dual (k, 4)."""
-    r = _quat_wxyz(T[:, :3, :3])
-    t = np.concatenate([np.zeros((len(T), 1)), T[:, :3, 3]], axis=1)
-    d = 0.5 * np.einsum("kij,kj->ki", _qmat_left(t), r)
-    return r, d
-
-
-def _solve_daniilidis(M, N):
-    """Daniilidis: dual quaternions, the 2-dimensional null space of the stacked 6 x 8 system."""
-    am, bm = _dq(M)
-    an, bn = _dq(N)
-    rows = []
-    for a, b, a2, b2 in zip(am, bm, an, bn):
-        # screw axes: vector parts; a - a2 and b - b2 must be orthogonal-compatible: 6 equations
-        va, vb, va2, vb2 = a[1:], b[1:], a2[1:], b2[1:]
-        top = np.hstack([(va - va2)[:, None], skew(va + va2), np.zeros((3, 4))])
-        bot = np.hstack([(vb - vb2)[:, None], skew(vb + vb2), (va - va2)[:, None], skew(va + va2)])
-        rows.append(np.vstack([top, bot]))
-    T = np.vstack(rows)
-    V = np.linalg.svd(T)[2]
-    v7, v8 = V[-2], V[-1]
-    u1, v1, u2, v2 = v7[:4], v7[4:], v8[:4], v8[4:]
-    a_, b_, c_ = u1 @ v1, u1 @ v2 + u2 @ v1, u2 @ v2
-    s_roots = np.roots([a_, b_, c_]) if abs(a_) > 1e-15 else np.array([-c_ / b_])
-    s_roots = np.real(s_roots[np.isreal(s_roots)])
-    if len(s_roots) == 0:
-        raise CalibrationError("hand-eye (Daniilidis): no real solution; the motions are degenerate")
-    best = None
-    for s in s_roots:
-        val = s * s * (u1 @ u1) + 2 * s * (u1 @ u2) + u2 @ u2
-        if best is None or val > best[0]:
-            best = (val, s)
-    val, s = best
-    lam2 = np.sqrt(1.0 / val)
-    lam1 = s * lam2
-    q = lam1 * v7 + lam2 * v8
-    r, d = q[:4], q[4:]
-    Rx = Rotation.from_quat([r[1], r[2], r[3], r[0]]).as_matrix()
-    rc = r * np.array([1.0, -1.0, -1.0, -1.0])
-    t = 2 * (_qmat_left(d[None])[0] @ rc)[1:]
-    return make_pose(Rx, t)
-
-
-def _translation(M, N, Rx):
-    lhs = (M[:, :3, :3] - np.eye(3)).reshape(-1, 3)
-    rhs = (np.einsum("ij,kj->ki", Rx, N[:, :3, 3]) - M[:, :3, 3]).ravel()
-    return np.linalg.lstsq(lhs, rhs, rcond=None)[0]
-
-
-_ROTATION = {"tsai": _rotation_tsai, "park": _rotation_park, "horaud": _rotation_horaud, "andreff": _rotation_andreff}
-
-
-def solve_ax_xb(base_from_flange: np.ndarray, cam_from_target: np.ndarray, method: str) -> np.ndarray:
-    """``flange_from_cam`` (4, 4) by one published method over all pairs of stations (NumPy)."""
-    B, A = _check_pairs(base_from_flange, cam_from_target)
-    M, N = _motion_pairs(B, A)
-    if method == "daniilidis":
-        return _solve_daniilidis(M, N)
-    if method not in _ROTATION:
-        raise CalibrationError(f"unknown hand-eye method {method!r}; use one of {', '.join(METHODS)}")
-    Rx = _rotation_tsai(M, N) if method == "tsai" else _ROTATION[method](M, N)
-    return make_pose(Rx, _translation(M, N, Rx))
+    For every pair of stations the relative rotation ``R = R_j^T R_i`` (flange motions for
+    ``base_from_flange``, camera motions for ``part_from_cam``: the same angles, axes turned by the
+    hand-eye). The closed-form methods solve the translation of X from the stacked
+    ``(R - I) t_X = ...``, and ``(R - I)^T (R - I) = 2 (1 - cos theta) (I - a a^T)`` for a rotation by
+    ``theta`` about ``a``: along a direction ``u`` the motions inform ``t_X`` by the mean of
+    ``2 (1 - cos theta) sin^2(a, u)``. Its smallest eigenvalue ``lambda`` (eigenvector ``axis``, in
+    the frame of the second pose of each pair) is returned as the equivalent angle
+    ``arccos(1 - lambda / 2)``: the rotation which, made about an axis perpendicular to ``axis`` by
+    every motion, would inform it as much. 0 for pure translations or rotations about one axis
+    only (the hand-eye is then undetermined, Tsai and Lenz), 180 degrees at best.
+    """
+    T = np.asarray(poses, dtype=float)
+    if len(T) < 2:
+        return 0.0, np.array([0.0, 0.0, 1.0])
+    i, j = np.triu_indices(len(T), 1)
+    D = np.swapaxes(T[j, :3, :3], 1, 2) @ T[i, :3, :3] - np.eye(3)
+    G = np.einsum("kji,kjl->il", D, D) / len(D)
+    w, V = np.linalg.eigh(G)
+    return float(np.arccos(np.clip(1.0 - w[0] / 2.0, -1.0, 1.0))), V[:, 0]
 
 
 # --- step 1: OpenCV ---------------------------------------------------------------------------
@@ -278,7 +159,11 @@ class HandEyeSolution:
     base_from_target: np.ndarray
     rms_translation_m: float
     rms_rotation_rad: float
-    backend: str = "opencv"
+
+
+#: Closed-form methods need the flange to rotate about two axes at least; below this
+#: :func:`weakest_rotation` the motions are called degenerate.
+MIN_WEAKEST_ROTATION_RAD = float(np.deg2rad(2.0))
 
 
 def _check_pairs(base_from_flange: np.ndarray, cam_from_target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -288,48 +173,54 @@ def _check_pairs(base_from_flange: np.ndarray, cam_from_target: np.ndarray) -> t
         raise CalibrationError(f"hand-eye needs (n, 4, 4) robot and camera poses of the same n; got {B.shape}, {A.shape}")
     if len(B) < 3:
         raise CalibrationError(f"hand-eye needs at least 3 stations (rotations about two axes), got {len(B)}")
+    weak, axis = weakest_rotation(B)
+    if weak < MIN_WEAKEST_ROTATION_RAD:
+        raise CalibrationError(
+            f"hand-eye: the flange motions leave the direction {np.round(axis, 2).tolist()} (flange frame) "
+            f"undetermined (weakest rotation {np.rad2deg(weak):.2f} deg < {np.rad2deg(MIN_WEAKEST_ROTATION_RAD):.0f}); "
+            "choose stations that rotate the camera about different axes")
     return B, A
 
 
-def solve_opencv(base_from_flange: np.ndarray, cam_from_target: np.ndarray, method: str = "tsai",
-                 backend: str = "auto") -> HandEyeSolution:
-    """One closed-form AX = XB solution; ``base_from_flange, cam_from_target: (n, 4, 4)``.
+def solve_opencv(base_from_flange: np.ndarray, cam_from_target: np.ndarray, method: str = "tsai") -> HandEyeSolution:
+    """One closed-form AX = XB solution by ``cv2.calibrateHandEye``; ``base_from_flange, cam_from_target: (n, 4, 4)``.
 
-    ``backend``: "opencv" (``cv2.calibrateHandEye``), "numpy" (:func:`solve_ax_xb`, the same published
-    methods over all station pairs), or "auto" (OpenCV when it is bound, else NumPy).
+    OpenCV's convention: ``R_gripper2base, t_gripper2base`` is ``base_from_flange``,
+    ``R_target2cam, t_target2cam`` is ``cam_from_target``, the answer ``R_cam2gripper`` is ``flange_from_cam``.
     """
     B, A = _check_pairs(base_from_flange, cam_from_target)
     if method not in METHODS:
         raise CalibrationError(f"unknown hand-eye method {method!r}; use one of {', '.join(METHODS)}")
-    use_cv = backend == "opencv" or (backend == "auto" and HAVE_CV2_HAND_EYE)
-    if use_cv:
-        if not HAVE_CV2_HAND_EYE:
-            raise CalibrationError(f"OpenCV {cv2.__version__} has no calibrateHandEye binding; use backend='numpy'")
-        R, t = cv2.calibrateHandEye(list(B[:, :3, :3]), list(B[:, :3, 3].reshape(-1, 3, 1)),
-                                    list(A[:, :3, :3]), list(A[:, :3, 3].reshape(-1, 3, 1)), method=METHODS[method])
-        X = make_pose(np.asarray(R, dtype=float), np.asarray(t, dtype=float).ravel())
-    else:
-        X = solve_ax_xb(B, A, method)
+    # translations in millimetres: Andreff's method solves rotation and translation in one linear system
+    # whose rotation rows are unitless; in metres they outweigh the translation rows that fix the scale of
+    # vec(R), which then shrinks towards singular ("determinant(R) is null"). The other methods do not care.
+    k = 1000.0
+    R, t = cv2.calibrateHandEye(list(B[:, :3, :3]), list(k * B[:, :3, 3].reshape(-1, 3, 1)),
+                                list(A[:, :3, :3]), list(k * A[:, :3, 3].reshape(-1, 3, 1)), method=METHODS[method])
+    X = make_pose(np.asarray(R, dtype=float), np.asarray(t, dtype=float).ravel() / k)
     if not np.all(np.isfinite(X)):
         raise CalibrationError(f"hand-eye method {method}: no solution (degenerate motions: rotate about more axes)")
+    if abs(np.linalg.det(X[:3, :3]) - 1.0) > 1e-6:
+        raise CalibrationError(f"hand-eye method {method}: not a rotation (det {np.linalg.det(X[:3, :3]):.6f})")
     Y = mean_pose(B @ X @ A)
     dt, dr = pose_consistency(B, X, A, Y)
-    return HandEyeSolution(method, X, Y, float(np.sqrt(np.mean(dt**2))), float(np.sqrt(np.mean(dr**2))),
-                           "opencv" if use_cv else "numpy")
+    return HandEyeSolution(method, X, Y, float(np.sqrt(np.mean(dt**2))), float(np.sqrt(np.mean(dr**2))))
 
 
 def compare_methods(base_from_flange: np.ndarray, cam_from_target: np.ndarray,
-                    methods: tuple[str, ...] = tuple(METHODS), backend: str = "auto") -> list[HandEyeSolution]:
-    """Every method's solution, best (smallest translation spread) first; failures are skipped."""
-    out = []
+                    methods: tuple[str, ...] = tuple(METHODS)) -> tuple[list[HandEyeSolution], dict[str, str]]:
+    """Every method's solution, best (smallest translation spread) first, and ``{method: why}`` of those that failed."""
+    _check_pairs(base_from_flange, cam_from_target)
+    out, failed = [], {}
     for m in methods:
         try:
-            out.append(solve_opencv(base_from_flange, cam_from_target, m, backend))
-        except (CalibrationError, cv2.error):
-            continue
+            out.append(solve_opencv(base_from_flange, cam_from_target, m))
+        except (CalibrationError, cv2.error) as exc:
+            failed[m] = str(exc).strip().splitlines()[-1]
     if not out:
-        raise CalibrationError("hand-eye: every OpenCV method failed; the stations' rotations are degenerate")
-    return sorted(out, key=lambda s: (s.rms_translation_m, s.rms_rotation_rad))
+        raise CalibrationError("hand-eye: every OpenCV method failed (" + "; ".join(f"{k}: {v}" for k, v in failed.items())
+                               + "); the stations' rotations are degenerate")
+    return sorted(out, key=lambda s: (s.rms_translation_m, s.rms_rotation_rad)), failed
 
 
 # --- step 2: joint refinement on the images ------------------------------------------------------
@@ -529,31 +420,73 @@ def hand_eye_information(intr: Intrinsics, part_from_cam: np.ndarray, visible: n
     return out
 
 
-def select_stations(info: np.ndarray, k: int, eligible: np.ndarray | None = None,
-                    prior: float = 1e-6) -> tuple[np.ndarray, np.ndarray]:
-    """Greedy D-optimal choice of ``k`` stations from ``info: (m, 12, 12)``.
+@dataclass(frozen=True)
+class HandEyeConditioning:
+    """How well a set of stations determines the hand-eye, before any image is taken.
 
-    Each step adds the station that most increases ``log det`` of the hand-eye block's Schur
-    complement. ``prior`` (a tiny diagonal information) makes the first, rank-deficient steps
-    well defined. Returns the chosen indices (in the order chosen) and the criterion after each.
+    Attributes:
+        sigma_translation_m: (3,) predicted std of X's translation (flange axes), Y eliminated.
+        sigma_rotation_rad: (3,) predicted std of X's rotation about the flange axes.
+        weakest_rotation_rad: :func:`weakest_rotation` of the stations' motions.
+        weakest_axis: (3,) its direction (camera frame).
+        pivot_rms_m: how far the flange motions are from all turning about one fixed point (rms of
+            ``(I - R_ij) c - t_ij`` at the best ``c``): near 0 when every station looks at one point from one
+            distance, where Andreff's joint linear system has the false solution ``R = 0, t = c``.
+        n_stations: stations counted.
     """
-    info = np.asarray(info, dtype=float)
-    m = len(info)
-    ok = np.ones(m, dtype=bool) if eligible is None else np.asarray(eligible, dtype=bool).copy()
-    if ok.sum() < k:
-        raise CalibrationError(f"hand-eye planning: {int(ok.sum())} usable stations, {k} needed")
-    N = prior * np.eye(12)
-    chosen, crit = [], []
-    for _ in range(k):
-        cand = np.flatnonzero(ok)
-        # batched Schur complements of N + info[c]
-        M = N[None] + info[cand]
-        S = M[:, :6, :6] - M[:, :6, 6:] @ np.linalg.solve(M[:, 6:, 6:], M[:, 6:, :6])
-        sign, ld = np.linalg.slogdet(0.5 * (S + np.swapaxes(S, 1, 2)))
-        ld = np.where(sign > 0, ld, -np.inf)
-        j = int(cand[int(np.argmax(ld))])
-        chosen.append(j)
-        crit.append(float(np.max(ld)))
-        N = N + info[j]
-        ok[j] = False
-    return np.array(chosen, dtype=int), np.array(crit)
+
+    sigma_translation_m: np.ndarray
+    sigma_rotation_rad: np.ndarray
+    weakest_rotation_rad: float
+    weakest_axis: np.ndarray
+    pivot_rms_m: float
+    n_stations: int
+
+    def shortfall(self, max_sigma_translation_m: float, max_sigma_rotation_rad: float,
+                  min_weakest_rotation_rad: float) -> list[str]:
+        """What misses the requirement (empty: met); sigmas compared by their norms."""
+        st, sr = float(np.linalg.norm(self.sigma_translation_m)), float(np.linalg.norm(self.sigma_rotation_rad))
+        out = []
+        if not st <= max_sigma_translation_m:
+            out.append(f"predicted sigma of the translation {st * 1e3:.4f} mm > {max_sigma_translation_m * 1e3:.4f} mm")
+        if not sr <= max_sigma_rotation_rad:
+            out.append(f"predicted sigma of the rotation {np.rad2deg(sr):.5f} deg > {np.rad2deg(max_sigma_rotation_rad):.5f} deg")
+        if not self.weakest_rotation_rad >= min_weakest_rotation_rad:
+            out.append(f"weakest rotation {np.rad2deg(self.weakest_rotation_rad):.1f} deg < "
+                       f"{np.rad2deg(min_weakest_rotation_rad):.1f} deg")
+        return out
+
+    def to_dict(self) -> dict:
+        return {"sigma_translation_m": self.sigma_translation_m.tolist(),
+                "sigma_rotation_rad": self.sigma_rotation_rad.tolist(),
+                "weakest_rotation_rad": self.weakest_rotation_rad, "weakest_axis": self.weakest_axis.tolist(),
+                "pivot_rms_m": self.pivot_rms_m, "n_stations": self.n_stations}
+
+
+def hand_eye_conditioning(info: np.ndarray, part_from_cam: np.ndarray, flange_from_cam: np.ndarray) -> HandEyeConditioning:
+    """Predicted precision of X from ``info: (m, 12, 12)`` (:func:`hand_eye_information`) and the motions' spread.
+
+    The normal matrix ``N = sum info`` is reduced to X by the Schur complement (Y is a nuisance);
+    its inverse is X's covariance in the camera frame, turned into the flange frame as
+    :func:`refine_hand_eye` reports it. ``part_from_cam: (m, 4, 4)`` gives :func:`weakest_rotation`.
+    """
+    N = np.asarray(info, dtype=float).sum(axis=0)
+    S = N[:6, :6] - N[:6, 6:] @ np.linalg.solve(N[6:, 6:] + 1e-12 * np.eye(6), N[6:, :6])
+    try:
+        C = np.linalg.inv(0.5 * (S + S.T))
+    except np.linalg.LinAlgError:
+        C = np.full((6, 6), np.inf)
+    R = np.asarray(flange_from_cam, dtype=float)[:3, :3]
+    var_r = np.diag(R @ C[:3, :3] @ R.T) if np.all(np.isfinite(C)) else np.full(3, np.inf)
+    var_t = np.diag(R @ C[3:, 3:] @ R.T) if np.all(np.isfinite(C)) else np.full(3, np.inf)
+    weak, axis = weakest_rotation(part_from_cam)
+    # flange motions B_j^-1 B_i = X P_j^-1 P_i X^-1 (the artefact's placement cancels)
+    P = np.asarray(part_from_cam, dtype=float)
+    X = np.asarray(flange_from_cam, dtype=float)
+    i, j = np.triu_indices(len(P), 1)
+    M = X @ invert(P[j]) @ P[i] @ invert(X)
+    L = (np.eye(3) - M[:, :3, :3]).reshape(-1, 3)
+    c = np.linalg.lstsq(L, M[:, :3, 3].ravel(), rcond=None)[0]
+    pivot = float(np.sqrt(np.mean((L @ c - M[:, :3, 3].ravel()) ** 2))) if len(M) else 0.0
+    return HandEyeConditioning(np.sqrt(np.where(var_t >= 0, var_t, np.inf)), np.sqrt(np.where(var_r >= 0, var_r, np.inf)),
+                               weak, axis, pivot, int(len(info)))

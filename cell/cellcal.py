@@ -17,7 +17,7 @@
 from __future__ import annotations
 
 import json
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from datetime import datetime, timedelta, timezone
 from pathlib import Path
 
@@ -25,10 +25,10 @@ import cv2
 import numpy as np
 
 from calibration.camera import Intrinsics, invert, make_pose, project, project_with_jacobians
-from calibration.errors import CalibrationError, InputError, ReachabilityError
+from calibration.errors import AbortRequested, CalibrationError, InputError, PlanningError, ReachabilityError
 from calibration.faugeras_toscani import faugeras_toscani
-from calibration.handeye import (HandEyeOptions, compare_methods, hand_eye_information, pose_error,
-                                 refine_hand_eye, reprojection_jacobian, select_stations)
+from calibration.handeye import (HandEyeConditioning, HandEyeOptions, compare_methods, hand_eye_conditioning,
+                                 hand_eye_information, pose_error, refine_hand_eye, reprojection_jacobian)
 from calibration.targets import DetectionOptions, detect_coded_targets, detect_retro_targets, refine_pose_pnp
 from cell import imaging
 from cell.cellfile import CellFile, load_cell_file, pose_from_matrix, write_flange_from_cam
@@ -36,11 +36,13 @@ from cell.jobfolder import JobFolder, atomic_write_bytes, atomic_write_json, new
 from cell.jobspec import CellSection, JobSection, JobSpec, Pose, ReportSection, SimSection, pose_matrix, resolve
 from cell.load import LoadedJob
 from planning.part import load_part
+from planning.planner import NetworkPlan, PlannerOptions, build_database, plan_network
 from planning.stations import ViewingSphere
 from planning.visibility import Occluder, VisibilityOptions, compute_visibility
 
 __all__ = ["run_hand_eye", "run_reverification", "estimate_part_placement", "calibration_status",
-           "artefact_job", "measure_image", "plan_stations"]
+           "artefact_job", "measure_image", "plan_stations", "plan_hand_eye_stations", "ask_operator",
+           "StationPlan"]
 
 CAL_DIR = "calibration"
 
@@ -70,98 +72,145 @@ def artefact_job(cf: CellFile, folder: Path, cell_path: Path, *, name: str, mesh
                      deviations=np.zeros((n, 3)), tolerance_m=np.full(n, k), scale_bar=None)
 
 
-# --- stations ------------------------------------------------------------------------------------------
+# --- stations: the inspection's planner, reachability and validation -----------------------------------
+
+#: The evolutionary search's size for a calibration artefact (a few dozen targets, a handful of stations).
+CAL_POPULATION, CAL_GENERATIONS, CAL_STALL = 60, 120, 30
 
 
-def _candidates(job: LoadedJob, n: int, max_tilt_rad: float, rolls_rad: np.ndarray, incidence_max_rad: float):
-    """Candidate stations (part_from_cam (m, 4, 4)) in the depth of field, their visibility (m, n) and reachability."""
+@dataclass
+class StationPlan:
+    """Stations of a calibration job as the planner chose them, in visiting order.
+
+    Attributes:
+        part_from_cam: (k, 4, 4) stations (artefact frame); joints: (k, 6) validated joint targets.
+        plans: the planner's :class:`NetworkPlan` of each distance band.
+        visible: (k, n) which of the planning part's targets each station measures (exact visibility).
+        facts: candidates, reachable ones, predicted sigmas, cycle time, seed used.
+    """
+
+    part_from_cam: np.ndarray
+    joints: np.ndarray
+    plans: list[NetworkPlan]
+    visible: np.ndarray
+    facts: dict
+
+
+def plan_stations(job: LoadedJob, k: int, *, min_rays: int, max_tilt_rad: float, incidence_max_rad: float,
+                  sigma_px: float, n_candidates: int, seed: int, targets: np.ndarray | None = None,
+                  margin_px: float = 20.0, depth_margin: float = 0.35,
+                  bands: tuple[tuple[float, float], ...] = ((0.0, 1.0),)) -> StationPlan:
+    """``k`` stations around the artefact of ``job`` by the network planner, as an inspection plans them.
+
+    The artefact is the part planned for (``targets``: a boolean mask of the targets that count,
+    default all). Candidates on a viewing sphere tilted at most ``max_tilt_rad`` from the artefact's
+    normal, at distances that keep it in the depth of field (``depth_margin`` of its radius inside
+    ``near``/``far``); the visibility database (:func:`build_database`), the robot's reachability
+    (:class:`ReachabilityDB`, IK + collisions in the cell), then :func:`plan_network` in fixed-size
+    mode (every counted target measured by ``min_rays`` stations, the worst predicted sigma minimised).
+    ``bands``: fractions of that distance range, one planned network each (the stations split evenly);
+    then :func:`validate_plan` on them all (IK branches, collision-checked moves, visiting order).
+    """
+    from planning.execution import MotionLimits, validate_plan
     from planning.reachability import ReachabilityDB
     from planning.visibility import default_cache_dir
 
     from cell.setup import collision_world, robot_model
 
-    k = job.spec.scale
-    near, far = job.spec.camera.near * k, job.spec.camera.far * k
-    r = job.part.radius
-    sphere = ViewingSphere.for_part(job.part, job.intrinsics, elevation_min_rad=np.pi / 2 - max_tilt_rad)
-    d0, d1 = near + 0.35 * r, far - 0.35 * r
+    c, sc = job.spec.cell, job.spec.scale
+    near, far = job.spec.camera.near * sc, job.spec.camera.far * sc
+    part = job.part if targets is None else replace(job.part, targets=job.part.targets.subset(np.asarray(targets)))
+    r = part.radius
+    d0, d1 = near + depth_margin * r, far - depth_margin * r
     if d1 <= d0:
         raise ReachabilityError(f"{job.part.name}: the artefact ({2 * r * 1000:.0f} mm across) does not fit in the "
                                 f"camera's depth of field {near * 1000:.0f}..{far * 1000:.0f} mm")
-    sphere = replace(sphere, distance_min_m=d0, distance_max_m=d1, max_roll_rad=np.pi, max_offset_m=0.0)
-    genes = sphere.candidates(n, n_shells=2)
-    genes = np.concatenate([np.column_stack([genes[:, :3], np.full(len(genes), rr), genes[:, 4:]]) for rr in rolls_rad])
-    P = sphere.poses(genes)
-    vis = compute_visibility(job.part, job.intrinsics, P, VisibilityOptions(
-        margin_px=20.0, near_m=near, far_m=far, incidence_max_rad=incidence_max_rad))
-    reach = ReachabilityDB.load_or_build(robot_model(job), job.spec.base_from_part(), job.spec.flange_from_cam(), P,
-                                         collision_world(job), cache_dir=default_cache_dir())
-    return P, vis, reach.reachable
+    robot, world = robot_model(job), collision_world(job)
+    X, Y = job.spec.flange_from_cam(), job.spec.base_from_part()
+    cache = default_cache_dir()
+    sizes = np.diff(np.round(np.linspace(0, k, len(bands) + 1)).astype(int))
+    plans, facts = [], {"seed": int(seed), "bands": []}
+    for b, ((f0, f1), kb) in enumerate(zip(bands, sizes)):
+        sphere = replace(ViewingSphere.for_part(part, job.intrinsics, elevation_min_rad=np.pi / 2 - max_tilt_rad),
+                         distance_min_m=d0 + f0 * (d1 - d0), distance_max_m=d0 + f1 * (d1 - d0))
+        opts = PlannerOptions(n_stations=int(kb), min_rays=min(min_rays, int(kb)), incidence_max_rad=float(incidence_max_rad),
+                              criterion="worst", sigma_px=sigma_px, mode="fixed", population=CAL_POPULATION,
+                              generations=CAL_GENERATIONS, stall_generations=CAL_STALL, sphere=sphere,
+                              n_candidates=n_candidates, n_shells=2,
+                              visibility=VisibilityOptions(margin_px=margin_px, near_m=near, far_m=far,
+                                                           incidence_max_rad=float(incidence_max_rad)))
+        db = build_database(part, job.intrinsics, opts, cache_dir=cache)
+        reach = ReachabilityDB.load_or_build(robot, Y, X, db.part_from_cam, world, cache_dir=cache)
+        if not (reach.reachable & db.visible.any(axis=1)).any():
+            raise ReachabilityError(f"{job.part.name}: the robot reaches none of the {len(db.part_from_cam)} candidate "
+                                    f"stations around the artefact at {np.round(Y[:3, 3], 3).tolist()} m: move it closer")
+        try:
+            plan = plan_network(part, job.intrinsics, opts, np.random.default_rng(seed + 1000 * b),
+                                reachable=reach.reachable, cache_dir=cache, seed=seed + 1000 * b, db=db)
+        except PlanningError as exc:
+            raise ReachabilityError(f"{job.part.name}: {exc} ({int(reach.reachable.sum())} of {len(reach.reachable)} "
+                                    "candidate stations reachable)") from None
+        plans.append(plan)
+        facts["bands"].append({"distance_m": [sphere.distance_min_m, sphere.distance_max_m], "stations": int(kb),
+                               "candidates": int(len(reach.reachable)), "reachable": int(reach.reachable.sum()),
+                               "predicted_sigma_max_m": plan.predicted_sigma_max_m,
+                               "stopped_because": plan.search.get("stopped_because")})
+    P = np.concatenate([p.part_from_cam for p in plans])
+    ids = [f"{job.part.name}-{b}-{sid}" for b, p in enumerate(plans) for sid in p.station_ids]
+    ep = validate_plan(robot, P, Y, X, world, MotionLimits(
+        joint_speed_rad_s=c.max_joint_speed_rad_s, joint_accel_rad_s2=c.max_joint_accel_rad_s2, settle_s=c.settle_s),
+        ids=ids)
+    visible = np.concatenate([_seen_matrix(p) for p in plans])
+    facts["cycle_time_s"] = float(ep.cycle_time_s)
+    return StationPlan(P[ep.order], ep.joints[ep.order], plans, visible[ep.order], facts)
 
 
-def _order(job: LoadedJob, P: np.ndarray, ids: list[str]) -> tuple[np.ndarray, list]:
-    """Joint targets (k, 6) in visiting order after collision-checked validation; and the execution plan."""
-    from planning.execution import MotionLimits, validate_plan
-
-    from cell.setup import collision_world, robot_model
-
-    c = job.spec.cell
-    ep = validate_plan(robot_model(job), P, job.spec.base_from_part(), job.spec.flange_from_cam(), collision_world(job),
-                       MotionLimits(joint_speed_rad_s=c.max_joint_speed_rad_s, joint_accel_rad_s2=c.max_joint_accel_rad_s2,
-                                    settle_s=c.settle_s), ids=ids)
-    return ep.order, ep
+def _seen_matrix(plan: NetworkPlan) -> np.ndarray:
+    """(k, n) bool: which target each station of ``plan`` measures (from its exact ``seen_by``)."""
+    index = {sid: i for i, sid in enumerate(plan.station_ids)}
+    out = np.zeros((len(plan.station_ids), len(plan.target_ids)), dtype=bool)
+    for j, seen in enumerate(plan.seen_by):
+        out[[index[sid] for sid in seen], j] = True
+    return out
 
 
-def plan_stations(job: LoadedJob, k: int, *, kind: str, n_candidates: int = 300, max_tilt_rad: float = np.deg2rad(45),
-                  incidence_max_rad: float = np.deg2rad(55), sigma_px: float = 0.05, points: np.ndarray | None = None):
-    """Stations for a calibration job, returns ``(part_from_cam (k, 4, 4) in visiting order, execution plan)``.
+def plan_hand_eye_stations(job: LoadedJob, he, sigma_px: float, out) -> tuple[StationPlan, HandEyeConditioning, list]:
+    """The hand-eye's stations: planned (:func:`plan_stations`), then checked for the hand-eye's conditioning.
 
-    ``kind="hand_eye"``: greedy D-optimal for the hand-eye (rolls of -90..90 deg add the rotation about
-    the optical axis). ``kind="points"``: greedy minimisation of the worst predicted covariance of
-    ``points`` (indices into the targets) by forward intersection, every point seen in every image.
+    The planner minimises the artefact's point precision, which also wants wide, convergent
+    views; what AX = XB needs besides is checked on the planned network
+    (:func:`hand_eye_conditioning`): X's predicted sigmas and the motions' weakest rotation
+    against ``[hand_eye]`` ``max_sigma_translation``, ``max_sigma_rotation_deg`` and
+    ``min_weakest_rotation_deg``. A network that misses them is replaced by the planner's
+    network for the next seed (up to ``max_plans``); the best-conditioned one that meets the
+    requirement is used, else the job stops with what was missed. Returns the stations, their
+    conditioning and one row per network tried.
     """
-    coded = job.part.targets.kind == "coded"
-    rolls = np.deg2rad([-90.0, -45.0, 0.0, 45.0, 90.0]) if kind == "hand_eye" else np.deg2rad(np.arange(-60.0, 91.0, 30.0))
-    P, vis, ok = _candidates(job, n_candidates, max_tilt_rad, rolls, incidence_max_rad)
-    if kind == "hand_eye":
-        usable = ok & ((vis & ~coded).sum(axis=1) >= 12) & ((vis & coded).sum(axis=1) >= 4)
-        if usable.sum() < k:
-            raise ReachabilityError(f"{job.part.name}: only {int(usable.sum())} reachable stations see the artefact "
-                                    f"well (12 dots, 4 codes); {k} are needed: move the artefact closer to the robot")
-        xyz = job.part.targets.xyz
-        info = hand_eye_information(job.intrinsics, P, vis & ~coded, xyz, job.spec.flange_from_cam(),
-                                    job.spec.base_from_part(), sigma_px)
-        chosen, _ = select_stations(info, k, usable)
-    else:
-        pts = np.asarray(points, dtype=int)
-        usable = ok & vis[:, pts].all(axis=1) & ((vis & coded).sum(axis=1) >= 4)
-        if usable.sum() < k:
-            raise ReachabilityError(f"{job.part.name}: only {int(usable.sum())} reachable stations see both ends of "
-                                    f"the bar and 4 codes; {k} are needed: move the bar position")
-        chosen = _greedy_points(job.intrinsics, P, job.part.targets.xyz[pts], k, usable, sigma_px)
-    Pk = P[chosen]
-    order, ep = _order(job, Pk, [f"{kind}-{i:02d}" for i in range(k)])
-    return Pk[order], ep.joints[order]
-
-
-def _greedy_points(intr: Intrinsics, P: np.ndarray, xyz: np.ndarray, k: int, usable: np.ndarray, sigma_px: float):
-    """Choose ``k`` stations minimising the worst predicted sigma of the points (forward intersection)."""
-    m, n = len(P), len(xyz)
-    info = np.zeros((m, n, 3, 3))
-    for i in np.flatnonzero(usable):
-        _, Jp, _ = project_with_jacobians(intr, invert(P[i]), xyz)
-        info[i] = np.einsum("nki,nkj->nij", Jp, Jp) / sigma_px**2
-    N = np.broadcast_to(1e-2 * np.eye(3), (n, 3, 3)).copy()
-    chosen, ok = [], usable.copy()
-    for _ in range(k):
-        cand = np.flatnonzero(ok)
-        cov = np.linalg.inv(N[None] + info[cand])
-        worst = np.trace(cov, axis1=2, axis2=3).max(axis=1)
-        j = int(cand[int(np.argmin(worst))])
-        chosen.append(j)
-        N += info[j]
-        ok[j] = False
-    return np.array(chosen)
+    sc = job.spec.scale
+    dots = job.part.targets.kind != "coded"
+    req = (he.max_sigma_translation * sc, np.deg2rad(he.max_sigma_rotation_deg), np.deg2rad(he.min_weakest_rotation_deg))
+    tried = []
+    for attempt in range(he.max_plans):
+        sp = plan_stations(job, he.n_stations, min_rays=he.min_rays, max_tilt_rad=np.deg2rad(he.max_tilt_deg),
+                           incidence_max_rad=np.deg2rad(he.incidence_max_deg), sigma_px=sigma_px,
+                           n_candidates=he.n_candidates, seed=he.seed + attempt, targets=dots,
+                           bands=((0.0, 0.3), (0.7, 1.0)))
+        info = hand_eye_information(job.intrinsics, sp.part_from_cam, sp.visible, job.part.targets.xyz[dots],
+                                    job.spec.flange_from_cam(), job.spec.base_from_part(), sigma_px)
+        cond = hand_eye_conditioning(info, sp.part_from_cam, job.spec.flange_from_cam())
+        missed = cond.shortfall(*req)
+        tried.append({"seed": sp.facts["seed"], "conditioning": cond.to_dict(), "missed": missed,
+                      "bands": sp.facts["bands"]})
+        out.say(f"hand-eye: planned {len(sp.part_from_cam)} stations (seed {sp.facts['seed']}): X predicted "
+                f"+- {np.linalg.norm(cond.sigma_translation_m) * 1e3:.4f} mm, "
+                f"{np.rad2deg(np.linalg.norm(cond.sigma_rotation_rad)):.5f} deg; weakest rotation "
+                f"{np.rad2deg(cond.weakest_rotation_rad):.1f} deg, pivot rms {cond.pivot_rms_m * 1e3:.1f} mm"
+                + (f" -- misses: {'; '.join(missed)}" if missed else ""))
+        if not missed:
+            return sp, cond, tried
+    raise PlanningError(f"hand-eye: none of {he.max_plans} planned networks is conditioned well enough for the "
+                        f"hand-eye ({'; '.join(tried[-1]['missed'])}): raise [hand_eye] n_stations or max_tilt_deg, "
+                        "or move the artefact where the robot can turn the camera more")
 
 
 # --- one image --------------------------------------------------------------------------------------------
@@ -228,9 +277,8 @@ def run_hand_eye(cell_toml: Path, archive_root: Path, out, *, backend: str | Non
                        target_diameter=he.target_diameter, coded_size=he.coded_size, placement=he.placement, seed=he.seed)
     backend = backend or cf.cell.backend
     out.say(f"hand-eye: artefact {len(job.part.targets)} targets; planning {he.n_stations} stations")
-    P, joints = plan_stations(job, he.n_stations, kind="hand_eye", n_candidates=he.n_candidates,
-                              max_tilt_rad=np.deg2rad(he.max_tilt_deg), incidence_max_rad=np.deg2rad(he.incidence_max_deg),
-                              sigma_px=cf.camera.sigma_px)
+    sp, cond, tried = plan_hand_eye_stations(job, he, cf.camera.sigma_px, out)
+    joints = sp.joints
     rec = _record_folder(archive_root, cf.cell.name, "hand-eye")
     rec.append("created", kind="hand_eye", cell=cf.cell.name, cell_file=str(cell_toml), backend=backend)
     intr = job.intrinsics
@@ -258,7 +306,8 @@ def run_hand_eye(cell_toml: Path, archive_root: Path, out, *, backend: str | Non
                     rec.append("note", text=f"{name}: {exc}")
                     ft_ok = False
             per_image.append({"image": name, "n_dots": int(len(tid)), "base_from_flange": bff,
-                              "used": bool(ft_ok), "ft_rms_px": float(ft.rms_px) if ft_ok else None})
+                              "used": bool(ft_ok), "ft_rms_px": float(ft.rms_px) if ft_ok else None,
+                              "cam_from_artefact": A_i if ft_ok else None})
             rec.append("station_done", image=name, n_dots=int(len(tid)), base_from_flange=bff)
             if not ft_ok:
                 continue
@@ -276,13 +325,13 @@ def run_hand_eye(cell_toml: Path, archive_root: Path, out, *, backend: str | Non
                                f"the artefact's placement in {cell_toml} [hand_eye] placement")
     B, A = np.array(B), np.array(A)
     img_idx, tgt_idx, uvs = np.concatenate(img_idx), np.concatenate(tgt_idx), np.concatenate(uvs)
-    sols = compare_methods(B, A)
+    sols, failed = compare_methods(B, A)
     best = sols[0]
     res = refine_hand_eye(intr, B, img_idx, job.part.targets.xyz[tgt_idx], uvs, best.flange_from_cam,
                           best.base_from_target, HandEyeOptions(sigma_px=cf.camera.sigma_px))
     methods = []
     for s in sols:
-        row = {"method": s.method, "backend": s.backend, "flange_from_cam": s.flange_from_cam,
+        row = {"method": s.method, "flange_from_cam": s.flange_from_cam,
                "rms_translation_m": s.rms_translation_m, "rms_rotation_rad": s.rms_rotation_rad}
         if truth is not None:
             dt, dr = pose_error(s.flange_from_cam, truth[0])
@@ -291,7 +340,9 @@ def run_hand_eye(cell_toml: Path, archive_root: Path, out, *, backend: str | Non
     date = utc_now()
     doc = {"kind": "hand_eye", "cell": cf.cell.name, "cell_file": str(cell_toml), "finished": date,
            "backend": backend, "images": per_image, "n_images_used": int(len(B)), "n_observations": int(len(uvs)),
-           "methods": methods, "start_method": best.method,
+           "methods": methods, "methods_failed": failed, "start_method": best.method,
+           "planning": {"stations_part_from_cam": sp.part_from_cam, "joints": sp.joints, "facts": sp.facts,
+                        "conditioning": cond.to_dict(), "networks_tried": tried},
            "flange_from_cam": res.flange_from_cam, "flange_from_cam_before": X0,
            "base_from_artefact": res.base_from_target, "covariance": res.cov,
            "sigma_translation_m": res.sigma_translation_m, "sigma_rotation_rad": res.sigma_rotation_rad,
@@ -311,7 +362,8 @@ def run_hand_eye(cell_toml: Path, archive_root: Path, out, *, backend: str | Non
     summary = {"status": "ok", "record": rec.job_id, "folder": str(rec.path), "date": date,
                "flange_from_cam": res.flange_from_cam, "sigma_translation_m": res.sigma_translation_m,
                "sigma_rotation_rad": res.sigma_rotation_rad, "sigma0_px": res.sigma0_px,
-               "methods": methods, "images": int(len(B)), "truth": doc.get("truth")}
+               "methods": methods, "methods_failed": failed, "images": int(len(B)), "truth": doc.get("truth"),
+               "planned_conditioning": cond.to_dict()}
     st, sr = np.linalg.norm(res.sigma_translation_m), np.rad2deg(np.linalg.norm(res.sigma_rotation_rad))
     out.say(f"hand-eye: {len(B)} images, sigma0 {res.sigma0_px:.3f} px; flange_from_cam +- {st * 1e3:.3f} mm, "
             f"{sr:.4f} deg; written to {cell_toml} ({date})")
@@ -356,8 +408,12 @@ def _measure_position(cf: CellFile, folder: Path, cell_toml: Path, k: int, pose:
         if key not in index:
             raise InputError(f"{cell_toml}: reverification target {key!r} is not in {rv.targets}")
     ia, ib = index[rv.a], index[rv.b]
-    P, joints = plan_stations(job, rv.stations_per_position, kind="points", points=np.array([ia, ib]), n_candidates=150,
-                              max_tilt_rad=np.deg2rad(40.0), sigma_px=cf.camera.sigma_px)
+    ends = np.zeros(len(job.part.targets), dtype=bool)
+    ends[[ia, ib]] = True
+    sp = plan_stations(job, rv.stations_per_position, min_rays=rv.stations_per_position,
+                       max_tilt_rad=np.deg2rad(rv.max_tilt_deg), incidence_max_rad=np.deg2rad(rv.incidence_max_deg),
+                       sigma_px=cf.camera.sigma_px, n_candidates=rv.n_candidates, seed=rv.seed + k, targets=ends)
+    joints = sp.joints
     X, Y0 = job.spec.flange_from_cam(), job.spec.base_from_part()
     intr = job.intrinsics
     occluder = Occluder(job.part.mesh)
@@ -400,8 +456,33 @@ def _measure_position(cf: CellFile, folder: Path, cell_toml: Path, k: int, pose:
             "ray_rms_px": max(rms), "pass": bool(abs(err) <= mpe)}
 
 
-def run_reverification(cell_toml: Path, archive_root: Path, out, *, backend: str | None = None) -> dict:
-    """Measure the scale bar in every position of ``[reverification]``; archive and return the result."""
+def ask_operator(out, message: str) -> None:
+    """Wait until the operator has done what ``message`` asks (Enter), or abort (``AbortRequested``).
+
+    Through ``out.ask(message)`` when the output object offers it (a GUI, a test), else at the terminal.
+    Without a terminal nobody can move the bar: an :class:`InputError` says so.
+    """
+    import sys
+
+    ask = getattr(out, "ask", None)
+    if ask is not None:
+        answer = ask(message)
+    elif sys.stdin is not None and sys.stdin.isatty():
+        answer = input(f"{message} Press Enter when done (or type 'abort'): ")
+    else:
+        raise InputError(f"{message} -- this needs the operator at a terminal: run the reverification interactively")
+    if str(answer or "").strip().lower() in ("abort", "a", "q", "quit", "no", "n"):
+        raise AbortRequested(f"the operator aborted: {message}")
+
+
+def run_reverification(cell_toml: Path, archive_root: Path, out, *, backend: str | None = None,
+                       operator=None) -> dict:
+    """Measure the scale bar in every position of ``[reverification]``; archive and return the result.
+
+    On the simulated cell the bar is where ``positions`` puts it (the simulation places it). On a
+    real cell a person moves it: before each position ``operator(message)`` (default
+    :func:`ask_operator`) names the position and waits; the robot stands still meanwhile.
+    """
     cell_toml = Path(cell_toml)
     cf, folder = load_cell_file(cell_toml)
     rv = cf.reverification
@@ -411,8 +492,21 @@ def run_reverification(cell_toml: Path, archive_root: Path, out, *, backend: str
     rec = _record_folder(archive_root, cf.cell.name, "reverification")
     rec.append("created", kind="reverification", cell=cf.cell.name, cell_file=str(cell_toml), backend=backend)
     rows = []
+    if operator is None and backend != "sim":
+        operator = lambda message: ask_operator(out, message)  # noqa: E731
     for k, pose in enumerate(rv.positions):
         out.progress("reverification", k / len(rv.positions))
+        if operator is not None:
+            xyz = ", ".join(f"{v:g}" for v in pose.xyz)
+            rpy = ", ".join(f"{v:g}" for v in pose.rpy_deg)
+            message = (f"Reverification position {k + 1} of {len(rv.positions)}: put the scale bar at "
+                       f"xyz = [{xyz}] {cf.cell.units}, rpy = [{rpy}] deg (robot base frame, within a few cm).")
+            rec.append("operator", position=k, text=message)
+            try:
+                operator(message)
+            except AbortRequested as exc:
+                rec.append("terminal", status="ABORTED", reason=str(exc))
+                raise
         row = _measure_position(cf, folder, cell_toml, k, pose, rec, backend, out)
         rows.append(row)
         out.say(f"  position {k}: L = {row['length_m'] * 1e3:.4f} mm, E = {row['error_m'] * 1e6:+.1f} um "
@@ -768,8 +862,8 @@ def _placement_stations(job: LoadedJob, n: int) -> tuple[np.ndarray, np.ndarray]
     see at least two coded markers with a wide margin (the part may be centimetres off), ``n``
     spread in azimuth.
     """
+    from planning.execution import MotionLimits, validate_plan
     from planning.reachability import ReachabilityDB
-    from planning.visibility import VisibilityOptions
 
     from cell.setup import collision_world, robot_model
 
@@ -794,5 +888,9 @@ def _placement_stations(job: LoadedJob, n: int) -> tuple[np.ndarray, np.ndarray]
                                 f"a coded marker ({n} needed); move the part closer to the robot or add coded markers")
     # spread in azimuth: every len(ok)/n-th usable station
     pick = ok[np.round(np.linspace(0, len(ok) - 1, n)).astype(int)]
-    order, ep = _order(job, P[pick], [f"placement-{i}" for i in range(n)])
-    return P[pick][order], ep.joints[order]
+    c = job.spec.cell
+    ep = validate_plan(robot_model(job), P[pick], job.spec.base_from_part(), job.spec.flange_from_cam(),
+                       collision_world(job), MotionLimits(joint_speed_rad_s=c.max_joint_speed_rad_s,
+                                                          joint_accel_rad_s2=c.max_joint_accel_rad_s2,
+                                                          settle_s=c.settle_s), ids=[f"placement-{i}" for i in range(n)])
+    return P[pick][ep.order], ep.joints[ep.order]

@@ -9,10 +9,14 @@ relative paths are relative to the cell file's folder):
   ``base_from_part`` has no meaning for a cell and is not allowed.
 * ``[camera]``: as a job file's ``[camera]``.
 * ``[hand_eye]``: the calibration artefact (mesh, targets, dot and marker size), its approximate
-  ``placement`` in the base frame, the number of stations and the planning seed.
+  ``placement`` in the base frame; what the network planner is asked for (``n_stations``,
+  ``min_rays``, ``n_candidates``, tilt and incidence limits, ``seed``) and the conditioning the planned
+  network must have (``max_sigma_translation``, ``max_sigma_rotation_deg``, ``min_weakest_rotation_deg``;
+  ``max_plans`` networks are tried).
 * ``[reverification]``: the scale bar (mesh, targets, ``a``, ``b``, calibrated ``length`` and
   its ``sigma``), the bar ``positions`` in the measuring volume, the maximum permissible length
-  measurement error ``E_MPE = max_permissible_error + max_permissible_error_per_length * L``
+  measurement error ``E_MPE = max_permissible_error + max_permissible_error_per_length * L``, the planner's
+  ``stations_per_position`` (each sees both ends), ``n_candidates``, tilt and incidence limits
   and the reverification ``interval_days``.
 * ``[sim]``: as a job file's ``[sim]``, but the simulated cell's real hand-eye is stated absolutely
   (``flange_from_cam_true``: calibration rewrites ``flange_from_cam``, the truth stays); ``base_from_part_error``
@@ -59,10 +63,23 @@ class HandEyeSection(_Strict):
     coded_size: float = Field(default=20.0, gt=0)
     placement: Pose = Field(description="approximate base_from_artefact, file units")
     n_stations: int = Field(default=14, ge=4, le=60)
-    n_candidates: int = Field(default=300, ge=20, le=20_000)
+    min_rays: int = Field(default=3, ge=2, description="fewest stations that must measure every dot (planner)")
+    n_candidates: int = Field(default=600, ge=20, le=20_000, description="candidate stations of the planner")
     incidence_max_deg: float = Field(default=55.0, gt=0, lt=90)
     max_tilt_deg: float = Field(default=45.0, gt=0, lt=90, description="largest camera tilt from the artefact normal")
+    max_sigma_translation: float = Field(default=0.05, gt=0, description="required predicted sigma of the "
+                                         "hand-eye's translation, file units")
+    max_sigma_rotation_deg: float = Field(default=0.005, gt=0, description="required predicted sigma of its rotation")
+    min_weakest_rotation_deg: float = Field(default=10.0, ge=0, lt=180, description="required rotation of the "
+                                            "stations' motions about their least-excited direction")
+    max_plans: int = Field(default=4, ge=1, le=20, description="planned networks (seeds) tried for the conditioning")
     seed: int = 0
+
+    @model_validator(mode="after")
+    def _rays_fit(self):
+        if self.min_rays > self.n_stations:
+            raise ValueError(f"hand_eye.min_rays = {self.min_rays} exceeds n_stations = {self.n_stations}")
+        return self
 
 
 class ReverificationSection(_Strict):
@@ -75,7 +92,10 @@ class ReverificationSection(_Strict):
     target_diameter: float = Field(default=5.0, gt=0)
     coded_size: float = Field(default=20.0, gt=0)
     positions: list[Pose] = Field(min_length=1, description="base_from_bar in each position, file units")
-    stations_per_position: int = Field(default=5, ge=2, le=30)
+    stations_per_position: int = Field(default=5, ge=2, le=30, description="planned stations, each sees a and b")
+    n_candidates: int = Field(default=300, ge=20, le=20_000, description="candidate stations of the planner")
+    max_tilt_deg: float = Field(default=40.0, gt=0, lt=90)
+    incidence_max_deg: float = Field(default=55.0, gt=0, lt=90)
     max_permissible_error: float = Field(gt=0, description="E_MPE constant term, file units")
     max_permissible_error_per_length: float = Field(default=0.0, ge=0, description="E_MPE term per unit length")
     interval_days: float = Field(default=30.0, gt=0)

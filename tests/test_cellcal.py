@@ -9,7 +9,9 @@ import numpy as np
 import pytest
 
 from calibration.errors import JobSpecError
-from cell.cellcal import calibration_status, run_hand_eye, run_reverification
+from calibration.errors import AbortRequested, InputError, PlanningError
+from cell.cellcal import (artefact_job, ask_operator, calibration_status, plan_hand_eye_stations, run_hand_eye,
+                          run_reverification)
 from cell.cellfile import load_cell_file, write_flange_from_cam
 from cell.jobspec import pose_matrix
 
@@ -49,9 +51,14 @@ def test_hand_eye_job_recovers_the_true_hand_eye_and_writes_it_into_the_cell_fil
     assert dt < 0.5e-3 and np.rad2deg(dr) < 0.05  # the figures
     assert dt < 0.05e-3  # and in fact ten times better on the sim
     assert cf.cell.flange_from_cam_date == s["date"]
-    # every closed-form method was compared, and each is already close
+    # every closed-form method of OpenCV was compared, and each is already close
     assert {m["method"] for m in s["methods"]} == {"tsai", "park", "horaud", "andreff", "daniilidis"}
+    assert s["methods_failed"] == {}
     assert all(m["error_translation_m"] < 0.5e-3 for m in s["methods"])
+    # the planner's stations were checked for the hand-eye's conditioning before any image
+    c = s["planned_conditioning"]
+    assert np.linalg.norm(c["sigma_translation_m"]) < 0.05e-3 and np.rad2deg(c["weakest_rotation_rad"]) >= 10.0
+    assert c["pivot_rms_m"] > 1e-3  # two distance bands: the motions do not all turn about one point
     # uncertainty is stated and honest (error within 5 sigma)
     sig = np.linalg.norm(s["sigma_translation_m"])
     assert 0 < sig < 0.1e-3 and dt < 5 * sig + 2e-6
@@ -69,8 +76,10 @@ def test_reverification_passes_a_calibrated_cell_and_fails_one_off_by_2_mm(tmp_p
     good.mkdir()
     bad.mkdir()
     archive = tmp_path / "archive"
-    rg = run_reverification(_cell(good, TRUE_FFC, positions=3), archive, _Out())
+    asked = []
+    rg = run_reverification(_cell(good, TRUE_FFC, positions=3), archive, _Out(), operator=asked.append)
     assert rg["passed"]
+    assert len(asked) == 3 and all("put the scale bar" in m for m in asked)
     assert rg["max_abs_error_m"] < 20e-6
     out = _Out()
     off = "{ xyz = [3.2, 39.2, 91.5], rpy_deg = [0.3, -0.2, 0.4] }"  # 2 mm off along the flange x axis
@@ -134,3 +143,45 @@ def test_writing_the_hand_eye_keeps_comments_and_round_trips(tmp_path):
     assert cf2.cell.flange_from_cam_record == "r1"
     write_flange_from_cam(cell, X, "2026-02-03T00:00:00+00:00")
     assert sum(ln.startswith("flange_from_cam_date") for ln in cell.read_text().splitlines()) == 1
+
+
+def test_hand_eye_stations_come_from_the_planner_and_a_requirement_they_miss_stops_the_job(tmp_path):
+    cell = _cell(tmp_path)
+    cf, folder = load_cell_file(cell)
+    he = cf.hand_eye
+    job = artefact_job(cf, folder, cell, name="field", mesh=he.mesh, targets=he.targets,
+                       target_diameter=he.target_diameter, coded_size=he.coded_size, placement=he.placement, seed=he.seed)
+    sp, cond, tried = plan_hand_eye_stations(job, he, cf.camera.sigma_px, _Out())
+    assert sp.part_from_cam.shape == (he.n_stations, 4, 4) and sp.joints.shape == (he.n_stations, 6)
+    assert len(sp.plans) == 2 and all(p.mode == "fixed" for p in sp.plans)
+    # every dot is measured by min_rays stations (the planner's constraint), the tilt limit holds
+    assert sp.visible.sum(axis=0).min() >= he.min_rays
+    tilt = np.rad2deg(np.arccos(np.clip(-sp.part_from_cam[:, 2, 2], -1, 1)))
+    assert tilt.max() <= he.max_tilt_deg + 0.5
+    assert tried[-1]["missed"] == [] and cond.weakest_rotation_rad > 0
+    # an unattainable requirement: every network tried misses it, and the job says what to change
+    strict = he.model_copy(update={"max_sigma_translation": 1e-6, "max_plans": 2})
+    with pytest.raises(PlanningError, match="none of 2 planned networks.*translation"):
+        plan_hand_eye_stations(job, strict, cf.camera.sigma_px, _Out())
+
+
+class _Operator(_Out):
+    def __init__(self, answers):
+        super().__init__()
+        self.answers, self.asked = list(answers), []
+
+    def ask(self, message):
+        self.asked.append(message)
+        return self.answers.pop(0)
+
+
+def test_a_real_cell_asks_the_operator_to_move_the_bar_and_an_abort_stops_before_moving(tmp_path):
+    cell = _cell(tmp_path, positions=2)
+    out = _Operator(["abort"])
+    with pytest.raises(AbortRequested, match="position 1 of 2"):
+        run_reverification(cell, tmp_path / "archive", out, backend="ur")
+    assert "xyz = [700, 0, 0] mm" in out.asked[0]
+    # no terminal and no way to ask: the job refuses instead of measuring a bar nobody moved
+    with pytest.raises(InputError, match="operator at a terminal"):
+        ask_operator(_Out(), "Put the scale bar at position 1.")
+    ask_operator(_Operator([""]), "Put the scale bar at position 1.")  # Enter: done
