@@ -418,7 +418,7 @@ def _measure_position(cf: CellFile, folder: Path, cell_toml: Path, k: int, pose:
     intr = job.intrinsics
     occluder = Occluder(job.part.mesh)
     seen = {ia: [], ib: []}
-    devices = open_devices(job, backend)
+    devices = open_devices(job, backend, seed_offset=k)  # each position its own image noise
     try:
         for i, q in enumerate(joints):
             img, bff = _capture(devices, q, job.spec.cell)

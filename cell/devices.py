@@ -49,15 +49,19 @@ def _true_poses(job: LoadedJob) -> tuple[np.ndarray, np.ndarray]:
     return true_bfp, true_ffc
 
 
-def make_job_sim_cell(job: LoadedJob):
-    """The simulated cell of a job: the true part (CAD + deviations), its true placement and hand-eye."""
+def make_job_sim_cell(job: LoadedJob, seed_offset: int = 0):
+    """The simulated cell of a job: the true part (CAD + deviations), its true placement and hand-eye.
+
+    ``seed_offset`` is added to ``[sim] seed``: sessions that must not share their noise (the positions
+    of a reverification) pass different offsets.
+    """
     from cell.setup import robot_model
     from sim_backend.factory import make_sim_cell
 
     s = job.spec
     true_bfp, true_ffc = _true_poses(job)
     return make_sim_cell(job.part, s.base_from_part(), s.flange_from_cam(), job.intrinsics, robot=robot_model(job),
-                         deviations=job.deviations, image_sigma_px=s.sim.image_sigma_px, seed=s.sim.seed,
+                         deviations=job.deviations, image_sigma_px=s.sim.image_sigma_px, seed=s.sim.seed + seed_offset,
                          motion=s.sim.motion, time_scale=s.sim.time_scale, true_flange_from_cam=true_ffc,
                          true_base_from_part=true_bfp)
 
@@ -65,7 +69,7 @@ def make_job_sim_cell(job: LoadedJob):
 def open_devices(job: LoadedJob, backend: str, *, seed_offset: int = 0) -> Devices:
     s = job.spec
     if backend == "sim":
-        sim = make_job_sim_cell(job)
+        sim = make_job_sim_cell(job, seed_offset)
         d = Devices(robot=sim.robot, camera=sim.camera, light=sim.light, world=sim.world)
     elif backend == "ur":
         from cell.setup import robot_model
@@ -89,7 +93,7 @@ def open_devices(job: LoadedJob, backend: str, *, seed_offset: int = 0) -> Devic
             world = None
         else:
             # no real camera configured: the simulated camera follows the real robot's reported pose
-            sim = make_job_sim_cell(job)
+            sim = make_job_sim_cell(job, seed_offset)
             world = sim.world
             camera = _FollowingCamera(sim.camera, robot, world)
         light = None
