@@ -858,39 +858,23 @@ def _identify_dots(job: LoadedJob, det_uv: np.ndarray, cam_from_part: np.ndarray
 def _placement_stations(job: LoadedJob, n: int) -> tuple[np.ndarray, np.ndarray]:
     """Overview stations around the nominal part, ``(part_from_cam (n, 4, 4), joints (n, 6))`` in visiting order.
 
-    A grid of 24 (two elevations, 12 azimuths, mid depth of field); among the reachable ones that
-    see at least two coded markers with a wide margin (the part may be centimetres off), ``n``
-    spread in azimuth.
+    Planned by :func:`plan_stations` (the inspection's planner and reachability) for the coded
+    markers alone, with a wide image margin (the part may be centimetres off its nominal place)
+    and every marker in two images (more stations than ``n`` when the markers need them).
     """
-    from planning.execution import MotionLimits, validate_plan
-    from planning.reachability import ReachabilityDB
-
-    from cell.setup import collision_world, robot_model
-
-    k = job.spec.scale
-    near, far = job.spec.camera.near * k, job.spec.camera.far * k
-    sphere = ViewingSphere.for_part(job.part, job.intrinsics)
-    d = 0.5 * (near + far)
-    az = np.linspace(-np.pi, np.pi, 12, endpoint=False)
-    genes = np.array([[a, e, d, 0.0, 0.0, 0.0] for e in np.deg2rad([60.0, 45.0]) for a in az])
-    P = sphere.poses(genes)
-    reach = ReachabilityDB.load_or_build(robot_model(job), job.spec.base_from_part(), job.spec.flange_from_cam(), P,
-                                         collision_world(job))
     coded = job.part.targets.kind == "coded"
-    vis = compute_visibility(job.part, job.intrinsics, P, VisibilityOptions(
-        margin_px=150.0, near_m=near, far_m=far, incidence_max_rad=np.deg2rad(60.0)))
-    n_codes = (vis & coded).sum(axis=1)
-    ok = np.flatnonzero(reach.reachable & (n_codes >= 2))
-    if len(ok) < n:
-        ok = np.flatnonzero(reach.reachable & (n_codes >= 1))
-    if len(ok) < n:
-        raise ReachabilityError(f"part placement: only {len(ok)} of {len(P)} overview stations are reachable and see "
-                                f"a coded marker ({n} needed); move the part closer to the robot or add coded markers")
-    # spread in azimuth: every len(ok)/n-th usable station
-    pick = ok[np.round(np.linspace(0, len(ok) - 1, n)).astype(int)]
-    c = job.spec.cell
-    ep = validate_plan(robot_model(job), P[pick], job.spec.base_from_part(), job.spec.flange_from_cam(),
-                       collision_world(job), MotionLimits(joint_speed_rad_s=c.max_joint_speed_rad_s,
-                                                          joint_accel_rad_s2=c.max_joint_accel_rad_s2,
-                                                          settle_s=c.settle_s), ids=[f"placement-{i}" for i in range(n)])
-    return P[pick][ep.order], ep.joints[ep.order]
+    if not coded.any():
+        raise InputError(f"{job.part.name}: part placement needs coded markers on the part (job.n_coded or the "
+                         "targets file's code column)")
+    last = None
+    for k in range(n, n + 5):  # more stations when n cannot show every marker twice
+        try:
+            sp = plan_stations(job, k, min_rays=2, max_tilt_rad=np.deg2rad(60.0), incidence_max_rad=np.deg2rad(60.0),
+                               sigma_px=job.spec.camera.sigma_px, n_candidates=300, seed=job.spec.job.seed,
+                               targets=coded, margin_px=150.0)
+            break
+        except ReachabilityError as exc:
+            last = exc
+    else:
+        raise ReachabilityError(f"part placement: {last}")
+    return sp.part_from_cam, sp.joints

@@ -115,7 +115,8 @@ def locate_part(job_path: Path, out, *, write: bool, backend: str | None = None,
     backend = backend or job.spec.cell.backend
     k = job.spec.scale
     units = job.spec.job.units
-    out.say(f"locate: {job.spec.job.name}: {n_images} overview images around the nominal placement ({backend})")
+    out.say(f"locate: {job.spec.job.name}: planning at least {n_images} overview images of the coded markers "
+            f"around the nominal placement ({backend})")
     devices = open_devices(job, backend)
     truth = None
     try:
