@@ -2,7 +2,7 @@
 
 The operator places the part roughly where the job's ``[cell] base_from_part`` says; a few
 overview images of its coded markers and dots then give the real placement
-(:func:`cell.cellcal.estimate_part_placement`, the hand-eye held fixed). With ``write=True``
+(:func:`cell.placement.estimate_part_placement`, the hand-eye held fixed). With ``write=True``
 the job file's ``base_from_part = { ... }`` line is rewritten, so the next ``cell plan`` /
 ``cell run`` plans stations that follow the part. Only that line changes; the new text is
 validated (reloaded, and its pose checked against the estimate) before it atomically replaces
@@ -106,7 +106,7 @@ def locate_part(job_path: Path, out, *, write: bool, backend: str | None = None,
     (the estimate's error against the simulated placement).
     """
     from calibration.handeye import pose_error
-    from cell.cellcal import estimate_part_placement
+    from cell.placement import estimate_part_placement
     from cell.devices import open_devices
     from cell.load import load
 

@@ -12,7 +12,7 @@ from scipy.spatial.transform import Rotation
 from calibration.camera import Intrinsics, invert, look_at, make_pose, project
 from calibration.errors import JobSpecError
 from calibration.handeye import pose_error
-from cell.cellcal import _coded_markers, _pnp_corners, estimate_part_placement
+from cell.placement import _coded_markers, _pnp_corners, estimate_part_placement
 from cell.devices import open_devices
 from cell.jobspec import Pose, load_job, pose_matrix
 from cell.load import load
