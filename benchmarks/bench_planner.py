@@ -14,7 +14,7 @@ size below it is planned and compared with ``min_rays = 2``.  A ring or random n
 that measures a target with fewer than ``min_rays`` rays is infeasible; for those the
 worst sigma over the targets with at least 2 rays is also reported (a lenient figure).
 
-    .venv/bin/python benchmarks/bench_planner.py [--quick] [--json out.json] [--png DIR]
+    .venv/bin/python benchmarks/bench_planner.py [--quick] [--json out.json] [--png DIR] [--timing-only --repeat 5]
 """
 from __future__ import annotations
 
@@ -32,6 +32,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from calibration.camera import Intrinsics  # noqa: E402
 from planning.part import Part, make_bracket, sample_targets  # noqa: E402
 from planning.planner import PlannerOptions, plan_network  # noqa: E402
+from planning.seeding import ring_genes  # noqa: E402
 from planning.stations import N_GENES, ViewingSphere  # noqa: E402
 from planning.uncertainty import covariance_for_network  # noqa: E402
 from planning.visibility import VisibilityDB, VisibilityOptions, compute_visibility  # noqa: E402
@@ -71,38 +72,61 @@ def score(part, intr, genes, sphere, vis_opts, sigma_px, min_rays, cols) -> dict
     }
 
 
-def ring_genes(k: int, elevations: list[float], distance: float, phase: float = 0.0) -> np.ndarray:
-    """``k`` stations on rings (split as evenly as possible) at ``elevations``, looking at the centre."""
-    counts = [k // len(elevations) + (1 if i < k % len(elevations) else 0) for i in range(len(elevations))]
-    rows = []
-    for r, (el, c) in enumerate(zip(elevations, counts)):
-        az = phase + (r * np.pi / c if len(elevations) > 1 else 0.0) + 2 * np.pi * np.arange(c) / c
-        az = np.mod(az + np.pi, 2 * np.pi) - np.pi
-        g = np.zeros((c, N_GENES))
-        g[:, 0], g[:, 1], g[:, 2] = az, el, distance
-        rows.append(g)
-    return np.vstack(rows)
-
-
 def best_ring(part, intr, k, sphere, vis_opts, sigma_px, min_rays, cols, quick=False) -> dict:
+    """Best single- or two-ring convergent network of ``k`` stations, by exact scoring.
+
+    Stage 1 sweeps elevations (5 deg steps; 15 with ``quick``) for one ring and every
+    pair for two rings (split evenly, staggered), at 5 distances across the sphere's
+    band.  Stage 2 takes the 6 best of stage 1 (by each figure below) and sweeps the phase
+    (8 steps over one station spacing), the split of stations between two rings (1/3,
+    1/2, 2/3) and the distance +-1/8 of the band.  Figures kept: the best *feasible*
+    ring (every target >= ``min_rays`` rays), the best ring covering >= 95 % of the
+    targets (its worst over the targets it covers), and the best lenient ring (worst over
+    targets with >= 2 rays).
+    """
     els = np.deg2rad(np.arange(10, 86, 15 if quick else 5))
+    span = sphere.distance_max_m - sphere.distance_min_m
     dists = np.linspace(sphere.distance_min_m, sphere.distance_max_m, 3 if quick else 5)
-    best = {"worst_m": np.inf, "worst_lenient_m": np.inf, "worst_covered_m": np.inf}
-    n = 0
+    best = {"worst_m": np.inf, "worst_lenient_m": np.inf, "worst_covered_m": np.inf, "coverage_max": 0.0}
+    scored: list[tuple[dict, tuple]] = []
+
+    def run(elevs, d, phase=0.0, counts=None):
+        s = score(part, intr, ring_genes(k, list(elevs), d, phase, counts), sphere, vis_opts, sigma_px, min_rays, cols)
+        cfg = {"elevations_deg": np.rad2deg(elevs).round(1).tolist(), "distance_m": round(float(d), 4),
+               "phase_deg": round(float(np.rad2deg(phase)), 1), "counts": counts}
+        best["coverage_max"] = max(best["coverage_max"], s["coverage"])
+        if s["worst_m"] < best["worst_m"]:
+            best.update(worst_m=s["worst_m"], feasible_config=cfg)
+        if s["coverage"] >= 0.95 and s["worst_covered_m"] < best["worst_covered_m"]:
+            best.update(worst_covered_m=s["worst_covered_m"], coverage=s["coverage"], covered=s["covered"],
+                        covered_config=cfg)
+        if s["worst_lenient_m"] < best["worst_lenient_m"]:
+            best.update(worst_lenient_m=s["worst_lenient_m"], lenient_coverage=s["coverage"], lenient_config=cfg)
+        scored.append((s, (tuple(elevs), float(d))))
+
+    configs = [[e] for e in els] + [[e1, e2] for i, e1 in enumerate(els) for e2 in els[i + 1:]]
     for d in dists:
-        configs = [[e] for e in els] + [[e1, e2] for i, e1 in enumerate(els) for e2 in els[i + 1:]]
         for elevs in configs:
-            s = score(part, intr, ring_genes(k, list(elevs), d), sphere, vis_opts, sigma_px, min_rays, cols)
-            n += 1
-            if s["worst_m"] < best["worst_m"]:
-                best.update(worst_m=s["worst_m"], elevations_deg=np.rad2deg(elevs).round(1).tolist(), distance_m=float(d))
-            if s["coverage"] >= 0.95 and s["worst_covered_m"] < best["worst_covered_m"]:
-                best.update(worst_covered_m=s["worst_covered_m"], coverage=s["coverage"], covered=s["covered"],
-                            covered_elevations_deg=np.rad2deg(elevs).round(1).tolist(), covered_distance_m=float(d))
-            if s["worst_lenient_m"] < best["worst_lenient_m"]:
-                best.update(worst_lenient_m=s["worst_lenient_m"],
-                            lenient_elevations_deg=np.rad2deg(elevs).round(1).tolist(), lenient_distance_m=float(d))
-    best["n_networks"] = n
+            run(elevs, d)
+    # stage 2: phase, split and distance around the best of stage 1
+    keys = ("worst_m", "worst_covered_m", "worst_lenient_m")
+    top = []
+    for key in keys:
+        for s, c in sorted(scored, key=lambda sc: sc[0][key] if key != "worst_covered_m" or sc[0]["coverage"] >= 0.95
+                           else np.inf)[: (2 if quick else 6)]:
+            if c not in top and np.isfinite(s[key]):
+                top.append(c)
+    for elevs, d in top:
+        splits = [None] if len(elevs) == 1 else [None] + [[c, k - c] for c in sorted({round(k / 3), round(2 * k / 3)})
+                                                        if 2 <= c <= k - 2]
+        for dd in (d - span / 8, d, d + span / 8):
+            if not sphere.distance_min_m <= dd <= sphere.distance_max_m:
+                continue
+            for counts in splits:
+                n_first = counts[0] if counts else k // len(elevs) + (k % len(elevs) > 0)
+                for ph in np.arange(4 if quick else 8) / (4 if quick else 8) * 2 * np.pi / n_first:
+                    run(elevs, dd, ph, counts)
+    best["n_networks"] = len(scored)
     return best
 
 
@@ -149,6 +173,7 @@ def main(argv=None) -> int:
     ap.add_argument("--generations", type=int, help="search generations (default: the planner's)")
     ap.add_argument("--stall", type=int, help="stall generations (default: the planner's)")
     ap.add_argument("--timing-only", action="store_true", help="only the 29-station timing run")
+    ap.add_argument("--repeat", type=int, default=1, help="timing runs (best and median are printed)")
     ap.add_argument("--png", type=Path, help="write a picture of each plan into this folder")
     args = ap.parse_args(argv)
 
@@ -161,18 +186,27 @@ def main(argv=None) -> int:
     out: dict = {"n_targets": len(part.targets), "sigma_px": opts.sigma_px, "min_rays": opts.min_rays,
                  "search": search_kw, "sizes": {}}
 
-    # timing: 29 stations, visibility database built from scratch (empty cache)
-    with tempfile.TemporaryDirectory() as cache:
-        t0, c0 = time.perf_counter(), time.process_time()
-        plan = plan_network(part, intr, PlannerOptions(n_stations=29, allow_unmeasurable=True, **search_kw),
-                            np.random.default_rng(args.seed), cache_dir=cache, seed=args.seed)
-        wall, cpu = time.perf_counter() - t0, time.process_time() - c0
-    out["timing_29"] = {"wall_s": wall, "cpu_s": cpu, **{k: round(v, 3) for k, v in plan.timing.items()},
-                        "generations": plan.search["generations"], "stopped_because": plan.search["stopped_because"]}
+    # timing: 29 stations, visibility database built from scratch (empty cache), --repeat times
     import os
 
-    print(f"timing 29 stations x {len(part.targets)} targets (cold cache): wall {wall:.2f} s, process CPU {cpu:.2f} s, "
-          f"load average {os.getloadavg()[0]:.1f}, {plan.search['generations']} generations  {plan.timing}", flush=True)
+    walls = []
+    for _ in range(args.repeat):
+        with tempfile.TemporaryDirectory() as cache:
+            t0, c0 = time.perf_counter(), time.process_time()
+            plan = plan_network(part, intr, PlannerOptions(n_stations=29, allow_unmeasurable=True, **search_kw),
+                                np.random.default_rng(args.seed), cache_dir=cache, seed=args.seed)
+            wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+        walls.append(wall)
+        print(f"timing 29 stations x {len(part.targets)} targets (cold cache): wall {wall:.2f} s, process CPU "
+              f"{cpu:.2f} s, load average {os.getloadavg()[0]:.1f}, {plan.search['generations']} generations, "
+              f"worst {plan.predicted_sigma_max_m * 1e6:.2f} um  "
+              f"{ {k: round(v, 2) for k, v in plan.timing.items()} }", flush=True)
+    out["timing_29"] = {"wall_s": walls, "best_wall_s": min(walls), "median_wall_s": float(np.median(walls)),
+                        "cpu_s": cpu, **{k: round(v, 3) for k, v in plan.timing.items()},
+                        "generations": plan.search["generations"], "stopped_because": plan.search["stopped_because"]}
+    if args.repeat > 1:
+        print(f"timing over {len(walls)} runs: best {min(walls):.2f} s, median {np.median(walls):.2f} s "
+              f"(target <= 10 s, stretch 5 s)", flush=True)
     if args.timing_only:
         return 0
 
@@ -201,6 +235,7 @@ def main(argv=None) -> int:
             ring = best_ring(part, intr, k, sphere, vis_opts, opts.sigma_px, min_rays, cols, args.quick)
             rnd = random_networks(part, intr, k, sphere, vis_opts, opts.sigma_px, min_rays, cols,
                                   30 if args.quick else 100, np.random.default_rng(1000 + k))
+            covered = ring.pop("covered", None)
             row = {
                 "min_rays": min_rays,
                 "planned_worst_m": planned["worst_m"],
@@ -210,28 +245,44 @@ def main(argv=None) -> int:
                 "n_measurable_targets": int(len(cols)),
                 "best_ring": ring,
                 "random": rnd,
-                "ratio_to_best_ring": planned["worst_m"] / ring["worst_m"],
-                "ratio_to_best_ring_lenient": planned["worst_m"] / ring["worst_lenient_m"],
+                # (i) strict: only rings that give every target min_rays rays compete
+                "ratio_to_best_feasible_ring": planned["worst_m"] / ring["worst_m"],
+                # (i) lenient: the best ring covering >= 95 %, both scored on the targets it covers
+                "ratio_to_best_95pc_ring_on_its_set": None,
+                # (ii) against the median random network's worst over the targets it measures with >= 2 rays
                 "ratio_to_median_random_lenient": planned["worst_m"] / rnd["median_worst_lenient_m"],
             }
-            covered = ring.pop("covered", None)
             if covered is not None:
                 on_set = float(np.max(planned["sigma"][covered]))
                 row["planned_worst_on_ring_covered_set_m"] = on_set
                 row["ratio_to_best_95pc_ring_on_its_set"] = on_set / ring["worst_covered_m"]
             out["sizes"][k] = row
-            print(
-                f"k={k:2d} min_rays={min_rays}: planned {planned['worst_m'] * 1e6:7.2f} um (feasible={planned['feasible']}, "
-                f"min rays {planned['min_rays_seen']}) | best feasible ring {ring['worst_m'] * 1e6:7.2f} um "
-                f"(lenient {ring['worst_lenient_m'] * 1e6:.2f}) ratio {row['ratio_to_best_ring']:.3f} | random median "
-                f"{rnd['median_worst_m'] * 1e6:.2f} um (lenient {rnd['median_worst_lenient_m'] * 1e6:.2f}, feasible "
-                f"{rnd['fraction_feasible']:.2f}) ratio {row['ratio_to_median_random_lenient']:.3f} | "
-                f"{len(cols)} targets | plan {t_plan:.1f} s | vs best ring covering >=95% "
-                f"({ring.get('coverage', 0):.3f}) on its targets: planned "
-                f"{row.get('planned_worst_on_ring_covered_set_m', np.inf) * 1e6:.2f} vs {ring['worst_covered_m'] * 1e6:.2f} um "
-                f"ratio {row.get('ratio_to_best_95pc_ring_on_its_set', np.nan):.3f}",
-                flush=True,
-            )
+            um = 1e6
+            lines = [f"k={k:2d} (min_rays {min_rays}, {len(cols)} targets, planned in {t_plan:.1f} s): planned worst "
+                     f"{planned['worst_m'] * um:.2f} um, feasible={planned['feasible']} (fewest rays {planned['min_rays_seen']})"]
+            if np.isfinite(ring["worst_m"]):
+                r = row["ratio_to_best_feasible_ring"]
+                lines.append(f"  (i) best feasible ring {ring['worst_m'] * um:.2f} um {ring['feasible_config']}: "
+                             f"ratio {r:.3f} -> target <= 0.75 {'MET' if r <= 0.75 else 'NOT met'}")
+            else:
+                lines.append(f"  (i) no ring of {ring['n_networks']} tried gives every target {min_rays} rays (best "
+                             f"coverage {ring['coverage_max']:.3f}): every ring is infeasible, so none is better than the plan")
+            if covered is not None:
+                r = row["ratio_to_best_95pc_ring_on_its_set"]
+                lines.append(f"      best ring covering >= 95% ({ring['coverage']:.3f}) {ring['worst_covered_m'] * um:.2f} um on "
+                             f"its targets {ring['covered_config']}; planned on the same targets "
+                             f"{row['planned_worst_on_ring_covered_set_m'] * um:.2f} um: ratio {r:.3f} -> target <= 0.75 "
+                             f"{'MET' if r <= 0.75 else 'NOT met'} (lenient comparison)")
+            lines.append(f"      lowest lenient ring (worst over targets with >= 2 rays, coverage "
+                         f"{ring['lenient_coverage']:.3f}): {ring['worst_lenient_m'] * um:.2f} um (not comparable: "
+                         "it leaves targets out)")
+            r = row["ratio_to_median_random_lenient"]
+            med = f"{rnd['median_worst_m'] * um:.2f} um" if np.isfinite(rnd["median_worst_m"]) else "infeasible"
+            lines.append(f"  (ii) {rnd['n_networks']} random networks: {rnd['fraction_feasible']:.2f} feasible, median "
+                         f"worst {med}; median lenient worst (targets with >= 2 rays) "
+                         f"{rnd['median_worst_lenient_m'] * um:.2f} um: ratio {r:.3f} -> target <= 0.2 "
+                         f"{'MET' if r <= 0.2 else 'NOT met'}")
+            print("\n".join(lines), flush=True)
     if args.json:
         args.json.write_text(json.dumps(out, indent=2, default=lambda v: v.tolist() if hasattr(v, "tolist") else None))
     return 0

@@ -38,7 +38,7 @@ from cell.load import LoadedJob
 from planning.part import load_part
 from planning.planner import NetworkPlan, PlannerOptions, build_database, plan_network
 from planning.stations import ViewingSphere
-from planning.visibility import Occluder, VisibilityOptions
+from planning.visibility import Occluder, VisibilityOptions, compute_visibility
 
 __all__ = ["run_hand_eye", "run_reverification", "calibration_status",
            "artefact_job", "measure_image", "plan_stations", "capture_at", "plan_hand_eye_stations", "ask_operator",
@@ -99,7 +99,7 @@ class StationPlan:
 def plan_stations(job: LoadedJob, k: int, *, min_rays: int, max_tilt_rad: float, incidence_max_rad: float,
                   sigma_px: float, n_candidates: int, seed: int, targets: np.ndarray | None = None,
                   margin_px: float = 20.0, depth_margin: float = 0.35,
-                  bands: tuple[tuple[float, float], ...] = ((0.0, 1.0),)) -> StationPlan:
+                  bands: tuple[tuple[float, float], ...] = ((0.0, 1.0),), roll_spread_rad: float = 0.0) -> StationPlan:
     """``k`` stations around the artefact of ``job`` by the network planner, as an inspection plans them.
 
     The artefact is the part planned for (``targets``: a boolean mask of the targets that count,
@@ -109,7 +109,11 @@ def plan_stations(job: LoadedJob, k: int, *, min_rays: int, max_tilt_rad: float,
     (:class:`ReachabilityDB`, IK + collisions in the cell), then :func:`plan_network` in fixed-size
     mode (every counted target measured by ``min_rays`` stations, the worst predicted sigma minimised).
     ``bands``: fractions of that distance range, one planned network each (the stations split evenly);
-    then :func:`validate_plan` on them all (IK branches, collision-checked moves, visiting order).
+    ``roll_spread_rad``: the planner plans at zero roll (roll does not change what a centred artefact's
+    points are measured with); a job that needs rotations about the optical axis too (the hand-eye)
+    gets rolls spread evenly over +-``roll_spread_rad`` (in a seeded order), halved while a target would
+    lose one of its ``min_rays`` rays to the image border. Then :func:`validate_plan` on them all (IK
+    branches, collision-checked moves, visiting order).
     """
     from planning.execution import MotionLimits, validate_plan
     from planning.reachability import ReachabilityDB
@@ -156,13 +160,41 @@ def plan_stations(job: LoadedJob, k: int, *, min_rays: int, max_tilt_rad: float,
                                "predicted_sigma_max_m": plan.predicted_sigma_max_m,
                                "stopped_because": plan.search.get("stopped_because")})
     P = np.concatenate([p.part_from_cam for p in plans])
+    visible = np.concatenate([_seen_matrix(p) for p in plans])
+    if roll_spread_rad > 0:
+        vis_opts = VisibilityOptions(margin_px=margin_px, near_m=near, far_m=far, incidence_max_rad=float(incidence_max_rad))
+        P, visible, facts["roll_spread_deg"] = _spread_rolls(part, job.intrinsics, P, visible, vis_opts, roll_spread_rad,
+                                                             min(min_rays, k), np.random.default_rng(seed))
     ids = [f"{job.part.name}-{b}-{sid}" for b, p in enumerate(plans) for sid in p.station_ids]
     ep = validate_plan(robot, P, Y, X, world, MotionLimits(
         joint_speed_rad_s=c.max_joint_speed_rad_s, joint_accel_rad_s2=c.max_joint_accel_rad_s2, settle_s=c.settle_s),
         ids=ids)
-    visible = np.concatenate([_seen_matrix(p) for p in plans])
     facts["cycle_time_s"] = float(ep.cycle_time_s)
     return StationPlan(P[ep.order], ep.joints[ep.order], plans, visible[ep.order], facts)
+
+
+def _spread_rolls(part, intr: Intrinsics, P: np.ndarray, visible: np.ndarray, vis_opts: VisibilityOptions,
+                  spread: float, min_rays: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, float]:
+    """Turn the stations ``P: (k, 4, 4)`` about their optical axes by rolls spread over +-``spread``.
+
+    Returns the rolled stations, what each measures, and the spread used (degrees): halved (up to
+    three times, then none) while a target measured ``min_rays`` times before would be measured fewer.
+    """
+    k = len(P)
+    order = rng.permutation(k)
+    need = np.minimum(visible.sum(axis=0), min_rays)
+    for _ in range(4):
+        roll = spread * np.linspace(-1.0, 1.0, k)[order]
+        c, s = np.cos(roll), np.sin(roll)
+        Rz = np.zeros((k, 3, 3))
+        Rz[:, 0, 0], Rz[:, 0, 1], Rz[:, 1, 0], Rz[:, 1, 1], Rz[:, 2, 2] = c, -s, s, c, 1.0
+        Q = P.copy()
+        Q[:, :3, :3] = P[:, :3, :3] @ Rz
+        vis = compute_visibility(part, intr, Q, vis_opts)
+        if np.all(vis.sum(axis=0) >= need):
+            return Q, vis, float(np.rad2deg(spread))
+        spread *= 0.5
+    return P, visible, 0.0
 
 
 def _seen_matrix(plan: NetworkPlan) -> np.ndarray:
@@ -178,7 +210,8 @@ def plan_hand_eye_stations(job: LoadedJob, he, sigma_px: float, out) -> tuple[St
     """The hand-eye's stations: planned (:func:`plan_stations`), then checked for the hand-eye's conditioning.
 
     The planner minimises the artefact's point precision, which also wants wide, convergent
-    views; what AX = XB needs besides is checked on the planned network
+    views; rotations about the optical axis, which that criterion cannot see, come from rolls spread
+    over +-``[hand_eye] roll_spread_deg``; what AX = XB needs besides is checked on the planned network
     (:func:`hand_eye_conditioning`): X's predicted sigmas and the motions' weakest rotation
     against ``[hand_eye]`` ``max_sigma_translation``, ``max_sigma_rotation_deg`` and
     ``min_weakest_rotation_deg``. A network that misses them is replaced by the planner's
@@ -194,7 +227,7 @@ def plan_hand_eye_stations(job: LoadedJob, he, sigma_px: float, out) -> tuple[St
         sp = plan_stations(job, he.n_stations, min_rays=he.min_rays, max_tilt_rad=np.deg2rad(he.max_tilt_deg),
                            incidence_max_rad=np.deg2rad(he.incidence_max_deg), sigma_px=sigma_px,
                            n_candidates=he.n_candidates, seed=he.seed + attempt, targets=dots,
-                           bands=((0.0, 0.3), (0.7, 1.0)))
+                           bands=((0.0, 0.3), (0.7, 1.0)), roll_spread_rad=np.deg2rad(he.roll_spread_deg))
         info = hand_eye_information(job.intrinsics, sp.part_from_cam, sp.visible, job.part.targets.xyz[dots],
                                     job.spec.flange_from_cam(), job.spec.base_from_part(), sigma_px)
         cond = hand_eye_conditioning(info, sp.part_from_cam, job.spec.flange_from_cam())

@@ -67,6 +67,8 @@ class HandEyeSection(_Strict):
     n_candidates: int = Field(default=600, ge=20, le=20_000, description="candidate stations of the planner")
     incidence_max_deg: float = Field(default=55.0, gt=0, lt=90)
     max_tilt_deg: float = Field(default=45.0, gt=0, lt=90, description="largest camera tilt from the artefact normal")
+    roll_spread_deg: float = Field(default=60.0, ge=0, le=90, description="stations rolled about the optical axis "
+                                   "over +- this (the planner plans at zero roll; AX = XB needs such rotations too)")
     max_sigma_translation: float = Field(default=0.05, gt=0, description="required predicted sigma of the "
                                          "hand-eye's translation, file units")
     max_sigma_rotation_deg: float = Field(default=0.005, gt=0, description="required predicted sigma of its rotation")

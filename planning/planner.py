@@ -11,7 +11,11 @@
 The pipeline (seed Fig. 3): candidate stations on the viewing sphere -> visibility
 database (ray casting, field of view, incidence angle, depth of field; cached) ->
 per candidate x target information ``J^T J / sigma^2`` -> evolutionary search whose
-fitness is the limiting-error-propagation criterion evaluated on the database ->
+fitness is the limiting-error-propagation criterion evaluated on the database (its first
+generation: greedy covers, random networks and the best convergent rings,
+:mod:`planning.seeding`) -> for worst-case objectives, exchange descent from the search's
+best networks (:mod:`planning.refine`: the max objective is flat for the GA, the
+descent moves exactly the stations that help the hardest targets) ->
 the final stations re-evaluated *exactly* (fresh ray casting at their continuous poses,
 float64 covariance).
 
@@ -38,7 +42,9 @@ from scipy.spatial import cKDTree
 
 from calibration.camera import Intrinsics
 from calibration.errors import InputError, PlanningError
-from planning.evolution import Evaluation, EvolutionOptions, evolve
+from planning.evolution import Evaluation, EvolutionOptions, EvolutionResult, evolve
+from planning.refine import refine_network
+from planning.seeding import greedy_cover, initial_population, ring_sweep
 from planning.stations import N_GENES, ViewingSphere
 from planning.uncertainty import (
     CRITERIA,
@@ -100,6 +106,13 @@ class PlannerOptions:
         cheapest_refine: "cheapest": after the Pareto front, at most this many fixed-size
             searches (minimising max sigma / required, seeded with the front) try one
             station fewer each, stopping at the first that fails.
+        refine_starts: after each fixed-size search with a worst-case objective ("worst"
+            criterion, or max sigma / required), exchange descent (planning.refine) from
+            this many of its best distinct networks (0: off).
+        refine_kicks: then this many perturb-and-descend restarts of the best.
+        ring_seeds: fixed-size searches: this many of the best single- and two-ring
+            convergent networks (planning.seeding.ring_sweep, scored on the database) join
+            the initial population, so the plan is never worse than them on the database.
     """
 
     n_stations: int = 16
@@ -112,7 +125,7 @@ class PlannerOptions:
     tolerance_ratio: float = 10.0
     default_tolerance_m: float | None = None
     population: int = 80
-    generations: int = 250
+    generations: int = 120
     stall_generations: int = 50
     time_limit_s: float | None = None
     eta_c: float = 15.0
@@ -132,6 +145,9 @@ class PlannerOptions:
     allow_unmeasurable: bool = False
     greedy_fraction: float = 0.25
     cheapest_refine: int = 3
+    refine_starts: int = 2
+    refine_kicks: int = 8
+    ring_seeds: int = 8
 
     def check(self) -> None:
         """Raise InputError naming the first bad option."""
@@ -409,67 +425,6 @@ def _violation(ev: NetworkEval) -> np.ndarray:
     return (short + singular).astype(float)
 
 
-def greedy_cover(visible: np.ndarray, candidates: np.ndarray, k: int, min_rays: int,
-                 rng: np.random.Generator, noise: float = 0.3) -> np.ndarray:
-    """A randomised greedy network of ``k`` distinct candidates covering targets ``min_rays`` times.
-
-    Set multicover heuristic: each step takes the candidate with the largest (noisy)
-    gain, the sum over the targets it sees of their remaining shortfall of rays weighted
-    by rarity (1 / how many candidates see the target); once every target is covered,
-    the gain is the sum of ``1 / rays so far`` (rays go to the weakest targets).
-
-    Args:
-        visible: (m, n) bool; candidates: (c,) int allowed rows of ``visible``.
-        noise: relative multiplicative noise on the gains (diversity between networks).
-    Returns:
-        (k,) int candidate indices (repeats only if fewer than ``k`` candidates exist).
-    """
-    V = visible[candidates].astype(np.float32)
-    rarity = 1.0 / np.maximum(V.sum(axis=0), 1.0)
-    count = np.zeros(V.shape[1], dtype=np.float32)
-    chosen: list[int] = []
-    free = np.ones(len(candidates), dtype=bool)
-    for _ in range(k):
-        short = np.maximum(min_rays - count, 0.0)
-        w = short * rarity if short.any() else 1.0 / (1.0 + count)
-        gain = (V @ w) * (1.0 + noise * rng.random(len(candidates)))
-        gain[~free] = -1.0
-        c = int(np.argmax(gain))
-        chosen.append(c)
-        count += V[c]
-        free[c] = False
-        if not free.any():
-            free[:] = True
-    return candidates[np.array(chosen)]
-
-
-def _initial_population(problem: _Problem, k: int, P: int, mode: str, min_rays: int,
-                        rng: np.random.Generator, greedy_fraction: float) -> tuple[np.ndarray, np.ndarray]:
-    """Initial networks: a fraction by :func:`greedy_cover`, the rest random distinct valid candidates.
-
-    Bits are all on ("fixed") or of random density with at least ``min_rays`` on
-    ("cheapest"; greedy networks there are built for a random station count).
-    """
-    v = problem.valid_idx
-    if len(v) >= k:
-        pick = v[np.argsort(rng.random((P, len(v))), axis=1)[:, :k]]
-    else:
-        pick = v[rng.integers(0, len(v), size=(P, k))]
-    if mode == "fixed":
-        bits = np.ones((P, k), dtype=bool)
-    else:
-        density = rng.uniform(min(1.0, min_rays / k), 1.0, size=(P, 1))
-        bits = rng.random((P, k)) < density
-        short = bits.sum(axis=1) < min_rays
-        bits[short, :min_rays] = True
-    n_greedy = int(round(greedy_fraction * P))
-    for i in range(n_greedy):
-        size = k if mode == "fixed" else int(rng.integers(min_rays, k + 1))
-        pick[i, :size] = greedy_cover(problem.vis, v, size, min_rays, rng)
-        bits[i] = np.arange(k) < size
-    return problem.db.genes[pick].copy(), bits
-
-
 def _exact(part, intr: Intrinsics, options: PlannerOptions, vis_opts: VisibilityOptions, genes: np.ndarray,
            sphere: ViewingSphere, cols: np.ndarray) -> dict:
     """Fresh ray casting and float64 covariance for one network; scored like the search."""
@@ -485,6 +440,49 @@ def _exact(part, intr: Intrinsics, options: PlannerOptions, vis_opts: Visibility
                      min_rays=options.min_rays)
     return {"T": T, "visible": visible, "cov": cov, "n_rays": n_rays, "violation": float(_violation(ev)[0]),
             "score": float(criterion(ev, options.criterion, penalty=0.0)[0]), "sigma": np.where(ok, sig, np.inf)[0]}
+
+
+def _best_rings(problem: _Problem, k: int, sphere: ViewingSphere, n: int) -> np.ndarray:
+    """The ``n`` best ring networks of ``k`` stations on the database (feasible first); (n, k, G)."""
+    rings = ring_sweep(k, sphere)
+    ev = problem(rings, np.ones(rings.shape[:2], dtype=bool))
+    order = np.lexsort((ev.objectives[:, 0], ev.violation))[:n]
+    return ev.genes[order]
+
+
+def _refine(problem: _Problem, r: EvolutionResult, objective: str,
+            rng: np.random.Generator) -> tuple[EvolutionResult, dict]:
+    """Exchange descent (planning.refine) from the search's best distinct networks.
+
+    Returns ``r`` with its best individual replaced by the refined network when that is
+    better, and a summary (swaps, objective before and after).
+    """
+    opt = problem.opt
+    idx = problem.snap(r.genes)[0]
+    starts, seen = [], set()
+    for row in idx:  # best first
+        key = tuple(sorted(row))
+        if len(set(row)) == len(row) and key not in seen:
+            seen.add(key)
+            starts.append(row)
+        if len(starts) == opt.refine_starts:
+            break
+    before = float(r.objectives[0, 0]) if r.violation[0] <= 0 else float("inf")
+    if not starts:
+        return r, {"swaps": 0, "from": before, "to": before}
+    info = problem.info
+    if objective == "ratio":  # sigma / required: the information scaled by required^2
+        info = info * (problem.required.astype(np.float32) ** 2)[None, :, None]
+    res = refine_network(info, problem.vis, problem.valid_idx, np.array(starts), opt.min_rays, rng,
+                         eyes=problem.db.eyes, n_kicks=opt.refine_kicks)
+    stats = {"swaps": res.n_swaps, "from": before, "to": min(before, res.worst)}
+    if not res.worst < before:
+        return r, stats
+    genes, bits = r.genes.copy(), r.bits.copy()
+    objectives, violation = r.objectives.copy(), r.violation.copy()
+    genes[0], bits[0] = problem.db.genes[res.stations], True
+    objectives[0, 0], violation[0] = res.worst, 0.0
+    return replace(r, genes=genes, bits=bits, objectives=objectives, violation=violation), stats
 
 
 # --- entry points -----------------------------------------------------------------------------
@@ -593,18 +591,25 @@ def plan_network(
     periodic = np.zeros(N_GENES, dtype=bool)
     periodic[0] = (upper[0] - lower[0]) >= 2 * math.pi - 1e-9
     history: list[dict] = []
+    refine_stats: list[dict] = []
     n_evaluations = [0]
 
     def search(size: int, mode: str, objective: str, phase: str, seeds: list[np.ndarray] = ()):
         """One evolutionary run; ``seeds`` are (size, G) networks put into the initial population."""
         problem.objective = objective
         run_opts = replace(options, n_stations=size, mode=mode)
-        g0, b0 = _initial_population(problem, size, P, mode, options.min_rays, rng, options.greedy_fraction)
+        g0, b0 = initial_population(problem.valid_idx, problem.vis, db.genes, size, P, mode, options.min_rays, rng,
+                                    options.greedy_fraction)
+        if mode == "fixed" and options.ring_seeds > 0:
+            seeds = list(seeds) + list(_best_rings(problem, size, sphere, options.ring_seeds))
         for i, g in enumerate(seeds[: P // 4]):
             g0[P - 1 - i], b0[P - 1 - i] = g, True
         r = evolve(problem, lower, upper, g0, b0, run_opts.evolution_options(), rng, periodic=periodic,
                    progress=lambda f, row: report(phase, f))
         n_evaluations[0] += r.n_evaluations
+        if options.refine_starts > 0 and mode == "fixed" and (objective == "ratio" or options.criterion == "worst"):
+            r, stats = _refine(problem, r, objective, rng)
+            refine_stats.append({"phase": phase, **stats})
         start = len(history)
         history.extend({**row, "phase": phase, "step": start + j} for j, row in enumerate(r.history))
         return r
@@ -728,6 +733,8 @@ def plan_network(
             "stopped_because": res.stopped_because,
             "generations": len(res.history) - 1,
             "refine_runs": sum(1 for row in pareto if row.get("phase") == "refine"),
+            **({"exchange_swaps": sum(x["swaps"] for x in refine_stats),
+                "exchange_from": refine_stats[0]["from"], "exchange_to": refine_stats[0]["to"]} if refine_stats else {}),
             "n_evaluations": n_evaluations[0],
             "n_candidates": int(m),
             "n_valid_candidates": int(valid.sum()),
