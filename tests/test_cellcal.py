@@ -91,6 +91,10 @@ def test_reverification_passes_a_calibrated_cell_and_fails_one_off_by_2_mm(tmp_p
     rb = run_reverification(cell_bad, archive, out)
     assert not rb["passed"]
     assert "recalibrate the hand-eye" in rb["detail"]
+    # every position fails: by its length error or, where that stays inside the MPE by chance, by rays
+    # that no longer meet (a calibrated cell's miss by hundredths of a pixel)
+    assert not any(r["pass"] for r in rb["positions"])
+    assert all(r["rays_consistent"] for r in rg["positions"]) and not any(r["rays_consistent"] for r in rb["positions"])
     assert any("FAIL" in ln for ln in out.lines)
     st = calibration_status(archive, cell_bad, "2030-01-01T00:00:00+00:00")
     assert st["status"] == "failed"
