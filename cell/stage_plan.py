@@ -53,8 +53,14 @@ def make_plan(job: LoadedJob, progress=None, cache_dir: Path | None = None) -> t
         )
     fn = cheapest_network if job.spec.planning.mode == "cheapest" else plan_network
     try:
+        extra = {}
+        if fn is plan_network:
+            from planning.reachability import reachability_mask
+
+            world, bfp, ffc = collision_world(job), job.spec.base_from_part(), job.spec.flange_from_cam()
+            extra["reachable_fn"] = lambda T: reachability_mask(robot, bfp, ffc, T, world).reachable
         plan = fn(job.part, job.intrinsics, opts, np.random.default_rng(job.spec.job.seed), reachable=reachable,
-                  cache_dir=cache_dir, progress=report, seed=job.spec.job.seed, db=db)
+                  cache_dir=cache_dir, progress=report, seed=job.spec.job.seed, db=db, **extra)
     except PlanningError as exc:
         if not isinstance(exc, ReachabilityError) and (~reachable & useful).sum() > 0.5 * useful.sum():
             raise ReachabilityError(

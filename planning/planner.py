@@ -43,6 +43,7 @@ from scipy.spatial import cKDTree
 from calibration.camera import Intrinsics
 from calibration.errors import InputError, PlanningError
 from planning.evolution import Evaluation, EvolutionOptions, EvolutionResult, evolve
+from planning.polish import polish
 from planning.refine import refine_network
 from planning.seeding import greedy_cover, initial_population, ring_sweep
 from planning.stations import N_GENES, ViewingSphere
@@ -113,6 +114,9 @@ class PlannerOptions:
         ring_seeds: fixed-size searches: this many of the best single- and two-ring
             convergent networks (planning.seeding.ring_sweep, scored on the database) join
             the initial population, so the plan is never worse than them on the database.
+        polish_rounds: "fixed" with the "worst" criterion and no reachability mask: rounds
+            of exact local polish (planning.polish: stations nudged off the database's
+            lattice, ray-cast afresh, exchange descent); 0: off.
     """
 
     n_stations: int = 16
@@ -148,6 +152,7 @@ class PlannerOptions:
     refine_starts: int = 2
     refine_kicks: int = 8
     ring_seeds: int = 8
+    polish_rounds: int = 12
 
     def check(self) -> None:
         """Raise InputError naming the first bad option."""
@@ -513,6 +518,7 @@ def plan_network(
     *,
     seed: int | None = None,
     db: VisibilityDB | None = None,
+    reachable_fn=None,
 ) -> NetworkPlan:
     """Design a network (see module docstring); the same inputs and seed give the same plan.
 
@@ -522,6 +528,9 @@ def plan_network(
         options: :class:`PlannerOptions` (``mode`` chooses fixed size or cheapest).
         rng: the search's generator; None: ``numpy.random.default_rng(seed)``.
         reachable: (m,) bool aligned with the visibility database's candidates, or None.
+        reachable_fn: ``part_from_cam (p, 4, 4) -> (p,) bool`` for poses off the database (the
+            exact local polish, ``polish_rounds``); with ``reachable`` but without it the polish is
+            skipped, since its poses' reachability would be unknown.
         cache_dir: where the visibility database is cached (None: default cache).
         progress: called as ``progress(stage, fraction)``.
         seed: recorded in the plan (and used when ``rng`` is None).
@@ -617,11 +626,17 @@ def plan_network(
     def feasible_ratio(r) -> float:
         return float(r.objectives[0, 0]) if r.violation[0] <= 0 else float("inf")
 
+    polish_stats: dict = {}
     networks: list[np.ndarray] = []  # best first: candidates for the plan, each (c, G)
     pareto: list[dict] = []
     if options.mode == "fixed":
         res = search(k, "fixed", "criterion", "search")
         networks = [res.genes[0]]
+        if options.polish_rounds > 0 and options.criterion == "worst" and (reachable is None or reachable_fn):
+            pol = polish(part, intr, sphere, vis_opts, db, res.genes[0], cols, options, reachable_fn=reachable_fn)
+            networks = [pol.genes]
+            polish_stats.update(polish_swaps=pol.n_swaps, polish_from=pol.start_worst, polish_to=pol.worst,
+                                polish_poses=pol.n_poses)
         search_values = [float(res.objectives[0, 0])]
     else:
         res = search(k, "cheapest", "count_ratio", "search")
@@ -735,6 +750,7 @@ def plan_network(
             "refine_runs": sum(1 for row in pareto if row.get("phase") == "refine"),
             **({"exchange_swaps": sum(x["swaps"] for x in refine_stats),
                 "exchange_from": refine_stats[0]["from"], "exchange_to": refine_stats[0]["to"]} if refine_stats else {}),
+            **polish_stats,
             "n_evaluations": n_evaluations[0],
             "n_candidates": int(m),
             "n_valid_candidates": int(valid.sum()),

@@ -375,3 +375,29 @@ def test_plan_is_no_worse_than_the_best_ring_and_refinement_improves_on_the_sear
     plain = plan_network(part, intr, _options(refine_starts=0, ring_seeds=0), np.random.default_rng(3), db=db, seed=3)
     assert "exchange_swaps" not in plain.search
     assert plan.predicted_sigma_max_m <= plain.predicted_sigma_max_m * (1 + 1e-9)
+
+
+def test_exact_polish_lowers_the_worst_target_and_its_figure_is_the_exact_one(scene, fixed_plan):
+    from planning.polish import polish_network
+
+    part, intr = scene
+    plan, cache, _ = fixed_plan
+    db = build_database(part, intr, _options(), cache)
+    vis_opts = _options().visibility_options()
+    cols = np.arange(len(part.targets.xyz))
+    # start from the plan without the polish (the search + exchange descent on the database)
+    raw = plan_network(part, intr, _options(polish_rounds=0), np.random.default_rng(3), db=db, seed=3)
+    assert "polish_to" not in raw.search
+    r = polish_network(part, intr, db.sphere, vis_opts, raw.genes, cols, 3, 0.1,
+                       step_rad=0.05, step_m=0.02, offset_m=0.01, rounds=6)
+    assert r.start_worst == pytest.approx(raw.predicted_sigma_max_m, rel=1e-6)
+    assert r.worst < r.start_worst  # strictly better on this scene
+    # the polished figure is what fresh ray casting + float64 propagation gives at those poses
+    T = db.sphere.poses(r.genes)
+    cov, n_rays = covariance_for_network(intr, T, part.targets.xyz, compute_visibility(part, intr, T, vis_opts),
+                                         0.1, min_rays=3)
+    assert np.all(n_rays >= 3)
+    assert np.max(np.sqrt(np.trace(cov, axis1=1, axis2=2))) == pytest.approx(r.worst, rel=1e-6)
+    # the planner's default runs it and reports the polished network
+    assert plan.search["polish_to"] <= plan.search["polish_from"]
+    assert plan.predicted_sigma_max_m <= raw.predicted_sigma_max_m * (1 + 1e-9)
