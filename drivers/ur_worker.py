@@ -27,6 +27,11 @@ RECEIVE_VARIABLES = ["timestamp", "actual_q", "actual_qd", "actual_TCP_pose", "s
 RUNTIME_NAMES = {0: "stopping", 1: "stopped", 2: "playing", 3: "pausing", 4: "paused", 5: "resuming"}
 
 
+
+#: ur-rtde error texts that mean the socket to the controller is gone (not a refused command).
+_CONNECTION_LOST = ("broken pipe", "connection reset", "connection refused", "not connected", "end of file",
+                    "bad file descriptor")
+
 class _Fail(Exception):
     """A failure to send back: ``kind`` names a ``calibration.errors`` class."""
 
@@ -80,7 +85,10 @@ class Worker:
             except _Fail as exc:
                 reply = {"ok": False, "error": exc.kind, "message": exc.message}
             except (RuntimeError, ValueError, TypeError) as exc:  # ur-rtde raises these
-                reply = {"ok": False, "error": "DriverError", "message": f"ur-rtde: {exc}"}
+                # a socket torn down under ur-rtde surfaces as e.g. "write: Broken pipe": the connection is lost
+                lost = any(s in str(exc).lower() for s in _CONNECTION_LOST)
+                reply = {"ok": False, "error": "NotConnectedError" if lost else "DriverError",
+                         "message": f"ur-rtde: {exc}" + ("; the connection to the robot was lost" if lost else "")}
             try:
                 self.conn.send(reply)
             except (OSError, ValueError):
