@@ -208,9 +208,10 @@ def test_sigkill_during_acquisition_resumes_without_losing_or_duplicating_images
     cov = np.array([np.add(rep[i]["cov"], ref[i]["cov"]) for i in ids])
     m = mahalanobis(d, cov)
     level = norm.isf(chi2.sf(m**2, 3) / 2)  # equivalent one-dimensional sigma level
-    # the re-taken images carry new noise (and may see a target in one image more or less), and data snooping may
-    # reject different observations: the two runs differ like two measurements of the same part (observed 0-3% of
-    # the targets beyond 3 sigma over repeated CI runs, where independent runs would give 0.3%); none far beyond
+    # the re-taken images carry new noise: the two runs differ like two measurements of the same part. One run's
+    # errors are dominated by a few weak whole-network modes that move many targets together, so the share beyond
+    # 3 sigma in one comparison scatters widely (two uninterrupted runs with other seeds: 0, 0 and 4 of 195);
+    # none far beyond
     assert np.mean(level <= 3.0) >= 0.95, f"{np.sum(level > 3)} of {len(ids)} targets differ beyond 3 sigma"
     assert level.max() <= 5.0, f"target {ids[int(np.argmax(level))]} differs by {level.max():.1f} sigma"
     # the same verdicts, but for a target whose deviation is within its uncertainty of the tolerance
