@@ -146,7 +146,15 @@ def _fmt_um(v: Any) -> str:
 def _status(t: dict) -> str:
     if t["measured"][0] is None:
         return "NOT MEASURED"
-    return "PASS" if t["pass"] else "FAIL"
+    status = "PASS" if t["pass"] else "FAIL"
+    if t.get("decision") == "inconclusive":
+        status += " (inconclusive: within U of the tolerance)"
+    return status
+
+
+def _inconclusive(doc: dict) -> str:
+    n = len(doc.get("inconclusive", []))
+    return f"; {n} too close to their tolerance for this measurement to decide (ISO 14253-1)" if n else ""
 
 
 def render_html(doc: dict, figures: dict[str, str]) -> str:
@@ -162,6 +170,7 @@ def render_html(doc: dict, figures: dict[str, str]) -> str:
             + "".join(f"<td>{_num(v, 1000, 4)}</td>" for v in t["measured"])
             + "".join(f"<td>{_num(v, 1e6, 1)}</td>" for v in t["deviation"])
             + f"<td>{_fmt_um(t['deviation_norm_m'])}</td><td>{_fmt_um(t['tolerance_m'])}</td>"
+            f"<td>{_fmt_um(t.get('uncertainty_U_m'))}</td>"
             f"<td>{_fmt_um(t['achieved_sigma_m'])}</td><td>{_fmt_um(t['predicted_sigma_m'])}</td>"
             f"<td>{t['n_images']}</td><td class=l>{_status(t)}</td></tr>"
         )
@@ -178,12 +187,12 @@ def render_html(doc: dict, figures: dict[str, str]) -> str:
 <html lang="en"><head><meta charset="utf-8"><title>Inspection report {html.escape(j['id'])}</title>
 <style>{_CSS}</style></head><body>
 <h1>Inspection report: {html.escape(j['name'])}</h1>
-<div class="verdict {verdict}" id="verdict">{verdict}: {len(doc['targets']) - n_fail} of {len(doc['targets'])} targets within tolerance</div>
+<div class="verdict {verdict}" id="verdict">{verdict}: {len(doc['targets']) - n_fail} of {len(doc['targets'])} targets within tolerance{_inconclusive(doc)}</div>
 <h2>Job</h2><table class="kv">{kv}</table>
 <h2>Figures</h2><div class="figs">{figs}</div>
 <h2>Targets</h2>
 <table id="targets"><tr><th>id</th><th>x [mm]</th><th>y [mm]</th><th>z [mm]</th><th>dx [um]</th><th>dy [um]</th>
-<th>dz [um]</th><th>|d| [um]</th><th>tol [um]</th><th>sigma [um]</th><th>predicted [um]</th><th>images</th><th></th></tr>
+<th>dz [um]</th><th>|d| [um]</th><th>tol [um]</th><th>U (k=2) [um]</th><th>sigma [um]</th><th>predicted [um]</th><th>images</th><th></th></tr>
 {''.join(rows)}</table>
 <h2>Time per stage</h2><table class="kv">{stages}</table>
 </body></html>

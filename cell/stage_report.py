@@ -58,6 +58,37 @@ def _calibration_status(ctx) -> dict:
     return {k: doc.get(k) for k in ("status", "detail", "last")}
 
 
+#: How each target's conformance is decided, stated in the report.
+DECISION_RULE = ("ISO 14253-1: conforming if |d| + U <= tolerance, nonconforming if |d| - U > tolerance, "
+                 "else inconclusive; U = 2 sigma of the deviation along its direction (k = 2). 'pass' is |d| <= tolerance.")
+
+
+def conformance(deviation: np.ndarray, deviation_cov: np.ndarray, tol: np.ndarray, ok: np.ndarray,
+                k: float = 2.0) -> tuple[np.ndarray, list]:
+    """Expanded uncertainty ``U (n,)`` of each deviation's length and the decision per target.
+
+    ``deviation: (n, 3)``, ``deviation_cov: (n, 3, 3)``, ``tol: (n,)``, ``ok: (n,)`` measured. ``U`` is
+    ``k`` sigma along the deviation's direction (for a deviation near zero: the largest axis); decisions
+    "conforming", "nonconforming", "inconclusive" (the measurement cannot tell), None if not measured.
+    """
+    n = len(deviation)
+    U = np.full(n, np.nan)
+    decision: list = [None] * n
+    for j in np.flatnonzero(ok):
+        d = np.asarray(deviation[j], dtype=float)
+        C = np.asarray(deviation_cov[j], dtype=float)
+        length = float(np.linalg.norm(d))
+        var = float(d @ C @ d) / length**2 if length > 1e-12 else float(np.linalg.eigvalsh(C)[-1])
+        U[j] = k * np.sqrt(max(var, 0.0))
+        if length + U[j] <= tol[j]:
+            decision[j] = "conforming"
+        elif length - U[j] > tol[j]:
+            decision[j] = "nonconforming"
+        else:
+            decision[j] = "inconclusive"
+    return U, decision
+
+
 def write_report(ctx) -> str:
     job = ctx.job
     f = ctx.folder
@@ -80,6 +111,7 @@ def write_report(ctx) -> str:
     achieved = np.sqrt(np.trace(cov, axis1=1, axis2=2))
     coded = job.part.targets.kind == "coded"  # identification aids: not measured, not judged
     passed = ok & (dev_norm <= tol)
+    U, decision = conformance(al.deviation, al.deviation_cov, tol, ok)
     n_img = [t["n_images"] for t in bundle["targets"]]
     targets = []
     for j, tid in enumerate(ids):
@@ -90,6 +122,7 @@ def write_report(ctx) -> str:
             "cov": al.deviation_cov[j], "measured_cov": cov[j], "deviation": al.deviation[j],
             "deviation_norm_m": dev_norm[j], "tolerance_m": tol[j], "pass": bool(passed[j]),
             "significance_sigma": level[j], "significant": bool(level[j] > k),
+            "uncertainty_U_m": U[j], "decision": decision[j],
             "predicted_sigma_m": predicted.get(tid, np.nan), "achieved_sigma_m": achieved[j], "n_images": n_img[j],
         })
     recs = list(f.records())
@@ -124,6 +157,8 @@ def write_report(ctx) -> str:
         "cell_calibration": _calibration_status(ctx),
         "targets": targets,
         "not_measured": [ids[j] for j in np.flatnonzero(~ok & judged)],
+        "decision_rule": DECISION_RULE,
+        "inconclusive": [ids[j] for j in np.flatnonzero(judged) if decision[j] == "inconclusive"],
         "coded_targets": [ids[j] for j in np.flatnonzero(coded)],
     }
     figs = {

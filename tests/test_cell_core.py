@@ -119,3 +119,16 @@ def test_archive_compare_refuses_different_parts(tmp_path):
     _fake_job(tmp_path, "j2", [0.0], part="housing")
     with pytest.raises(InputError, match="different parts"):
         Archive(tmp_path).compare(["j1", "j2"])
+
+
+def test_conformance_follows_iso_14253_with_the_deviations_uncertainty():
+    from cell.stage_report import conformance
+
+    iso = np.diag([10e-6, 10e-6, 10e-6]) ** 2  # 10 um per axis: U = 20 um along any direction
+    d = np.array([[100e-6, 0, 0], [0, 240e-6, 0], [0, 0, 300e-6], [260e-6, 0, 0], [0, 0, 0], [1, 1, 1]])
+    cov = np.repeat(iso[None], len(d), axis=0)
+    cov[4] = np.diag([1e-12, 1e-12, (30e-6) ** 2])  # zero deviation: the largest axis counts
+    U, dec = conformance(d, cov, np.full(len(d), 250e-6), np.array([True] * 5 + [False]))
+    np.testing.assert_allclose(U[:4], 20e-6)
+    assert np.isclose(U[4], 60e-6) and np.isnan(U[5])
+    assert dec == ["conforming", "inconclusive", "nonconforming", "inconclusive", "conforming", None]

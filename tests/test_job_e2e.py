@@ -130,6 +130,9 @@ def test_injected_deviations_beyond_tolerance_fail_and_those_within_are_signific
     beyond = {i for i, d in injected.items() if np.linalg.norm(d) > 0.25e-3}
     within = set(injected) - beyond
     assert len(beyond) == 3 and len(within) == 3
+    decisions = {t["id"]: t["decision"] for t in report["targets"]}
+    assert all(decisions[i] == "nonconforming" for i in beyond) and all(decisions[i] == "conforming" for i in within)
+    assert set(report["inconclusive"]) == {i for i, d in decisions.items() if d == "inconclusive"}
     measured = {t["id"]: t for t in _measured(report)}
     assert set(injected) <= set(measured), "a target with an injected deviation was not measured"
     failed = {i for i, t in measured.items() if not t["pass"]}
