@@ -86,18 +86,6 @@ def _p_detection(out: str) -> dict:
                       else f"{best / 100:.2f} of the time budget" if best else None)}
 
 
-def _p_planner(out: str) -> dict:
-    t = re.search(r"timing 29 stations x (\d+) targets \(cold cache\): ([\d.]+) s", out)
-    ks = re.findall(r"k=\s*(\d+) .*?planned\s+([\d.]+) um .*?best feasible ring\s+(\S+) um.*?ratio (\S+) \| "
-                    r"random median (\S+) um.*?ratio (\S+)", out)
-    fig = f"planning 29 stations x {t.group(1)} targets: {float(t.group(2)):.1f} s" if t else None
-    if ks:
-        fig = (fig + "; " if fig else "") + "; ".join(f"k={k}: worst {p} um" for k, p, *_ in ks)
-    return {"what": "network planner on the bracket (worst-target sigma of the plan)", "figure": fig,
-            "baseline": "; ".join(f"k={k}: best ring {r} um, random median {rm} um" for k, _, r, _, rm, _ in ks) or None,
-            "ratio": "; ".join(f"k={k}: {a} of ring, {b} of random" for k, _, _, a, _, b in ks) or None}
-
-
 def _p_reachability(out: str) -> dict:
     vec = _num(r"vectorised reachability \(with collision margins\): ([\d.]+) s", out)
     base = _num(r"baseline per-station loop:\s+([\d.]+) s", out)
@@ -134,7 +122,7 @@ def _p_visibility(out: str) -> dict:
 
 PARSERS: dict[str, Callable[[str], dict]] = {
     "bench_bundle": _p_bundle, "bench_criterion": _p_criterion, "bench_detection": _p_detection,
-    "bench_planner": _p_planner, "bench_reachability": _p_reachability, "bench_render": _p_render,
+    "bench_reachability": _p_reachability, "bench_render": _p_render,
     "bench_visibility": _p_visibility,
 }
 #: arguments that keep a benchmark within a few minutes here (none: its defaults)

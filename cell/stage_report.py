@@ -71,22 +71,18 @@ def conformance(deviation: np.ndarray, deviation_cov: np.ndarray, tol: np.ndarra
     ``k`` sigma along the deviation's direction (for a deviation near zero: the largest axis); decisions
     "conforming", "nonconforming", "inconclusive" (the measurement cannot tell), None if not measured.
     """
-    n = len(deviation)
-    U = np.full(n, np.nan)
-    decision: list = [None] * n
-    for j in np.flatnonzero(ok):
-        d = np.asarray(deviation[j], dtype=float)
-        C = np.asarray(deviation_cov[j], dtype=float)
-        length = float(np.linalg.norm(d))
-        var = float(d @ C @ d) / length**2 if length > 1e-12 else float(np.linalg.eigvalsh(C)[-1])
-        U[j] = k * np.sqrt(max(var, 0.0))
-        if length + U[j] <= tol[j]:
-            decision[j] = "conforming"
-        elif length - U[j] > tol[j]:
-            decision[j] = "nonconforming"
-        else:
-            decision[j] = "inconclusive"
-    return U, decision
+    d = np.asarray(deviation, dtype=float)
+    C = np.asarray(deviation_cov, dtype=float)
+    ok = np.asarray(ok, dtype=bool)
+    length = np.linalg.norm(d, axis=1)
+    U = np.full(len(d), np.nan)
+    if ok.any():
+        u = d[ok] / np.maximum(length[ok], 1e-300)[:, None]
+        along = np.einsum("ni,nij,nj->n", u, C[ok], u)
+        largest = np.linalg.eigvalsh(C[ok])[:, -1]
+        U[ok] = k * np.sqrt(np.maximum(np.where(length[ok] > 1e-12, along, largest), 0.0))
+    decision = np.where(length + U <= tol, "conforming", np.where(length - U > tol, "nonconforming", "inconclusive"))
+    return U, [str(x) if m else None for x, m in zip(decision, ok)]
 
 
 def write_report(ctx) -> str:

@@ -479,7 +479,7 @@ def _refine(problem: _Problem, r: EvolutionResult, objective: str,
     if objective == "ratio":  # sigma / required: the information scaled by required^2
         info = info * (problem.required.astype(np.float32) ** 2)[None, :, None]
     res = refine_network(info, problem.vis, problem.valid_idx, np.array(starts), opt.min_rays, rng,
-                         eyes=problem.db.eyes, n_kicks=opt.refine_kicks)
+                         n_kicks=opt.refine_kicks)
     stats = {"swaps": res.n_swaps, "from": before, "to": min(before, res.worst)}
     if not res.worst < before:
         return r, stats

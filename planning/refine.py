@@ -16,14 +16,10 @@ adding ``c`` can only lower them, so:
 A strict step therefore costs one removal per station over all targets plus, per
 station, the candidates that see all its critical targets over those targets only: an
 exact best-improvement step on the database at a small fraction of the cost of
-evaluating every exchange.  Optionally (``eyes`` given and ``n_neighbours > 0``), when
-no exchange lowers the worst, a *plateau* step moves one station to one of its
-``n_neighbours`` nearest candidates if that keeps the worst and lowers the soft-max
-``sum_j (sigma_j / f)^p`` (the second key of the lexicographic order (worst, soft-max)),
-walking along the plateau of the max.  Measured on the example part (29 stations,
-1000 targets), plateau steps cost 2-3x the time for about 1 % lower worst, less than
-the same time spent on perturb-and-descend restarts (:func:`refine_network`), so the
-planner uses strict steps and restarts.
+evaluating every exchange.  (Also tried, and not kept: "plateau" steps that move a station to
+a nearby candidate when that keeps the worst and lowers a soft-max of all sigmas; on the
+example part, 29 stations x 1000 targets, they cost 2-3x the time for about 1 % lower worst,
+less than the same time spent on perturb-and-descend restarts, :func:`refine_network`.)
 
 Pure functions of arrays, no randomness: the result is a deterministic function of the
 starting network.
@@ -34,7 +30,6 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from planning.uncertainty import _DET_MIN
 
@@ -81,9 +76,9 @@ class SwapResult:
         stations: (k,) int the refined network (candidate indices).
         worst: its worst target sigma on the database (m, inf if infeasible);
             start_worst: the starting network's.
-        n_swaps: exchanges made (strict + plateau); stopped_because: "local optimum" |
+        n_swaps: exchanges made; stopped_because: "local optimum" |
             "max_swaps" | "time".
-        history: one dict per exchange (swap, kind "strict" | "plateau", worst, soft,
+        history: one dict per exchange (swap, kind "strict" | "cover", worst, soft,
             elapsed_s).
     """
 
@@ -138,25 +133,6 @@ def _cover_step(info, vis8, S, N, cnt, pool, min_rays):
     return None if best[2] < 0 else (best[0], best[2], best[3])
 
 
-def _plateau_step(info, vis8, S, N, cnt, worst, soft, neighbours, in_net, min_rays, p, rel_tol):
-    """Best move of one station to one of its neighbours that keeps the worst and lowers the
-    soft-max by more than ``rel_tol``: (soft, slot, candidate) or None."""
-    nb = neighbours[S]  # (k, L)
-    ok = ~in_net[nb]
-    slot, col = np.nonzero(ok)
-    if slot.size == 0:
-        return None
-    cand = nb[slot, col]
-    sc = _sigma6(N[None] - info[S[slot]] + info[cand], cnt[None] - vis8[S[slot]] + vis8[cand], min_rays)
-    w = sc.max(axis=1)
-    s = soft_max(sc, worst, p)
-    good = (w <= worst) & (s < soft * (1.0 - rel_tol))
-    if not good.any():
-        return None
-    j = int(np.flatnonzero(good)[np.argmin(s[good])])
-    return float(s[j]), int(slot[j]), int(cand[j])
-
-
 def swap_descent(
     info: np.ndarray,
     visible: np.ndarray,
@@ -164,15 +140,12 @@ def swap_descent(
     stations: np.ndarray,
     min_rays: int,
     *,
-    eyes: np.ndarray | None = None,
-    n_neighbours: int = 24,
     max_swaps: int = 200,
     time_limit_s: float | None = None,
     p: float = 8.0,
     rel_tol: float = 1e-6,
-    plateau_rel_tol: float = 1e-3,
 ) -> SwapResult:
-    """Exchange descent on the lexicographic key (worst sigma, soft-max); see module docstring.
+    """Exchange descent on the worst sigma (best-improvement strict steps); see module docstring.
 
     Args:
         info: (m, n, 6) per-candidate target information (planning.uncertainty).
@@ -180,13 +153,9 @@ def swap_descent(
         allowed: (a,) int, the candidates a station may move to (valid and reachable).
         stations: (k,) int, the starting network (distinct candidate indices).
         min_rays: fewest rays per target.
-        eyes: (m, 3) candidate camera centres, for the plateau steps' neighbourhoods
-            (None: strict steps only).
-        n_neighbours: candidates (nearest allowed by camera centre) a plateau step tries.
         max_swaps, time_limit_s: stopping criteria besides a local optimum.
-        p: exponent of the soft-max.
-        rel_tol: smallest relative lowering of the worst that counts (strict step).
-        plateau_rel_tol: smallest relative lowering of the soft-max that counts (plateau step).
+        p: exponent of the soft-max recorded in the history (the tie-break of :func:`refine_network`).
+        rel_tol: smallest relative lowering of the worst that counts.
     Returns:
         :class:`SwapResult`. The worst never increases. A network that starts infeasible
         is first repaired by exchanges that reduce its shortfall of rays.
@@ -195,11 +164,6 @@ def swap_descent(
     allowed = np.unique(np.asarray(allowed, dtype=np.intp))
     t0 = time.perf_counter()
     vis8 = visible.astype(np.uint8)
-    neighbours = None
-    if eyes is not None and n_neighbours > 0:
-        q = min(n_neighbours + 1, len(allowed))
-        _, nb = cKDTree(eyes[allowed]).query(eyes, k=q)
-        neighbours = allowed[np.asarray(nb).reshape(len(eyes), q)]
     N = info[S].sum(axis=0, dtype=np.float64)
     cnt = vis8[S].sum(axis=0, dtype=np.int32)
     sig = _sigma6(N, cnt, min_rays)
@@ -224,10 +188,6 @@ def swap_descent(
             kind, move = "cover", _cover_step(info, vis8, S, N, cnt, pool, min_rays)
         else:
             move = _strict_step(info, vis8, visible, S, N, cnt, worst, pool, min_rays, rel_tol)
-            if move is None and neighbours is not None:
-                soft = float(soft_max(sig, worst, p))
-                kind, move = "plateau", _plateau_step(info, vis8, S, N, cnt, worst, soft, neighbours, in_net,
-                                                      min_rays, p, plateau_rel_tol)
         if move is None:
             break
         _, i, c = move
@@ -270,13 +230,10 @@ def refine_network(
     min_rays: int,
     rng: np.random.Generator,
     *,
-    eyes: np.ndarray | None = None,
     n_kicks: int = 8,
     kick_size: int = 2,
     max_swaps: int = 200,
     p: float = 8.0,
-    n_neighbours: int = 0,
-    plateau_rel_tol: float = 1e-2,
 ) -> RefineResult:
     """Iterated exchange descent: descend from every start, then perturb-and-descend the best.
 
@@ -293,7 +250,7 @@ def refine_network(
     """
     starts = np.atleast_2d(np.asarray(starts, dtype=np.intp))
     allowed = np.unique(np.asarray(allowed, dtype=np.intp))
-    kw = dict(eyes=eyes, max_swaps=max_swaps, p=p, n_neighbours=n_neighbours, plateau_rel_tol=plateau_rel_tol)
+    kw = dict(max_swaps=max_swaps, p=p)
 
     def key(r: SwapResult) -> tuple[float, float]:
         if not np.isfinite(r.worst):
