@@ -126,7 +126,7 @@ PARSERS: dict[str, Callable[[str], dict]] = {
     "bench_visibility": _p_visibility,
 }
 #: arguments that keep a benchmark within a few minutes here (none: its defaults)
-ARGS: dict[str, list[str]] = {"bench_planner": ["--quick"]}
+ARGS: dict[str, list[str]] = {"bench_planner": ["--quick", "--bound"]}
 
 
 def run_one(path: Path, timeout: float) -> tuple[Row, str]:

@@ -121,6 +121,9 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("job", type=Path)
     c.add_argument("--out", type=Path, default=Path("plan.json"))
     c.add_argument("--png", type=Path, help="picture of the network (default: next to --out)")
+    c.add_argument("--bound", action="store_true",
+                   help="also prove how good any network could be (lower bound on the worst sigma; cheapest mode: "
+                        "whether one station fewer could meet the requirement)")
     c.set_defaults(func=cmd_plan)
 
     c = sub.add_parser("run", parents=[common], help="run a whole inspection job")

@@ -42,7 +42,7 @@ def plan(args, out) -> int:
 
     job = load(args.job)
     out.say(f"planning {job.part.name}: {len(job.part.targets)} targets, mode {job.spec.planning.mode}")
-    p, facts = make_plan(job, progress=out.progress)
+    p, facts = make_plan(job, progress=out.progress, lower_bound=True if args.bound else None)
     doc = p.to_plan_dict() | {"databases": facts}
     atomic_write_json(args.out, doc)
     png = args.png or args.out.with_suffix(".png")
@@ -51,10 +51,24 @@ def plan(args, out) -> int:
     plot_plan(job.part, p, png)
     summary = {"status": "ok", "plan": str(args.out), "picture": str(png), "stations": len(p.station_ids),
                "predicted_sigma_max_m": p.predicted_sigma_max_m, "predicted_sigma_mean_m": p.predicted_sigma_mean_m,
-               "timing": p.timing, "databases": facts}
-    out.result(summary, lambda d: out.say(
-        f"plan   {d['stations']} stations, predicted sigma max {d['predicted_sigma_max_m'] * 1e6:.1f} um, "
-        f"mean {d['predicted_sigma_mean_m'] * 1e6:.1f} um -> {d['plan']} (picture {d['picture']})"))
+               "timing": p.timing, "databases": facts,
+               **{k: v for k, v in p.search.items() if k.startswith(("lower_bound", "plan_over", "fewer_stations"))}}
+
+    def human(d):
+        out.say(f"plan   {d['stations']} stations, predicted sigma max {d['predicted_sigma_max_m'] * 1e6:.1f} um, "
+                f"mean {d['predicted_sigma_mean_m'] * 1e6:.1f} um -> {d['plan']} (picture {d['picture']})")
+        if "lower_bound_sigma_m" in d:
+            r = d["plan_over_lower_bound"]
+            how = ("within {:.0%} of it".format(r - 1) if r >= 1 else
+                   "below it: the polish moved stations off the database's lattice")
+            out.say(f"bound  no {d['stations']}-station network made of the {facts['candidates']} database candidates "
+                    f"gets its worst target below {d['lower_bound_sigma_m'] * 1e6:.1f} um; the plan is {how}")
+        if "fewer_stations" in d:
+            verdict = ("cannot" if d["fewer_stations_cannot_meet"] else "might")
+            out.say(f"bound  {d['fewer_stations']} stations {verdict} meet the required precision "
+                    f"(lower bound on sigma / required: {d['fewer_stations_lower_bound_ratio']:.2f})")
+
+    out.result(summary, human)
     return 0
 
 

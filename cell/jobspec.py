@@ -142,6 +142,7 @@ class PlanningSection(_Strict):
     population: int = Field(default=80, ge=4, le=10_000)
     generations: int = Field(default=150, ge=1, le=100_000)
     margin_px: float = Field(default=30.0, ge=0)
+    lower_bound: bool = Field(default=False, description="also bound how good any network could be (planning.bound)")
 
 
 class ReportSection(_Strict):

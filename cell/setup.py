@@ -44,6 +44,7 @@ def planner_options(job: LoadedJob) -> PlannerOptions:
         visibility=vis,
         sphere=sphere,
         n_candidates=p.n_candidates,
+        lower_bound=p.lower_bound,
     )
 
 

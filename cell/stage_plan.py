@@ -13,15 +13,20 @@ from planning.reachability import ReachabilityDB
 from planning.visibility import VisibilityDB, default_cache_dir
 
 
-def make_plan(job: LoadedJob, progress=None, cache_dir: Path | None = None) -> tuple[NetworkPlan, dict]:
+def make_plan(job: LoadedJob, progress=None, cache_dir: Path | None = None,
+              lower_bound: bool | None = None) -> tuple[NetworkPlan, dict]:
     """Design the network for a job: visibility database, reachability database, evolutionary search.
 
+    ``lower_bound``: overrides the job's ``[planning] lower_bound`` (planning.bound).
     Returns the plan and facts about the databases (candidates, reachable, cached).
     """
+    from dataclasses import replace
+
     cache_dir = Path(cache_dir) if cache_dir is not None else default_cache_dir()
     opts = planner_options(job)
+    if lower_bound is not None:
+        opts = replace(opts, lower_bound=bool(lower_bound))
     report = progress or (lambda s, f: None)
-    from dataclasses import replace
 
     from planning.visibility import VisibilityOptions
 

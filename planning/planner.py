@@ -42,6 +42,7 @@ from scipy.spatial import cKDTree
 
 from calibration.camera import Intrinsics
 from calibration.errors import InputError, PlanningError
+from planning.bound import worst_sigma_lower_bound
 from planning.evolution import Evaluation, EvolutionOptions, EvolutionResult, evolve
 from planning.polish import polish
 from planning.refine import refine_network
@@ -117,6 +118,11 @@ class PlannerOptions:
         polish_rounds: "fixed" with the "worst" criterion and no reachability mask: rounds
             of exact local polish (planning.polish: stations nudged off the database's
             lattice, ray-cast afresh, exchange descent); 0: off.
+        lower_bound: also compute (planning.bound) how good any network could be on the
+            database: "fixed" with the "worst" criterion: a lower bound on the worst target's
+            sigma for ``n_stations`` (``search["lower_bound_sigma_m"]``); "cheapest": whether
+            one station fewer than the plan's could possibly meet the requirement
+            (``search["fewer_stations_lower_bound_ratio"]`` > 1 proves it cannot).
     """
 
     n_stations: int = 16
@@ -153,6 +159,7 @@ class PlannerOptions:
     refine_kicks: int = 8
     ring_seeds: int = 8
     polish_rounds: int = 12
+    lower_bound: bool = False
 
     def check(self) -> None:
         """Raise InputError naming the first bad option."""
@@ -711,6 +718,10 @@ def plan_network(
         )
     report("final", 1.0)
     timing["final_s"] = time.perf_counter() - t0
+    bound_facts = _bound_facts(options, info, valid, vis, final_genes, final, required, cols, report) \
+        if options.lower_bound else {}
+    if bound_facts:
+        timing["bound_s"] = bound_facts.pop("seconds")
     timing["total_s"] = time.perf_counter() - t_all
 
     order = np.lexsort((final_genes[:, 2], final_genes[:, 1], final_genes[:, 0]))
@@ -760,8 +771,32 @@ def plan_network(
             "search_fitness": search_fitness,
             "exact_fitness": final["score"],
             "exact_violation": final["violation"],
+            **bound_facts,
         },
     )
+
+
+def _bound_facts(options: PlannerOptions, info: np.ndarray, valid: np.ndarray, vis: np.ndarray,
+                 genes: np.ndarray, final: dict, required: np.ndarray | None, cols: np.ndarray, report) -> dict:
+    """``search`` entries of the lower bound (planning.bound) for this plan; {} if it does not apply."""
+    progress = lambda stage, fraction: report("bound", fraction)  # noqa: E731
+    if options.mode == "fixed":
+        if options.criterion != "worst":
+            return {}
+        b = worst_sigma_lower_bound(info, len(genes), valid=valid, visible=vis, min_rays=options.min_rays,
+                                    progress=progress)
+        worst = float(np.max(final["sigma"]))
+        return {"lower_bound_sigma_m": b.lower, "lower_bound_relaxed_m": b.relaxed,
+                "plan_over_lower_bound": worst / b.lower, "lower_bound_stopped": b.stopped_because,
+                "seconds": b.seconds}
+    fewer = len(genes) - 1
+    if fewer < options.min_rays or required is None:
+        return {}
+    # one station fewer: can any network reach sigma / required <= 1?  Stop as soon as it is decided.
+    b = worst_sigma_lower_bound(info, fewer, valid=valid, visible=vis, min_rays=options.min_rays,
+                                scale=required[cols], stop_above=1.0, stop_below=1.0, progress=progress)
+    return {"fewer_stations": fewer, "fewer_stations_lower_bound_ratio": b.lower,
+            "fewer_stations_cannot_meet": bool(b.lower > 1.0), "seconds": b.seconds}
 
 
 def cheapest_network(

@@ -114,3 +114,16 @@ def test_cli_bad_input_exits_2_with_one_line_and_no_traceback(job_dir, case):
 def test_cli_usage_error_exits_2():
     r = _cli("frobnicate")
     assert r.returncode == 2
+
+
+def test_cli_plan_with_bound_reports_how_good_any_network_could_be(job_dir, tmp_path):
+    out = tmp_path / "plan.json"
+    r = _cli("plan", job_dir / "job.toml", "--out", out, "--bound", "--json")
+    assert r.returncode == 0, r.stderr
+    doc = json.loads(r.stdout)
+    plan = json.loads(out.read_text())
+    assert plan["search"]["lower_bound_sigma_m"] == pytest.approx(doc["lower_bound_sigma_m"])
+    assert doc["plan_over_lower_bound"] == pytest.approx(doc["predicted_sigma_max_m"] / doc["lower_bound_sigma_m"])
+    # the plan may beat the database's bound only by what the polish gains off the database
+    assert 0.8 < doc["plan_over_lower_bound"] < 1.5
+    assert "bound  no 16-station network" in r.stderr

@@ -401,3 +401,28 @@ def test_exact_polish_lowers_the_worst_target_and_its_figure_is_the_exact_one(sc
     # the planner's default runs it and reports the polished network
     assert plan.search["polish_to"] <= plan.search["polish_from"]
     assert plan.predicted_sigma_max_m <= raw.predicted_sigma_max_m * (1 + 1e-9)
+
+
+def test_lower_bound_lies_below_the_searched_network_and_proves_station_counts(scene, fixed_plan):
+    """planning.bound on the planner's database: every database network is at least as bad as the bound."""
+    part, intr = scene
+    plan8, cache, _ = fixed_plan
+    plan = plan_network(part, intr, _options(lower_bound=True, polish_rounds=0), np.random.default_rng(3),
+                        cache_dir=cache, seed=3)
+    s = plan.search
+    # the search's own figure is a network on the database: never below the bound
+    assert s["lower_bound_sigma_m"] <= s["search_fitness"] * (1 + 1e-5)
+    assert s["lower_bound_sigma_m"] >= 0.8 * s["search_fitness"], "a bound far below any plan says nothing"
+    assert s["plan_over_lower_bound"] == pytest.approx(plan.predicted_sigma_max_m / s["lower_bound_sigma_m"])
+    assert "bound_s" in plan.timing
+    # cheapest: is one station fewer than the plan's count provably not enough?
+    required = 1.3 * plan8.predicted_sigma_max_m
+    opts = _options(n_stations=10, population=40, generations=40, stall_generations=40, required_sigma_m=required,
+                    mode="cheapest", lower_bound=True)
+    cheap = plan_network(part, intr, opts, np.random.default_rng(7), cache_dir=cache)
+    c = cheap.search
+    assert c["fewer_stations"] == len(cheap.station_ids) - 1
+    if c["fewer_stations_cannot_meet"]:
+        assert c["fewer_stations_lower_bound_ratio"] > 1.0
+        assert not any(r["n_stations"] == c["fewer_stations"] and r["sigma_ratio_max"] <= 1.0
+                       for r in cheap.pareto_front)
