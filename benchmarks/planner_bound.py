@@ -9,9 +9,14 @@ the visibility limits):
   offset along u and v, roll), the new poses are ray-cast afresh and added, steps halved,
   ``--rounds`` times.  This follows the bound towards stations off the database (as the
   planner's polish does); it is an estimate of the continuous problem's bound, not a proof;
-* optionally the bound over a denser database (``--dense N``).
+* optionally the bound over a denser database (``--dense N``);
+* optionally (``--like-for-like``) the issue's comparison with random networks made a bound: for
+  each of the benchmark's 100 random networks (same seed as bench_planner.py), the bound on ANY
+  k-station network's worst over the targets that random network measures, divided by the random
+  network's worst there.  The median of that ratio bounds from below the like-for-like median
+  ratio any planner can reach (target: <= 0.2).
 
-    .venv/bin/python -m benchmarks.planner_bound [--sizes 8 16 29] [--rounds 6] [--dense 12000]
+    .venv/bin/python -m benchmarks.planner_bound [--sizes 8 16 29] [--rounds 6] [--dense 12000] [--like-for-like]
 """
 from __future__ import annotations
 
@@ -73,11 +78,34 @@ def refined_bound(part, intr, sphere: ViewingSphere, vis_opts: VisibilityOptions
     return out
 
 
+def like_for_like(part, intr, sphere, vis_opts, db, k, min_rays, sigma_px, n=100) -> np.ndarray:
+    """Per random network of bench_planner.py: bound on any network's worst over its targets / its worst."""
+    from benchmarks.bench_planner import random_networks
+
+    cols = np.arange(len(part.targets))
+    rnd = random_networks(part, intr, k, sphere, vis_opts, sigma_px, min_rays, cols, n,
+                          np.random.default_rng(1000 + k), planned_sigma=np.zeros(len(cols)))
+    info = target_information(intr, db.part_from_cam, part.targets.xyz, db.visible, sigma_px)
+    t0, q = time.perf_counter(), []
+    for finite, worst in rnd["sets"]:
+        b = worst_sigma_lower_bound(info, k, visible=db.visible, min_rays=min_rays, targets=finite, rel_tol=5e-3)
+        q.append(b.lower / worst)
+    q = np.array(q)
+    print(f"  like for like, k={k}: over {len(q)} random networks, (bound on any {k}-station network's worst over the "
+          f"network's targets) / (the network's worst there): median {np.median(q):.4f}, quartiles "
+          f"{np.percentile(q, 25):.4f} / {np.percentile(q, 75):.4f}; above 0.2 for {np.mean(q > 0.2):.0%} "
+          f"({time.perf_counter() - t0:.0f} s). Any network's like-for-like median ratio is at least the median.",
+          flush=True)
+    return q
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sizes", type=int, nargs="*", default=[8, 16, 29])
     ap.add_argument("--rounds", type=int, default=6)
     ap.add_argument("--dense", type=int, help="also bound over a database of this many candidates (4 shells)")
+    ap.add_argument("--like-for-like", action="store_true",
+                    help="bound the like-for-like ratio to the median random network (about 10 s per network)")
     args = ap.parse_args(argv)
     part, intr = example_part(), example_camera()
     opts = PlannerOptions(allow_unmeasurable=True)
@@ -100,6 +128,8 @@ def main(argv=None) -> int:
                 bd = worst_sigma_lower_bound(info, k, visible=dense.visible, min_rays=min_rays)
                 line += f"; over {len(dense.genes)} candidates (4 shells) {bd.lower * 1e6:.2f} um"
             print(line, flush=True)
+            if args.like_for_like:
+                like_for_like(part, intr, sphere, vis_opts, db, k, min_rays, opts.sigma_px)
     return 0
 
 
