@@ -17,6 +17,10 @@ a rigid fit, as the end-to-end test compares):
   coordinates (its best case) — the issue asks for at least OpenCV's accuracy.
 
     .venv/bin/python -m benchmarks.mc_measurement [--runs 40] [--json out.json]
+        [--weights incidence|equal] [--image-sigma-px 0.03]
+
+``--weights`` and ``--image-sigma-px`` override the job's ``[camera] observation_weights`` and
+``[sim] image_sigma_px`` (decision 0010 compares them).
 
 Runs in-process (``cell.job.start_job``); the planning cache makes every run after the first
 plan in well under a second. Each run takes 5-10 s on 2 cores.
@@ -53,8 +57,8 @@ class _Quiet:
         pass
 
 
-def job_with_seed(dst: Path, sim_seed: int) -> Path:
-    """A copy of the example job whose ``[sim] seed`` is ``sim_seed``."""
+def job_with_seed(dst: Path, sim_seed: int, weights: str | None = None, image_sigma_px: float | None = None) -> Path:
+    """A copy of the example job whose ``[sim] seed`` is ``sim_seed`` (optionally other weights or image jitter)."""
     dst.mkdir(parents=True, exist_ok=True)
     for f in EXAMPLE.iterdir():
         if f.suffix in (".stl", ".csv"):
@@ -64,6 +68,14 @@ def job_with_seed(dst: Path, sim_seed: int) -> Path:
     sim, n = re.subn(r"(?m)^seed\s*=.*$", f"seed = {sim_seed}", sim, count=1)
     if n != 1:
         raise RuntimeError("examples/bracket/job.toml: [sim] has no seed line")
+    if image_sigma_px is not None:
+        sim, n = re.subn(r"(?m)^image_sigma_px\s*=.*$", f"image_sigma_px = {image_sigma_px}", sim, count=1)
+        if n != 1:
+            raise RuntimeError("examples/bracket/job.toml: [sim] has no image_sigma_px line")
+    if weights is not None:
+        head, n = re.subn(r"(?m)^(\[camera\].*)$", rf'\1\nobservation_weights = "{weights}"', head, count=1)
+        if n != 1:
+            raise RuntimeError("examples/bracket/job.toml: no [camera] table")
     (dst / "job.toml").write_text(head + "\n[sim]" + sim)
     return dst / "job.toml"
 
@@ -85,8 +97,8 @@ def opencv_calibration(job, obs_doc: dict, truth: np.ndarray) -> dict:
     return {"f": float(0.5 * (K[0, 0] + K[1, 1])), "cx": float(K[0, 2]), "cy": float(K[1, 2]), "rms_px": float(rms)}
 
 
-def one_run(workdir: Path, run: int, sim_seed: int) -> dict:
-    job_path = job_with_seed(workdir / f"job{run:03d}", sim_seed)
+def one_run(workdir: Path, run: int, sim_seed: int, **overrides) -> dict:
+    job_path = job_with_seed(workdir / f"job{run:03d}", sim_seed, **overrides)
     archive = workdir / "archive"
     t0 = time.perf_counter()
     res = start_job(job_path, archive, "sim", _Quiet())
@@ -161,10 +173,11 @@ def summarise(runs: list[dict]) -> dict:
     }
 
 
-def monte_carlo(n_runs: int, workdir: Path, first_seed: int = 1000, progress=None) -> tuple[dict, list[dict]]:
+def monte_carlo(n_runs: int, workdir: Path, first_seed: int = 1000, progress=None,
+                **overrides) -> tuple[dict, list[dict]]:
     runs = []
     for k in range(n_runs):
-        runs.append(one_run(workdir, k, first_seed + k))
+        runs.append(one_run(workdir, k, first_seed + k, **overrides))
         if progress:
             progress(runs[-1])
     return summarise(runs), runs
@@ -175,6 +188,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--runs", type=int, default=40)
     ap.add_argument("--first-seed", type=int, default=1000)
     ap.add_argument("--json", type=Path)
+    ap.add_argument("--weights", choices=("incidence", "equal"), help="[camera] observation_weights of the job")
+    ap.add_argument("--image-sigma-px", type=float, help="[sim] image_sigma_px of the job (image-plane jitter)")
     args = ap.parse_args(argv)
 
     def show(r):
@@ -184,7 +199,8 @@ def main(argv: list[str] | None = None) -> int:
               f"({r['elapsed_s']:.1f} s)", flush=True)
 
     with tempfile.TemporaryDirectory(prefix="mc-measurement-") as tmp:
-        summary, runs = monte_carlo(args.runs, Path(tmp), args.first_seed, show)
+        summary, runs = monte_carlo(args.runs, Path(tmp), args.first_seed, show, weights=args.weights,
+                                    image_sigma_px=args.image_sigma_px)
     print(json.dumps(summary, indent=2))
     if args.json:
         args.json.write_text(json.dumps({"summary": summary,

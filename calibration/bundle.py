@@ -26,6 +26,13 @@ Stages (``bundle_adjust``):
 4. Residual statistics (sigma0, redundancy numbers) and data snooping: the observation with
    the largest test statistic ``v^T Q_vv^-1 v / s0^2`` (chi-square, 2 dof) above the critical value
    is removed and the network re-adjusted, until none is left.
+
+Observations of unequal precision (:mod:`calibration.weights`): ``obs_sigma_px`` gives each
+image observation its own a priori sigma, ``obs_group`` estimates one variance component per
+group (Förstner), re-adjusting until they settle, before each data-snooping test. pycolmap's
+solver weights all observations alike, so weighted networks are then iterated to the weighted
+optimum by Gauss-Newton on the full normal equations (every datum). Everything downstream
+(sigma0, covariance, redundancy numbers, test statistics) works on the whitened observations.
 """
 from __future__ import annotations
 
@@ -44,6 +51,7 @@ except ImportError:  # pragma: no cover - optional
 from calibration.alignment import PointCovariance, helmert_basis, similarity_fit
 from calibration.camera import Intrinsics, exp_se3, skew
 from calibration.errors import CalibrationError
+from calibration.weights import VarianceComponents, check_groups, check_sigmas, variance_component_factors
 
 __all__ = [
     "ScaleBar",
@@ -106,6 +114,11 @@ class BundleOptions:
         datum_iterations: Gauss-Newton iterations for scale bars and control targets.
         blas_threads: BLAS threads for the covariance algebra (None: leave as is). One is the fastest
             for networks of up to a few thousand targets on a 2-core machine (needs threadpoolctl).
+        vce_iterations: at most this many re-adjustments of the variance component estimation
+            (``obs_group``) per data-snooping round.
+        vce_min_redundancy: a group with less redundancy (sum over its coordinates) takes the pooled
+            variance factor of all groups instead of its own.
+        vce_tolerance: the estimation stops when every group's sigma changes by less than this (relative).
     """
 
     sigma_px: float = 0.05
@@ -117,6 +130,9 @@ class BundleOptions:
     max_rejections: int = 20
     datum_iterations: int = 10
     blas_threads: int | None = 1
+    vce_iterations: int = 15
+    vce_min_redundancy: float = 50.0
+    vce_tolerance: float = 0.005
 
 
 @dataclass(frozen=True)
@@ -178,6 +194,9 @@ class BundleResult:
         converged: pycolmap reported a usable solution and the datum iterations converged.
         summary: pycolmap's brief report of the last solve.
         timings: seconds per stage.
+        obs_sigma_px: (q,) a priori sigma of each image observation used in the final adjustment (pixels;
+            ``sigma0_px`` is the a posteriori sigma of an observation of a priori sigma ``BundleOptions.sigma_px``).
+        variance_components: the per-group estimate when ``obs_group`` was given, else None.
     """
 
     points: np.ndarray
@@ -197,6 +216,8 @@ class BundleResult:
     converged: bool
     summary: str
     timings: dict = field(default_factory=dict)
+    obs_sigma_px: np.ndarray | None = None
+    variance_components: VarianceComponents | None = None
 
     def error_ellipsoids(self, k: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
         """Semi-axes ``(n, 3)`` (metres, ascending, times ``k``) and axis directions ``(n, 3, 3)`` (columns)."""
@@ -394,7 +415,7 @@ def _null_space(state: _State, lay: _Layout, d: int) -> tuple[np.ndarray, np.nda
 
 def _linearise(
     state: _State, obs_image: np.ndarray, obs_target: np.ndarray, obs_uv: np.ndarray, lay: _Layout,
-    config: BundleConfig, sigma_px: float, defect: int,
+    config: BundleConfig, sigma_px: float | np.ndarray, defect: int,
 ) -> _Linear:
     m, k, p = lay.m, lay.k, lay.p
     R = state.poses[obs_image, :3, :3]
@@ -402,9 +423,9 @@ def _linearise(
     uv, Jp, Jpose, Jin = project_observations(state.intr, R, t, state.points[obs_target], lay.names)
     if np.any(~np.isfinite(uv)) or np.any(np.einsum("qb,qb->q", R[:, 2], state.points[obs_target]) + t[:, 2] <= 0):
         raise CalibrationError("bundle: a target is behind a camera that observes it; check identification")
-    w = 1.0 / sigma_px
-    r = (obs_uv - uv) * w
-    Jp, Jpose, Jin = Jp * w, Jpose * w, Jin * w
+    w = 1.0 / np.broadcast_to(np.asarray(sigma_px, dtype=float), (len(uv),))  # (q,) weights^(1/2)
+    r = (obs_uv - uv) * w[:, None]
+    Jp, Jpose, Jin = Jp * w[:, None, None], Jpose * w[:, None, None], Jin * w[:, None, None]
     is_linked = lay.lslot[obs_target] >= 0
     # compact camera-side Jacobian: pose (6) | interior (k) | linked point (3)
     W = 6 + k + 3
@@ -612,14 +633,18 @@ def _validate(obs_image, obs_target, obs_uv, m, n):
         raise CalibrationError("bundle: a target is observed twice in one image; fix the identification")
 
 
-def _datum_stage(state: _State, x0: np.ndarray, lay: _Layout, config: BundleConfig, args, sigma_px: float,
-                 iterations: int) -> tuple[_State, bool]:
+def _datum_stage(state: _State, x0: np.ndarray, lay: _Layout, config: BundleConfig, args, sigma_px,
+                 iterations: int, weighted: bool = False) -> tuple[_State, bool]:
+    """Datum and the observations pycolmap cannot take; ``weighted``: also iterate to the weighted optimum."""
     datum = config.datum
     act = np.concatenate([lay.unlinked, lay.linked])
     if datum == "free":
         s, R, t = similarity_fit(state.points[act], x0[act], with_scale=True)
-        return _apply_similarity(state, s, R, t), True
-    if datum == "control":
+        state = _apply_similarity(state, s, R, t)
+        if not weighted:
+            return state, True
+        defect = 7
+    elif datum == "control":
         ci = np.asarray(config.control.index)
         ok = (lay.uslot[ci] >= 0) | (lay.lslot[ci] >= 0)
         if np.sum(ok) < 3:
@@ -647,9 +672,9 @@ def _datum_stage(state: _State, x0: np.ndarray, lay: _Layout, config: BundleConf
         if step < 1e-10:
             converged = True
             break
-    if datum == "scale_bar":
-        s, R, t = similarity_fit(state.points[act], x0[act], with_scale=False)
-        state = _apply_similarity(state, 1.0, R, t)
+    if datum != "control":  # back onto the initial coordinates (gauge moves of the free iterations, too)
+        s, R, t = similarity_fit(state.points[act], x0[act], with_scale=datum == "free")
+        state = _apply_similarity(state, s, R, t)
     return state, converged
 
 
@@ -662,6 +687,8 @@ def bundle_adjust(
     points: np.ndarray,
     options: BundleOptions | None = None,
     config: BundleConfig | None = None,
+    obs_sigma_px: np.ndarray | None = None,
+    obs_group: np.ndarray | None = None,
 ) -> BundleResult:
     """Adjust a network of targets observed in several images.
 
@@ -674,16 +701,22 @@ def bundle_adjust(
         points: (n, 3) initial targets (e.g. the CAD nominals); the free-network datum keeps their
             centroid, orientation and scale.
         options: solver settings; config: what is refined and the datum.
+        obs_sigma_px: (q,) a priori sigma of each observation's coordinates (pixels); None: all
+            ``options.sigma_px``.
+        obs_group: (q,) int group of each observation: estimate one variance component per group
+            (:mod:`calibration.weights`), starting from ``obs_sigma_px``; None: the sigmas stay as given.
     """
     options = options or BundleOptions()
     config = config or BundleConfig()
+    args = (obs_image, obs_target, obs_uv, intrinsics, cam_from_part, points, options, config, obs_sigma_px, obs_group)
     if options.blas_threads is not None and threadpool_limits is not None:
         with threadpool_limits(options.blas_threads, user_api="blas"):
-            return _bundle_adjust(obs_image, obs_target, obs_uv, intrinsics, cam_from_part, points, options, config)
-    return _bundle_adjust(obs_image, obs_target, obs_uv, intrinsics, cam_from_part, points, options, config)
+            return _bundle_adjust(*args)
+    return _bundle_adjust(*args)
 
 
-def _bundle_adjust(obs_image, obs_target, obs_uv, intrinsics, cam_from_part, points, options, config) -> BundleResult:
+def _bundle_adjust(obs_image, obs_target, obs_uv, intrinsics, cam_from_part, points, options, config,
+                   obs_sigma_px=None, obs_group=None) -> BundleResult:
     t_start = time.perf_counter()
     obs_image = np.asarray(obs_image, dtype=int)
     obs_target = np.asarray(obs_target, dtype=int)
@@ -692,6 +725,11 @@ def _bundle_adjust(obs_image, obs_target, obs_uv, intrinsics, cam_from_part, poi
     x0 = np.asarray(points, dtype=float).copy()
     m, n = len(poses0), len(x0)
     _validate(obs_image, obs_target, obs_uv, m, n)
+    sig0 = check_sigmas(obs_sigma_px, options.sigma_px, len(obs_image))
+    sig = sig0.copy()
+    weighted = obs_sigma_px is not None or obs_group is not None
+    group = None if obs_group is None else check_groups(obs_group, len(obs_image))
+    vc = None
     names = config.refined_names()
     linked = np.zeros(n, dtype=bool)
     for bar in config.scale_bars:
@@ -712,15 +750,21 @@ def _bundle_adjust(obs_image, obs_target, obs_uv, intrinsics, cam_from_part, poi
         args = (obs_image[act_obs], obs_target[act_obs], obs_uv[act_obs])
         t0 = time.perf_counter()
         state, usable, report = _pycolmap_solve(state, *args, active_pts, config, options)
-        t1 = time.perf_counter()
-        state, dconv = _datum_stage(state, x0, lay, config, args, options.sigma_px, options.datum_iterations)
-        t2 = time.perf_counter()
-        lin = _linearise(state, *args, lay, config, options.sigma_px, defect)
-        stats = _statistics(lin, lay, n_obs=int(act_obs.sum()))
-        t3 = time.perf_counter()
-        timings["pycolmap_solve"] += t1 - t0
-        timings["datum"] += t2 - t1
-        timings["covariance"] += t3 - t2
+        timings["pycolmap_solve"] += time.perf_counter() - t0
+        for it in range(1, max(options.vce_iterations, 1) + 1 if group is not None else 2):
+            t1 = time.perf_counter()
+            state, dconv = _datum_stage(state, x0, lay, config, args, sig[act_obs], options.datum_iterations, weighted)
+            t2 = time.perf_counter()
+            lin = _linearise(state, *args, lay, config, sig[act_obs], defect)
+            stats = _statistics(lin, lay, n_obs=int(act_obs.sum()))
+            t3 = time.perf_counter()
+            timings["datum"] += t2 - t1
+            timings["covariance"] += t3 - t2
+            if group is None:
+                break
+            sig, vc = _variance_step(sig, sig0, group, act_obs, lin, stats, options, it, vc)
+            if vc.converged:
+                break
         T = np.full(len(obs_image), np.nan)
         T[act_obs] = stats["T"] / stats["s02"]
         testable = np.isfinite(T)
@@ -728,8 +772,32 @@ def _bundle_adjust(obs_image, obs_target, obs_uv, intrinsics, cam_from_part, poi
                 or np.nanmax(T) <= thr):
             break  # nothing left to test (e.g. two images: no redundancy per observation) or nothing fails
         rejected[int(np.nanargmax(T))] = True
-    return _result(state, lin, stats, lay, T, rejected, act_obs, obs_image, obs_target, obs_uv, options, config,
-                   usable and (dconv or config.datum == "free"), report, timings, time.perf_counter() - t_start)
+    res = _result(state, lin, stats, lay, T, rejected, act_obs, obs_image, obs_target, obs_uv, options, config,
+                  usable and (dconv or (config.datum == "free" and not weighted)), report, timings,
+                  time.perf_counter() - t_start)
+    res.obs_sigma_px, res.variance_components = sig, vc
+    return res
+
+
+def _variance_step(sig, sig0, group, act_obs, lin, stats, options, iteration, previous):
+    """One variance-component update of the a priori sigmas ``sig: (q,)`` (initial ones ``sig0``).
+
+    Groups are estimated when their redundancy reaches ``options.vce_min_redundancy`` at the round's
+    first iteration; the others take the common factor. Unchanged once settled, or at the last
+    iteration (the adjustment then stays consistent with its weights).
+    """
+    n_groups = int(group.max()) + 1
+    g = group[act_obs]
+    f, r_g, common = variance_component_factors(g, lin.r_img, stats["redundancy"], n_groups,
+                                                (sig / sig0)[act_obs])
+    est = r_g >= options.vce_min_redundancy if iteration == 1 or previous is None else previous.estimated
+    new = np.where(est[group], sig * np.sqrt(f)[group], sig0 * np.sqrt(common))
+    settled = bool(np.all(np.abs(new[act_obs] / sig[act_obs] - 1.0) < options.vce_tolerance))
+    if settled or iteration >= options.vce_iterations:
+        new = sig
+    count = np.bincount(group, minlength=n_groups)
+    rms = np.sqrt(np.bincount(group, weights=new**2, minlength=n_groups) / np.maximum(count, 1))
+    return new, VarianceComponents(rms, r_g, np.bincount(g, minlength=n_groups), est, iteration, settled)
 
 
 def _statistics(lin: _Linear, lay: _Layout, n_obs: int) -> dict:

@@ -84,6 +84,10 @@ class CameraSection(_Strict):
     device: str | None = Field(default=None, description="OpenCV device index or GStreamer pipeline (real cell)")
     exposure_s: float = Field(default=0.002, gt=0)
     self_calibrate: bool = Field(default=True, description="refine focal length, principal point, radial distortion")
+    observation_weights: Literal["incidence", "equal"] = Field(
+        default="incidence",
+        description="incidence: estimate one image sigma per incidence class (< 50, 50-70, >= 70 deg) in the "
+                    "bundle adjustment (variance components); equal: every observation has sigma_px")
 
     @model_validator(mode="after")
     def _dof(self):

@@ -10,6 +10,7 @@ import numpy as np
 from calibration.bundle import BundleConfig, BundleOptions, ScaleBar, bundle_adjust
 from calibration.camera import Intrinsics
 from calibration.errors import CalibrationError
+from calibration.weights import INCIDENCE_EDGES_DEG, group_labels, incidence_angles, incidence_groups
 from cell.jobfolder import atomic_write_bytes
 
 
@@ -55,8 +56,13 @@ def run_bundle(ctx) -> dict:
                           refine_principal_point=sc, refine_distortion=sc, scale_bars=scale_bars)
     # partly occluded dots are blunders too: allow data snooping to remove up to 5% of the observations
     options = BundleOptions(sigma_px=job.spec.camera.sigma_px, max_rejections=max(20, len(obs_uv) // 20))
+    targets = job.part.targets
+    groups = None
+    if job.spec.camera.observation_weights == "incidence":  # from the Faugeras-Toscani poses: degrees suffice
+        angles = incidence_angles(targets.xyz, targets.normals, poses0, obs_image, obs_target)
+        groups = incidence_groups(angles, INCIDENCE_EDGES_DEG)
     t0 = time.perf_counter()
-    res = bundle_adjust(obs_image, obs_target, obs_uv, intr0, poses0, job.part.targets.xyz, options, config)
+    res = bundle_adjust(obs_image, obs_target, obs_uv, intr0, poses0, targets.xyz, options, config, obs_group=groups)
     dt = time.perf_counter() - t0
     if not res.converged:
         raise CalibrationError(f"bundle adjustment did not converge: {res.summary}")
@@ -72,6 +78,7 @@ def run_bundle(ctx) -> dict:
     return {
         "datum": res.datum,
         "sigma0_px": res.sigma0_px,
+        "observation_weights": _weights_doc(job, res, groups),
         "dof": res.dof,
         "converged": res.converged,
         "summary": res.summary,
@@ -89,3 +96,22 @@ def run_bundle(ctx) -> dict:
         "targets": [{"id": tid, "xyz": p, "cov": c, "n_images": int(k), "ellipsoid_axes_m": ax,
                      "ellipsoid_dirs": d} for tid, p, c, k, ax, d in zip(ids, res.points, res.cov, n_img, axes, dirs)],
     }
+
+
+def _weights_doc(job, res, groups) -> dict:
+    """The a priori image sigmas the adjustment used: one per incidence class (estimated) or one for all."""
+    vc = res.variance_components
+    if groups is None or vc is None:
+        return {"method": "equal", "sigma_px": job.spec.camera.sigma_px}
+    edges = (0.0,) + INCIDENCE_EDGES_DEG + (90.0,)
+    n_all = np.bincount(groups, minlength=len(edges) - 1)
+    out = []
+    for g, name in enumerate(group_labels(INCIDENCE_EDGES_DEG)):
+        est = g < len(vc.sigma_px) and bool(vc.estimated[g])
+        out.append({"name": name, "incidence_deg": [edges[g], edges[g + 1]], "n_observations": int(n_all[g]),
+                    "redundancy": float(vc.redundancy[g]) if g < len(vc.redundancy) else 0.0,
+                    "sigma_px": float(vc.sigma_px[g]) if n_all[g] else None, "estimated": est})
+    # one image sigma for the whole network: the groups' variances weighted by their redundancy
+    pooled = float(np.sqrt(np.sum(vc.redundancy * vc.sigma_px**2) / np.sum(vc.redundancy)))
+    return {"method": "incidence", "a_priori_sigma_px": job.spec.camera.sigma_px, "groups": out,
+            "pooled_sigma_px": pooled, "iterations": vc.iterations, "converged": vc.converged}

@@ -224,6 +224,10 @@ def adjust(ctx) -> None:
     atomic_write_json(ctx.folder.file("bundle.json"), doc)
     ctx.say(f"  sigma0 {doc['sigma0_px']:.3f} px, {doc['n_rejected']} observation(s) rejected, "
             f"datum {doc['datum']}, {doc['time_s']:.2f} s")
+    if doc["observation_weights"]["method"] == "incidence":
+        ctx.say("  image sigma by incidence (variance components): " + ", ".join(
+            f"{g['name']} {g['sigma_px']:.3f} px" + ("" if g["estimated"] else " (common)")
+            for g in doc["observation_weights"]["groups"] if g["n_observations"]))
 
 
 # --- REPORT ---------------------------------------------------------------------------------
