@@ -195,7 +195,8 @@ class BundleResult:
         summary: pycolmap's brief report of the last solve.
         timings: seconds per stage.
         obs_sigma_px: (q,) a priori sigma of each image observation used in the final adjustment (pixels;
-            ``sigma0_px`` is the a posteriori sigma of an observation of a priori sigma ``BundleOptions.sigma_px``).
+            ``sigma0_px`` is then the a posteriori sigma of an observation whose a priori sigma is the rms of
+            those of the observations used: the network's image precision, as with equal weights).
         variance_components: the per-group estimate when ``obs_group`` was given, else None.
     """
 
@@ -776,6 +777,8 @@ def _bundle_adjust(obs_image, obs_target, obs_uv, intrinsics, cam_from_part, poi
                   usable and (dconv or (config.datum == "free" and not weighted)), report, timings,
                   time.perf_counter() - t_start)
     res.obs_sigma_px, res.variance_components = sig, vc
+    if weighted:  # sigma0 in pixels: of an observation of the rms a priori sigma (equal weights: options.sigma_px)
+        res.sigma0_px = float(np.sqrt(stats["s02"] * np.mean(sig[act_obs] ** 2)))
     return res
 
 
