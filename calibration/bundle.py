@@ -860,7 +860,7 @@ def _result(state, lin, stats, lay, T, rejected, act_obs, obs_image, obs_target,
     s02 = stats["s02"]
     factor = s02 if options.a_posteriori else 1.0
     # per-point representation: x = D-part + A dc
-    nu, p = len(lay.unlinked), lay.p
+    p = lay.p
     D = np.zeros((n, 3, 3))
     A = np.zeros((n, 3, p))
     D[lay.unlinked] = lin.Dinv

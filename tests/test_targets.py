@@ -8,7 +8,6 @@ import pytest
 from calibration.camera import Intrinsics, exp_se3, invert, look_at, project
 from calibration.errors import CalibrationError
 from calibration.targets import (
-    DetectionOptions,
     detect_coded_targets,
     detect_retro_targets,
     identify_targets,
