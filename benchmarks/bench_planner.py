@@ -358,8 +358,9 @@ def main(argv=None) -> int:
         "figure": f"planning 29 stations: {out['timing_29']['best_wall_s']:.1f} s; " + "; ".join(
             f"k={k}: worst {row['planned_worst_m'] * 1e6:.2f} um" for k, row in rows.items()),
         "baseline": "best ring (feasible, else >= 95% coverage on its targets); random networks like for like",
-        "ratio": "; ".join(f"k={k}: {ring_ratio(row):.3f} of ring (<= 0.75), "
-                           f"{row['random']['median_ratio_same_targets']:.3f} of random (<= 0.2)"
+        "ratio": "; ".join(f"k={k}: " + (f"{ring_ratio(row):.3f} of ring (<= 0.75), " if np.isfinite(ring_ratio(row))
+                                         else "no ring of the sweep covers >= 95 % (none to compare), ")
+                           + f"{row['random']['median_ratio_same_targets']:.3f} of random (<= 0.2)"
                            + (f", {row['bound']['plan_over_bound']:.2f} x the lower bound" if "bound" in row else "")
                            + (f" [(ii) out of reach for any network: {row['bound']['like_for_like_out_of_reach']} of "
                               f"{row['bound']['like_for_like_n']} random networks]"
