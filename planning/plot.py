@@ -127,8 +127,12 @@ def plot_plan(part, plan, path_png, *, max_ellipsoids: int = 400, title: str | N
                     and np.isfinite(h["mean"]) and h.get("phase", "search") == "search"]
             if mean:
                 ax.plot(*zip(*mean), label="mean (feasible)", alpha=0.7)
+            lb = (plan.search or {}).get("lower_bound_sigma_m")
+            if plan.mode == "fixed" and lb:
+                ax.axhline(lb * unit, color="k", ls="--", lw=1, label="lower bound, any network (database)")
+                ax.axhline(plan.predicted_sigma_max_m * unit, color="tab:red", ls=":", lw=1, label="plan (exact)")
             ax.set_yscale("log")
-            ax.legend()
+            ax.legend(fontsize=7)
         ax.set_xlabel("generation" if plan.mode == "fixed" else "generation (front search, then refining searches)")
         ax.set_ylabel("fitness (um)" if plan.mode == "fixed" else "sigma / required")
         ax.set_title("search history")
