@@ -339,3 +339,26 @@ def test_sixteen_bit_sensor_gives_uint16_in_range():
     assert img.dtype == np.uint16 and img.max() <= 4095
     u, v = np.round(truth["uv"][0]).astype(int)
     assert img[v, u] > 1500
+
+
+def test_job_sim_noise_scales_the_sensor_noise(tmp_path):
+    """``[sim] noise`` reaches the simulated camera: 0 renders clean images, 2 doubles the noise."""
+    from cell.devices import make_job_sim_cell
+    from cell.load import load
+    from jobutil import job_variant
+
+    stds = {}
+    for noise in (0.0, 1.0, 2.0):
+        job = load(job_variant(tmp_path / f"n{noise}", {"sim": {"noise": noise, "image_sigma_px": 0.0}}))
+        cam = make_job_sim_cell(job).camera
+        T = look_at(np.array([0.25, -0.35, 0.45]), np.zeros(3))
+        clean, _ = cam.render(T, noise=False, quantise=False)
+        q, _ = cam.render(T)
+        if noise == 0:
+            np.testing.assert_array_equal(q, cam.render(T, noise=False)[0])
+            assert not cam.sensor.noise
+            continue
+        full = 2**cam.sensor.bit_depth - 1
+        diff = q.astype(float) / full - cam.sensor.black_level - clean
+        stds[noise] = float(np.std(diff[(clean > 0.2) & (clean < 0.8)]))
+    assert stds[2.0] / stds[1.0] == pytest.approx(2.0, rel=0.1), stds
