@@ -49,20 +49,6 @@ def _true_poses(job: LoadedJob) -> tuple[np.ndarray, np.ndarray]:
     return true_bfp, true_ffc
 
 
-def sim_sensor(noise: float):
-    """The simulated sensor with its photon and read noise scaled by ``noise`` (``[sim] noise``; 0: none).
-
-    The relative noise of a pixel is sqrt(x * full_well + read^2) / full_well, so full well / noise^2 and
-    read noise / noise scale it by ``noise`` at every signal level.
-    """
-    from sim_backend.sim_camera import Sensor
-
-    nominal = Sensor()
-    if noise == 0:
-        return Sensor(noise=False)
-    return Sensor(full_well_e=nominal.full_well_e / noise**2, read_noise_e=nominal.read_noise_e / noise)
-
-
 def make_job_sim_cell(job: LoadedJob, seed_offset: int = 0):
     """The simulated cell of a job: the true part (CAD + deviations), its true placement and hand-eye.
 
@@ -71,12 +57,13 @@ def make_job_sim_cell(job: LoadedJob, seed_offset: int = 0):
     """
     from cell.setup import robot_model
     from sim_backend.factory import make_sim_cell
+    from sim_backend.sim_camera import Sensor
 
     s = job.spec
     true_bfp, true_ffc = _true_poses(job)
     return make_sim_cell(job.part, s.base_from_part(), s.flange_from_cam(), job.intrinsics, robot=robot_model(job),
                          deviations=job.deviations, image_sigma_px=s.sim.image_sigma_px, seed=s.sim.seed + seed_offset,
-                         sensor=sim_sensor(s.sim.noise),
+                         sensor=Sensor().with_noise_scale(s.sim.noise),
                          motion=s.sim.motion, time_scale=s.sim.time_scale, true_flange_from_cam=true_ffc,
                          true_base_from_part=true_bfp)
 

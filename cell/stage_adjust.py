@@ -112,6 +112,7 @@ def _weights_doc(job, res, groups) -> dict:
                     "redundancy": float(vc.redundancy[g]) if g < len(vc.redundancy) else 0.0,
                     "sigma_px": float(vc.sigma_px[g]) if n_all[g] else None, "estimated": est})
     # one image sigma for the whole network: the groups' variances weighted by their redundancy
-    pooled = float(np.sqrt(np.sum(vc.redundancy * vc.sigma_px**2) / np.sum(vc.redundancy)))
+    r = np.sum(vc.redundancy)
+    pooled = float(np.sqrt(np.sum(vc.redundancy * vc.sigma_px**2) / r)) if r > 0 else None
     return {"method": "incidence", "a_priori_sigma_px": job.spec.camera.sigma_px, "groups": out,
             "pooled_sigma_px": pooled, "iterations": vc.iterations, "converged": vc.converged}

@@ -34,10 +34,10 @@ from scipy import sparse
 from scipy.optimize import linprog
 
 from calibration.errors import PlanningError
+from planning.uncertainty import _IU, sym_from_6
 
 # Frobenius weights of the unique entries (00, 01, 02, 11, 12, 22) of a symmetric 3x3
 _FROB6 = np.array([1.0, 2.0, 2.0, 1.0, 2.0, 1.0])
-_IU = (np.array([0, 0, 0, 1, 1, 2]), np.array([0, 1, 2, 1, 2, 2]))
 
 
 @dataclass
@@ -71,9 +71,7 @@ class SigmaBound:
 
 def _trace_inverse(N6: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``trace(N^-1)`` (inf where singular) and ``N^-2`` as 6-vectors, for ``N6: (n, 6)``."""
-    N = np.empty(N6.shape[:-1] + (3, 3))
-    N[..., _IU[0], _IU[1]] = N6
-    N[..., _IU[1], _IU[0]] = N6
+    N = sym_from_6(np.asarray(N6, dtype=np.float64))
     tr = np.trace(N, axis1=-2, axis2=-1)
     s = np.where(tr > 0, tr / 3.0, 1.0)
     Ns = N / s[:, None, None]

@@ -90,6 +90,20 @@ class Sensor:
         if not 8 <= self.bit_depth <= 16:
             raise InputError(f"sensor bit_depth must be 8..16, got {self.bit_depth}")
 
+    def with_noise_scale(self, scale: float) -> "Sensor":
+        """This sensor with its photon and read noise scaled by ``scale`` (0: no noise).
+
+        A pixel's relative noise is sqrt(x * full_well + read^2) / full_well, so full well / scale^2 and
+        read noise / scale scale it by ``scale`` at every signal level.
+        """
+        from dataclasses import replace
+
+        if scale < 0:
+            raise InputError(f"sensor noise scale must be >= 0, got {scale}")
+        if scale == 0:
+            return replace(self, noise=False)
+        return replace(self, full_well_e=self.full_well_e / scale**2, read_noise_e=self.read_noise_e / scale)
+
 
 @dataclass(frozen=True)
 class RenderOptions:

@@ -5,7 +5,7 @@ import pytest
 import trimesh
 
 from calibration.camera import Intrinsics, invert, look_at, project
-from calibration.errors import DriverError, NotConnectedError
+from calibration.errors import DriverError, InputError, NotConnectedError
 from drivers.protocols import Camera
 from planning.part import Part, Targets
 from sim_backend.sim_camera import (
@@ -362,3 +362,9 @@ def test_job_sim_noise_scales_the_sensor_noise(tmp_path):
         diff = q.astype(float) / full - cam.sensor.black_level - clean
         stds[noise] = float(np.std(diff[(clean > 0.2) & (clean < 0.8)]))
     assert stds[2.0] / stds[1.0] == pytest.approx(2.0, rel=0.1), stds
+
+
+def test_sensor_noise_scale_is_checked():
+    with pytest.raises(InputError, match="noise scale"):
+        Sensor().with_noise_scale(-1.0)
+    assert Sensor().with_noise_scale(1.0) == Sensor()
