@@ -64,6 +64,8 @@ def plan_network(
     found = _search_fixed(search, part, intr, reachable, reachable_fn) if options.mode == "fixed" \
         else _search_cheapest(search)
     timing["search_s"] = time.perf_counter() - t0
+    if "polish_s" in found.polish_stats:  # part of search_s
+        timing["polish_s"] = found.polish_stats.pop("polish_s")
 
     t0 = time.perf_counter()
     kept, final, final_genes, search_fitness = _exact_check(part, intr, options, s, found)
