@@ -87,6 +87,7 @@ def run_bundle(ctx) -> dict:
         "n_observations": int(len(obs_uv)),
         "n_rejected": int(res.rejected.sum()),
         "rejected": rejected,
+        "snooping": res.snooping,
         "intrinsics": res.intrinsics.to_dict(),
         "intrinsics_refined": list(res.intrinsics_names),
         "intrinsics_sigma": np.sqrt(np.diag(res.intrinsics_cov)).tolist() if len(res.intrinsics_names) else [],
@@ -124,6 +125,10 @@ def run(ctx) -> None:
     atomic_write_json(ctx.folder.file("bundle.json"), doc)
     ctx.say(f"  sigma0 {doc['sigma0_px']:.3f} px, {doc['n_rejected']} observation(s) rejected, "
             f"datum {doc['datum']}, {doc['time_s']:.2f} s")
+    sn = doc["snooping"]
+    if sn.get("stopped_because") == "max_rejections reached":
+        ctx.say(f"  data snooping stopped at its limit of {doc['n_rejected']} rejections with "
+                f"{sn['still_failing']} observation(s) still failing the test")
     if doc["observation_weights"]["method"] == "incidence":
         ctx.say("  image sigma by incidence (variance components): " + ", ".join(
             f"{g['name']} {g['sigma_px']:.3f} px" + ("" if g["estimated"] else " (common)")
