@@ -126,7 +126,7 @@ def one(n_targets: int, n_stations: int, seed: int, blunders: float, baseline: b
     from planning.execution import MotionLimits, validate_plan
     from planning.part import Part
     from planning.planner import plan_network
-    from planning.reachability import ReachabilityDB, reachability_mask
+    from planning.reachability import ReachabilityDB, ReachabilityOptions, reachability_mask
     from planning.visibility import VisibilityDB
 
     out: dict = {"targets": n_targets, "stations": n_stations}
@@ -154,7 +154,8 @@ def one(n_targets: int, n_stations: int, seed: int, blunders: float, baseline: b
         plan = plan_network(part, job.intrinsics, replace(opts, allow_unmeasurable=True),
                             np.random.default_rng(job.spec.job.seed), reachable=reach.reachable, cache_dir=cache,
                             seed=job.spec.job.seed, db=db,
-                            reachable_fn=lambda T: reachability_mask(robot, bfp, ffc, T, world).reachable)
+                            reachable_fn=lambda T: reachability_mask(robot, bfp, ffc, T, world,
+                                                                     ReachabilityOptions(compute_distances=False)).reachable)
         out["plan_s"] = time.perf_counter() - t0
     tm = plan.timing
     out.update(information_s=tm.get("information_s"), search_s=tm.get("search_s", 0) - tm.get("polish_s", 0),
