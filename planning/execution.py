@@ -49,9 +49,9 @@ class MotionLimits:
         check_resolution_rad: smallest joint step of the move collision check (where the
             clearance is smaller than the motion bound of this step, the check falls back
             to sampling at this step).
-        certify_delta_m: moves are first checked in one batch with the security margin clearance +
-            this, sampled so that the arm moves at most half of it between samples
-            (:func:`certify_moves`); only moves that fail it get the conservative-advancement check.
+        certify_deltas_m: moves are first checked in batches with the security margin clearance +
+            delta, sampled so that the arm moves at most delta / 2 between samples, for each delta in
+            turn (:func:`certify_moves`); only moves that fail them all get the conservative-advancement check.
     """
 
     joint_speed_rad_s: float | Sequence[float] = 1.05
@@ -60,7 +60,7 @@ class MotionLimits:
     return_to_start: bool = True
     min_joint_margin_rad: float = 0.0
     check_resolution_rad: float = 0.005
-    certify_delta_m: float = 0.02
+    certify_deltas_m: tuple[float, ...] = (0.02, 0.005)
 
 
 @dataclass(frozen=True)
@@ -71,7 +71,7 @@ class MoveCheck:
         start, end: labels of the endpoints ("start" or a station id).
         free: no collision along the move.
         min_distance_m: smallest clearance measured along the move (a move proven free by the batched
-            check: the clearance it guarantees, clearance + certify_delta_m / 2).
+            check: the clearance it guarantees, clearance + delta / 2).
         pair: the closest (or colliding) pair of bodies.
         at_fraction: where along the move the smallest clearance (or the collision) was.
         n_checks: configurations checked.
@@ -271,24 +271,38 @@ def check_move(
 
 
 def certify_moves(robot: RobotModel, world: CollisionWorld, path: np.ndarray, levers: np.ndarray,
-                  delta_m: float = 0.02, n_threads: int = 2) -> tuple[np.ndarray, np.ndarray]:
-    """Moves ``path[t] -> path[t + 1]`` (joint-linear) proven free by one batched check; (t,) bool, (t,) samples.
+                  deltas_m: tuple[float, ...] = (0.02, 0.005), n_threads: int = 2
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Moves ``path[t] -> path[t + 1]`` (joint-linear) proven free by batched checks.
 
-    Each move is sampled so finely that no point of the arm moves (relative to another body) by more
-    than ``delta_m / 2`` between a configuration and its nearest sample (the motion bound of
-    :func:`check_move`); every sample is checked with the security margin ``clearance + delta_m`` in
-    one parallel call. A move whose samples all pass keeps at least ``clearance + delta_m / 2``
-    everywhere; the others need :func:`check_move`.
+    For each ``delta`` in turn (on the moves not yet proven), each move is sampled so finely that no
+    point of the arm moves (relative to another body) by more than ``delta / 2`` between a
+    configuration and its nearest sample (the motion bound of :func:`check_move`), and every sample
+    is checked with the security margin ``clearance + delta`` in one parallel call. A move whose
+    samples all pass keeps at least ``clearance + delta / 2`` everywhere; the others need
+    :func:`check_move`. Returns (t,) proven, (t,) the clearance each guarantees (nan: not proven),
+    (t,) samples checked.
     """
     path = np.asarray(path, dtype=float)
     dq = np.diff(path, axis=0)
     bound = 2.0 * np.abs(dq) @ levers
-    n = np.maximum(2, np.ceil(bound / delta_m).astype(int) + 1)
-    owner = np.repeat(np.arange(len(dq)), n)
-    s = np.concatenate([np.linspace(0.0, 1.0, k) for k in n])
-    q = path[owner] + s[:, None] * dq[owner]
-    free = robot.collision_free_many(q, world, n_threads=n_threads, margin_m=world.clearance_m + delta_m)
-    return np.bincount(owner, weights=~free, minlength=len(dq)) == 0, n
+    proven = np.zeros(len(dq), dtype=bool)
+    guaranteed = np.full(len(dq), np.nan)
+    samples = np.zeros(len(dq), dtype=int)
+    for delta in deltas_m:
+        todo = np.flatnonzero(~proven)
+        if len(todo) == 0:
+            break
+        n = np.maximum(2, np.ceil(bound[todo] / delta).astype(int) + 1)
+        owner = np.repeat(np.arange(len(todo)), n)
+        s = np.concatenate([np.linspace(0.0, 1.0, k) for k in n])
+        q = path[todo][owner] + s[:, None] * dq[todo][owner]
+        free = robot.collision_free_many(q, world, n_threads=n_threads, margin_m=world.clearance_m + delta)
+        ok = np.bincount(owner, weights=~free, minlength=len(todo)) == 0
+        samples[todo] += n
+        proven[todo[ok]] = True
+        guaranteed[todo[ok]] = world.clearance_m + 0.5 * delta
+    return proven, guaranteed, samples
 
 
 # ----------------------------------------------------------------------------------------
@@ -416,14 +430,14 @@ def validate_plan(
         moves: list[MoveCheck] = []
         bad = None
         if world is not None:  # most moves are far from everything: proven free at once, the rest checked closely
-            certified, n_samples = certify_moves(robot, world, np.array(path), levers, lim.certify_delta_m)
+            certified, guaranteed, n_samples = certify_moves(robot, world, np.array(path), levers, lim.certify_deltas_m)
         for t in range(len(path) - 1):
             dur = float(move_time(path[t + 1] - path[t], speed, accel))
             if world is None:
                 mc = MoveCheck(labels[t], labels[t + 1], True, float("nan"), ("", ""), 0.0, 0, dur)
             elif certified[t]:
-                mc = MoveCheck(labels[t], labels[t + 1], True, world.clearance_m + 0.5 * lim.certify_delta_m,
-                               ("", ""), 0.0, int(n_samples[t]), dur)
+                mc = MoveCheck(labels[t], labels[t + 1], True, float(guaranteed[t]), ("", ""), 0.0,
+                               int(n_samples[t]), dur)
             else:
                 mc = check_move(robot, world, path[t], path[t + 1], levers, lim.check_resolution_rad, (labels[t], labels[t + 1]), dur)
             moves.append(mc)
