@@ -12,9 +12,9 @@ time of each phase:
 - ``validate``: planning.execution.validate_plan of the planned stations;
 - ``adjust``: bundle_adjust with data snooping on simulated observations of the plan (every target
   seen by its planned stations, 0.05 px noise, ``--blunders`` of the observations displaced by
-  1-10 px), with the job's scale bar as datum; ``adjust_old`` the same with the one-rejection-per-
-  re-adjustment loop of before (``BundleOptions(snooping_batch=False)``) and its old cap, where
-  ``--baseline`` allows it (it grows as rejections x adjustment time);
+  1-10 px), with a scale bar as datum and ADJUST's limit on rejections; ``adjust_old`` the same with
+  the one-rejection-per-re-adjustment loop of before (``BundleOptions(snooping_batch=False)``) and
+  ADJUST's old limit (5 %), where ``--baseline`` allows it (it grows as rejections x adjustment time);
 - ``peak`` the process's peak resident memory.
 
 The planned worst sigma and, for the adjustment, how many blunders were found, missed, and how many
@@ -184,17 +184,24 @@ def one(n_targets: int, n_stations: int, seed: int, blunders: float, baseline: b
         xyz = targets.xyz
         a = int(np.argmin(xyz[:, 0] + xyz[:, 1]))
         b = int(np.argmax(xyz[:, 0] + xyz[:, 1]))
+        q = int(vis.sum())
         out["adjust"] = run_adjust(job.intrinsics, plan.part_from_cam, xyz, vis, (a, b),
-                                   np.random.default_rng(seed + 1), blunders)
+                                   np.random.default_rng(seed + 1), blunders, max_rejections=adjust_cap(q))
         out["adjust_s"] = out["adjust"]["s"]
         if baseline:
-            q = out["adjust"]["n_obs"]
             out["adjust_old"] = run_adjust(job.intrinsics, plan.part_from_cam, xyz, vis, (a, b),
                                            np.random.default_rng(seed + 1), blunders, batch=False,
                                            max_rejections=max(20, q // 20))
             out["adjust_old_s"] = out["adjust_old"]["s"]
     out["peak_gb"] = _peak_gb()
     return out
+
+
+def adjust_cap(q: int) -> int:
+    """ADJUST's limit on rejections (cell.stages.adjust.max_rejections; before issue 21: max(20, q // 20))."""
+    from cell.stages.adjust import max_rejections
+
+    return max_rejections(q)
 
 
 PHASES = ("visibility_s", "reach_s", "information_s", "search_s", "polish_s", "final_s", "validate_s", "adjust_s",
