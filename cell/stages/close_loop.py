@@ -25,7 +25,10 @@ import numpy as np
 from calibration.camera import Intrinsics
 from calibration.errors import ReachabilityError
 from cell.record.jobfolder import atomic_write_json
-from cell.stages import acquire, adjust, calibrate, measure
+from cell.stages.acquire import run as acquire_run
+from cell.stages.adjust import run as adjust_run
+from cell.stages.calibrate import run as calibrate_run
+from cell.stages.measure import run as measure_run
 
 NAME = "closed_loop.json"
 
@@ -230,10 +233,10 @@ def run(ctx) -> None:
                     f"{len(stations)} extra station(s) {', '.join(facts['stations_added'])}")
         # take, measure, orient the round's stations, then adjust the whole network again
         t1 = time.perf_counter()
-        acquire.run(ctx)
-        measure.run(ctx, keep=True)
-        calibrate.run(ctx)
-        adjust.run(ctx)
+        acquire_run(ctx)
+        measure_run(ctx, keep=True)
+        calibrate_run(ctx)
+        adjust_run(ctx)
         bundle = ctx.folder.read_json("bundle.json")
         _, sigma, rays = _achieved(bundle, n)
         now_short = _short(sigma, rays, required, p.min_rays, _judged(job))
