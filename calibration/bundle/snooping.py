@@ -38,37 +38,36 @@ def _cofactor_blocks(lin: _Linear, lay: _Layout) -> tuple[np.ndarray, np.ndarray
 
 
 def _projected_cofactor(lin: _Linear, lay: _Layout, Qpp, VS, Jp, Jc, cidx, slot) -> np.ndarray:
-    """``J Q_xx J^T`` of observations with Jacobians ``Jp, Jc`` (compact) at columns ``cidx``; (q, 2, 2)."""
+    """``J Q_xx J^T`` of observations with Jacobians ``Jp, Jc`` (compact) at columns ``cidx``; (q, 2, 2).
+
+    Image by image: the camera blocks of an image are shared by its observations (no per-observation
+    copies of them).
+    """
     m, k = lay.m, lay.k
-    nu, p = VS.shape[0], VS.shape[2]
-    sl = slot
-    img = cidx[:, 0] // 6
     w = 6 + k
-    # Q blocks each observation needs, gathered from contiguous per-image blocks
-    Qpc = np.empty((len(sl), 3, w))
-    VSr = VS[:, :, : 6 * m].reshape(nu, 3, m, 6)
-    Qpc[:, :, :6] = -VSr[sl, :, img, :]
-    Sr = lin.Sigma[: 6 * m, : 6 * m].reshape(m, 6, m, 6)
-    Qcc = np.empty((len(sl), w, w))
-    Qcc[:, :6, :6] = Sr[np.arange(m), :, np.arange(m), :][img]
-    if k:
-        Qpc[:, :, 6:] = -VS[:, :, 6 * m : 6 * m + k][sl]
-        SI = lin.Sigma[: 6 * m, 6 * m : 6 * m + k].reshape(m, 6, k)[img]
-        Qcc[:, :6, 6:] = SI
-        Qcc[:, 6:, :6] = np.swapaxes(SI, 1, 2)
-        Qcc[:, 6:, 6:] = lin.Sigma[6 * m : 6 * m + k, 6 * m : 6 * m + k]
-    Jcw = Jc[:, :, :w]
-    Qsl = Qpp[sl]
-    A = (
-        np.einsum("qib,qjb->qij", np.einsum("qia,qab->qib", Jp, Qsl), Jp)
-        + 2 * np.einsum("qib,qjb->qij", np.einsum("qia,qab->qib", Jp, Qpc), Jcw)
-        + np.einsum("qib,qjb->qij", np.einsum("qia,qab->qib", Jcw, Qcc), Jcw)
-    )
+    img = cidx[:, 0] // 6
+    A = np.empty((len(slot), 2, 2))
+    Sig = lin.Sigma
+    order = np.argsort(img, kind="stable")
+    starts = np.searchsorted(img[order], np.arange(m + 1))
+    for j in range(m):
+        o = order[starts[j] : starts[j + 1]]
+        if len(o) == 0:
+            continue
+        cols = np.r_[6 * j : 6 * j + 6, 6 * m : 6 * m + k] if k else np.arange(6 * j, 6 * j + 6)
+        sl = slot[o]
+        Jpo, Jco = Jp[o], Jc[o, :, :w]
+        Qpc = -VS[sl[:, None, None], np.arange(3)[None, :, None], cols[None, None, :]]  # (qj, 3, w)
+        Qcc = Sig[np.ix_(cols, cols)]  # (w, w), shared by the image
+        JpQ = np.einsum("qia,qab->qib", Jpo, Qpp[sl])
+        A[o] = (np.einsum("qib,qjb->qij", JpQ, Jpo)
+                + 2 * np.einsum("qib,qjb->qij", np.einsum("qia,qab->qib", Jpo, Qpc), Jco)
+                + np.einsum("qib,qjb->qij", Jco @ Qcc, Jco))
     linked = np.any(cidx[:, w:] != 0, axis=1) | np.any(Jc[:, :, w:] != 0, axis=(1, 2))
     if np.any(linked):  # observations of scale-bar targets: the general (slow) gather, on few rows
         cl = cidx[linked]
         Jl = Jc[linked]
-        Ql = lin.Sigma[cl[:, :, None], cl[:, None, :]]
+        Ql = Sig[cl[:, :, None], cl[:, None, :]]
         A[linked] = np.einsum("qib,qjb->qij", np.einsum("qia,qab->qib", Jl, Ql), Jl)
     return 0.5 * (A + np.swapaxes(A, 1, 2))
 
