@@ -30,6 +30,12 @@ def test_batch_snooping_finds_every_blunder_in_few_rounds_and_matches_truth():
     assert res.snooping["rounds"] <= 8  # one observation per re-adjustment would take ~bad.sum() rounds
     assert np.array_equal(res.rejected, bad)
     assert abs(res.sigma0_px / 0.05 - 1) < 0.05
+    # the same optimum and covariance as the adjustment of the clean observations alone
+    keep = ~bad
+    ref = bundle_adjust(net.obs_image[keep], net.obs_target[keep], uv[keep], net.intrinsics, poses0, x0,
+                        BundleOptions(sigma_px=0.05, snooping=False), BundleConfig())
+    assert res.converged and np.max(np.abs(res.points - ref.points)) < 1e-9
+    np.testing.assert_allclose(res.cov, ref.cov, rtol=1e-6, atol=0)
     # coordinates agree with the truth within their stated uncertainty (free network: after a similarity)
     from calibration.alignment import similarity_fit
 

@@ -113,12 +113,17 @@ def _bundle_adjust(obs_image, obs_target, obs_uv, intrinsics, cam_from_part, poi
             raise CalibrationError("bundle: an image has fewer than 3 observed targets; drop it or identify more targets")
         lay = _Layout(m, n, names, active_pts, linked)
         args = (obs_image[act_obs], obs_target[act_obs], obs_uv[act_obs])
-        t0 = time.perf_counter()
-        state, usable, report = _pycolmap_solve(state, *args, active_pts, config, options)
-        timings["pycolmap_solve"] += time.perf_counter() - t0
+        # after a batch of rejections the network is already near its optimum: Gauss-Newton on our own normal
+        # equations (the datum stage's iterations, which the statistics need anyway) finishes it
+        warm = options.snooping_batch and snoop["rounds"] > 1
+        if not warm:
+            t0 = time.perf_counter()
+            state, usable, report = _pycolmap_solve(state, *args, active_pts, config, options)
+            timings["pycolmap_solve"] += time.perf_counter() - t0
         for it in range(1, max(options.vce_iterations, 1) + 1 if group is not None else 2):
             t1 = time.perf_counter()
-            state, dconv = _datum_stage(state, x0, lay, config, args, sig[act_obs], options.datum_iterations, weighted)
+            state, dconv = _datum_stage(state, x0, lay, config, args, sig[act_obs], options.datum_iterations,
+                                        weighted or warm)
             t2 = time.perf_counter()
             lin = _linearise(state, *args, lay, config, sig[act_obs], defect)
             stats = _statistics(lin, lay, n_obs=int(act_obs.sum()))
@@ -166,7 +171,7 @@ def _bundle_adjust(obs_image, obs_target, obs_uv, intrinsics, cam_from_part, poi
             snoop["stopped_because"] = stop
             break
     res = _result(state, lin, stats, lay, T, rejected, act_obs, obs_image, obs_target, obs_uv, options, config,
-                  usable and (dconv or (config.datum == "free" and not weighted)), report, timings,
+                  usable and (dconv or (config.datum == "free" and not weighted and not warm)), report, timings,
                   time.perf_counter() - t_start)
     res.obs_sigma_px, res.variance_components, res.snooping = sig, vc, snoop
     if weighted:  # sigma0 in pixels: of an observation of the rms a priori sigma (equal weights: options.sigma_px)
