@@ -13,6 +13,7 @@ import json
 import os
 import shutil
 import signal
+import threading
 import time
 import traceback
 from dataclasses import dataclass, field
@@ -21,7 +22,7 @@ from typing import Callable
 
 from calibration.errors import AbortRequested, CellError, InputError
 from cell.archive import Archive
-from cell.jobfolder import JobFolder, atomic_write_bytes, atomic_write_json, new_job_id
+from cell.jobfolder import JobFolder, atomic_write_bytes, atomic_write_json, new_job_id, utc_now
 from cell.load import LoadedJob, load
 from cell.runlog import RunLog, next_log_path
 from cell.states import STAGES, State, check_transition
@@ -85,8 +86,33 @@ def load_from_folder(folder: Path) -> LoadedJob:
     return load(folder / "job.toml", overrides={k: str(folder / v) for k, v in mapping.items()})  # abs paths stay
 
 
+#: the runners of this process, by job id (the web console aborts through :func:`abort_job`)
+_ACTIVE: dict[str, "JobRunner"] = {}
+_ACTIVE_LOCK = threading.Lock()
+
+
+def abort_job(job_id: str, reason: str = "console") -> bool:
+    """Abort the job ``job_id`` running in this process: the one abort path of SIGTERM, Ctrl-C and the console.
+
+    The robot gets its stop at once (whatever the stage is doing), the job then ends ABORTED with
+    the time the arm came to rest in its journal. Safe from any thread. Returns False when no job
+    of that id runs in this process.
+    """
+    with _ACTIVE_LOCK:
+        runner = _ACTIVE.get(job_id)
+    if runner is None:
+        return False
+    runner.abort(reason)
+    return True
+
+
 class JobRunner:
-    """Runs the stages of one job from a given stage to DONE, FAULTED or ABORTED."""
+    """Runs the stages of one job from a given stage to DONE, FAULTED or ABORTED.
+
+    :meth:`abort` (from a signal handler, another thread, or :func:`abort_job`) stops the robot at
+    once and makes the session end ABORTED; the stage in progress is interrupted (by the signal on
+    the main thread, otherwise at its next progress report or robot call, which the stop ends).
+    """
 
     def __init__(self, archive: Archive, folder: JobFolder, job: LoadedJob, backend: str, out, *, staged: bool):
         self.archive = archive
@@ -97,6 +123,39 @@ class JobRunner:
         self.staged = staged  # still in .incoming
         self.state = State.CREATED
         self.times: dict[str, float] = {}
+        self._ctx: Context | None = None
+        self._abort: dict | None = None  # {"reason", "t", "monotonic"} once an abort was asked for
+        self._interruptible = False  # a signal raises AbortRequested only while the stages run
+        self._thread: threading.Thread | None = None
+
+    # --- abort ---------------------------------------------------------------------
+    def abort(self, reason: str = "operator") -> None:
+        """Ask the session to abort: the robot's stop is sent now; never blocks, never raises."""
+        if self._abort is None:
+            self._abort = {"reason": reason, "t": utc_now(), "monotonic": time.monotonic()}
+        ctx = self._ctx
+        robot = getattr(ctx.devices, "robot", None) if ctx is not None else None
+        if robot is None:
+            return
+        try:
+            signal_stop = getattr(robot, "signal_stop", None)
+            if signal_stop is not None:
+                signal_stop()  # a real arm: its client process stops it within a few ms
+            elif threading.current_thread() is not threading.main_thread():
+                robot.stop()  # the simulated arm stops a timed move through an event
+        except Exception:  # an abort must never fail; the runner's own stop follows
+            pass
+
+    def _on_signal(self, signum, frame) -> None:
+        name = signal.Signals(signum).name
+        self.abort(name)
+        if self._interruptible:  # else the session is ending already: it records the abort and closes the folder
+            raise AbortRequested(name)
+
+    def _progress(self, stage: str, fraction: float) -> None:
+        if self._abort is not None and self._interruptible and threading.current_thread() is self._thread:
+            raise AbortRequested(self._abort["reason"])
+        self.out.progress(stage, fraction)
 
     # --- transitions --------------------------------------------------------------
     def _go(self, ctx: Context | None, to: State, cause: str = "") -> None:
@@ -124,21 +183,37 @@ class JobRunner:
                             status=self.state.value, started=recs[0]["t"] if recs else None)
 
     def run(self, start: State, resumed_from: State | None = None) -> JobResult:
-        from cell import stages
-
         log = RunLog(next_log_path(self.folder.path))
         ctx = Context(job=self.job, folder=self.folder, log=log, backend=self.backend,
-                      progress=self.out.progress, say=self.out.say)
+                      progress=self._progress, say=self.out.say)
+        self._ctx = ctx
+        self._thread = threading.current_thread()
         self.state = resumed_from or State.CREATED
-        old_term = signal.getsignal(signal.SIGTERM)
+        on_main = threading.current_thread() is threading.main_thread()
+        old_handlers = {}
+        if on_main:  # signals reach only the main thread; a console runs jobs elsewhere and calls abort()
+            for sig in (signal.SIGTERM, signal.SIGINT):
+                old_handlers[sig] = signal.getsignal(sig)
+                signal.signal(sig, self._on_signal)
+        with _ACTIVE_LOCK:
+            _ACTIVE[self.folder.job_id] = self
+        try:
+            return self._run(ctx, log, start)
+        finally:
+            with _ACTIVE_LOCK:
+                _ACTIVE.pop(self.folder.job_id, None)
+            for sig, handler in old_handlers.items():
+                signal.signal(sig, handler)
 
-        def _sigterm(signum, frame):
-            raise AbortRequested("SIGTERM")
+    def _run(self, ctx: Context, log: RunLog, start: State) -> JobResult:
+        from cell import stages
 
-        signal.signal(signal.SIGTERM, _sigterm)
         status, reason, interrupted = State.DONE, "", False
+        self._interruptible = True
         try:
             for stage in STAGES[STAGES.index(start):]:
+                if self._abort is not None:
+                    raise AbortRequested(self._abort["reason"])
                 if stage == State.ACQUIRE:
                     self._promote()
                     ctx.folder = self.folder
@@ -150,26 +225,24 @@ class JobRunner:
                 self.times[stage.value] = dt
                 self.folder.append("stage_done", stage=stage.value, duration_s=round(dt, 4))
                 log.log("info", f"{stage.value} done in {dt:.2f} s")
+            self._interruptible = False
             self._go(ctx, State.DONE)
         except (AbortRequested, KeyboardInterrupt) as exc:
-            status, reason, interrupted = State.ABORTED, f"aborted by the operator ({type(exc).__name__})", True
+            self._interruptible = False
+            self.abort(type(exc).__name__)
+            status, reason, interrupted = State.ABORTED, f"aborted by the operator ({self._abort['reason']})", True
             self._stop_robot(ctx)
             self._go(ctx, State.ABORTED, reason)
-        except CellError as exc:
-            status, reason = State.FAULTED, f"{self.state.value}: {exc}"
-            self._stop_robot(ctx)
-            if (isinstance(exc, InputError) or exc.exit_code == 2) and self.staged:  # bad input (e.g. out of reach)
-                log.close()
-                shutil.rmtree(self.folder.path, ignore_errors=True)
-                raise
-            self._go(ctx, State.FAULTED, reason)
-        except Exception as exc:  # a bug: still one terminal record with the cause
-            status, reason = State.FAULTED, f"{self.state.value}: internal error {type(exc).__name__}: {exc}"
-            self.folder.append("traceback", text=traceback.format_exc())
-            self._stop_robot(ctx)
-            self._go(ctx, State.FAULTED, reason)
+        except Exception as exc:
+            self._interruptible = False
+            if self._abort is None:
+                status, reason = self._fault(ctx, log, exc)
+            else:  # the stop sent by the abort ended a move with an error: the operator's abort, not a fault
+                status, reason, interrupted = State.ABORTED, f"aborted by the operator ({self._abort['reason']})", True
+                self._stop_robot(ctx)
+                self._go(ctx, State.ABORTED, reason)
         finally:
-            signal.signal(signal.SIGTERM, old_term)
+            self._interruptible = False  # from here a signal no longer interrupts: the folder is closed first
             if ctx.devices is not None:
                 ctx.devices.close()
             log.close()
@@ -180,12 +253,45 @@ class JobRunner:
         self.archive.reindex(only=self.folder.path)
         return JobResult(self.folder.job_id, status, self.folder.path, reason, interrupted, dict(self.times))
 
+    def _fault(self, ctx: Context, log: RunLog, exc: Exception) -> tuple[State, str]:
+        """A stage failed: stop the robot, record FAULTED with the cause (bad input before ACQUIRE: re-raise)."""
+        if isinstance(exc, CellError):
+            status, reason = State.FAULTED, f"{self.state.value}: {exc}"
+            self._stop_robot(ctx)
+            if (isinstance(exc, InputError) or exc.exit_code == 2) and self.staged:  # bad input (e.g. out of reach)
+                log.close()
+                shutil.rmtree(self.folder.path, ignore_errors=True)
+                raise exc
+            self._go(ctx, State.FAULTED, reason)
+            return status, reason
+        # a bug: still one terminal record with the cause
+        status, reason = State.FAULTED, f"{self.state.value}: internal error {type(exc).__name__}: {exc}"
+        self.folder.append("traceback", text=traceback.format_exc())
+        self._stop_robot(ctx)
+        self._go(ctx, State.FAULTED, reason)
+        return status, reason
+
     def _stop_robot(self, ctx: Context) -> None:
-        if ctx.devices is not None:
-            try:
-                ctx.devices.robot.stop()
-            except Exception as exc:  # the robot may be the thing that failed
-                self.folder.append("note", text=f"robot stop after fault failed: {exc}")
+        """Stop the robot and journal when it came to rest (and how long after the abort, if one was asked)."""
+        if ctx.devices is None:
+            return
+        robot = ctx.devices.robot
+        try:
+            at_rest = robot.stop()
+            if at_rest is None:
+                at_rest = robot.state()
+        except Exception as exc:  # the robot may be the thing that failed
+            self.folder.append("note", text=f"robot stop after {'abort' if self._abort else 'fault'} failed: {exc}")
+            return
+        rec = {"at_rest": utc_now(), "joints": at_rest.joints_rad, "robot_timestamp_s": at_rest.timestamp_s}
+        rest = getattr(robot, "last_rest", None)
+        if rest:  # the driver saw the arm come to rest: controller clock, and seconds after the stop was sent
+            rec |= {"rest_controller_timestamp_s": rest.get("controller_timestamp_s"),
+                    "rest_after_stop_s": rest.get("after_s")}
+        if self._abort is not None:
+            rec |= {"abort_requested": self._abort["t"], "abort_reason": self._abort["reason"],
+                    "stop_returned_after_abort_s": round(time.monotonic() - self._abort["monotonic"], 4)}
+        self.folder.append("robot_stopped", **rec)
 
 
 def start_job(job_path: Path, archive_root: Path, backend: str | None, out) -> JobResult:
