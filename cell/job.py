@@ -21,10 +21,11 @@ from pathlib import Path
 from typing import Callable
 
 from calibration.errors import AbortRequested, CellError, InputError
-from cell.archive import Archive
-from cell.jobfolder import JobFolder, atomic_write_bytes, atomic_write_json, new_job_id, utc_now
-from cell.load import LoadedJob, load
-from cell.runlog import RunLog, next_log_path
+from cell.loadedjob import LoadedJob, load
+from cell.record.archive import Archive
+from cell.record.jobfolder import JobFolder, atomic_write_bytes, atomic_write_json, new_job_id, utc_now
+from cell.record.runlog import RunLog, next_log_path
+from cell.stages import STAGE_FUNCTIONS
 from cell.states import STAGES, State, check_transition
 
 
@@ -206,7 +207,6 @@ class JobRunner:
                 signal.signal(sig, handler)
 
     def _run(self, ctx: Context, log: RunLog, start: State) -> JobResult:
-        from cell import stages
 
         status, reason, interrupted = State.DONE, "", False
         self._interruptible = True
@@ -220,7 +220,7 @@ class JobRunner:
                 self._go(ctx, stage)
                 self.out.say(f"[{stage.value}]")
                 t0 = time.perf_counter()
-                getattr(stages, stage.value.lower())(ctx)
+                STAGE_FUNCTIONS[stage](ctx)
                 dt = time.perf_counter() - t0
                 self.times[stage.value] = dt
                 self.folder.append("stage_done", stage=stage.value, duration_s=round(dt, 4))
