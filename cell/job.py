@@ -444,19 +444,25 @@ def _resume_locked(job_id: str, archive: Archive, folder: JobFolder, out) -> Job
                               f"moved and what followed depends on it, so the job is not resumed (nothing was "
                               f"changed); restore it from a copy, or start a new job")
 
-    if not terminal_seen:  # a session killed without a terminal record: record how it ended before going on
-        # in the order a session that faults writes them: the transition, then its one terminal record
+    done = integrity.finished_stages(recs)
+    start = next((s for s in STAGES if s.value not in done), None)
+    died_after_last_stage = start is None and last_state == State.REPORT and not found
+    torn = folder.drop_torn_tail()  # a record the killed session was writing: it never counted
+    if not terminal_seen and not died_after_last_stage:
+        # a session killed without a terminal record: record how it ended before going on, in the order a
+        # session that faults writes them: the transition, then its one terminal record
         folder.append("state", **{"from": last_state.value, "to": State.FAULTED.value,
                                   "cause": "process ended unexpectedly"})
         folder.append("terminal", status="FAULTED",
                       reason=f"{last_state.value}: the process ended without a terminal record (killed or crashed)")
         last_state = State.FAULTED
-    done = integrity.finished_stages(recs)
-    start = next((s for s in STAGES if s.value not in done), None)
     folder.append("resumed", stage=start.value if start else "DONE")
     partial = folder.remove_partial_files()
     if partial:
         folder.append("note", text=f"removed {len(partial)} partial file(s) of an interrupted write: {', '.join(partial)}")
+    if torn:
+        folder.append("note", text=f"cut the journal's last line, {torn} bytes of a record the killed session was "
+                                   "writing")
     reopen: list[State] = []
     for sid, why in sorted(found.stations.items()):
         image = integrity.acquired(recs)[sid]["image"]
@@ -509,6 +515,7 @@ def close_folder(archive: Archive, folder: JobFolder, recs: list[dict], status: 
     """Give a job that ended without closing its folder its terminal record (if missing) and a manifest over
     the files that verify against its journal; returns what was done. Never moves anything."""
     did = []
+    folder.drop_torn_tail()
     if not recs or recs[-1]["event"] != "terminal":
         folder.append("terminal", status=status, reason="closed afterwards: the session ended before it "
                       "closed the job folder")
@@ -549,6 +556,7 @@ def repair_job(archive: Archive, job_id: str) -> str:
             return "nothing to repair: the job is closed (its terminal record and manifest are there)"
         did = []
         states = [r.get("to") for r in recs if r["event"] == "state"]
+        folder.drop_torn_tail()
         if not ended and State.DONE.value not in states:
             last = states[-1] if states else State.CREATED.value
             folder.append("state", **{"from": last, "to": State.FAULTED.value, "cause": "process ended unexpectedly"})

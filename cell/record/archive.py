@@ -103,15 +103,21 @@ class Archive:
         check_archive_root(self.root, write=False)
         self.root.mkdir(parents=True, exist_ok=True)
         path = self.root / "index.sqlite"
+        con = None
         try:
             con = sqlite3.connect(path, timeout=10)
             con.execute("PRAGMA journal_mode=WAL")
             con.executescript(_SCHEMA)
             return con
+        except sqlite3.OperationalError:  # locked, disk full, read-only: not damage
+            if con is not None:
+                con.close()
+            raise
         except sqlite3.DatabaseError:  # a damaged index: it is only a convenience; set it aside and rebuild
+            if con is not None:
+                con.close()
             if not path.exists():
                 raise
-            con.close()
             path.rename(path.with_name(f"index.sqlite.damaged-{time.strftime('%Y%m%dT%H%M%S')}"))
             for extra in ("-wal", "-shm"):
                 path.with_name(path.name + extra).unlink(missing_ok=True)

@@ -152,11 +152,27 @@ class JobFolder:
             if why is not None:
                 return out, JournalDamaged(p, i, why)
             out.append(rec)
-        if tail.strip():
-            rec, why = _parse_line(tail)
-            if why is None and rec.pop("_hashed"):
-                return out, JournalDamaged(p, len(lines) + 1, "a complete record lost its line end")
+        if tail and not _torn(tail):
+            return out, JournalDamaged(p, len(lines) + 1, "the last line is neither a record nor a write cut short")
         return out, None
+
+    def drop_torn_tail(self) -> int:
+        """Cut a last line that a crash left unfinished (see :meth:`read_journal`), so that new records
+        start on a line of their own; returns the number of bytes cut."""
+        p = self.path / JOURNAL
+        if not p.is_file():
+            return 0
+        data = p.read_bytes()
+        keep = data.rfind(b"\n") + 1
+        if keep == len(data):
+            return 0
+        fd = os.open(p, os.O_WRONLY | os.O_NOFOLLOW)
+        try:
+            os.ftruncate(fd, keep)
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+        return len(data) - keep
 
     def records(self) -> Iterator[dict]:
         """Every record of the journal; ``JournalDamaged`` at a damaged line (after yielding those before it)."""
@@ -305,6 +321,25 @@ class JobFolder:
 
 def _is_run_log(name: str) -> bool:
     return name.startswith("run.") and name.endswith(".mcap")
+
+
+def _torn(tail: bytes) -> bool:
+    """Whether ``tail`` (a last line without its newline) is a record cut short: the start of a JSON
+    object that runs out before its end. A complete record (its newline lost), or a complete one
+    followed by junk, or junk, is not."""
+    try:
+        text = tail.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        if exc.reason != "unexpected end of data":  # only a multi-byte character cut at the very end is a tear
+            return False
+        text = tail[:exc.start].decode("utf-8")
+    if not text.startswith("{"):
+        return False
+    try:
+        json.loads(text)
+    except json.JSONDecodeError as exc:
+        return exc.msg != "Extra data"
+    return False  # a whole record without its line end: damage
 
 
 def _parse_line(raw: bytes) -> tuple[dict | None, str | None]:
