@@ -242,7 +242,8 @@ class JobRunner:
                 self._go(ctx, stage)
                 self.out.say(f"[{stage.value}]")
                 t0 = time.perf_counter()
-                STAGE_FUNCTIONS[stage](ctx)
+                with self.folder.recording(stage.value):  # every result it writes is journalled with its sha256
+                    STAGE_FUNCTIONS[stage](ctx)
                 dt = time.perf_counter() - t0
                 self.times[stage.value] = dt
                 # what the stage wrote, with its sha256: a resume checks the folder against it before it acts
@@ -439,7 +440,8 @@ def _resume_locked(job_id: str, archive: Archive, folder: JobFolder, out) -> Job
     found = integrity.check_stored(folder, recs)
     moved = bool(integrity.acquired(recs)) or any(r["event"] == "station_start" for r in recs)
     for rel, (why, stage) in sorted(found.files.items()):
-        if rel in ("job.toml", "inputs.json") or rel.startswith("inputs/") or (stage in _BEFORE_MOTION and moved):
+        if rel in ("job.toml", "inputs.json") or rel.startswith("inputs/") or \
+                ((stage in _BEFORE_MOTION or rel == "plan.json") and moved):
             raise RecordError(f"{folder.path / rel}: {why}; it was stored by {stage or 'the job'} before the robot "
                               f"moved and what followed depends on it, so the job is not resumed (nothing was "
                               f"changed); restore it from a copy, or start a new job")

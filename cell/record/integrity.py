@@ -7,6 +7,10 @@ this module says which stages are finished, which stations acquired, and what ea
 must hash to; :func:`check_stored` then compares the folder with it, so that ``cell resume``
 verifies before it acts and the manifest vouches only for files that verify.
 
+Every result written while a stage runs is also journalled as it is written (``stored``: path,
+sha256, stage; before its rename, so a kill between the two leaves the previous version, which
+is then accepted too).
+
 Records that change what counts: ``reopened`` {stage} (that stage and every later one are to
 be done again), ``station_invalid`` {station} (its image failed verification: the station is
 acquired again), ``quarantined`` {file} (a file that failed verification, moved to
@@ -46,14 +50,37 @@ def acquired(recs: list[dict]) -> dict[str, dict]:
 
 
 def recorded_files(recs: list[dict]) -> dict[str, tuple[str, str]]:
-    """Path -> (sha256, stage that wrote it) of every non-image file the journal vouches for."""
-    out: dict[str, tuple[str, str]] = {}
+    """Path -> (sha256, stage that wrote it) of every non-image file the journal vouches for (latest version)."""
+    return {rel: versions[-1] for rel, versions in _versions(recs).items()}
+
+
+def _versions(recs: list[dict]) -> dict[str, list[tuple[str, str]]]:
+    """Path -> the (sha256, stage) the journal recorded for it, oldest first ('quarantined' starts afresh)."""
+    out: dict[str, list[tuple[str, str]]] = {}
     for r in recs:
-        if r.get("event") == "stage_done" and isinstance(r.get("files"), dict):
+        ev = r.get("event")
+        if ev == "stored" and r.get("file"):
+            out.setdefault(r["file"], []).append((r.get("sha256", ""), r.get("stage", "")))
+        elif ev == "stage_done" and isinstance(r.get("files"), dict):
             for rel, sha in r["files"].items():
-                out[rel] = (sha, r.get("stage", ""))
-        elif r.get("event") == "quarantined":
+                out.setdefault(rel, []).append((sha, r.get("stage", "")))
+        elif ev == "quarantined":
             out.pop(r.get("file"), None)
+    return out
+
+
+def _acceptable(recs: list[dict]) -> dict[str, tuple[set[str], str]]:
+    """Path -> (sha256 values the file may have, stage): the latest version; and, when that version is a
+    ``stored`` record of the last session (journalled before its rename, which a kill may have
+    prevented), the one before it too."""
+    out = {}
+    last_session_from = max((i for i, r in enumerate(recs) if r.get("event") in ("created", "resumed")), default=0)
+    stored_late = {r.get("file"): r.get("sha256") for r in recs[last_session_from:] if r.get("event") == "stored"}
+    for rel, versions in _versions(recs).items():
+        ok = {versions[-1][0]}
+        if len(versions) > 1 and stored_late.get(rel) == versions[-1][0]:
+            ok.add(versions[-2][0])
+        out[rel] = (ok, versions[-1][1])
     return out
 
 
@@ -107,10 +134,10 @@ def check_stored(folder: JobFolder, recs: list[dict], *, decode_images: bool = T
             found.stations[sid] = f"its image {r['image']} changed since it was stored (sha256 differs from the journal)"
         elif decode_images and not _image_readable(p):
             found.stations[sid] = f"its image {r['image']} cannot be decoded"
-    for rel, (sha, stage) in recorded_files(recs).items():
+    for rel, (ok, stage) in _acceptable(recs).items():
         p = folder.path / rel
         if not p.is_file():
             found.files[rel] = ("missing", stage)
-        elif sha256_file(p) != sha:
+        elif sha256_file(p) not in ok:
             found.files[rel] = ("changed since it was stored (sha256 differs from the journal)", stage)
     return found

@@ -10,6 +10,8 @@ never read as a different record.
 """
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import hashlib
 import json
 import os
@@ -47,8 +49,17 @@ def _fsync_dir(path: Path) -> None:
         os.close(fd)
 
 
+#: the job folder whose stage is running in this thread (context), and the stage: see :meth:`JobFolder.recording`
+_RECORDING: contextvars.ContextVar[tuple["JobFolder", str] | None] = contextvars.ContextVar("recording", default=None)
+
+
 def atomic_write_bytes(path: Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` so that a crash leaves the old file or the new one, never half of it."""
+    """Write ``data`` to ``path`` so that a crash leaves the old file or the new one, never half of it.
+
+    While a stage of a job runs (:meth:`JobFolder.recording`), a file written into that job's folder is
+    journalled first (``stored``: path, sha256, stage), then renamed into place: the journal vouches for
+    every version of every result (images excepted: their ``station_done`` record does it).
+    """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
@@ -56,6 +67,15 @@ def atomic_write_bytes(path: Path, data: bytes) -> None:
         f.write(data)
         f.flush()
         os.fsync(f.fileno())
+    rec = _RECORDING.get()
+    if rec is not None:
+        folder, stage = rec
+        try:
+            rel = path.resolve().relative_to(folder.path.resolve())
+        except ValueError:
+            rel = None
+        if rel is not None and rel.parts[0] != "images":
+            folder.append("stored", file=str(rel), sha256=hashlib.sha256(data).hexdigest(), stage=stage)
     os.replace(tmp, path)
     _fsync_dir(path.parent)
 
@@ -236,6 +256,15 @@ class JobFolder:
                 p.unlink()
                 gone.append(str(p.relative_to(self.path)))
         return gone
+
+    @contextlib.contextmanager
+    def recording(self, stage: str):
+        """While in this block, files written with :func:`atomic_write_bytes` into this folder are journalled."""
+        token = _RECORDING.set((self, stage))
+        try:
+            yield self
+        finally:
+            _RECORDING.reset(token)
 
     # --- stored files -----------------------------------------------------------
     def stored_files(self) -> list[str]:
