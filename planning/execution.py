@@ -481,14 +481,41 @@ def validate_plan(
 # ----------------------------------------------------------------------------------------
 
 
-def stations_from_plan(plan: dict) -> tuple[list[str], np.ndarray]:
-    """Station ids and part_from_cam (k, 4, 4) from a plan.json document."""
+def stations_from_plan(plan: dict, source: str = "plan.json") -> tuple[list[str], np.ndarray]:
+    """Station ids and part_from_cam (k, 4, 4) from a plan.json document, checked.
+
+    Raises ``InputError`` naming the station when: a station lacks ``id`` or a 4x4 ``part_from_cam``,
+    two stations share an id, a pose is not finite, its last row is not [0, 0, 0, 1], or its rotation
+    is not proper (orthonormal with determinant +1: a hand-edited mirror or a scaled matrix).
+    """
     try:
         stations = plan["stations"]
         ids = [str(s["id"]) for s in stations]
         pfc = np.array([s["part_from_cam"] for s in stations], dtype=float).reshape(-1, 4, 4)
     except (KeyError, TypeError, ValueError) as exc:
-        raise InputError(f"plan.json: stations need 'id' and a 4x4 'part_from_cam' ({exc})") from exc
+        raise InputError(f"{source}: stations need 'id' and a 4x4 'part_from_cam' ({exc})") from exc
+    if not ids:
+        raise InputError(f"{source}: the plan has no stations")
+    if len(pfc) != len(ids):
+        raise InputError(f"{source}: every station needs a 4x4 'part_from_cam'")
+    seen: set[str] = set()
+    for sid in ids:
+        if sid in seen:
+            raise InputError(f"{source}: station id {sid!r} appears twice; station ids must be unique")
+        seen.add(sid)
+    for sid, T in zip(ids, pfc):
+        if not np.all(np.isfinite(T)):
+            raise InputError(f"{source}: station {sid!r}: part_from_cam has a non-finite entry")
+        if not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0], atol=1e-9):
+            raise InputError(f"{source}: station {sid!r}: part_from_cam's last row is {T[3].tolist()}, not [0, 0, 0, 1]")
+        R = T[:3, :3]
+        ortho = float(np.max(np.abs(R.T @ R - np.eye(3))))
+        det = float(np.linalg.det(R))
+        if ortho > 1e-6 or abs(det - 1.0) > 1e-6:
+            what = "a mirror (determinant -1)" if abs(det + 1.0) < 1e-6 and ortho <= 1e-6 else \
+                f"not orthonormal (|R^T R - I| = {ortho:.2g}, det {det:.6g})"
+            raise InputError(f"{source}: station {sid!r}: part_from_cam's rotation is {what}; a camera pose needs a "
+                             "proper rotation")
     return ids, pfc
 
 

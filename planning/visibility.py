@@ -26,8 +26,6 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import tempfile
-import zipfile
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -38,6 +36,7 @@ import trimesh
 
 from calibration.camera import Intrinsics, invert
 from calibration.errors import PlanningError
+from planning.cache import load_arrays, save_arrays
 from planning.stations import N_GENES, ViewingSphere
 
 __all__ = [
@@ -372,36 +371,22 @@ class VisibilityDB:
         key = _hash_inputs(part, intr, sphere, options, genes)
         path = cache / f"visibility-{key}.npz"
         n = len(part.targets.xyz)
-        if path.is_file():
-            try:
-                with open(path, "rb") as fh, np.load(fh, allow_pickle=False) as z:
-                    visible = z["visible"].astype(bool)
-                    ok = str(z["key"]) == key and visible.shape == (len(genes), n)
-                if ok:
-                    if progress is not None:
-                        progress("visibility (cached)", 1.0)
-                    return cls(genes=genes, part_from_cam=sphere.poses(genes), visible=visible,
-                               key=key, sphere=sphere, options=options, from_cache=True)
-            except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
-                pass  # damaged: rebuild below
+        cached = load_arrays(path, ("key", "visible"))  # None when missing or damaged (then rebuilt)
+        if cached is not None and str(cached["key"]) == key and cached["visible"].shape == (len(genes), n):
+            if progress is not None:
+                progress("visibility (cached)", 1.0)
+            return cls(genes=genes, part_from_cam=sphere.poses(genes), visible=cached["visible"].astype(bool),
+                       key=key, sphere=sphere, options=options, from_cache=True)
         T = sphere.poses(genes)
         visible = compute_visibility(part, intr, T, options, backend=backend, progress=progress)
         db = cls(genes=genes, part_from_cam=T, visible=visible, key=key, sphere=sphere, options=options)
-        db.save(path)
+        try:
+            db.save(path)
+        except OSError:
+            pass  # a cache that cannot be written (full or read-only disk) costs time next run, nothing else
         return db
 
     def save(self, path: str | Path) -> Path:
-        """Write atomically to ``path`` (.npz)."""
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp")
-        try:
-            with os.fdopen(fd, "wb") as f:
-                np.savez_compressed(f, key=np.array(self.key), genes=self.genes, visible=self.visible)
-                f.flush()
-                os.fsync(f.fileno())
-            os.replace(tmp, path)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
-        return path
+        """Write atomically and durably to ``path`` (.npz with a digest; see ``planning.cache``)."""
+        return save_arrays(path, {"key": np.array(self.key), "genes": self.genes, "visible": self.visible},
+                           compress=True)
