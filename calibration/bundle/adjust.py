@@ -16,7 +16,13 @@ from calibration.bundle.config import BundleConfig, BundleOptions, BundleResult
 from calibration.bundle.covariance import _result
 from calibration.bundle.datum import _datum_stage
 from calibration.bundle.normal import _Layout, _linearise, _State
-from calibration.bundle.snooping import _statistics, pick_rejections, predicted_test, test_variance_factor
+from calibration.bundle.snooping import (
+    _statistics,
+    local_followers,
+    pick_rejections,
+    predicted_test,
+    test_variance_factor,
+)
 from calibration.bundle.vce import _variance_step
 from calibration.camera import Intrinsics
 from calibration.errors import CalibrationError
@@ -164,6 +170,9 @@ def _bundle_adjust(obs_image, obs_target, obs_uv, intrinsics, cam_from_part, poi
             if len(pick) == 0:  # only reinstated observations fail: take the largest (the plain rule)
                 pick = [int(np.nanargmax(T))]
             rejected[pick] = True
+            more = local_followers(np.asarray(pick), T, thr, obs_target, np.flatnonzero(act_obs), lin.r_img, lin.Jp,
+                                   s_test, reinstated | rejected, options.max_rejections - int(rejected.sum()))
+            rejected[more] = True
         else:
             rejected[int(np.nanargmax(T))] = True
         timings["snooping"] += time.perf_counter() - t4

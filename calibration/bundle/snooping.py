@@ -151,3 +151,54 @@ def predicted_test(state, lin: _Linear, lay: _Layout, stats: dict, obs_image, ob
     A = _projected_cofactor(lin, lay, stats["Qpp"], stats["VS"], Jp, Jc, cidx, slot)
     out[ok] = _quadratic(np.eye(2) + A, r)
     return out
+
+
+def local_followers(picked: np.ndarray, T: np.ndarray, threshold: float, obs_target: np.ndarray,
+                    act_idx: np.ndarray, r_img: np.ndarray, Jp: np.ndarray, s_test: float,
+                    excluded: np.ndarray, budget: int) -> list[int]:
+    """Further rejections in the same round, among the other failing observations of the picked targets.
+
+    With the picked observation removed, the target's point is re-estimated from its other rays with the
+    cameras held (one Gauss-Newton step of the point alone) and their statistics recomputed
+    (``Q_vv = I - J (J^T J)^-1 J^T`` of the point alone); the largest that still fails is rejected
+    too, and so on. A second blunder of the same target then goes in the same round instead of the
+    next. The next round re-tests everything with the full adjustment, and the final re-test puts
+    back any observation wrongly taken. ``act_idx``: the active observations ``r_img, Jp`` belong to
+    (whitened; ``Jp`` zero for scale-bar targets, which are left to the next round).
+    """
+    pos = np.full(len(T), -1)
+    pos[act_idx] = np.arange(len(act_idx))
+    fails = np.isfinite(T) & (T > threshold) & ~excluded
+    out: list[int] = []
+    picked_set = {int(p) for p in picked}
+    multi = np.bincount(obs_target[fails], minlength=int(obs_target.max()) + 1)
+    todo = sorted({int(obs_target[p]) for p in picked if multi[obs_target[p]] >= 2})
+    if not todo:
+        return out
+    testable = np.flatnonzero(np.isfinite(T))
+    testable = testable[np.isin(obs_target[testable], todo)]
+    order = testable[np.argsort(obs_target[testable], kind="stable")]
+    starts = np.searchsorted(obs_target[order], todo + [todo[-1] + 1])
+    for i, t in enumerate(todo):
+        if len(out) >= budget:
+            break
+        rest = [int(o) for o in order[starts[i] : starts[i + 1]] if int(o) not in picked_set]
+        while len(rest) >= 3 and len(out) < budget:
+            P = pos[rest]
+            J, r = Jp[P], r_img[P]
+            N = np.einsum("qia,qib->ab", J, J)
+            if not np.any(N) or np.linalg.cond(N) > 1e12:
+                break
+            Ninv = np.linalg.inv(N)
+            rr = r - np.einsum("qia,a->qi", J, Ninv @ np.einsum("qia,qi->a", J, r))
+            Q = np.eye(2) - np.einsum("qia,ab,qjb->qij", J, Ninv, J)
+            det = Q[:, 0, 0] * Q[:, 1, 1] - Q[:, 0, 1] ** 2
+            ok = det > 1e-12
+            Tl = np.full(len(rest), -np.inf)
+            Tl[ok] = (Q[ok, 1, 1] * rr[ok, 0] ** 2 - 2 * Q[ok, 0, 1] * rr[ok, 0] * rr[ok, 1]
+                      + Q[ok, 0, 0] * rr[ok, 1] ** 2) / det[ok] / s_test
+            j = int(np.argmax(Tl))
+            if not (Tl[j] > threshold) or not fails[rest[j]]:
+                break
+            out.append(rest.pop(j))
+    return out
