@@ -157,6 +157,10 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("ids", nargs="*")
     c.add_argument("--archive", type=Path, default=Path("archive"))
     c.set_defaults(func=cmd_archive)
+
+    from cell.camera_cmd import add_camera_parser
+
+    add_camera_parser(sub, common)
     return p
 
 
