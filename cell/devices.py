@@ -100,9 +100,7 @@ def open_devices(job: LoadedJob, backend: str, *, seed_offset: int = 0) -> Devic
             camera = _FollowingCamera(sim.camera, robot, world)
         light = None
         if s.cell.light_port:
-            from drivers.serial_light import SerialLight
-
-            light = SerialLight(s.cell.light_port)
+            light = gardasoft_light(s.cell.light_port)
         d = Devices(robot=robot, camera=camera, light=light, world=world)
     else:
         raise InputError(f"unknown backend {backend!r} (use sim or ur)")
@@ -111,6 +109,16 @@ def open_devices(job: LoadedJob, backend: str, *, seed_offset: int = 0) -> Devic
             dev.connect()
             d._closers.append(dev.close)
     return d
+
+
+def gardasoft_light(where: str):
+    """The Gardasoft RT controller at ``where``: a serial device path, or ``tcp://HOST[:PORT]`` (Ethernet models)."""
+    from drivers.gardasoft import TCP_PORT, GardasoftRT
+
+    if where.startswith("tcp://"):
+        host, _, port = where[len("tcp://"):].partition(":")
+        return GardasoftRT(host=host, tcp_port=int(port) if port else TCP_PORT)
+    return GardasoftRT(where)
 
 
 class _FollowingCamera:
