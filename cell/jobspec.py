@@ -49,7 +49,10 @@ class ScaleBar(_Strict):
 
 class JobSection(_Strict):
     name: str = Field(min_length=1)
-    mesh: str
+    mesh: str = Field(description="the part: STEP/IGES (its own units honoured) or a mesh (STL/OBJ/PLY/GLB, in `units`)")
+    tessellation_tolerance: float | None = Field(
+        default=None, gt=0, description="STEP/IGES: largest distance of the tessellation from the surface, job units "
+                                        "(default 0.01 mm)")
     units: Literal["m", "mm", "cm", "um", "in", "ft"]
     targets: str | None = None
     n_targets: int | None = Field(default=None, gt=0, le=100_000)
