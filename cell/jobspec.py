@@ -84,8 +84,17 @@ class CameraSection(_Strict):
     sigma_px: float = Field(default=0.05, gt=0, description="image measurement standard deviation")
     near: float = Field(gt=0, description="depth of field, nearest sharp distance, job units")
     far: float = Field(gt=0, description="depth of field, farthest sharp distance, job units")
-    device: str | None = Field(default=None, description="OpenCV device index or GStreamer pipeline (real cell)")
+    device: str | None = Field(default=None, description="real cell: a GenICam camera's serial number / user id "
+                               "(driver genicam), or an OpenCV device index or GStreamer pipeline (driver opencv)")
+    driver: Literal["genicam", "opencv"] = Field(default="genicam", description="how `device` is opened")
+    producer: str | None = Field(default=None, description="GenTL producer .cti (default: GENICAM_GENTL64_PATH)")
+    pixel_format: str = Field(default="Mono8", description="GenICam pixel format (Mono8/10/12/16, Mono10p/12p ...)")
+    gain_db: float | None = Field(default=None, description="GenICam Gain (dB); None: leave the camera's")
+    trigger: str = Field(default="software", description="GenICam frame trigger: software, off, or a line (Line1)")
+    strobe_line: str | None = Field(default=None, description="GenICam output line that fires the light (Line2)")
     exposure_s: float = Field(default=0.002, gt=0)
+    frame_timeout_s: float = Field(default=2.0, gt=0, description="longest time from trigger to frame beyond the "
+                                   "exposure; a later frame faults the station and it is retaken")
     self_calibrate: bool = Field(default=True, description="refine focal length, principal point, radial distortion")
     observation_weights: Literal["incidence", "equal"] = Field(
         default="incidence",
@@ -116,7 +125,12 @@ class CellSection(_Strict):
     robot: Literal["ur5e", "ur10e"] = "ur5e"
     backend: Literal["sim", "ur"] = "sim"
     host: str = "127.0.0.1"
-    light_port: str | None = Field(default=None, description="serial port of the light controller (real cell)")
+    light_port: str | None = Field(default=None, description="the Gardasoft RT light controller (real cell): a "
+                                   "serial port, or tcp://HOST[:PORT]")
+    light_channel: int = Field(default=1, ge=1, le=8, description="the light's output channel on the controller")
+    light_input: int | None = Field(default=None, ge=1, le=8, description="controller trigger input wired to the "
+                                    "camera's strobe line; None: the light is fired by a software trigger")
+    light_brightness_pct: float = Field(default=100.0, gt=0, le=1000, description="pulse brightness, % of rating")
     cell_file: str | None = Field(default=None, description="the cell's CELL.toml: its calibration status goes in the report")
     base_from_part: Pose
     flange_from_cam: Pose
@@ -127,7 +141,12 @@ class CellSection(_Strict):
     max_joint_accel_rad_s2: float = Field(default=1.5, gt=0, le=40)
     max_tcp_speed_m_s: float = Field(default=0.25, gt=0, le=1.0)
     max_tcp_accel_m_s2: float = Field(default=1.0, gt=0, le=10)
-    settle_s: float = Field(default=0.2, ge=0)
+    settle_s: float = Field(default=0.2, ge=0, description="the arm counts as settled when every joint has been "
+                            "slower than settle_speed_rad_s for this long (controller clock)")
+    settle_speed_rad_s: float = Field(default=0.002, gt=0)
+    settle_timeout_s: float = Field(default=10.0, gt=0)
+    retakes: int = Field(default=2, ge=0, le=10, description="retakes of a station whose frame came late, twice "
+                         "or never, before the job faults")
     workspace_min: tuple[float, float, float] | None = Field(default=None, description="flange box, base frame, job units")
     workspace_max: tuple[float, float, float] | None = Field(default=None, description="default: the robot's reach")
     elbow_limit_deg: float = Field(default=180.0, gt=0, le=360)
@@ -164,6 +183,9 @@ class SimSection(_Strict):
     motion: Literal["instant", "timed"] = "instant"
     time_scale: float = Field(default=1.0, gt=0)
     noise: float = Field(default=1.0, ge=0, description="sensor noise scale (1 = nominal)")
+    frame_faults: dict[str, Literal["missing", "late", "duplicate"]] = Field(
+        default={}, description="frame faults by capture number (\"3\" = the 3rd capture), for tests")
+    light: bool = Field(default=False, description="the sim cell's light: the Gardasoft RT driver on its emulator")
     base_from_part_error: Pose | None = Field(default=None, description="true placement minus nominal (tests)")
     flange_from_cam_error: Pose | None = None
     base_from_part_true: Pose | None = Field(default=None, description="absolute true placement (wins over _error); "

@@ -37,12 +37,15 @@ class RobotState:
         base_from_flange: (4, 4) measured flange pose in the robot base frame.
         safety: safety status at the time of the reading.
         timestamp_s: controller time of the reading (seconds); freshness is judged by it.
+        joint_speeds_rad_s: (6,) measured joint speeds, when the controller reports them (RTDE
+            ``actual_qd``); None otherwise (then settling is judged from successive positions).
     """
 
     joints_rad: np.ndarray
     base_from_flange: np.ndarray
     safety: SafetyStatus
     timestamp_s: float
+    joint_speeds_rad_s: np.ndarray | None = None
 
 
 @runtime_checkable

@@ -336,7 +336,9 @@ class URRobot:
         return RobotState(joints_rad=np.asarray(value["q"], dtype=float),
                           base_from_flange=pose_to_matrix(value["pose"]),
                           safety=safety_from_bits(int(value["safety_bits"]), int(value["runtime_state"])),
-                          timestamp_s=float(value["timestamp"]))
+                          timestamp_s=float(value["timestamp"]),
+                          joint_speeds_rad_s=np.asarray(value["qd"], dtype=float) if value.get("qd") is not None
+                          else None)
 
 
 def _socketpair():
