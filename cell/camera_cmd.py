@@ -26,6 +26,7 @@ def add_camera_parser(sub, common) -> None:
     c.add_argument("--gain-db", type=float)
     c.add_argument("--trigger", default="off", help="off, software or a line (Line1)")
     c.add_argument("--timeout-s", type=float, default=3.0)
+    c.add_argument("--packet-size", type=int, help="GigE Vision stream packet size (bytes), e.g. 8192 with MTU 9000")
     c.set_defaults(func=cmd_camera)
 
 
@@ -73,7 +74,7 @@ def cmd_camera(args, out) -> int:
 
         camera = GenICamCamera(args.device, producer=_producer(args), pixel_format=args.pixel_format,
                                exposure_s=args.exposure_s, gain_db=args.gain_db, trigger=args.trigger,
-                               timeout_s=args.timeout_s)
+                               timeout_s=args.timeout_s, packet_size=args.packet_size)
     camera.connect()
     try:
         frame = camera.capture()

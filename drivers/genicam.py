@@ -195,12 +195,15 @@ class GenICamCamera:
             sequence since the last capture: the producer dropped some) or ``"count"`` (count them in
             ``lost_frames`` and in the frame's meta);
             default ``fault`` with a trigger, ``count`` in free run (where any fresh frame will do).
+        packet_size: GigE Vision stream packet size in bytes (``GevSCPSPacketSize``, SFNC 2:
+            ``DeviceStreamChannelPacketSize``); with jumbo frames (MTU 9000) 8192 or the camera's maximum.
     """
 
     def __init__(self, device: str | None = None, *, producer: str | Sequence[str] | None = None,
                  pixel_format: str = "Mono8", exposure_s: float | None = None, gain_db: float | None = None,
                  roi: Roi | None = None, trigger: str = "off", strobe_line: str | None = None,
-                 timeout_s: float = 2.0, num_buffers: int = 4, on_frame_loss: str | None = None):
+                 timeout_s: float = 2.0, num_buffers: int = 4, on_frame_loss: str | None = None,
+                 packet_size: int | None = None):
         try:
             bit_depth(pixel_format)
         except PixelFormatUnsupported as exc:
@@ -211,6 +214,7 @@ class GenICamCamera:
         self.pixel_format, self.exposure_s, self.gain_db, self.roi = pixel_format, exposure_s, gain_db, roi
         self.trigger, self.strobe_line = trigger, strobe_line
         self.timeout_s, self.num_buffers = float(timeout_s), int(num_buffers)
+        self.packet_size = packet_size
         self.on_frame_loss = on_frame_loss or ("count" if trigger == "off" else "fault")
         if self.on_frame_loss not in ("fault", "count"):
             raise InputError(f"camera {device}: on_frame_loss {on_frame_loss!r} is not fault or count")
@@ -324,6 +328,10 @@ class GenICamCamera:
         if self.pixel_format not in offered:
             raise PixelFormatError(f"{self.name}: does not offer {self.pixel_format} (offers {', '.join(offered)})")
         self._set(nm, "PixelFormat", self.pixel_format, "the pixel format")
+        if self.packet_size is not None:
+            name = "DeviceStreamChannelPacketSize" if nm.has_node("DeviceStreamChannelPacketSize") \
+                else "GevSCPSPacketSize"
+            self._set(nm, name, int(self.packet_size), "the GigE packet size")
         if self.roi is not None:
             r = self.roi
             for n in ("OffsetX", "OffsetY"):  # offsets first to 0, so any size fits, then size, then offsets

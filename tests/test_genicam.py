@@ -103,7 +103,8 @@ def test_pixel_format_the_device_does_not_offer_is_refused_at_connect():
 @pytest.mark.parametrize("kw, node", [({"exposure_s": 0.002}, "ExposureTimeAbs"), ({"gain_db": 3.0}, "Gain"),
                                       ({"trigger": "software"}, "TriggerSelector"),
                                       ({"trigger": "Line1"}, "TriggerSelector"),
-                                      ({"strobe_line": "Line2"}, "LineSelector")])
+                                      ({"strobe_line": "Line2"}, "LineSelector"),
+                                      ({"packet_size": 8192}, "GevSCPSPacketSize")])
 def test_feature_the_device_lacks_is_refused_with_its_node_name(kw, node):
     cam = GenICamCamera("1", producer=PRODUCER, **kw)
     with pytest.raises(FeatureError, match=f"camera 1: the device has no {node} node"):
@@ -202,3 +203,43 @@ def test_cli_camera_list_and_snap_write_the_producers_frame(tmp_path, capsys):
     assert "camera 9: no such device" in capsys.readouterr().err
     assert not (tmp_path / "y.png").exists()
     assert main(["camera", "snap", "1", "--sim", "--out", str(tmp_path / "no" / "y.png")]) == 2
+
+
+def _sfnc_node_map():
+    from pathlib import Path
+
+    from genicam.genapi import NodeMap
+
+    nm = NodeMap()
+    nm.load_xml_from_string((Path(__file__).parent / "data" / "sfnc_camera.xml").read_text())
+    return nm
+
+
+def test_configuration_sets_the_sfnc_features_through_the_genapi_engine():
+    """The driver's configuration against a real GenApi node map with the SFNC names (no device needed)."""
+    nm = _sfnc_node_map()
+    cam = GenICamCamera("SN1", pixel_format="Mono12p", exposure_s=0.0025, gain_db=6.0, roi=Roi(32, 16, 1024, 768),
+                        trigger="Line1", strobe_line="Line2", packet_size=8192)
+    cam._configure(nm)
+    got = {n: nm.get_node(n).value for n in ("PixelFormat", "Width", "Height", "OffsetX", "OffsetY", "ExposureAuto",
+                                             "ExposureTime", "GainAuto", "Gain", "TriggerSelector", "TriggerMode",
+                                             "TriggerSource", "TriggerActivation", "LineSelector", "LineMode",
+                                             "LineSource", "GevSCPSPacketSize")}
+    assert got == {"PixelFormat": "Mono12p", "Width": 1024, "Height": 768, "OffsetX": 32, "OffsetY": 16,
+                   "ExposureAuto": "Off", "ExposureTime": pytest.approx(2500.0), "GainAuto": "Off", "Gain": 6.0,
+                   "TriggerSelector": "FrameStart", "TriggerMode": "On", "TriggerSource": "Line1",
+                   "TriggerActivation": "RisingEdge", "LineSelector": "Line2", "LineMode": "Output",
+                   "LineSource": "ExposureActive", "GevSCPSPacketSize": 8192}
+    GenICamCamera("SN1", trigger="software")._configure(nm)
+    assert (nm.get_node("TriggerMode").value, nm.get_node("TriggerSource").value) == ("On", "Software")
+    GenICamCamera("SN1")._configure(nm)
+    assert nm.get_node("TriggerMode").value == "Off"
+
+
+@pytest.mark.parametrize("kw, message", [({"exposure_s": 2.0}, "ExposureTime = 2000000.0 refused"),
+                                         ({"gain_db": 40.0}, "Gain = 40.0 refused"),
+                                         ({"trigger": "Line2"}, "TriggerSource = 'Line2' refused"),
+                                         ({"roi": Roi(0, 0, 4096, 100)}, "Width = 4096 refused")])
+def test_a_value_the_camera_refuses_is_a_feature_error_naming_the_node(kw, message):
+    with pytest.raises(FeatureError, match=f"camera SN1: {message}"):
+        GenICamCamera("SN1", **kw)._configure(_sfnc_node_map())
