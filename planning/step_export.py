@@ -44,7 +44,6 @@ def step_text(mesh: trimesh.Trimesh, units: str = "mm", name: str = "part") -> s
         return add(f"DIRECTION('',({','.join(num(c) for c in d)}))")
 
     V = np.asarray(mesh.vertices, float)
-    F = np.asarray(mesh.faces, int)
     vp = [add(f"VERTEX_POINT('',#{pt(p)})") for p in V]
     edges: dict[tuple[int, int], int] = {}
     for a, b in mesh.edges_unique:

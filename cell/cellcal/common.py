@@ -9,7 +9,8 @@ import cv2
 import numpy as np
 
 from calibration.camera import Intrinsics, invert
-from calibration.errors import AbortRequested, CalibrationError, DriverError, InputError, PlanningError, ReachabilityError
+from calibration.errors import (AbortRequested, CalibrationError, DriverError, InputError, PlanningError,
+                                ReachabilityError)
 from calibration.targets import refine_pose_pnp
 from cell.stages import imaging
 from cell.cellcal.cellfile import CellFile, pose_from_matrix
