@@ -388,16 +388,22 @@ class GenICamCamera:
     # --- acquisition -----------------------------------------------------------------------------------
 
     def _flush(self, ia) -> int:
-        """Hand back every frame already waiting (taken before this request); gaps among them count as lost."""
+        """Hand back the frames already waiting (taken before this request); gaps among them count as lost.
+
+        At most as many as there are buffers: no more can have been filled before the request, and a
+        free-running camera fills new ones as fast as they are handed back (draining "until empty" would
+        chase the stream forever).
+        """
         n = 0
-        while True:
+        for _ in range(ia.num_buffers):
             buf = ia.try_fetch(timeout=1e-3)
             if buf is None:
-                self.stale_frames += n
-                return n
+                break
             with buf:
                 self._note_frame_id(buf)
             n += 1
+        self.stale_frames += n
+        return n
 
     def _note_frame_id(self, buf) -> int | None:
         try:
