@@ -400,15 +400,14 @@ class GenICamCamera:
             if buf is None:
                 break
             with buf:
-                self._note_frame_id(buf)
+                self._note_frame_id(_buffer_facts(buf, with_data=False)["frame_id"])
             n += 1
         self.stale_frames += n
         return n
 
-    def _note_frame_id(self, buf) -> int | None:
-        try:
-            fid = int(buf.frame_id)
-        except Exception:  # frame ids are optional in GenTL
+    def _note_frame_id(self, fid: int | None) -> int | None:
+        """Record the frame id of a delivered buffer; the number of frames missing before it."""
+        if fid is None:
             return None
         last, self._last_frame_id = self._last_frame_id, fid
         if last is not None and fid > last + 1:
@@ -436,7 +435,10 @@ class GenICamCamera:
                     raise CameraLostError(f"{self.name}: the device is gone (cable pulled, power lost?); the next "
                                           "capture tries to reopen it")
                 lost_before = self.lost_frames
+                first = self._last_frame_id is None
                 self._flush(ia)
+                if first:  # what streamed before the first request after connect is not ours to judge
+                    self._last_frame_id, self.lost_frames = None, lost_before
                 incomplete_before = self.incomplete_frames
                 triggered_s = time.time()
                 if self.trigger == "software":
@@ -458,9 +460,11 @@ class GenICamCamera:
                 if buf is None:
                     raise FrameTimeoutError(f"{self.name}: no frame within {wait:.2f} s (trigger "
                                             f"{self.trigger}); check the trigger wiring and the exposure")
-                with buf:
+                with buf:  # everything is copied out of the buffer before it goes back to the producer
                     received_s = time.time()
-                    return self._frame(buf, triggered_s, received_s, self.lost_frames - lost_before)
+                    facts = _buffer_facts(buf, with_data=True)
+                del buf  # a released buffer must not outlive its block (its repr reads freed producer memory)
+                return self._frame(facts, triggered_s, received_s, self.lost_frames - lost_before)
             except CameraLostError:
                 self._lost()
                 raise
@@ -485,36 +489,51 @@ class GenICamCamera:
             except Exception:
                 pass
 
-    def _frame(self, buf, triggered_s: float, received_s: float, lost_before: int) -> Frame:
-        lost = lost_before + (self._note_frame_id(buf) or 0)
+    def _frame(self, facts: dict, triggered_s: float, received_s: float, lost_before: int) -> Frame:
+        """Check what was copied out of a buffer and make the Frame (the buffer itself is already back)."""
+        lost = lost_before + (self._note_frame_id(facts["frame_id"]) or 0)
         if lost and self.on_frame_loss == "fault":
             raise FrameLostError(f"{self.name}: {lost} frame(s) lost since the last capture (gap in the frame ids "
                                  f"before frame {self._last_frame_id}); the producer dropped frames: buffers, bandwidth?")
-        comps = buf.payload.components if buf.payload is not None else []
-        if not comps:
+        if facts["raw"] is None:
             raise IncompleteFrameError(f"{self.name}: the frame carries no image")
-        c = comps[0]
-        fmt = str(c.data_format)
+        fmt, width, height, raw = facts["format"], facts["width"], facts["height"], facts["raw"]
         if fmt != self.pixel_format:
             raise PixelFormatError(f"{self.name}: frame in {fmt}, configured {self.pixel_format}; another program "
                                    "changed the camera's settings?")
-        width, height = int(c.width), int(c.height)
-        raw = np.asarray(c.data).view(np.uint8).ravel()
         need = expected_bytes(fmt, width, height)
         if raw.size < need:
             raise IncompleteFrameError(f"{self.name}: frame holds {raw.size} of the {need} bytes of a {width}x{height} "
                                        f"{fmt} image")
-        image = unpack(raw, fmt, width, height)  # a copy: the buffer goes back to the producer
-        device_ts = None
-        try:
-            device_ts = int(buf.timestamp_ns)
-        except Exception:  # timestamps are optional in GenTL (the simulated producer has none)
-            pass
+        image = unpack(raw, fmt, width, height)
         meta = {"camera": self.info.get("serial"), "model": self.info.get("model"), "frame_id": self._last_frame_id,
-                "pixel_format": fmt, "bit_depth": bit_depth(fmt), "device_timestamp_ns": device_ts, "lost_frames": lost,
-                "trigger": self.trigger, "triggered_host_s": triggered_s, "received_host_s": received_s}
+                "pixel_format": fmt, "bit_depth": bit_depth(fmt), "device_timestamp_ns": facts["timestamp_ns"],
+                "lost_frames": lost, "trigger": self.trigger, "triggered_host_s": triggered_s,
+                "received_host_s": received_s}
         return Frame(image=image, timestamp_s=triggered_s if self.trigger != "off" else received_s,
                      exposure_s=float(self.exposure_s or 0.0), meta=meta)
+
+
+def _buffer_facts(buf, *, with_data: bool) -> dict:
+    """Frame id, device timestamp, and (``with_data``) the first image component's format, size and a copy of its
+    bytes, read while the buffer is held. Optional GenTL facts a producer does not keep are None."""
+    out: dict = {"frame_id": None, "timestamp_ns": None, "format": None, "width": 0, "height": 0, "raw": None}
+    try:
+        out["frame_id"] = int(buf.frame_id)
+    except Exception:  # frame ids are optional in GenTL
+        pass
+    if not with_data:
+        return out
+    try:
+        out["timestamp_ns"] = int(buf.timestamp_ns)
+    except Exception:  # timestamps are optional in GenTL (the simulated producer has none)
+        pass
+    comps = buf.payload.components if buf.payload is not None else []
+    if comps:
+        c = comps[0]
+        out.update(format=str(c.data_format), width=int(c.width), height=int(c.height),
+                   raw=np.array(c.data, copy=True).view(np.uint8).ravel())
+    return out
 
 
 __all__ = ["GenICamCamera", "Roi", "list_cameras", "find_producers", "simulated_producer", "describe",
