@@ -14,6 +14,7 @@ import pytest
 from calibration.errors import InputError, NotConnectedError
 from drivers.genicam import (
     CameraLostError,
+    IncompleteFrameError,
     CameraNotFoundError,
     FeatureError,
     FrameLostError,
@@ -247,3 +248,17 @@ def test_configuration_sets_the_sfnc_features_through_the_genapi_engine():
 def test_a_value_the_camera_refuses_is_a_feature_error_naming_the_node(kw, message):
     with pytest.raises(FeatureError, match=f"camera SN1: {message}"):
         GenICamCamera("SN1", **kw)._configure(_sfnc_node_map())
+
+
+def test_a_short_or_imageless_buffer_is_an_incomplete_frame_not_an_image():
+    """What the driver does with a buffer's contents once copied out (the simulated producer never delivers a
+    truncated one): fewer bytes than one image of its format, or no image component, is refused."""
+    cam = GenICamCamera("7")
+    facts = {"frame_id": 1, "timestamp_ns": None, "format": "Mono8", "width": 400, "height": 400,
+             "raw": np.zeros(400 * 399, np.uint8)}
+    with pytest.raises(IncompleteFrameError, match="camera 7: frame holds 159600 of the 160000 bytes"):
+        cam._frame(facts, 0.0, 0.0, 0)
+    with pytest.raises(IncompleteFrameError, match="camera 7: the frame carries no image"):
+        cam._frame(facts | {"frame_id": 2, "raw": None}, 0.0, 0.0, 0)
+    ok = cam._frame(facts | {"frame_id": 3, "raw": np.arange(160000, dtype=np.uint32).astype(np.uint8)}, 0.0, 0.0, 0)
+    assert ok.image.shape == (400, 400) and ok.image[0, 1] == 1
