@@ -100,6 +100,8 @@ def open_devices(job: LoadedJob, backend: str, *, seed_offset: int = 0) -> Devic
             closers.append(emulator.close)
             light = _gardasoft(emulator.port, s.cell)
             light.emulator = emulator
+            if s.cell.light_input is not None:  # the camera's strobe line wired to the controller's trigger input
+                sim.camera.strobe_out = lambda: emulator.controller.input_edge(s.cell.light_input)
         d = Devices(robot=sim.robot, camera=sim.camera, light=light, world=sim.world, _closers=closers)
     elif backend == "ur":
         from cell.setup import robot_model

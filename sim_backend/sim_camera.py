@@ -408,6 +408,7 @@ class SimCamera:
         self._frame_faults: dict[int, str] = {}
         self._last_frame: Frame | None = None
         self.late_frame_s = 1.0
+        self.strobe_out = None  # called as each exposure starts: the strobe line, wired e.g. to a light controller
         self._lock = threading.Lock()
         targets = world.part.targets
         self._coded = np.asarray(targets.kind) == "coded"
@@ -433,6 +434,8 @@ class SimCamera:
             if fault == "duplicate" and self._last_frame is not None:
                 return self._last_frame  # the previous frame delivered again (a double trigger, a stale buffer)
             triggered = time.time()
+            if self.strobe_out is not None:
+                self.strobe_out()  # the camera's strobe output goes high as the exposure starts
             image, truth = self.render()
             if fault == "late":
                 time.sleep(self.late_frame_s)

@@ -115,3 +115,32 @@ def test_bad_frames_are_retaken_never_stored_as_another_station_and_resume_retak
     again = [r for r in records(folder) if r["event"] == "station_done"]
     assert [r["station"] for r in again] == order  # each station stored once, in order
     assert again[:6] == done  # the first six were not taken again
+
+
+@pytest.mark.parametrize("light_input, source", [(1, "IP1"), (None, "TR")])
+def test_the_light_pulses_once_per_exposure_within_it(tmp_path, light_input, source):
+    """The simulated cell's light is the Gardasoft driver on its emulator. With ``light_input`` the camera's strobe
+    line fires the controller's input (pulse mode armed once); without, the driver's software trigger fires it just
+    before the exposure. Either way: one pulse of the exposure's length per frame, between trigger and frame."""
+    from cell.devices import open_devices
+    from cell.loadedjob import load
+    from cell.stages.exposure import ExposureTaker
+
+    job = load(job_variant(tmp_path / "job", {"sim": {"light": True}, "cell": {"light_input": light_input}}))
+    devices = open_devices(job, "sim")
+    try:
+        emulator = devices.light.emulator
+        taker = ExposureTaker(devices.robot, devices.camera, devices.light, exposure_s=0.002, frame_timeout_s=2.0,
+                              light_by_line=light_input is not None)
+        recs = []
+        for k in range(3):
+            st, host_s, peak = wait_settled(devices.robot, speed_tol_rad_s=0.002, hold_s=0.02, timeout_s=2.0)
+            recs.append(taker.take(f"S{k}", 1, st, host_s, peak, 0.02)[1])
+        pulses = emulator.controller.pulses
+        assert [p.source for p in pulses] == [source] * 3
+        assert all(p.channel == 1 and p.width_s == pytest.approx(0.002) for p in pulses)
+        for p, r in zip(pulses, recs):
+            assert r.trigger_host_s <= p.t_s <= r.frame_host_s
+            assert r.light == ("camera strobe line" if light_input else "software trigger")
+    finally:
+        devices.close()
