@@ -2,10 +2,12 @@
 tessellates the B-rep into a GLB that trimesh reads.
 
 Units: a STEP file declares its length unit (``SI_UNIT(.MILLI.,.METRE.)``, ``CONVERSION_BASED_UNIT
-('INCH', ...)``); OpenCASCADE converts to it and the GLB is written in metres, so a STEP part comes
-out in metres whatever the job's ``units`` (those still apply to the targets file and every other
-length of the job). Measured here: a 100 mm box in a file declared in mm, in inches (as 100 in) and
-in metres (as 100 m) comes out 0.1 m, 2.54 m and 100 m across.
+('INCH', ...)``), an IGES file its unit flag (global parameter 14); OpenCASCADE converts from it, so
+the part comes out in true size whatever the job's ``units`` (those still apply to the targets file
+and every other length of the job). Measured here: a 100 mm box in a STEP file declared in mm, in
+inches (as 100 in) and in metres (as 100 m) comes out 0.1 m, 2.54 m and 100 m across (the STEP path
+writes metres); a 100 x 50 patch in IGES declared in mm and in inches comes out 100 x 50 and
+2540 x 1270 millimetres (the IGES path writes OpenCASCADE's millimetres, scaled here to metres).
 
 Tessellation: cascadio's linear deflection is in millimetres (OpenCASCADE's working unit, whatever
 the file's unit); the chord of a 50 mm radius cylinder then deviates from the surface by at most
@@ -17,8 +19,11 @@ A file that is not STEP, is cut off, holds no geometry, or that OpenCASCADE cann
 """
 from __future__ import annotations
 
+import contextlib
 import io
+import os
 import re
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -84,17 +89,22 @@ def load_brep(path: str | Path, tolerance_m: float | None = None) -> trimesh.Tri
     try:
         if suffix in STEP_SUFFIXES:
             _check_step_text(path, data)
-            scene = trimesh.load(str(path), file_type="step", tol_linear=tol_mm, tol_angular=ANGULAR_TOLERANCE_RAD)
+            with _stdout_to_stderr():
+                scene = trimesh.load(str(path), file_type="step", tol_linear=tol_mm,
+                                     tol_angular=ANGULAR_TOLERANCE_RAD)
+            scale = 1.0
         else:
             lines = [ln for ln in data.decode("latin-1").splitlines() if ln.strip()]
             if not lines or len(lines[0]) < 73 or lines[0][72] != "S":
                 raise PartError(f"{path}: not an IGES file (no start section in column 73 of its first line)")
             if len(lines[-1]) < 73 or lines[-1][72] != "T":
                 raise PartError(f"{path}: IGES file is cut off (no terminate section at its end)")
-            glb = cascadio.load(data, file_type="iges", tol_linear=tol_mm, tol_angular=ANGULAR_TOLERANCE_RAD)
+            with _stdout_to_stderr():  # OpenCASCADE's IGES reader prints to the C stdout (the --json channel)
+                glb = cascadio.load(data, file_type="iges", tol_linear=tol_mm, tol_angular=ANGULAR_TOLERANCE_RAD)
             if not glb:
                 raise PartError(f"{path}: OpenCASCADE could not read this IGES file")
             scene = trimesh.load(io.BytesIO(glb), file_type="glb")
+            scale = 1e-3  # the IGES path comes out in OpenCASCADE's millimetres (the STEP path in metres)
     except PartError:
         raise
     except Exception as exc:  # OpenCASCADE and the GLB reader raise many types on bad files
@@ -102,4 +112,18 @@ def load_brep(path: str | Path, tolerance_m: float | None = None) -> trimesh.Tri
     mesh = scene.to_mesh() if isinstance(scene, trimesh.Scene) else scene
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
         raise PartError(f"{path}: OpenCASCADE found no surface to tessellate in this file")
-    return trimesh.Trimesh(vertices=np.asarray(mesh.vertices, float), faces=np.asarray(mesh.faces), process=True)
+    return trimesh.Trimesh(vertices=np.asarray(mesh.vertices, float) * scale, faces=np.asarray(mesh.faces),
+                           process=True)
+
+
+@contextlib.contextmanager
+def _stdout_to_stderr():
+    """Send what C code writes to file descriptor 1 to 2 for the duration (Python's own stdout is untouched)."""
+    sys.stdout.flush()
+    saved = os.dup(1)
+    try:
+        os.dup2(2, 1)
+        yield
+    finally:
+        os.dup2(saved, 1)
+        os.close(saved)

@@ -148,6 +148,38 @@ def test_step_whose_entities_are_garbage_is_refused_not_empty(tmp_path):
         load_mesh(path, "mm")
 
 
+def _iges_patch(w: float, h: float, unit_flag: int, unit_name: str) -> str:
+    """A flat w x h rectangle as one IGES rational B-spline surface (entity 128, bilinear), written by hand in the
+    fixed 80-column layout (start, global, directory, parameter, terminate sections)."""
+    def line(data, sec, seq):
+        return f"{data:<72}{sec}{seq:7d}"
+
+    start = [line("bilinear patch", "S", 1)]
+    g = (f"1H,,1H;,5Hpatch,9Hpatch.igs,4Hcell,3H1.0,32,38,6,308,15,5Hpatch,1.0,{unit_flag},"
+         f"{len(unit_name)}H{unit_name},1,1.0,15H20261122.120000,1.0E-6,{max(w, h):.1f},1Ha,1Hb,11,0,"
+         "15H20261122.120000;")
+    glob = [line(g[i:i + 72], "G", k + 1) for k, i in enumerate(range(0, len(g), 72))]
+    pd = (f"128,1,1,1,1,0,0,1,0,0,0.,0.,1.,1.,0.,0.,1.,1.,1.,1.,1.,1.,0.,0.,0.,{w:.1f},0.,0.,0.,{h:.1f},0.,"
+          f"{w:.1f},{h:.1f},0.,0.,1.,0.,1.;")
+    par = [f"{pd[i:i + 64]:<64}{1:>8}P{k + 1:7d}" for k, i in enumerate(range(0, len(pd), 64))]
+    d1 = "".join(f"{v:>8}" for v in (128, 1, 0, 0, 0, 0, 0, 0, "00000000"))
+    d2 = "".join(f"{v:>8}" for v in (128, 0, 0, len(par), 0, "", "", "", 0))
+    dirs = [line(d1, "D", 1), line(d2, "D", 2)]
+    term = [line(f"S{len(start):7d}G{len(glob):7d}D{len(dirs):7d}P{len(par):7d}", "T", 1)]
+    return "\n".join(start + glob + dirs + par + term) + "\n"
+
+
+@pytest.mark.parametrize("unit_flag, unit_name, metres_per_unit", [(2, "MM", 1e-3), (1, "IN", 0.0254)])
+def test_iges_surface_loads_in_its_own_units_and_prints_nothing_on_stdout(tmp_path, capfd, unit_flag, unit_name,
+                                                                          metres_per_unit):
+    path = tmp_path / "patch.igs"
+    path.write_text(_iges_patch(100.0, 50.0, unit_flag, unit_name))
+    mesh = load_mesh(path, "mm")
+    np.testing.assert_allclose(mesh.extents, [100 * metres_per_unit, 50 * metres_per_unit, 0.0], rtol=1e-6, atol=1e-9)
+    assert mesh.area == pytest.approx(5000 * metres_per_unit ** 2, rel=1e-6)
+    assert capfd.readouterr().out == ""  # OpenCASCADE's chatter goes to stderr: stdout carries the --json document
+
+
 def test_iges_that_is_not_iges_or_cut_off_is_refused(tmp_path):
     path = tmp_path / "part.igs"
     path.write_text("hello\n")
