@@ -8,6 +8,7 @@ import cv2
 import numpy as np
 
 from calibration.errors import DriverError
+from cell.record.integrity import acquired
 from cell.record.jobfolder import atomic_write_bytes, atomic_write_json, sha256_file
 from cell.stages.exposure import ExposureTaker, FrameFault, wait_settled
 
@@ -25,7 +26,7 @@ def run(ctx) -> None:
 
     plan_doc = ctx.folder.read_json("plan.json")
     stations = _stations_in_order(plan_doc)
-    done = {r["station"] for r in ctx.folder.records() if r["event"] == "station_done"}
+    done = set(acquired(list(ctx.folder.records())))  # stations whose image stands (verified on resume)
     if ctx.devices is None:
         ctx.devices = open_devices(ctx.job, ctx.backend)
     dev = ctx.devices
@@ -76,7 +77,7 @@ def run(ctx) -> None:
                           frame_id=rec.frame_id, trigger_host_s=rec.trigger_host_s, frame_host_s=rec.frame_host_s,
                           attempts=attempt)
     ctx.progress("acquire", 1.0)
-    recs = {r["station"]: r for r in ctx.folder.records() if r["event"] == "station_done"}
+    recs = acquired(list(ctx.folder.records()))
     images = [{"station": s["id"], "order": s["order"], "image": recs[s["id"]]["image"],
                "sha256": recs[s["id"]]["sha256"], "joints": recs[s["id"]]["joints"],
                "base_from_flange": recs[s["id"]]["base_from_flange"]} for s in stations]
