@@ -7,6 +7,7 @@ reports (so a whole job runs through the real driver path).
 """
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -88,9 +89,9 @@ def open_devices(job: LoadedJob, backend: str, *, seed_offset: int = 0) -> Devic
     s = job.spec
     if backend == "sim":
         sim = make_job_sim_cell(job, seed_offset)
-        if s.sim.frame_faults:
-            sim.camera.inject_frame_faults({int(k): v for k, v in s.sim.frame_faults.items()},
-                                           late_s=s.camera.frame_timeout_s + s.camera.exposure_s + 0.2)
+        faults = _frame_faults_from_env()
+        if faults:
+            sim.camera.inject_frame_faults(faults, late_s=s.camera.frame_timeout_s + s.camera.exposure_s + 0.2)
         light, closers = sim.light, []
         if s.sim.light:
             # the real Gardasoft driver on the emulated controller (a pseudo-terminal): every pulse it fires is recorded
@@ -148,6 +149,29 @@ def open_devices(job: LoadedJob, backend: str, *, seed_offset: int = 0) -> Devic
             dev.connect()
             d._closers.append(dev.close)
     return d
+
+
+FRAME_FAULTS_ENV = "CELL_SIM_FRAME_FAULTS"
+
+
+def _frame_faults_from_env() -> dict[int, str]:
+    """Faults of the simulated camera for this session (tests): ``CELL_SIM_FRAME_FAULTS='{"3": "missing"}'`` makes
+    the 3rd capture of the session fail (``missing``, ``late``, ``duplicate``). A hardware fault, not part of the
+    job: a resumed session without the variable has a mended camera."""
+    import json
+
+    text = os.environ.get(FRAME_FAULTS_ENV, "").strip()
+    if not text:
+        return {}
+    try:
+        doc = json.loads(text)
+        faults = {int(k): str(v) for k, v in doc.items()}
+    except (ValueError, AttributeError, TypeError):
+        raise InputError(f"{FRAME_FAULTS_ENV}={text!r}: give a JSON object such as {{\"3\": \"missing\"}}") from None
+    bad = sorted(set(faults.values()) - {"missing", "late", "duplicate"})
+    if bad:
+        raise InputError(f"{FRAME_FAULTS_ENV}: unknown fault(s) {bad}; use missing, late or duplicate")
+    return faults
 
 
 def _gardasoft(where: str, cell):

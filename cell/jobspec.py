@@ -244,8 +244,6 @@ class SimSection(_Strict):
     motion: Literal["instant", "timed"] = "instant"
     time_scale: float = Field(default=1.0, gt=0, le=1000)
     noise: float = Field(default=1.0, ge=0, le=100, description="sensor noise scale (1 = nominal)")
-    frame_faults: dict[str, Literal["missing", "late", "duplicate"]] = Field(
-        default={}, description="frame faults by capture number (\"3\" = the 3rd capture), for tests")
     light: bool = Field(default=False, description="the sim cell's light: the Gardasoft RT driver on its emulator")
     base_from_part_error: Pose | None = Field(default=None, description="true placement minus nominal (tests)")
     flange_from_cam_error: Pose | None = None
