@@ -107,7 +107,7 @@ class Camera(Protocol):
 
 @runtime_checkable
 class Light(Protocol):
-    """A light/strobe controller (typically on a serial line)."""
+    """A light/strobe controller (serial line or Ethernet; the real one is ``drivers.gardasoft.GardasoftRT``)."""
 
     def connect(self) -> None: ...
 
@@ -117,4 +117,8 @@ class Light(Protocol):
         """Set the light's intensity in ``[0, 1]``."""
 
     def strobe(self, duration_s: float) -> None:
-        """Fire one flash of ``duration_s`` (and the camera trigger wired to it)."""
+        """Fire one flash of ``duration_s`` now (a software trigger of the controller)."""
+
+    def arm(self, duration_s: float) -> None:
+        """Pulse mode: one flash of ``duration_s`` per edge on the controller's trigger input (the camera's
+        strobe line), so the light fires with the exposure itself."""
