@@ -1,0 +1,187 @@
+"""Ring-coded targets: a centre dot and a ring of n angular sectors that carry the code (n = 12 or 14).
+
+Layout (this project's, in units of the centre dot's radius R; the common industrial form: a dot
+inside a segmented annulus on a contrasting ground)::
+
+    centre dot      r <= R                         bright (retro) / dark (print): the measured point
+    gap             R < r < RING_INNER R           ground
+    code ring       RING_INNER R <= r <= RING_OUTER R, n sectors of 360/n deg; bit 1 = like the dot
+    quiet zone      up to QUIET R                  ground
+
+Bit b covers the angles [360 b / n, 360 (b + 1) / n) measured from the target's first in-plane axis
+``e1`` towards ``e2`` (``sim_backend.world.marker_axes``: seen from the front, e1 points right and e2
+down, as an image's x and y, so the sectors run clockwise as seen; e1 x e2 = -normal).
+
+Codes are rotation-invariant: a family's codewords are the n-bit words that are the smallest of
+their n cyclic rotations and differ from every rotation of themselves (aperiodic, so a read fixes
+the target's in-plane orientation too); all-zero and all-one words are excluded by that rule. A
+target's ``code`` is the codeword's rank in the ascending list: ``ring12`` has 335 codes (0..334),
+``ring14`` 1161 (0..1160).
+
+:func:`decode_ring_codes` reads the ring around detected dots: the dot's second moments give the
+affine frame of its ellipse, in which the ring is sampled on two circles at 16 samples per sector;
+the phase that best separates the sectors is chosen, each sector's majority is its bit, and the word
+is accepted when every sector is clean (most of its samples agree), the ring's contrast is a good
+fraction of the dot's, and the gap between dot and ring is ground.
+"""
+from __future__ import annotations
+
+from functools import lru_cache
+
+import cv2
+import numpy as np
+
+from calibration.dots import Detections, to_grey
+from calibration.errors import CalibrationError
+
+__all__ = ["RING_FAMILIES", "RING_INNER", "RING_OUTER", "QUIET", "family_codes", "code_bits", "bits_code",
+           "decode_ring_codes", "RingCodes"]
+
+RING_FAMILIES = {"ring12": 12, "ring14": 14}
+RING_INNER = 2.0
+RING_OUTER = 3.5
+QUIET = 4.2
+_SAMPLES = 16  # per sector
+
+
+def _n_bits(family: str) -> int:
+    if family not in RING_FAMILIES:
+        raise CalibrationError(f"unknown ring-code family {family!r}; known: {', '.join(RING_FAMILIES)}")
+    return RING_FAMILIES[family]
+
+
+def _rotations(word: int, n: int) -> list[int]:
+    mask = (1 << n) - 1
+    return [((word >> r) | (word << (n - r))) & mask for r in range(n)]
+
+
+@lru_cache(maxsize=None)
+def family_codes(family: str) -> np.ndarray:
+    """(m,) the family's codewords (ints, bit b = sector b), ascending; a code is an index into it."""
+    n = _n_bits(family)
+    out = []
+    for w in range(1, (1 << n) - 1):
+        rot = _rotations(w, n)
+        if w == min(rot) and rot.count(w) == 1:
+            out.append(w)
+    return np.array(out, dtype=np.int64)
+
+
+@lru_cache(maxsize=None)
+def _word_to_code(family: str) -> dict[int, int]:
+    return {int(w): i for i, w in enumerate(family_codes(family))}
+
+
+def code_bits(family: str, code: int) -> np.ndarray:
+    """(n,) 0/1 sector bits of ``code`` in ``family``."""
+    words = family_codes(family)
+    if not 0 <= int(code) < len(words):
+        raise CalibrationError(f"ring code {code} is outside family {family} (0..{len(words) - 1})")
+    n = _n_bits(family)
+    return (int(words[int(code)]) >> np.arange(n)) & 1
+
+
+def bits_code(family: str, bits: np.ndarray) -> tuple[int, int]:
+    """(code, rotation) of sector bits read from any starting sector: ``bits`` = the codeword's bits
+    rotated left by ``rotation`` sectors; code -1 when the word is not in the family."""
+    n = _n_bits(family)
+    word = int(np.sum(np.asarray(bits, dtype=np.int64) << np.arange(n)))
+    rot = _rotations(word, n)
+    r = int(np.argmin(rot))
+    return _word_to_code(family).get(rot[r], -1), r
+
+
+class RingCodes:
+    """Decoded ring-coded targets of one image.
+
+    Attributes:
+        index: (c,) index of the centre dot in the detections.
+        code: (c,) code (rank in the family).
+        family: the family read.
+        ring_px: (c,) ring's outer radius in pixels (mean over the ellipse): detections closer than this
+            to the centre are the ring's sectors, not dots.
+    """
+
+    def __init__(self, index, code, family, ring_px) -> None:
+        self.index = np.asarray(index, dtype=int)
+        self.code = np.asarray(code, dtype=int)
+        self.family = family
+        self.ring_px = np.asarray(ring_px, dtype=float)
+
+    def __len__(self) -> int:
+        return len(self.index)
+
+    def ring_parts(self, uv: np.ndarray) -> np.ndarray:
+        """Which of the points ``uv: (k, 2)`` (detections of the same image) lie on a decoded target's
+        ring or quiet zone, centre dots excluded: (k,) bool. They are pieces of the code, not dots."""
+        uv = np.asarray(uv, dtype=float).reshape(-1, 2)
+        out = np.zeros(len(uv), dtype=bool)
+        for i, r in zip(self.index, self.ring_px):
+            d = np.linalg.norm(uv - uv[i], axis=1)
+            out |= (d > 1e-9) & (d <= r * QUIET / RING_OUTER)
+        return out
+
+
+def decode_ring_codes(image: np.ndarray, det: Detections, family: str, *, min_clean: float = 0.75,
+                      min_contrast: float = 0.35) -> RingCodes:
+    """Read the code ring around every detected dot of ``det`` (found in ``image``) that carries one.
+
+    Args:
+        image: the image the dots were detected in (grey or colour).
+        det: its detections (their ``polarity`` says which way the image is polarised).
+        family: "ring12" or "ring14".
+        min_clean: fraction of a sector's samples that must agree with its bit.
+        min_contrast: the ring's bright-dark difference as a fraction of the dot's peak.
+    """
+    n = _n_bits(family)
+    grey = to_grey(image)
+    work = (grey if det.polarity == "bright" else cv2.bitwise_not(grey)).astype(np.float32)
+    k = len(det)
+    if k == 0:
+        return RingCodes([], [], family, [])
+    # affine frame of each dot's ellipse: x = c + S (cos t, sin t) on the rim, S = 2 sqrtm(axes)
+    w, V = np.linalg.eigh(det.axes)
+    w = np.clip(w, 1e-6, None)
+    S = np.einsum("kij,kj,klj->kil", V, 2.0 * np.sqrt(w), V)
+    M = n * _SAMPLES
+    t = 2 * np.pi * (np.arange(M) + 0.5) / M
+    circ = np.stack([np.cos(t), np.sin(t)])  # (2, M)
+    radii = np.array([RING_INNER + 0.3 * (RING_OUTER - RING_INNER), RING_INNER + 0.7 * (RING_OUTER - RING_INNER),
+                      0.5 * (1.0 + RING_INNER), 0.5 * (RING_OUTER + QUIET)])
+    pts = det.uv[:, None, None, :] + radii[None, :, None, None] * np.einsum("kij,jm->kmi", S, circ)[:, None]
+    mx = pts[..., 0].astype(np.float32).reshape(k, -1)
+    my = pts[..., 1].astype(np.float32).reshape(k, -1)
+    smp = cv2.remap(work, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan)
+    smp = smp.reshape(k, len(radii), M).astype(np.float64)
+    ring = 0.5 * (smp[:, 0] + smp[:, 1])  # (k, M)
+    gap, quiet = smp[:, 2], smp[:, 3]
+    bg, peak = det.background[:, None], det.peak[:, None]
+    level = bg + 0.5 * peak
+    on = ring > level
+    finite = np.isfinite(smp).all(axis=(1, 2))
+    contrast = (np.nanmax(ring, axis=1) - np.nanmin(ring, axis=1)) / np.maximum(det.peak, 1e-9)
+    ground = (np.nanmax(gap, axis=1) < level[:, 0]) & (np.nanmax(quiet, axis=1) < level[:, 0])
+    # best phase: the offset of sector boundaries (in samples) whose sectors are cleanest
+    best_clean = np.zeros(k)
+    best_bits = np.zeros((k, n), dtype=np.int64)
+    best_off = np.zeros(k, dtype=int)
+    for off in range(_SAMPLES):
+        sec = np.roll(on, -off, axis=1).reshape(k, n, _SAMPLES).mean(axis=2)
+        clean = np.minimum(sec, 1 - sec).max(axis=1)  # worst sector's minority share
+        score = 1 - clean
+        better = score > best_clean
+        best_clean[better] = score[better]
+        best_bits[better] = (sec[better] > 0.5).astype(np.int64)
+        best_off[better] = off
+    cand = finite & ground & (contrast >= min_contrast) & (best_clean >= min_clean)
+    idx, codes, ring_px = [], [], []
+    for i in np.flatnonzero(cand):
+        # the image's angle runs the same way as the target's (e1 -> e2 is clockwise seen from the front,
+        # as the image's x -> y); an affinity keeps that sense, only a mirror image would reverse it
+        code, _ = bits_code(family, best_bits[i])
+        if code < 0:
+            continue
+        idx.append(i)
+        codes.append(code)
+        ring_px.append(float(RING_OUTER * np.sqrt(np.prod(2.0 * np.sqrt(w[i])))))
+    return RingCodes(idx, codes, family, ring_px)
