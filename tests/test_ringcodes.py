@@ -1,0 +1,67 @@
+"""Ring-coded targets: the families, and decoding what the simulated camera renders."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+from calibration.camera import Intrinsics, invert, look_at, project
+from calibration.dots import DetectionOptions, detect_dots
+from calibration.errors import CalibrationError
+from calibration.ringcodes import bits_code, code_bits, decode_ring_codes, family_codes
+from planning.part import Part, Targets
+from sim_backend.sim_camera import SimCamera
+from sim_backend.world import World
+
+INTR = Intrinsics.from_focal_length(0.012, 3.45e-6, 2448, 2048, k1=-0.08, k2=0.05)
+RADIUS = 0.003
+
+
+def test_families_hold_every_aperiodic_necklace_once():
+    # aperiodic binary necklaces: 335 of length 12, 1161 of length 14
+    assert len(family_codes("ring12")) == 335 and len(family_codes("ring14")) == 1161
+    for fam in ("ring12", "ring14"):
+        n = 12 if fam == "ring12" else 14
+        for code in (0, 7, len(family_codes(fam)) - 1):
+            b = code_bits(fam, code)
+            for r in range(n):
+                assert bits_code(fam, np.roll(b, r))[0] == code
+    with pytest.raises(CalibrationError):
+        code_bits("ring12", 335)
+
+
+def _field(family, n_codes, seed):
+    xs, ys = np.linspace(-0.12, 0.12, 7), np.linspace(-0.09, 0.09, 5)
+    P = np.array([(x, y, 0.0) for x in xs for y in ys])
+    n = len(P)
+    code = np.full(n, -1)
+    kind = np.array(["retro"] * n, dtype=object)
+    coded = np.arange(0, n, 3)
+    code[coded] = np.random.default_rng(seed).choice(n_codes, len(coded), replace=False)
+    kind[coded] = "coded"
+    t = Targets(ids=[f"T{i}" for i in range(n)], xyz=P, normals=np.tile([0, 0, 1.0], (n, 1)), kind=kind.astype(str),
+                tolerance_m=np.full(n, np.nan), code=code)
+    plate = trimesh.creation.box(extents=(0.5, 0.4, 0.02))
+    plate.apply_translation((0, 0, -0.01))
+    return Part("plate", plate, t, target_diameter_m=2 * RADIUS, coded_size_m=0.02), P, code
+
+
+@pytest.mark.parametrize("family,n_codes,tilt_deg", [("ring12", 335, 0.0), ("ring14", 1161, 45.0)])
+def test_rendered_ring_codes_are_all_read_and_plain_dots_never(family, n_codes, tilt_deg):
+    part, P, code = _field(family, n_codes, seed=int(tilt_deg) + 1)
+    eye = np.array([0.0, -0.5 * np.sin(np.radians(tilt_deg)), 0.5 * np.cos(np.radians(tilt_deg))])
+    part_from_cam = look_at(eye, np.zeros(3), up=(0, 1, 0))
+    cam = SimCamera(World(part, np.eye(4), np.eye(4), INTR, seed=3), coded_family=family)
+    img, _ = cam.render(part_from_cam)
+    det = detect_dots(img, DetectionOptions.for_real_images())
+    rc = decode_ring_codes(img, det, family)
+    uv = project(INTR, invert(part_from_cam), P)
+    nearest = np.array([np.argmin(np.linalg.norm(uv - det.uv[i], axis=1)) for i in rc.index])
+    assert len(rc) == np.sum(code >= 0)
+    assert np.array_equal(code[nearest], rc.code)
+    # centre dots measured like any dot; the ring's sectors are flagged, the plain dots are not
+    assert np.max(np.linalg.norm(uv[nearest] - det.uv[rc.index], axis=1)) < 0.1
+    parts = rc.ring_parts(det.uv)
+    plain = [np.argmin(np.linalg.norm(det.uv - uv[i], axis=1)) for i in np.flatnonzero(code < 0)]
+    assert not parts[plain].any()
+    assert np.sum(~parts) == len(P)
