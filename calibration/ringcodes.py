@@ -1,31 +1,43 @@
-"""Ring-coded targets: a centre dot and a ring of n angular sectors that carry the code (n = 12 or 14).
+"""Ring-coded targets: a centre dot and a ring of n angular sectors that carry the code.
 
-Layout (this project's, in units of the centre dot's radius R; the common industrial form: a dot
-inside a segmented annulus on a contrasting ground)::
+Layout, in units of the centre dot's radius R (the common industrial form: a dot inside a segmented
+annulus on a contrasting ground)::
 
-    centre dot      r <= R                         bright (retro) / dark (print): the measured point
-    gap             R < r < RING_INNER R           ground
-    code ring       RING_INNER R <= r <= RING_OUTER R, n sectors of 360/n deg; bit 1 = like the dot
-    quiet zone      up to QUIET R                  ground
+    centre dot      r <= R                      bright (retro) / dark (print): the measured point
+    gap             R < r < inner R             ground
+    code ring       inner R <= r <= outer R,    n sectors of 360/n deg; a set bit is like the dot
+    quiet zone      up to quiet R               ground
 
-Bit b covers the angles [360 b / n, 360 (b + 1) / n) measured from the target's first in-plane axis
-``e1`` towards ``e2`` (``sim_backend.world.marker_axes``: seen from the front, e1 points right and e2
-down, as an image's x and y, so the sectors run clockwise as seen; e1 x e2 = -normal).
+Sector b covers the angles [360 b / n, 360 (b + 1) / n) from the target's first in-plane axis ``e1``
+towards ``e2`` (``sim_backend.world.marker_axes``: seen from the front, e1 points right and e2 down, as
+an image's x and y, so the sectors run clockwise as seen; e1 x e2 = -normal).
 
-Codes are rotation-invariant: a family's codewords are the n-bit words that are the smallest of
-their n cyclic rotations and differ from every rotation of themselves (aperiodic, so a read fixes
-the target's in-plane orientation too); all-zero and all-one words are excluded by that rule. A
-target's ``code`` is the codeword's rank in the ascending list: ``ring12`` has 335 codes (0..334),
-``ring14`` 1161 (0..1160).
+Families (codes are rotation-invariant: every codeword is the smallest of its n cyclic rotations):
+
+* ``ring12``, ``ring14``: this project's. Ring 2.0-3.5 R, quiet zone 4.2 R; sector b carries bit b
+  (least significant first); the codewords are the aperiodic ones (different from each of their
+  rotations, so a read also fixes the in-plane orientation); a target's code is the codeword's rank
+  in ascending order, from 0: 335 codes (12 bits), 1161 (14 bits).
+* ``schneider12``, ``schneider14``: the 14-bit code of the expired patent DE19733466A1 (Schneider,
+  IDENT/VISION 1991) as laid out by M. Petroff's public-domain target generator (2018): ring 2.0-3.0 R
+  (a stroke of width R at radius 2.5 R), quiet zone 3.6 R; sector b carries bit n-1-b (most
+  significant first, clockwise from e1 as seen); codewords: the odd words ``2 i + 1`` for i = 0 ..
+  2^(n-2) - 1 in that order, each replaced by its smallest rotation, kept if it has an even number
+  of ones, at least one pair of diametrically opposite set sectors, and was not kept before; a
+  target's code is its place in that order from 1 (the number printed under the target): 516 codes
+  for 14 bits (the generator's count), 147 for 12 by the same rule.
+
+PhotoModeler's ring-coded targets are not included: their layout is not publicly documented.
 
 :func:`decode_ring_codes` reads the ring around detected dots: the dot's second moments give the
 affine frame of its ellipse, in which the ring is sampled on two circles at 16 samples per sector;
 the phase that best separates the sectors is chosen, each sector's majority is its bit, and the word
 is accepted when every sector is clean (most of its samples agree), the ring's contrast is a good
-fraction of the dot's, and the gap between dot and ring is ground.
+fraction of the dot's, and the gap between dot and ring and the quiet zone are ground.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from functools import lru_cache
 
 import cv2
@@ -34,17 +46,36 @@ import numpy as np
 from calibration.dots import Detections, to_grey
 from calibration.errors import CalibrationError
 
-__all__ = ["RING_FAMILIES", "RING_INNER", "RING_OUTER", "QUIET", "family_codes", "code_bits", "bits_code",
+__all__ = ["RingFamily", "RING_FAMILIES", "ring_family", "family_codes", "code_bits", "bits_code",
            "decode_ring_codes", "RingCodes"]
 
-RING_FAMILIES = {"ring12": 12, "ring14": 14}
-RING_INNER = 2.0
-RING_OUTER = 3.5
-QUIET = 4.2
 _SAMPLES = 16  # per sector
 
 
-def _n_bits(family: str) -> int:
+@dataclass(frozen=True)
+class RingFamily:
+    """A ring-code family: ``n`` sectors, radii in units of the centre dot's radius, the code rule."""
+
+    name: str
+    n: int
+    inner: float
+    outer: float
+    quiet: float
+    rule: str  # "aperiodic" | "schneider"
+    msb_first: bool
+    first_id: int
+
+
+RING_FAMILIES = {
+    "ring12": RingFamily("ring12", 12, 2.0, 3.5, 4.2, "aperiodic", False, 0),
+    "ring14": RingFamily("ring14", 14, 2.0, 3.5, 4.2, "aperiodic", False, 0),
+    "schneider12": RingFamily("schneider12", 12, 2.0, 3.0, 3.6, "schneider", True, 1),
+    "schneider14": RingFamily("schneider14", 14, 2.0, 3.0, 3.6, "schneider", True, 1),
+}
+
+
+def ring_family(family: str) -> RingFamily:
+    """The family called ``family``; CalibrationError naming the known ones otherwise."""
     if family not in RING_FAMILIES:
         raise CalibrationError(f"unknown ring-code family {family!r}; known: {', '.join(RING_FAMILIES)}")
     return RING_FAMILIES[family]
@@ -57,36 +88,52 @@ def _rotations(word: int, n: int) -> list[int]:
 
 @lru_cache(maxsize=None)
 def family_codes(family: str) -> np.ndarray:
-    """(m,) the family's codewords (ints, bit b = sector b), ascending; a code is an index into it."""
-    n = _n_bits(family)
-    out = []
-    for w in range(1, (1 << n) - 1):
-        rot = _rotations(w, n)
-        if w == min(rot) and rot.count(w) == 1:
-            out.append(w)
+    """(m,) the family's codewords (ints), in code order: code ``first_id + i`` is codeword i."""
+    f = ring_family(family)
+    n = f.n
+    out: list[int] = []
+    if f.rule == "aperiodic":
+        for w in range(1, (1 << n) - 1):
+            rot = _rotations(w, n)
+            if w == min(rot) and rot.count(w) == 1:
+                out.append(w)
+    else:
+        half = (1 << (n // 2)) - 1
+        seen: set[int] = set()
+        for i in range(1 << (n - 2)):
+            w = min(_rotations(2 * i + 1, n))
+            if bin(w).count("1") % 2 == 0 and (w & half) & (w >> (n // 2)) and w not in seen:
+                seen.add(w)
+                out.append(w)
     return np.array(out, dtype=np.int64)
 
 
 @lru_cache(maxsize=None)
 def _word_to_code(family: str) -> dict[int, int]:
-    return {int(w): i for i, w in enumerate(family_codes(family))}
+    f = ring_family(family)
+    return {int(w): i + f.first_id for i, w in enumerate(family_codes(family))}
 
 
 def code_bits(family: str, code: int) -> np.ndarray:
-    """(n,) 0/1 sector bits of ``code`` in ``family``."""
+    """(n,) 0/1 bits of the sectors 0..n-1 of target ``code`` in ``family``."""
+    f = ring_family(family)
     words = family_codes(family)
-    if not 0 <= int(code) < len(words):
-        raise CalibrationError(f"ring code {code} is outside family {family} (0..{len(words) - 1})")
-    n = _n_bits(family)
-    return (int(words[int(code)]) >> np.arange(n)) & 1
+    i = int(code) - f.first_id
+    if not 0 <= i < len(words):
+        raise CalibrationError(f"ring code {code} is outside family {family} "
+                               f"({f.first_id}..{f.first_id + len(words) - 1})")
+    bits = (int(words[i]) >> np.arange(f.n)) & 1
+    return bits[::-1].copy() if f.msb_first else bits
 
 
 def bits_code(family: str, bits: np.ndarray) -> tuple[int, int]:
-    """(code, rotation) of sector bits read from any starting sector: ``bits`` = the codeword's bits
-    rotated left by ``rotation`` sectors; code -1 when the word is not in the family."""
-    n = _n_bits(family)
-    word = int(np.sum(np.asarray(bits, dtype=np.int64) << np.arange(n)))
-    rot = _rotations(word, n)
+    """(code, rotation) of sector bits read from any starting sector; code -1 when not in the family."""
+    f = ring_family(family)
+    b = np.asarray(bits, dtype=np.int64)
+    if f.msb_first:
+        b = b[::-1]
+    word = int(np.sum(b << np.arange(f.n)))
+    rot = _rotations(word, f.n)
     r = int(np.argmin(rot))
     return _word_to_code(family).get(rot[r], -1), r
 
@@ -98,8 +145,8 @@ class RingCodes:
         index: (c,) index of the centre dot in the detections.
         code: (c,) code (rank in the family).
         family: the family read.
-        ring_px: (c,) ring's outer radius in pixels (mean over the ellipse): detections closer than this
-            to the centre are the ring's sectors, not dots.
+        ring_px: (c,) the quiet zone's radius in pixels (mean over the ellipse): detections closer than
+            this to the centre are the ring's sectors, not dots.
     """
 
     def __init__(self, index, code, family, ring_px) -> None:
@@ -118,22 +165,23 @@ class RingCodes:
         out = np.zeros(len(uv), dtype=bool)
         for i, r in zip(self.index, self.ring_px):
             d = np.linalg.norm(uv - uv[i], axis=1)
-            out |= (d > 1e-9) & (d <= r * QUIET / RING_OUTER)
+            out |= (d > 1e-9) & (d <= r)
         return out
 
 
 def decode_ring_codes(image: np.ndarray, det: Detections, family: str, *, min_clean: float = 0.75,
-                      min_contrast: float = 0.35) -> RingCodes:
+                      min_contrast: float = 0.35) -> "RingCodes":
     """Read the code ring around every detected dot of ``det`` (found in ``image``) that carries one.
 
     Args:
         image: the image the dots were detected in (grey or colour).
         det: its detections (their ``polarity`` says which way the image is polarised).
-        family: "ring12" or "ring14".
+        family: a name in ``RING_FAMILIES``.
         min_clean: fraction of a sector's samples that must agree with its bit.
         min_contrast: the ring's bright-dark difference as a fraction of the dot's peak.
     """
-    n = _n_bits(family)
+    f = ring_family(family)
+    n = f.n
     grey = to_grey(image)
     work = (grey if det.polarity == "bright" else cv2.bitwise_not(grey)).astype(np.float32)
     k = len(det)
@@ -146,8 +194,8 @@ def decode_ring_codes(image: np.ndarray, det: Detections, family: str, *, min_cl
     M = n * _SAMPLES
     t = 2 * np.pi * (np.arange(M) + 0.5) / M
     circ = np.stack([np.cos(t), np.sin(t)])  # (2, M)
-    radii = np.array([RING_INNER + 0.3 * (RING_OUTER - RING_INNER), RING_INNER + 0.7 * (RING_OUTER - RING_INNER),
-                      0.5 * (1.0 + RING_INNER), 0.5 * (RING_OUTER + QUIET)])
+    radii = np.array([f.inner + 0.3 * (f.outer - f.inner), f.inner + 0.7 * (f.outer - f.inner),
+                      0.5 * (1.0 + f.inner), 0.5 * (f.outer + f.quiet)])
     pts = det.uv[:, None, None, :] + radii[None, :, None, None] * np.einsum("kij,jm->kmi", S, circ)[:, None]
     mx = pts[..., 0].astype(np.float32).reshape(k, -1)
     my = pts[..., 1].astype(np.float32).reshape(k, -1)
@@ -183,5 +231,5 @@ def decode_ring_codes(image: np.ndarray, det: Detections, family: str, *, min_cl
             continue
         idx.append(i)
         codes.append(code)
-        ring_px.append(float(RING_OUTER * np.sqrt(np.prod(2.0 * np.sqrt(w[i])))))
+        ring_px.append(float(f.quiet * np.sqrt(np.prod(2.0 * np.sqrt(w[i])))))
     return RingCodes(idx, codes, family, ring_px)

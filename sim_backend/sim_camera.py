@@ -351,6 +351,7 @@ def ring_coverage(
     e2_c: np.ndarray,
     radius_m: float,
     bits: np.ndarray,
+    family,
     shift_px: np.ndarray,
     supersample: int = 8,
     adaptive: bool = True,
@@ -358,14 +359,13 @@ def ring_coverage(
     """Coverage of ring-coded targets (``calibration.ringcodes`` layout) for k windows.
 
     Args:
-        radius_m: the centre dot's radius R; the patch (quiet zone) reaches ``QUIET`` R.
+        radius_m: the centre dot's radius R; the patch (quiet zone) reaches ``family.quiet`` R.
         bits: (k, n) 0/1 sector bits, sector b from ``e1`` towards ``e2``.
+        family: the ``calibration.ringcodes.RingFamily`` (its radii).
     Returns:
         alpha: (k, h, w) fraction of each pixel covered by the patch; white: by the dot and the set sectors.
     """
-    from calibration.ringcodes import QUIET, RING_INNER, RING_OUTER
-
-    n = bits.shape[1]
+    n, inner, outer, quiet = bits.shape[1], family.inner, family.outer, family.quiet
     st = _plane_coords(_pixel_lattice(lattice, u0, v0, h, w, shift_px), centre_c, e1_c, e2_c, normal_c) / radius_m
     c00, c01, c10, c11 = st[:, :-1, :-1], st[:, :-1, 1:], st[:, 1:, :-1], st[:, 1:, 1:]
     centre = 0.25 * (c00 + c01 + c10 + c11)
@@ -375,17 +375,17 @@ def ring_coverage(
     def shade(s, t, kidx):
         rho = np.hypot(s, t)
         sector = np.floor((np.arctan2(t, s) % (2 * np.pi)) / (2 * np.pi / n)).astype(np.int64) % n
-        inring = (rho >= RING_INNER) & (rho <= RING_OUTER)
+        inring = (rho >= inner) & (rho <= outer)
         white = (rho <= 1.0) | (inring & (bits[kidx, sector] > 0))
-        return (rho <= QUIET).astype(float), white.astype(float)
+        return (rho <= quiet).astype(float), white.astype(float)
 
     alpha, white = shade(centre[..., 0], centre[..., 1], kk)
     rho = np.linalg.norm(centre, axis=-1)
     near_circle = np.zeros(rho.shape, dtype=bool)
-    for rr in (1.0, RING_INNER, RING_OUTER, QUIET):
+    for rr in (1.0, inner, outer, quiet):
         near_circle |= np.abs(rho - rr) <= hd
     ang = np.arctan2(centre[..., 1], centre[..., 0]) % (2 * np.pi / n)
-    near_edge = (np.minimum(ang, 2 * np.pi / n - ang) * rho <= hd) & (rho >= RING_INNER - hd) & (rho <= RING_OUTER + hd)
+    near_edge = (np.minimum(ang, 2 * np.pi / n - ang) * rho <= hd) & (rho >= inner - hd) & (rho <= outer + hd)
     boundary = (near_circle | near_edge) if adaptive else np.ones_like(rho, dtype=bool)
     idx = np.nonzero(boundary)
     if len(idx[0]):
@@ -444,8 +444,8 @@ class SimCamera:
         rng: random stream for noise and jitter (default: a child stream of the world's seed).
         exposure_s: exposure time; brightness scales with it.
         coded_family: how the coded targets look: "aruco" (DICT_4X4_250 markers of side
-            ``part.coded_size_m``) or a ring-code family ("ring12", "ring14": a centre dot of the
-            part's target diameter inside its code ring, ``calibration.ringcodes``).
+            ``part.coded_size_m``) or a ring-code family (``calibration.ringcodes.RING_FAMILIES``:
+            a centre dot of the part's target diameter inside its code ring).
     """
 
     def __init__(
@@ -479,9 +479,10 @@ class SimCamera:
         if coded_family == "aruco":
             self._textures = {int(c): aruco_texture(int(c)) for c in codes}
         else:
-            from calibration.ringcodes import code_bits
+            from calibration.ringcodes import code_bits, ring_family
 
             try:
+                self._ring_family = ring_family(coded_family)
                 self._textures = {int(c): code_bits(coded_family, int(c)) for c in codes}
             except CalibrationError as e:
                 raise InputError(f"sim camera: {e}") from None
@@ -627,9 +628,7 @@ class SimCamera:
         """(k,) in-plane radius (m) of targets ``idx``: disc radius, or half the patch diagonal."""
         part = self.world.part
         if self.coded_family != "aruco":
-            from calibration.ringcodes import QUIET
-
-            return np.where(self._coded[idx], QUIET, 1.0) * 0.5 * part.target_diameter_m
+            return np.where(self._coded[idx], self._ring_family.quiet, 1.0) * 0.5 * part.target_diameter_m
         half_patch = 0.5 * part.coded_size_m * (_MARKER_CELLS + 2 * _QUIET_CELLS) / _MARKER_CELLS * math.sqrt(2)
         return np.where(self._coded[idx], half_patch, 0.5 * part.target_diameter_m)
 
@@ -675,8 +674,8 @@ class SimCamera:
                 args = (self.lattice, u0[g], v0[g], gh_, gw_, centre_c[g], n_c[g], e1_c[g], e2_c[g])
                 if is_coded and self.coded_family != "aruco":
                     bits = np.stack([self._textures[int(c)] for c in np.asarray(w.part.targets.code)[idx[g]]])
-                    alpha, white = ring_coverage(*args, 0.5 * float(w.part.target_diameter_m), bits, shift[g],
-                                                 opt.supersample, opt.adaptive)
+                    alpha, white = ring_coverage(*args, 0.5 * float(w.part.target_diameter_m), bits, self._ring_family,
+                                                 shift[g], opt.supersample, opt.adaptive)
                 elif is_coded:
                     tex = np.stack([self._textures[int(c)] for c in np.asarray(w.part.targets.code)[idx[g]]])
                     alpha, white = marker_coverage(*args, float(w.part.coded_size_m), tex, shift[g], opt.supersample, opt.adaptive)

@@ -8,7 +8,7 @@ import trimesh
 from calibration.camera import Intrinsics, invert, look_at, project
 from calibration.dots import DetectionOptions, detect_dots
 from calibration.errors import CalibrationError
-from calibration.ringcodes import bits_code, code_bits, decode_ring_codes, family_codes
+from calibration.ringcodes import bits_code, code_bits, decode_ring_codes, family_codes, ring_family
 from planning.part import Part, Targets
 from sim_backend.sim_camera import SimCamera
 from sim_backend.world import World
@@ -17,27 +17,31 @@ INTR = Intrinsics.from_focal_length(0.012, 3.45e-6, 2448, 2048, k1=-0.08, k2=0.0
 RADIUS = 0.003
 
 
-def test_families_hold_every_aperiodic_necklace_once():
-    # aperiodic binary necklaces: 335 of length 12, 1161 of length 14
-    assert len(family_codes("ring12")) == 335 and len(family_codes("ring14")) == 1161
-    for fam in ("ring12", "ring14"):
-        n = 12 if fam == "ring12" else 14
-        for code in (0, 7, len(family_codes(fam)) - 1):
+def test_families_have_their_published_sizes_and_read_from_any_rotation():
+    # aperiodic binary necklaces: 335 of length 12, 1161 of length 14; the DE19733466A1 14-bit code: 516 targets
+    sizes = {"ring12": 335, "ring14": 1161, "schneider12": 147, "schneider14": 516}
+    for fam, size in sizes.items():
+        f = ring_family(fam)
+        assert len(family_codes(fam)) == size
+        for code in (f.first_id, f.first_id + 7, f.first_id + size - 1):
             b = code_bits(fam, code)
-            for r in range(n):
+            for r in range(f.n):
                 assert bits_code(fam, np.roll(b, r))[0] == code
     with pytest.raises(CalibrationError):
         code_bits("ring12", 335)
+    with pytest.raises(CalibrationError):
+        code_bits("schneider14", 0)  # numbered from 1
 
 
-def _field(family, n_codes, seed):
+def _field(family, seed):
     xs, ys = np.linspace(-0.12, 0.12, 7), np.linspace(-0.09, 0.09, 5)
     P = np.array([(x, y, 0.0) for x in xs for y in ys])
     n = len(P)
     code = np.full(n, -1)
     kind = np.array(["retro"] * n, dtype=object)
     coded = np.arange(0, n, 3)
-    code[coded] = np.random.default_rng(seed).choice(n_codes, len(coded), replace=False)
+    f = ring_family(family)
+    code[coded] = f.first_id + np.random.default_rng(seed).choice(len(family_codes(family)), len(coded), replace=False)
     kind[coded] = "coded"
     t = Targets(ids=[f"T{i}" for i in range(n)], xyz=P, normals=np.tile([0, 0, 1.0], (n, 1)), kind=kind.astype(str),
                 tolerance_m=np.full(n, np.nan), code=code)
@@ -46,9 +50,9 @@ def _field(family, n_codes, seed):
     return Part("plate", plate, t, target_diameter_m=2 * RADIUS, coded_size_m=0.02), P, code
 
 
-@pytest.mark.parametrize("family,n_codes,tilt_deg", [("ring12", 335, 0.0), ("ring14", 1161, 45.0)])
-def test_rendered_ring_codes_are_all_read_and_plain_dots_never(family, n_codes, tilt_deg):
-    part, P, code = _field(family, n_codes, seed=int(tilt_deg) + 1)
+@pytest.mark.parametrize("family,tilt_deg", [("ring12", 0.0), ("ring14", 45.0), ("schneider14", 30.0)])
+def test_rendered_ring_codes_are_all_read_and_plain_dots_never(family, tilt_deg):
+    part, P, code = _field(family, seed=int(tilt_deg) + 1)
     eye = np.array([0.0, -0.5 * np.sin(np.radians(tilt_deg)), 0.5 * np.cos(np.radians(tilt_deg))])
     part_from_cam = look_at(eye, np.zeros(3), up=(0, 1, 0))
     cam = SimCamera(World(part, np.eye(4), np.eye(4), INTR, seed=3), coded_family=family)
