@@ -163,9 +163,15 @@ def _noise(image: np.ndarray, stride: int) -> float:
     return max(noise, 0.5)
 
 
-def _survey(image: np.ndarray, o: DetectionOptions) -> tuple[int, float]:
-    """(compact blobs found, their median diameter in px) on a 4x reduced copy of a polarised image."""
-    s = 4
+def _survey(image: np.ndarray, o: DetectionOptions) -> tuple[int, float, float]:
+    """(compact blobs found, their median and 95th-percentile diameters in px) on copies of a polarised image
+    reduced 4x (dots of 3-100 px) and 8x (up to 200 px)."""
+    n4, d4, big4 = _survey_at(image, o, 4)
+    n8, _, big8 = _survey_at(image, o, 8)
+    return n4 + n8, d4, max(big4, big8)
+
+
+def _survey_at(image: np.ndarray, o: DetectionOptions, s: int) -> tuple[int, float, float]:
     small = cv2.resize(image, (image.shape[1] // s, image.shape[0] // s), interpolation=cv2.INTER_AREA)
     kern = cv2.getStructuringElement(cv2.MORPH_RECT, (31, 31))
     th = cv2.morphologyEx(small, cv2.MORPH_TOPHAT, kern)
@@ -174,12 +180,26 @@ def _survey(image: np.ndarray, o: DetectionOptions) -> tuple[int, float]:
     mask = ((th > o.threshold_sigma * noise) & (th.astype(np.float32) > 0.5 * locmax)).astype(np.uint8)
     n, _, st, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
     if n <= 1:
-        return 0, 0.0
+        return 0, 0.0, 0.0
     w, h, a = st[1:, 2].astype(float), st[1:, 3].astype(float), st[1:, 4].astype(float)
     ok = (a >= 2) & (np.maximum(w, h) <= 2.0 * np.minimum(w, h)) & (a >= 0.5 * w * h) & (w < 25) & (h < 25)
     if not np.any(ok):
-        return 0, 0.0
-    return int(ok.sum()), float(np.median(np.sqrt(4 * a[ok] / np.pi))) * s
+        return 0, 0.0, 0.0
+    d = np.sqrt(4 * a[ok] / np.pi) * s
+    return int(ok.sum()), float(np.median(d)), float(np.percentile(d, 95))
+
+
+def _tophat(image: np.ndarray, kernel: int) -> np.ndarray:
+    """White top-hat with a square ``kernel``; beyond 61 px the opening is taken on a reduced copy (its cost
+    grows with the kernel) and enlarged again: it only has to be the smooth ground under the dots."""
+    if kernel <= 61:
+        return cv2.morphologyEx(image, cv2.MORPH_TOPHAT, cv2.getStructuringElement(cv2.MORPH_RECT, (kernel, kernel)))
+    s = int(np.ceil(kernel / 41))
+    small = cv2.resize(image, (max(image.shape[1] // s, 1), max(image.shape[0] // s, 1)), interpolation=cv2.INTER_AREA)
+    k = 2 * (kernel // (2 * s)) + 1
+    opened = cv2.morphologyEx(small, cv2.MORPH_OPEN, cv2.getStructuringElement(cv2.MORPH_RECT, (k, k)))
+    # the reduced opening can sit above a dark pixel's own level: the top-hat never goes below zero
+    return cv2.subtract(image, cv2.resize(opened, (image.shape[1], image.shape[0]), interpolation=cv2.INTER_LINEAR))
 
 
 def _ring_planes(lab: np.ndarray, dx: np.ndarray, dy: np.ndarray, val: np.ndarray, k: int, fallback: float) -> np.ndarray:
@@ -221,9 +241,9 @@ def detect_dots(image: np.ndarray, options: DetectionOptions | None = None) -> D
         cand = ("bright", "dark") if polarity == "auto" else (polarity,)
         surveys = {p: _survey(grey if p == "bright" else _invert(grey), o) for p in cand}
         polarity = max(cand, key=lambda p: surveys[p][0])
-        d = surveys[polarity][1]
-        if kernel == 0:
-            kernel = 41 if d == 0 else int(np.clip(2 * round(1.5 * d + 10) + 1, 15, 151))
+        _, d, d_big = surveys[polarity]
+        if kernel == 0:  # holds the largest dots
+            kernel = 41 if d == 0 else int(np.clip(2 * round(0.75 * d_big + 5) + 1, 15, 401))
         if window == 0:
             # reaches a dot's own peak from its rim, not a neighbour's: a dim dot is not cut by a bright one
             window = 9 if d == 0 else int(2 * round(0.5 * d + 1.5) + 1)
@@ -246,8 +266,7 @@ def detect_retro_targets(image: np.ndarray, options: DetectionOptions | None = N
 def _detect(image: np.ndarray, o: DetectionOptions) -> Detections:
     """The detector on a polarised image (dots bright), with every option resolved."""
     if o.background_kernel_px > 0:
-        kern = cv2.getStructuringElement(cv2.MORPH_RECT, (o.background_kernel_px, o.background_kernel_px))
-        tophat = cv2.morphologyEx(image, cv2.MORPH_TOPHAT, kern)
+        tophat = _tophat(image, o.background_kernel_px)
         noise = max(_noise(tophat, o.subsample), _noise(image, o.subsample))
         thr = o.threshold if o.threshold is not None else o.threshold_sigma * noise
         bg = float(np.median(image[:: o.subsample, :: o.subsample]))
