@@ -106,6 +106,12 @@ def cmd_calibrate(args, out: Output) -> int:
     return calibrate(args, out)
 
 
+def cmd_detect(args, out: Output) -> int:
+    from cell.detect_cmd import detect_command
+
+    return detect_command(args, out)
+
+
 def build_parser() -> argparse.ArgumentParser:
     common = argparse.ArgumentParser(add_help=False)
     common.add_argument("--json", action="store_true", help="print one JSON document on stdout")
@@ -151,6 +157,12 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--backend", choices=["sim", "ur"], help="override the cell file's backend")
     c.add_argument("--yes", action="store_true", help="confirm moving the robot without asking")
     c.set_defaults(func=cmd_calibrate)
+
+    c = sub.add_parser("detect", parents=[common], help="every detected centre of one image (dots and coded targets)")
+    c.add_argument("image", type=Path)
+    c.add_argument("--camera", type=Path, help="CAMERA.toml: polarity, coded-target family (default: found per image, schneider14)")
+    c.add_argument("--png", type=Path, help="write the image with the detections drawn")
+    c.set_defaults(func=cmd_detect)
 
     c = sub.add_parser("archive", parents=[common], help="list, show, compare, verify archived jobs")
     c.add_argument("action", choices=["list", "show", "compare", "verify"])
