@@ -272,3 +272,22 @@ def test_two_image_network_adjusts_without_snooping_crash():
     assert res.converged and not res.rejected.any()
     err = np.linalg.norm(res.points - net.points, axis=1)
     assert np.isfinite(err).all()
+
+
+def test_truly_fixed_control_keeps_its_coordinates_and_zero_covariance():
+    """sigma 0 = held fixed (issue 16: fixed control was refused); the other targets stay honest."""
+    rng = np.random.default_rng(16)
+    net = simulate_network(rng, n_targets=120, n_images=10)
+    idx = np.arange(0, 120, 12)
+    ctrl = ControlPoints(idx, net.points[idx], np.zeros(len(idx)))
+    res = _run(net, *_start(rng, net), config=BundleConfig(control=ctrl))
+    assert res.datum == "control" and res.converged
+    np.testing.assert_array_equal(res.points[idx], net.points[idx])
+    assert np.all(res.cov[idx] == 0.0)
+    free = np.setdiff1d(np.arange(120), idx)
+    e = res.points[free] - net.points[free]
+    m2 = np.einsum("na,na->n", e, np.linalg.solve(res.cov[free], e[..., None])[..., 0])
+    assert 1.5 < np.mean(m2) < 4.5  # chi-square with 3 dof: mean 3
+    with pytest.raises(CalibrationError, match="fixed"):
+        _run(net, *_start(rng, net), config=BundleConfig(control=ControlPoints(idx, net.points[idx],
+                                                                               np.tile([0.0, 0.0, 1e-5], (len(idx), 1)))))

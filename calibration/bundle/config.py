@@ -32,7 +32,11 @@ class ScaleBar:
 
 @dataclass(frozen=True)
 class ControlPoints:
-    """Targets with known coordinates: ``index: (k,)`` into the points, ``xyz: (k, 3)``, ``sigma_m: (k,) or (k, 3)``."""
+    """Targets with known coordinates: ``index: (k,)`` into the points, ``xyz: (k, 3)``, ``sigma_m: (k,) or (k, 3)``.
+
+    A target whose sigma is 0 (on all three axes) is truly fixed: its coordinates are not unknowns of the
+    adjustment, it keeps ``xyz`` exactly and its covariance is zero. Positive sigmas weight the control.
+    """
 
     index: np.ndarray
     xyz: np.ndarray
