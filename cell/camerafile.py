@@ -7,6 +7,8 @@ One ``[camera]`` table, every key optional (unknown keys are an error)::
     polarity = "auto"            # "auto" | "bright" (retro-reflective) | "dark" (printed dots)
     coded_family = "schneider14" # ring-code family of the coded targets (calibration.ringcodes), or "aruco"
     target_diameter_px = 0       # 0: found per image
+    fx_px = 3480.2               # a calibrated camera: focal length in pixels (wins over focal_length_mm)
+    fy_px = 3480.9
     focal_length_mm = 12.0       # else the photographs' EXIF focal length
     pixel_size_um = 3.45         # else from the EXIF focal-plane resolution (sensor size)
     width = 2448                 # else the first image's size
@@ -16,7 +18,8 @@ One ``[camera]`` table, every key optional (unknown keys are an error)::
     k1 = 0.0                     # Brown radial k1, k2, k3 and tangential p1, p2 (OpenCV's model)
     sigma_px = 0.1               # a priori image sigma for the bundle
     self_calibrate = true        # estimate focal length, principal point and distortion in the bundle
-    radial = 3                   # radial terms estimated: 2 (k1, k2) or 3 (k1, k2, k3)
+    radial = 3                   # radial terms of `cell calibrate camera` on a flat field: 2 or 3 (k3);
+                                 # the bundle's self-calibration (OpenCV model) has k1, k2, p1, p2
 
 Every problem is an ``InputError`` naming the file and the key.
 """
@@ -30,7 +33,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from calibration.errors import InputError
 
-__all__ = ["CameraFile", "load_camera_file", "CODED_FAMILIES"]
+__all__ = ["CameraFile", "load_camera_file", "camera_toml", "CODED_FAMILIES"]
 
 CODED_FAMILIES = ("aruco", "ring12", "ring14", "schneider12", "schneider14")
 
@@ -40,6 +43,8 @@ class CameraFile(BaseModel):
 
     polarity: Literal["auto", "bright", "dark"] = "auto"
     coded_family: Literal["aruco", "ring12", "ring14", "schneider12", "schneider14"] = "schneider14"
+    fx_px: float | None = Field(default=None, gt=0)
+    fy_px: float | None = Field(default=None, gt=0)
     focal_length_mm: float | None = Field(default=None, gt=0, le=2000)
     pixel_size_um: float | None = Field(default=None, gt=0, le=100)
     width: int | None = Field(default=None, gt=0, le=100_000)
@@ -76,3 +81,15 @@ def load_camera_file(path: str | Path | None) -> CameraFile:
         err = e.errors()[0]
         key = ".".join(str(x) for x in err["loc"])
         raise InputError(f"{path}: [camera] {key}: {err['msg']}") from None
+
+
+def camera_toml(cam: CameraFile, comments: dict[str, str] | None = None) -> str:
+    """``cam`` as a CAMERA.toml text (keys that are set), with an optional trailing comment per key."""
+    comments = comments or {}
+    lines = ["[camera]"]
+    for key, value in cam.model_dump().items():
+        if value is None:
+            continue
+        v = f'"{value}"' if isinstance(value, str) else ("true" if value is True else "false" if value is False else repr(value))
+        lines.append(f"{key} = {v}" + (f"  # {comments[key]}" if key in comments else ""))
+    return "\n".join(lines) + "\n"
