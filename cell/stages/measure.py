@@ -7,7 +7,7 @@ import numpy as np
 from calibration.camera import invert
 from calibration.errors import CalibrationError
 from cell.record.jobfolder import atomic_write_json
-from cell.stages.imaging import measure_image
+from cell.stages.imaging import detection_options, measure_image
 from planning.visibility import Occluder
 
 
@@ -22,6 +22,7 @@ def run(ctx) -> None:
     ids_all = job.part.targets.ids
     bfp, ffc = job.spec.base_from_part(), job.spec.flange_from_cam()
     occluder = Occluder(job.part.mesh)
+    detection = detection_options(job.spec.camera)
     out = []
     for k, im in enumerate(acq["images"]):
         ctx.progress("measure", k / len(acq["images"]))
@@ -29,7 +30,8 @@ def run(ctx) -> None:
         if img is None:
             raise CalibrationError(f"{im['image']}: cannot read the image")
         cam_from_part = invert(invert(bfp) @ np.asarray(im["base_from_flange"], dtype=float) @ ffc)
-        m, counts = measure_image(img, job.part, job.intrinsics, cam_from_part, occluder)
+        m, counts = measure_image(img, job.part, job.intrinsics, cam_from_part, occluder, detection=detection,
+                                  coded_family=job.spec.job.coded_family)
         names = [ids_all[int(i)] for i in m.target]
         out.append({"station": im["station"], "image": im["image"], "ids": names, "uv": m.uv,
                     "n_unidentified": m.n_unidentified, "n_partly_hidden": m.n_partly_hidden} | counts)
