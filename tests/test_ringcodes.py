@@ -88,3 +88,4 @@ def test_the_job_chain_names_dots_with_ring_codes_from_a_poor_pose():
     uv_true = project(INTR, invert(part_from_cam), P)
     assert len(m.target) == np.sum(code < 0)  # coded targets identify, they are not measured (decision 0004)
     assert np.max(np.linalg.norm(m.uv - uv_true[m.target], axis=1)) < 0.1
+    assert m.cov.shape == (len(m.target), 2, 2) and np.all(np.linalg.eigvalsh(m.cov) > 0)  # observations.json cov_px2

@@ -67,6 +67,8 @@ class DotMeasurement:
         cam_from_part: (4, 4) the pose the dots were named with.
         n_unidentified: blobs no target was matched to (marker pieces, glints, edges).
         n_partly_hidden: identified dots dropped because an edge of the part clips them.
+        cov: (k, 2, 2) each centre's covariance from the detector (px^2, ``Detections.cov``), or None
+            when the caller gave none.
     """
 
     target: np.ndarray
@@ -74,12 +76,16 @@ class DotMeasurement:
     cam_from_part: np.ndarray
     n_unidentified: int = 0
     n_partly_hidden: int = 0
+    cov: np.ndarray | None = None
 
 
 def name_dots(det_uv: np.ndarray, part, intr: Intrinsics, cam_from_part: np.ndarray, occluder: Occluder, *,
               max_dist_px: float = 25.0, incidence_max_rad: float = float(np.deg2rad(85.0)),
-              coded_ids: np.ndarray | None = None, coded_uv: np.ndarray | None = None) -> DotMeasurement:
+              coded_ids: np.ndarray | None = None, coded_uv: np.ndarray | None = None,
+              det_cov: np.ndarray | None = None) -> DotMeasurement:
     """Identify detected dot centres ``det_uv: (k, 2)`` with an approximate pose and measure them.
+
+    ``det_cov: (k, 2, 2)`` (px^2) travels with the centres it belongs to.
 
     Only dots in view from the pose at no more than ``incidence_max_rad`` are offered to the matcher;
     coded detections (``coded_ids``, ``coded_uv``) refine the pose first (PnP) when there are enough.
@@ -101,7 +107,8 @@ def name_dots(det_uv: np.ndarray, part, intr: Intrinsics, cam_from_part: np.ndar
     tid = match[dots]
     bias = eccentricity_bias(intr, cam_from_part, t.xyz[tid], t.normals[tid], radius)
     return DotMeasurement(tid, det_uv[dots] - bias, np.asarray(cam_from_part, dtype=float),
-                          int((match < 0).sum()), int((~clear).sum()))
+                          int((match < 0).sum()), int((~clear).sum()),
+                          None if det_cov is None else np.asarray(det_cov)[dots])
 
 
 def detection_options(camera) -> DetectionOptions:
@@ -137,5 +144,6 @@ def measure_image(image: np.ndarray, part, intr: Intrinsics, cam_from_part_appro
         known = np.array([int(c) in code_to_index for c in codes], dtype=bool)
         keep = ~inside_any(det.uv, corners[known], grow=MARKER_GROW)
     m = name_dots(det.uv[keep], part, intr, cam_from_part_approx, occluder, max_dist_px=max_dist_px,
-                  incidence_max_rad=incidence_max_rad, coded_ids=codes[known], coded_uv=centres[known])
+                  incidence_max_rad=incidence_max_rad, coded_ids=codes[known], coded_uv=centres[known],
+                  det_cov=det.cov[keep])
     return m, {"n_dots": int(keep.sum()), "n_coded": int(known.sum())}

@@ -1,4 +1,8 @@
-"""MEASURE: sub-pixel target detection and identification in every image; observations.json."""
+"""MEASURE: sub-pixel target detection and identification in every image; observations.json.
+
+observations.json: ``images``: list of {``station``, ``image``, ``ids``, ``uv`` (k, 2 px), ``cov_px2`` (k, 2, 2:
+each centre's covariance from the detector, px^2, ``calibration.dots.Detections.cov``), counts}.
+"""
 from __future__ import annotations
 
 import cv2
@@ -33,7 +37,7 @@ def run(ctx) -> None:
         m, counts = measure_image(img, job.part, job.intrinsics, cam_from_part, occluder, detection=detection,
                                   coded_family=job.spec.job.coded_family)
         names = [ids_all[int(i)] for i in m.target]
-        out.append({"station": im["station"], "image": im["image"], "ids": names, "uv": m.uv,
+        out.append({"station": im["station"], "image": im["image"], "ids": names, "uv": m.uv, "cov_px2": m.cov,
                     "n_unidentified": m.n_unidentified, "n_partly_hidden": m.n_partly_hidden} | counts)
         ctx.log.detections(im["station"], names, m.uv)
     ctx.progress("measure", 1.0)
