@@ -27,6 +27,11 @@ Families (codes are rotation-invariant: every codeword is the smallest of its n 
   target's code is its place in that order from 1 (the number printed under the target): 516 codes
   for 14 bits (the generator's count), 147 for 12 by the same rule.
 
+* ``cct8``, ``cct12``: the "CCT" (circular coded target) of github.com/poxiao2/CCTDecode: ring 2.0-3.0 R;
+  sector b (clockwise from e1 as seen) carries bit b; every word that is the smallest of its rotations
+  (periodic ones and the full ring too) except all zeros; a target's code is that smallest value (the
+  number the generator names the target's image by): 35 codes for 8 bits, 351 for 12.
+
 PhotoModeler's ring-coded targets are not included: their layout is not publicly documented.
 
 :func:`decode_ring_codes` reads the ring around detected dots: the dot's second moments give the
@@ -61,9 +66,9 @@ class RingFamily:
     inner: float
     outer: float
     quiet: float
-    rule: str  # "aperiodic" | "schneider"
+    rule: str  # "aperiodic" | "schneider" | "necklace"
     msb_first: bool
-    first_id: int
+    first_id: int  # code of the first codeword; -1: a code is its codeword's value
 
 
 RING_FAMILIES = {
@@ -71,6 +76,8 @@ RING_FAMILIES = {
     "ring14": RingFamily("ring14", 14, 2.0, 3.5, 4.2, "aperiodic", False, 0),
     "schneider12": RingFamily("schneider12", 12, 2.0, 3.0, 3.6, "schneider", True, 1),
     "schneider14": RingFamily("schneider14", 14, 2.0, 3.0, 3.6, "schneider", True, 1),
+    "cct8": RingFamily("cct8", 8, 2.0, 3.0, 3.6, "necklace", False, -1),
+    "cct12": RingFamily("cct12", 12, 2.0, 3.0, 3.6, "necklace", False, -1),
 }
 
 
@@ -92,10 +99,10 @@ def family_codes(family: str) -> np.ndarray:
     f = ring_family(family)
     n = f.n
     out: list[int] = []
-    if f.rule == "aperiodic":
-        for w in range(1, (1 << n) - 1):
+    if f.rule in ("aperiodic", "necklace"):
+        for w in range(1, (1 << n) - (f.rule == "aperiodic")):  # a full ring is a necklace code
             rot = _rotations(w, n)
-            if w == min(rot) and rot.count(w) == 1:
+            if w == min(rot) and (f.rule == "necklace" or rot.count(w) == 1):
                 out.append(w)
     else:
         half = (1 << (n // 2)) - 1
@@ -111,14 +118,21 @@ def family_codes(family: str) -> np.ndarray:
 @lru_cache(maxsize=None)
 def _word_to_code(family: str) -> dict[int, int]:
     f = ring_family(family)
-    return {int(w): i + f.first_id for i, w in enumerate(family_codes(family))}
+    return {int(w): (int(w) if f.first_id < 0 else i + f.first_id) for i, w in enumerate(family_codes(family))}
 
 
 def code_bits(family: str, code: int) -> np.ndarray:
     """(n,) 0/1 bits of the sectors 0..n-1 of target ``code`` in ``family``."""
     f = ring_family(family)
     words = family_codes(family)
-    i = int(code) - f.first_id
+    if f.first_id < 0:
+        hit = np.flatnonzero(words == int(code))
+        if not len(hit):
+            raise CalibrationError(f"ring code {code} is not a codeword of family {family} (the smallest rotation "
+                                   f"of a {f.n}-bit word other than 0)")
+        i = int(hit[0])
+    else:
+        i = int(code) - f.first_id
     if not 0 <= i < len(words):
         raise CalibrationError(f"ring code {code} is outside family {family} "
                                f"({f.first_id}..{f.first_id + len(words) - 1})")
@@ -207,7 +221,7 @@ def decode_ring_codes(image: np.ndarray, det: Detections, family: str, *, min_cl
     level = bg + 0.5 * peak
     on = ring > level
     finite = np.isfinite(smp).all(axis=(1, 2))
-    contrast = (np.nanmax(ring, axis=1) - np.nanmin(ring, axis=1)) / np.maximum(det.peak, 1e-9)
+    contrast = (np.nanmax(ring, axis=1) - np.nanmax(gap, axis=1)) / np.maximum(det.peak, 1e-9)  # set sectors vs the gap
     ground = (np.nanmax(gap, axis=1) < level[:, 0]) & (np.nanmax(quiet, axis=1) < level[:, 0])
     # best phase: the offset of sector boundaries (in samples) whose sectors are cleanest
     best_clean = np.zeros(k)

@@ -35,14 +35,14 @@ from calibration.errors import InputError
 
 __all__ = ["CameraFile", "load_camera_file", "camera_toml", "CODED_FAMILIES"]
 
-CODED_FAMILIES = ("aruco", "ring12", "ring14", "schneider12", "schneider14")
+CODED_FAMILIES = ("aruco", "ring12", "ring14", "schneider12", "schneider14", "cct8", "cct12")
 
 
 class CameraFile(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     polarity: Literal["auto", "bright", "dark"] = "auto"
-    coded_family: Literal["aruco", "ring12", "ring14", "schneider12", "schneider14"] = "schneider14"
+    coded_family: Literal["aruco", "ring12", "ring14", "schneider12", "schneider14", "cct8", "cct12"] = "schneider14"
     fx_px: float | None = Field(default=None, gt=0)
     fy_px: float | None = Field(default=None, gt=0)
     focal_length_mm: float | None = Field(default=None, gt=0, le=2000)

@@ -56,7 +56,7 @@ class JobSection(_Strict):
     n_coded: int = Field(default=8, ge=0, le=250)
     target_diameter: float = Field(default=6.0, gt=0, description="retro dot diameter, job units")
     coded_size: float = Field(default=20.0, gt=0, description="ArUco marker side, job units")
-    coded_family: Literal["aruco", "ring12", "ring14", "schneider12", "schneider14"] = Field(
+    coded_family: Literal["aruco", "ring12", "ring14", "schneider12", "schneider14", "cct8", "cct12"] = Field(
         default="aruco", description="the coded targets the part carries: ArUco DICT_4X4_250 markers, or ring codes "
                                      "(a centre dot of target_diameter in a coded ring; calibration.ringcodes)")
     seed: int = 0

@@ -35,7 +35,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from calibration.bundle import BundleConfig, BundleOptions, ControlPoints, bundle_adjust
-from calibration.camera import Intrinsics, make_pose
+from calibration.camera import Intrinsics, make_pose, project
 from calibration.errors import CalibrationError, InputError
 from calibration.planar import exif_camera, plane_frame, planar_calibration
 from calibration.ringcodes import RING_FAMILIES, decode_ring_codes
@@ -155,23 +155,34 @@ def _identify(im: _Image, t: Targets, intr: Intrinsics) -> None:
     xyz = t.xyz[[p[0] for p in pairs]]
     uv = np.array([p[1] for p in pairs], dtype=float)
     dist = np.asarray(intr.dist_coeffs, dtype=np.float64)
-    ok, rvec, tvec = cv2.solvePnP(xyz, uv, intr.K, dist, flags=cv2.SOLVEPNP_SQPNP)
+    if len(pairs) >= 5:  # a misread code (a single set sector is the easiest to fake) must not pull the pose
+        ok, rvec, tvec, inl = cv2.solvePnPRansac(xyz, uv, intr.K, dist, iterationsCount=300,
+                                                 reprojectionError=max(8.0, 0.03 * intr.width), confidence=0.999)
+        if ok and inl is not None and len(inl) >= 4:
+            xyz, uv = xyz[inl.ravel()], uv[inl.ravel()]
+        else:
+            ok = False
+    if ok or len(pairs) < 5:  # the pose from all consistent codes (RANSAC's minimal sets are poor on flat fields)
+        ok, rvec, tvec = cv2.solvePnP(xyz, uv, intr.K, dist, flags=cv2.SOLVEPNP_SQPNP)
     if not ok:
-        im.note = "no pose from the coded targets"
+        im.note = "no consistent pose from the coded targets"
         return
     pose = make_pose(cv2.Rodrigues(rvec)[0], tvec.ravel())
     if len(pairs) >= 4:
         pose = refine_pose_pnp(intr, pose, xyz, uv)
     plain = np.flatnonzero(im.code < 0)
+    max_dist = 10.0
     if len(plain) >= 2:
         nn = cKDTree(im.uv).query(im.uv[plain], k=2)[0][:, 1]
         max_dist = 0.4 * float(np.median(nn))
         sub_codes = np.where(t.code >= 0, t.code, -1)
         match = identify_targets(im.uv[plain], t.xyz, sub_codes, intr, pose, max_dist)
         im.target[plain] = match
-    for i in coded_det:
-        if int(im.code[i]) in lookup:
-            im.target[i] = lookup[int(im.code[i])]
+    for i in coded_det:  # a coded centre counts where the pose puts its target (a misread code does not)
+        j = lookup.get(int(im.code[i]))
+        gross = max(3.0 * max_dist, 0.03 * intr.width)  # codes are unique: only a misread is this far off
+        if j is not None and np.linalg.norm(project(intr, pose, t.xyz[j][None])[0] - im.uv[i]) <= gross:
+            im.target[i] = j
     named = im.target >= 0
     if np.sum(named) >= 6:
         pose = refine_pose_pnp(intr, pose, t.xyz[im.target[named]], im.uv[named])
