@@ -181,7 +181,11 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--layout", type=Path, help="targets.csv: nominal coordinates and codes (id,x,y,z,nx,ny,nz[,kind][,tolerance][,code])")
     c.add_argument("--control", type=Path, help="control.csv: id,x,y,z[,sigma] (sigma 0 or absent: held fixed)")
     c.add_argument("--units", default="mm", choices=sorted(UNITS), help="units of the layout and control files (default mm)")
-    c.add_argument("--out", type=Path, required=True, help="folder for measure.json, observations.csv, report.html")
+    c.add_argument("--out", type=Path, required=True,
+                   help="folder for measure.json, observations.csv, report.json, report.html")
+    c.add_argument("--tolerance", type=float, default=0.5,
+                   help="deviation from the layout allowed where the layout gives none (its units; default 0.5)")
+    c.add_argument("--archive", type=Path, help="also file the measurement in this archive (like a job)")
     c.set_defaults(func=cmd_measure)
 
     c = sub.add_parser("detect", parents=[common], help="every detected centre of one image (dots and coded targets)")

@@ -260,9 +260,48 @@ def measure_folder(folder: Path, cam: CameraFile, targets: Targets, *, control: 
     return doc
 
 
-def _write_outputs(out_dir: Path, doc: dict, ids: list[str]) -> None:
-    from cell.record.jobfolder import atomic_write_bytes, atomic_write_json
+def report_doc(doc: dict, targets: Targets, tolerance_m: float, job_id: str, name: str, started: str, finished: str) -> dict:
+    """The measurement as a report.json (ARCHITECTURE.md's contract): deviations from the layout's nominal
+    coordinates (the datum's frame: the layout's own for a free network, the control's otherwise)."""
+    import platform
 
+    measured = {t["id"]: t for t in doc["targets"]}
+    tol = np.where(np.isfinite(targets.tolerance_m), targets.tolerance_m, tolerance_m)
+    rows = []
+    for i, tid in enumerate(targets.ids):
+        m = measured.get(tid)
+        nominal = targets.xyz[i].tolist()
+        if m is None:
+            rows.append({"id": tid, "nominal": nominal, "measured": [None] * 3, "cov": [[None] * 3] * 3,
+                         "deviation": [None] * 3, "deviation_norm_m": None, "tolerance_m": float(tol[i]), "pass": False,
+                         "predicted_sigma_m": None, "achieved_sigma_m": None, "n_images": 0})
+            continue
+        d = np.asarray(m["xyz"]) - targets.xyz[i]
+        rows.append({"id": tid, "nominal": nominal, "measured": m["xyz"], "cov": m["cov"], "deviation": d.tolist(),
+                     "deviation_norm_m": float(np.linalg.norm(d)), "tolerance_m": float(tol[i]),
+                     "pass": bool(np.linalg.norm(d) <= tol[i]), "predicted_sigma_m": None,
+                     "achieved_sigma_m": m["sigma_m"], "n_images": m["rays"]})
+    fit = [t["id"] for t in doc["targets"]]
+    dev = np.array([r["deviation_norm_m"] for r in rows if r["deviation_norm_m"] is not None])
+    return {
+        "job": {"id": job_id, "name": name, "seed": 0, "status": "DONE", "started": started, "finished": finished,
+                "versions": {"python": platform.python_version(), "numpy": np.__version__, "opencv": cv2.__version__},
+                "part": name},
+        "images": sum(im["used"] for im in doc["images"]), "sigma0_px": doc["sigma0_px"], "datum": doc["datum"],
+        "verdict": "PASS" if all(r["pass"] for r in rows) else "FAIL", "targets": rows,
+        "alignment": {"method": "control" if doc["datum"] == "control" else "free network on the layout (inner constraints)",
+                      "targets_in_fit": fit, "rms_m": float(np.sqrt(np.mean(dev**2))) if len(dev) else None,
+                      "trusted": bool(doc["datum"] == "control" or len(fit) >= 4)},
+        "part": {"number": None, "revision": None, "serial": None}, "operator": None, "cell_id": None,
+        "camera": doc["camera"], "stage_times_s": doc.get("stage_times_s", {}),
+    }
+
+
+def _write_outputs(out_dir: Path, doc: dict, targets: Targets, report: dict) -> None:
+    from cell.record.jobfolder import atomic_write_bytes, atomic_write_json
+    from cell.record.report import figure_residuals, render_html
+
+    ids = list(targets.ids)
     out_dir.mkdir(parents=True, exist_ok=True)
     obs_image, obs_target, obs_uv, resid, rejected, names = doc.pop("_observations")
     rows = ["image,target,u,v,du,dv,rejected"]
@@ -270,16 +309,29 @@ def _write_outputs(out_dir: Path, doc: dict, ids: list[str]) -> None:
              for j, t, (u, v), r, x in zip(obs_image, obs_target, obs_uv, resid, rejected)]
     atomic_write_bytes(out_dir / "observations.csv", ("\n".join(rows) + "\n").encode())
     atomic_write_json(out_dir / "measure.json", doc)
-    c = doc["camera"]
-    trs = "".join(f"<tr><td>{html.escape(t['id'])}</td>" + "".join(f"<td>{v * 1e3:.4f}</td>" for v in t["xyz"])
-                  + f"<td>{t['sigma_m'] * 1e6:.1f}</td><td>{t['rays']}</td></tr>" for t in doc["targets"])
-    page = (f"<!doctype html><meta charset=utf-8><title>cell measure</title><h1>Measurement of {len(doc['images'])} photographs</h1>"
-            f"<p>sigma0 {doc['sigma0_px']:.4f} px; datum {html.escape(doc['datum'])}; {doc['observations']} observations, "
-            f"{doc['rejected']} rejected; camera ({html.escape(c['source'])} start): fx {c['fx_px']:.2f}, fy {c['fy_px']:.2f}, "
-            f"cx {c['cx_px']:.2f}, cy {c['cy_px']:.2f} px, k1 {c['k1']:.5f}, k2 {c['k2']:.5f}</p>"
-            "<table border=1><tr><th>id</th><th>x mm</th><th>y mm</th><th>z mm</th><th>sigma um</th><th>rays</th></tr>"
-            f"{trs}</table>")
+    atomic_write_json(out_dir / "report.json", report)
+    ok = ~np.asarray(rejected, dtype=bool)
+    page = render_html(report, {"residuals": figure_residuals(np.asarray(resid)[ok])})
     atomic_write_bytes(out_dir / "report.html", page.encode())
+
+
+def _archive(archive: Path, out_dir: Path, job_id: str, name: str) -> Path:
+    """File the measurement in the archive as a finished job: its outputs, a journal, a manifest, the index."""
+    import shutil
+
+    from cell.record.archive import Archive
+    from cell.record.jobfolder import JobFolder
+
+    folder = Path(archive) / job_id
+    folder.mkdir(parents=True, exist_ok=False)
+    jf = JobFolder(folder)
+    jf.append("created", name=name, source="cell measure", out=str(out_dir))
+    for f in ("measure.json", "observations.csv", "report.json", "report.html"):
+        shutil.copy2(out_dir / f, folder / f)
+    jf.append("state", **{"from": "MEASURE", "to": "DONE"})
+    jf.write_manifest()
+    Archive(Path(archive)).reindex(only=folder)
+    return folder
 
 
 def _load_layout(args) -> Targets:
@@ -289,14 +341,29 @@ def _load_layout(args) -> Targets:
 
 
 def measure_command(args, out) -> int:
+    import time
+
+    from cell.record.jobfolder import new_job_id, utc_now
+
     cam = load_camera_file(args.camera)
     targets = _load_layout(args)
     control = load_control(args.control, targets, args.units) if args.control else None
+    if args.tolerance <= 0:
+        raise InputError(f"--tolerance {args.tolerance}: must be positive")
+    started, t0 = utc_now(), time.perf_counter()
+    name = Path(args.images).resolve().name or "measure"
     doc = measure_folder(args.images, cam, targets, control=control, say=out.say)
-    _write_outputs(Path(args.out), doc, list(targets.ids))
+    doc["stage_times_s"] = {"measure": time.perf_counter() - t0}
+    job_id = new_job_id(name)
+    report = report_doc(doc, targets, args.tolerance * UNITS_TO_M[args.units], job_id, name, started, utc_now())
+    _write_outputs(Path(args.out), doc, targets, report)
+    if args.archive is not None:
+        doc["archive"] = str(_archive(args.archive, Path(args.out), job_id, name))
+    doc["verdict"] = report["verdict"]
 
     def human(d):
-        out.say(f"measured {len(d['targets'])} targets (sigma0 {d['sigma0_px']:.4f} px): {args.out}/report.html")
+        out.say(f"measured {len(d['targets'])} targets (sigma0 {d['sigma0_px']:.4f} px), {d['verdict']} against the "
+                f"layout: {args.out}/report.html" + (f"; archived as {job_id}" if args.archive is not None else ""))
 
     out.result(doc, human)
     return 0

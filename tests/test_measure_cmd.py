@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -64,7 +65,9 @@ def photographs(tmp_path_factory):
 def test_measure_a_folder_of_photographs_recovers_the_sheet_and_the_camera(photographs, tmp_path, capsys):
     folder, layout, camera, truth = photographs
     out = tmp_path / "out"
-    assert main(["measure", str(folder), "--camera", str(camera), "--layout", str(layout), "--out", str(out), "--json"]) == 0
+    archive = tmp_path / "archive"
+    assert main(["measure", str(folder), "--camera", str(camera), "--layout", str(layout), "--out", str(out), "--json",
+                 "--archive", str(archive), "--tolerance", "0.2"]) == 0
     doc = json.loads(capsys.readouterr().out)
     assert all(im["used"] for im in doc["images"])
     ids = [t["id"] for t in doc["targets"]]
@@ -78,6 +81,19 @@ def test_measure_a_folder_of_photographs_recovers_the_sheet_and_the_camera(photo
         assert abs(c[name + "_px"] - true) < max(4 * c["sigma"][name], 0.5), name
     assert doc["sigma0_px"] < 0.1
     assert (out / "report.html").is_file() and (out / "observations.csv").is_file()
+    # report.json as a job's (the layout is the nominal; the sheet's 0.3 mm bow is within 0.2 mm at most targets)
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["job"]["status"] == "DONE" and len(rep["targets"]) == len(truth)
+    for t in rep["targets"]:
+        d = np.asarray(t["deviation"])
+        assert np.allclose(np.asarray(t["measured"]) - np.asarray(t["nominal"]), d)
+        assert t["pass"] == (np.linalg.norm(d) <= t["tolerance_m"]) and t["tolerance_m"] == pytest.approx(2e-4)
+    # and an archive entry like a robot job's: listed, manifest verifies
+    assert main(["archive", "list", "--archive", str(archive), "--json"]) == 0
+    listed = json.loads(capsys.readouterr().out)
+    assert len(listed["jobs"] if isinstance(listed, dict) else listed) == 1
+    job_id = Path(doc["archive"]).name
+    assert main(["archive", "verify", job_id, "--archive", str(archive)]) == 0
 
 
 def test_calibrate_camera_writes_a_camera_file_that_measure_can_use(photographs, tmp_path, capsys):
