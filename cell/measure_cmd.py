@@ -17,9 +17,9 @@
    ``DIR/observations.csv`` and ``DIR/report.html``.
 
 ``cell calibrate camera IMAGES_DIR --layout targets.csv [--camera CAMERA.toml] --out CAMERA_OUT.toml``
-runs steps 1-4 with self-calibration and writes the calibrated camera file (plus the JSON document).
-On a flat field the written camera is the Zhang calibration (k3 included when ``radial = 3``) when the
-bundle adds nothing to it (the bundle's model has no k3).
+runs steps 1-4 with self-calibration and writes the bundle's calibrated camera (OpenCV model without k3)
+to the camera file; on a flat field the JSON document also carries the Zhang calibration (``zhang``:
+with k3 when ``radial = 3``, OpenCV's standard deviations).
 
 Lengths in the layout and control files are in ``--units`` (mm by default); outputs are SI (m, m^2).
 """
