@@ -18,8 +18,7 @@ One ``[camera]`` table, every key optional (unknown keys are an error)::
     k1 = 0.0                     # Brown radial k1, k2, k3 and tangential p1, p2 (OpenCV's model)
     sigma_px = 0.1               # a priori image sigma for the bundle
     self_calibrate = true        # estimate focal length, principal point and distortion in the bundle
-    radial = 3                   # radial terms of `cell calibrate camera` on a flat field: 2 or 3 (k3);
-                                 # the bundle's self-calibration (OpenCV model) has k1, k2, p1, p2
+    radial = 3                   # radial terms estimated: 2 (k1, k2) or 3 (k1, k2, k3: bundle model OPENCV_K3)
 
 Every problem is an ``InputError`` naming the file and the key.
 """
@@ -90,6 +89,11 @@ def camera_toml(cam: CameraFile, comments: dict[str, str] | None = None) -> str:
     for key, value in cam.model_dump().items():
         if value is None:
             continue
-        v = f'"{value}"' if isinstance(value, str) else ("true" if value is True else "false" if value is False else repr(value))
+        if isinstance(value, str):
+            v = f'"{value}"'
+        elif isinstance(value, bool):
+            v = "true" if value else "false"
+        else:
+            v = repr(int(value)) if isinstance(value, int) else repr(float(value))
         lines.append(f"{key} = {v}" + (f"  # {comments[key]}" if key in comments else ""))
     return "\n".join(lines) + "\n"

@@ -11,15 +11,14 @@
    on a flat layout a Zhang calibration (``calibration.planar``) over all images improves it, and the
    images are identified once more with it;
 4. self-calibrating bundle (``calibration.bundle``, OpenCV camera model: fx, fy, cx, cy, k1, k2, p1,
-   p2; datum: the control points when given, truly fixed where their sigma is 0, else a free network
+   p2 and k3 with the camera file's ``radial = 3`` (the default); datum: the control points when given, truly fixed where their sigma is 0, else a free network
    on the layout's frame and scale), data snooping;
 5. ``DIR/measure.json`` (images, camera with standard deviations, sigma0, targets with covariances),
    ``DIR/observations.csv`` and ``DIR/report.html``.
 
 ``cell calibrate camera IMAGES_DIR --layout targets.csv [--camera CAMERA.toml] --out CAMERA_OUT.toml``
-runs steps 1-4 with self-calibration and writes the bundle's calibrated camera (OpenCV model without k3)
-to the camera file; on a flat field the JSON document also carries the Zhang calibration (``zhang``:
-with k3 when ``radial = 3``, OpenCV's standard deviations).
+runs steps 1-4 with self-calibration and writes the bundle's calibrated camera to the camera file; on a
+flat field the JSON document also carries the Zhang start (``zhang``, with OpenCV's standard deviations).
 
 Lengths in the layout and control files are in ``--units`` (mm by default); outputs are SI (m, m^2).
 """
@@ -223,10 +222,11 @@ def measure_folder(folder: Path, cam: CameraFile, targets: Targets, *, control: 
     obs_image = np.concatenate([np.full(int(np.sum(im.target >= 0)), j) for j, im in enumerate(used)])
     obs_target = np.concatenate([im.target[im.target >= 0] for im in used])
     obs_uv = np.concatenate([im.uv[im.target >= 0] for im in used])
-    start = replace(intr, k3=0.0)  # the bundle's OpenCV model has k1, k2, p1, p2
+    model = "OPENCV_K3" if cam.radial == 3 and self_cal else "OPENCV"
+    start = intr if model == "OPENCV_K3" else replace(intr, k3=0.0)
     poses = np.array([refine_pose_pnp(start, im.pose, targets.xyz[im.target[im.target >= 0]], im.uv[im.target >= 0])
                       for im in used])
-    config = BundleConfig(camera_model="OPENCV", refine_focal_length=self_cal, refine_principal_point=self_cal,
+    config = BundleConfig(camera_model=model, refine_focal_length=self_cal, refine_principal_point=self_cal,
                           refine_distortion=self_cal, control=control)
     res = bundle_adjust(obs_image, obs_target, obs_uv, start, poses, targets.xyz.copy(),
                         BundleOptions(sigma_px=cam.sigma_px), config)
@@ -242,7 +242,8 @@ def measure_folder(folder: Path, cam: CameraFile, targets: Targets, *, control: 
         "images": [{"name": im.name, "dots": int(len(im.uv)), "identified": int(np.sum(im.target >= 0)) if im.target is not None else 0,
                     "used": any(im is u for u in used), "note": im.note} for im in images],
         "camera": {"source": source, "fx_px": ri.fx_px, "fy_px": ri.fy_px, "cx_px": ri.cx_px, "cy_px": ri.cy_px,
-                   "k1": ri.k1, "k2": ri.k2, "p1": ri.p1, "p2": ri.p2, "width": width, "height": height,
+                   "k1": ri.k1, "k2": ri.k2, "k3": ri.k3, "p1": ri.p1, "p2": ri.p2, "width": width, "height": height,
+                   "model": model,
                    "sigma": {n: float(s) for n, s in zip(names, sd)}},
         "zhang": None if zhang is None else {"fx_px": zhang.intrinsics.fx_px, "fy_px": zhang.intrinsics.fy_px,
                                               "cx_px": zhang.intrinsics.cx_px, "cy_px": zhang.intrinsics.cy_px,
@@ -379,10 +380,11 @@ def calibrate_camera_command(args, out) -> int:
     c = doc["camera"]
     sig = c["sigma"]
     new = cam.model_copy(update={"fx_px": c["fx_px"], "fy_px": c["fy_px"], "cx_px": c["cx_px"], "cy_px": c["cy_px"],
-                                 "k1": c["k1"], "k2": c["k2"], "k3": 0.0, "p1": c["p1"], "p2": c["p2"],
+                                 "k1": c["k1"], "k2": c["k2"], "k3": c["k3"], "p1": c["p1"], "p2": c["p2"],
                                  "width": c["width"], "height": c["height"], "self_calibrate": False})
     comments = {k: f"+- {sig[n]:.3g}" for k, n in (("fx_px", "fx"), ("fy_px", "fy"), ("cx_px", "cx"), ("cy_px", "cy"),
-                                                   ("k1", "k1"), ("k2", "k2"), ("p1", "p1"), ("p2", "p2")) if n in sig}
+                                                   ("k1", "k1"), ("k2", "k2"), ("k3", "k3"), ("p1", "p1"), ("p2", "p2"))
+                if n in sig}
     text = f"# cell calibrate camera: {len(doc['images'])} images, sigma0 {doc['sigma0_px']:.4f} px\n" + camera_toml(new, comments)
     from cell.record.jobfolder import atomic_write_bytes
 

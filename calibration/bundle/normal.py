@@ -18,7 +18,7 @@ from calibration.errors import CalibrationError
 
 def _update_intrinsics(intr: Intrinsics, names: tuple[str, ...], delta: np.ndarray) -> Intrinsics:
     d = {"fx_px": intr.fx_px, "fy_px": intr.fy_px, "cx_px": intr.cx_px, "cy_px": intr.cy_px,
-         "k1": intr.k1, "k2": intr.k2, "p1": intr.p1, "p2": intr.p2}
+         "k1": intr.k1, "k2": intr.k2, "p1": intr.p1, "p2": intr.p2, "k3": intr.k3}
     for name, dv in zip(names, delta):
         if name == "f":
             d["fx_px"] += dv
