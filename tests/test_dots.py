@@ -91,3 +91,28 @@ def test_float_and_odd_shaped_images_are_refused_with_one_clear_error():
         detect_dots(np.zeros((50, 50), np.float32))
     with pytest.raises(CalibrationError, match="grey or"):
         detect_dots(np.zeros((50, 50, 2), np.uint8))
+
+
+def test_ellipse_fit_centres_agree_with_the_truth_and_state_a_covariance():
+    rng = np.random.default_rng(6)
+    h, w = 360, 480
+    uv = grid_uv(rng, h, w, 12, 9)
+    img = render_dots(rng, h, w, uv, radius_px=4.5)
+    det = detect_dots(img, DetectionOptions(centre="ellipse", cov_floor_px=0.0))
+    j, d = _match(uv, det.uv)
+    assert len(det) == len(uv) and np.sqrt(np.mean(d**2)) < 0.02
+    sd = np.sqrt(det.cov[:, [0, 1], [0, 1]])
+    assert np.all((sd > 0.002) & (sd < 0.05))
+
+
+def test_large_dots_get_a_kernel_that_holds_them():
+    """No fixed pixel counts: 90 px dots (6400 px each, above the cell's 5000 px limit) are found."""
+    rng = np.random.default_rng(8)
+    h, w = 600, 800
+    uv = np.array([[200.3, 200.6], [500.7, 210.2], [210.4, 430.9], [560.5, 420.1]])
+    img = 255 - render_dots(rng, h, w, uv, radius_px=45.0, blur_px=1.5)
+    fixed = detect_dots(img, DetectionOptions(polarity="dark"))  # the cell's 41 px kernel cuts them to pieces
+    assert len(fixed) == 0 or np.sum(_match(uv, fixed.uv)[1] < 0.5) == 0
+    det = detect_dots(img, REAL)
+    j, d = _match(uv, det.uv)
+    assert len(det) == 4 and d.max() < 0.05
