@@ -192,6 +192,9 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("image", type=Path)
     c.add_argument("--camera", type=Path, help="CAMERA.toml: polarity, coded-target family (default: found per image, schneider14)")
     c.add_argument("--png", type=Path, help="write the image with the detections drawn")
+    c.add_argument("--polarity", choices=["auto", "bright", "dark"], help="override the camera file's polarity")
+    c.add_argument("--family", help="override the camera file's coded_family (aruco, ring12, ring14, schneider12, "
+                                    "schneider14, cct8, cct12)")
     c.set_defaults(func=cmd_detect)
 
     c = sub.add_parser("archive", parents=[common], help="list, show, compare, verify archived jobs")

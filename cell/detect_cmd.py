@@ -14,6 +14,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from pydantic import ValidationError
 
 from calibration.dots import DetectionOptions, Detections, detect_dots
 from calibration.errors import InputError
@@ -96,6 +97,15 @@ def draw_detections(image: np.ndarray, detections: list[dict]) -> np.ndarray:
 
 def detect_command(args, out) -> int:
     cam = load_camera_file(args.camera)
+    over = {k: v for k, v in (("polarity", getattr(args, "polarity", None)), ("coded_family", getattr(args, "family", None)))
+            if v is not None}
+    if over:
+        try:
+            cam = CameraFile(**(cam.model_dump() | over))
+        except ValidationError as e:
+            err = e.errors()[0]
+            raise InputError(f"cell detect: --{'family' if err['loc'][0] == 'coded_family' else err['loc'][0]}: "
+                             f"{err['msg']}") from None
     image = read_image(args.image)
     det, dets = detect_image(image, cam)
     doc = {"image": str(args.image), "width": int(image.shape[1]), "height": int(image.shape[0]),

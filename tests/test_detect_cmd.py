@@ -46,3 +46,19 @@ def test_detect_refuses_what_it_cannot_read_with_exit_2(tmp_path, capsys):
     cv2.imwrite(str(img), np.zeros((20, 20), np.uint8))
     assert main(["detect", str(img), "--camera", str(cam)]) == 2
     assert "[camera] polarity" in capsys.readouterr().err
+
+
+def test_detect_options_override_the_camera_file(tmp_path, capsys):
+    rng = np.random.default_rng(7)
+    uv = grid_uv(rng, 120, 160, 4, 3)
+    img = 255 - render_dots(rng, 120, 160, uv, radius_px=3.5)
+    path = tmp_path / "dots.png"
+    cv2.imwrite(str(path), img)
+    assert main(["detect", str(path), "--polarity", "bright", "--json"]) == 0
+    bright = json.loads(capsys.readouterr().out)
+    assert main(["detect", str(path), "--polarity", "dark", "--json"]) == 0
+    dark = json.loads(capsys.readouterr().out)
+    assert dark["polarity"] == "dark" and len(dark["detections"]) == len(uv)
+    assert bright["polarity"] == "bright" and len(bright["detections"]) < len(uv)
+    assert main(["detect", str(path), "--family", "nope"]) == 2
+    assert "--family" in capsys.readouterr().err
