@@ -25,7 +25,6 @@ Lengths in the layout and control files are in ``--units`` (mm by default); outp
 from __future__ import annotations
 
 import csv
-import html
 from dataclasses import dataclass, replace
 from pathlib import Path
 
