@@ -13,8 +13,8 @@ Data (read from local clones, not copied into this repository; the search tool's
   (not photographed) sheet of DE19733466A1 14-bit targets numbered 1-8 and 17-20 under each target.
 
 Printed: codes read, correct, wrong, missed, and codes read elsewhere in the scene (false codes), and
-the time per image. Polarity is given where the scene's clutter outvotes the targets (``auto``
-chooses by the number of compact blobs, which the room around a laptop screen wins).
+the time per image, all with ``cell detect``'s defaults (polarity "auto": with ring codes, the polarity
+that reads more codes).
 
     .venv/bin/python -m benchmarks.real_ring_codes [--cct DIR] [--sheet DIR]
 """
@@ -32,8 +32,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from calibration.dots import DetectionOptions, detect_dots  # noqa: E402
-from calibration.ringcodes import decode_ring_codes  # noqa: E402
+from cell.camerafile import CameraFile  # noqa: E402
+from cell.detect_cmd import detect_targets  # noqa: E402
 
 MIRROR = Path("/work/.mirror")
 
@@ -52,10 +52,11 @@ def _read(repo: Path, path: str) -> np.ndarray:
 
 
 def _read_codes(img: np.ndarray, family: str, polarity: str) -> tuple[np.ndarray, np.ndarray, float]:
+    """What ``cell detect`` reads: the coded centres and their codes, and the seconds it took."""
     t0 = time.perf_counter()
-    det = detect_dots(img, DetectionOptions.for_real_images(polarity=polarity))
-    rc = decode_ring_codes(img, det, family)
-    return det.uv[rc.index], rc.code, time.perf_counter() - t0
+    det, code, _, _, _ = detect_targets(img, CameraFile(polarity=polarity, coded_family=family))
+    sel = code >= 0
+    return det.uv[sel], code[sel], time.perf_counter() - t0
 
 
 def _grid_check(uv: np.ndarray, code: np.ndarray, rows: int, cols: int, box, expected) -> dict:
@@ -85,7 +86,7 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     if a.cct.exists():
         img = _read(a.cct, "CCTDecode/data/cct_bit12_black6.jpg")
-        uv, code, dt = _read_codes(img, "cct12", "dark")
+        uv, code, dt = _read_codes(img, "cct12", "auto")
         # the file browser's grid of icons: 5 rows of 10 between these pixel bounds (measured on the photograph)
         r = _grid_check(uv, code, 5, 10, (2230, 1190, 3560, 1840), lambda i, k: None if i == k == 0 else 2 * (10 * i + k) - 1)
         rows.append(("cct_bit12_black6.jpg (photo, 5632x4224)", r, dt, "their decoder: 47 of 49"))

@@ -10,6 +10,7 @@ decision 0004).
 """
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -46,22 +47,45 @@ def detection_options(cam: CameraFile) -> DetectionOptions:
     return DetectionOptions.for_real_images(polarity=cam.polarity)
 
 
-def detect_image(image: np.ndarray, cam: CameraFile) -> tuple[Detections, list[dict]]:
-    """Detect the dots and coded targets of one image; returns the dots and the contract's detection list."""
-    det = detect_dots(image, detection_options(cam))
+def detect_targets(image: np.ndarray, cam: CameraFile):
+    """Dots and coded targets of one image.
+
+    Returns ``(det, code, keep, aruco_ids, aruco_centres)``: the detections, each one's ring code (-1: none),
+    which of them are targets (not pieces of a code ring, not inside an ArUco marker), and the ArUco
+    markers found. With ring codes and ``polarity = "auto"`` both polarities are tried and the one that
+    reads more codes is kept: the blob count that decides otherwise can be won by a cluttered room
+    around a small sheet (decision 0014).
+    """
+    from cell.stages.imaging import MARKER_GROW, inside_any
+
+    opts = detection_options(cam)
+    det = detect_dots(image, opts)
+    ids, centres = np.zeros(0, dtype=int), np.zeros((0, 2))
     code = np.full(len(det), -1)
     keep = np.ones(len(det), dtype=bool)
-    out: list[dict] = []
     if cam.coded_family in RING_FAMILIES:
         rc = decode_ring_codes(image, det, cam.coded_family)
+        if cam.polarity == "auto":
+            other = detect_dots(image, replace(opts, polarity="dark" if det.polarity == "bright" else "bright"))
+            rc_other = decode_ring_codes(image, other, cam.coded_family)
+            if len(rc_other) > len(rc):
+                det, rc = other, rc_other
+                code = np.full(len(det), -1)
+                keep = np.ones(len(det), dtype=bool)
         keep &= ~rc.ring_parts(det.uv)
         code[rc.index] = rc.code
         keep[rc.index] = True
     elif cam.coded_family == "aruco":
-        from cell.stages.imaging import MARKER_GROW, inside_any
-
         ids, corners, centres = detect_coded_targets(image)
         keep &= ~inside_any(det.uv, corners, grow=MARKER_GROW)
+    return det, code, keep, ids, centres
+
+
+def detect_image(image: np.ndarray, cam: CameraFile) -> tuple[Detections, list[dict]]:
+    """Detect the dots and coded targets of one image; returns the dots and the contract's detection list."""
+    det, code, keep, ids, centres = detect_targets(image, cam)
+    out: list[dict] = []
+    if cam.coded_family == "aruco":
         for i, c in zip(ids, centres):
             out.append({"u": float(c[0]), "v": float(c[1]), "cov": (ARUCO_SIGMA_PX**2 * np.eye(2)).tolist(),
                         "polarity": det.polarity, "code": int(i), "family": "aruco"})

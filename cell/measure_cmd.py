@@ -36,10 +36,9 @@ from calibration.bundle import BundleConfig, BundleOptions, ControlPoints, bundl
 from calibration.camera import Intrinsics, make_pose, project
 from calibration.errors import CalibrationError, InputError
 from calibration.planar import exif_camera, plane_frame, planar_calibration
-from calibration.ringcodes import RING_FAMILIES, decode_ring_codes
-from calibration.targets import detect_coded_targets, identify_targets, refine_pose_pnp
+from calibration.targets import identify_targets, refine_pose_pnp
 from cell.camerafile import CameraFile, camera_toml, load_camera_file
-from cell.detect_cmd import IMAGE_SUFFIXES, detection_options, read_image
+from cell.detect_cmd import IMAGE_SUFFIXES, detect_targets, read_image
 from planning.part import UNITS_TO_M, Targets, load_targets
 
 __all__ = ["measure_folder", "measure_command", "calibrate_camera_command", "load_control"]
@@ -121,22 +120,8 @@ def prior_intrinsics(cam: CameraFile, first: Path, width: int, height: int) -> t
 
 
 def _detect(path: Path, cam: CameraFile) -> tuple[_Image, tuple[int, int]]:
-    from calibration.dots import detect_dots
-    from cell.stages.imaging import MARKER_GROW, inside_any
-
     img = read_image(path)
-    det = detect_dots(img, detection_options(cam))
-    keep = np.ones(len(det), dtype=bool)
-    code = np.full(len(det), -1)
-    a_ids, a_uv = np.zeros(0, dtype=int), np.zeros((0, 2))
-    if cam.coded_family in RING_FAMILIES:
-        rc = decode_ring_codes(img, det, cam.coded_family)
-        keep &= ~rc.ring_parts(det.uv)
-        code[rc.index] = rc.code
-        keep[rc.index] = True
-    else:
-        a_ids, corners, a_uv = detect_coded_targets(img)
-        keep &= ~inside_any(det.uv, corners, grow=MARKER_GROW)
+    det, code, keep, a_ids, a_uv = detect_targets(img, cam)
     return _Image(path.name, det.uv[keep], code[keep], a_ids, a_uv), (img.shape[1], img.shape[0])
 
 
