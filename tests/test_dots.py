@@ -116,3 +116,13 @@ def test_large_dots_get_a_kernel_that_holds_them():
     det = detect_dots(img, REAL)
     j, d = _match(uv, det.uv)
     assert len(det) == 4 and d.max() < 0.05
+
+
+def test_a_job_camera_section_chooses_the_detector_settings():
+    from types import SimpleNamespace
+
+    from cell.stages.imaging import detection_options
+
+    o = detection_options(SimpleNamespace(polarity="dark", detection="photograph"))
+    assert o == DetectionOptions.for_real_images(polarity="dark")
+    assert detection_options(SimpleNamespace(polarity="bright", detection="cell")) == DetectionOptions()
