@@ -16,7 +16,7 @@ gives the typical dot size that the background kernel then adapts to.
 4. Centre: the intensity-weighted centroid of the blob grown by a margin, over a plane fitted to
    a ring of background pixels around it, each pixel weighted by the dot's share of it
    (decision 0007), or (``centre="ellipse"``) an ellipse fitted to the blob's sub-pixel
-   half-level contour. Decision 0014 compares both on tilted, blurred renders.
+   half-level contour. Decision 0015 compares both on tilted, blurred renders.
 5. ``cov``: each centre's 2x2 covariance in px^2 propagated from the pixel noise (the centroid is
    linear in the grey levels), plus ``cov_floor_px^2`` on the diagonal.
 

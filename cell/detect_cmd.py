@@ -54,7 +54,7 @@ def detect_targets(image: np.ndarray, cam: CameraFile):
     which of them are targets (not pieces of a code ring, not inside an ArUco marker), and the ArUco
     markers found. With ring codes and ``polarity = "auto"`` both polarities are tried and the one that
     reads more codes is kept: the blob count that decides otherwise can be won by a cluttered room
-    around a small sheet (decision 0014).
+    around a small sheet (decision 0015).
     """
     from cell.stages.imaging import MARKER_GROW, inside_any
 

@@ -107,7 +107,7 @@ class CameraSection(_Strict):
         default="bright", description="bright: retro-reflective dots; dark: printed dots on a light ground; auto: per image")
     detection: Literal["cell", "photograph"] = Field(
         default="cell", description="cell: fixed 41 px background kernel (the lit cell's images); photograph: kernel, "
-                                    "size limits and local half-maximum threshold found per image (docs/decisions/0014)")
+                                    "size limits and local half-maximum threshold found per image (docs/decisions/0015)")
     observation_weights: Literal["incidence", "equal"] = Field(
         default="incidence",
         description="incidence: estimate one image sigma per incidence class (< 50, 50-70, >= 70 deg) in the "
