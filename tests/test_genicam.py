@@ -2,7 +2,7 @@
 
 The producer is the simulated one shipped in the ``genicam`` package (EMVA's "Viky": three
 free-running cameras, Mono8/RGBa8, frame ids, no exposure/gain/trigger nodes); docs/decisions
-0014-hw-genicam.md says why this one and not pylon's emulator. Nothing of harvesters is mocked.
+0016-hw-genicam.md says why this one and not pylon's emulator. Nothing of harvesters is mocked.
 """
 from __future__ import annotations
 
