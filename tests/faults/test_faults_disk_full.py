@@ -8,6 +8,7 @@ from __future__ import annotations
 import errno
 import json
 import os
+from pathlib import Path
 
 import pytest
 
@@ -84,3 +85,38 @@ def test_disk_full_at_each_phase_is_one_line_and_the_job_resumes_with_nothing_lo
     assert sorted(p.name for p in (folder / "images").iterdir()) == sorted(r["image"][7:] for r in standing.values())
     assert not list(folder.rglob(".*.tmp*"))
     assert cell_main(["archive", "verify", folder.name, "--archive", str(archive)]) == 0, capsys.readouterr().err
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(900)
+def test_small_filesystem_fills_during_acquisition_then_the_job_resumes_once_it_grows(tmp_path):
+    """A real full disk: the archive on a 12 MiB tmpfs (made by the test; root only), grown after the fault."""
+    from jobutil import job_variant, run_cell
+
+    mnt = tmp_path / "small"
+    mnt.mkdir()
+    if os.geteuid() != 0 or os.system(f"mount -t tmpfs -o size=12m tmpfs {mnt} 2>/dev/null") != 0:
+        pytest.skip("making a small file system needs root and mount")
+    try:
+        job = job_variant(tmp_path / "job")
+        archive = mnt / "archive"
+        r = run_cell("run", str(job), "--archive", str(archive), timeout=400)
+        assert r.code == 1 and "Traceback" not in r.stderr, r.stderr[-3000:]
+        assert r.doc["status"] == "FAULTED" and "No space left on device" in r.doc["reason"], r.doc
+        folder = Path(r.doc["folder"])
+        standing = acquired(records(folder))
+        n_stations = len(json.loads((folder / "plan.json").read_text())["stations"])
+        assert 0 < len(standing) < n_stations, "the disk did not fill during acquisition"
+        for rec in standing.values():
+            assert sha256_file(folder / rec["image"]) == rec["sha256"]
+        assert os.system(f"mount -o remount,size=300m {mnt}") == 0
+        r = run_cell("resume", folder.name, "--archive", str(archive), "--yes", timeout=400)
+        assert r.code == 0 and r.doc["status"] == "DONE", r.stderr[-3000:]
+        recs = records(folder)
+        done = [x["station"] for x in recs if x["event"] == "station_done"]
+        assert sorted(acquired(recs)) == sorted(set(done)) and len(acquired(recs)) == n_stations
+        assert sorted(done) == sorted(set(done)), "a station stored before the fault was taken again"
+        verify = run_cell("archive", "verify", folder.name, "--archive", str(archive))
+        assert verify.code == 0 and verify.doc["intact"], verify.doc
+    finally:
+        os.system(f"umount {mnt}")
