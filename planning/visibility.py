@@ -188,25 +188,33 @@ def geometric_visibility(
     target_diameter_m: float,
     options: VisibilityOptions,
 ) -> np.ndarray:
-    """Every test but occlusion, for ``part_from_cam: (m, 4, 4)`` x ``xyz: (n, 3)``; (m, n) bool."""
+    """Every test but occlusion, for ``part_from_cam: (m, 4, 4)`` x ``xyz: (n, 3)``; (m, n) bool.
+
+    The cheap tests (incidence angle, depth of field, target size) run on every pair as matrix
+    products; the projection into the image only on the pairs that pass them.
+    """
     T = np.asarray(part_from_cam, dtype=float).reshape(-1, 4, 4)
+    xyz = np.asarray(xyz, dtype=float)
+    normals = np.asarray(normals, dtype=float)
     cam_from_part = invert(T)
     R, t = cam_from_part[:, :3, :3], cam_from_part[:, :3, 3]
-    Xc = np.einsum("mij,nj->mni", R, xyz) + t[:, None, :]
-    z = Xc[..., 2]
-    front = z > 1e-9
-    zs = np.where(front, z, 1.0)
-    xy = Xc[..., :2] / zs[..., None]
-    xyd = intr.distort(xy.reshape(-1, 2)).reshape(xy.shape)
-    uv = np.stack([intr.fx_px * xyd[..., 0] + intr.cx_px, intr.fy_px * xyd[..., 1] + intr.cy_px], axis=-1)
-    ok = front & intr.in_image(uv, options.margin_px)
-    ok &= (z >= options.near_m) & (z <= options.far_m)
-    ok &= target_diameter_m * intr.fx_px / zs >= options.min_target_px
     eye = T[:, :3, 3]
-    sight = eye[:, None, :] - xyz[None, :, :]
-    dist = np.linalg.norm(sight, axis=-1)
-    cos_inc = np.einsum("mnj,nj->mn", sight, normals) / np.maximum(dist, 1e-12)
-    ok &= cos_inc >= np.cos(options.incidence_max_rad)
+    # incidence: (eye - x) . n >= cos(max) |eye - x|
+    sn = eye @ normals.T - np.sum(xyz * normals, axis=1)[None, :]
+    d2 = np.sum(eye**2, axis=1)[:, None] - 2.0 * (eye @ xyz.T) + np.sum(xyz**2, axis=1)[None, :]
+    ok = sn >= np.cos(options.incidence_max_rad) * np.sqrt(np.maximum(d2, 1e-24))
+    z = R[:, 2, :] @ xyz.T + t[:, 2:3]
+    ok &= (z > 1e-9) & (z >= options.near_m) & (z <= options.far_m)
+    ok &= target_diameter_m * intr.fx_px >= options.min_target_px * np.where(z > 1e-9, z, np.inf)
+    ci, ti = np.nonzero(ok)
+    if len(ci):
+        zc = z[ci, ti]
+        xn = (R[:, 0, :] @ xyz.T + t[:, 0:1])[ci, ti] / zc
+        yn = (R[:, 1, :] @ xyz.T + t[:, 1:2])[ci, ti] / zc
+        xyd = intr.distort(np.stack([xn, yn], axis=1))
+        uv = np.stack([intr.fx_px * xyd[:, 0] + intr.cx_px, intr.fy_px * xyd[:, 1] + intr.cy_px], axis=-1)
+        out = ~intr.in_image(uv, options.margin_px)
+        ok[ci[out], ti[out]] = False
     return ok
 
 
