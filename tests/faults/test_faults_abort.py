@@ -138,3 +138,37 @@ def test_abort_by_sigterm_sigint_and_console_stops_the_arm_within_its_stopping_t
     assert not abort_job(folder.name, "console")  # nothing runs any more
     print("\narm at rest after the abort: " + ", ".join(f"{k} {v:.3f} s" for k, v in took.items())
           + f" (stopping time at 1 rad/s: {1.0 / STOP_DECEL:.3f} s)")
+
+
+@pytest.mark.timeout(300)
+def test_console_abort_of_a_job_in_another_process_ends_it_aborted_with_the_arm_at_rest(tmp_path):
+    """abort_job(id, archive_root=...) reaches a job run by another process (the pid in its lock)."""
+    from cell.job import abort_job
+
+    job = job_variant(tmp_path / "job", {"sim": {"motion": "timed", "time_scale": 1.0},
+                                         "planning": {"generations": 20, "population": 24}})
+    archive = tmp_path / "archive"
+    proc = subprocess.Popen([*cell_command(), "run", str(job), "--archive", str(archive), "--json"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=child_env())
+    try:
+        end = time.monotonic() + 200
+        folder = None
+        while time.monotonic() < end and proc.poll() is None:
+            dirs = [d for d in archive.iterdir() if d.is_dir() and not d.name.startswith(".")] if archive.exists() else []
+            if dirs and any(r["event"] == "station_start" for r in records(dirs[0])):
+                folder = dirs[0]
+                break
+            time.sleep(0.02)
+        assert folder is not None, "the job never started a station"
+        assert abort_job(folder.name, "console", archive_root=archive)
+        out, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 130 and "Traceback" not in err, err[-3000:]
+    assert json.loads(out)["status"] == "ABORTED"
+    recs = records(folder)
+    assert [r for r in recs if r["event"] == "robot_stopped"][-1]["abort_reason"] == "SIGTERM"
+    assert recs[-1]["event"] == "terminal" and recs[-1]["status"] == "ABORTED"
+    assert not abort_job(folder.name, "console", archive_root=archive)  # nothing runs it any more
