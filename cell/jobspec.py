@@ -59,6 +59,8 @@ class ScaleBar(_Strict):
     def _two_targets(self):
         if self.a == self.b:
             raise ValueError(f"a scale bar joins two different targets; a = b = {self.a!r}")
+        if self.sigma >= self.length:
+            raise ValueError(f"the scale bar's sigma ({self.sigma}) must be below its length ({self.length})")
         return self
 
 
@@ -78,7 +80,7 @@ class JobSection(_Strict):
     coded_family: Literal["aruco", "ring12", "ring14", "schneider12", "schneider14", "cct8", "cct12"] = Field(
         default="aruco", description="the coded targets the part carries: ArUco DICT_4X4_250 markers, or ring codes "
                                      "(a centre dot of target_diameter in a coded ring; calibration.ringcodes)")
-    seed: int = 0
+    seed: int = Field(default=0, ge=0, lt=2**63, description="random seed (a non-negative integer)")
     scale_bar: ScaleBar | None = None
 
     @model_validator(mode="after")
@@ -247,7 +249,7 @@ class ReportSection(_Strict):
 
 class SimSection(_Strict):
     image_sigma_px: float = Field(default=0.03, ge=0, le=10)
-    seed: int = 0
+    seed: int = Field(default=0, ge=0, lt=2**63, description="random seed (a non-negative integer)")
     deviations: str | None = Field(default=None, description="CSV id,dx,dy,dz in job units")
     motion: Literal["instant", "timed"] = "instant"
     time_scale: float = Field(default=1.0, gt=0, le=1000)
