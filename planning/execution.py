@@ -394,13 +394,14 @@ def validate_plan(
 
     # 2-3. order and branch choice, refined in turn
     nodes_q = [start[None]] + cand
-    cost = np.zeros((k + 1, k + 1))
-    for a in range(k + 1):
-        for b in range(k + 1):
-            if a != b:
-                d = nodes_q[b][None, :, :] - nodes_q[a][:, None, :]
-                d = np.pi - np.mod(np.pi - d, 2 * np.pi)
-                cost[a, b] = float(np.min(move_time(d, speed, accel)))
+    # every branch of every node against every other at once: cost = the fastest pair of branches
+    allq = np.concatenate(nodes_q)
+    node = np.repeat(np.arange(k + 1), [len(c) for c in nodes_q])
+    d = allq[None, :, :] - allq[:, None, :]
+    pair = move_time(np.pi - np.mod(np.pi - d, 2 * np.pi), speed, accel)  # (B, B)
+    first = np.searchsorted(node, np.arange(k + 1))  # nodes are contiguous runs of branches
+    cost = np.minimum.reduceat(np.minimum.reduceat(pair, first, axis=0), first, axis=1)
+    np.fill_diagonal(cost, 0.0)
     seq = [s - 1 for s in _tour(cost, lim.return_to_start)]
     forbidden: set[tuple[int, int, int]] = set()
     choice, _ = _viterbi([cand[s] for s in seq], start, lim.return_to_start, speed, accel, forbidden, wrap=True)
