@@ -18,7 +18,6 @@ from dataclasses import replace
 import numpy as np
 
 from planning.planner.final import _exact_variants
-from planning.planner.options import PlannerOptions
 from planning.planner.search import _Found, _Search, _search_fixed
 from planning.polish import polish
 from planning.refine import _sigma6
