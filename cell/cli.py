@@ -131,12 +131,16 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--archive", type=Path, default=Path("archive"))
     c.add_argument("--backend", choices=["sim", "ur"], help="override the job file's [cell] backend")
     c.add_argument("--yes", action="store_true", help="confirm moving the robot without asking")
+    c.add_argument("--serial", help="the part's serial number (goes into the report and the archive)")
+    c.add_argument("--operator", help="who runs the job (default: the login name)")
+    c.add_argument("--cell-id", help="this cell's id (default: $CELL_ID)")
     c.set_defaults(func=cmd_run)
 
     c = sub.add_parser("resume", parents=[common], help="resume a faulted or interrupted job")
     c.add_argument("job_id")
     c.add_argument("--archive", type=Path, default=Path("archive"))
     c.add_argument("--yes", action="store_true", help="confirm resuming from the measured robot pose")
+    c.add_argument("--operator", help="who resumes the job (default: the login name)")
     c.set_defaults(func=cmd_resume)
 
     c = sub.add_parser("locate", parents=[common], help="estimate where the part sits (base_from_part) from a few images")

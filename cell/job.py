@@ -24,6 +24,7 @@ from cell.record.archive import Archive
 from cell.record.jobfolder import JobFolder, atomic_write_bytes, atomic_write_json, new_job_id
 from cell.stages import STAGE_FUNCTIONS
 from cell.loadedjob import LoadedJob, load
+from cell.record.runinfo import make_run_info, read_run_info, write_run_info
 from cell.record.runlog import RunLog, next_log_path
 from cell.states import STAGES, State, check_transition
 
@@ -121,14 +122,18 @@ class JobRunner:
         self.folder = JobFolder(dst)
         self.staged = False
         recs = list(self.folder.records())
+        info = read_run_info(self.folder.path)
         self.archive.record(self.folder.job_id, name=self.job.spec.job.name, part=self.job.part.name,
-                            status=self.state.value, started=recs[0]["t"] if recs else None)
+                            status=self.state.value, started=recs[0]["t"] if recs else None,
+                            part_number=info["part"]["number"], serial=info["part"]["serial"],
+                            operator=info["operator"], cell_id=info["cell_id"])
 
     def run(self, start: State, resumed_from: State | None = None) -> JobResult:
         log = RunLog(next_log_path(self.folder.path))
         ctx = Context(job=self.job, folder=self.folder, log=log, backend=self.backend,
                       progress=self.out.progress, say=self.out.say)
         self.state = resumed_from or State.CREATED
+        log.job(self.folder.job_id, read_run_info(self.folder.path))
         old_term = signal.getsignal(signal.SIGTERM)
 
         def _sigterm(signum, frame):
@@ -187,9 +192,15 @@ class JobRunner:
                 self.folder.append("note", text=f"robot stop after fault failed: {exc}")
 
 
-def start_job(job_path: Path, archive_root: Path, backend: str | None, out) -> JobResult:
-    """``cell run``: LOAD (before anything is written), then the whole job."""
+def start_job(job_path: Path, archive_root: Path, backend: str | None, out, *, serial: str | None = None,
+              operator: str | None = None, cell_id: str | None = None) -> JobResult:
+    """``cell run``: LOAD (before anything is written), then the whole job.
+
+    ``serial`` (the part's serial number), ``operator`` and ``cell_id`` (default: ``$CELL_ID``) go
+    into the job's run.json, its journal, run log, report and archive row.
+    """
     job = load(job_path)  # bad input fails here, before any folder exists
+    info = make_run_info(job.spec, serial, operator, cell_id)  # a bad serial fails here too
     archive = Archive(Path(archive_root).resolve())
     job_id = new_job_id(job.spec.job.name)
     incoming = archive.root / ".incoming" / job_id
@@ -202,15 +213,17 @@ def start_job(job_path: Path, archive_root: Path, backend: str | None, out) -> J
     folder = JobFolder(incoming)
     lock = folder.lock()
     try:
-        return _start_staged(job_path, job, archive, folder, job_id, backend, out)
+        return _start_staged(job_path, job, archive, folder, job_id, backend, out, info)
     finally:
         os.close(lock)
 
 
 def _start_staged(job_path: Path, job: LoadedJob, archive: Archive, folder: JobFolder, job_id: str,
-                  backend: str | None, out) -> JobResult:
+                  backend: str | None, out, info: dict) -> JobResult:
     incoming = folder.path
-    folder.append("created", name=job.spec.job.name, job_file=str(job_path), backend=backend or job.spec.cell.backend)
+    write_run_info(incoming, info)
+    folder.append("created", name=job.spec.job.name, job_file=str(job_path), backend=backend or job.spec.cell.backend,
+                  **info)
     _copy_inputs(job, incoming)
     # the staged copy is what runs; messages name the operator's job file
     job = dataclasses.replace(load_from_folder(incoming), path=Path(job_path))
@@ -219,18 +232,18 @@ def _start_staged(job_path: Path, job: LoadedJob, archive: Archive, folder: JobF
     return runner.run(State.LOAD)
 
 
-def resume_job(job_id: str, archive_root: Path, out) -> JobResult:
-    """``cell resume``: continue from the first stage that did not finish."""
+def resume_job(job_id: str, archive_root: Path, out, *, operator: str | None = None) -> JobResult:
+    """``cell resume``: continue from the first stage that did not finish (``operator``: who resumes it)."""
     archive = Archive(Path(archive_root).resolve())
     folder = archive.folder(job_id)
     lock = folder.lock()  # refuses a job still running in another process
     try:
-        return _resume_locked(job_id, archive, folder, out)
+        return _resume_locked(job_id, archive, folder, out, operator)
     finally:
         os.close(lock)
 
 
-def _resume_locked(job_id: str, archive: Archive, folder: JobFolder, out) -> JobResult:
+def _resume_locked(job_id: str, archive: Archive, folder: JobFolder, out, operator: str | None = None) -> JobResult:
     recs = list(folder.records())
     done = {r["stage"] for r in recs if r["event"] == "stage_done"}
     last_state = next((State(r["to"]) for r in reversed(recs) if r["event"] == "state"), State.CREATED)
@@ -248,7 +261,7 @@ def _resume_locked(job_id: str, archive: Archive, folder: JobFolder, out) -> Job
         last_state = State.FAULTED
     job = load_from_folder(folder.path)
     backend = next((r.get("backend") for r in recs if r["event"] == "created"), job.spec.cell.backend)
-    folder.append("resumed", stage=start.value)
+    folder.append("resumed", stage=start.value, **({"operator": operator} if operator else {}))
     partial = folder.remove_partial_files()
     if partial:
         folder.append("note", text=f"removed {len(partial)} partial file(s) of an interrupted write: {', '.join(partial)}")

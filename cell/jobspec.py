@@ -58,6 +58,8 @@ class JobSection(_Strict):
     coded_size: float = Field(default=20.0, gt=0, description="ArUco marker side, job units")
     seed: int = 0
     scale_bar: ScaleBar | None = None
+    number: str | None = Field(default=None, max_length=80, description="the part number (drawing), e.g. 'BR-1002'")
+    revision: str | None = Field(default=None, max_length=40, description="the part's drawing revision")
 
     @model_validator(mode="after")
     def _targets_or_count(self):

@@ -13,6 +13,7 @@ import numpy as np
 
 from calibration.errors import InputError
 from cell.record.jobfolder import JobFolder
+from cell.record.runinfo import read_run_info
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS jobs (
@@ -26,9 +27,15 @@ CREATE TABLE IF NOT EXISTS jobs (
     failed INTEGER,
     sigma0_px REAL,
     verdict TEXT,
-    folder TEXT NOT NULL
+    folder TEXT NOT NULL,
+    part_number TEXT,
+    serial TEXT,
+    operator TEXT,
+    cell_id TEXT
 );
 """
+#: columns added after the first release: an index written before them gets them on open
+_ADDED = ("part_number", "serial", "operator", "cell_id")
 
 
 class Archive:
@@ -42,6 +49,10 @@ class Archive:
         con = sqlite3.connect(self.root / "index.sqlite", timeout=10)
         con.execute("PRAGMA journal_mode=WAL")
         con.executescript(_SCHEMA)
+        have = {r[1] for r in con.execute("PRAGMA table_info(jobs)")}
+        for col in _ADDED:
+            if col not in have:
+                con.execute(f"ALTER TABLE jobs ADD COLUMN {col} TEXT")
         return con
 
     def folder(self, job_id: str) -> JobFolder:
@@ -85,7 +96,9 @@ class Archive:
             status = next((r["to"] for r in reversed(recs) if r["event"] == "state"), "CREATED")
             start = recs[0]["t"] if recs else None
             name = next((r.get("name") for r in recs if r["event"] == "created"), d.name)
-            fields = {"name": name, "status": status, "started": start}
+            info = read_run_info(d)
+            fields = {"name": name, "status": status, "started": start, "part_number": info["part"]["number"],
+                      "serial": info["part"]["serial"], "operator": info["operator"], "cell_id": info["cell_id"]}
             rep = d / "report.json"
             if rep.exists():
                 doc = json.loads(rep.read_text())

@@ -177,7 +177,12 @@ def render_html(doc: dict, figures: dict[str, str]) -> str:
     stages = "".join(f"<tr><td class=l>{html.escape(k)}</td><td>{v:.2f}</td></tr>" for k, v in doc["stage_times_s"].items())
     figs = "".join(f'<img alt="{html.escape(k)}" src="data:image/png;base64,{v}">' for k, v in figures.items())
     facts = {
-        "Job": j["id"], "Part": j.get("part", ""), "Seed": j["seed"], "Started": j["started"],
+        "Job": j["id"], "Part": j.get("part", ""),
+        "Part number / revision": " / ".join(str(v) for v in ((doc.get("part") or {}).get("number"),
+                                                              (doc.get("part") or {}).get("revision")) if v) or "\u2014",
+        "Serial number": (doc.get("part") or {}).get("serial") or "\u2014",
+        "Operator": doc.get("operator") or "\u2014", "Cell": doc.get("cell_id") or "\u2014",
+        "Seed": j["seed"], "Started": j["started"],
         "Finished": j["finished"], "Images": doc["images"], "sigma0 [px]": f"{doc['sigma0_px']:.3f}",
         "Datum": doc.get("datum", ""), "Cell calibration": doc.get("cell_calibration", {}).get("status", "unknown"),
         "Versions": ", ".join(f"{k} {v}" for k, v in j["versions"].items()),

@@ -85,6 +85,14 @@ def conformance(deviation: np.ndarray, deviation_cov: np.ndarray, tol: np.ndarra
     return U, [str(x) if m else None for x, m in zip(decision, ok)]
 
 
+def _run_info(folder) -> dict:
+    """report.json's ``part`` {number, revision, serial}, ``operator``, ``cell_id`` (null when unknown)."""
+    from cell.record.runinfo import read_run_info
+
+    info = read_run_info(folder)
+    return {"part": info["part"], "operator": info["operator"], "cell_id": info["cell_id"]}
+
+
 def write_report(ctx) -> str:
     job = ctx.job
     f = ctx.folder
@@ -139,6 +147,7 @@ def write_report(ctx) -> str:
                 "sim_seed": job.spec.sim.seed if ctx.backend == "sim" else None, "backend": ctx.backend,
                 "status": "DONE", "started": started, "finished": utc_now(), "versions": _versions()},
         "verdict": verdict,
+        **_run_info(f.path),
         "images": len(bundle["images"]),
         "sigma0_px": bundle["sigma0_px"],
         "datum": bundle["datum"],
