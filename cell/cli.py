@@ -106,6 +106,18 @@ def cmd_calibrate(args, out: Output) -> int:
     return calibrate(args, out)
 
 
+def cmd_serve(args, out: Output) -> int:
+    from cell.web.serve import serve
+
+    return serve(args, out)
+
+
+def cmd_users(args, out: Output) -> int:
+    from cell.web.serve import users
+
+    return users(args, out)
+
+
 def build_parser() -> argparse.ArgumentParser:
     common = argparse.ArgumentParser(add_help=False)
     common.add_argument("--json", action="store_true", help="print one JSON document on stdout")
@@ -161,6 +173,24 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("ids", nargs="*")
     c.add_argument("--archive", type=Path, default=Path("archive"))
     c.set_defaults(func=cmd_archive)
+
+    c = sub.add_parser("serve", parents=[common], help="the web console (operator screen, archive, JSON API)")
+    c.add_argument("--host", default="127.0.0.1", help="address to listen on (default: this computer only)")
+    c.add_argument("--port", type=int, default=8765)
+    c.add_argument("--archive", type=Path, default=Path("archive"))
+    c.add_argument("--programs", type=Path, default=Path("programs"),
+                   help="folder of part programs: job files kept as templates (NAME.toml or NAME/job.toml)")
+    c.add_argument("--cell-id", help="this cell's id (default: $CELL_ID)")
+    c.add_argument("--certfile", type=Path, help="TLS certificate (PEM); with --keyfile the console speaks HTTPS only")
+    c.add_argument("--keyfile", type=Path, help="TLS private key (PEM)")
+    c.set_defaults(func=cmd_serve)
+
+    c = sub.add_parser("users", parents=[common], help="console accounts: add (password on stdin), passwd, remove, list")
+    c.add_argument("action", choices=["add", "passwd", "remove", "list"])
+    c.add_argument("name", nargs="?")
+    c.add_argument("--role", choices=["operator", "engineer", "admin"])
+    c.add_argument("--archive", type=Path, default=Path("archive"))
+    c.set_defaults(func=cmd_users)
     return p
 
 
