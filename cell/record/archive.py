@@ -89,8 +89,8 @@ class Archive:
         n = 0
         dirs = [Path(only)] if only is not None else (sorted(self.root.iterdir()) if self.root.exists() else [])
         for d in dirs:
-            if not (d / "journal.jsonl").exists():
-                continue
+            if d.is_symlink() or d.name.startswith(".") or not (d / "journal.jsonl").exists():
+                continue  # a job folder is a real folder in the archive (a link could point anywhere)
             folder = JobFolder(d)
             recs = list(folder.records())
             status = next((r["to"] for r in reversed(recs) if r["event"] == "state"), "CREATED")

@@ -144,10 +144,17 @@ class CellRunner:
             return None
 
     def folder_of(self, job_id: str) -> Path | None:
-        for p in (self.root / job_id, self.root / ".incoming" / job_id):
-            if (p / "journal.jsonl").exists():
-                return p
-        return None
+        """The folder of a job in the archive or still staged in .incoming (None if neither)."""
+        from cell.web.store import NotFound, job_folder
+
+        try:
+            return job_folder(self.root, job_id)
+        except NotFound:
+            pass
+        try:
+            return job_folder(self.root / ".incoming", job_id)
+        except NotFound:
+            return None
 
     # --- stopping -------------------------------------------------------------------
     def abort(self, job_id: str) -> bool:
