@@ -209,6 +209,13 @@ class Console:
 __all__ = ["Busy", "Console", "NotFound"]
 
 
+def default_baseline(n: int) -> int:
+    """Parts whose spread sets the control limits when the user names none: all of them (a retrospective,
+    phase I chart). Naming a reference period (``baseline``: the first k parts) gives phase II limits, which a
+    later drift cannot widen, at the price of a noisier sigma when k is small."""
+    return n
+
+
 def trend(view: ArchiveView, part: str, target: str, axis: str = "norm", baseline: int | None = None) -> dict:
     """A target's trend over serial parts with its I-MR analysis (the API's trend document)."""
     from cell.web.spc import analyse
@@ -217,7 +224,9 @@ def trend(view: ArchiveView, part: str, target: str, axis: str = "norm", baselin
     vals = [p["value_m"] for p in t["points"]]
     if len(vals) < 2:
         raise InputError(f"target {target!r} of part {part!r} has {len(vals)} measurement(s): a trend needs two")
-    if baseline is not None and not 2 <= baseline <= len(vals):
+    if baseline is None:
+        baseline = default_baseline(len(vals))
+    if not 2 <= baseline <= len(vals):
         raise InputError(f"baseline {baseline}: between 2 and {len(vals)} parts")
     a = analyse(vals, t["lsl"], t["usl"], baseline)
     for v in a["violations"]:
