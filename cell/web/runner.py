@@ -71,7 +71,7 @@ class CellRunner:
     def _refuse_if_busy(self) -> None:
         s = self.current
         if s is not None and s.alive():
-            name = s.job_id or f"{Path(s.program).stem} (starting)"
+            name = self.job_id_of(s, wait_s=15.0) or f"{Path(s.program).stem} (starting)"
             raise Busy(f"the cell is running job {name} (started by {s.user}); wait for it to end or abort it")
 
     def _spawn(self, args: list[str], user: str, kind: str) -> Session:
