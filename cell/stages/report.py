@@ -93,6 +93,18 @@ def _run_info(folder) -> dict:
     return {"part": info["part"], "operator": info["operator"], "cell_id": info["cell_id"]}
 
 
+def rejected_mask(bundle: dict) -> np.ndarray:
+    """(n_observations,) bool: the observations the bundle adjustment rejected, found by their residuals
+    (bundle.json lists each rejected one with its residual, in the order of ``residuals_px``)."""
+    res = np.asarray(bundle["residuals_px"], dtype=float)
+    mask = np.zeros(len(res), dtype=bool)
+    for r in bundle.get("rejected", []):
+        hit = np.flatnonzero(np.all(res == np.asarray(r["residual_px"], dtype=float), axis=1) & ~mask)
+        if len(hit):
+            mask[hit[0]] = True
+    return mask
+
+
 def write_report(ctx) -> str:
     job = ctx.job
     f = ctx.folder
@@ -165,6 +177,7 @@ def write_report(ctx) -> str:
         "decision_rule": DECISION_RULE,
         "inconclusive": [ids[j] for j in np.flatnonzero(judged) if decision[j] == "inconclusive"],
         "coded_targets": [ids[j] for j in np.flatnonzero(coded)],
+        "rejected_observations": bundle.get("rejected", []),
     }
     figs = {
         "network": R.figure_network(job.part.mesh, np.array([s["part_from_cam"] for s in plan["stations"]]), nominal),
@@ -172,13 +185,22 @@ def write_report(ctx) -> str:
                                           tol[judged], passed[judged]),
         "ellipsoids": R.figure_ellipsoids(job.part.mesh, al.aligned[ok], cov[ok]),
         "sigma": R.figure_sigma(np.array([t["predicted_sigma_m"] for t in targets], dtype=float), achieved[judged]),
-        "residuals": R.figure_residuals(np.asarray(bundle["residuals_px"], dtype=float)),
+        "residuals": R.figure_residuals(np.asarray(bundle["residuals_px"], dtype=float), rejected_mask(bundle)),
     }
+    from cell.record import figures3d as F3
+
+    stations = np.array([s["part_from_cam"] for s in plan["stations"]])
+    judged_ids = [t for t, j in zip(ids, judged) if j]
+    interactive = F3.html_block({
+        "deviations": F3.deviations_3d(job.part.mesh, nominal[judged], judged_ids, dev_norm[judged], tol[judged],
+                                       passed[judged]),
+        "network": F3.network_3d(job.part.mesh, stations, nominal, list(ids)),
+    })
     # the REPORT stage's own time is not known yet: the report lists the stages before it
     atomic_write_json(f.file("report.json"), doc)
     from cell.record.jobfolder import to_jsonable
 
-    atomic_write_bytes(f.file("report.html"), R.render_html(to_jsonable(doc), figs).encode())
+    atomic_write_bytes(f.file("report.html"), R.render_html(to_jsonable(doc), figs, interactive).encode())
     return verdict
 
 
