@@ -149,6 +149,17 @@ class PlanningSection(_Strict):
     generations: int = Field(default=150, ge=1, le=100_000)
     margin_px: float = Field(default=30.0, ge=0)
     lower_bound: bool = Field(default=False, description="also bound how good any network could be (planning.bound)")
+    closed_loop: bool | None = Field(default=None, description="after ADJUST, add stations for targets that miss their "
+                                     "required sigma (default: on when a requirement is set: required_sigma or "
+                                     "mode = 'cheapest')")
+    closed_loop_rounds: int = Field(default=2, ge=1, le=10, description="closed loop: at most this many rounds")
+    closed_loop_max_stations: int = Field(default=8, ge=1, le=100, description="closed loop: extra stations per round")
+
+    def closed_loop_on(self) -> bool:
+        """Whether the CLOSE_LOOP stage adds stations (explicit, or on when a requirement is set)."""
+        if self.closed_loop is not None:
+            return self.closed_loop
+        return self.required_sigma is not None or self.mode == "cheapest"
 
 
 class ReportSection(_Strict):
@@ -167,6 +178,10 @@ class SimSection(_Strict):
     flange_from_cam_error: Pose | None = None
     base_from_part_true: Pose | None = Field(default=None, description="absolute true placement (wins over _error); "
                                              "stays put when `cell locate --write` updates [cell] base_from_part")
+    dot_max_incidence_deg: float | None = Field(default=None, gt=0, le=90, description="glare: dots seen beyond this "
+                                                "incidence are washed out in the simulated images (the plan does not know)")
+    fixture: list[Obstacle] = Field(default=[], description="boxes in the part frame (job units) that hide dots in the "
+                                    "simulated images but are not in the part's CAD (the plan does not know them)")
 
 
 class JobSpec(_Strict):

@@ -34,7 +34,7 @@ solver weights all observations alike, so weighted networks are then iterated to
 optimum by Gauss-Newton on the full normal equations (every datum). Everything downstream
 (sigma0, covariance, redundancy numbers, test statistics) works on the whitened observations.
 
-Modules (docs/decisions/0011-split-layout.md): ``config`` (options, config, result),
+Modules (docs/decisions/0012-split-bundle-planner.md): ``config`` (options, config, result),
 ``adjust`` (the loop above), ``colmap`` (stage 1), ``normal`` (linearised problem), ``datum``
 (stage 2), ``covariance`` (stage 3, the result), ``snooping`` (stage 4's statistics), ``vce``
 (variance components), ``projection``, ``synthetic`` (simulated networks).
