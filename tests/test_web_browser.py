@@ -116,6 +116,13 @@ def test_operator_runs_a_job_with_a_serial_live_to_done_then_report_pdf_csv(site
         page.click("#reportlink")
         page.wait_for_selector("#targets")
         assert page.inner_text("#verdict").startswith(rep["verdict"]) and "SN-4711" in page.inner_text("body")
+        # its 3-D views: drawn when scrolled to, turnable (plotly scenes), targets labelled on hover
+        page.locator("#views3d").scroll_into_view_if_needed()
+        page.wait_for_function("document.body.dataset.fig3d", timeout=90_000)
+        assert page.evaluate("document.body.dataset.fig3d") == "ready"
+        assert page.locator("#fig3d-deviations .gl-container").count() == 1
+        hover = page.evaluate("document.getElementById('fig3d-deviations').data[1].text")
+        assert len(hover) == len(rep["targets"]) and all("|d|" in h and "tol" in h for h in hover)
         # exports: PDF from the same HTML, CSV with one row per target
         pdf = page.request.get(f"{server.url}/api/jobs/{job_id}/report.pdf")
         assert pdf.ok and pdf.body()[:5] == b"%PDF-" and len(pdf.body()) > 20_000

@@ -226,3 +226,27 @@ def test_job_filters_and_roles_of_the_api(app, site):
         # no such program: refused with the reason, nothing started
         r = c.post("/api/jobs", json={"program": "../../etc/passwd", "serial": "X"}, headers=h)
         assert r.status_code == 404
+
+
+def test_engineer_edits_a_part_program_only_when_it_is_a_valid_job_file(site, tmp_path):
+    archive, programs, _ = site
+    import shutil
+
+    from jobutil import EXAMPLE
+
+    prog = programs / "bracket"
+    if not prog.exists():
+        shutil.copytree(EXAMPLE, prog)
+    app = create_app(Config(archive=archive, programs=programs))
+    before = (prog / "job.toml").read_text()
+    with TestClient(app) as c:
+        csrf = _login(c, "eve")
+        r = c.post("/programs/bracket", data={"csrf": csrf, "text": before.replace("[camera]", "[camera]\nzoom = 2")})
+        assert r.status_code == 400 and "unknown key 'camera.zoom'" in r.text
+        assert (prog / "job.toml").read_text() == before  # nothing written
+        new = before.replace('name = "bracket"', 'name = "bracket"\nnumber = "BR-7"')
+        r = c.post("/programs/bracket", data={"csrf": csrf, "text": new}, follow_redirects=False)
+        assert r.status_code == 303 and (prog / "job.toml").read_text() == new
+        assert c.get("/api/programs").json()["programs"] == ["bracket"]
+        assert c.get("/api/audit").json()["audit"][0]["action"] == "edit program"
+        assert c.post("/programs/../etc", data={"csrf": csrf, "text": new}).status_code in (404, 405)

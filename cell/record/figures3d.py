@@ -2,8 +2,8 @@
 
 The figures are plain plotly JSON (traces and layout) built here from numpy arrays; plotly.js itself
 is embedded once per report, gzip-compressed and base64-encoded (about 1.4 MB instead of 4.6 MB),
-and unpacked in the browser with the standard DecompressionStream, so the report still opens
-offline as one file. A person can turn, zoom and hover (target id, deviation, tolerance).
+and unpacked in the browser with the standard DecompressionStream when the 3-D section scrolls into
+view, so the report still opens offline as one file, and at once. A person can turn, zoom and hover (target id, deviation, tolerance).
 """
 from __future__ import annotations
 
@@ -100,17 +100,23 @@ def html_block(figures: dict[str, dict]) -> str:
         return ""
     divs = "".join(f'<div class="fig3d" id="fig3d-{k}"></div>' for k in figures)
     specs = json.dumps(figures, separators=(",", ":"), allow_nan=False).replace("</", "<\\/")
-    return f"""<h2 class="noprint">3-D views</h2><div class="noprint">{divs}</div>
+    return f"""<h2 class="noprint">3-D views</h2><div class="noprint" id="views3d">{divs}</div>
 <script id="plotly-gz" type="application/octet-stream">{payload}</script>
 <script>
-(async function () {{
+(function () {{
   const FIGS = {specs};
-  try {{
-    const raw = Uint8Array.from(atob(document.getElementById('plotly-gz').textContent), c => c.charCodeAt(0));
-    const js = await new Response(new Blob([raw]).stream().pipeThrough(new DecompressionStream('gzip'))).text();
-    const s = document.createElement('script'); s.textContent = js; document.head.appendChild(s);
-    for (const [k, f] of Object.entries(FIGS)) Plotly.newPlot('fig3d-' + k, f.data, f.layout, {{responsive: true}});
-    document.body.dataset.fig3d = 'ready';
-  }} catch (e) {{ document.body.dataset.fig3d = 'failed: ' + e; }}
+  let started = false;
+  async function draw() {{  // unpacked and drawn when the section comes into view: a long report opens at once
+    if (started) return; started = true;
+    try {{
+      const raw = Uint8Array.from(atob(document.getElementById('plotly-gz').textContent), c => c.charCodeAt(0));
+      const js = await new Response(new Blob([raw]).stream().pipeThrough(new DecompressionStream('gzip'))).text();
+      const s = document.createElement('script'); s.textContent = js; document.head.appendChild(s);
+      for (const [k, f] of Object.entries(FIGS)) Plotly.newPlot('fig3d-' + k, f.data, f.layout, {{responsive: true}});
+      document.body.dataset.fig3d = 'ready';
+    }} catch (e) {{ document.body.dataset.fig3d = 'failed: ' + e; }}
+  }}
+  const box = document.getElementById('views3d');
+  new IntersectionObserver(es => {{ if (es.some(e => e.isIntersecting)) draw(); }}, {{rootMargin: '300px'}}).observe(box);
 }})();
 </script>"""

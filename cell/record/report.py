@@ -243,11 +243,11 @@ def render_html(doc: dict, figures: dict[str, str], interactive: str = "") -> st
 <h2>Job</h2><table class="kv">{kv}</table>
 <h2>Figures</h2><div class="figs">{figs}</div>
 {_rejected_table(doc)}
-{interactive}
 <h2>Targets</h2>
 <table id="targets"><tr><th>id</th><th>x [mm]</th><th>y [mm]</th><th>z [mm]</th><th>dx [um]</th><th>dy [um]</th>
 <th>dz [um]</th><th>|d| [um]</th><th>tol [um]</th><th>U (k=2) [um]</th><th>sigma [um]</th><th>predicted [um]</th><th>images</th><th></th></tr>
 {''.join(rows)}</table>
 {_closed_loop_html(doc)}<h2>Time per stage</h2><table class="kv">{stages}</table>
+{interactive}
 </body></html>
 """

@@ -139,11 +139,19 @@ class Console:
     def status(self, job_id: str) -> dict:
         """The API's job document: {id, state, stage, progress, verdict} and what the live view shows."""
         folder = self.runner.folder_of(job_id)
+        s = self.runner.session_of(job_id)
+        if folder is None and s is not None and not s.alive():
+            # refused for bad input before it reached the archive (a part out of reach...): nothing was kept
+            doc = self.runner.result(s) or {}
+            reason = doc.get("message") or doc.get("reason") or "; ".join(self.runner.log_lines(s, 2))
+            return {"id": job_id, "state": "FAULTED", "stage": None, "progress": 0.0, "verdict": None,
+                    "running": False, "reason": reason, "advice": operator_advice(reason), "time_left_s": None,
+                    "stations_done": 0, "stations": None, "flange_xyz_m": [], "latest_image": None,
+                    "log": self.runner.log_lines(s, 30), "kept": False}
         if folder is None:
             job_folder(self.root, job_id)  # NotFound for anything that is not a job
             raise NotFound(f"no job {job_id!r}")
         live = live_state(folder)
-        s = self.runner.session_of(job_id)
         running = s is not None and s.alive()
         if s is not None and not running and live["state"] not in ("DONE", "FAULTED", "ABORTED"):
             live["state"] = "FAULTED"

@@ -36,7 +36,7 @@
     robot(doc);
     const ended = ['DONE', 'FAULTED', 'ABORTED'].includes(doc.state) && !doc.running;
     show($('abortform'), doc.running);
-    show($('resumeform'), ended && doc.state !== 'DONE');
+    show($('resumeform'), ended && doc.state !== 'DONE' && doc.kept !== false);
     show($('ackform'), ended && doc.state === 'FAULTED');
     show($('signform'), doc.state === 'DONE');
     ['reportlink', 'pdflink', 'csvlink'].forEach(k => show($(k), doc.state === 'DONE'));
