@@ -127,6 +127,8 @@ def test_operator_runs_a_job_with_a_serial_live_to_done_then_report_pdf_csv(site
         pdf = page.request.get(f"{server.url}/api/jobs/{job_id}/report.pdf")
         assert pdf.ok and pdf.body()[:5] == b"%PDF-" and len(pdf.body()) > 20_000
         (tmp_path / "report.pdf").write_bytes(pdf.body())
+        qif = page.request.get(f"{server.url}/api/jobs/{job_id}/report.qif")
+        assert qif.ok and b"<SerialNumber>SN-4711</SerialNumber>" in qif.body() and b"versionQIF=\"3.0.0\"" in qif.body()
         csv = page.request.get(f"{server.url}/api/jobs/{job_id}/report.csv").text().splitlines()
         assert len(csv) == len(rep["targets"]) + 1 and all(",SN-4711," in r for r in csv[1:])
         # the start was audited with who and when, in the journal and the console's audit

@@ -129,6 +129,17 @@ def report_pdf(request: Request, job_id: str, c: Caller = Depends(caller)):
                     headers={"Content-Disposition": f'attachment; filename="{job_id}.pdf"'})
 
 
+@router.get("/jobs/{job_id}/report.qif")
+def report_qif(request: Request, job_id: str, c: Caller = Depends(caller)):
+    from cell.record.qif import qif_results
+
+    rep = _console(request).view.report(job_id)
+    if rep is None:
+        raise HTTPException(404, f"{job_id} has no report (not DONE)")
+    return Response(qif_results(rep, job_id), media_type="application/xml",
+                    headers={"Content-Disposition": f'attachment; filename="{job_id}.qif"'})
+
+
 @router.get("/parts/{part}/targets")
 def part_targets(request: Request, part: str, c: Caller = Depends(caller)):
     return {"part": part, "targets": _console(request).view.job_targets(part)}
