@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import logging
 import re
+import shutil
 from pathlib import Path
 
 import pytest
@@ -250,3 +251,62 @@ def test_engineer_edits_a_part_program_only_when_it_is_a_valid_job_file(site, tm
         assert c.get("/api/programs").json()["programs"] == ["bracket"]
         assert c.get("/api/audit").json()["audit"][0]["action"] == "edit program"
         assert c.post("/programs/../etc", data={"csrf": csrf, "text": new}).status_code in (404, 405)
+
+
+def test_compare_and_reverification_history_pages(app, site):
+    archive, _, ids = site
+    rec = archive / "calibration" / "2026-11-19T07-00-00-reverify"
+    rec.mkdir(parents=True)
+    (rec / "reverification.json").write_text(json.dumps({
+        "cell": "cell-1", "finished": "2026-11-19T07:10:00+00:00", "passed": True, "detail": "3 of 3 within E_MPE",
+        "positions": [{"position": k, "error_m": e, "mpe_m": 30e-6} for k, e in enumerate((4e-6, -7e-6, 11e-6))]}))
+    with TestClient(app) as c:
+        _login(c, "eve")
+        page = c.get("/compare", params={"a": ids[0], "b": ids[1]}).text
+        assert "SN-0001" in page and "SN-0002" in page and page.count("<tr>") >= 6 + 5
+        page = c.get("/reverification").text
+        assert "3 of 3 within E_MPE" in page and "revchart" in page and "1.1e-05" in page
+        assert c.get("/compare", params={"a": ids[0], "b": "../x"}).status_code == 404
+
+
+@pytest.mark.skipif(shutil.which("openssl") is None, reason="no openssl to make a test certificate")
+def test_tls_when_a_certificate_is_configured_and_the_cookie_is_secure(site, tmp_path):
+    import ssl
+    import subprocess
+    import urllib.request
+
+    from webutil import Served
+
+    archive, programs, _ = site
+    key, cert = tmp_path / "key.pem", tmp_path / "cert.pem"
+    subprocess.run(["openssl", "req", "-x509", "-newkey", "rsa:2048", "-nodes", "-keyout", str(key), "-out", str(cert),
+                    "-days", "1", "-subj", "/CN=127.0.0.1"], check=True, capture_output=True, timeout=60)
+    server = Served(archive, programs, tmp_path / "serve.log", ["--certfile", str(cert), "--keyfile", str(key)],
+                    scheme="https")
+    try:
+        ctx = ssl.create_default_context(cafile=str(cert))
+        ctx.check_hostname = False
+        with urllib.request.urlopen(server.url + "/login", context=ctx, timeout=30) as r:
+            assert r.status == 200 and b'id="login"' in r.read()
+        req = urllib.request.Request(server.url + "/login", method="POST",
+                                     data=f"username=ada&password={PASSWORDS['ada']}".encode(),
+                                     headers={"Content-Type": "application/x-www-form-urlencoded"})
+
+        class NoRedirect(urllib.request.HTTPRedirectHandler):
+            def redirect_request(self, *a, **k):
+                return None
+
+        opener = urllib.request.build_opener(NoRedirect, urllib.request.HTTPSHandler(context=ctx))
+        try:
+            opener.open(req, timeout=30)
+        except urllib.error.HTTPError as e:  # the 303 after a good login
+            assert e.code == 303
+            cookie = e.headers["set-cookie"].lower()
+            assert "httponly" in cookie and "secure" in cookie and "samesite=strict" in cookie
+            assert e.headers["strict-transport-security"]
+        else:
+            raise AssertionError("no redirect after login")
+        with pytest.raises(Exception):  # plain HTTP on the TLS port is not served
+            urllib.request.urlopen(server.url.replace("https", "http") + "/login", timeout=10)
+    finally:
+        server.stop()

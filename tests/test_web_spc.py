@@ -86,6 +86,8 @@ def test_trend_of_ten_serial_parts_flags_the_targets_that_drift_from_part_6(tmp_
                 assert flagged and min(flagged) >= 6 and {8, 9, 10} <= set(flagged), (t, axis, ref["violations"])
                 assert ref["ucl"] - ref["lcl"] < 0.5 * (doc["ucl"] - doc["lcl"])  # the drift widened the phase I limits
     doc = trend(view, PART, DRIFTING[0], "z")
+    assert "out of control" in doc["capability"]["note"]  # Cp/Cpk of a drifting process are not read as capability
+    assert "out of control" not in trend(view, PART, TARGETS[0], "z")["capability"]["note"]
     # the tolerance band: z is two-sided (Cp and Cpk), |d| one-sided (Cpk only)
     assert doc["lsl"] == -doc["usl"] and doc["cp"] is not None
     assert trend(view, PART, TARGETS[0], "norm")["cp"] is None

@@ -102,14 +102,15 @@ def free_port() -> int:
 class Served:
     """``cell serve`` in a child process (the console as it runs on a cell), stopped with SIGTERM."""
 
-    def __init__(self, archive: Path, programs: Path, log: Path):
+    def __init__(self, archive: Path, programs: Path, log: Path, extra: list[str] | None = None,
+                 scheme: str = "http"):
         self.port = free_port()
-        self.url = f"http://127.0.0.1:{self.port}"
+        self.url = f"{scheme}://127.0.0.1:{self.port}"
         self.log = log
         self._f = open(log, "wb")
         env = child_env() | {"OMP_NUM_THREADS": "1"}
         self.proc = subprocess.Popen([*cell_command(), "serve", "--port", str(self.port), "--archive", str(archive),
-                                      "--programs", str(programs), "--cell-id", "cell-1"],
+                                      "--programs", str(programs), "--cell-id", "cell-1", *(extra or [])],
                                      stdout=self._f, stderr=subprocess.STDOUT, env=env)
         deadline = time.monotonic() + 60
         while time.monotonic() < deadline:

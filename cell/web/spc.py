@@ -107,5 +107,8 @@ def analyse(values: list[float], lsl: float | None, usl: float | None, baseline:
     lim = imr_limits(x, baseline)
     viol = violations(x, lim["center"], lim["sigma_within"], lim["mr_ucl"])
     cap = capability(float(x.mean()), lim["sigma_within"], len(x), lsl, usl)
+    if any(v["rule"] != "MR" for v in viol):
+        cap["note"] = ("the chart shows the process out of control: Cp/Cpk describe a stable process only"
+                       + ("; " + cap["note"] if cap["note"] else ""))
     return lim | {"moving_range": [None, *np.abs(np.diff(x)).tolist()], "violations": viol, "capability": cap,
                   "cp": cap["cp"], "cpk": cap["cpk"]}
