@@ -216,10 +216,18 @@ def live_state(folder: Path) -> dict:
         el = (datetime.now(timezone.utc) - datetime.fromisoformat(t0)).total_seconds()
         time_left = el / progress * (1 - progress)
     poses = [r["base_from_flange"] for r in stations if "base_from_flange" in r]
+    part_xyz = None
+    if (folder / "job.toml").exists():
+        try:
+            from cell.jobspec import load_job
+
+            part_xyz = load_job(folder / "job.toml")[0].base_from_part()[:3, 3].tolist()
+        except Exception:  # a job file the runner will refuse anyway: no part on the picture
+            part_xyz = None
     return {"state": state, "stage": state if state in {s.value for s in STAGES} else None, "progress": progress,
             "time_left_s": time_left, "stations_done": len(stations), "stations": n_st,
             "reason": (terminal or {}).get("reason", "") if state in ("FAULTED", "ABORTED") else "",
-            "flange_xyz_m": [[p[0][3], p[1][3], p[2][3]] for p in poses],
+            "flange_xyz_m": [[p[0][3], p[1][3], p[2][3]] for p in poses], "part_xyz_m": part_xyz,
             "latest_image": stations[-1]["image"] if stations else None}
 
 

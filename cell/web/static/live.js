@@ -8,7 +8,9 @@
   function robot(doc) {
     const p = doc.flange_xyz_m || [];
     if (!window.Plotly || !p.length) return;
-    Plotly.react('robot', [
+    const part = doc.part_xyz_m ? [{x: [doc.part_xyz_m[0]], y: [doc.part_xyz_m[1]], mode: 'markers+text', text: ['part'],
+      textposition: 'bottom center', marker: {size: 22, color: '#9aa5b1', symbol: 'diamond'}, name: 'part'}] : [];
+    Plotly.react('robot', [...part,
       {x: [0], y: [0], mode: 'markers+text', text: ['robot base'], textposition: 'top center', marker: {size: 14, color: '#555', symbol: 'square'}, name: 'base'},
       {x: p.map(q => q[0]), y: p.map(q => q[1]), mode: 'lines+markers', name: 'stations', line: {color: '#bbb'}, marker: {size: 5, color: '#0969da'}},
       {x: [p[p.length - 1][0]], y: [p[p.length - 1][1]], mode: 'markers', name: 'camera now', marker: {size: 14, color: '#cf222e'}}],

@@ -1,0 +1,58 @@
+"""The live view's reading of a job folder (state, progress by station, time left, poses) and the fault
+messages an operator gets, from the runner's own fault texts."""
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from cell.record.jobfolder import JobFolder
+from cell.web.runner import live_state, operator_advice
+
+
+def _journal(folder, recs):
+    folder.mkdir(parents=True)
+    (folder / "journal.jsonl").write_text("".join(json.dumps(r) + "\n" for r in recs))
+
+
+def test_progress_counts_stages_and_stations_and_estimates_time_left(tmp_path):
+    from datetime import datetime, timedelta, timezone
+
+    t0 = datetime.now(timezone.utc) - timedelta(seconds=60)
+    ts = lambda s: (t0 + timedelta(seconds=s)).isoformat()  # noqa: E731
+    recs = [{"t": ts(0), "event": "created"}]
+    for a, b, s in (("CREATED", "LOAD", 1), ("LOAD", "PLAN", 2), ("PLAN", "VALIDATE", 30), ("VALIDATE", "ACQUIRE", 40)):
+        recs.append({"t": ts(s), "event": "state", "from": a, "to": b})
+        if a != "CREATED":
+            recs.append({"t": ts(s), "event": "stage_done", "stage": a, "duration_s": 1.0})
+    pose = [[1, 0, 0, 0.5], [0, 1, 0, 0.2], [0, 0, 1, 0.4], [0, 0, 0, 1]]
+    recs += [{"t": ts(41 + k), "event": "station_done", "station": f"S{k:03d}", "image": f"images/{k:04d}.png",
+              "base_from_flange": pose} for k in range(4)]
+    folder = tmp_path / "job"
+    _journal(folder, recs)
+    (folder / "plan.json").write_text(json.dumps({"stations": [{"id": f"S{k:03d}"} for k in range(16)]}))
+    d = live_state(folder)
+    assert d["state"] == d["stage"] == "ACQUIRE" and d["stations_done"] == 4 and d["stations"] == 16
+    done = 3.0  # LOAD, PLAN, VALIDATE of 7 unit stages + ACQUIRE weighted 4
+    from cell.states import STAGES
+
+    total = len(STAGES) - 1 + 4.0
+    assert d["progress"] == pytest.approx((done + 4.0 * 4 / 16) / total)
+    assert d["time_left_s"] == pytest.approx(60 / d["progress"] * (1 - d["progress"]), rel=0.05)
+    assert d["flange_xyz_m"] == [[0.5, 0.2, 0.4]] * 4 and d["latest_image"] == "images/0003.png"
+    JobFolder(folder).append("state", **{"from": "ACQUIRE", "to": "FAULTED", "cause": "x"})
+    JobFolder(folder).append("terminal", status="FAULTED", reason="ACQUIRE: protective stop (injected) ...")
+    d = live_state(folder)
+    assert d["state"] == "FAULTED" and d["time_left_s"] is None and "protective stop" in d["reason"]
+
+
+@pytest.mark.parametrize("reason,words", [
+    ("ACQUIRE: protective stop (injected) 0.4 s into a 1.2 s move at 33% of the path", "release the stop on the teach pendant"),
+    ("ACQUIRE: emergency stop during move (safety_status_bits=0x2)", "reset the emergency stop"),
+    ("ACQUIRE: UR at 10.0.0.2: could not connect (timeout)", "check its power and cable"),
+    ("aborted by the operator (AbortRequested)", "Press Resume to continue"),
+    ("ACQUIRE: the process ended without a terminal record (killed or crashed)", "controller stopped"),
+    ("ADJUST: bundle: no scale bar has both targets observed in two images or more", "Call an engineer"),
+])
+def test_faults_are_told_in_words_an_operator_can_act_on(reason, words):
+    assert words in operator_advice(reason)
