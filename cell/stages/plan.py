@@ -72,10 +72,11 @@ def make_plan(job: LoadedJob, progress=None, cache_dir: Path | None = None,
     try:
         extra = {}
         if fn is plan_network:
-            from planning.reachability import reachability_mask
+            from planning.reachability import ReachabilityOptions, reachability_mask
 
             world, bfp, ffc = collision_world(job), job.spec.base_from_part(), job.spec.flange_from_cam()
-            extra["reachable_fn"] = lambda T: reachability_mask(robot, bfp, ffc, T, world).reachable
+            fast = ReachabilityOptions(compute_distances=False)  # the polish needs yes/no, not the margins
+            extra["reachable_fn"] = lambda T: reachability_mask(robot, bfp, ffc, T, world, fast).reachable
         plan = fn(job.part, job.intrinsics, opts, np.random.default_rng(job.spec.job.seed), reachable=reachable,
                   cache_dir=cache_dir, progress=report, seed=job.spec.job.seed, db=db, **extra)
     except PlanningError as exc:

@@ -148,24 +148,23 @@ class CellRunner:
         from cell.web.store import NotFound, job_folder
 
         try:
-            return job_folder(self.root, job_id)
-        except NotFound:
-            pass
-        try:
-            return job_folder(self.root / ".incoming", job_id)
+            return job_folder(self.root, job_id, staged=True)
         except NotFound:
             return None
 
     # --- stopping -------------------------------------------------------------------
-    def abort(self, job_id: str) -> bool:
-        """Stop the running job now (the runner's abort: robot stopped, ABORTED recorded). False if not running.
+    def abort(self, job_id: str, who: str = "console") -> bool:
+        """Stop the running job now, through the runner's one abort path (:func:`cell.job.abort_job`: the
+        job's process gets SIGTERM, its runner sends the robot's stop at once and ends ABORTED). False if
+        this cell is not running that job."""
+        from cell.job import abort_job
 
-        TODO(issue 20): call the runner's single abort function when it lands.
-        """
         s = self.session_of(job_id)
         if s is None or not s.alive():
             return False
-        os.kill(s.proc.pid, signal.SIGTERM)
+        if not abort_job(job_id, reason=f"console: {who}", archive_root=self.root):
+            # the child has not taken its job's lock yet (still loading): the same signal, sent directly
+            os.kill(s.proc.pid, signal.SIGTERM)
         return True
 
     def wait(self, timeout_s: float = 600.0) -> None:

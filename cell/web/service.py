@@ -119,7 +119,7 @@ class Console:
         return job_id
 
     def abort(self, job_id: str, user: str) -> bool:
-        if not self.runner.abort(job_id):
+        if not self.runner.abort(job_id, user):
             raise InputError(f"{job_id} is not running on this cell")
         self.audit(user, "abort", job_id)
         return True

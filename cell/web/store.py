@@ -28,19 +28,27 @@ class NotFound(InputError):
     """No such job (or an id that could not name one): the console answers 404."""
 
 
-def job_folder(root: Path, job_id: str) -> Path:
-    """The folder of job ``job_id`` inside archive ``root``; NotFound for anything else.
+def job_folder(root: Path, job_id: str, *, staged: bool = False) -> Path:
+    """The folder of job ``job_id`` in archive ``root``; NotFound for anything else.
 
-    Refuses ids with path separators, ``..``, a leading dot (the staging area, the index, the console's
-    own files), and any id whose resolved folder is not a direct child of the archive (symlinks out).
+    Goes through the archive's own resolver (:func:`cell.record.archive.resolve_job_id`: a plain name,
+    no separators, no '..', no leading dot, no link out of the archive); a job still staged in
+    ``.incoming`` counts only with ``staged``. Every id that comes from a URL passes here.
     """
+    from cell.record.archive import resolve_job_id
+
     if not isinstance(job_id, str) or not _ID.match(job_id) or ".." in job_id:
-        raise NotFound(f"no job {job_id[:60]!r}")
+        raise NotFound(f"no job {str(job_id)[:60]!r}")
+    try:
+        p = resolve_job_id(Path(root), job_id).path
+    except InputError:
+        raise NotFound(f"no job {job_id!r}") from None
     root = Path(root).resolve()
-    p = (root / job_id).resolve()
-    if p.parent != root or not p.is_dir() or not (p / "journal.jsonl").is_file():
+    real = p.resolve()
+    if not (real.parent == root or (staged and real.parent == root / ".incoming")) or \
+            not (real / "journal.jsonl").is_file():
         raise NotFound(f"no job {job_id!r}")
-    return p
+    return real
 
 
 def _parse_time(s: str | None) -> datetime | None:
