@@ -310,3 +310,13 @@ def test_tls_when_a_certificate_is_configured_and_the_cookie_is_secure(site, tmp
             urllib.request.urlopen(server.url.replace("https", "http") + "/login", timeout=10)
     finally:
         server.stop()
+
+
+def test_logout_ends_the_session_for_good(app):
+    with TestClient(app) as c:
+        csrf = _login(c, "olga")
+        cookie = c.cookies.get("cell_session")
+        assert c.get("/api/jobs").status_code == 200
+        assert c.post("/logout", data={"csrf": csrf}, follow_redirects=False).status_code == 303
+        c.cookies.clear()
+        assert c.get("/api/jobs", headers={"Cookie": f"cell_session={cookie}"}).status_code == 401
