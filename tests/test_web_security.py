@@ -267,6 +267,8 @@ def test_compare_and_reverification_history_pages(app, site):
         page = c.get("/reverification").text
         assert "3 of 3 within E_MPE" in page and "revchart" in page and "1.1e-05" in page
         assert c.get("/compare", params={"a": ids[0], "b": "../x"}).status_code == 404
+        page = c.get("/trend", params={"part": "TR-500", "group": "T01,T02"})
+        assert page.status_code == 200 and "worst: " in page.text and '"group": ["T01", "T02"]' in page.text
 
 
 @pytest.mark.skipif(shutil.which("openssl") is None, reason="no openssl to make a test certificate")

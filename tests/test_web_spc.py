@@ -94,3 +94,16 @@ def test_trend_of_ten_serial_parts_flags_the_targets_that_drift_from_part_6(tmp_
     csv = trend_csv(doc).splitlines()
     assert len(csv) == 11 and csv[0].startswith("part,target,axis") and "SN-0010" in csv[-1]
     assert any(r.endswith(("WE1", "WE2", "N3", "WE1 WE2", "N3 WE1", "N3 WE2", "N3 WE1 WE2")) for r in csv[6:])
+
+
+def test_a_group_trend_follows_its_worst_target(tmp_path):
+    archive = tmp_path / "archive"
+    seed_trend_archive(archive, n_parts=10, drift_from=6)
+    view = ArchiveView(archive)
+    group = ",".join(["T01", DRIFTING[0], "T04"])
+    doc = trend(view, PART, group, "norm")
+    worst = [p["target"] for p in doc["points"]]
+    assert worst[-1] == DRIFTING[0] and doc["group"] == ["T01", DRIFTING[0], "T04"]
+    single = {t: [p["value_m"] for p in trend(view, PART, t, "norm")["points"]] for t in ("T01", DRIFTING[0], "T04")}
+    assert [p["value_m"] for p in doc["points"]] == pytest.approx(np.max(list(single.values()), axis=0))
+    assert {v["index"] + 1 for v in doc["violations"] if v["rule"] == "WE1"} >= {9, 10}

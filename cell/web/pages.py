@@ -159,10 +159,10 @@ def archive_page(request: Request, part: str = "", serial: str = "", verdict: st
 
 @router.get("/trend", response_class=HTMLResponse)
 def trend_page(request: Request, part: str, target: str = "", axis: str = "norm", baseline: int | None = None,
-               c: Caller = Depends(caller)):
+               group: str = "", c: Caller = Depends(caller)):
     view = _console(request).view
     targets = view.job_targets(part)
-    target = target or targets[0]
+    target = group.strip() or target or targets[0]
     doc = trend(view, part, target, axis, baseline)
     return _render(request, "trend.html", c, part=part, target=target, axis=axis, targets=targets, t=doc,
                    doc_json=json.dumps(doc, default=float))

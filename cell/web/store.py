@@ -147,29 +147,43 @@ class ArchiveView:
         return [t["id"] for t in reps[-1][1]["targets"]]
 
     def target_trend(self, part: str, target: str, axis: str = "norm") -> dict:
-        """One target's deviation over the part's jobs: points and its tolerance.
+        """One target's deviation over the part's jobs (or a group's: ``target`` = ids joined by commas).
 
         ``axis``: ``norm`` (|deviation|, one-sided: 0..tolerance) or ``x``/``y``/``z`` (a signed component
-        in the part frame, two-sided: -tolerance..+tolerance). ``value_m`` is the charted value.
+        in the part frame, two-sided: -tolerance..+tolerance). ``value_m`` is the charted value; for a
+        group it is the group's worst per part (largest |d|, or the component farthest from zero), with
+        ``target`` naming which one.
         """
         if axis not in ("norm", "x", "y", "z"):
             raise InputError(f"axis {axis!r}: norm, x, y or z")
+        group = [t.strip() for t in target.split(",") if t.strip()]
+        if not group or len(group) > 500:
+            raise InputError("name one target, or a group of up to 500 separated by commas")
         pts, tols = [], []
         for row, rep in self._part_reports(part):
-            t = next((t for t in rep["targets"] if t["id"] == target), None)
-            if t is None or t["deviation_norm_m"] is None:
+            by_id = {t["id"]: t for t in rep["targets"]}
+            cand = []
+            for tid in group:
+                t = by_id.get(tid)
+                if t is None or t["deviation_norm_m"] is None:
+                    continue
+                v = t["deviation_norm_m"] if axis == "norm" else t["deviation"]["xyz".index(axis)]
+                cand.append((abs(v) / t["tolerance_m"], v, t))
+            if len(cand) < len(group):  # a part where the group was not all measured is no point of the trend
                 continue
-            v = t["deviation_norm_m"] if axis == "norm" else t["deviation"]["xyz".index(axis)]
+            _, v, t = max(cand, key=lambda c: c[0])
             pts.append({"job_id": row["id"], "serial": (rep.get("part") or {}).get("serial") or row.get("serial"),
                         "finished": rep["job"].get("finished"), "deviation_norm_m": t["deviation_norm_m"],
-                        "value_m": v, "sigma_m": t.get("achieved_sigma_m"), "pass": t["pass"]})
+                        "value_m": v, "sigma_m": t.get("achieved_sigma_m"), "pass": t["pass"], "target": t["id"]})
             tols.append(t["tolerance_m"])
         if not pts:
             raise NotFound(f"no measurement of target {target!r} in the finished jobs of part {part!r}")
         tol = float(np.median(tols))
+        if len(group) > 1 and (max(tols) - min(tols)) > 1e-12:
+            raise InputError(f"the targets {target!r} have different tolerances: a group trend needs one tolerance")
         lsl, usl = (None, tol) if axis == "norm" else (-tol, tol)
-        return {"part": part, "target": target, "axis": axis, "points": pts, "tolerance_m": tol, "lsl": lsl, "usl": usl}
-
+        return {"part": part, "target": target, "group": group, "axis": axis, "points": pts, "tolerance_m": tol,
+                "lsl": lsl, "usl": usl}
 
 def reverifications(root: Path) -> list[dict]:
     """The cell's reverification records (scale-bar length errors against the MPE), oldest first."""
