@@ -9,7 +9,7 @@ import pytest
 from webutil import DRIFTING, PART, TARGETS, seed_trend_archive
 
 from cell.web.service import trend, trend_csv
-from cell.web.spc import analyse, capability, imr_limits, violations
+from cell.web.spc import capability, imr_limits, violations
 from cell.web.store import ArchiveView
 
 
