@@ -56,3 +56,32 @@ def test_progress_counts_stages_and_stations_and_estimates_time_left(tmp_path):
 ])
 def test_faults_are_told_in_words_an_operator_can_act_on(reason, words):
     assert words in operator_advice(reason)
+
+
+def test_live_image_shows_the_dots_found_before_measure_and_the_measured_ones_after(tmp_path):
+    import cv2
+    import numpy as np
+
+    from cell.web.service import _detections, _preview_detections, latest_image_jpeg
+
+    rng = np.random.default_rng(3)
+    yy, xx = np.mgrid[0:480, 0:640]
+    truth = rng.uniform([40, 40], [600, 440], (12, 2))
+    img = np.full((480, 640), 20.0) + rng.normal(0, 1.5, (480, 640))
+    for u, v in truth:
+        img += 200 * np.exp(-((xx - u) ** 2 + (yy - v) ** 2) / (2 * 2.5 ** 2))
+    folder = tmp_path / "job"
+    (folder / "images").mkdir(parents=True)
+    cv2.imwrite(str(folder / "images/0001.png"), np.clip(img, 0, 255).astype(np.uint8))
+    JobFolder(folder).append("station_done", station="S001", image="images/0001.png", sha256="x")
+    assert _detections(folder, "S001") is None  # nothing measured yet
+    found = np.array(_preview_detections(str(folder / "images/0001.png"), "x"))
+    assert len(found) == len(truth)
+    d = np.linalg.norm(found[:, None] - truth[None], axis=2).min(axis=1)
+    assert d.max() < 0.1, d  # the detector's centres, to a tenth of a pixel
+    jpg = cv2.imdecode(np.frombuffer(latest_image_jpeg(folder), np.uint8), cv2.IMREAD_COLOR)
+    green = (jpg[..., 1] > 150) & (jpg[..., 0] < 90) & (jpg[..., 2] < 90)
+    assert green.sum() > 12 * 20  # a ring drawn round each dot
+    # after MEASURE: the identified observations are drawn instead
+    (folder / "observations.json").write_text(json.dumps({"images": [{"station": "S001", "uv": truth[:5].tolist()}]}))
+    assert _detections(folder, "S001") == truth[:5].tolist()

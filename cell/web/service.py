@@ -12,6 +12,7 @@ import os
 import shutil
 import subprocess
 import tempfile
+from functools import lru_cache
 from pathlib import Path
 
 from calibration.errors import InputError
@@ -270,20 +271,38 @@ def latest_image_jpeg(folder: Path, max_width: int = 960) -> bytes | None:
     if img is None:
         return None
     uv = _detections(folder, rec["station"])
+    label = "detections"
+    if uv is None:  # not measured yet (ACQUIRE): the dots the detector finds now, before identification
+        uv = _preview_detections(str(folder / rec["image"]), rec.get("sha256", ""))
+        label = "dots found (not yet identified)"
     scale = min(1.0, max_width / img.shape[1])
     if scale < 1.0:
         img = cv2.resize(img, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
     r = max(4, int(8 * scale))
     for u, v in uv:
         cv2.circle(img, (int(round((u + 0.5) * scale - 0.5)), int(round((v + 0.5) * scale - 0.5))), r, (0, 200, 0), 2)
-    cv2.putText(img, f"station {rec['station']}: {len(uv)} detections", (10, 24), cv2.FONT_HERSHEY_SIMPLEX, 0.7,
+    cv2.putText(img, f"station {rec['station']}: {len(uv)} {label}", (10, 24), cv2.FONT_HERSHEY_SIMPLEX, 0.7,
                 (0, 220, 255), 2)
     ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, 80])
     return buf.tobytes() if ok else None
 
 
-def _detections(folder: Path, station: str) -> list:
-    """Detections of one station: observations.json once MEASURE is done, else the run log's /detections."""
+@lru_cache(maxsize=8)
+def _preview_detections(path: str, sha256: str) -> list:
+    """Dot centres in an image not measured yet (the detector of MEASURE, without identification)."""
+    import cv2
+
+    from calibration.targets import detect_retro_targets
+
+    img = cv2.imread(path, cv2.IMREAD_GRAYSCALE)
+    if img is None:
+        return []
+    return detect_retro_targets(img).uv.tolist()
+
+
+def _detections(folder: Path, station: str) -> list | None:
+    """Detections of one station: observations.json once MEASURE is done, else the run log's /detections
+    (None when neither has them yet)."""
     obs = folder / "observations.json"
     if obs.exists():
         try:
@@ -294,7 +313,7 @@ def _detections(folder: Path, station: str) -> list:
             pass
     from mcap.reader import NonSeekingReader
 
-    found: list = []
+    found: list | None = None
     for log in sorted(folder.glob("run*.mcap")):
         try:
             with open(log, "rb") as f:
