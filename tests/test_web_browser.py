@@ -168,7 +168,7 @@ def test_engineer_sees_the_drift_from_part_6_flagged_on_the_trend_and_exports_it
         ctx.close()
 
 
-def test_two_browsers_cannot_start_two_jobs_and_abort_stops_the_running_one(site):
+def test_two_browsers_cannot_start_two_jobs_abort_stops_the_running_one_and_resume_finishes_it(site):
     server, browser, archive, _ = site
     (ca, a), (cb, b) = _login(browser, server, "olga"), _login(browser, server, "eve")
     try:
@@ -202,6 +202,15 @@ def test_two_browsers_cannot_start_two_jobs_and_abort_stops_the_running_one(site
         recs = [json.loads(x) for x in (folder / "journal.jsonl").read_text().splitlines()]
         assert any(r["event"] == "audit" and r["action"] == "abort" for r in recs)
         assert recs[-1]["event"] == "terminal" and recs[-1]["status"] == "ABORTED"
+        # Resume, from the same view: the job continues from its last finished stage to DONE
+        winner.click("#resume")
+        winner.wait_for_url(f"**/jobs/{job_id}")
+        _wait_state(winner, {"DONE"}, 300)
+        recs = [json.loads(x) for x in (archive / job_id / "journal.jsonl").read_text().splitlines()]
+        resumed = [r for r in recs if r["event"] == "resumed"]
+        assert len(resumed) == 1 and resumed[0]["operator"] in ("olga", "eve")
+        assert any(r["event"] == "audit" and r["action"] == "resume" for r in recs)
+        assert winner.inner_text("#verdict") in ("PASS", "FAIL", "INCOMPLETE")
     finally:
         ca.close()
         cb.close()

@@ -321,3 +321,29 @@ def test_logout_ends_the_session_for_good(app):
         assert c.post("/logout", data={"csrf": csrf}, follow_redirects=False).status_code == 303
         c.cookies.clear()
         assert c.get("/api/jobs", headers={"Cookie": f"cell_session={cookie}"}).status_code == 401
+
+
+def test_engineer_acknowledges_a_fault_with_who_and_when_in_the_journal(app, site):
+    archive, _, ids = site
+    from cell.record.jobfolder import JobFolder
+
+    jid = "2026-11-21T09-00-00-faulted"
+    folder = archive / jid
+    folder.mkdir()
+    f = JobFolder(folder)
+    f.append("created", name="trendpart")
+    f.append("state", **{"from": "CREATED", "to": "LOAD"})
+    f.append("state", **{"from": "LOAD", "to": "FAULTED", "cause": "x"})
+    f.append("terminal", status="FAULTED", reason="ACQUIRE: protective stop (injected)")
+    f.write_manifest()
+    with TestClient(app) as c:
+        tok = c.post("/api/token", json={"username": "eve", "password": PASSWORDS["eve"]}).json()["token"]
+        h = {"Authorization": f"Bearer {tok}"}
+        doc = c.get(f"/api/jobs/{jid}", headers=h).json()
+        assert doc["state"] == "FAULTED" and "teach pendant" in doc["advice"]
+        assert c.post(f"/api/jobs/{ids[2]}/acknowledge", json={}, headers=h).status_code == 400  # not a fault
+        r = c.post(f"/api/jobs/{jid}/acknowledge", json={"note": "guard door sensor checked"}, headers=h)
+        assert r.status_code == 200 and r.json()["acknowledged_by"] == "eve"
+    rec = list(JobFolder(folder).records())[-1]
+    assert rec["event"] == "audit" and rec["user"] == "eve" and rec["action"] == "acknowledge fault" and rec["t"]
+    assert rec["detail"] == "guard door sensor checked"
