@@ -85,3 +85,44 @@ def test_live_image_shows_the_dots_found_before_measure_and_the_measured_ones_af
     # after MEASURE: the identified observations are drawn instead
     (folder / "observations.json").write_text(json.dumps({"images": [{"station": "S001", "uv": truth[:5].tolist()}]}))
     assert _detections(folder, "S001") == truth[:5].tolist()
+
+
+@pytest.mark.slow
+def test_a_job_started_in_a_terminal_blocks_the_console_and_its_abort_reaches_it(tmp_path):
+    import subprocess
+    import time
+
+    from fastapi.testclient import TestClient
+    from jobutil import cell_command, child_env
+    from webutil import tiny_program
+
+    from cell.web.app import create_app
+    from cell.web.deps import Config
+    from cell.web.users import UserStore
+
+    archive, programs = tmp_path / "archive", tmp_path / "programs"
+    job = tiny_program(programs, "bracket", motion="timed", time_scale=2.0)
+    UserStore(archive / "console.sqlite").add("olga", "operator", "olga-pw-1234")
+    proc = subprocess.Popen([*cell_command(), "run", str(job), "--archive", str(archive), "--serial", "T-1"],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=child_env())
+    try:
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and not list((archive / ".incoming").glob("*/.lock")) \
+                and not list(archive.glob("*/.lock")):
+            time.sleep(0.1)
+        time.sleep(0.5)
+        app = create_app(Config(archive=archive, programs=programs))
+        with TestClient(app) as c:
+            tok = c.post("/api/token", json={"username": "olga", "password": "olga-pw-1234"}).json()["token"]
+            h = {"Authorization": f"Bearer {tok}"}
+            r = c.post("/api/jobs", json={"program": "bracket", "serial": "T-2"}, headers=h)
+            assert r.status_code == 409, r.text
+            job_id = next(p.name for p in [*(archive / ".incoming").glob("*"), *archive.glob("20*")] if p.is_dir())
+            assert job_id in r.json()["detail"] and "cell run" in r.json()["detail"]
+            assert c.post(f"/api/jobs/{job_id}/abort", headers=h).status_code == 200
+            assert proc.wait(timeout=120) == 130  # the terminal's job ended ABORTED, through its own abort path
+            assert c.get(f"/api/jobs/{job_id}", headers=h).json()["state"] == "ABORTED"
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()

@@ -73,6 +73,25 @@ class CellRunner:
         if s is not None and s.alive():
             name = self.job_id_of(s, wait_s=15.0) or f"{Path(s.program).stem} (starting)"
             raise Busy(f"the cell is running job {name} (started by {s.user}); wait for it to end or abort it")
+        other = self.external_running()
+        if other is not None:
+            raise Busy(f"the cell is running job {other} (started outside the console, e.g. 'cell run'); "
+                       "wait for it to end or abort it")
+
+    def external_running(self) -> str | None:
+        """A job of this archive that another process runs now (its ``.lock`` held), e.g. ``cell run``."""
+        from cell.record.archive import Archive
+
+        a = Archive(self.root)
+        mine = self.current.job_id if self.current is not None and self.current.alive() else None
+        candidates = [f for f in a.staged()]
+        for row in a.list():
+            if row.get("status") not in ("DONE", "FAULTED", "ABORTED"):
+                candidates.append(JobFolder(self.root / row["id"]))
+        for f in candidates:
+            if f.job_id != mine and f.path.is_dir() and f.running_pid() is not None:
+                return f.job_id
+        return None
 
     def _spawn(self, args: list[str], user: str, kind: str) -> Session:
         self._n += 1

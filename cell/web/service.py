@@ -121,7 +121,12 @@ class Console:
 
     def abort(self, job_id: str, user: str) -> bool:
         if not self.runner.abort(job_id, user):
-            raise InputError(f"{job_id} is not running on this cell")
+            from cell.job import abort_job
+
+            job_folder(self.root, job_id, staged=True)  # NotFound for anything that is not a job
+            # a job this console did not start (cell run in a terminal): the same abort path, by its lock's pid
+            if not abort_job(job_id, reason=f"console: {user}", archive_root=self.root):
+                raise InputError(f"{job_id} is not running on this cell")
         self.audit(user, "abort", job_id)
         return True
 
@@ -170,7 +175,8 @@ class Console:
     def running(self) -> dict | None:
         s = self.runner.current
         if s is None or not s.alive():
-            return None
+            other = self.runner.external_running()
+            return None if other is None else {"job_id": other, "user": "a terminal ('cell run')", "program": ""}
         return {"job_id": self.runner.job_id_of(s), "user": s.user, "program": Path(s.program).stem if s.program else ""}
 
     # --- exports ------------------------------------------------------------------------
