@@ -115,6 +115,16 @@ def figure_sigma(predicted: np.ndarray, achieved: np.ndarray) -> str:
     return _png(fig)
 
 
+def accepted_residuals(residuals_px: np.ndarray, rejected: np.ndarray | None) -> tuple[np.ndarray, float]:
+    """The accepted observations' residuals ``(m, 2)`` and the histogram's half-range (5 % beyond the largest)."""
+    r = np.asarray(residuals_px, dtype=float)
+    keep = np.isfinite(r).all(axis=1)
+    if rejected is not None and len(rejected) == len(r):
+        keep &= ~np.asarray(rejected, dtype=bool)
+    a = r[keep]
+    return a, (float(np.max(np.abs(a))) * 1.05 if a.size else 1.0)
+
+
 def figure_residuals(residuals_px: np.ndarray, rejected: np.ndarray | None = None) -> str:
     """Histogram of the accepted observations' image residuals (u and v), its axis scaled to them.
 
@@ -122,13 +132,8 @@ def figure_residuals(residuals_px: np.ndarray, rejected: np.ndarray | None = Non
     (one gross outlier would stretch the axis far past the accepted ones) and listed apart in the report.
     """
     fig, ax = plt.subplots(figsize=(5, 4))
-    r = np.asarray(residuals_px, dtype=float)
-    keep = np.isfinite(r).all(axis=1)
-    if rejected is not None and len(rejected) == len(r):
-        keep &= ~np.asarray(rejected, dtype=bool)
-    a = r[keep]
+    a, lim = accepted_residuals(residuals_px, rejected)
     n_rej = 0 if rejected is None else int(np.asarray(rejected, dtype=bool).sum())
-    lim = float(np.max(np.abs(a))) * 1.05 if a.size else 1.0
     ax.hist(a.ravel(), bins=60, range=(-lim, lim), color="tab:gray")
     ax.set_xlim(-lim, lim)
     ax.set_xlabel("image residual [px] (u and v), accepted observations")
