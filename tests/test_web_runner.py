@@ -126,3 +126,17 @@ def test_a_job_started_in_a_terminal_blocks_the_console_and_its_abort_reaches_it
         if proc.poll() is None:
             proc.kill()
             proc.wait()
+
+
+def test_a_damaged_journal_is_reported_not_a_crash_of_the_live_view(tmp_path):
+    folder = tmp_path / "job"
+    folder.mkdir()
+    jf = JobFolder(folder)
+    jf.append("created", name="x")
+    jf.append("state", **{"from": "CREATED", "to": "LOAD"})
+    jf.append("state", **{"from": "LOAD", "to": "PLAN"})
+    lines = (folder / "journal.jsonl").read_text().splitlines(keepends=True)
+    lines[1] = lines[1].replace("LOAD", "L0AD")  # a flipped byte: its checksum no longer matches
+    (folder / "journal.jsonl").write_text("".join(lines))
+    d = live_state(folder)
+    assert d["state"] == "CREATED" and d["record_damage"] and "journal" in d["record_damage"]

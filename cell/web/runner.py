@@ -206,7 +206,7 @@ class CellRunner:
 def live_state(folder: Path) -> dict:
     """What the live view shows of a job folder: state, stage, progress (0..1), time left, stations, poses."""
     jf = JobFolder(folder)
-    recs = list(jf.records())
+    recs, damage = jf.read_journal()  # a damaged line: what precedes it, and the damage said
     state = next((r["to"] for r in reversed(recs) if r["event"] == "state"), "CREATED")
     done = {r["stage"] for r in recs if r["event"] == "stage_done"}
     stations = [r for r in recs if r["event"] == "station_done"]
@@ -245,6 +245,7 @@ def live_state(folder: Path) -> dict:
     return {"state": state, "stage": state if state in {s.value for s in STAGES} else None, "progress": progress,
             "time_left_s": time_left, "stations_done": len(stations), "stations": n_st,
             "reason": (terminal or {}).get("reason", "") if state in ("FAULTED", "ABORTED") else "",
+            "record_damage": None if damage is None else str(damage),
             "flange_xyz_m": [[p[0][3], p[1][3], p[2][3]] for p in poses], "part_xyz_m": part_xyz,
             "latest_image": stations[-1]["image"] if stations else None}
 

@@ -269,7 +269,7 @@ def latest_image_jpeg(folder: Path, max_width: int = 960) -> bytes | None:
     """The job's latest image with the detections found in it drawn (green circles, ids), as JPEG."""
     import cv2
 
-    recs = [r for r in JobFolder(folder).records() if r["event"] == "station_done"]
+    recs = [r for r in JobFolder(folder).read_journal()[0] if r.get("event") == "station_done"]
     if not recs:
         return None
     rec = recs[-1]

@@ -111,14 +111,15 @@ class ArchiveView:
     def get_job(self, job_id: str) -> dict:
         """One job: its index row, who/what (run.json), its journal's terminal record, its report summary."""
         folder = job_folder(self.root, job_id)
-        recs = list(JobFolder(folder).records())
+        recs, damage = JobFolder(folder).read_journal()
         state = next((r["to"] for r in reversed(recs) if r["event"] == "state"), "CREATED")
         terminal = next((r for r in reversed(recs) if r["event"] == "terminal"), None)
         info = read_run_info(folder)
         doc = {"id": job_id, "state": state, "part": info["part"], "operator": info["operator"],
                "cell_id": info["cell_id"], "started": recs[0]["t"] if recs else None,
                "reason": terminal.get("reason") if terminal else "", "verdict": None,
-               "audit": [r for r in recs if r["event"] in ("audit", "created", "resumed")]}
+               "audit": [r for r in recs if r.get("event") in ("audit", "created", "resumed")],
+               "record_damage": None if damage is None else str(damage)}
         rep = self.report(job_id)
         if rep is not None:
             doc |= {"verdict": rep.get("verdict"), "name": rep["job"].get("name"), "part_name": rep["job"].get("part"),
