@@ -75,10 +75,11 @@ def static(name: str, c: Caller = Depends(caller)):
 
 # --- operator -------------------------------------------------------------------------------
 @router.get("/", response_class=HTMLResponse)
-def console_page(request: Request, c: Caller = Depends(caller), msg: str = ""):
+def console_page(request: Request, c: Caller = Depends(caller), msg: str = "", program: str = ""):
     con = _console(request)
     recent = con.view.list_jobs(limit=8)
-    return _render(request, "console.html", c, programs=sorted(con.programs()), recent=recent, msg=msg[:300])
+    return _render(request, "console.html", c, programs=sorted(con.programs()), recent=recent, msg=msg[:300],
+                   chosen=program)
 
 
 @router.post("/jobs")

@@ -170,6 +170,8 @@ class Console:
         if live["state"] in ("FAULTED", "ABORTED"):
             doc["advice"] = operator_advice(live["reason"])
         doc["log"] = self.runner.log_lines(s, 30) if s is not None else []
+        if s is not None and s.program:
+            doc["program"] = Path(s.program).parent.name if Path(s.program).name == "job.toml" else Path(s.program).stem
         return doc
 
     def running(self) -> dict | None:

@@ -41,7 +41,7 @@
     show($('resumeform'), ended && doc.state !== 'DONE' && doc.kept !== false);
     show($('ackform'), ended && doc.state === 'FAULTED');
     show($('signform'), doc.state === 'DONE');
-    ['reportlink', 'pdflink', 'csvlink', 'qiflink'].forEach(k => show($(k), doc.state === 'DONE'));
+    ['reportlink', 'pdflink', 'csvlink', 'qiflink', 'nextpart'].forEach(k => show($(k), doc.state === 'DONE'));
     show($('fault'), !!doc.advice); if (doc.advice) $('fault').textContent = doc.advice;
     if (doc.verdict) { const v = $('verdict'); v.textContent = doc.verdict; v.className = 'verdict ' + doc.verdict; show(v, true); }
     root.dataset.state = doc.state;
