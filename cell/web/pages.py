@@ -79,7 +79,7 @@ def console_page(request: Request, c: Caller = Depends(caller), msg: str = "", p
     con = _console(request)
     recent = con.view.list_jobs(limit=8)
     return _render(request, "console.html", c, programs=sorted(con.programs()), recent=recent, msg=msg[:300],
-                   chosen=program)
+                   chosen=program, programs_dir=str(con.programs_dir))
 
 
 @router.post("/jobs")
