@@ -347,3 +347,23 @@ def test_engineer_acknowledges_a_fault_with_who_and_when_in_the_journal(app, sit
     rec = list(JobFolder(folder).records())[-1]
     assert rec["event"] == "audit" and rec["user"] == "eve" and rec["action"] == "acknowledge fault" and rec["t"]
     assert rec["detail"] == "guard door sensor checked"
+
+
+def test_names_from_files_cannot_inject_script_into_pages(tmp_path):
+    archive = tmp_path / "archive"
+    ids = seed_trend_archive(archive, n_parts=3)
+    evil = "</script><script>alert(1)</script>"
+    for jid in ids:  # a target id as a hostile targets file could name it
+        p = archive / jid / "report.json"
+        doc = json.loads(p.read_text())
+        doc["targets"][0]["id"] = evil
+        p.write_text(json.dumps(doc))
+    UserStore(archive / "console.sqlite").add("ada", "admin", PASSWORDS["ada"])
+    app = create_app(Config(archive=archive, programs=tmp_path))
+    with TestClient(app) as c:
+        _login(c, "ada")
+        for url in ("/trend", "/compare"):
+            params = {"part": "TR-500", "target": evil} if url == "/trend" else {"a": ids[0], "b": ids[1]}
+            page = c.get(url, params=params)
+            assert page.status_code == 200, page.text[:300]
+            assert "<script>alert(1)" not in page.text

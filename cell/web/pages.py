@@ -27,6 +27,12 @@ def _console(request: Request):
     return request.app.state.console
 
 
+def _script_json(doc) -> str:
+    """JSON to put inside a <script> element: no '<', '>' or '&' that could end it (ids come from files)."""
+    return (json.dumps(doc, default=float).replace("<", "\\u003c").replace(">", "\\u003e")
+            .replace("&", "\\u0026"))
+
+
 # --- login ---------------------------------------------------------------------------------
 @router.get("/login", response_class=HTMLResponse)
 def login_page(request: Request, msg: str = ""):
@@ -166,7 +172,7 @@ def trend_page(request: Request, part: str, target: str = "", axis: str = "norm"
     target = group.strip() or target or targets[0]
     doc = trend(view, part, target, axis, baseline)
     return _render(request, "trend.html", c, part=part, target=target, axis=axis, targets=targets, t=doc,
-                   doc_json=json.dumps(doc, default=float))
+                   doc_json=_script_json(doc))
 
 
 @router.get("/compare", response_class=HTMLResponse)
@@ -183,7 +189,7 @@ def compare_page(request: Request, a: str, b: str, c: Caller = Depends(caller)):
 @router.get("/reverification", response_class=HTMLResponse)
 def reverification_page(request: Request, c: Caller = Depends(caller)):
     recs = reverifications(_console(request).root)
-    return _render(request, "reverification.html", c, recs=recs, recs_json=json.dumps(recs, default=float))
+    return _render(request, "reverification.html", c, recs=recs, recs_json=_script_json(recs))
 
 
 # --- engineer: part programs ---------------------------------------------------------------------
