@@ -125,6 +125,8 @@ def test_forms_and_scripts_without_the_csrf_token_are_refused(app, site):
         assert r.status_code == 303
         recs = [json.loads(x) for x in (site[0] / ids[1] / "journal.jsonl").read_text().splitlines()]
         assert recs[-1]["event"] == "audit" and recs[-1]["user"] == "ada" and recs[-1]["action"] == "sign off"
+        row = next(r for r in c.get("/archive").text.split("<tr>") if ids[1] in r)
+        assert "ada " + recs[-1]["t"][:10] in row  # the archive shows who signed it off
         from cell.record.archive import Archive
 
         assert Archive(site[0]).verify(ids[1]) == []  # the folder stays closed (manifest rewritten)
@@ -244,7 +246,8 @@ def test_engineer_edits_a_part_program_only_when_it_is_a_valid_job_file(site, tm
         r = c.post("/programs/bracket", data={"csrf": csrf, "text": before.replace("[camera]", "[camera]\nzoom = 2")})
         assert r.status_code == 400 and "unknown key 'camera.zoom'" in r.text
         assert (prog / "job.toml").read_text() == before  # nothing written
-        new = before.replace('name = "bracket"', 'name = "bracket"\nnumber = "BR-7"')
+        new = before.replace("seed = 7", "seed = 8")
+        assert new != before
         r = c.post("/programs/bracket", data={"csrf": csrf, "text": new}, follow_redirects=False)
         assert r.status_code == 303 and (prog / "job.toml").read_text() == new
         assert c.get("/api/programs").json()["programs"] == ["bracket"]

@@ -161,7 +161,7 @@ def archive_page(request: Request, part: str = "", serial: str = "", verdict: st
                  since: str = "", until: str = "", c: Caller = Depends(caller)):
     q = {"part": part, "serial": serial, "verdict": verdict, "operator": operator, "since": since, "until": until}
     jobs = _console(request).view.list_jobs(**{k: v or None for k, v in q.items()})
-    return _render(request, "archive.html", c, jobs=jobs, q=q)
+    return _render(request, "archive.html", c, jobs=jobs, q=q, signed=request.app.state.users.last_actions("sign off"))
 
 
 @router.get("/trend", response_class=HTMLResponse)

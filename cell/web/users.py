@@ -187,6 +187,13 @@ class UserStore:
                         (rec["t"], user, action, job_id, detail))
         return rec
 
+    def last_actions(self, action: str) -> dict[str, dict]:
+        """Per job, the latest audit record of ``action`` (e.g. who signed each job off, and when)."""
+        with self._db() as con:
+            rows = con.execute("SELECT job_id, user, t FROM audit WHERE action=? AND job_id IS NOT NULL ORDER BY t",
+                               (action,)).fetchall()
+        return {j: {"user": u, "t": t} for j, u, t in rows}
+
     def audit_log(self, job_id: str | None = None, limit: int = 200) -> list[dict]:
         q = "SELECT t, user, action, job_id, detail FROM audit"
         args: tuple = ()
