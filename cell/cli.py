@@ -241,6 +241,10 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--role", choices=["operator", "engineer", "admin"])
     c.add_argument("--archive", type=Path, default=Path("archive"))
     c.set_defaults(func=cmd_users)
+
+    from cell.camera_cmd import add_camera_parser
+
+    add_camera_parser(sub, common)
     return p
 
 
