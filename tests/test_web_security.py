@@ -186,6 +186,8 @@ def test_passwords_never_reach_logs_stores_or_answers(app, site, caplog, capfd):
         assert pw.encode() not in stores, "a password is stored in clear in the archive"
     assert b"$argon2id$" in (archive / "console.sqlite").read_bytes() + b"".join(
         p.read_bytes() for p in archive.glob("console.sqlite*"))
+    for p in archive.glob("console.sqlite*"):  # the store and its WAL: its owner's only
+        assert p.stat().st_mode & 0o077 == 0, (p.name, oct(p.stat().st_mode))
 
 
 def test_ids_from_the_url_cannot_escape_the_archive(app, site, tmp_path):

@@ -7,6 +7,7 @@ only their SHA-256, so a copy of the file does not let anyone in.
 from __future__ import annotations
 
 import hashlib
+import os
 import secrets
 import sqlite3
 import time
@@ -65,9 +66,11 @@ class UserStore:
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._ph = PasswordHasher()  # argon2id
+        if not self.path.exists():  # readable by its owner only; SQLite gives its -wal/-shm files the same mode
+            os.close(os.open(self.path, os.O_WRONLY | os.O_CREAT, 0o600))
+        self.path.chmod(0o600)
         with self._db() as con:
             con.executescript(_SCHEMA)
-        self.path.chmod(0o600)
 
     def _db(self) -> sqlite3.Connection:
         con = sqlite3.connect(self.path, timeout=10)
