@@ -92,12 +92,14 @@ def test_operator_cannot_reach_admin_or_engineer_routes(app, site):
         csrf = _login(c, "olga")
         hdr = {"X-CSRF-Token": csrf}
         admin = [(m, p) for m, p in _routes(app) if p.startswith(("/admin", "/api/users"))]
+        engineer_api = [(m, p) for m, p in _routes(app) if p.startswith("/api/programs/")]
         engineer = [("GET", "/programs"), ("GET", "/programs/{name}"), ("POST", "/programs/{name}"),
                     ("POST", "/jobs/{job_id}/acknowledge"), ("POST", "/jobs/{job_id}/signoff"),
                     ("POST", "/api/jobs/{job_id}/acknowledge"), ("POST", "/api/jobs/{job_id}/signoff"),
                     ("GET", "/api/audit")]
         assert len(admin) >= 5
-        for m, p in admin + engineer:
+        assert len(engineer_api) == 2
+        for m, p in admin + engineer + engineer_api:
             r = c.request(m, _fill(p, ids[0]), headers=hdr, follow_redirects=False)
             assert r.status_code == 403, f"operator reached {m} {p}: {r.status_code}"
         # the engineer reaches the engineer's routes but not the admin's
@@ -112,14 +114,14 @@ def test_forms_and_scripts_without_the_csrf_token_are_refused(app, site):
     _, _, ids = site
     with TestClient(app) as c:
         csrf = _login(c, "ada")
-        posts = [p for m, p in _routes(app) if m == "POST" and (m, p) not in PUBLIC]
-        assert len(posts) >= 10
-        for p in posts:
+        changing = [(m, p) for m, p in _routes(app) if m in ("POST", "PUT", "DELETE") and (m, p) not in PUBLIC]
+        assert len(changing) >= 12 and {"PUT", "DELETE"} <= {m for m, _ in changing}
+        for m, p in changing:
             url = _fill(p, ids[0])
             for kw in ({"data": {"x": "1"}}, {"data": {"csrf": "wrong"}}, {"json": {}},
                        {"json": {}, "headers": {"X-CSRF-Token": "wrong"}}):
-                r = c.post(url, follow_redirects=False, **kw)
-                assert r.status_code == 403, f"POST {url} {kw}: {r.status_code}"
+                r = c.request(m, url, follow_redirects=False, **kw)
+                assert r.status_code == 403, f"{m} {url} {kw}: {r.status_code}"
         # with the token, a form does its work: the engineer's sign-off lands in the audit and the journal
         r = c.post(f"/jobs/{ids[1]}/signoff", data={"csrf": csrf, "note": "checked"}, follow_redirects=False)
         assert r.status_code == 303
@@ -253,6 +255,13 @@ def test_engineer_edits_a_part_program_only_when_it_is_a_valid_job_file(site, tm
         r = c.post("/programs/bracket", data={"csrf": csrf, "text": new}, follow_redirects=False)
         assert r.status_code == 303 and (prog / "job.toml").read_text() == new
         assert c.get("/api/programs").json()["programs"] == ["bracket"]
+        # the same through the API, for line integration
+        tok = c.post("/api/token", json={"username": "eve", "password": PASSWORDS["eve"]}).json()["token"]
+        h = {"Authorization": f"Bearer {tok}"}
+        assert c.get("/api/programs/bracket", headers=h).json()["text"] == new
+        assert c.put("/api/programs/bracket", json={"text": new + "\n[camera]\n"}, headers=h).status_code == 400
+        assert c.put("/api/programs/bracket", json={"text": before}, headers=h).status_code == 200
+        assert (prog / "job.toml").read_text() == before
         assert c.get("/api/audit").json()["audit"][0]["action"] == "edit program"
         assert c.post("/programs/../etc", data={"csrf": csrf, "text": new}).status_code in (404, 405)
 

@@ -164,6 +164,21 @@ def programs(request: Request, c: Caller = Depends(caller)):
     return {"programs": sorted(_console(request).programs())}
 
 
+class ProgramText(BaseModel):
+    text: str = Field(max_length=1_000_000)
+
+
+@router.get("/programs/{name}")
+def program_text(request: Request, name: str, c: Caller = Depends(role("engineer"))):
+    return {"name": name, "text": _console(request).program(name).read_text(encoding="utf-8")}
+
+
+@router.put("/programs/{name}")
+def program_save(request: Request, name: str, body: ProgramText, c: Caller = Depends(role("engineer"))):
+    _console(request).save_program(name, body.text, c.user.name)
+    return {"name": name, "saved_by": c.user.name}
+
+
 @router.get("/audit")
 def audit(request: Request, job_id: str | None = None, c: Caller = Depends(role("engineer"))):
     return {"audit": request.app.state.users.audit_log(job_id)}
@@ -185,3 +200,12 @@ def add_user(request: Request, body: NewUser, c: Caller = Depends(role("admin"))
     u = request.app.state.users.add(body.name, body.role, body.password)
     request.app.state.users.audit(c.user.name, "add user", None, f"{u.name} ({u.role})")
     return {"name": u.name, "role": u.role}
+
+
+@router.delete("/users/{name}")
+def remove_user(request: Request, name: str, c: Caller = Depends(role("admin"))):
+    if name == c.user.name:
+        raise HTTPException(400, "you cannot remove yourself")
+    request.app.state.users.remove(name)
+    request.app.state.users.audit(c.user.name, "remove user", None, name)
+    return {"removed": name}
