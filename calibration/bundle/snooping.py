@@ -4,7 +4,7 @@ Statistics: variance factor, redundancy numbers, and each observation's test sta
 ``T = v^T Q_vv^-1 v`` (whitened, not yet divided by a variance factor; chi-square with 2 dof times
 the variance factor for a good observation).
 
-Decisions (docs/decisions/0018-scale.md):
+Decisions (docs/decisions/0019-scale.md):
 
 - :func:`test_variance_factor`: the variance factor the tests divide by: the adjustment's own
   ``s0^2`` (Pope's test), unless the network is evidently contaminated (``s0^2`` above
