@@ -34,6 +34,7 @@ from scipy import sparse
 from scipy.optimize import linprog
 
 from calibration.errors import PlanningError
+from planning.sparse_info import SparseInfo
 from planning.uncertainty import _IU, sym_from_6
 
 # Frobenius weights of the unique entries (00, 01, 02, 11, 12, 22) of a symmetric 3x3
@@ -120,7 +121,8 @@ def worst_sigma_lower_bound(
         valid candidate sees with a non-singular geometry.
     """
     t_start = time.perf_counter()
-    info = np.asarray(info)
+    if not isinstance(info, SparseInfo):
+        info = np.asarray(info)
     if info.ndim != 3 or info.shape[2] != 6:
         raise PlanningError(f"worst_sigma_lower_bound: info must be (m, n, 6), got {info.shape}")
     m, n, _ = info.shape
@@ -132,10 +134,14 @@ def worst_sigma_lower_bound(
     cols = np.arange(n) if targets is None else np.asarray(targets)
     if cols.dtype == bool:
         cols = np.flatnonzero(cols)
-    cand = np.flatnonzero(valid & np.any(info[:, cols, 0] + info[:, cols, 3] + info[:, cols, 5] > 0, axis=1))
+    sub = info[:, cols] if isinstance(info, SparseInfo) else None  # (m, nt, 6), only the bounded targets
+    tr = (sub if sub is not None else info)[:, slice(None) if sub is not None else cols]
+    cand = np.flatnonzero(valid & np.any(tr[..., 0] + tr[..., 3] + tr[..., 5] > 0, axis=1))
+    del tr
     if cand.size == 0:
         raise PlanningError("worst_sigma_lower_bound: no valid candidate sees a bounded target")
-    A_info = np.ascontiguousarray(info[cand][:, cols], dtype=np.float64)  # (mc, nt, 6)
+    A_info = np.ascontiguousarray(sub[cand] if sub is not None else info[cand][:, cols], dtype=np.float64)
+    del sub  # A_info: (mc, nt, 6)
     mc, nt = A_info.shape[:2]
     r2 = np.ones(nt) if scale is None else np.asarray(scale, dtype=float)[cols] ** 2
     flat = A_info.reshape(mc, nt * 6)

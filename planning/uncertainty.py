@@ -25,6 +25,7 @@ import numpy as np
 
 from calibration.camera import Intrinsics, invert
 from calibration.errors import PlanningError
+from planning.sparse_info import SparseInfo, add_rows
 
 __all__ = [
     "CRITERIA",
@@ -60,8 +61,12 @@ def target_information(
     visible: np.ndarray,
     sigma_px: float | np.ndarray,
     dtype: type = np.float32,
-) -> np.ndarray:
+    sparse: bool = False,
+):
     """Information ``J^T J / sigma^2`` per station x target; (m, n, 6) in ``dtype``.
+
+    ``sparse=True`` returns the same values as a :class:`planning.sparse_info.SparseInfo` (visible
+    pairs only), never materialising the dense array.
 
     ``part_from_cam: (m, 4, 4)``, ``xyz: (n, 3)``, ``visible: (m, n)`` bool,
     ``sigma_px``: image measurement standard deviation (scalar, or (n,) per target).
@@ -79,16 +84,27 @@ def target_information(
         raise PlanningError(f"target_information: sigma_px must be positive and finite, got {sigma_px!r}")
     w = 1.0 / sig**2
     cam_from_part = invert(T)
-    out = np.zeros((m, n, 6), dtype=dtype)
     rows = np.cumsum(visible.sum(axis=1))
+    if sparse:
+        out = np.empty((int(rows[-1]) if m else 0, 6), dtype=dtype)
+        indices = np.empty(len(out), dtype=np.int32)
+    else:
+        out = np.zeros((m, n, 6), dtype=dtype)
     s0 = 0
     while s0 < m:  # all visible (station, target) pairs at once, in chunks of about _PAIRS_PER_CHUNK
         s1 = max(s0 + 1, int(np.searchsorted(rows, (rows[s0 - 1] if s0 else 0) + _PAIRS_PER_CHUNK, side="right")))
         ci, ti = np.nonzero(visible[s0:s1])
         if len(ci):
             ci += s0
-            out[ci, ti] = (point_information(intr, cam_from_part[ci], xyz[ti]) * w[ti, None]).astype(dtype)
+            val = (point_information(intr, cam_from_part[ci], xyz[ti]) * w[ti, None]).astype(dtype)
+            if sparse:  # np.nonzero is row-major: the pairs come in CSR order
+                e0 = int(rows[s0 - 1]) if s0 else 0
+                out[e0:e0 + len(ci)], indices[e0:e0 + len(ci)] = val, ti
+            else:
+                out[ci, ti] = val
         s0 = s1
+    if sparse:
+        return SparseInfo(np.concatenate([[0], rows]), indices, out, n)
     return out
 
 
@@ -198,7 +214,8 @@ def evaluate_networks(
             counts once (a repeated image adds no geometry).
         workers: threads over the population (default: up to 2).
     """
-    info = np.asarray(info)
+    if not isinstance(info, SparseInfo):
+        info = np.asarray(info)
     if info.ndim != 3 or info.shape[2] != 6:
         raise PlanningError(f"evaluate_networks: info must be (m, n, 6), got {info.shape}")
     m, n, _ = info.shape
@@ -212,6 +229,8 @@ def evaluate_networks(
     if min_rays < 2:
         raise PlanningError(f"evaluate_networks: min_rays must be >= 2 for triangulation, got {min_rays}")
     if visible is None:
+        if isinstance(info, SparseInfo):
+            raise PlanningError("evaluate_networks: give visible with a sparse info")
         visible = (info[..., 0] + info[..., 3] + info[..., 5]) > 0
     vis = np.asarray(visible, dtype=np.uint8)
     if vis.shape != (m, n):
@@ -232,11 +251,11 @@ def evaluate_networks(
             col = s[:, j]
             on = col >= 0
             if on.all():
-                acc += info[col]
+                add_rows(info, acc, None, col)
                 cnt += vis[col]
             elif on.any():
                 rows = np.flatnonzero(on)
-                acc[rows] += info[col[rows]]
+                add_rows(info, acc, rows, col[rows])
                 cnt[rows] += vis[col[rows]]
         c6, sg, good = _invert6(acc, cnt, min_rays)
         cov6[lo:hi], sigma[lo:hi], n_rays[lo:hi], ok[lo:hi] = c6, sg, cnt, good

@@ -203,3 +203,55 @@ def test_bad_inputs_raise_planning_error():
         target_information(INTR, T, xyz, vis[:, :3], SIGMA_PX)
     with pytest.raises(PlanningError, match="sigma"):
         target_information(INTR, T, xyz, vis, 0.0)
+
+
+def test_sparse_information_gives_the_dense_results_exactly():
+    """Issue 21: the planner keeps large information sparse; every selection, evaluation, exchange
+    refine and bound on it equals the dense array's, bit for bit."""
+    from planning.bound import worst_sigma_lower_bound
+    from planning.refine import refine_network
+    from planning.sparse_info import SparseInfo, add_rows
+
+    T, xyz, vis = candidate_scene(seed=3, m=60, n=50)
+    vis[7] = False  # a candidate that sees nothing
+    dense = target_information(INTR, T, xyz, vis, SIGMA_PX)
+    sp = target_information(INTR, T, xyz, vis, SIGMA_PX, sparse=True)
+    assert isinstance(sp, SparseInfo) and sp.shape == dense.shape and sp.dtype == dense.dtype
+    assert len(sp.indices) == vis.sum() and sp.nbytes < dense.nbytes
+    np.testing.assert_array_equal(sp.toarray(), dense)
+    np.testing.assert_array_equal(SparseInfo.from_dense(dense, vis).toarray(), dense)
+    rows, cols = np.array([5, 7, 0, 59, 5]), np.array([49, 3, 0, 17])
+    np.testing.assert_array_equal(sp[rows], dense[rows])
+    np.testing.assert_array_equal(sp[12], dense[12])
+    np.testing.assert_array_equal(sp[np.ix_(rows, cols)], dense[np.ix_(rows, cols)])
+    np.testing.assert_array_equal(sp[3, cols], dense[3, cols])
+    np.testing.assert_array_equal(sp[:, cols, 3], dense[:, cols, 3])
+    np.testing.assert_array_equal(sp[:, np.array([4, 4, 1])], dense[:, [4, 4, 1]])
+    w = np.linspace(0.5, 2.0, 50).astype(np.float32)
+    np.testing.assert_array_equal(sp.scale_targets(w).toarray(), dense * w[None, :, None])
+    acc_d, acc_s = np.ones((3, 50, 6), np.float32), np.ones((3, 50, 6), np.float32)
+    add_rows(dense, acc_d, np.array([0, 2]), np.array([7, 9]))
+    add_rows(sp, acc_s, np.array([0, 2]), np.array([7, 9]))
+    np.testing.assert_array_equal(acc_s, acc_d)
+    with pytest.raises(TypeError):
+        np.asarray(sp)
+    with pytest.raises(PlanningError, match="visible"):
+        evaluate_networks(sp, np.array([[1, 2, 3]]))
+
+    rng = np.random.default_rng(4)
+    stations = np.stack([rng.choice(len(T), 6, replace=False) for _ in range(20)])
+    stations[::3, 1] = -1
+    ev_d = evaluate_networks(dense, stations, visible=vis, chunk=4)
+    ev_s = evaluate_networks(sp, stations, visible=vis, chunk=4)
+    for f in ("cov6", "sigma", "n_rays", "sufficient"):
+        np.testing.assert_array_equal(getattr(ev_s, f), getattr(ev_d, f))
+
+    starts = np.stack([rng.choice(len(T), 5, replace=False) for _ in range(2)])
+    r_d = refine_network(dense, vis, np.arange(len(T)), starts, 2, np.random.default_rng(5), n_kicks=2)
+    r_s = refine_network(sp, vis, np.arange(len(T)), starts, 2, np.random.default_rng(5), n_kicks=2)
+    np.testing.assert_array_equal(r_s.stations, r_d.stations)
+    assert r_s.worst == r_d.worst and r_s.n_swaps == r_d.n_swaps
+
+    b_d = worst_sigma_lower_bound(dense, 5, visible=vis, min_rays=2)
+    b_s = worst_sigma_lower_bound(sp, 5, visible=vis, min_rays=2)
+    assert b_s.lower == b_d.lower and b_s.relaxed == b_d.relaxed

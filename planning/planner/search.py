@@ -15,6 +15,7 @@ from planning.planner.setup import _SetUp
 from planning.polish import polish
 from planning.refine import refine_network
 from planning.seeding import initial_population, ring_sweep
+from planning.sparse_info import SparseInfo
 from planning.stations import N_GENES, ViewingSphere
 
 
@@ -119,7 +120,8 @@ def _refine(problem: _Problem, r: EvolutionResult, objective: str,
         return r, {"swaps": 0, "from": before, "to": before}
     info = problem.info
     if objective == "ratio":  # sigma / required: the information scaled by required^2
-        info = info * (problem.required.astype(np.float32) ** 2)[None, :, None]
+        w = problem.required.astype(np.float32) ** 2
+        info = info.scale_targets(w) if isinstance(info, SparseInfo) else info * w[None, :, None]
     res = refine_network(info, problem.vis, problem.valid_idx, np.array(starts), opt.min_rays, rng,
                          n_kicks=opt.refine_kicks)
     stats = {"swaps": res.n_swaps, "from": before, "to": min(before, res.worst)}
