@@ -413,13 +413,35 @@ def apply_sensor(img: np.ndarray, sensor: Sensor, rng: np.random.Generator | Non
     if sensor.noise:
         if rng is None:
             raise ValueError("apply_sensor with noise needs an rng")
-        electrons = np.maximum(x, 0.0) * np.float32(sensor.full_well_e)
-        sigma = np.sqrt(electrons + np.float32(sensor.read_noise_e**2))
-        electrons += sigma * rng.standard_normal(x.shape, dtype=np.float32)
-        x = electrons * np.float32(1.0 / sensor.full_well_e)
-    x = (x + np.float32(sensor.black_level)) * np.float32(full)
-    np.clip(x, 0.0, full, out=x)
+        e = np.maximum(x, np.float32(0.0))
+        e *= np.float32(sensor.full_well_e)  # electrons
+        sigma = e + np.float32(sensor.read_noise_e**2)
+        np.sqrt(sigma, out=sigma)
+        sigma *= standard_normal_image(rng, x.shape)
+        e += sigma
+        e *= np.float32(full / sensor.full_well_e)
+        e += np.float32(sensor.black_level * full)
+        x = e
+    else:
+        x = (x + np.float32(sensor.black_level)) * np.float32(full)
+    np.maximum(x, np.float32(0.0), out=x)
+    if sensor.bit_depth == 8 and x.ndim == 2:  # saturating round (half to even, as np.rint) in one pass
+        return cv2.convertScaleAbs(x)
+    np.minimum(x, np.float32(full), out=x)
     return np.rint(x).astype(np.uint8 if sensor.bit_depth == 8 else np.uint16)
+
+
+def standard_normal_image(rng: np.random.Generator, shape: tuple[int, ...]) -> np.ndarray:
+    """(h, w) float32 independent N(0, 1) variates, reproducible from ``rng``.
+
+    OpenCV's table (ziggurat) normal generator, seeded from ``rng``, is ~3x faster than NumPy's for a
+    5 MP image (issue 21: the noise was the render's largest cost); its random stream is the calling
+    thread's, so the result depends only on ``rng``'s state.
+    """
+    out = np.empty(shape, dtype=np.float32)
+    cv2.setRNGSeed(int(rng.integers(1, 2**31 - 1)))
+    cv2.randn(out, 0.0, 1.0)
+    return out
 
 
 # --- the scene ---------------------------------------------------------------------
