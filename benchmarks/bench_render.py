@@ -41,6 +41,9 @@ def main() -> None:
     ap.add_argument("--targets", type=int, default=300)
     ap.add_argument("--coded", type=int, default=10)
     ap.add_argument("--repeat", type=int, default=5)
+    ap.add_argument("--seed", type=int, default=11, help="noise stream of --precision")
+    ap.add_argument("--precision", type=int, default=0, metavar="N",
+                    help="also detect the dots in N noisy images with each sensor model and compare the scatter")
     args = ap.parse_args()
     mesh = make_bracket()
     targets = sample_targets(mesh, args.targets, np.random.default_rng(1), n_coded=args.coded)
@@ -78,6 +81,24 @@ def main() -> None:
     t_targets = timed(cam, targets_only)
     print(f"adaptive (default)      {t_adapt:8.1f} ms/image")
     print(f"baseline (all pixels)   {t_base:8.1f} ms/image   ({t_base / t_adapt:.1f}x slower)")
+    if args.precision:
+        from scipy.spatial import cKDTree
+
+        from calibration.targets import detect_retro_targets
+
+        clean_img, _ = cam.render(pose, quantise=False)
+        ref = detect_retro_targets(apply_sensor(clean_img, replace(cam.sensor, noise=False), None)).uv
+        for name, fn in (("now", apply_sensor), ("before", apply_sensor_before)):
+            rng, errs = np.random.default_rng(args.seed), []
+            for _ in range(args.precision):
+                uv = detect_retro_targets(fn(clean_img, cam.sensor, rng)).uv
+                dist, j = cKDTree(ref).query(uv)
+                errs.append(uv[dist < 0.5] - ref[j[dist < 0.5]])
+            e = np.concatenate(errs)
+            mad = 1.4826 * np.median(np.abs(e - np.median(e, axis=0)), axis=0)
+            print(f"  centres, {name:6s} sensor noise vs noise-free: {len(e)} matches, mean ({e[:, 0].mean():+.4f}, "
+                  f"{e[:, 1].mean():+.4f}) px, std ({e[:, 0].std():.4f}, {e[:, 1].std():.4f}) px, "
+                  f"robust std ({mad[0]:.4f}, {mad[1]:.4f}) px")
     print(f"  part background       {t_bg:8.1f} ms")
     print(f"  targets (select+draw) {t_targets:8.1f} ms")
     print(f"  noise + quantisation  {t_sensor:8.1f} ms   (before issue 21: {t_sensor_old:.1f} ms, "
