@@ -25,6 +25,7 @@ import numpy as np
 from calibration.camera import Intrinsics
 from planning.refine import network_sigma, swap_descent
 from planning.stations import ViewingSphere
+from planning.sparse_info import DENSE_LIMIT_BYTES, SparseInfo
 from planning.uncertainty import target_information
 from planning.visibility import VisibilityOptions, compute_visibility
 
@@ -114,10 +115,10 @@ def polish_network(
     cur = np.array(genes, dtype=float)
     k = len(cur)
 
-    def evaluate(g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def evaluate(g: np.ndarray, sparse: bool = False) -> tuple[np.ndarray, np.ndarray]:
         T = sphere.poses(g)
         vis = compute_visibility(part, intr, T, vis_opts, backend=backend)[:, cols]
-        return target_information(intr, T, xyz, vis, sigma_px, dtype=np.float64), vis
+        return target_information(intr, T, xyz, vis, sigma_px, dtype=np.float64, sparse=sparse), vis
 
     info_cur, vis_cur = evaluate(cur)
     sig = network_sigma(info_cur, vis_cur, np.arange(k), min_rays)
@@ -131,13 +132,19 @@ def polish_network(
         hard = sig >= focus * worst
         movers = np.flatnonzero(vis_cur[:, hard].any(axis=1))
         var = local_variants(cur[movers], sphere, step_rad, step_m, offset_m).reshape(-1, cur.shape[1])
-        info_v, vis_v = evaluate(var)
+        # the variants' information only on their visible pairs when dense would be large (same values)
+        sparse = (k + len(var)) * len(cols) * 6 * 8 > DENSE_LIMIT_BYTES // 4
+        info_v, vis_v = evaluate(var, sparse)
         n_poses += len(var)
         keep = vis_v.any(axis=1)
         if reachable_fn is not None and keep.any():
             idx = np.flatnonzero(keep)
             keep[idx[~np.asarray(reachable_fn(sphere.poses(var[idx])), dtype=bool)]] = False
-        info = np.concatenate([info_cur, info_v[keep]])
+        if sparse:
+            info = SparseInfo.vstack([SparseInfo.from_dense(info_cur, vis_cur),
+                                      info_v.select(np.flatnonzero(keep))])
+        else:
+            info = np.concatenate([info_cur, info_v[keep]])
         vis = np.concatenate([vis_cur, vis_v[keep]])
         pool_genes = np.concatenate([cur, var[keep]])
         r = swap_descent(info, vis, np.arange(len(info)), np.arange(k), min_rays)

@@ -118,6 +118,21 @@ class SparseInfo:
             raise TypeError("SparseInfo: paired fancy indexing is not supported")
         return self.take(r, c)
 
+    def select(self, rows: np.ndarray) -> "SparseInfo":
+        """The candidates ``rows`` (int array), still sparse."""
+        rows = np.asarray(rows, dtype=np.int64)
+        _, e = self._entries(rows)
+        indptr = np.concatenate([[0], np.cumsum(self.indptr[rows + 1] - self.indptr[rows])])
+        return SparseInfo(indptr, self.indices[e], self.data[e], self.shape[1])
+
+    @staticmethod
+    def vstack(parts: list) -> "SparseInfo":
+        """The candidates of ``parts`` (SparseInfo, same n) one after the other."""
+        offs = np.cumsum([0] + [len(p.indices) for p in parts])
+        indptr = np.concatenate([[0]] + [p.indptr[1:] + o for p, o in zip(parts, offs)])
+        return SparseInfo(indptr, np.concatenate([p.indices for p in parts]),
+                          np.concatenate([p.data for p in parts]), parts[0].shape[1])
+
     def __array__(self, *a, **k):
         raise TypeError("SparseInfo would be made dense; use .toarray() explicitly")
 

@@ -255,3 +255,15 @@ def test_sparse_information_gives_the_dense_results_exactly():
     b_d = worst_sigma_lower_bound(dense, 5, visible=vis, min_rays=2)
     b_s = worst_sigma_lower_bound(sp, 5, visible=vis, min_rays=2)
     assert b_s.lower == b_d.lower and b_s.relaxed == b_d.relaxed
+
+
+def test_sparse_information_selects_and_stacks_candidates():
+    from planning.sparse_info import SparseInfo
+
+    T, xyz, vis = candidate_scene(seed=5, m=30, n=20)
+    dense = target_information(INTR, T, xyz, vis, SIGMA_PX, dtype=np.float64)
+    sp = target_information(INTR, T, xyz, vis, SIGMA_PX, dtype=np.float64, sparse=True)
+    rows = np.array([29, 0, 4, 4])
+    np.testing.assert_array_equal(sp.select(rows).toarray(), dense[rows])
+    both = SparseInfo.vstack([SparseInfo.from_dense(dense[:3], vis[:3]), sp.select(rows)])
+    np.testing.assert_array_equal(both.toarray(), np.concatenate([dense[:3], dense[rows]]))
