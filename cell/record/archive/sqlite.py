@@ -1,0 +1,85 @@
+"""The embedded backend: one SQLite file next to the cell's job folders (the default, one cell).
+
+WAL journal (readers never wait for the writer), ``BEGIN IMMEDIATE`` for writes (two writers
+queue on the lock instead of deadlocking on a read lock upgrade), a 30 s busy timeout, and an
+``flock`` on ``<file>.lock`` around migrations. WAL needs a local disk: a site with several cells
+uses the PostgreSQL backend (:mod:`~cell.record.archive.postgres`).
+"""
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import os
+import sqlite3
+from pathlib import Path
+
+import sqlalchemy as sa
+from sqlalchemy import event
+
+from cell.record.archive.index import ArchiveIndex
+
+
+def _set_aside_unversioned(path: Path) -> str | None:
+    """An index written before the migrations existed (a ``jobs`` table, no ``alembic_version``)
+    is renamed ``<name>.pre-alembic`` (the folders rebuild it); returns the new name, or None."""
+    if not path.exists():
+        return None
+    con = sqlite3.connect(path, timeout=30)
+    try:
+        names = {r[0] for r in con.execute("SELECT name FROM sqlite_master WHERE type='table'")}
+    finally:
+        con.close()
+    if "jobs" not in names or "alembic_version" in names:
+        return None
+    aside = path.with_name(path.name + ".pre-alembic")
+    for suffix in ("-wal", "-shm"):
+        side = path.with_name(path.name + suffix)
+        if side.exists():
+            os.replace(side, aside.with_name(aside.name + suffix))
+    os.replace(path, aside)
+    return str(aside)
+
+
+class SQLiteIndex(ArchiveIndex):
+    kind = "sqlite"
+
+    def __init__(self, path: Path):
+        self.path = Path(path).resolve()
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.rebuilt_from = _set_aside_unversioned(self.path)
+        engine = sa.create_engine(f"sqlite:///{self.path}", connect_args={"timeout": 30})
+
+        @event.listens_for(engine, "connect")
+        def _connect(dbapi_con, _record):
+            dbapi_con.isolation_level = None  # SQLAlchemy's events below say when a transaction begins
+            cur = dbapi_con.cursor()
+            cur.execute("PRAGMA journal_mode=WAL")
+            cur.execute("PRAGMA foreign_keys=ON")
+            cur.close()
+
+        @event.listens_for(engine, "begin")
+        def _begin(conn):
+            conn.exec_driver_sql("BEGIN IMMEDIATE" if conn.get_execution_options().get("sqlite_write") else "BEGIN")
+
+        self._writer = engine.execution_options(sqlite_write=True)
+        super().__init__(engine, f"sqlite:///{self.path}")
+
+    def _begin(self):
+        from sqlalchemy import exc as sa_exc
+
+        from cell.record.archive.index import IndexUnavailable, _first_line
+
+        try:
+            return self._writer.begin()
+        except sa_exc.OperationalError as exc:
+            raise IndexUnavailable(f"{self.url}: cannot write the archive index ({_first_line(exc)})") from exc
+
+    @contextlib.contextmanager
+    def _migration_guard(self):
+        fd = os.open(f"{self.path}.lock", os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX)
+            with self._writer.begin() as conn:
+                yield conn
+        finally:
+            os.close(fd)
