@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import json
 
+from calibration.errors import CellError
+
 
 def _human_check(doc: dict, out) -> None:
     p = doc["part"]
@@ -116,36 +118,78 @@ def run(args, out) -> int:
     backend = args.backend
     if (backend or "") == "ur":
         _confirm(args, out, "This job moves the robot.")
-    return _finish(start_job(args.job, args.archive, backend, out), out)
+    return _finish(start_job(args.job, args.archive, backend, out, archive_url=args.archive_url), out)
 
 
 def resume(args, out) -> int:
     from cell.job import resume_job
 
     _confirm(args, out, f"Resuming {args.job_id} moves the robot from its measured pose.")
-    return _finish(resume_job(args.job_id, args.archive, out), out)
+    return _finish(resume_job(args.job_id, args.archive, out, archive_url=args.archive_url), out)
+
+
+def _open_archive(args):
+    """``--archive`` / ``--archive-url`` of ``cell archive``: the folders and the index."""
+    import os
+    from pathlib import Path
+
+    from cell.record.archive import Archive, resolve_url
+
+    url = resolve_url(args.archive_url, args.archive or Path("archive"))
+    root = args.archive
+    if root is None:  # a sqlite:/// url names its folder; otherwise ./archive
+        root = Path(url[len("sqlite:///"):]).parent if url.startswith("sqlite:///") else Path("archive")
+    return Archive(root, url, push=args.to or os.environ.get("CELL_ARCHIVE_PUSH"))
 
 
 def archive(args, out) -> int:
     from calibration.errors import InputError
-    from cell.record.archive import Archive
 
-    a = Archive(args.archive)
+    a = _open_archive(args)
+    try:
+        return _archive_action(a, args, out)
+    finally:
+        for line in a.messages:
+            out.say(f"archive: {line}")
+        a.close()
+
+
+def _archive_action(a, args, out) -> int:
+    from calibration.errors import InputError
+
     if args.action == "list":
-        a.reindex()
-        rows = a.list()
+        try:
+            a.drain()
+        except CellError:
+            pass
+        filters = {k: getattr(args, k) for k in ("part", "serial", "verdict", "status", "since", "until", "cell_id")}
+        rows = a.index.list_jobs(**filters, limit=args.limit, offset=args.offset, newest_first=args.limit is not None)
+        doc = {"archive": a.index.url, "total": a.index.count_jobs(**filters), "jobs": rows,
+               "outbox": a.outbox.pending()}
         def human(d):
             for r in d["jobs"]:
                 out.say(f"{r['id']:<40} {r['status']:<9} {r.get('verdict') or '':<10} "
                         f"{(r.get('failed') if r.get('failed') is not None else ''):>4} failed of {r.get('targets') or '?'}")
             if not d["jobs"]:
-                out.say(f"no jobs in {args.archive}")
-        out.result({"jobs": rows}, human)
+                out.say(f"no jobs in {d['archive']}")
+            if d["outbox"]:
+                out.say(f"{len(d['outbox'])} job(s) wait in the outbox for the database: run 'cell archive sync'")
+        out.result(doc, human)
         return 0
     if args.action == "show":
         if len(args.ids) != 1:
             raise InputError("cell archive show takes one job id")
-        doc = a.show(args.ids[0])
+        job_id = args.ids[0]
+        if (a.root / job_id).is_dir():
+            doc = a.show(job_id)
+        else:  # another cell's job: what the index holds
+            row = a.index.get_job(job_id)
+            if row is None:
+                raise InputError(f"{a.index.url}: no job {job_id!r} in the archive (see 'cell archive list')")
+            tl = a.index.job_targets(job_id)
+            doc = {"id": job_id, "folder": row["folder"], "origin": row["origin"], "verdict": row["verdict"],
+                   "sigma0_px": row["sigma0_px"], "targets": len(tl), "failed": [t["id"] for t in tl if t["pass"] is False],
+                   "index": row}
         out.result(doc, lambda d: out.say(json.dumps(d, indent=1, default=str)))
         return 0
     if args.action == "compare":
@@ -160,13 +204,36 @@ def archive(args, out) -> int:
         out.result(doc, human)
         return 0
     if args.action == "verify":
+        if not args.ids:  # the index against the folders
+            doc = a.verify_index()
+            def human(d):
+                out.say(f"{d['checked']} job folders, {d['indexed']} indexed, {len(d['outbox'])} in the outbox: "
+                        + ("index matches the folders" if d["intact"] else f"{len(d['problems'])} problem(s)"))
+                for p in d["problems"]:
+                    out.say(f"  {p}")
+            out.result(doc, human)
+            return 0 if doc["intact"] else 1
         if len(args.ids) != 1:
-            raise InputError("cell archive verify takes one job id")
+            raise InputError("cell archive verify takes one job id (or none: the index against the folders)")
         problems = a.verify(args.ids[0])
         doc = {"job_id": args.ids[0], "intact": not problems, "problems": problems}
         out.result(doc, lambda d: out.say(f"{d['job_id']}: " + ("manifest intact" if d["intact"] else
                                                               "; ".join(d["problems"]))))
         return 0 if not problems else 1
+    if args.action == "sync":
+        doc = a.sync()
+        def human(d):
+            out.say(f"drained {len(d['drained'])} from the outbox, indexed {len(d['indexed'])} more, "
+                    f"{len(d['pending'])} still waiting; pushed {len(d['pushed'])}, {len(d['push_pending'])} pushes waiting")
+        out.result(doc, human)
+        return 0 if not doc["pending"] and not doc["push_pending"] else 1
+    if args.action == "push":
+        if not args.ids:
+            raise InputError("cell archive push takes one or more job ids")
+        docs = [a.push(j) for j in args.ids]
+        out.result({"pushed": docs}, lambda d: [out.say(f"{x['job_id']} -> {x['dest']}: {x['files']} files, "
+                                                           f"{x['bytes']} bytes, verified") for x in d["pushed"]])
+        return 0
     raise InputError(f"unknown archive action {args.action!r}")
 
 

@@ -176,7 +176,8 @@ class JobRunner:
             self._promote()
         self.folder.append("terminal", status=status.value, reason=reason)
         self.folder.write_manifest()
-        self.archive.reindex(only=self.folder.path)
+        for line in self.archive.job_closed(self.folder.path):  # index (or outbox) and push
+            self.out.say(f"archive: {line}")
         return JobResult(self.folder.job_id, status, self.folder.path, reason, interrupted, dict(self.times))
 
     def _stop_robot(self, ctx: Context) -> None:
@@ -187,10 +188,26 @@ class JobRunner:
                 self.folder.append("note", text=f"robot stop after fault failed: {exc}")
 
 
-def start_job(job_path: Path, archive_root: Path, backend: str | None, out) -> JobResult:
+def open_archive(job: LoadedJob, archive_root: Path, archive_url: str | None = None) -> Archive:
+    """The job's archive: folders in ``archive_root``, the index at ``--archive-url``, else
+    ``CELL_ARCHIVE_URL``, else the cell file's ``[archive] url``, else SQLite in the folder."""
+    from cell.record.archive import resolve_url
+
+    cf_url = cf_push = None
+    if job.spec.cell.cell_file is not None:
+        from cell.cellcal.cellfile import load_cell_file
+        from cell.jobspec import resolve
+
+        cf, _ = load_cell_file(resolve(job.folder, job.spec.cell.cell_file))
+        cf_url, cf_push = cf.archive.url, cf.archive.push
+    root = Path(archive_root).resolve()
+    return Archive(root, resolve_url(archive_url, root, cf_url), push=os.environ.get("CELL_ARCHIVE_PUSH") or cf_push)
+
+
+def start_job(job_path: Path, archive_root: Path, backend: str | None, out, archive_url: str | None = None) -> JobResult:
     """``cell run``: LOAD (before anything is written), then the whole job."""
     job = load(job_path)  # bad input fails here, before any folder exists
-    archive = Archive(Path(archive_root).resolve())
+    archive = open_archive(job, archive_root, archive_url)
     job_id = new_job_id(job.spec.job.name)
     incoming = archive.root / ".incoming" / job_id
     k = 1
@@ -219,12 +236,13 @@ def _start_staged(job_path: Path, job: LoadedJob, archive: Archive, folder: JobF
     return runner.run(State.LOAD)
 
 
-def resume_job(job_id: str, archive_root: Path, out) -> JobResult:
+def resume_job(job_id: str, archive_root: Path, out, archive_url: str | None = None) -> JobResult:
     """``cell resume``: continue from the first stage that did not finish."""
     archive = Archive(Path(archive_root).resolve())
     folder = archive.folder(job_id)
     lock = folder.lock()  # refuses a job still running in another process
     try:
+        archive = open_archive(load_from_folder(folder.path), archive_root, archive_url)
         return _resume_locked(job_id, archive, folder, out)
     finally:
         os.close(lock)

@@ -117,6 +117,26 @@ class Archive:
         rec = job_record(path.resolve(), self.origin)
         return self._to_index(path.name, lambda ix: ix.index_job(rec))
 
+    def job_closed(self, path: Path) -> list[str]:
+        """A job folder was closed (manifest written): index it, push it when a destination is set.
+
+        Returns what the archive has to say (a job waiting in the outbox, a failed push that waits
+        for ``cell archive sync``); never raises for an unreachable database or storage.
+        """
+        from cell.record.archive.push import PushError
+
+        path = Path(path)
+        self.index_folder(path)
+        if self.push_dest:
+            try:
+                doc = self.push(path.name)
+                self.messages.append(f"pushed {doc['files']} files ({doc['bytes']} bytes) to {doc['dest']}, verified")
+            except PushError as exc:
+                self.push_outbox.add(path.name, str(exc))
+                self.messages.append(f"{exc}; the push waits for 'cell archive sync'")
+        said, self.messages = self.messages, []
+        return said
+
     def list(self) -> list[dict]:
         """Every job of the index, oldest first."""
         try:

@@ -9,7 +9,6 @@ When the database cannot be reached a write raises :class:`IndexUnavailable`; th
 """
 from __future__ import annotations
 
-import threading
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Iterable
@@ -85,8 +84,7 @@ class ArchiveIndex:
 
     #: ``sqlite`` or ``postgresql``
     kind = ""
-    _migrated: set[str] = set()
-    _migrate_lock = threading.Lock()
+    _head: str | None = None  # the newest migration (read once per process)
 
     def __init__(self, engine: sa.engine.Engine, url: str):
         self.engine = engine
@@ -94,28 +92,30 @@ class ArchiveIndex:
         self._ensure_schema()
 
     # --- schema -----------------------------------------------------------------
-    def _ensure_schema(self) -> None:
-        """Bring the database to the newest migration (alembic), once per process and database."""
-        key = f"{self.kind}:{self.url}"
-        with self._migrate_lock:
-            if key in self._migrated:
-                return
-            try:
-                with self._migration_guard() as conn:
-                    from alembic import command
-                    from alembic.config import Config
-                    from alembic.runtime.migration import MigrationContext
-                    from alembic.script import ScriptDirectory
+    @classmethod
+    def _config(cls):
+        from alembic.config import Config
+        from alembic.script import ScriptDirectory
 
-                    cfg = Config()
-                    cfg.set_main_option("script_location", str(MIGRATIONS))
-                    head = ScriptDirectory.from_config(cfg).get_current_head()
-                    if MigrationContext.configure(conn).get_current_revision() != head:
-                        cfg.attributes["connection"] = conn
-                        command.upgrade(cfg, "head")
-            except (sa_exc.OperationalError, sa_exc.InterfaceError) as exc:
-                raise IndexUnavailable(f"{self.url}: cannot reach the archive database ({_first_line(exc)})") from exc
-            self._migrated.add(key)
+        cfg = Config()
+        cfg.set_main_option("script_location", str(MIGRATIONS))
+        if ArchiveIndex._head is None:
+            ArchiveIndex._head = ScriptDirectory.from_config(cfg).get_current_head()
+        return cfg
+
+    def _ensure_schema(self) -> None:
+        """Bring the database to the newest migration (alembic) under the backend's migration lock."""
+        from alembic import command
+        from alembic.runtime.migration import MigrationContext
+
+        cfg = self._config()
+        try:
+            with self._migration_guard() as conn:
+                if MigrationContext.configure(conn).get_current_revision() != self._head:
+                    cfg.attributes["connection"] = conn
+                    command.upgrade(cfg, "head")
+        except (sa_exc.OperationalError, sa_exc.InterfaceError) as exc:
+            raise IndexUnavailable(f"{self.url}: cannot reach the archive database ({_first_line(exc)})") from exc
 
     def _migration_guard(self):
         """A connection in a transaction that holds the database's migration lock (per backend)."""
