@@ -162,7 +162,7 @@ class ArchiveIndex:
         for k in ("started", "finished"):
             row[k] = _utc(row[k])
         fin = row["finished"]
-        trows = [t | {"job_id": rec.id, "part": rec.part, "finished": fin} for t in rec.targets]
+        trows = [t | {"job_id": rec.id, "part": rec.part, "finished": fin, "serial": rec.serial} for t in rec.targets]
 
         def fn(conn):
             existing = self._lock_row(conn, rec.id)
@@ -207,7 +207,7 @@ class ArchiveIndex:
     def _read(self, stmt) -> list:
         try:
             with self.engine.connect() as conn:
-                return list(conn.execute(stmt))
+                return conn.execute(stmt).all()
         except (sa_exc.OperationalError, sa_exc.InterfaceError) as exc:
             raise IndexUnavailable(f"{self.url}: cannot read the archive database ({_first_line(exc)})") from exc
 
@@ -258,30 +258,37 @@ class ArchiveIndex:
         ``measured`` (3), ``tolerance_m``, ``uncertainty_U_m``, ``decision``, ``pass``.
         """
         t = targets.c
-        stmt = (sa.select(t.job_id, t.finished, t.deviation_x, t.deviation_y, t.deviation_z, t.deviation_norm_m,
-                          t.measured_x, t.measured_y, t.measured_z, t.tolerance_m, t.uncertainty_u_m, t.decision,
-                          t.passed, jobs.c.serial)
-                .join(jobs, jobs.c.id == t.job_id)
-                .where(t.part == part, t.target_id == target_id))
+        stmt = sa.select(*self._trend_columns()).where(t.part == part, t.target_id == target_id)
         if since is not None:
             stmt = stmt.where(t.finished >= _utc(since))
         if until is not None:
             stmt = stmt.where(t.finished < _utc(until))
-        stmt = stmt.order_by(t.finished.asc(), t.job_id.asc())
-        if limit is not None:  # the newest ``limit`` points, still oldest first
-            stmt = stmt.order_by(None).order_by(t.finished.desc(), t.job_id.desc()).limit(int(limit))
-        rows = self._read(stmt)
-        if limit is not None:
-            rows.reverse()
-        out = []
-        for r in rows:
-            out.append({"job_id": r.job_id, "serial": r.serial, "finished": _iso(r.finished),
-                        "deviation": None if r.deviation_x is None else [r.deviation_x, r.deviation_y, r.deviation_z],
-                        "deviation_norm_m": r.deviation_norm_m,
-                        "measured": None if r.measured_x is None else [r.measured_x, r.measured_y, r.measured_z],
-                        "tolerance_m": r.tolerance_m, "uncertainty_U_m": r.uncertainty_u_m, "decision": r.decision,
-                        "pass": r.passed})
-        return out
+        if limit is not None:  # the newest ``limit`` points (still returned oldest first)
+            stmt = stmt.order_by(t.finished.desc(), t.job_id.desc()).limit(int(limit))
+        return self._trend_points(stmt)
+
+    TREND_KEYS = ("job_id", "serial", "finished", "deviation", "deviation_norm_m", "measured", "tolerance_m",
+                  "uncertainty_U_m", "decision", "pass")
+
+    def _trend_columns(self) -> list:
+        t = targets.c
+        return [t.job_id, t.serial, t.finished, t.deviation_x, t.deviation_y, t.deviation_z, t.deviation_norm_m,
+                t.measured_x, t.measured_y, t.measured_z, t.tolerance_m, t.uncertainty_u_m, t.decision, t.passed]
+
+    def _trend_points(self, stmt) -> list[dict]:
+        """The points of the trend query ``stmt`` (columns as :meth:`_trend_columns`), oldest first.
+
+        The generic form: fetch all rows, one comprehension. A backend may let the database build them.
+        """
+        sq = stmt.subquery()
+        rows = self._read(sa.select(sq).order_by(sq.c.finished.asc(), sq.c.job_id.asc()))
+        iso = self._time_text
+        return [{"job_id": r[0], "serial": r[1], "finished": iso(r[2]),
+                 "deviation": None if r[3] is None else [r[3], r[4], r[5]], "deviation_norm_m": r[6],
+                 "measured": None if r[7] is None else [r[7], r[8], r[9]], "tolerance_m": r[10],
+                 "uncertainty_U_m": r[11], "decision": r[12], "pass": r[13]} for r in rows]
+
+    _time_text = staticmethod(_iso)
 
     def parts(self) -> list[str]:
         stmt = sa.select(jobs.c.part).where(jobs.c.part.is_not(None)).distinct().order_by(jobs.c.part)

@@ -44,6 +44,7 @@ def upgrade() -> None:
         sa.Column("target_id", sa.String(100), primary_key=True),
         sa.Column("part", sa.String(200)),
         sa.Column("finished", TZ),
+        sa.Column("serial", sa.String(200)),
         sa.Column("kind", sa.String(20)),
         *(sa.Column(f"nominal_{a}", sa.Float, nullable=False) for a in "xyz"),
         *(sa.Column(f"measured_{a}", sa.Float) for a in "xyz"),
