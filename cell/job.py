@@ -208,12 +208,14 @@ def start_job(job_path: Path, archive_root: Path, backend: str | None, out, arch
     """``cell run``: LOAD (before anything is written), then the whole job."""
     job = load(job_path)  # bad input fails here, before any folder exists
     archive = open_archive(job, archive_root, archive_url)
-    job_id = new_job_id(job.spec.job.name)
+    cell_id = os.environ.get("CELL_ID") or None  # a site's cells share one index: their job ids must differ
+    stem = f"{cell_id}-{job.spec.job.name}" if cell_id else job.spec.job.name
+    job_id = new_job_id(stem)
     incoming = archive.root / ".incoming" / job_id
     k = 1
     while incoming.exists() or (archive.root / job_id).exists():
         k += 1
-        job_id = f"{new_job_id(job.spec.job.name)}-{k}"
+        job_id = f"{new_job_id(stem)}-{k}"
         incoming = archive.root / ".incoming" / job_id
     incoming.mkdir(parents=True)
     folder = JobFolder(incoming)
@@ -227,7 +229,8 @@ def start_job(job_path: Path, archive_root: Path, backend: str | None, out, arch
 def _start_staged(job_path: Path, job: LoadedJob, archive: Archive, folder: JobFolder, job_id: str,
                   backend: str | None, out) -> JobResult:
     incoming = folder.path
-    folder.append("created", name=job.spec.job.name, job_file=str(job_path), backend=backend or job.spec.cell.backend)
+    folder.append("created", name=job.spec.job.name, job_file=str(job_path), backend=backend or job.spec.cell.backend,
+                  **({"cell_id": os.environ["CELL_ID"]} if os.environ.get("CELL_ID") else {}))
     _copy_inputs(job, incoming)
     # the staged copy is what runs; messages name the operator's job file
     job = dataclasses.replace(load_from_folder(incoming), path=Path(job_path))

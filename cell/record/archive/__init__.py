@@ -32,8 +32,8 @@ Reading (the web console and ``cell archive``), with ``ix = open_index(url)``:
   ``tolerance_m``, ``uncertainty_U_m``, ``decision`` (conforming|nonconforming|inconclusive|None),
   ``pass``; None where the target was not measured.
 * ``ix.target_trend(part, target_id, since=, until=, limit=) -> list[dict]``: oldest first, points
-  ``job_id``, ``serial``, ``finished``, ``deviation`` (3), ``deviation_norm_m``, ``measured`` (3),
-  ``tolerance_m``, ``uncertainty_U_m``, ``decision``, ``pass``. One indexed query, never a folder scan.
+  ``job_id``, ``serial``, ``finished``, ``deviation`` (3), ``deviation_norm_m``, ``tolerance_m``,
+  ``uncertainty_U_m``, ``decision``, ``pass``. One query on a covering index, never a folder scan.
 * ``ix.parts() -> list[str]``, ``ix.part_targets(part) -> list[str]``.
 * ``ix.close()``.
 

@@ -255,7 +255,9 @@ class ArchiveIndex:
         """One target of a part over every job that measured it, oldest first: a trend is one query.
 
         Points: ``job_id``, ``serial``, ``finished``, ``deviation`` (3), ``deviation_norm_m``,
-        ``measured`` (3), ``tolerance_m``, ``uncertainty_U_m``, ``decision``, ``pass``.
+        ``tolerance_m``, ``uncertainty_U_m``, ``decision``, ``pass``: all in the covering index
+        ``ix_targets_trend``, so the database reads that index alone (the measured point itself is in
+        :meth:`job_targets`).
         """
         t = targets.c
         stmt = sa.select(*self._trend_columns()).where(t.part == part, t.target_id == target_id)
@@ -267,13 +269,10 @@ class ArchiveIndex:
             stmt = stmt.order_by(t.finished.desc(), t.job_id.desc()).limit(int(limit))
         return self._trend_points(stmt)
 
-    TREND_KEYS = ("job_id", "serial", "finished", "deviation", "deviation_norm_m", "measured", "tolerance_m",
-                  "uncertainty_U_m", "decision", "pass")
-
     def _trend_columns(self) -> list:
         t = targets.c
         return [t.job_id, t.serial, t.finished, t.deviation_x, t.deviation_y, t.deviation_z, t.deviation_norm_m,
-                t.measured_x, t.measured_y, t.measured_z, t.tolerance_m, t.uncertainty_u_m, t.decision, t.passed]
+                t.tolerance_m, t.uncertainty_u_m, t.decision, t.passed]
 
     def _trend_points(self, stmt) -> list[dict]:
         """The points of the trend query ``stmt`` (columns as :meth:`_trend_columns`), oldest first.
@@ -285,8 +284,7 @@ class ArchiveIndex:
         iso = self._time_text
         return [{"job_id": r[0], "serial": r[1], "finished": iso(r[2]),
                  "deviation": None if r[3] is None else [r[3], r[4], r[5]], "deviation_norm_m": r[6],
-                 "measured": None if r[7] is None else [r[7], r[8], r[9]], "tolerance_m": r[10],
-                 "uncertainty_U_m": r[11], "decision": r[12], "pass": r[13]} for r in rows]
+                 "tolerance_m": r[7], "uncertainty_U_m": r[8], "decision": r[9], "pass": r[10]} for r in rows]
 
     _time_text = staticmethod(_iso)
 

@@ -39,26 +39,20 @@ class PostgresIndex(ArchiveIndex):
         return conn.execute(sa.select(jobs.c.origin).where(jobs.c.id == job_id).with_for_update()).first()
 
     def _trend_points(self, stmt) -> list[dict]:
-        """The server builds the points as one JSON array (``json_agg``): 10,000 points cost one value to
-        fetch and one ``json.loads``, not 140,000 values through the driver. Floats round-trip exactly
+        """The server builds the points as one JSON array of arrays (``json_agg``): 10,000 points cost one
+        value to fetch and one ``json.loads``, not 110,000 values through the driver (a third of the
+        client's time), and arrays cost the server half what objects do. Floats round-trip exactly
         (PostgreSQL prints the shortest exact form); times are ISO 8601 in UTC (the session's zone)."""
         from sqlalchemy.dialects.postgresql import aggregate_order_by
 
         sq = stmt.subquery()
         c = sq.c
-        f = sa.func
-
-        def vec(p):
-            return sa.case((c[f"{p}_x"].is_(None), sa.null()),
-                           else_=f.json_build_array(c[f"{p}_x"], c[f"{p}_y"], c[f"{p}_z"]))
-
-        obj = f.json_build_object("job_id", c.job_id, "serial", c.serial, "finished", c.finished,
-                                  "deviation", vec("deviation"), "deviation_norm_m", c.deviation_norm_m,
-                                  "measured", vec("measured"), "tolerance_m", c.tolerance_m,
-                                  "uncertainty_U_m", c.uncertainty_u_m, "decision", c.decision, "pass", c.passed)
-        agg = f.json_agg(aggregate_order_by(obj, c.finished.asc(), c.job_id.asc()))
-        rows = self._read(sa.select(agg))
-        return rows[0][0] or []
+        arr = sa.func.json_build_array(*sq.c)  # the columns of ArchiveIndex._trend_columns, in order
+        rows = self._read(sa.select(sa.func.json_agg(aggregate_order_by(arr, c.finished.asc(), c.job_id.asc()))))
+        return [{"job_id": r[0], "serial": r[1], "finished": r[2],
+                 "deviation": None if r[3] is None else r[3:6], "deviation_norm_m": r[6],
+                 "tolerance_m": r[7], "uncertainty_U_m": r[8], "decision": r[9], "pass": r[10]}
+                for r in rows[0][0] or []]
 
     def bulk_load(self, job_rows, target_rows) -> None:
         """Many prepared rows through ``COPY`` (benchmarks, importing an old archive); no checks."""

@@ -56,7 +56,9 @@ def upgrade() -> None:
         sa.Column("decision", sa.String(20)),
         sa.Column("passed", sa.Boolean),
     )
-    op.create_index("ix_targets_trend", "targets", ["part", "target_id", "finished"])
+    op.create_index("ix_targets_trend", "targets", ["part", "target_id", "finished", "job_id", "serial", "deviation_x",
+                                                    "deviation_y", "deviation_z", "deviation_norm_m", "tolerance_m",
+                                                    "uncertainty_u_m", "decision", "passed"])
 
 
 def downgrade() -> None:
