@@ -225,8 +225,10 @@ def _archive_action(a, args, out) -> int:
         def human(d):
             out.say(f"drained {len(d['drained'])} from the outbox, indexed {len(d['indexed'])} more, "
                     f"{len(d['pending'])} still waiting; pushed {len(d['pushed'])}, {len(d['push_pending'])} pushes waiting")
+            for e in d["errors"]:
+                out.say(f"  {e}")
         out.result(doc, human)
-        return 0 if not doc["pending"] and not doc["push_pending"] else 1
+        return 0 if not doc["pending"] and not doc["push_pending"] and not doc["errors"] else 1
     if args.action == "push":
         if not args.ids:
             raise InputError("cell archive push takes one or more job ids")

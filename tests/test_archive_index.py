@@ -305,3 +305,18 @@ def test_push_to_s3_compatible_storage_checks_the_copy(tmp_path):
     finally:
         server.terminate()
         server.wait(timeout=30)
+
+
+def test_a_folder_the_index_cannot_read_is_named_and_the_others_go_on(tmp_path):
+    a = Archive(tmp_path / "arch")
+    for k in range(3):
+        write_job(a, f"job-{k}", k, n_targets=3)
+    (a.root / "job-1" / "report.json").write_text('{"job": {"finished": "2026-01-01T00:00:00+00:00"}, "targets": [{}]}')
+    a.index.delete_job("job-1")
+    a.index.delete_job("job-2")
+    s = a.sync()
+    assert s["indexed"] == ["job-2"] and len(s["errors"]) == 1 and "job-1" in s["errors"][0]
+    assert "a target without 'id' or 'nominal'" in s["errors"][0]
+    v = a.verify_index()
+    assert [p for p in v["problems"] if "job-1" in p] and not [p for p in v["problems"] if "job-2" in p]
+    a.close()

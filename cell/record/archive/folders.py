@@ -89,8 +89,8 @@ class Archive:
             if _is_job_folder(d):
                 try:
                     self.index.index_job(job_record(d.resolve(), self.origin))
-                except IndexConflict as exc:
-                    self.messages.append(str(exc))
+                except (IndexConflict, InputError) as exc:  # stays in the outbox; verify names it
+                    self.messages.append(f"outbox: {job_id} cannot be indexed: {exc}")
                     continue
             else:
                 self.messages.append(f"outbox: {job_id} has no folder in {self.root}; dropped from the outbox")
@@ -126,7 +126,11 @@ class Archive:
         from cell.record.archive.push import PushError
 
         path = Path(path)
-        self.index_folder(path)
+        try:
+            self.index_folder(path)
+        except InputError as exc:  # a folder the index cannot read: the folder stays the record
+            self.outbox.add(path.name, str(exc))
+            self.messages.append(f"{path.name} cannot be indexed: {exc}")
         if self.push_dest:
             try:
                 doc = self.push(path.name)
@@ -160,23 +164,28 @@ class Archive:
         """``cell archive sync``: drain the outbox, then index every folder the index lacks or holds stale.
 
         Stale: another manifest hash or state than the folder's, or fewer target rows than the row
-        claims. Returns {``drained``, ``indexed``, ``pending`` (still in the outbox), ``pushed``}.
+        claims. Returns {``drained``, ``indexed``, ``pending`` (still in the outbox), ``pushed``,
+        ``push_pending``, ``errors`` (folders that cannot be read, one line each)}.
         """
         drained = self.drain()
         state = self.index.index_state(origin=self.origin)
-        indexed = []
+        indexed, errors = [], []
         for d in (sorted(self.root.iterdir()) if self.root.exists() else []):
             if not _is_job_folder(d):
                 continue
             have = state.get(d.name)
-            rec = job_record(d.resolve(), self.origin)
+            try:
+                rec = job_record(d.resolve(), self.origin)
+            except InputError as exc:
+                errors.append(f"{d.name}: {exc}")
+                continue
             if (have is None or have["manifest_sha256"] != rec.manifest_sha256 or have["status"] != rec.status
                     or (have["targets"] or 0) != have["target_rows"]):
                 self.index.index_job(rec)
                 indexed.append(d.name)
         pushed = self.drain_pushes()
         return {"drained": drained, "indexed": indexed, "pending": self.outbox.pending(), "pushed": pushed,
-                "push_pending": self.push_outbox.pending()}
+                "push_pending": self.push_outbox.pending(), "errors": errors}
 
     def verify_index(self) -> dict:
         """``cell archive verify`` without a job id: the index against the folders of this cell.
@@ -200,7 +209,11 @@ class Archive:
             sha = manifest_sha256(d)
             if have["manifest_sha256"] != sha:
                 problems.append(f"{job_id}: the index holds another manifest than the folder's")
-            rec = job_record(d.resolve(), self.origin)
+            try:
+                rec = job_record(d.resolve(), self.origin)
+            except InputError as exc:
+                problems.append(f"{job_id}: {exc}")
+                continue
             if have["status"] != rec.status:
                 problems.append(f"{job_id}: index says {have['status']}, the journal {rec.status}")
             if (have["targets"] or 0) != have["target_rows"]:
