@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import os
 import socket
+import time
 from pathlib import Path
 
 import numpy as np
@@ -41,6 +42,7 @@ class Archive:
         self.outbox = Outbox(self.root)
         self.push_outbox = Outbox(self.root, "push")
         self._index: ArchiveIndex | None = None
+        self._down_until = 0.0
         self.origin = f"{socket.gethostname()}:{self.root.resolve()}"
         self.messages: list[str] = []  # what the archive had to say (outbox, catch-up) for the caller
 
@@ -62,13 +64,21 @@ class Archive:
             self._index.close()
             self._index = None
 
+    #: after the database could not be reached, writes go straight to the outbox for this long (a host
+    #: that drops packets costs a connect timeout per try: not at every state change of a running job)
+    RETRY_AFTER_S = 5.0
+
     def _to_index(self, job_id: str, write) -> bool:
         """Run ``write(index)``; on an unreachable database put ``job_id`` in the outbox. True if written."""
+        if time.monotonic() < self._down_until:
+            self.outbox.add(job_id, "the archive database was unreachable moments ago")
+            return False
         try:
             self.drain()
             write(self.index)
             return True
         except IndexUnavailable as exc:
+            self._down_until = time.monotonic() + self.RETRY_AFTER_S
             self.outbox.add(job_id, str(exc))
             self.messages.append(f"archive index unreachable: {job_id} waits in the outbox ({exc})")
             return False

@@ -74,6 +74,18 @@ class SQLiteIndex(ArchiveIndex):
         except sa_exc.OperationalError as exc:
             raise IndexUnavailable(f"{self.url}: cannot write the archive index ({_first_line(exc)})") from exc
 
+    def _trend_points(self, stmt) -> list[dict]:
+        """As the generic form, but the time comes back as SQLite stores it (``YYYY-MM-DD HH:MM:SS.ffffff``,
+        UTC) and is reshaped to ISO 8601 by slicing: parsing 10,000 datetimes and formatting them again
+        was a third of the trend's time."""
+        sq = stmt.subquery()
+        cols = [sa.type_coerce(c, sa.String) if c.name == "finished" else c for c in sq.c]
+        rows = self._read(sa.select(*cols).order_by(sq.c.finished.asc(), sq.c.job_id.asc()))
+        return [{"job_id": r[0], "serial": r[1],
+                 "finished": None if r[2] is None else f"{r[2][:10]}T{r[2][11:23]}+00:00",
+                 "deviation": None if r[3] is None else [r[3], r[4], r[5]], "deviation_norm_m": r[6],
+                 "tolerance_m": r[7], "uncertainty_U_m": r[8], "decision": r[9], "pass": r[10]} for r in rows]
+
     @contextlib.contextmanager
     def _migration_guard(self):
         fd = os.open(f"{self.path}.lock", os.O_RDWR | os.O_CREAT, 0o644)
