@@ -32,7 +32,7 @@ def _start(root: Path, url: str, cell: int, n: int, n_targets: int, push: Path |
     args = [sys.executable, str(WORKER), str(root), url, str(cell), str(n), str(n_targets)]
     if push is not None:
         args.append(str(push))
-    env = child_env() | {"OMP_NUM_THREADS": "1"}
+    env = child_env() | {"OMP_NUM_THREADS": "1", "CELL_ARCHIVE_RETRY_S": "0.3", "CELL_LOAD_PACE_S": "0.3"}
     return subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
 
 
@@ -70,6 +70,11 @@ def test_eight_cells_at_once_with_the_database_restarted_lose_nothing(tmp_path, 
         assert p.returncode == 0, err[-3000:]
     docs = [json.loads(out.strip().splitlines()[-1]) for out, _ in outs]
     assert sum(d["outboxed"] for d in docs) > 0, "no cell noticed the outage: the test did not test it"
+    outboxed, left = sum(d["outboxed"] for d in docs), sum(len(d["pending"]) for d in docs)
+    assert left < outboxed, "no cell caught up by itself when the database returned"
+    print(f"\nload: {CELLS} cells x {JOBS} jobs x {TARGETS} targets; {sum(d['outboxed'] for d in docs)} job closes "
+          f"found the outbox non-empty; {sum(len(d['pending']) for d in docs)} jobs still in an outbox when their "
+          "cell stopped (drained by sync)")
     # what a cell's outbox still holds when it stopped is drained by hand ('cell archive sync')
     for c in range(CELLS):
         a = Archive(tmp_path / f"cell{c}", pg.url)

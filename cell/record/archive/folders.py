@@ -65,8 +65,9 @@ class Archive:
             self._index = None
 
     #: after the database could not be reached, writes go straight to the outbox for this long (a host
-    #: that drops packets costs a connect timeout per try: not at every state change of a running job)
-    RETRY_AFTER_S = 5.0
+    #: that drops packets costs a connect timeout per try: not at every state change of a running job);
+    #: ``CELL_ARCHIVE_RETRY_S`` sets it
+    RETRY_AFTER_S = float(os.environ.get("CELL_ARCHIVE_RETRY_S", "5"))
 
     def _to_index(self, job_id: str, write) -> bool:
         """Run ``write(index)``; on an unreachable database put ``job_id`` in the outbox. True if written."""
