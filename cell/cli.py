@@ -9,7 +9,9 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import signal
 import sys
+import threading
 from pathlib import Path
 from typing import Callable
 
@@ -160,6 +162,9 @@ def build_parser() -> argparse.ArgumentParser:
                        help="list, show, compare, verify archived jobs; sync the index; push a job to shared storage")
     c.add_argument("action", choices=["list", "show", "compare", "verify", "sync", "push"])
     c.add_argument("ids", nargs="*")
+    c.add_argument("--repair", action="store_true",
+                   help="with verify: close a job that ended without closing its folder (terminal record, manifest "
+                        "over the files its journal vouches for); never vouches for a changed file")
     c.add_argument("--archive", type=Path, default=None, help="the job folders (default ./archive, or the folder of "
                    "a sqlite:/// archive url)")
     c.add_argument("--archive-url", help=url_help)
@@ -180,6 +185,11 @@ def main(argv: list[str] | None = None) -> int:
     except SystemExit as exc:  # argparse: usage errors are bad input
         return EXIT_INPUT if exc.code not in (0, None) else EXIT_OK
     out = Output(getattr(args, "json", False))
+    # SIGTERM outside a job's own handling (which stops the robot first) ends a command as Ctrl-C does: exit 130
+    if threading.current_thread() is threading.main_thread():
+        old_term = signal.signal(signal.SIGTERM, _raise_abort)
+    else:
+        old_term = None
     try:
         return int(args.func(args, out))
     except (KeyboardInterrupt, AbortRequested):
@@ -189,12 +199,31 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_ABORT
     except CellError as exc:
         code = EXIT_INPUT if isinstance(exc, InputError) else exc.exit_code
-        out.say(f"cell: error: {exc}")
-        if out.as_json:
-            out.result({"status": "error", "error": type(exc).__name__, "message": str(exc), "exit_code": code})
-        if os.environ.get("CELL_DEBUG"):
-            raise
-        return code
+        return _error(out, type(exc).__name__, str(exc), code)
+    except MemoryError:
+        return _error(out, "MemoryError", "out of memory: the input is too large for this machine", EXIT_FAULT)
+    except OSError as exc:  # disk full, read-only, a file where a folder should be: what and where
+        where = f": {exc.filename}" if exc.filename else ""
+        return _error(out, type(exc).__name__, f"{exc.strerror or exc}{where}", EXIT_FAULT)
+    except Exception as exc:  # a bug: still one line (CELL_DEBUG=1 shows the traceback)
+        return _error(out, type(exc).__name__, f"internal error {type(exc).__name__}: {exc} "
+                      "(set CELL_DEBUG=1 for the traceback, and please report it)", EXIT_FAULT)
+    finally:
+        if old_term is not None:
+            signal.signal(signal.SIGTERM, old_term)
+
+
+def _raise_abort(signum, frame):
+    raise AbortRequested(signal.Signals(signum).name)
+
+
+def _error(out: Output, kind: str, message: str, code: int) -> int:
+    out.say(f"cell: error: {message}")
+    if out.as_json:
+        out.result({"status": "error", "error": kind, "message": message, "exit_code": code})
+    if os.environ.get("CELL_DEBUG"):
+        raise
+    return code
 
 
 if __name__ == "__main__":

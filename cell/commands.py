@@ -133,13 +133,13 @@ def _open_archive(args):
     import os
     from pathlib import Path
 
-    from cell.record.archive import Archive, resolve_url
+    from cell.record.archive import Archive, check_archive_root, resolve_url
 
     url = resolve_url(args.archive_url, args.archive or Path("archive"))
     root = args.archive
     if root is None:  # a sqlite:/// url names its folder; otherwise ./archive
         root = Path(url[len("sqlite:///"):]).parent if url.startswith("sqlite:///") else Path("archive")
-    return Archive(root, url, push=args.to or os.environ.get("CELL_ARCHIVE_PUSH"))
+    return Archive(check_archive_root(root, write=False), url, push=args.to or os.environ.get("CELL_ARCHIVE_PUSH"))
 
 
 def archive(args, out) -> int:
@@ -155,21 +155,39 @@ def archive(args, out) -> int:
 
 
 def _archive_action(a, args, out) -> int:
-    from calibration.errors import InputError
+    from pathlib import Path
 
+    from calibration.errors import InputError
+    from cell.record.archive import INCOMING, check_job_id
+
+    if getattr(args, "repair", False) and not (args.action == "verify" and args.ids):
+        raise InputError("--repair goes with 'cell archive verify ID'")
     if args.action == "list":
-        try:
-            a.drain()
-        except CellError:
-            pass
         filters = {k: getattr(args, k) for k in ("part", "serial", "verdict", "status", "since", "until", "cell_id")}
-        rows = a.index.list_jobs(**filters, limit=args.limit, offset=args.offset, newest_first=args.limit is not None)
-        doc = {"archive": a.index.url, "total": a.index.count_jobs(**filters), "jobs": rows,
+        url = a.url
+        if url.startswith("sqlite:///") and not Path(url[len("sqlite:///"):]).exists() and not a.root.is_dir():
+            rows, total = [], 0  # no archive here yet: nothing to list, nothing created
+        else:
+            if a.root.is_dir():
+                a.catch_up()  # folders the index does not hold yet (copied in, or indexed elsewhere)
+            rows = a.index.list_jobs(**filters, limit=args.limit, offset=args.offset,
+                                     newest_first=args.limit is not None)
+            total = a.index.count_jobs(**filters)
+            for r in rows:
+                r["staged"] = False
+                if r.get("problem") is None:
+                    r.pop("problem", None)
+            if args.offset == 0 and not any(v is not None for v in filters.values()):
+                rows += a.staged_rows()
+        doc = {"archive": a.index.url if rows or total else url, "total": total, "jobs": rows,
                "outbox": a.outbox.pending()}
         def human(d):
             for r in d["jobs"]:
-                out.say(f"{r['id']:<40} {r['status']:<9} {r.get('verdict') or '':<10} "
-                        f"{(r.get('failed') if r.get('failed') is not None else ''):>4} failed of {r.get('targets') or '?'}")
+                status = r["status"] + (" (staged: stopped before ACQUIRE; 'cell resume' goes on)" if r.get("staged")
+                                        else "")
+                out.say(f"{r['id']:<40} {status:<9} {r.get('verdict') or '':<10} "
+                        f"{(r.get('failed') if r.get('failed') is not None else ''):>4} failed of {r.get('targets') or '?'}"
+                        + (f"  ! {r['problem']}" if r.get("problem") else ""))
             if not d["jobs"]:
                 out.say(f"no jobs in {d['archive']}")
             if d["outbox"]:
@@ -179,8 +197,8 @@ def _archive_action(a, args, out) -> int:
     if args.action == "show":
         if len(args.ids) != 1:
             raise InputError("cell archive show takes one job id")
-        job_id = args.ids[0]
-        if (a.root / job_id).is_dir():
+        job_id = check_job_id(args.ids[0])
+        if (a.root / job_id).exists() or (a.root / INCOMING / job_id).exists() or (a.root / job_id).is_symlink():
             doc = a.show(job_id)
         else:  # another cell's job: what the index holds
             row = a.index.get_job(job_id)
@@ -211,12 +229,22 @@ def _archive_action(a, args, out) -> int:
                         + ("index matches the folders" if d["intact"] else f"{len(d['problems'])} problem(s)"))
                 for p in d["problems"]:
                     out.say(f"  {p}")
+                for p in d["damaged"]:
+                    out.say(f"  {p} (a damaged folder: 'cell archive verify ID' says more)")
             out.result(doc, human)
             return 0 if doc["intact"] else 1
         if len(args.ids) != 1:
             raise InputError("cell archive verify takes one job id (or none: the index against the folders)")
+        repaired = None
+        if args.repair:
+            from cell.job import repair_job
+
+            repaired = repair_job(a, args.ids[0])
+            out.say(f"{args.ids[0]}: {repaired}")
         problems = a.verify(args.ids[0])
         doc = {"job_id": args.ids[0], "intact": not problems, "problems": problems}
+        if repaired is not None:
+            doc["repaired"] = repaired
         out.result(doc, lambda d: out.say(f"{d['job_id']}: " + ("manifest intact" if d["intact"] else
                                                               "; ".join(d["problems"]))))
         return 0 if not problems else 1
@@ -225,10 +253,10 @@ def _archive_action(a, args, out) -> int:
         def human(d):
             out.say(f"drained {len(d['drained'])} from the outbox, indexed {len(d['indexed'])} more, "
                     f"{len(d['pending'])} still waiting; pushed {len(d['pushed'])}, {len(d['push_pending'])} pushes waiting")
-            for e in d["errors"]:
-                out.say(f"  {e}")
+            for e in d["problems"]:
+                out.say(f"  {e} (indexed as far as it reads)")
         out.result(doc, human)
-        return 0 if not doc["pending"] and not doc["push_pending"] and not doc["errors"] else 1
+        return 0 if not doc["pending"] and not doc["push_pending"] else 1
     if args.action == "push":
         if not args.ids:
             raise InputError("cell archive push takes one or more job ids")

@@ -55,6 +55,7 @@ def make_sim_cell(
     true_flange_from_cam: np.ndarray | None = None,
     true_base_from_part: np.ndarray | None = None,
     light: Any = None,
+    fixture: Any = None,
 ) -> SimCell:
     """Build a simulated cell around ``part``.
 
@@ -70,6 +71,7 @@ def make_sim_cell(
         motion, time_scale, limits, repeatability_rad, initial_joints: see :class:`SimRobot`.
         true_flange_from_cam, true_base_from_part: the world's real values (default nominal).
         light: any ``drivers.protocols.Light`` (e.g. the serial driver on the pty emulator), or None.
+        fixture: a trimesh in the part frame that hides dots but is not in the CAD (see :class:`World`).
     """
     if isinstance(robot, str):
         from planning.kinematics import load_robot
@@ -86,6 +88,7 @@ def make_sim_cell(
         true_base_from_part=true_base_from_part,
         true_flange_from_cam=true_flange_from_cam,
         seed=seed,
+        fixture=fixture,
     )
     sim_robot = SimRobot(
         world,

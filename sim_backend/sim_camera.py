@@ -511,7 +511,7 @@ class SimCamera:
         shade = np.full(len(d), float(ph.ambient_level))
         hit = tri >= 0
         if hit.any():
-            n = np.asarray(self.world.part.mesh.face_normals)[tri[hit]]
+            n = np.asarray(self.world.scene_mesh.face_normals)[tri[hit]]
             cos = np.abs(np.sum(n * d[hit], axis=1))
             shade[hit] += light * ph.part_level * cos * (ph.reference_distance_m / dist[hit]) ** 2
         small = shade.reshape(gh, gw).astype(np.float32)

@@ -111,7 +111,7 @@ def test_verify_finds_a_half_written_job_and_sync_repairs_it(tmp_path, url):
     a = _archive(tmp_path, url)
     for k in range(3):
         write_job(a, f"job-{k}", k, n_targets=5)
-    assert a.verify_index() == {"checked": 3, "indexed": 3, "outbox": [], "problems": [], "intact": True}
+    assert a.verify_index() == {"checked": 3, "indexed": 3, "outbox": [], "problems": [], "damaged": [], "intact": True}
     from cell.record.archive.tables import targets
 
     with a.index.engine.begin() as conn:  # what a write that is not one transaction would leave
@@ -318,8 +318,11 @@ def test_a_folder_the_index_cannot_read_is_named_and_the_others_go_on(tmp_path):
     a.index.delete_job("job-1")
     a.index.delete_job("job-2")
     s = a.sync()
-    assert s["indexed"] == ["job-2"] and len(s["errors"]) == 1 and "job-1" in s["errors"][0]
-    assert "a target without 'id' or 'nominal'" in s["errors"][0]
+    assert s["indexed"] == ["job-1", "job-2"] and len(s["problems"]) == 1 and "job-1" in s["problems"][0]
+    assert "a target without 'id' or 'nominal'" in s["problems"][0]
+    row = a.index.get_job("job-1")  # indexed as far as it reads: its state, no report values, the problem
+    assert row["status"] == "DONE" and row["verdict"] is None and "report.json damaged" in row["problem"]
+    assert a.index.job_targets("job-1") == [] and len(a.index.job_targets("job-2")) == 3
     v = a.verify_index()
-    assert [p for p in v["problems"] if "job-1" in p] and not [p for p in v["problems"] if "job-2" in p]
+    assert v["intact"] and [p for p in v["damaged"] if "job-1" in p] and len(v["damaged"]) == 1
     a.close()

@@ -16,7 +16,7 @@ from calibration.bundle.config import BundleConfig, BundleOptions, BundleResult
 from calibration.bundle.covariance import _result
 from calibration.bundle.datum import _datum_stage
 from calibration.bundle.normal import _Layout, _linearise, _State
-from calibration.bundle.snooping import _statistics
+from calibration.bundle.snooping import _statistics, pick_rejections, predicted_test, test_variance_factor
 from calibration.bundle.vce import _variance_step
 from calibration.camera import Intrinsics
 from calibration.errors import CalibrationError
@@ -95,11 +95,16 @@ def _bundle_adjust(obs_image, obs_target, obs_uv, intrinsics, cam_from_part, poi
     for bar in config.scale_bars:
         linked[[bar.target_a, bar.target_b]] = True
     defect = {"free": 7, "scale_bar": 6, "control": 0}[config.datum]
-    rejected = np.zeros(len(obs_image), dtype=bool)
+    q = len(obs_image)
+    rejected = np.zeros(q, dtype=bool)
+    reinstated = np.zeros(q, dtype=bool)  # put back once: never rejected again by the batch rounds' mistakes
     state = _State(intrinsics, poses0, x0.copy())
-    timings = {"pycolmap_solve": 0.0, "datum": 0.0, "covariance": 0.0}
-    thr = chi2.isf(options.alpha / len(obs_image), 2)
+    timings = {"pycolmap_solve": 0.0, "datum": 0.0, "covariance": 0.0, "snooping": 0.0}
+    thr = chi2.isf(options.alpha / q, 2)
+    snoop = {"rounds": 0, "threshold": float(thr), "reinstated": 0, "untestable_rejected": 0,
+             "batch": bool(options.snooping_batch)}
     while True:
+        snoop["rounds"] += 1
         act_obs = ~rejected
         counts = np.bincount(obs_target[act_obs], minlength=n)
         active_pts = counts >= 2
@@ -125,17 +130,59 @@ def _bundle_adjust(obs_image, obs_target, obs_uv, intrinsics, cam_from_part, poi
             sig, vc = _variance_step(sig, sig0, group, act_obs, lin, stats, options, it, vc)
             if vc.converged:
                 break
-        T = np.full(len(obs_image), np.nan)
-        T[act_obs] = stats["T"] / stats["s02"]
+        t4 = time.perf_counter()
+        s_test, which = (test_variance_factor(stats["T"], stats["s02"], options.snooping_contamination)
+                         if options.snooping_batch else (stats["s02"], "adjustment"))
+        snoop["variance_factor"] = which
+        T = np.full(q, np.nan)
+        T[act_obs] = stats["T"] / s_test
         testable = np.isfinite(T)
-        if (not options.snooping or rejected.sum() >= options.max_rejections or not testable.any()
-                or np.nanmax(T) <= thr):
-            break  # nothing left to test (e.g. two images: no redundancy per observation) or nothing fails
-        rejected[int(np.nanargmax(T))] = True
+        fails = testable & (T > thr)
+        snoop["still_failing"] = int(fails.sum())
+        stop = None
+        if not options.snooping:
+            stop = "off"
+        elif not testable.any():
+            stop = "nothing testable"  # e.g. two images: no redundancy per observation
+        elif not fails.any():
+            back = _reinstate(options, rejected, reinstated, act_obs, state, lin, lay, stats, s_test, thr,
+                              obs_image, obs_target, obs_uv, sig, snoop)
+            if not back.any():
+                stop = "no observation fails"
+            rejected[back], reinstated[back] = False, True
+            snoop["reinstated"] += int(back.sum())
+        elif rejected.sum() >= options.max_rejections:
+            stop = "max_rejections reached"
+        elif options.snooping_batch:
+            pick = pick_rejections(np.where(reinstated, np.nan, T), thr, obs_image, obs_target,
+                                   options.max_rejections - int(rejected.sum()))
+            if len(pick) == 0:  # only reinstated observations fail: take the largest (the plain rule)
+                pick = [int(np.nanargmax(T))]
+            rejected[pick] = True
+        else:
+            rejected[int(np.nanargmax(T))] = True
+        timings["snooping"] += time.perf_counter() - t4
+        if stop is not None:
+            snoop["stopped_because"] = stop
+            break
     res = _result(state, lin, stats, lay, T, rejected, act_obs, obs_image, obs_target, obs_uv, options, config,
                   usable and (dconv or (config.datum == "free" and not weighted)), report, timings,
                   time.perf_counter() - t_start)
-    res.obs_sigma_px, res.variance_components = sig, vc
+    res.obs_sigma_px, res.variance_components, res.snooping = sig, vc, snoop
     if weighted:  # sigma0 in pixels: of an observation of the rms a priori sigma (equal weights: options.sigma_px)
         res.sigma0_px = float(np.sqrt(stats["s02"] * np.mean(sig[act_obs] ** 2)))
     return res
+
+
+def _reinstate(options, rejected, reinstated, act_obs, state, lin, lay, stats, s_test, thr, obs_image, obs_target,
+               obs_uv, sig, snoop) -> np.ndarray:
+    """Rejected observations that pass the test against the final adjustment (batch rounds only; each once)."""
+    back = np.zeros(len(rejected), dtype=bool)
+    out = rejected & ~act_obs
+    if not options.snooping_batch or not out.any():
+        return back
+    idx = np.flatnonzero(out & ~reinstated)
+    Tp = predicted_test(state, lin, lay, stats, obs_image[idx], obs_target[idx], obs_uv[idx], sig[idx]) / s_test
+    snoop["untestable_rejected"] = int(np.count_nonzero(~np.isfinite(Tp)))
+    back[idx[np.isfinite(Tp) & (Tp <= thr)]] = True
+    return back

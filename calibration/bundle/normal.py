@@ -107,11 +107,15 @@ def _null_space(state: _State, lay: _Layout, d: int) -> tuple[np.ndarray, np.nda
     return Gc[:, :d], Gp[lay.unlinked][:, :, :d]
 
 
-def _linearise(
-    state: _State, obs_image: np.ndarray, obs_target: np.ndarray, obs_uv: np.ndarray, lay: _Layout,
-    config: BundleConfig, sigma_px: float | np.ndarray, defect: int,
-) -> _Linear:
-    m, k, p = lay.m, lay.k, lay.p
+def _jacobians(state: _State, obs_image: np.ndarray, obs_target: np.ndarray, obs_uv: np.ndarray, lay: _Layout,
+               sigma_px: float | np.ndarray):
+    """Whitened residuals and Jacobians of observations (of active targets) at ``state``.
+
+    Returns ``r (q, 2)``, ``Jp (q, 2, 3)`` (zero for linked targets), the compact camera-side
+    ``Jc (q, 2, 6 + k + 3)`` with its columns ``cidx (q, 6 + k + 3)``, the unlinked point ``slot (q,)``
+    and ``is_linked (q,)``.
+    """
+    m, k = lay.m, lay.k
     R = state.poses[obs_image, :3, :3]
     t = state.poses[obs_image, :3, 3]
     uv, Jp, Jpose, Jin = project_observations(state.intr, R, t, state.points[obs_target], lay.names)
@@ -135,6 +139,16 @@ def _linearise(
         Jp = Jp.copy()
         Jp[is_linked] = 0.0
     slot = np.where(is_linked, 0, lay.uslot[obs_target])
+    return r, Jp, Jc, cidx, slot, is_linked
+
+
+def _linearise(
+    state: _State, obs_image: np.ndarray, obs_target: np.ndarray, obs_uv: np.ndarray, lay: _Layout,
+    config: BundleConfig, sigma_px: float | np.ndarray, defect: int,
+) -> _Linear:
+    m, k, p = lay.m, lay.k, lay.p
+    W = 6 + k + 3
+    r, Jp, Jc, cidx, slot, is_linked = _jacobians(state, obs_image, obs_target, obs_uv, lay, sigma_px)
     # camera side: pose and interior blocks by image, linked points by scatter
     HH = np.einsum("qia,qib->qab", Jc, Jc)
     Ncc = np.zeros((p, p))

@@ -11,8 +11,10 @@ from cell.stages.imaging import measure_image
 from planning.visibility import Occluder
 
 
-def run(ctx) -> None:
+def run(ctx, keep: bool = False) -> None:
     """Detect, centre and identify the targets in every image (cell.stages.imaging.measure_image).
+
+    ``keep``: images already in observations.json keep their measurement (the closed loop's rounds).
 
     Dots are named by projecting the nominal targets with the robot's pose and the hand-eye, refined
     by the coded targets (solvePnP) where at least four are seen; coded targets are not measured.
@@ -22,8 +24,14 @@ def run(ctx) -> None:
     ids_all = job.part.targets.ids
     bfp, ffc = job.spec.base_from_part(), job.spec.flange_from_cam()
     occluder = Occluder(job.part.mesh)
+    # images measured before (a closed-loop round adds images to a measured network): kept as they are
+    path = ctx.folder.file("observations.json")
+    before = {o["image"]: o for o in ctx.folder.read_json("observations.json")["images"]} if keep and path.exists() else {}
     out = []
     for k, im in enumerate(acq["images"]):
+        if im["image"] in before:
+            out.append(before[im["image"]])
+            continue
         ctx.progress("measure", k / len(acq["images"]))
         img = cv2.imread(str(ctx.folder.file(im["image"])), cv2.IMREAD_UNCHANGED)
         if img is None:

@@ -3,6 +3,7 @@
 Layout::
 
     folders.py   Archive: the job folders of one cell (``--archive DIR``), their outbox, sync and verify
+    ids.py       job ids are names: resolve_job_id (never leaves the archive), check_archive_root
     records.py   JobRecord: what the index holds of one folder (journal + report.json + manifest hash)
     tables.py    the SQLAlchemy Core tables, declared once (``jobs``, ``targets``)
     index.py     ArchiveIndex: the repository interface (below), shared by the backends
@@ -53,11 +54,13 @@ import os
 from pathlib import Path
 
 from cell.record.archive.folders import Archive
+from cell.record.archive.ids import INCOMING, JOB_ID_PATTERN, check_archive_root, check_job_id, resolve_job_id
 from cell.record.archive.index import ArchiveIndex, IndexConflict, IndexUnavailable
 from cell.record.archive.push import push_job
 from cell.record.archive.records import JobRecord, job_record
 
-__all__ = ["Archive", "ArchiveIndex", "IndexConflict", "IndexUnavailable", "JobRecord", "job_record", "open_index",
+__all__ = ["Archive", "ArchiveIndex", "INCOMING", "JOB_ID_PATTERN", "check_archive_root", "check_job_id",
+           "resolve_job_id", "IndexConflict", "IndexUnavailable", "JobRecord", "job_record", "open_index",
            "push_job", "resolve_url", "default_url"]
 
 ENV_URL = "CELL_ARCHIVE_URL"

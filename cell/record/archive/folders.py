@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from calibration.errors import InputError
+from cell.record.archive.ids import INCOMING, JOB_ID_PATTERN, resolve_job_id
 from cell.record.archive.index import ArchiveIndex, IndexConflict, IndexUnavailable
 from cell.record.archive.outbox import Outbox
 from cell.record.archive.records import job_record, manifest_sha256
@@ -23,7 +24,9 @@ from cell.record.jobfolder import JOURNAL, JobFolder
 
 
 def _is_job_folder(d: Path) -> bool:
-    return d.is_dir() and not d.name.startswith(".") and (d / JOURNAL).exists()
+    """A job's folder in the archive: named like a job id, not a link, with a journal."""
+    return (d.is_dir() and not d.is_symlink() and not d.name.startswith(".") and bool(JOB_ID_PATTERN.fullmatch(d.name))
+            and (d / JOURNAL).is_file())
 
 
 class Archive:
@@ -45,6 +48,8 @@ class Archive:
         self._down_until = 0.0
         self.origin = f"{socket.gethostname()}:{self.root.resolve()}"
         self.messages: list[str] = []  # what the archive had to say (outbox, catch-up) for the caller
+        #: job id -> what is damaged in its folder, found by the last :meth:`reindex` / :meth:`catch_up`
+        self.problems: dict[str, str] = {}
 
     # --- the index ------------------------------------------------------------------
     @property
@@ -110,10 +115,16 @@ class Archive:
         return done
 
     def folder(self, job_id: str) -> JobFolder:
-        p = self.root / job_id
-        if not p.is_dir():
-            raise InputError(f"{self.root}: no job {job_id!r} in the archive (see 'cell archive list')")
-        return JobFolder(p)
+        """The job's folder (see :func:`~cell.record.archive.ids.resolve_job_id`)."""
+        return resolve_job_id(self.root, job_id)
+
+    def staged(self) -> list[JobFolder]:
+        """Jobs still in ``.incoming`` (stopped before ACQUIRE): listed, resumable."""
+        inc = self.root / INCOMING
+        if not inc.is_dir():
+            return []
+        return [JobFolder(d) for d in sorted(inc.iterdir()) if d.is_dir() and not d.is_symlink()
+                and JOB_ID_PATTERN.fullmatch(d.name)]
 
     def record(self, job_id: str, **fields) -> None:
         """A running job's state (``status``, and ``name``, ``part``, ``started`` when known)."""
@@ -126,6 +137,8 @@ class Archive:
         """Write one job folder's record (row and target values, one transaction); False: it waits in the outbox."""
         path = Path(path)
         rec = job_record(path.resolve(), self.origin)
+        if rec.problem:
+            self.problems[path.name] = rec.problem
         return self._to_index(path.name, lambda ix: ix.index_job(rec))
 
     def job_closed(self, path: Path) -> list[str]:
@@ -160,55 +173,100 @@ class Archive:
             pass
         return self.index.list_jobs(limit=None, newest_first=False)
 
+    def _job_dirs(self) -> list[Path]:
+        if not self.root.is_dir():
+            return []
+        return sorted(d for d in self.root.iterdir() if _is_job_folder(d))
+
     def reindex(self, only: Path | None = None) -> int:
-        """Write the index records of the job folders (their journals and reports); ``only`` one folder."""
+        """Write the index records of the job folders (their journals and reports); ``only`` one folder.
+
+        A folder that is not a job (no journal) is skipped; a job whose journal or report is damaged
+        is indexed from what reads (its problem in :attr:`problems` and in the index), never failing
+        the others.
+        """
         n = 0
-        dirs = [Path(only)] if only is not None else (sorted(self.root.iterdir()) if self.root.exists() else [])
+        dirs = [Path(only)] if only is not None else self._job_dirs()
         for d in dirs:
-            if not (d / JOURNAL).exists():
+            if not (d / JOURNAL).is_file():
                 continue
             self.index_folder(d)
             n += 1
         return n
+
+    def catch_up(self) -> list[str]:
+        """Drain the outbox and index the job folders the index does not hold yet (a listing's first step:
+        a directory listing and one query, not a read of every folder); returns the ids indexed."""
+        try:
+            self.drain()
+            known = self.index.job_ids(origin=self.origin)
+        except IndexUnavailable:
+            return []
+        new = [d for d in self._job_dirs() if d.name not in known]
+        for d in new:
+            self.index_folder(d)
+        return [d.name for d in new]
+
+    def listing(self, **filters) -> list[dict]:
+        """``cell archive list``: the index's jobs (caught up with the folders first), oldest first, and the
+        staged ones (in ``.incoming``) after them; a row whose folder could not be read whole has ``problem``."""
+        self.catch_up()
+        rows = self.index.list_jobs(limit=None, newest_first=False, **filters)
+        for r in rows:
+            r["staged"] = False
+            if r.get("problem") is None:
+                r.pop("problem", None)
+        if not any(v is not None for v in filters.values()):
+            rows += self.staged_rows()
+        return rows
+
+    def staged_rows(self) -> list[dict]:
+        """Rows of the jobs in ``.incoming`` (not in the index: they may still be refused as bad input)."""
+        rows = []
+        for f in self.staged():
+            rec = job_record(f.path, self.origin)
+            row = {"id": f.job_id, "folder": str(f.path), "staged": True, "name": rec.name, "status": rec.status,
+                   "started": rec.started, "part": rec.part, "verdict": rec.verdict}
+            if rec.problem:
+                row["problem"] = rec.problem
+            rows.append(row)
+        return rows
 
     def sync(self) -> dict:
         """``cell archive sync``: drain the outbox, then index every folder the index lacks or holds stale.
 
         Stale: another manifest hash or state than the folder's, or fewer target rows than the row
         claims. Returns {``drained``, ``indexed``, ``pending`` (still in the outbox), ``pushed``,
-        ``push_pending``, ``errors`` (folders that cannot be read, one line each)}.
+        ``push_pending``, ``problems`` (folders indexed only as far as they read, one line each)}.
         """
         drained = self.drain()
         state = self.index.index_state(origin=self.origin)
-        indexed, errors = [], []
-        for d in (sorted(self.root.iterdir()) if self.root.exists() else []):
-            if not _is_job_folder(d):
-                continue
+        indexed, problems = [], []
+        for d in self._job_dirs():
             have = state.get(d.name)
-            try:
-                rec = job_record(d.resolve(), self.origin)
-            except InputError as exc:
-                errors.append(f"{d.name}: {exc}")
-                continue
+            rec = job_record(d.resolve(), self.origin)
+            if rec.problem:
+                problems.append(f"{d.name}: {rec.problem}")
             if (have is None or have["manifest_sha256"] != rec.manifest_sha256 or have["status"] != rec.status
                     or (have["targets"] or 0) != have["target_rows"]):
                 self.index.index_job(rec)
                 indexed.append(d.name)
         pushed = self.drain_pushes()
         return {"drained": drained, "indexed": indexed, "pending": self.outbox.pending(), "pushed": pushed,
-                "push_pending": self.push_outbox.pending(), "errors": errors}
+                "push_pending": self.push_outbox.pending(), "problems": problems}
 
     def verify_index(self) -> dict:
         """``cell archive verify`` without a job id: the index against the folders of this cell.
 
         Problems: a folder the index lacks, a row whose folder is gone, a different manifest hash or
         state, a row whose target rows are not the count it claims (a half-written job), a report
-        whose targets are not the rows. Jobs still in the outbox are listed apart (not problems).
+        whose targets are not the rows. Jobs still in the outbox are listed apart (not problems), and
+        so are folders that do not read whole (``damaged``: indexed as far as they read).
         """
         state = self.index.index_state(origin=self.origin)
         pending = set(self.outbox.pending())
-        problems, checked = [], 0
-        folders = {d.name: d for d in (sorted(self.root.iterdir()) if self.root.exists() else []) if _is_job_folder(d)}
+        problems, damaged, checked = [], [], 0
+        folders = {d.name: d for d in self._job_dirs()}
         for job_id, d in folders.items():
             checked += 1
             have = state.get(job_id)
@@ -217,25 +275,22 @@ class Archive:
             if have is None:
                 problems.append(f"{job_id}: folder not in the index (run 'cell archive sync')")
                 continue
-            sha = manifest_sha256(d)
-            if have["manifest_sha256"] != sha:
+            if have["manifest_sha256"] != manifest_sha256(d):
                 problems.append(f"{job_id}: the index holds another manifest than the folder's")
-            try:
-                rec = job_record(d.resolve(), self.origin)
-            except InputError as exc:
-                problems.append(f"{job_id}: {exc}")
-                continue
+            rec = job_record(d.resolve(), self.origin)
+            if rec.problem:
+                damaged.append(f"{job_id}: {rec.problem}")
             if have["status"] != rec.status:
                 problems.append(f"{job_id}: index says {have['status']}, the journal {rec.status}")
             if (have["targets"] or 0) != have["target_rows"]:
                 problems.append(f"{job_id}: index row claims {have['targets']} targets, holds {have['target_rows']}")
-            elif rec.verdict is not None and have["target_rows"] != len(rec.targets):
+            elif have["target_rows"] != len(rec.targets):
                 problems.append(f"{job_id}: report has {len(rec.targets)} targets, the index {have['target_rows']}")
         for job_id, have in state.items():
             if job_id not in folders:
                 problems.append(f"{job_id}: in the index but no folder in {self.root}")
         return {"checked": checked, "indexed": len(state), "outbox": sorted(pending), "problems": problems,
-                "intact": not problems}
+                "damaged": damaged, "intact": not problems}
 
     def push(self, job_id: str, dest: str | None = None) -> dict:
         """Copy the closed job folder to shared storage and check the copy against its manifest."""
@@ -264,12 +319,18 @@ class Archive:
 
     def show(self, job_id: str) -> dict:
         folder = self.folder(job_id)
+        recs, damage = folder.read_journal()
+        doc = {"id": job_id, "folder": str(folder.path), "journal": recs[-5:]}
+        if damage is not None:
+            doc["problem"] = f"journal damaged: {damage}"
         rep = folder.file("report.json")
-        doc = {"id": job_id, "folder": str(folder.path), "journal": list(folder.records())[-5:]}
-        if rep.exists():
-            r = json.loads(rep.read_text())
-            doc |= {"job": r["job"], "verdict": r.get("verdict"), "sigma0_px": r.get("sigma0_px"),
-                    "targets": len(r["targets"]), "failed": [t["id"] for t in r["targets"] if not t["pass"]]}
+        if rep.is_file():
+            try:
+                r = json.loads(rep.read_text(encoding="utf-8"))
+                doc |= {"job": r["job"], "verdict": r.get("verdict"), "sigma0_px": r.get("sigma0_px"),
+                        "targets": len(r["targets"]), "failed": [t["id"] for t in r["targets"] if not t["pass"]]}
+            except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError, AttributeError) as exc:
+                doc["problem"] = f"report.json damaged ({type(exc).__name__}: {exc})"
         return doc
 
     def compare(self, ids: list[str]) -> dict:
@@ -281,7 +342,13 @@ class Archive:
             p = self.folder(j).file("report.json")
             if not p.exists():
                 raise InputError(f"{j}: has no report (status: not DONE)")
-            reports.append(json.loads(p.read_text()))
+            try:
+                doc = json.loads(p.read_text(encoding="utf-8"))
+                if not isinstance(doc.get("targets"), list) or not isinstance(doc.get("job"), dict):
+                    raise ValueError("no 'targets' list or 'job' table")
+            except (OSError, UnicodeDecodeError, ValueError, AttributeError) as exc:
+                raise InputError(f"{j}: report.json is damaged ({exc}); see 'cell archive verify {j}'") from None
+            reports.append(doc)
         parts = {r["job"].get("part") for r in reports}
         if len(parts) > 1:
             raise InputError(f"cell archive compare: the jobs inspect different parts ({', '.join(map(str, parts))})")
@@ -300,4 +367,15 @@ class Archive:
                 "drifting": [r["id"] for r in rows if r["drift_significant"]]}
 
     def verify(self, job_id: str) -> list[str]:
-        return self.folder(job_id).verify_manifest()
+        """Problems of the job's folder against its manifest and its journal (empty: intact)."""
+        from cell.record import integrity
+
+        folder = self.folder(job_id)
+        problems = folder.verify_manifest()
+        recs, damage = folder.read_journal()
+        if damage is not None:
+            problems.append(f"journal damaged: {damage}")
+        found = integrity.check_stored(folder, recs, decode_images=False)
+        problems += [f"station {sid}: {why}" for sid, why in found.stations.items()]
+        problems += [f"{rel}: {why} (per the journal)" for rel, (why, _) in found.files.items()]
+        return list(dict.fromkeys(problems))

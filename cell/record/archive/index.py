@@ -296,6 +296,13 @@ class ArchiveIndex:
         stmt = sa.select(targets.c.target_id).where(targets.c.part == part).distinct().order_by(targets.c.target_id)
         return [r[0] for r in self._read(stmt)]
 
+    def job_ids(self, origin: str | None = None) -> set[str]:
+        """The ids the index holds (of one ``origin``: a cell's folder root)."""
+        stmt = sa.select(jobs.c.id)
+        if origin is not None:
+            stmt = stmt.where(jobs.c.origin == origin)
+        return {r[0] for r in self._read(stmt)}
+
     def index_state(self, origin: str | None = None) -> dict[str, dict]:
         """Per job id: ``status``, ``manifest_sha256``, ``targets`` (the count the row claims) and
         ``target_rows`` (the rows present): what ``cell archive verify`` compares with the folders."""

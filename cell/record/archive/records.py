@@ -72,13 +72,14 @@ class JobRecord:
     manifest_sha256: str | None = None
     targets: list[dict] = field(default_factory=list)
     failed: int | None = None
+    problem: str | None = None  # what in the folder could not be read (indexed as far as it reads)
 
     def job_row(self) -> dict:
         return {"id": self.id, "name": self.name, "part": self.part, "serial": self.serial, "cell_id": self.cell_id,
                 "status": self.status, "verdict": self.verdict, "started": self.started, "finished": self.finished,
-                "targets": len(self.targets) if self.verdict is not None else None, "failed": self.failed,
+                "targets": len(self.targets) if self.failed is not None else None, "failed": self.failed,
                 "sigma0_px": _num(self.sigma0_px), "origin": self.origin, "folder": self.folder,
-                "manifest_sha256": self.manifest_sha256}
+                "manifest_sha256": self.manifest_sha256, "problem": self.problem}
 
 
 def manifest_sha256(folder: Path) -> str | None:
@@ -89,37 +90,59 @@ def manifest_sha256(folder: Path) -> str | None:
 
 
 def job_record(folder: Path, origin: str) -> JobRecord:
-    """The index record of the job folder ``folder`` (raises ``InputError`` naming a malformed file)."""
+    """The index record of the job folder ``folder``, from what reads.
+
+    A damaged journal (up to its first bad line) or report (no report values) is indexed as far as it
+    reads, with what is wrong in ``problem``: one damaged folder never stops the others.
+    """
     folder = Path(folder)
     jf = JobFolder(folder)
-    recs = list(jf.records())
-    status = next((r["to"] for r in reversed(recs) if r.get("event") == "state"), "CREATED")
+    problems = []
+    try:
+        recs, damage = jf.read_journal()
+    except OSError as exc:
+        recs, damage = [], exc
+    if damage is not None:
+        problems.append(f"journal damaged: {damage}")
+    status = next((r.get("to") for r in reversed(recs) if r.get("event") == "state"), "CREATED")
     created = next((r for r in recs if r.get("event") == "created"), {})
-    rec = JobRecord(id=folder.name, name=created.get("name") or folder.name, status=status, origin=origin,
-                    folder=str(folder), started=recs[0]["t"] if recs else None, serial=created.get("serial"),
+    start = recs[0].get("t") if recs else None
+    rec = JobRecord(id=folder.name, name=str(created.get("name") or folder.name), status=str(status), origin=origin,
+                    folder=str(folder), started=start if _is_time(start) else None, serial=created.get("serial"),
                     cell_id=created.get("cell_id"), manifest_sha256=manifest_sha256(folder))
     rep = folder / "report.json"
-    if rep.exists():
+    if rep.is_file():
         try:
-            doc = json.loads(rep.read_text())
-            job = doc["job"]
-            tl = doc["targets"]
-        except (ValueError, KeyError, TypeError) as exc:
-            raise InputError(f"{rep}: not a report of this cell ({type(exc).__name__}: {exc})") from None
-        part = doc.get("part")
-        rec.part = job.get("part")  # the part's name, as the job file and report.json's job.part say
-        if isinstance(part, dict) and part.get("serial"):
-            rec.serial = str(part["serial"])
-        rec.cell_id = doc.get("cell_id") or rec.cell_id
-        rec.verdict = doc.get("verdict")
-        rec.finished = job.get("finished")
-        try:
-            for t in (rec.started, rec.finished):
-                if t is not None:
-                    datetime.fromisoformat(t)
-        except (TypeError, ValueError):
-            raise InputError(f"{rep}: job.finished {rec.finished!r} is not an ISO 8601 time") from None
-        rec.sigma0_px = doc.get("sigma0_px")
-        rec.targets = [target_row(t, str(rep)) for t in tl]
-        rec.failed = sum(1 for t in tl if not t.get("pass"))
+            doc = json.loads(rep.read_text(encoding="utf-8"))
+            job, tl = doc["job"], doc["targets"]
+            if not isinstance(tl, list) or not isinstance(job, dict):
+                raise ValueError("no 'targets' list or 'job' table")
+            finished = job.get("finished")
+            if finished is not None and not _is_time(finished):
+                raise ValueError(f"job.finished {finished!r} is not an ISO 8601 time")
+            rows = [target_row(t, "report.json") for t in tl]
+        except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError, AttributeError, InputError) as exc:
+            problems.append(f"report.json damaged ({type(exc).__name__}: {exc})")
+        else:
+            part = doc.get("part")
+            rec.part = job.get("part")  # the part's name, as the job file and report.json's job.part say
+            if isinstance(part, dict) and part.get("serial"):
+                rec.serial = str(part["serial"])
+            rec.cell_id = doc.get("cell_id") or rec.cell_id
+            rec.verdict = doc.get("verdict")
+            rec.finished = finished
+            rec.sigma0_px = doc.get("sigma0_px")
+            rec.targets = rows
+            rec.failed = sum(1 for t in tl if not t.get("pass"))
+    rec.problem = "; ".join(problems) or None
     return rec
+
+
+def _is_time(t) -> bool:
+    if not isinstance(t, str):
+        return False
+    try:
+        datetime.fromisoformat(t)
+    except ValueError:
+        return False
+    return True

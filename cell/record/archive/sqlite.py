@@ -11,6 +11,7 @@ import contextlib
 import fcntl
 import os
 import sqlite3
+import time
 from pathlib import Path
 
 import sqlalchemy as sa
@@ -20,22 +21,34 @@ from cell.record.archive.index import ArchiveIndex
 
 
 def _set_aside_unversioned(path: Path) -> str | None:
-    """An index written before the migrations existed (a ``jobs`` table, no ``alembic_version``)
-    is renamed ``<name>.pre-alembic`` (the folders rebuild it); returns the new name, or None."""
+    """An index the migrations cannot take over is set aside (the folders rebuild it); returns its new name.
+
+    Written before the migrations existed (a ``jobs`` table, no ``alembic_version``): renamed
+    ``<name>.pre-alembic``; damaged (not a database): ``<name>.damaged-<time>``. None: kept as it is.
+    A locked or unreadable file is not damage: that error is raised.
+    """
     if not path.exists():
         return None
     con = sqlite3.connect(path, timeout=30)
     try:
         names = {r[0] for r in con.execute("SELECT name FROM sqlite_master WHERE type='table'")}
+        suffix = ".pre-alembic" if "jobs" in names and "alembic_version" not in names else None
+    except sqlite3.OperationalError:
+        raise
+    except sqlite3.DatabaseError:  # "file is not a database", a malformed image
+        suffix = f".damaged-{time.strftime('%Y%m%dT%H%M%S')}"
     finally:
         con.close()
-    if "jobs" not in names or "alembic_version" in names:
+    if suffix is None:
         return None
-    aside = path.with_name(path.name + ".pre-alembic")
-    for suffix in ("-wal", "-shm"):
-        side = path.with_name(path.name + suffix)
-        if side.exists():
-            os.replace(side, aside.with_name(aside.name + suffix))
+    aside = path.with_name(path.name + suffix)
+    for side in ("-wal", "-shm"):
+        p = path.with_name(path.name + side)
+        if p.exists():
+            if suffix.startswith(".damaged"):
+                p.unlink()
+            else:
+                os.replace(p, aside.with_name(aside.name + side))
     os.replace(path, aside)
     return str(aside)
 

@@ -38,6 +38,7 @@ jobs = sa.Table(
     sa.Column("origin", sa.String(500), nullable=False),  # host:folder-root of the cell that wrote it
     sa.Column("folder", sa.String(1000), nullable=False),
     sa.Column("manifest_sha256", sa.String(64)),  # of manifest.json when indexed (None: not closed)
+    sa.Column("problem", sa.Text),  # what in the folder could not be read (indexed as far as it reads)
     sa.Column("indexed_at", sa.DateTime(timezone=True), nullable=False),
     sa.Index("ix_jobs_started", "started"),
     sa.Index("ix_jobs_part_started", "part", "started"),

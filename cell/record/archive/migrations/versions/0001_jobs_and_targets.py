@@ -33,6 +33,7 @@ def upgrade() -> None:
         sa.Column("origin", sa.String(500), nullable=False),
         sa.Column("folder", sa.String(1000), nullable=False),
         sa.Column("manifest_sha256", sa.String(64)),
+        sa.Column("problem", sa.Text),  # what in the folder could not be read (indexed as far as it reads)
         sa.Column("indexed_at", TZ, nullable=False),
     )
     op.create_index("ix_jobs_started", "jobs", ["started"])
