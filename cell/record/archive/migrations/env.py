@@ -1,9 +1,10 @@
 """Alembic environment of the archive index: run on the connection the cell hands over.
 
-The cell calls ``alembic.command.upgrade`` itself (:meth:`ArchiveIndex._ensure_schema`) with
-``config.attributes["connection"]`` set, inside its migration lock; by hand::
+The cell calls ``alembic.command.upgrade`` itself on every open (:meth:`ArchiveIndex._ensure_schema`)
+with ``config.attributes["connection"]`` set, inside its migration lock. By hand, with an ini file
+whose ``[alembic]`` section says ``script_location = <this folder>``::
 
-    alembic -x url=postgresql://... -c /dev/null upgrade head   (script_location = this folder)
+    alembic -c that.ini -x url=postgresql://user@host:5432/archive current    (or: upgrade head)
 """
 from __future__ import annotations
 
