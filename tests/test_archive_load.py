@@ -153,3 +153,33 @@ def test_a_cell_killed_mid_write_leaves_no_half_job(tmp_path, pg):
     v = a.verify_index()
     assert v["intact"], v["problems"]
     a.close()
+
+
+@pytest.mark.slow
+def test_a_real_job_run_with_archive_url_writes_its_record_into_postgresql(tmp_path, pg):
+    """``cell run --archive-url postgresql://...``: the runner's own writes (state per transition, the closed
+    job with its target values, the push to shared storage) go to the site's database and storage."""
+    from jobutil import job_variant, run_cell
+
+    job = job_variant(tmp_path / "job")
+    env = child_env() | {"CELL_ID": "cellA", "CELL_ARCHIVE_PUSH": str(tmp_path / "shared"), "OMP_NUM_THREADS": "1"}
+    run = run_cell("run", str(job), "--archive", str(tmp_path / "archive"), "--archive-url", pg.url, env=env,
+                   timeout=600)
+    assert run.code == 0, run.stderr[-3000:]
+    job_id = run.doc["job_id"]
+    assert "-cellA-" in job_id  # the cell's id is in the job id: the cells of a site never collide
+    folder = tmp_path / "archive" / job_id
+    rep = json.loads((folder / "report.json").read_text())
+    ix = open_index(pg.url)
+    try:
+        row = ix.get_job(job_id)
+        assert (row["status"], row["verdict"], row["cell_id"], row["targets"]) == \
+            ("DONE", rep["verdict"], "cellA", len(rep["targets"]))
+        got = {t["id"]: t for t in ix.job_targets(job_id)}
+        for t in rep["targets"]:
+            assert got[t["id"]]["deviation_norm_m"] == t["deviation_norm_m"] and got[t["id"]]["pass"] == t["pass"]
+    finally:
+        ix.close()
+    assert not (tmp_path / "archive" / "index.sqlite").exists()  # nothing went to a local index instead
+    assert JobFolder(tmp_path / "shared" / job_id).verify_manifest() == []
+    assert "pushed" in run.stderr and "verified" in run.stderr
