@@ -18,6 +18,7 @@ from typing import Callable
 from calibration.errors import AbortRequested, CellError, InputError
 
 EXIT_OK, EXIT_FAULT, EXIT_INPUT, EXIT_ABORT = 0, 1, 2, 130
+UNITS = ("m", "mm", "cm", "um", "in", "ft")
 
 
 class Output:
@@ -103,9 +104,26 @@ def cmd_locate(args, out: Output) -> int:
 
 
 def cmd_calibrate(args, out: Output) -> int:
+    if args.what == "camera":
+        from cell.measure_cmd import calibrate_camera_command
+
+        args.images = args.cell_file
+        return calibrate_camera_command(args, out)
     from cell.commands import calibrate
 
     return calibrate(args, out)
+
+
+def cmd_measure(args, out: Output) -> int:
+    from cell.measure_cmd import measure_command
+
+    return measure_command(args, out)
+
+
+def cmd_detect(args, out: Output) -> int:
+    from cell.detect_cmd import detect_command
+
+    return detect_command(args, out)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -150,13 +168,40 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--write", action="store_true", help="write the estimate into the job file's base_from_part")
     c.set_defaults(func=cmd_locate)
 
-    c = sub.add_parser("calibrate", parents=[common], help="calibrate the cell: hand-eye, or reverify with a scale bar")
-    c.add_argument("what", choices=["hand-eye", "reverify"])
-    c.add_argument("cell_file", type=Path, help="the cell file (CELL.toml)")
+    c = sub.add_parser("calibrate", parents=[common],
+                       help="calibrate the cell (hand-eye, reverify with a scale bar) or a camera from photographs")
+    c.add_argument("what", choices=["hand-eye", "reverify", "camera"])
+    c.add_argument("cell_file", type=Path, help="the cell file (CELL.toml); for 'camera' the folder of photographs")
+    c.add_argument("--layout", type=Path, help="camera: the field's targets.csv (id,x,y,z,nx,ny,nz[,kind][,tolerance][,code])")
+    c.add_argument("--camera", type=Path, help="camera: CAMERA.toml to start from (default: EXIF)")
+    c.add_argument("--units", default="mm", choices=sorted(UNITS), help="camera: units of the layout (default mm)")
+    c.add_argument("--out", type=Path, help="camera: the calibrated CAMERA.toml to write")
     c.add_argument("--archive", type=Path, default=Path("archive"))
     c.add_argument("--backend", choices=["sim", "ur"], help="override the cell file's backend")
     c.add_argument("--yes", action="store_true", help="confirm moving the robot without asking")
     c.set_defaults(func=cmd_calibrate)
+
+    c = sub.add_parser("measure", parents=[common], help="measure a folder of photographs: detect, identify, orient, bundle, report")
+    c.add_argument("images", type=Path)
+    c.add_argument("--camera", type=Path, help="CAMERA.toml (default: EXIF, polarity found per image, schneider14 codes)")
+    c.add_argument("--layout", type=Path, help="targets.csv: nominal coordinates and codes (id,x,y,z,nx,ny,nz[,kind][,tolerance][,code])")
+    c.add_argument("--control", type=Path, help="control.csv: id,x,y,z[,sigma] (sigma 0 or absent: held fixed)")
+    c.add_argument("--units", default="mm", choices=sorted(UNITS), help="units of the layout and control files (default mm)")
+    c.add_argument("--out", type=Path, required=True,
+                   help="folder for measure.json, observations.csv, report.json, report.html")
+    c.add_argument("--tolerance", type=float, default=0.5,
+                   help="deviation from the layout allowed where the layout gives none (its units; default 0.5)")
+    c.add_argument("--archive", type=Path, help="also file the measurement in this archive (like a job)")
+    c.set_defaults(func=cmd_measure)
+
+    c = sub.add_parser("detect", parents=[common], help="every detected centre of one image (dots and coded targets)")
+    c.add_argument("image", type=Path)
+    c.add_argument("--camera", type=Path, help="CAMERA.toml: polarity, coded-target family (default: found per image, schneider14)")
+    c.add_argument("--png", type=Path, help="write the image with the detections drawn")
+    c.add_argument("--polarity", choices=["auto", "bright", "dark"], help="override the camera file's polarity")
+    c.add_argument("--family", help="override the camera file's coded_family (aruco, ring12, ring14, schneider12, "
+                                    "schneider14, cct8, cct12)")
+    c.set_defaults(func=cmd_detect)
 
     c = sub.add_parser("archive", parents=[common],
                        help="list, show, compare, verify archived jobs; sync the index; push a job to shared storage")

@@ -81,7 +81,7 @@ def make_job_sim_cell(job: LoadedJob, seed_offset: int = 0):
                          sensor=Sensor().with_noise_scale(s.sim.noise), photometry=photometry,
                          fixture=_fixture_mesh(job),
                          motion=s.sim.motion, time_scale=s.sim.time_scale, true_flange_from_cam=true_ffc,
-                         true_base_from_part=true_bfp)
+                         true_base_from_part=true_bfp, coded_family=s.job.coded_family)
 
 
 def open_devices(job: LoadedJob, backend: str, *, seed_offset: int = 0) -> Devices:

@@ -72,6 +72,9 @@ class JobSection(_Strict):
     n_coded: int = Field(default=8, ge=0, le=250)
     target_diameter: float = Field(default=6.0, gt=0, description="retro dot diameter, job units")
     coded_size: float = Field(default=20.0, gt=0, description="ArUco marker side, job units")
+    coded_family: Literal["aruco", "ring12", "ring14", "schneider12", "schneider14", "cct8", "cct12"] = Field(
+        default="aruco", description="the coded targets the part carries: ArUco DICT_4X4_250 markers, or ring codes "
+                                     "(a centre dot of target_diameter in a coded ring; calibration.ringcodes)")
     seed: int = 0
     scale_bar: ScaleBar | None = None
 
@@ -100,6 +103,11 @@ class CameraSection(_Strict):
     device: str | None = Field(default=None, description="OpenCV device index or GStreamer pipeline (real cell)")
     exposure_s: float = Field(default=0.002, gt=0, le=10)
     self_calibrate: bool = Field(default=True, description="refine focal length, principal point, radial distortion")
+    polarity: Literal["bright", "dark", "auto"] = Field(
+        default="bright", description="bright: retro-reflective dots; dark: printed dots on a light ground; auto: per image")
+    detection: Literal["cell", "photograph"] = Field(
+        default="cell", description="cell: fixed 41 px background kernel (the lit cell's images); photograph: kernel, "
+                                    "size limits and local half-maximum threshold found per image (docs/decisions/0015)")
     observation_weights: Literal["incidence", "equal"] = Field(
         default="incidence",
         description="incidence: estimate one image sigma per incidence class (< 50, 50-70, >= 70 deg) in the "

@@ -12,7 +12,7 @@ except ImportError:  # pragma: no cover - optional
     threadpool_limits = None
 
 from calibration.bundle.colmap import _pycolmap_solve
-from calibration.bundle.config import BundleConfig, BundleOptions, BundleResult
+from calibration.bundle.config import COLMAP_MODELS, BundleConfig, BundleOptions, BundleResult
 from calibration.bundle.covariance import _result
 from calibration.bundle.datum import _datum_stage
 from calibration.bundle.normal import _Layout, _linearise, _State
@@ -88,6 +88,8 @@ def _bundle_adjust(obs_image, obs_target, obs_uv, intrinsics, cam_from_part, poi
     sig0 = check_sigmas(obs_sigma_px, options.sigma_px, len(obs_image))
     sig = sig0.copy()
     weighted = obs_sigma_px is not None or obs_group is not None
+    # models whose distortion pycolmap cannot refine (COLMAP_MODELS) take the full Gauss-Newton iterations too
+    full_gn = weighted or (config.camera_model in COLMAP_MODELS and config.refine_distortion)
     group = None if obs_group is None else check_groups(obs_group, len(obs_image))
     vc = None
     names = config.refined_names()
@@ -118,7 +120,7 @@ def _bundle_adjust(obs_image, obs_target, obs_uv, intrinsics, cam_from_part, poi
         timings["pycolmap_solve"] += time.perf_counter() - t0
         for it in range(1, max(options.vce_iterations, 1) + 1 if group is not None else 2):
             t1 = time.perf_counter()
-            state, dconv = _datum_stage(state, x0, lay, config, args, sig[act_obs], options.datum_iterations, weighted)
+            state, dconv = _datum_stage(state, x0, lay, config, args, sig[act_obs], options.datum_iterations, full_gn)
             t2 = time.perf_counter()
             lin = _linearise(state, *args, lay, config, sig[act_obs], defect)
             stats = _statistics(lin, lay, n_obs=int(act_obs.sum()))
@@ -166,7 +168,7 @@ def _bundle_adjust(obs_image, obs_target, obs_uv, intrinsics, cam_from_part, poi
             snoop["stopped_because"] = stop
             break
     res = _result(state, lin, stats, lay, T, rejected, act_obs, obs_image, obs_target, obs_uv, options, config,
-                  usable and (dconv or (config.datum == "free" and not weighted)), report, timings,
+                  usable and (dconv or (config.datum == "free" and not full_gn)), report, timings,
                   time.perf_counter() - t_start)
     res.obs_sigma_px, res.variance_components, res.snooping = sig, vc, snoop
     if weighted:  # sigma0 in pixels: of an observation of the rms a priori sigma (equal weights: options.sigma_px)

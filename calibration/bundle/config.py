@@ -16,8 +16,14 @@ CAMERA_MODELS: dict[str, tuple[str, ...]] = {
     "SIMPLE_RADIAL": ("f", "cx", "cy", "k1"),
     "RADIAL": ("f", "cx", "cy", "k1", "k2"),
     "OPENCV": ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2"),
+    # OpenCV's five-term model (k3 too): COLMAP's FULL_OPENCV with its rational terms k4..k6 held at 0;
+    # pycolmap keeps the distortion fixed and the Gauss-Newton iterations on the full normal equations
+    # refine k1, k2, p1, p2, k3 (calibration.bundle.adjust)
+    "OPENCV_K3": ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3"),
 }
-_GROUPS = {"focal": ("f", "fx", "fy"), "principal": ("cx", "cy"), "distortion": ("k1", "k2", "p1", "p2")}
+#: our model -> COLMAP's model (and how many trailing zero parameters COLMAP's has beyond ours)
+COLMAP_MODELS: dict[str, tuple[str, int]] = {"OPENCV_K3": ("FULL_OPENCV", 3)}
+_GROUPS = {"focal": ("f", "fx", "fy"), "principal": ("cx", "cy"), "distortion": ("k1", "k2", "p1", "p2", "k3")}
 
 
 @dataclass(frozen=True)
@@ -32,7 +38,11 @@ class ScaleBar:
 
 @dataclass(frozen=True)
 class ControlPoints:
-    """Targets with known coordinates: ``index: (k,)`` into the points, ``xyz: (k, 3)``, ``sigma_m: (k,) or (k, 3)``."""
+    """Targets with known coordinates: ``index: (k,)`` into the points, ``xyz: (k, 3)``, ``sigma_m: (k,) or (k, 3)``.
+
+    A target whose sigma is 0 (on all three axes) is truly fixed: its coordinates are not unknowns of the
+    adjustment, it keeps ``xyz`` exactly and its covariance is zero. Positive sigmas weight the control.
+    """
 
     index: np.ndarray
     xyz: np.ndarray

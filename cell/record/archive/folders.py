@@ -32,15 +32,15 @@ def _is_job_folder(d: Path) -> bool:
 class Archive:
     """The archive at ``root`` (default ``./archive``), indexed in the database at ``url``.
 
-    ``url`` None: ``sqlite:///<root>/index.sqlite``. ``push`` (a path or fsspec URL): where closed
-    jobs are copied for the site (:meth:`push`).
+    ``url`` None: ``CELL_ARCHIVE_URL``, else ``sqlite:///<root>/index.sqlite``. ``push`` (a path or
+    fsspec URL): where closed jobs are copied for the site (:meth:`push`).
     """
 
     def __init__(self, root: Path, url: str | None = None, *, push: str | None = None):
-        from cell.record.archive import default_url
+        from cell.record.archive import resolve_url
 
         self.root = Path(root)
-        self.url = url or default_url(self.root)
+        self.url = url or resolve_url(None, self.root)  # CELL_ARCHIVE_URL, else SQLite in the folder
         self.push_dest = push
         self.outbox = Outbox(self.root)
         self.push_outbox = Outbox(self.root, "push")
