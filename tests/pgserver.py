@@ -99,16 +99,20 @@ class PgServer:
         shutil.rmtree(self.dir, ignore_errors=True)
 
 
+_SERVER: list[PgServer] = []  # one server per test session, whichever modules import the fixture
+
+
 @pytest.fixture(scope="session")
 def pg_server():
     bindir = _bindir()
     if bindir is None:
         pytest.skip("no PostgreSQL server installed (Debian package 'postgresql'; scripts/test.sh installs it as root)")
-    server = PgServer(bindir)
-    try:
-        yield server
-    finally:
-        server.close()
+    if not _SERVER:
+        _SERVER.append(PgServer(bindir))
+    yield _SERVER[0]
+    # every module's copy of this fixture ends with the session: the first to end stops the server
+    if _SERVER:
+        _SERVER.pop().close()
 
 
 @pytest.fixture
