@@ -81,6 +81,20 @@ def test_every_target_value_comes_back_and_a_trend_is_one_query(tmp_path, url):
     assert [p["serial"] for p in trend] == [f"SN{k % 3}" for k in range(n_jobs)]
     assert [p["job_id"] for p in ix.target_trend(PART, "T000", limit=2)] == ["job-04", "job-05"]
     assert ix.part_targets(PART) == [f"T{i:03d}" for i in range(n_t)] and ix.parts() == [PART]
+    # the part's SPC table in one query, against numpy over the same reports
+    reps = [json.loads((a.root / f"job-{k:02d}" / "report.json").read_text())["targets"] for k in range(n_jobs)]
+    summary = {r["id"]: r for r in ix.part_summary(PART)}
+    for i in range(n_t):
+        ts = [rep[i] for rep in reps if rep[i]["measured"][0] is not None]
+        d = np.array([t["deviation"] for t in ts])
+        norms = np.array([t["deviation_norm_m"] for t in ts])
+        got = summary[f"T{i:03d}"]
+        assert got["n"] == len(ts) and got["failed"] == sum(not t["pass"] for t in ts)
+        assert got["inconclusive"] == sum(t["decision"] == "inconclusive" for t in ts)
+        np.testing.assert_allclose(got["deviation_mean"], d.mean(axis=0), rtol=1e-9, atol=1e-18)
+        np.testing.assert_allclose(got["deviation_std"], d.std(axis=0, ddof=1), rtol=1e-6, atol=1e-15)
+        np.testing.assert_allclose([got["norm_mean"], got["norm_std"]], [norms.mean(), norms.std(ddof=1)],
+                                   rtol=1e-6)
     # list filters and paging
     assert [r["id"] for r in ix.list_jobs(serial="SN1")] == ["job-04", "job-01"]
     assert [r["id"] for r in ix.list_jobs(limit=2, offset=1)] == ["job-04", "job-03"]

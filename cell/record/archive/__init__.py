@@ -35,6 +35,9 @@ Reading (the web console and ``cell archive``), with ``ix = open_index(url)``:
 * ``ix.target_trend(part, target_id, since=, until=, limit=) -> list[dict]``: oldest first, points
   ``job_id``, ``serial``, ``finished``, ``deviation`` (3), ``deviation_norm_m``, ``tolerance_m``,
   ``uncertainty_U_m``, ``decision``, ``pass``. One query on a covering index, never a folder scan.
+* ``ix.part_summary(part, since=, until=) -> list[dict]``: per target ``id``, ``n``, ``deviation_mean``
+  and ``deviation_std`` (3 each), ``norm_mean``, ``norm_std``, ``failed``, ``nonconforming``,
+  ``inconclusive``: a part's SPC table in one GROUP BY query.
 * ``ix.parts() -> list[str]``, ``ix.part_targets(part) -> list[str]``.
 * ``ix.close()``.
 
