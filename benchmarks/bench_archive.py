@@ -63,7 +63,7 @@ def rows(n_jobs: int, n_parts: int, n_targets: int, chunk: int, seed: int = 0):
                 row = {"job_id": f"job-{k:06d}", "target_id": f"T{t:03d}", "part": part, "finished": finished,
                        "serial": f"SN{k:06d}",
                        "kind": "retro", "deviation_norm_m": float(norm[i, t]), "tolerance_m": 100e-6,
-                       "uncertainty_u_m": 20e-6, "decision": "conforming" if norm[i, t] < 80e-6 else "inconclusive",
+                       "uncertainty_u_m": 20e-6, "achieved_sigma_m": 17e-6, "decision": "conforming" if norm[i, t] < 80e-6 else "inconclusive",
                        "passed": bool(norm[i, t] <= 100e-6)}
                 for a, j in zip("xyz", range(3)):
                     row[f"nominal_{a}"] = float(nominal[k % n_parts, t, j])

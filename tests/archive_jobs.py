@@ -75,7 +75,8 @@ def write_job(archive: Archive, job_id: str, job_index: int, n_targets: int = 20
                 "job": {"id": job_id, "name": part, "part": part, "seed": job_index, "status": "DONE",
                         "started": list(f.records())[0]["t"], "finished": utc_now(), "versions": {}},
                 "verdict": verdict, "images": 12, "sigma0_px": 0.9 + 0.001 * job_index,
-                "part": {"number": "B-100", "revision": "A", "serial": serial}, "targets": tl})
+                "part": {"number": "B-100", "revision": "A", "serial": serial}, "operator": "ann", "cell_id": None,
+                "targets": tl})
         if between is not None:
             between(to)
     f.append("terminal", status="DONE", reason="")

@@ -60,6 +60,7 @@ def test_every_target_value_comes_back_and_a_trend_is_one_query(tmp_path, url):
         row = ix.get_job(f"job-{k:02d}")
         rep = json.loads((a.root / f"job-{k:02d}" / "report.json").read_text())
         assert row["status"] == "DONE" and row["part"] == PART and row["serial"] == f"SN{k % 3}"
+        assert (row["part_number"], row["operator"], row["problem"]) == ("B-100", "ann", None)
         assert row["verdict"] == rep["verdict"] and row["targets"] == n_t
         assert row["finished"] is not None and row["started"] <= row["finished"]
         got = ix.job_targets(f"job-{k:02d}")
@@ -79,6 +80,9 @@ def test_every_target_value_comes_back_and_a_trend_is_one_query(tmp_path, url):
     assert [p["job_id"] for p in trend] == [f"job-{k:02d}" for k in range(n_jobs)]
     np.testing.assert_allclose([p["deviation"][2] for p in trend], [1e-6 * k for k in range(n_jobs)], atol=1e-15)
     assert [p["serial"] for p in trend] == [f"SN{k % 3}" for k in range(n_jobs)]
+    achieved = [json.loads((a.root / f"job-{k:02d}" / "report.json").read_text())["targets"][0]["achieved_sigma_m"]
+                for k in range(n_jobs)]
+    assert [p["sigma_m"] for p in trend] == achieved and all(p["tolerance_m"] == 100e-6 for p in trend)
     assert [p["job_id"] for p in ix.target_trend(PART, "T000", limit=2)] == ["job-04", "job-05"]
     assert ix.part_targets(PART) == [f"T{i:03d}" for i in range(n_t)] and ix.parts() == [PART]
     # the part's SPC table in one query, against numpy over the same reports
@@ -97,6 +101,7 @@ def test_every_target_value_comes_back_and_a_trend_is_one_query(tmp_path, url):
                                    rtol=1e-6)
     # list filters and paging
     assert [r["id"] for r in ix.list_jobs(serial="SN1")] == ["job-04", "job-01"]
+    assert ix.count_jobs(part_number="B-100", operator="ann") == n_jobs and ix.count_jobs(operator="bob") == 0
     assert [r["id"] for r in ix.list_jobs(limit=2, offset=1)] == ["job-04", "job-03"]
     third = ix.get_job("job-03")["started"]
     assert {r["id"] for r in ix.list_jobs(since=third)} == {"job-03", "job-04", "job-05"}

@@ -19,22 +19,24 @@ else the cell file's ``[archive] url``, else ``sqlite:///<archive DIR>/index.sql
 
 Reading (the web console and ``cell archive``), with ``ix = open_index(url)``:
 
-* ``ix.list_jobs(part=, serial=, verdict=, status=, since=, until=, cell_id=, limit=50, offset=0,
-  newest_first=True) -> list[dict]``: one page of job rows, filters ANDed, ``since <= started < until``
-  (ISO 8601 strings or datetimes). A row: ``id``, ``name``, ``part``, ``serial``, ``cell_id``,
+* ``ix.list_jobs(part=, part_number=, serial=, verdict=, status=, operator=, since=, until=, cell_id=,
+  limit=50, offset=0, newest_first=True) -> list[dict]``: one page of job rows, filters ANDed (equality),
+  ``since <= started < until`` (ISO 8601 strings or datetimes). A row: ``id``, ``name``, ``part`` (the
+  part's name), ``part_number``, ``serial``, ``cell_id``, ``operator``,
   ``status`` (the state machine's), ``verdict`` (PASS|FAIL|INCOMPLETE|None), ``started``,
   ``finished`` (ISO 8601 UTC strings), ``targets`` (judged targets), ``failed``, ``sigma0_px``,
   ``origin`` (host:folder root of the cell), ``folder`` (the job folder on that cell),
-  ``manifest_sha256``, ``indexed_at``.
+  ``manifest_sha256``, ``problem`` (what of the folder could not be read, or None), ``indexed_at``.
 * ``ix.count_jobs(**same filters) -> int``: for paging.
 * ``ix.get_job(id) -> dict | None``: one row as above.
 * ``ix.job_targets(id) -> list[dict]``: per target ``id``, ``kind``, ``nominal`` (3), ``measured`` (3,
   part frame after alignment), ``cov`` (3x3, m²), ``deviation`` (3), ``deviation_norm_m``,
-  ``tolerance_m``, ``uncertainty_U_m``, ``decision`` (conforming|nonconforming|inconclusive|None),
-  ``pass``; None where the target was not measured.
+  ``tolerance_m``, ``uncertainty_U_m``, ``achieved_sigma_m``, ``decision``
+  (conforming|nonconforming|inconclusive|None), ``pass``; None where the target was not measured.
 * ``ix.target_trend(part, target_id, since=, until=, limit=) -> list[dict]``: oldest first, points
   ``job_id``, ``serial``, ``finished``, ``deviation`` (3), ``deviation_norm_m``, ``tolerance_m``,
-  ``uncertainty_U_m``, ``decision``, ``pass``. One query on a covering index, never a folder scan.
+  ``uncertainty_U_m``, ``decision``, ``pass``, ``sigma_m`` (achieved sigma). One query on a covering
+  index, never a folder scan.
 * ``ix.part_summary(part, since=, until=) -> list[dict]``: per target ``id``, ``n``, ``deviation_mean``
   and ``deviation_std`` (3 each), ``norm_mean``, ``norm_std``, ``failed``, ``nonconforming``,
   ``inconclusive``: a part's SPC table in one GROUP BY query.

@@ -77,7 +77,8 @@ def _target_dict(row) -> dict:
     return {"job_id": m["job_id"], "id": m["target_id"], "kind": m["kind"], "nominal": vec("nominal"),
             "measured": vec("measured"), "cov": full, "deviation": vec("deviation"),
             "deviation_norm_m": m["deviation_norm_m"], "tolerance_m": m["tolerance_m"],
-            "uncertainty_U_m": m["uncertainty_u_m"], "decision": m["decision"], "pass": m["passed"]}
+            "uncertainty_U_m": m["uncertainty_u_m"], "achieved_sigma_m": m["achieved_sigma_m"],
+            "decision": m["decision"], "pass": m["passed"]}
 
 
 class ArchiveIndex:
@@ -214,10 +215,11 @@ class ArchiveIndex:
 
     @staticmethod
     def _filters(part=None, serial=None, verdict=None, status=None, since=None, until=None, cell_id=None,
-                 origin=None) -> list:
+                 origin=None, part_number=None, operator=None) -> list:
         w = []
         for col, v in ((jobs.c.part, part), (jobs.c.serial, serial), (jobs.c.verdict, verdict),
-                       (jobs.c.status, status), (jobs.c.cell_id, cell_id), (jobs.c.origin, origin)):
+                       (jobs.c.status, status), (jobs.c.cell_id, cell_id), (jobs.c.origin, origin),
+                       (jobs.c.part_number, part_number), (jobs.c.operator, operator)):
             if v is not None:
                 w.append(col == v)
         if since is not None:
@@ -228,11 +230,12 @@ class ArchiveIndex:
 
     def list_jobs(self, *, part: str | None = None, serial: str | None = None, verdict: str | None = None,
                   status: str | None = None, since=None, until=None, cell_id: str | None = None,
-                  origin: str | None = None, limit: int | None = 50, offset: int = 0,
-                  newest_first: bool = True) -> list[dict]:
+                  origin: str | None = None, part_number: str | None = None, operator: str | None = None,
+                  limit: int | None = 50, offset: int = 0, newest_first: bool = True) -> list[dict]:
         """One page of jobs matching every filter given (``since`` <= started < ``until``), newest first."""
         order = (jobs.c.started.desc(), jobs.c.id.desc()) if newest_first else (jobs.c.started.asc(), jobs.c.id.asc())
-        stmt = sa.select(jobs).where(*self._filters(part, serial, verdict, status, since, until, cell_id, origin))
+        stmt = sa.select(jobs).where(*self._filters(part, serial, verdict, status, since, until, cell_id, origin,
+                                                    part_number, operator))
         stmt = stmt.order_by(*order).offset(int(offset))
         if limit is not None:
             stmt = stmt.limit(int(limit))
@@ -256,7 +259,8 @@ class ArchiveIndex:
         """One target of a part over every job that measured it, oldest first: a trend is one query.
 
         Points: ``job_id``, ``serial``, ``finished``, ``deviation`` (3), ``deviation_norm_m``,
-        ``tolerance_m``, ``uncertainty_U_m``, ``decision``, ``pass``: all in the covering index
+        ``tolerance_m``, ``uncertainty_U_m``, ``decision``, ``pass``, ``sigma_m`` (the measured point's
+        sqrt(trace(cov)), report.json's achieved_sigma_m): all in the covering index
         ``ix_targets_trend``, so the database reads that index alone (the measured point itself is in
         :meth:`job_targets`).
         """
@@ -273,7 +277,7 @@ class ArchiveIndex:
     def _trend_columns(self) -> list:
         t = targets.c
         return [t.job_id, t.serial, t.finished, t.deviation_x, t.deviation_y, t.deviation_z, t.deviation_norm_m,
-                t.tolerance_m, t.uncertainty_u_m, t.decision, t.passed]
+                t.tolerance_m, t.uncertainty_u_m, t.decision, t.passed, t.achieved_sigma_m]
 
     def _trend_points(self, stmt) -> list[dict]:
         """The points of the trend query ``stmt`` (columns as :meth:`_trend_columns`), oldest first.
@@ -285,7 +289,8 @@ class ArchiveIndex:
         iso = self._time_text
         return [{"job_id": r[0], "serial": r[1], "finished": iso(r[2]),
                  "deviation": None if r[3] is None else [r[3], r[4], r[5]], "deviation_norm_m": r[6],
-                 "tolerance_m": r[7], "uncertainty_U_m": r[8], "decision": r[9], "pass": r[10]} for r in rows]
+                 "tolerance_m": r[7], "uncertainty_U_m": r[8], "decision": r[9], "pass": r[10], "sigma_m": r[11]}
+                for r in rows]
 
     _time_text = staticmethod(_iso)
 

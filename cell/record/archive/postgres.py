@@ -51,7 +51,7 @@ class PostgresIndex(ArchiveIndex):
         rows = self._read(sa.select(sa.func.json_agg(aggregate_order_by(arr, c.finished.asc(), c.job_id.asc()))))
         return [{"job_id": r[0], "serial": r[1], "finished": r[2],
                  "deviation": None if r[3] is None else r[3:6], "deviation_norm_m": r[6],
-                 "tolerance_m": r[7], "uncertainty_U_m": r[8], "decision": r[9], "pass": r[10]}
+                 "tolerance_m": r[7], "uncertainty_U_m": r[8], "decision": r[9], "pass": r[10], "sigma_m": r[11]}
                 for r in rows[0][0] or []]
 
     def bulk_load(self, job_rows, target_rows) -> None:

@@ -48,7 +48,8 @@ def target_row(t: dict, where: str) -> dict:
     for k, (i, j) in zip(COV_KEYS, COV_INDEX):
         row[f"cov_{k}"] = None if cov is None else _num(cov[i][j])
     row |= {"deviation_norm_m": _num(t.get("deviation_norm_m")), "tolerance_m": _num(t.get("tolerance_m")),
-            "uncertainty_u_m": _num(t.get("uncertainty_U_m")), "decision": t.get("decision"),
+            "uncertainty_u_m": _num(t.get("uncertainty_U_m")), "achieved_sigma_m": _num(t.get("achieved_sigma_m")),
+            "decision": t.get("decision"),
             "passed": None if t.get("pass") is None else bool(t["pass"])}
     return row
 
@@ -63,8 +64,10 @@ class JobRecord:
     origin: str
     folder: str
     part: str | None = None
+    part_number: str | None = None
     serial: str | None = None
     cell_id: str | None = None
+    operator: str | None = None
     verdict: str | None = None
     started: str | None = None
     finished: str | None = None
@@ -75,7 +78,8 @@ class JobRecord:
     problem: str | None = None  # what in the folder could not be read (indexed as far as it reads)
 
     def job_row(self) -> dict:
-        return {"id": self.id, "name": self.name, "part": self.part, "serial": self.serial, "cell_id": self.cell_id,
+        return {"id": self.id, "name": self.name, "part": self.part, "part_number": self.part_number,
+                "serial": self.serial, "cell_id": self.cell_id, "operator": self.operator,
                 "status": self.status, "verdict": self.verdict, "started": self.started, "finished": self.finished,
                 "targets": len(self.targets) if self.failed is not None else None, "failed": self.failed,
                 "sigma0_px": _num(self.sigma0_px), "origin": self.origin, "folder": self.folder,
@@ -109,7 +113,8 @@ def job_record(folder: Path, origin: str) -> JobRecord:
     start = recs[0].get("t") if recs else None
     rec = JobRecord(id=folder.name, name=str(created.get("name") or folder.name), status=str(status), origin=origin,
                     folder=str(folder), started=start if _is_time(start) else None, serial=created.get("serial"),
-                    cell_id=created.get("cell_id"), manifest_sha256=manifest_sha256(folder))
+                    cell_id=created.get("cell_id"), operator=created.get("operator"),
+                    manifest_sha256=manifest_sha256(folder))
     rep = folder / "report.json"
     if rep.is_file():
         try:
@@ -126,9 +131,11 @@ def job_record(folder: Path, origin: str) -> JobRecord:
         else:
             part = doc.get("part")
             rec.part = job.get("part")  # the part's name, as the job file and report.json's job.part say
-            if isinstance(part, dict) and part.get("serial"):
-                rec.serial = str(part["serial"])
+            if isinstance(part, dict):
+                rec.serial = str(part["serial"]) if part.get("serial") else rec.serial
+                rec.part_number = str(part["number"]) if part.get("number") else None
             rec.cell_id = doc.get("cell_id") or rec.cell_id
+            rec.operator = doc.get("operator") or rec.operator
             rec.verdict = doc.get("verdict")
             rec.finished = finished
             rec.sigma0_px = doc.get("sigma0_px")

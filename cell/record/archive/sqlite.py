@@ -97,7 +97,8 @@ class SQLiteIndex(ArchiveIndex):
         return [{"job_id": r[0], "serial": r[1],
                  "finished": None if r[2] is None else f"{r[2][:10]}T{r[2][11:23]}+00:00",
                  "deviation": None if r[3] is None else [r[3], r[4], r[5]], "deviation_norm_m": r[6],
-                 "tolerance_m": r[7], "uncertainty_U_m": r[8], "decision": r[9], "pass": r[10]} for r in rows]
+                 "tolerance_m": r[7], "uncertainty_U_m": r[8], "decision": r[9], "pass": r[10], "sigma_m": r[11]}
+                for r in rows]
 
     @contextlib.contextmanager
     def _migration_guard(self):

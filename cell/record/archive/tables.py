@@ -19,15 +19,17 @@ metadata = sa.MetaData()
 
 #: the columns a trend point carries besides part, target and time (in the trend index)
 TREND_VALUES = ("job_id", "serial", "deviation_x", "deviation_y", "deviation_z", "deviation_norm_m", "tolerance_m",
-                "uncertainty_u_m", "decision", "passed")
+                "uncertainty_u_m", "achieved_sigma_m", "decision", "passed")
 
 jobs = sa.Table(
     "jobs", metadata,
     sa.Column("id", sa.String(200), primary_key=True),
     sa.Column("name", sa.String(200), nullable=False),
-    sa.Column("part", sa.String(200)),
+    sa.Column("part", sa.String(200)),  # the part's name (report.json job.part)
+    sa.Column("part_number", sa.String(200)),  # report.json part.number
     sa.Column("serial", sa.String(200)),
     sa.Column("cell_id", sa.String(200)),
+    sa.Column("operator", sa.String(200)),
     sa.Column("status", sa.String(20), nullable=False),
     sa.Column("verdict", sa.String(20)),
     sa.Column("started", sa.DateTime(timezone=True)),
@@ -43,6 +45,7 @@ jobs = sa.Table(
     sa.Index("ix_jobs_started", "started"),
     sa.Index("ix_jobs_part_started", "part", "started"),
     sa.Index("ix_jobs_serial", "serial"),
+    sa.Index("ix_jobs_part_number_started", "part_number", "started"),
 )
 
 targets = sa.Table(
@@ -60,6 +63,7 @@ targets = sa.Table(
     sa.Column("deviation_norm_m", sa.Float),
     sa.Column("tolerance_m", sa.Float),
     sa.Column("uncertainty_u_m", sa.Float),
+    sa.Column("achieved_sigma_m", sa.Float),  # sqrt(trace) of the measured point's covariance (report.json)
     sa.Column("decision", sa.String(20)),  # conforming | nonconforming | inconclusive | None (not measured)
     sa.Column("passed", sa.Boolean),
     # covering: a trend reads this index alone (an index-only scan), not one table page per job

@@ -21,8 +21,10 @@ def upgrade() -> None:
         sa.Column("id", sa.String(200), primary_key=True),
         sa.Column("name", sa.String(200), nullable=False),
         sa.Column("part", sa.String(200)),
+        sa.Column("part_number", sa.String(200)),
         sa.Column("serial", sa.String(200)),
         sa.Column("cell_id", sa.String(200)),
+        sa.Column("operator", sa.String(200)),
         sa.Column("status", sa.String(20), nullable=False),
         sa.Column("verdict", sa.String(20)),
         sa.Column("started", TZ),
@@ -39,6 +41,7 @@ def upgrade() -> None:
     op.create_index("ix_jobs_started", "jobs", ["started"])
     op.create_index("ix_jobs_part_started", "jobs", ["part", "started"])
     op.create_index("ix_jobs_serial", "jobs", ["serial"])
+    op.create_index("ix_jobs_part_number_started", "jobs", ["part_number", "started"])
     op.create_table(
         "targets",
         sa.Column("job_id", sa.String(200), sa.ForeignKey("jobs.id", ondelete="CASCADE"), primary_key=True),
@@ -54,12 +57,13 @@ def upgrade() -> None:
         sa.Column("deviation_norm_m", sa.Float),
         sa.Column("tolerance_m", sa.Float),
         sa.Column("uncertainty_u_m", sa.Float),
+        sa.Column("achieved_sigma_m", sa.Float),
         sa.Column("decision", sa.String(20)),
         sa.Column("passed", sa.Boolean),
     )
     op.create_index("ix_targets_trend", "targets", ["part", "target_id", "finished", "job_id", "serial", "deviation_x",
                                                     "deviation_y", "deviation_z", "deviation_norm_m", "tolerance_m",
-                                                    "uncertainty_u_m", "decision", "passed"])
+                                                    "uncertainty_u_m", "achieved_sigma_m", "decision", "passed"])
 
 
 def downgrade() -> None:
