@@ -220,6 +220,10 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--offset", type=int, default=0)
     c.add_argument("--to", help="push: the shared storage (a folder or s3://bucket/prefix; default CELL_ARCHIVE_PUSH)")
     c.set_defaults(func=cmd_archive)
+
+    from cell.camera_cmd import add_camera_parser
+
+    add_camera_parser(sub, common)
     return p
 
 
