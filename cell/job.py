@@ -400,6 +400,7 @@ def start_job(job_path: Path, archive_root: Path, backend: str | None, out, arch
         return _start_staged(job_path, job, archive, folder, job_id, backend, out)
     finally:
         os.close(lock)
+        archive.close()  # the index's connections end with the job (a console runs many in one process)
 
 
 def _start_staged(job_path: Path, job: LoadedJob, archive: Archive, folder: JobFolder, job_id: str,
@@ -436,6 +437,7 @@ def resume_job(job_id: str, archive_root: Path, out, archive_url: str | None = N
         return _resume_locked(job_id, archive, folder, out)
     finally:
         os.close(lock)
+        archive.close()
 
 
 def _archive_of(folder: JobFolder, root: Path, archive_url: str | None) -> Archive:
