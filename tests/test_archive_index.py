@@ -15,7 +15,7 @@ import sys
 import numpy as np
 import pytest
 
-from archive_jobs import PART, report_targets, truth, write_job
+from archive_jobs import PART, truth, write_job
 from cell.record.archive import Archive, IndexUnavailable, open_index
 from cell.record.archive.push import PushError, push_job
 from pgserver import pg, pg_server  # noqa: F401  (fixtures)
