@@ -118,14 +118,26 @@ def run(args, out) -> int:
     backend = args.backend
     if (backend or "") == "ur":
         _confirm(args, out, "This job moves the robot.")
-    return _finish(start_job(args.job, args.archive, backend, out, archive_url=args.archive_url), out)
+    return _finish(start_job(args.job, args.archive, backend, out, serial=args.serial,
+                             operator=args.operator or _login_name(), cell_id=args.cell_id,
+                             archive_url=args.archive_url), out)
+
+
+def _login_name() -> str | None:
+    import getpass
+
+    try:
+        return getpass.getuser()
+    except (KeyError, OSError):  # no name for this uid (containers)
+        return None
 
 
 def resume(args, out) -> int:
     from cell.job import resume_job
 
     _confirm(args, out, f"Resuming {args.job_id} moves the robot from its measured pose.")
-    return _finish(resume_job(args.job_id, args.archive, out, archive_url=args.archive_url), out)
+    return _finish(resume_job(args.job_id, args.archive, out, operator=args.operator or _login_name(),
+                              archive_url=args.archive_url), out)
 
 
 def _open_archive(args):

@@ -82,6 +82,8 @@ class JobSection(_Strict):
                                      "(a centre dot of target_diameter in a coded ring; calibration.ringcodes)")
     seed: int = Field(default=0, ge=0, lt=2**63, description="random seed (a non-negative integer)")
     scale_bar: ScaleBar | None = None
+    number: str | None = Field(default=None, max_length=80, description="the part number (drawing), e.g. 'BR-1002'")
+    revision: str | None = Field(default=None, max_length=40, description="the part's drawing revision")
 
     @model_validator(mode="after")
     def _targets_or_count(self):

@@ -66,6 +66,15 @@ _SCHEMAS: dict[str, dict] = {
             "uv": {"type": "array", "items": {"type": "array", "items": {"type": "number"}}},
         },
     },
+    "cell.Job": {
+        "type": "object",
+        "properties": {
+            "job_id": {"type": "string"},
+            "part": {"type": "object", "properties": {k: {"type": ["string", "null"]} for k in ("number", "revision", "serial")}},
+            "operator": {"type": ["string", "null"]},
+            "cell_id": {"type": ["string", "null"]},
+        },
+    },
     "cell.Exposure": {
         "type": "object",
         "description": "one triggered exposure at a station: trigger, frame, the robot state at the frame's instant",
@@ -106,6 +115,7 @@ TOPICS = {
     "/detections": "cell.Detections",
     "/camera/exposure": "cell.Exposure",
     "/log": "foxglove.Log",
+    "/job": "cell.Job",
 }
 LOG_LEVELS = {"debug": 1, "info": 2, "warning": 3, "error": 4, "fatal": 5}
 
@@ -147,6 +157,10 @@ class RunLog:
     # --- typed helpers -----------------------------------------------------
     def state(self, a: str, b: str, cause: str = "") -> None:
         self.write("/state", {"from": a, "to": b, "cause": cause}, sync=True)
+
+    def job(self, job_id: str, meta: dict) -> None:
+        """Which part (number, revision, serial), who runs it, on which cell: once per session."""
+        self.write("/job", {"job_id": job_id, **meta}, sync=True)
 
     def log(self, level: str, message: str) -> None:
         self.write("/log", {"timestamp": _stamp(time.time_ns()), "level": LOG_LEVELS[level], "message": message,

@@ -1,7 +1,7 @@
 """What the index holds of one job, read from its folder (the record of truth).
 
-:func:`job_record` reads the journal (name, state, start), ``report.json`` (part, serial,
-verdict, every judged target's values) and the manifest's hash; the index stores exactly
+:func:`job_record` reads the journal (name, state, start), ``run.json`` (part number, serial,
+operator, cell), ``report.json`` (part, verdict, every judged target's values) and the manifest's hash; the index stores exactly
 that, so re-indexing a folder is idempotent and the database can always be rebuilt.
 """
 from __future__ import annotations
@@ -16,6 +16,7 @@ from pathlib import Path
 from calibration.errors import InputError
 from cell.record.archive.tables import COV_INDEX, COV_KEYS
 from cell.record.jobfolder import MANIFEST, JobFolder
+from cell.record.runinfo import read_run_info
 
 
 def _num(v) -> float | None:
@@ -115,6 +116,14 @@ def job_record(folder: Path, origin: str) -> JobRecord:
                     folder=str(folder), started=start if _is_time(start) else None, serial=created.get("serial"),
                     cell_id=created.get("cell_id"), operator=created.get("operator"),
                     manifest_sha256=manifest_sha256(folder))
+    try:  # run.json: who and what (part number, serial, operator, cell), written when the job was created
+        info = read_run_info(folder)
+        rec.part_number = info["part"]["number"] or None
+        rec.serial = info["part"]["serial"] or rec.serial
+        rec.operator = info["operator"] or rec.operator
+        rec.cell_id = info["cell_id"] or rec.cell_id
+    except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError) as exc:
+        problems.append(f"run.json damaged ({type(exc).__name__}: {exc})")
     rep = folder / "report.json"
     if rep.is_file():
         try:
@@ -133,7 +142,7 @@ def job_record(folder: Path, origin: str) -> JobRecord:
             rec.part = job.get("part")  # the part's name, as the job file and report.json's job.part say
             if isinstance(part, dict):
                 rec.serial = str(part["serial"]) if part.get("serial") else rec.serial
-                rec.part_number = str(part["number"]) if part.get("number") else None
+                rec.part_number = str(part["number"]) if part.get("number") else rec.part_number
             rec.cell_id = doc.get("cell_id") or rec.cell_id
             rec.operator = doc.get("operator") or rec.operator
             rec.verdict = doc.get("verdict")
