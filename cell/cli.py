@@ -243,6 +243,7 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--archive", type=Path, default=Path("archive"))
     c.add_argument("--programs", type=Path, default=Path("programs"),
                    help="folder of part programs: job files kept as templates (NAME.toml or NAME/job.toml)")
+    c.add_argument("--archive-url", help=url_help + "; the jobs the console starts are indexed there too")
     c.add_argument("--cell-id", help="this cell's id (default: $CELL_ID)")
     c.add_argument("--certfile", type=Path, help="TLS certificate (PEM); with --keyfile the console speaks HTTPS only")
     c.add_argument("--keyfile", type=Path, help="TLS private key (PEM)")
