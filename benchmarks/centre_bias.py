@@ -24,7 +24,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from calibration.camera import invert, look_at, project  # noqa: E402
 from calibration.targets import DetectionOptions, detect_retro_targets, eccentricity_bias  # noqa: E402
 from cell.devices import make_job_sim_cell  # noqa: E402
-from cell.load import load  # noqa: E402
+from cell.loadedjob import load  # noqa: E402
 
 JOB = Path(__file__).resolve().parents[1] / "examples" / "bracket" / "job.toml"
 

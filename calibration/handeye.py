@@ -7,7 +7,7 @@ flange at ``B_i = base_from_flange`` (the robot's reading) and its exterior orie
 
     Y = B_i X A_i          (equivalently (B_j^-1 B_i) X = X (A_j A_i^-1): AX = XB)
 
-Three steps (``cell.cellcal.run_hand_eye``):
+Three steps (``cell.cellcal.handeye.run_hand_eye``):
 
 1. ``solve_opencv``: OpenCV's ``calibrateHandEye`` with each of its methods (Tsai-Lenz, Park,
    Horaud, Andreff, Daniilidis); ``Y`` follows from ``X`` as the chordal mean of ``B_i X A_i``.
@@ -33,7 +33,7 @@ same linearisation predicts the information ``J^T J / sigma^2`` that each statio
 reduced to ``X`` by the Schur complement (``Y`` a nuisance), predicts X's precision before any
 image is taken. With it, :func:`weakest_rotation` measures what the closed-form methods need:
 rotations about non-parallel axes (Tsai and Lenz). The stations themselves come from the
-network planner (``cell.cellcal.plan_stations``); these figures check them.
+network planner (``cell.cellcal.common.plan_stations``); these figures check them.
 """
 from __future__ import annotations
 

@@ -93,7 +93,7 @@ def cmd_archive(args, out: Output) -> int:
 
 
 def cmd_locate(args, out: Output) -> int:
-    from cell.locate import locate_part
+    from cell.cellcal.locate import locate_part
 
     doc = locate_part(args.job, out, write=args.write)
     out.result(doc)

@@ -23,12 +23,12 @@ def _human_check(doc: dict, out) -> None:
 
 
 def check(args, out) -> int:
-    from cell.load import load
+    from cell.loadedjob import load
 
     job = load(args.job)
     doc = {"status": "ok"} | job.summary()
     if args.plan is not None:
-        from cell.validate import validate_plan_file
+        from cell.stages.validate import validate_plan_file
 
         doc["plan"] = validate_plan_file(job, args.plan)
     out.result(doc, lambda d: _human_check(d, out))
@@ -36,9 +36,9 @@ def check(args, out) -> int:
 
 
 def plan(args, out) -> int:
-    from cell.jobfolder import atomic_write_json
-    from cell.load import load
-    from cell.stage_plan import make_plan
+    from cell.record.jobfolder import atomic_write_json
+    from cell.loadedjob import load
+    from cell.stages.plan import make_plan
 
     job = load(args.job)
     out.say(f"planning {job.part.name}: {len(job.part.targets)} targets, mode {job.spec.planning.mode}")
@@ -128,7 +128,7 @@ def resume(args, out) -> int:
 
 def archive(args, out) -> int:
     from calibration.errors import InputError
-    from cell.archive import Archive
+    from cell.record.archive import Archive
 
     a = Archive(args.archive)
     if args.action == "list":
@@ -171,7 +171,8 @@ def archive(args, out) -> int:
 
 
 def calibrate(args, out) -> int:
-    from cell.cellcal import run_hand_eye, run_reverification
+    from cell.cellcal.handeye import run_hand_eye
+    from cell.cellcal.reverify import run_reverification
 
     if (args.backend or "") == "ur":
         _confirm(args, out, "This calibration moves the robot.")

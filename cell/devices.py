@@ -13,7 +13,7 @@ import numpy as np
 
 from calibration.errors import InputError
 from cell.jobspec import pose_matrix
-from cell.load import LoadedJob
+from cell.loadedjob import LoadedJob
 from drivers.protocols import Camera, Light, Robot
 
 

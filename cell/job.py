@@ -20,10 +20,11 @@ from pathlib import Path
 from typing import Callable
 
 from calibration.errors import AbortRequested, CellError, InputError
-from cell.archive import Archive
-from cell.jobfolder import JobFolder, atomic_write_bytes, atomic_write_json, new_job_id
-from cell.load import LoadedJob, load
-from cell.runlog import RunLog, next_log_path
+from cell.record.archive import Archive
+from cell.record.jobfolder import JobFolder, atomic_write_bytes, atomic_write_json, new_job_id
+from cell.stages import STAGE_FUNCTIONS
+from cell.loadedjob import LoadedJob, load
+from cell.record.runlog import RunLog, next_log_path
 from cell.states import STAGES, State, check_transition
 
 
@@ -124,8 +125,6 @@ class JobRunner:
                             status=self.state.value, started=recs[0]["t"] if recs else None)
 
     def run(self, start: State, resumed_from: State | None = None) -> JobResult:
-        from cell import stages
-
         log = RunLog(next_log_path(self.folder.path))
         ctx = Context(job=self.job, folder=self.folder, log=log, backend=self.backend,
                       progress=self.out.progress, say=self.out.say)
@@ -145,7 +144,7 @@ class JobRunner:
                 self._go(ctx, stage)
                 self.out.say(f"[{stage.value}]")
                 t0 = time.perf_counter()
-                getattr(stages, stage.value.lower())(ctx)
+                STAGE_FUNCTIONS[stage](ctx)
                 dt = time.perf_counter() - t0
                 self.times[stage.value] = dt
                 self.folder.append("stage_done", stage=stage.value, duration_s=round(dt, 4))

@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 
 from cell.jobspec import pose_matrix
-from cell.load import LoadedJob
+from cell.loadedjob import LoadedJob
 from planning.kinematics import BoxObstacle, CollisionWorld, RobotModel, ToolBox, load_robot
 from planning.planner import PlannerOptions
 from planning.stations import ViewingSphere

@@ -8,9 +8,9 @@ import textwrap
 import numpy as np
 import pytest
 
-from cell.archive import Archive
-from cell.jobfolder import JobFolder, atomic_write_json
-from cell.runlog import RunLog, read_messages
+from cell.record.archive import Archive
+from cell.record.jobfolder import JobFolder, atomic_write_json
+from cell.record.runlog import RunLog, read_messages
 from cell.states import STAGES, TRANSITIONS, State, TransitionError, check_transition
 
 
@@ -53,7 +53,7 @@ def test_run_log_cut_by_sigkill_still_yields_every_message(tmp_path):
     path = tmp_path / "run.mcap"
     code = textwrap.dedent(f"""
         import os, signal, sys
-        from cell.runlog import RunLog
+        from cell.record.runlog import RunLog
         log = RunLog({str(path)!r})
         for i in range(300):
             log.log("info", f"message {{i}}")
@@ -122,7 +122,7 @@ def test_archive_compare_refuses_different_parts(tmp_path):
 
 
 def test_conformance_follows_iso_14253_with_the_deviations_uncertainty():
-    from cell.stage_report import conformance
+    from cell.stages.report import conformance
 
     iso = np.diag([10e-6, 10e-6, 10e-6]) ** 2  # 10 um per axis: U = 20 um along any direction
     d = np.array([[100e-6, 0, 0], [0, 240e-6, 0], [0, 0, 300e-6], [260e-6, 0, 0], [0, 0, 0], [1, 1, 1]])

@@ -10,9 +10,11 @@ import pytest
 
 from calibration.errors import JobSpecError
 from calibration.errors import AbortRequested, InputError, PlanningError
-from cell.cellcal import (artefact_job, ask_operator, calibration_status, plan_hand_eye_stations, run_hand_eye,
-                          run_reverification)
-from cell.cellfile import load_cell_file, write_flange_from_cam
+from cell.cellcal.common import artefact_job, ask_operator
+from cell.cellcal.handeye import plan_hand_eye_stations, run_hand_eye
+from cell.cellcal.reverify import run_reverification
+from cell.cellcal.status import calibration_status
+from cell.cellcal.cellfile import load_cell_file, write_flange_from_cam
 from cell.jobspec import pose_matrix
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "cell"

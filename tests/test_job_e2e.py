@@ -16,7 +16,7 @@ import pytest
 from pydantic import BaseModel, ConfigDict, Field
 from scipy.stats import chi2
 
-from cell.runlog import read_messages
+from cell.record.runlog import read_messages
 from jobutil import (archive_entries, example_run, incoming_entries, job_variant, mahalanobis, records, rigid_fit,
                      run_cell, truth_xyz_m)
 

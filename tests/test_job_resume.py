@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 from scipy.stats import chi2, norm
 
-from cell.jobfolder import sha256_file
-from cell.runlog import read_messages
+from cell.record.jobfolder import sha256_file
+from cell.record.runlog import read_messages
 from jobutil import (cell_command, child_env, example_run, job_variant, mahalanobis, records, run_cell,
                      truth_xyz_m)
 

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cell.runlog import read_messages
+from cell.record.runlog import read_messages
 from jobutil import cell_command, child_env, job_variant, records, run_cell, truth_xyz_m
 
 STOP_AT_STATION = 3  # the protective stop comes during the move to the third station

@@ -11,7 +11,7 @@ import pytest
 
 from calibration.errors import JobSpecError
 from cell.jobspec import load_job
-from cell.load import load
+from cell.loadedjob import load
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "bracket"
 

@@ -12,11 +12,11 @@ from scipy.spatial.transform import Rotation
 from calibration.camera import Intrinsics, invert, look_at, make_pose, project
 from calibration.errors import JobSpecError
 from calibration.handeye import pose_error
-from cell.placement import _coded_markers, _pnp_corners, estimate_part_placement
+from cell.cellcal.placement import _coded_markers, _pnp_corners, estimate_part_placement
 from cell.devices import open_devices
 from cell.jobspec import Pose, load_job, pose_matrix
-from cell.load import load
-from cell.locate import locate_part, write_base_from_part
+from cell.loadedjob import load
+from cell.cellcal.locate import locate_part, write_base_from_part
 from sim_backend.world import marker_corners
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "bracket"

@@ -344,7 +344,7 @@ def test_sixteen_bit_sensor_gives_uint16_in_range():
 def test_job_sim_noise_scales_the_sensor_noise(tmp_path):
     """``[sim] noise`` reaches the simulated camera: 0 renders clean images, 2 doubles the noise."""
     from cell.devices import make_job_sim_cell
-    from cell.load import load
+    from cell.loadedjob import load
     from jobutil import job_variant
 
     stds = {}

@@ -24,7 +24,7 @@ def _measurable(mesh, targets):
     from dataclasses import replace
 
     from cell.jobspec import load_job
-    from cell.load import LoadedJob
+    from cell.loadedjob import LoadedJob
     from cell.setup import collision_world, planner_options, robot_model
     from planning.part import Part
     from planning.reachability import ReachabilityDB

@@ -7,7 +7,7 @@ by the cell's own code, the same steps as the MEASURE, CALIBRATE and ADJUST stag
 1. render the image seen from a station (discs with blur, shot and read noise, 8 bits);
 2. detect the dots (``detect_retro_targets``), name them by projecting the nominal targets with an
    approximate pose (``identify_targets``: a robot pose / hand-held guess a few mm and a fraction of a
-   degree off), drop dots whose rim is partly hidden (``cell.imaging.name_dots``) and remove the
+   degree off), drop dots whose rim is partly hidden (``cell.stages.imaging.name_dots``) and remove the
    perspective eccentricity of the ellipse centre (``eccentricity_bias``);
 3. Faugeras-Toscani per image (``faugeras_toscani``): interior and exterior orientation;
 4. bundle adjustment (``bundle_adjust``) with covariance: error ellipsoids of every target.
@@ -141,7 +141,7 @@ def render_and_measure(
     """
     import cv2
 
-    from cell.imaging import name_dots
+    from cell.stages.imaging import name_dots
     from planning.visibility import Occluder
 
     T = np.asarray(part_from_cam, dtype=float).reshape(-1, 4, 4)

@@ -6,7 +6,8 @@ from pathlib import Path
 import numpy as np
 
 from calibration.errors import PlanningError, ReachabilityError
-from cell.load import LoadedJob
+from cell.loadedjob import LoadedJob
+from cell.record.jobfolder import atomic_write_json
 from cell.setup import collision_world, planner_options, robot_model
 from planning.planner import NetworkPlan, cheapest_network, plan_network
 from planning.reachability import ReachabilityDB
@@ -76,3 +77,18 @@ def make_plan(job: LoadedJob, progress=None, cache_dir: Path | None = None,
     facts = {"candidates": int(len(reachable)), "reachable": n_ok, "visibility_cached": bool(db.from_cache),
              "reachability_cached": bool(reach.loaded)}
     return plan, facts
+
+
+def run(ctx) -> None:
+    """PLAN: the network design; plan.json and figures/plan.png."""
+    p, facts = make_plan(ctx.job, progress=ctx.progress)
+    doc = p.to_plan_dict() | {"databases": facts}
+    atomic_write_json(ctx.folder.file("plan.json"), doc)
+    try:
+        from planning.plot import plot_plan
+
+        plot_plan(ctx.job.part, p, ctx.folder.file("figures/plan.png"))
+    except ImportError:
+        pass
+    ctx.say(f"  {len(p.station_ids)} stations; predicted sigma max {p.predicted_sigma_max_m * 1e6:.1f} um, "
+            f"mean {p.predicted_sigma_mean_m * 1e6:.1f} um")

@@ -1,4 +1,6 @@
-"""LOAD: the job file, the part (mesh + targets), the camera and the cell, checked together."""
+"""The loaded job: the job file, the part (mesh + targets), the camera and the cell, checked together.
+
+Used by every stage and by the cell's own calibration jobs; the LOAD stage is :mod:`cell.stages.load`."""
 from __future__ import annotations
 
 from dataclasses import dataclass

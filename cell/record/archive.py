@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from calibration.errors import InputError
-from cell.jobfolder import JobFolder
+from cell.record.jobfolder import JobFolder
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS jobs (

@@ -1,8 +1,8 @@
 """Part placement from a quick first image set: ``base_from_part`` from the coded markers, then every dot.
 
 The operator need not measure where the part sits: a few overview images (stations planned by the
-inspection's planner for the coded markers, :func:`cell.cellcal.plan_stations`) give it, with the
-job's hand-eye held fixed. Used by ``cell locate`` (:mod:`cell.locate`).
+inspection's planner for the coded markers, :func:`cell.cellcal.common.plan_stations`) give it, with the
+job's hand-eye held fixed. Used by ``cell locate`` (:mod:`cell.cellcal.locate`).
 """
 from __future__ import annotations
 
@@ -14,9 +14,9 @@ from calibration.camera import Intrinsics, invert, make_pose, project
 from calibration.errors import CalibrationError, InputError, ReachabilityError
 from calibration.handeye import (HandEyeOptions, pose_error, refine_hand_eye, reprojection_jacobian)
 from calibration.targets import DetectionOptions, detect_coded_targets, detect_retro_targets
-from cell import imaging
-from cell.cellcal import capture_at, plan_stations
-from cell.load import LoadedJob
+from cell.stages import imaging
+from cell.cellcal.common import capture_at, plan_stations
+from cell.loadedjob import LoadedJob
 from planning.visibility import Occluder
 
 __all__ = ["estimate_part_placement"]

@@ -92,6 +92,10 @@ class JobFolder:
     def file(self, name: str) -> Path:
         return self.path / name
 
+    def read_json(self, name: str) -> Any:
+        """A JSON result an earlier stage wrote (``plan.json``, ``observations.json``, ...)."""
+        return json.loads(self.file(name).read_text())
+
     # --- journal ----------------------------------------------------------
     def append(self, event: str, **fields: Any) -> dict:
         rec = {"t": utc_now(), "event": event} | to_jsonable(fields)

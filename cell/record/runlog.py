@@ -20,7 +20,7 @@ from mcap.reader import NonSeekingReader
 from mcap.writer import CompressionType, Writer
 
 import cell
-from cell.jobfolder import to_jsonable
+from cell.record.jobfolder import to_jsonable
 
 _SCHEMAS: dict[str, dict] = {
     "cell.State": {

@@ -5,7 +5,8 @@ import json
 from pathlib import Path
 
 from calibration.errors import InputError
-from cell.load import LoadedJob
+from cell.loadedjob import LoadedJob
+from cell.record.jobfolder import atomic_write_json
 from cell.setup import collision_world, robot_model
 from planning.execution import MotionLimits, apply_to_plan, stations_from_plan, validate_plan
 
@@ -35,3 +36,11 @@ def validate_plan_file(job: LoadedJob, path: Path) -> dict:
         raise InputError(f"{path}: not valid JSON ({exc})") from None
     _, summary = validate_plan_doc(job, plan)
     return summary
+
+
+def run(ctx) -> None:
+    """VALIDATE: IK branch, collision-free moves and execution order for every planned station."""
+    doc = ctx.folder.read_json("plan.json")
+    doc, summary = validate_plan_doc(ctx.job, doc)
+    atomic_write_json(ctx.folder.file("plan.json"), doc)
+    ctx.say(f"  execution order {summary['order']}; estimated cycle time {summary['cycle_time_s']:.1f} s")

@@ -11,7 +11,7 @@ from calibration.bundle import BundleConfig, BundleOptions, ScaleBar, bundle_adj
 from calibration.camera import Intrinsics
 from calibration.errors import CalibrationError
 from calibration.weights import INCIDENCE_EDGES_DEG, group_labels, incidence_angles, incidence_groups
-from cell.jobfolder import atomic_write_bytes
+from cell.record.jobfolder import atomic_write_bytes, atomic_write_json
 
 
 def observation_arrays(job, obs_doc: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -116,3 +116,15 @@ def _weights_doc(job, res, groups) -> dict:
     pooled = float(np.sqrt(np.sum(vc.redundancy * vc.sigma_px**2) / r)) if r > 0 else None
     return {"method": "incidence", "a_priori_sigma_px": job.spec.camera.sigma_px, "groups": out,
             "pooled_sigma_px": pooled, "iterations": vc.iterations, "converged": vc.converged}
+
+
+def run(ctx) -> None:
+    """Rigorous bundle adjustment from the Faugeras-Toscani start, with the job's datum."""
+    doc = run_bundle(ctx)
+    atomic_write_json(ctx.folder.file("bundle.json"), doc)
+    ctx.say(f"  sigma0 {doc['sigma0_px']:.3f} px, {doc['n_rejected']} observation(s) rejected, "
+            f"datum {doc['datum']}, {doc['time_s']:.2f} s")
+    if doc["observation_weights"]["method"] == "incidence":
+        ctx.say("  image sigma by incidence (variance components): " + ", ".join(
+            f"{g['name']} {g['sigma_px']:.3f} px" + ("" if g["estimated"] else " (common)")
+            for g in doc["observation_weights"]["groups"] if g["n_observations"]))

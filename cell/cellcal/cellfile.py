@@ -37,7 +37,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 from scipy.spatial.transform import Rotation
 
 from calibration.errors import JobSpecError
-from cell.jobfolder import atomic_write_bytes
+from cell.record.jobfolder import atomic_write_bytes
 from cell.jobspec import CameraSection, CellSection, Pose, SimSection, _format_validation_error, pose_matrix
 from planning.part import UNITS_TO_M
 

@@ -8,8 +8,8 @@ from importlib import metadata
 import numpy as np
 
 from calibration.alignment import PointCovariance, align_to_cad
-from cell import report as R
-from cell.jobfolder import atomic_write_bytes, atomic_write_json, utc_now
+from cell.record import report as R
+from cell.record.jobfolder import atomic_write_bytes, atomic_write_json, utc_now
 
 
 def _versions() -> dict:
@@ -47,7 +47,7 @@ def _calibration_status(ctx) -> dict:
     """Whether the cell was within its reverification interval and passed (from the archive)."""
     from datetime import datetime, timezone
 
-    from cell.cellcal import calibration_status
+    from cell.cellcal.status import calibration_status
     from cell.jobspec import resolve
 
     cf = ctx.job.spec.cell.cell_file
@@ -167,7 +167,13 @@ def write_report(ctx) -> str:
     }
     # the REPORT stage's own time is not known yet: the report lists the stages before it
     atomic_write_json(f.file("report.json"), doc)
-    from cell.jobfolder import to_jsonable
+    from cell.record.jobfolder import to_jsonable
 
     atomic_write_bytes(f.file("report.html"), R.render_html(to_jsonable(doc), figs).encode())
     return verdict
+
+
+def run(ctx) -> None:
+    """REPORT: alignment to CAD, deviations, decisions; report.json and report.html."""
+    verdict = write_report(ctx)
+    ctx.say(f"  verdict {verdict}: report {ctx.folder.file('report.html')}")

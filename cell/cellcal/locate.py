@@ -2,7 +2,7 @@
 
 The operator places the part roughly where the job's ``[cell] base_from_part`` says; a few
 overview images of its coded markers and dots then give the real placement
-(:func:`cell.placement.estimate_part_placement`, the hand-eye held fixed). With ``write=True``
+(:func:`cell.cellcal.placement.estimate_part_placement`, the hand-eye held fixed). With ``write=True``
 the job file's ``base_from_part = { ... }`` line is rewritten, so the next ``cell plan`` /
 ``cell run`` plans stations that follow the part. Only that line changes; the new text is
 validated (reloaded, and its pose checked against the estimate) before it atomically replaces
@@ -19,7 +19,7 @@ from pydantic import ValidationError
 from scipy.spatial.transform import Rotation
 
 from calibration.errors import JobSpecError
-from cell.jobfolder import atomic_write_bytes
+from cell.record.jobfolder import atomic_write_bytes
 from cell.jobspec import JobSpec
 
 __all__ = ["locate_part", "write_base_from_part", "format_pose"]
@@ -106,9 +106,9 @@ def locate_part(job_path: Path, out, *, write: bool, backend: str | None = None,
     (the estimate's error against the simulated placement).
     """
     from calibration.handeye import pose_error
-    from cell.placement import estimate_part_placement
+    from cell.cellcal.placement import estimate_part_placement
     from cell.devices import open_devices
-    from cell.load import load
+    from cell.loadedjob import load
 
     job_path = Path(job_path)
     job = load(job_path)

@@ -1,0 +1,141 @@
+"""The whole adjustment: pycolmap's solve, the datum, variance components and data snooping in a loop."""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+from scipy.stats import chi2
+
+try:  # BLAS threads fight with Ceres' threads on small machines: small dense algebra runs faster on one
+    from threadpoolctl import threadpool_limits
+except ImportError:  # pragma: no cover - optional
+    threadpool_limits = None
+
+from calibration.bundle.colmap import _pycolmap_solve
+from calibration.bundle.config import BundleConfig, BundleOptions, BundleResult
+from calibration.bundle.covariance import _result
+from calibration.bundle.datum import _datum_stage
+from calibration.bundle.normal import _Layout, _linearise, _State
+from calibration.bundle.snooping import _statistics
+from calibration.bundle.vce import _variance_step
+from calibration.camera import Intrinsics
+from calibration.errors import CalibrationError
+from calibration.weights import check_groups, check_sigmas
+
+
+def _validate(obs_image, obs_target, obs_uv, m, n):
+    q = len(obs_image)
+    if obs_target.shape != (q,) or obs_uv.shape != (q, 2):
+        raise CalibrationError(
+            f"bundle: obs_image {obs_image.shape}, obs_target {obs_target.shape}, obs_uv {obs_uv.shape} must be (q,), (q,), (q, 2)"
+        )
+    if q == 0 or obs_image.min() < 0 or obs_image.max() >= m or obs_target.min() < 0 or obs_target.max() >= n:
+        raise CalibrationError(f"bundle: observation indices out of range ({m} images, {n} targets) or no observations")
+    if not np.all(np.isfinite(obs_uv)):
+        raise CalibrationError("bundle: observation pixels contain nan/inf")
+    key = obs_image.astype(np.int64) * n + obs_target
+    if len(np.unique(key)) != q:
+        raise CalibrationError("bundle: a target is observed twice in one image; fix the identification")
+
+
+def bundle_adjust(
+    obs_image: np.ndarray,
+    obs_target: np.ndarray,
+    obs_uv: np.ndarray,
+    intrinsics: Intrinsics,
+    cam_from_part: np.ndarray,
+    points: np.ndarray,
+    options: BundleOptions | None = None,
+    config: BundleConfig | None = None,
+    obs_sigma_px: np.ndarray | None = None,
+    obs_group: np.ndarray | None = None,
+) -> BundleResult:
+    """Adjust a network of targets observed in several images.
+
+    Args:
+        obs_image: (q,) int image index of each observation (0..m-1).
+        obs_target: (q,) int target index (0..n-1).
+        obs_uv: (q, 2) measured pixels (origin at the centre of the top-left pixel).
+        intrinsics: initial interior orientation (e.g. :func:`calibration.faugeras_toscani.combine_intrinsics`).
+        cam_from_part: (m, 4, 4) initial exterior orientations (e.g. from Faugeras-Toscani).
+        points: (n, 3) initial targets (e.g. the CAD nominals); the free-network datum keeps their
+            centroid, orientation and scale.
+        options: solver settings; config: what is refined and the datum.
+        obs_sigma_px: (q,) a priori sigma of each observation's coordinates (pixels); None: all
+            ``options.sigma_px``.
+        obs_group: (q,) int group of each observation: estimate one variance component per group
+            (:mod:`calibration.weights`), starting from ``obs_sigma_px``; None: the sigmas stay as given.
+    """
+    options = options or BundleOptions()
+    config = config or BundleConfig()
+    args = (obs_image, obs_target, obs_uv, intrinsics, cam_from_part, points, options, config, obs_sigma_px, obs_group)
+    if options.blas_threads is not None and threadpool_limits is not None:
+        with threadpool_limits(options.blas_threads, user_api="blas"):
+            return _bundle_adjust(*args)
+    return _bundle_adjust(*args)
+
+
+def _bundle_adjust(obs_image, obs_target, obs_uv, intrinsics, cam_from_part, points, options, config,
+                   obs_sigma_px=None, obs_group=None) -> BundleResult:
+    t_start = time.perf_counter()
+    obs_image = np.asarray(obs_image, dtype=int)
+    obs_target = np.asarray(obs_target, dtype=int)
+    obs_uv = np.asarray(obs_uv, dtype=float)
+    poses0 = np.asarray(cam_from_part, dtype=float).copy()
+    x0 = np.asarray(points, dtype=float).copy()
+    m, n = len(poses0), len(x0)
+    _validate(obs_image, obs_target, obs_uv, m, n)
+    sig0 = check_sigmas(obs_sigma_px, options.sigma_px, len(obs_image))
+    sig = sig0.copy()
+    weighted = obs_sigma_px is not None or obs_group is not None
+    group = None if obs_group is None else check_groups(obs_group, len(obs_image))
+    vc = None
+    names = config.refined_names()
+    linked = np.zeros(n, dtype=bool)
+    for bar in config.scale_bars:
+        linked[[bar.target_a, bar.target_b]] = True
+    defect = {"free": 7, "scale_bar": 6, "control": 0}[config.datum]
+    rejected = np.zeros(len(obs_image), dtype=bool)
+    state = _State(intrinsics, poses0, x0.copy())
+    timings = {"pycolmap_solve": 0.0, "datum": 0.0, "covariance": 0.0}
+    thr = chi2.isf(options.alpha / len(obs_image), 2)
+    while True:
+        act_obs = ~rejected
+        counts = np.bincount(obs_target[act_obs], minlength=n)
+        active_pts = counts >= 2
+        act_obs &= active_pts[obs_target]
+        if np.any(np.bincount(obs_image[act_obs], minlength=m) < 3):
+            raise CalibrationError("bundle: an image has fewer than 3 observed targets; drop it or identify more targets")
+        lay = _Layout(m, n, names, active_pts, linked)
+        args = (obs_image[act_obs], obs_target[act_obs], obs_uv[act_obs])
+        t0 = time.perf_counter()
+        state, usable, report = _pycolmap_solve(state, *args, active_pts, config, options)
+        timings["pycolmap_solve"] += time.perf_counter() - t0
+        for it in range(1, max(options.vce_iterations, 1) + 1 if group is not None else 2):
+            t1 = time.perf_counter()
+            state, dconv = _datum_stage(state, x0, lay, config, args, sig[act_obs], options.datum_iterations, weighted)
+            t2 = time.perf_counter()
+            lin = _linearise(state, *args, lay, config, sig[act_obs], defect)
+            stats = _statistics(lin, lay, n_obs=int(act_obs.sum()))
+            t3 = time.perf_counter()
+            timings["datum"] += t2 - t1
+            timings["covariance"] += t3 - t2
+            if group is None:
+                break
+            sig, vc = _variance_step(sig, sig0, group, act_obs, lin, stats, options, it, vc)
+            if vc.converged:
+                break
+        T = np.full(len(obs_image), np.nan)
+        T[act_obs] = stats["T"] / stats["s02"]
+        testable = np.isfinite(T)
+        if (not options.snooping or rejected.sum() >= options.max_rejections or not testable.any()
+                or np.nanmax(T) <= thr):
+            break  # nothing left to test (e.g. two images: no redundancy per observation) or nothing fails
+        rejected[int(np.nanargmax(T))] = True
+    res = _result(state, lin, stats, lay, T, rejected, act_obs, obs_image, obs_target, obs_uv, options, config,
+                  usable and (dconv or (config.datum == "free" and not weighted)), report, timings,
+                  time.perf_counter() - t_start)
+    res.obs_sigma_px, res.variance_components = sig, vc
+    if weighted:  # sigma0 in pixels: of an observation of the rms a priori sigma (equal weights: options.sigma_px)
+        res.sigma0_px = float(np.sqrt(stats["s02"] * np.mean(sig[act_obs] ** 2)))
+    return res

@@ -1,0 +1,178 @@
+"""What a bundle adjustment solves, how, and what it returns: options, config (datum), result."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from calibration.alignment import PointCovariance
+from calibration.camera import Intrinsics
+from calibration.errors import CalibrationError
+from calibration.weights import VarianceComponents
+
+#: our name -> (COLMAP model, parameter names in COLMAP order)
+CAMERA_MODELS: dict[str, tuple[str, ...]] = {
+    "PINHOLE": ("fx", "fy", "cx", "cy"),
+    "SIMPLE_RADIAL": ("f", "cx", "cy", "k1"),
+    "RADIAL": ("f", "cx", "cy", "k1", "k2"),
+    "OPENCV": ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2"),
+}
+_GROUPS = {"focal": ("f", "fx", "fy"), "principal": ("cx", "cy"), "distortion": ("k1", "k2", "p1", "p2")}
+
+
+@dataclass(frozen=True)
+class ScaleBar:
+    """A calibrated distance between two targets (indices into the points)."""
+
+    target_a: int
+    target_b: int
+    length_m: float
+    sigma_m: float
+
+
+@dataclass(frozen=True)
+class ControlPoints:
+    """Targets with known coordinates: ``index: (k,)`` into the points, ``xyz: (k, 3)``, ``sigma_m: (k,) or (k, 3)``."""
+
+    index: np.ndarray
+    xyz: np.ndarray
+    sigma_m: np.ndarray
+
+
+@dataclass(frozen=True)
+class BundleOptions:
+    """How to solve (not what is held fixed: that is :class:`BundleConfig`).
+
+    Attributes:
+        sigma_px: a priori standard deviation of an image coordinate (pixels); weights the
+            image observations against scale bars and control targets.
+        a_posteriori: scale the covariance by the estimated variance factor ``s0^2``.
+        max_iterations: pycolmap (Ceres) iterations.
+        num_threads: Ceres threads.
+        snooping: run data snooping with re-adjustment.
+        alpha: family-wise significance level of data snooping over the whole network
+            (each observation is tested at ``alpha / q``, so a clean network keeps all its observations
+            with probability ``1 - alpha``).
+        max_rejections: at most this many observations removed.
+        datum_iterations: Gauss-Newton iterations for scale bars and control targets.
+        blas_threads: BLAS threads for the covariance algebra (None: leave as is). One is the fastest
+            for networks of up to a few thousand targets on a 2-core machine (needs threadpoolctl).
+        vce_iterations: at most this many re-adjustments of the variance component estimation
+            (``obs_group``) per data-snooping round.
+        vce_min_redundancy: a group with less redundancy (sum over its coordinates) takes the pooled
+            variance factor of all groups instead of its own.
+        vce_tolerance: the estimation stops when every group's sigma changes by less than this (relative).
+    """
+
+    sigma_px: float = 0.05
+    a_posteriori: bool = True
+    max_iterations: int = 100
+    num_threads: int = 2
+    snooping: bool = True
+    alpha: float = 0.01
+    max_rejections: int = 20
+    datum_iterations: int = 10
+    blas_threads: int | None = 1
+    vce_iterations: int = 15
+    vce_min_redundancy: float = 50.0
+    vce_tolerance: float = 0.005
+
+
+@dataclass(frozen=True)
+class BundleConfig:
+    """What is estimated and the datum.
+
+    Attributes:
+        camera_model: one of :data:`CAMERA_MODELS`.
+        refine_focal_length, refine_principal_point, refine_distortion: self-calibration groups
+            (all ``False``: the interior orientation is held fixed).
+        scale_bars: calibrated distances (datum ``scale_bar``).
+        control: control targets (datum ``control``; takes precedence over scale bars for the datum,
+            scale bars are then extra observations).
+    """
+
+    camera_model: str = "PINHOLE"
+    refine_focal_length: bool = False
+    refine_principal_point: bool = False
+    refine_distortion: bool = False
+    scale_bars: tuple[ScaleBar, ...] = ()
+    control: ControlPoints | None = None
+
+    @property
+    def datum(self) -> str:
+        if self.control is not None and len(self.control.index) > 0:
+            return "control"
+        if self.scale_bars:
+            return "scale_bar"
+        return "free"
+
+    def refined_names(self) -> tuple[str, ...]:
+        if self.camera_model not in CAMERA_MODELS:
+            raise CalibrationError(
+                f"bundle: unknown camera model {self.camera_model!r}; use one of {sorted(CAMERA_MODELS)}"
+            )
+        groups = [g for g, on in (("focal", self.refine_focal_length), ("principal", self.refine_principal_point),
+                                  ("distortion", self.refine_distortion)) if on]
+        return tuple(p for p in CAMERA_MODELS[self.camera_model] if any(p in _GROUPS[g] for g in groups))
+
+
+@dataclass
+class BundleResult:
+    """Outcome of :func:`bundle_adjust` (points, poses and residuals in our conventions).
+
+    Attributes:
+        points: (n, 3) adjusted targets (nan where fewer than 2 rays remain).
+        cov: (n, 3, 3) per-target covariance (m^2) in the datum.
+        covariance: full target covariance (:class:`PointCovariance`), for alignment.
+        cam_from_part: (m, 4, 4) adjusted exterior orientations.
+        intrinsics: adjusted interior orientation.
+        intrinsics_names, intrinsics_cov: the refined interior parameters and their covariance.
+        sigma0_px: a posteriori standard deviation of unit weight, in pixels.
+        residuals: (q, 2) observed minus computed pixels (rejected ones too).
+        test_statistic: (q,) data-snooping statistic (chi-square 2 dof; nan for rejected).
+        redundancy: (q,) redundancy number of each observation (0..1 per coordinate, averaged).
+        rejected: (q,) observations removed as blunders.
+        dof: degrees of freedom.
+        datum: "free", "scale_bar" or "control".
+        converged: pycolmap reported a usable solution and the datum iterations converged.
+        summary: pycolmap's brief report of the last solve.
+        timings: seconds per stage.
+        obs_sigma_px: (q,) a priori sigma of each image observation used in the final adjustment (pixels;
+            ``sigma0_px`` is then the a posteriori sigma of an observation whose a priori sigma is the rms of
+            those of the observations used: the network's image precision, as with equal weights).
+        variance_components: the per-group estimate when ``obs_group`` was given, else None.
+    """
+
+    points: np.ndarray
+    cov: np.ndarray
+    covariance: PointCovariance
+    cam_from_part: np.ndarray
+    intrinsics: Intrinsics
+    intrinsics_names: tuple[str, ...]
+    intrinsics_cov: np.ndarray
+    sigma0_px: float
+    residuals: np.ndarray
+    test_statistic: np.ndarray
+    redundancy: np.ndarray
+    rejected: np.ndarray
+    dof: int
+    datum: str
+    converged: bool
+    summary: str
+    timings: dict = field(default_factory=dict)
+    obs_sigma_px: np.ndarray | None = None
+    variance_components: VarianceComponents | None = None
+
+    def error_ellipsoids(self, k: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+        """Semi-axes ``(n, 3)`` (metres, ascending, times ``k``) and axis directions ``(n, 3, 3)`` (columns)."""
+        ok = np.all(np.isfinite(self.cov), axis=(1, 2))
+        axes = np.full((len(self.cov), 3), np.nan)
+        dirs = np.full((len(self.cov), 3, 3), np.nan)
+        w, V = np.linalg.eigh(self.cov[ok])
+        axes[ok] = k * np.sqrt(np.clip(w, 0.0, None))
+        dirs[ok] = V
+        return axes, dirs
+
+    def sigma_m(self) -> np.ndarray:
+        """sqrt(trace(cov)) per target, (n,)."""
+        return np.sqrt(np.trace(self.cov, axis1=1, axis2=2))

@@ -1,0 +1,245 @@
+"""The linearised problem: parameter layout, normal equations reduced to the camera side, the step.
+
+Scale bars and control targets enter here as extra observations; the datum's gauge (inner
+constraints) as the null space of the similarity transformations.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from calibration.alignment import helmert_basis
+from calibration.bundle.config import BundleConfig, ControlPoints
+from calibration.bundle.projection import project_observations
+from calibration.camera import Intrinsics, exp_se3, skew
+from calibration.errors import CalibrationError
+
+
+def _update_intrinsics(intr: Intrinsics, names: tuple[str, ...], delta: np.ndarray) -> Intrinsics:
+    d = {"fx_px": intr.fx_px, "fy_px": intr.fy_px, "cx_px": intr.cx_px, "cy_px": intr.cy_px,
+         "k1": intr.k1, "k2": intr.k2, "p1": intr.p1, "p2": intr.p2}
+    for name, dv in zip(names, delta):
+        if name == "f":
+            d["fx_px"] += dv
+            d["fy_px"] += dv
+        elif name in ("fx", "fy", "cx", "cy"):
+            d[name + "_px"] += dv
+        else:
+            d[name] += dv
+    return replace(intr, **d)
+
+
+def _segment_sum(values: np.ndarray, ids: np.ndarray, size: int) -> np.ndarray:
+    """Sum ``values: (q, ...)`` by ``ids: (q,)`` into ``(size, ...)``."""
+    shape = values.shape[1:]
+    E = int(np.prod(shape)) if shape else 1
+    flat = (ids[:, None] * E + np.arange(E)[None, :]).ravel()
+    out = np.bincount(flat, weights=values.reshape(len(ids), E).ravel(), minlength=size * E)
+    return out.reshape((size,) + shape)
+
+
+@dataclass
+class _State:
+    intr: Intrinsics
+    poses: np.ndarray  # (m, 4, 4)
+    points: np.ndarray  # (n, 3)
+
+
+@dataclass
+class _Linear:
+    """Normal equations reduced to the camera side, at one state."""
+
+    r_img: np.ndarray  # (q, 2) weighted residuals of the active observations
+    r_extra: np.ndarray  # (e,) weighted residuals of scale bars and control
+    Dinv: np.ndarray  # (nu, 3, 3)
+    V: np.ndarray  # (nu, 3, p)  Npp^-1 Npc
+    Sigma: np.ndarray  # (p, p) g-inverse of the reduced matrix
+    dc: np.ndarray  # (p,) camera-side step
+    dp: np.ndarray  # (nu, 3) point step
+    Jp: np.ndarray  # (q, 2, 3)
+    Jc: np.ndarray  # (q, 2, w) compact camera-side Jacobian
+    cidx: np.ndarray  # (q, w) its columns
+    slot: np.ndarray  # (q,) unlinked point slot of each observation (or 0 with Jp = 0)
+    defect: int
+
+
+class _Layout:
+    """Parameter layout: camera side = poses (6 m) | interior (k) | linked points (3 L); the other points apart."""
+
+    def __init__(self, m: int, n: int, names: tuple[str, ...], active_pts: np.ndarray, linked: np.ndarray):
+        self.m, self.n, self.names = m, n, names
+        self.k = len(names)
+        self.linked = np.flatnonzero(linked & active_pts)
+        self.unlinked = np.flatnonzero(~linked & active_pts)
+        self.lslot = np.full(n, -1)
+        self.lslot[self.linked] = np.arange(len(self.linked))
+        self.uslot = np.full(n, -1)
+        self.uslot[self.unlinked] = np.arange(len(self.unlinked))
+        self.p = 6 * m + self.k + 3 * len(self.linked)
+
+    def link_cols(self, targets: np.ndarray) -> np.ndarray:
+        """(len, 3) camera-side columns of linked targets."""
+        return 6 * self.m + self.k + 3 * self.lslot[targets][:, None] + np.arange(3)[None, :]
+
+
+def _null_space(state: _State, lay: _Layout, d: int) -> tuple[np.ndarray, np.ndarray]:
+    """Infinitesimal similarities of the whole network: camera side (p, d), unlinked points (nu, 3, d)."""
+    if d == 0:
+        return np.zeros((lay.p, 0)), np.zeros((len(lay.unlinked), 3, 0))
+    act = np.concatenate([lay.unlinked, lay.linked])
+    c0 = state.points[act].mean(axis=0)
+    G7p = helmert_basis(np.vstack([state.points[act], c0[None]]), with_scale=True)  # centred at c0 (last row 0)
+    Gp = np.zeros((lay.n, 3, 7))
+    Gp[act] = G7p[:-1]
+    Gc = np.zeros((lay.p, 7))
+    R = state.poses[:, :3, :3]
+    tt = state.poses[:, :3, 3] + np.einsum("mab,b->ma", R, c0)  # translation w.r.t. the centred frame
+    for j in range(lay.m):
+        Rj, tj = R[j], tt[j]
+        Gc[6 * j : 6 * j + 3, 3:6] = -Rj
+        Gc[6 * j + 3 : 6 * j + 6, 0:3] = -Rj
+        Gc[6 * j + 3 : 6 * j + 6, 3:6] = -skew(tj) @ Rj
+        Gc[6 * j + 3 : 6 * j + 6, 6] = tj
+    if len(lay.linked):
+        cols = lay.link_cols(lay.linked)
+        Gc[cols.ravel(), :] = Gp[lay.linked].reshape(-1, 7)
+    return Gc[:, :d], Gp[lay.unlinked][:, :, :d]
+
+
+def _linearise(
+    state: _State, obs_image: np.ndarray, obs_target: np.ndarray, obs_uv: np.ndarray, lay: _Layout,
+    config: BundleConfig, sigma_px: float | np.ndarray, defect: int,
+) -> _Linear:
+    m, k, p = lay.m, lay.k, lay.p
+    R = state.poses[obs_image, :3, :3]
+    t = state.poses[obs_image, :3, 3]
+    uv, Jp, Jpose, Jin = project_observations(state.intr, R, t, state.points[obs_target], lay.names)
+    if np.any(~np.isfinite(uv)) or np.any(np.einsum("qb,qb->q", R[:, 2], state.points[obs_target]) + t[:, 2] <= 0):
+        raise CalibrationError("bundle: a target is behind a camera that observes it; check identification")
+    w = 1.0 / np.broadcast_to(np.asarray(sigma_px, dtype=float), (len(uv),))  # (q,) weights^(1/2)
+    r = (obs_uv - uv) * w[:, None]
+    Jp, Jpose, Jin = Jp * w[:, None, None], Jpose * w[:, None, None], Jin * w[:, None, None]
+    is_linked = lay.lslot[obs_target] >= 0
+    # compact camera-side Jacobian: pose (6) | interior (k) | linked point (3)
+    W = 6 + k + 3
+    Jc = np.zeros((len(r), 2, W))
+    Jc[:, :, :6] = Jpose
+    Jc[:, :, 6 : 6 + k] = Jin
+    cidx = np.zeros((len(r), W), dtype=int)
+    cidx[:, :6] = 6 * obs_image[:, None] + np.arange(6)
+    cidx[:, 6 : 6 + k] = 6 * m + np.arange(k)
+    if np.any(is_linked):
+        Jc[is_linked, :, 6 + k :] = Jp[is_linked]
+        cidx[is_linked, 6 + k :] = lay.link_cols(obs_target[is_linked])
+        Jp = Jp.copy()
+        Jp[is_linked] = 0.0
+    slot = np.where(is_linked, 0, lay.uslot[obs_target])
+    # camera side: pose and interior blocks by image, linked points by scatter
+    HH = np.einsum("qia,qib->qab", Jc, Jc)
+    Ncc = np.zeros((p, p))
+    PP = _segment_sum(HH[:, :6, :6], obs_image, m)
+    for j in range(m):
+        Ncc[6 * j : 6 * j + 6, 6 * j : 6 * j + 6] = PP[j]
+    if k:
+        PI = _segment_sum(HH[:, :6, 6 : 6 + k], obs_image, m).reshape(6 * m, k)
+        Ncc[: 6 * m, 6 * m : 6 * m + k] = PI
+        Ncc[6 * m : 6 * m + k, : 6 * m] = PI.T
+        Ncc[6 * m : 6 * m + k, 6 * m : 6 * m + k] = HH[:, 6 : 6 + k, 6 : 6 + k].sum(axis=0)
+    if np.any(is_linked):
+        lmask = np.zeros((W, W), dtype=bool)
+        lmask[6 + k :, :] = True
+        lmask[:, 6 + k :] = True
+        cl = cidx[is_linked]
+        np.add.at(Ncc, (cl[:, :, None], cl[:, None, :]), HH[is_linked] * lmask)
+    bc = np.bincount(cidx.ravel(), weights=np.einsum("qia,qi->qa", Jc, r).ravel(), minlength=p)
+    # point side (unlinked points)
+    nu = len(lay.unlinked)
+    un = ~is_linked
+    Npp = _segment_sum(np.einsum("qia,qib->qab", Jp, Jp), slot, max(nu, 1))[:nu]
+    bp = _segment_sum(np.einsum("qia,qi->qa", Jp, r), slot, max(nu, 1))[:nu]
+    E = np.einsum("qia,qib->qab", Jp[un], Jc[un, :, : 6 + k])  # (qu, 3, 6 + k)
+    Npc = np.zeros((nu, 3, p))
+    # one observation per (target, image): the pose blocks are assigned, not summed
+    Npc[slot[un][:, None, None], np.arange(3)[None, :, None], cidx[un][:, None, :6]] = E[:, :, :6]
+    if k:
+        Npc[:, :, 6 * m : 6 * m + k] = _segment_sum(E[:, :, 6:], slot[un], max(nu, 1))[:nu]
+    # extra observations
+    extra = []
+    if config.control is not None and len(config.control.index):
+        ci = np.asarray(config.control.index)
+        sig = _control_sigma(config.control)
+        keep = (lay.uslot[ci] >= 0) | (lay.lslot[ci] >= 0)
+        for i, xyz, s in zip(ci[keep], np.asarray(config.control.xyz)[keep], sig[keep]):
+            res = (xyz - state.points[i]) / s
+            Jx = np.diag(1.0 / s)
+            extra.append(res)
+            if lay.uslot[i] >= 0:
+                Npp[lay.uslot[i]] += Jx.T @ Jx
+                bp[lay.uslot[i]] += Jx.T @ res
+            else:
+                cols = lay.link_cols(np.array([i]))[0]
+                Ncc[np.ix_(cols, cols)] += Jx.T @ Jx
+                bc[cols] += Jx.T @ res
+    for bar in config.scale_bars:
+        a, b = bar.target_a, bar.target_b
+        if lay.lslot[a] < 0 or lay.lslot[b] < 0:
+            continue
+        dvec = state.points[a] - state.points[b]
+        dist = np.linalg.norm(dvec)
+        u = dvec / dist
+        res = (bar.length_m - dist) / bar.sigma_m
+        Jx = np.concatenate([u, -u]) / bar.sigma_m
+        cols = np.concatenate(lay.link_cols(np.array([a, b])))
+        Ncc[np.ix_(cols, cols)] += np.outer(Jx, Jx)
+        bc[cols] += Jx * res
+        extra.append(np.array([res]))
+    # Schur complement on the points
+    Dinv = np.linalg.inv(Npp)
+    V = np.einsum("nab,nbp->nap", Dinv, Npc)
+    V2 = V.reshape(-1, p)
+    S = Ncc - Npc.reshape(-1, p).T @ V2
+    bred = bc - V2.T @ bp.reshape(-1)
+    Gc, _ = _null_space(state, lay, defect)
+    Sreg = S
+    if defect:
+        Qg, _ = np.linalg.qr(Gc)
+        Sreg = S + Qg @ Qg.T * np.mean(np.diag(S))
+    try:
+        Sigma = np.linalg.inv(0.5 * (Sreg + Sreg.T))
+    except np.linalg.LinAlgError as exc:
+        raise CalibrationError(
+            "bundle: the normal equations are singular: the network does not determine every camera "
+            "(too few targets per image, or a datum that does not fix the network)"
+        ) from exc
+    dc = Sigma @ bred
+    dp = np.einsum("nab,nb->na", Dinv, bp) - V @ dc
+    r_extra = np.concatenate(extra) if extra else np.zeros(0)
+    return _Linear(r, r_extra, Dinv, V, Sigma, dc, dp, Jp, Jc, cidx, slot, defect)
+
+
+def _control_sigma(control: ControlPoints) -> np.ndarray:
+    """Per-axis standard deviations of the control targets, (k, 3)."""
+    k = len(control.index)
+    s = np.asarray(control.sigma_m, dtype=float)
+    if s.ndim == 0:
+        s = np.full(k, float(s))
+    if s.ndim == 1:
+        s = s[:, None]
+    out = np.broadcast_to(s, (k, 3)).astype(float)
+    if np.any(~(out > 0)):
+        raise CalibrationError("bundle: control target standard deviations must be positive")
+    return out
+
+
+def _apply_step(state: _State, lin: _Linear, lay: _Layout) -> _State:
+    m, k = lay.m, lay.k
+    poses = state.poses.copy()
+    for j in range(m):
+        poses[j] = exp_se3(lin.dc[6 * j : 6 * j + 6]) @ poses[j]
+    intr = _update_intrinsics(state.intr, lay.names, lin.dc[6 * m : 6 * m + k]) if k else state.intr
+    pts = state.points.copy()
+    pts[lay.unlinked] += lin.dp
+    if len(lay.linked):
+        pts[lay.linked] += lin.dc[lay.link_cols(lay.linked)]
+    return _State(intr, poses, pts)

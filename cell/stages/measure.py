@@ -1,0 +1,42 @@
+"""MEASURE: sub-pixel target detection and identification in every image; observations.json."""
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from calibration.camera import invert
+from calibration.errors import CalibrationError
+from cell.record.jobfolder import atomic_write_json
+from cell.stages.imaging import measure_image
+from planning.visibility import Occluder
+
+
+def run(ctx) -> None:
+    """Detect, centre and identify the targets in every image (cell.stages.imaging.measure_image).
+
+    Dots are named by projecting the nominal targets with the robot's pose and the hand-eye, refined
+    by the coded targets (solvePnP) where at least four are seen; coded targets are not measured.
+    """
+    job = ctx.job
+    acq = ctx.folder.read_json("acquisition.json")
+    ids_all = job.part.targets.ids
+    bfp, ffc = job.spec.base_from_part(), job.spec.flange_from_cam()
+    occluder = Occluder(job.part.mesh)
+    out = []
+    for k, im in enumerate(acq["images"]):
+        ctx.progress("measure", k / len(acq["images"]))
+        img = cv2.imread(str(ctx.folder.file(im["image"])), cv2.IMREAD_UNCHANGED)
+        if img is None:
+            raise CalibrationError(f"{im['image']}: cannot read the image")
+        cam_from_part = invert(invert(bfp) @ np.asarray(im["base_from_flange"], dtype=float) @ ffc)
+        m, counts = measure_image(img, job.part, job.intrinsics, cam_from_part, occluder)
+        names = [ids_all[int(i)] for i in m.target]
+        out.append({"station": im["station"], "image": im["image"], "ids": names, "uv": m.uv,
+                    "n_unidentified": m.n_unidentified, "n_partly_hidden": m.n_partly_hidden} | counts)
+        ctx.log.detections(im["station"], names, m.uv)
+    ctx.progress("measure", 1.0)
+    atomic_write_json(ctx.folder.file("observations.json"), {"images": out})
+    n = [len(o["ids"]) for o in out]
+    ctx.say(f"  {sum(n)} observations in {len(out)} images ({min(n)}..{max(n)} per image); "
+            f"{sum(o['n_partly_hidden'] for o in out)} partly hidden dots dropped, "
+            f"{sum(o['n_unidentified'] for o in out)} other blobs (marker pieces, edges) ignored")

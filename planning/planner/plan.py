@@ -1,0 +1,143 @@
+"""The planner's entry points: :func:`plan_network` (set-up, search, exact check, the plan) and
+:func:`cheapest_network`."""
+from __future__ import annotations
+
+import time
+from dataclasses import replace
+
+import numpy as np
+
+from calibration.camera import Intrinsics
+from planning.planner.cheapest import _search_cheapest
+from planning.planner.final import _bound_facts, _exact_check
+from planning.planner.options import PlannerOptions, Progress
+from planning.planner.result import NetworkPlan
+from planning.planner.search import _Search, _search_fixed
+from planning.planner.setup import _set_up
+from planning.visibility import VisibilityDB
+
+
+def plan_network(
+    part,
+    intr: Intrinsics,
+    options: PlannerOptions,
+    rng: np.random.Generator | None = None,
+    reachable: np.ndarray | None = None,
+    cache_dir=None,
+    progress: Progress | None = None,
+    *,
+    seed: int | None = None,
+    db: VisibilityDB | None = None,
+    reachable_fn=None,
+) -> NetworkPlan:
+    """Design a network (see :mod:`planning.planner`); the same inputs and seed give the same plan.
+
+    Args:
+        part: planning.part.Part (mesh, targets with xyz, normals, ids, tolerance_m).
+        intr: the camera.
+        options: :class:`PlannerOptions` (``mode`` chooses fixed size or cheapest).
+        rng: the search's generator; None: ``numpy.random.default_rng(seed)``.
+        reachable: (m,) bool aligned with the visibility database's candidates, or None.
+        reachable_fn: ``part_from_cam (p, 4, 4) -> (p,) bool`` for poses off the database (the
+            exact local polish, ``polish_rounds``); with ``reachable`` but without it the polish is
+            skipped, since its poses' reachability would be unknown.
+        cache_dir: where the visibility database is cached (None: default cache).
+        progress: called as ``progress(stage, fraction)``.
+        seed: recorded in the plan (and used when ``rng`` is None).
+        db: a visibility database already built for this part, camera and options.
+    Returns:
+        :class:`NetworkPlan`.
+    Raises:
+        InputError: bad options.  PlanningError: no valid station, targets that cannot be
+        measured by ``min_rays`` stations, or (cheapest) no network reaches the precision.
+    """
+    options.check()
+    if rng is None:
+        rng = np.random.default_rng(seed)
+    report = progress or (lambda stage, fraction: None)
+    timing: dict[str, float] = {}
+    t_all = time.perf_counter()
+    s = _set_up(part, intr, options, reachable, cache_dir, report, db, timing)
+
+    t0 = time.perf_counter()
+    search = _Search(s, options, rng, report)
+    found = _search_fixed(search, part, intr, reachable, reachable_fn) if options.mode == "fixed" \
+        else _search_cheapest(search)
+    timing["search_s"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    kept, final, final_genes, search_fitness = _exact_check(part, intr, options, s, found)
+    report("final", 1.0)
+    timing["final_s"] = time.perf_counter() - t0
+    bound_facts = _bound_facts(options, s.info, s.valid, s.vis, final_genes, final, s.required, s.cols, report) \
+        if options.lower_bound else {}
+    if bound_facts:
+        timing["bound_s"] = bound_facts.pop("seconds")
+    timing["total_s"] = time.perf_counter() - t_all
+
+    m, n = s.db.visible.shape
+    cols, ids, res, pareto, refine_stats = s.cols, s.ids, found.res, found.pareto, search.refine_stats
+    order = np.lexsort((final_genes[:, 2], final_genes[:, 1], final_genes[:, 0]))
+    T, final_genes, visible = final["T"][order], final_genes[order], final["visible"][order]
+    station_ids = [f"S{i + 1:03d}" for i in range(len(order))]
+    cov, n_rays = final["cov"], final["n_rays"]
+    sig = np.sqrt(np.trace(cov, axis1=1, axis2=2))
+    sig_cols = sig[cols]
+    finite = np.isfinite(sig_cols)
+    return NetworkPlan(
+        seed=seed,
+        criterion=options.criterion,
+        mode=options.mode,
+        intrinsics=intr,
+        sigma_px=float(options.sigma_px),
+        min_rays=int(options.min_rays),
+        incidence_max_rad=float(options.incidence_max_rad),
+        station_ids=station_ids,
+        part_from_cam=T,
+        genes=final_genes,
+        target_ids=ids,
+        xyz=s.xyz.copy(),
+        normals=np.asarray(part.targets.normals, dtype=float).copy(),
+        cov=cov,
+        n_rays=n_rays,
+        seen_by=[[station_ids[i] for i in np.flatnonzero(visible[:, j])] for j in range(n)],
+        predicted_sigma_max_m=float(np.max(sig_cols)) if finite.all() else float("inf"),
+        predicted_sigma_mean_m=float(np.mean(sig_cols)) if finite.all() else float("inf"),
+        history=search.history,
+        pareto_front=pareto,
+        required_sigma_m=s.required,
+        unmeasurable_target_ids=[ids[j] for j in np.flatnonzero(~s.measurable)],
+        timing=timing,
+        search={
+            "stopped_because": res.stopped_because,
+            "generations": len(res.history) - 1,
+            "refine_runs": sum(1 for row in pareto if row.get("phase") == "refine"),
+            **({"exchange_swaps": sum(x["swaps"] for x in refine_stats),
+                "exchange_from": refine_stats[0]["from"], "exchange_to": refine_stats[0]["to"]} if refine_stats else {}),
+            **found.polish_stats,
+            "n_evaluations": search.n_evaluations,
+            "n_candidates": int(m),
+            "n_valid_candidates": int(s.valid.sum()),
+            "visibility_key": s.db.key,
+            "visibility_from_cache": bool(s.db.from_cache),
+            "poses_kept": kept,
+            "search_fitness": search_fitness,
+            "exact_fitness": final["score"],
+            "exact_violation": final["violation"],
+            **bound_facts,
+        },
+    )
+
+
+def cheapest_network(
+    part,
+    intr: Intrinsics,
+    options: PlannerOptions,
+    rng: np.random.Generator | None = None,
+    reachable: np.ndarray | None = None,
+    cache_dir=None,
+    progress: Progress | None = None,
+    **kwargs,
+) -> NetworkPlan:
+    """The fewest stations (at most ``options.n_stations``) meeting the required precision."""
+    return plan_network(part, intr, replace(options, mode="cheapest"), rng, reachable, cache_dir, progress, **kwargs)
