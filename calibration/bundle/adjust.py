@@ -99,6 +99,8 @@ def _bundle_adjust(obs_image, obs_target, obs_uv, intrinsics, cam_from_part, poi
     state = _State(intrinsics, poses0, x0.copy())
     timings = {"pycolmap_solve": 0.0, "datum": 0.0, "covariance": 0.0}
     thr = chi2.isf(options.alpha / len(obs_image), 2)
+    held: list[int] = []  # targets whose observations snooping no longer removes
+    stop = ""
     while True:
         act_obs = ~rejected
         counts = np.bincount(obs_target[act_obs], minlength=n)
@@ -128,14 +130,38 @@ def _bundle_adjust(obs_image, obs_target, obs_uv, intrinsics, cam_from_part, poi
         T = np.full(len(obs_image), np.nan)
         T[act_obs] = stats["T"] / stats["s02"]
         testable = np.isfinite(T)
-        if (not options.snooping or rejected.sum() >= options.max_rejections or not testable.any()
-                or np.nanmax(T) <= thr):
+        # a target losing more than half of its observations is itself suspect (wrong control coordinates,
+        # wrong identification): its remaining observations are held, and the target is named
+        for t_ in np.unique(obs_target[rejected]):
+            if (rejected & (obs_target == t_)).sum() >= 0.5 * (obs_target == t_).sum() and t_ not in held:
+                held.append(int(t_))
+        testable &= ~np.isin(obs_target, held)
+        failing = int(np.sum(np.where(testable, T, 0.0) > thr))
+        if not options.snooping or not testable.any() or failing == 0:
+            stop = "off" if not options.snooping else ("nothing testable" if not testable.any() else "none left")
             break  # nothing left to test (e.g. two images: no redundancy per observation) or nothing fails
-        rejected[int(np.nanargmax(T))] = True
+        if rejected.sum() >= options.max_rejections:
+            stop = f"cap of {options.max_rejections} rejections reached; {failing} observation(s) still fail the test"
+            break
+        rejected[int(np.nanargmax(np.where(testable, T, np.nan)))] = True
     res = _result(state, lin, stats, lay, T, rejected, act_obs, obs_image, obs_target, obs_uv, options, config,
                   usable and (dconv or (config.datum == "free" and not weighted)), report, timings,
                   time.perf_counter() - t_start)
     res.obs_sigma_px, res.variance_components = sig, vc
+    res.snooping = _snooping_summary(config, stop, thr, T, rejected, held, options)
     if weighted:  # sigma0 in pixels: of an observation of the rms a priori sigma (equal weights: options.sigma_px)
         res.sigma0_px = float(np.sqrt(stats["s02"] * np.mean(sig[act_obs] ** 2)))
     return res
+
+
+def _snooping_summary(config, stop: str, thr: float, T: np.ndarray, rejected: np.ndarray, held: list[int],
+                      options) -> dict:
+    """What data snooping did and did not do: its test, why it stopped, and what it never tests."""
+    protected = [f"scale bar {b.target_a}-{b.target_b} length (not tested: it defines the scale)"
+                 for b in config.scale_bars]
+    if config.control is not None and len(config.control.index):
+        protected.append(f"{len(config.control.index)} control target coordinates (not tested: they define the datum)")
+    return {"alpha": options.alpha, "critical_value": float(thr), "n_rejected": int(rejected.sum()),
+            "stopped": stop, "complete": stop in ("none left", "nothing testable", "off"),
+            "max_statistic": float(np.nanmax(T)) if np.isfinite(T).any() else None,
+            "suspect_targets": held, "protected": protected}

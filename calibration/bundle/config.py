@@ -53,7 +53,7 @@ class BundleOptions:
         alpha: family-wise significance level of data snooping over the whole network
             (each observation is tested at ``alpha / q``, so a clean network keeps all its observations
             with probability ``1 - alpha``).
-        max_rejections: at most this many observations removed.
+        max_rejections: at most this many observations removed (a stop at the cap is said in ``BundleResult.snooping``).
         datum_iterations: Gauss-Newton iterations for scale bars and control targets.
         blas_threads: BLAS threads for the covariance algebra (None: leave as is). One is the fastest
             for networks of up to a few thousand targets on a 2-core machine (needs threadpoolctl).
@@ -141,6 +141,11 @@ class BundleResult:
             ``sigma0_px`` is then the a posteriori sigma of an observation whose a priori sigma is the rms of
             those of the observations used: the network's image precision, as with equal weights).
         variance_components: the per-group estimate when ``obs_group`` was given, else None.
+        snooping: what data snooping did: ``critical_value``, ``n_rejected``, ``stopped`` (why it stopped: "none
+            left", or the cap with how many observations still fail), ``complete`` (False: a stop before the end),
+            ``suspect_targets`` (targets that lost half of their observations: their remaining ones are held and the
+            target itself is suspect, e.g. wrong control coordinates) and ``protected`` (scale bars and control
+            coordinates, never tested).
     """
 
     points: np.ndarray
@@ -162,6 +167,7 @@ class BundleResult:
     timings: dict = field(default_factory=dict)
     obs_sigma_px: np.ndarray | None = None
     variance_components: VarianceComponents | None = None
+    snooping: dict | None = None
 
     def error_ellipsoids(self, k: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
         """Semi-axes ``(n, 3)`` (metres, ascending, times ``k``) and axis directions ``(n, 3, 3)`` (columns)."""
