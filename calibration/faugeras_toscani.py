@@ -251,7 +251,7 @@ def combine_intrinsics(results: list[FTResult]) -> Intrinsics:
 
 
 def orient_without_ft(xyz: np.ndarray, uv: np.ndarray, intr: Intrinsics, guess: np.ndarray | None = None,
-                      max_rms_px: float = 3.0) -> tuple[np.ndarray, float, str]:
+                      max_rms_px: float = 10.0) -> tuple[np.ndarray, float, str]:
     """Exterior orientation with a known interior orientation, for images Faugeras-Toscani refuses.
 
     Args:

@@ -15,7 +15,7 @@ from calibration.errors import CalibrationError
 __all__ = ["intrinsics_problems", "check_adjustment", "MAX_SIGMA0_PX"]
 
 MAX_ASPECT_DEVIATION = 0.05  # |fx / fy - 1|
-MAX_SKEW = 0.01  # skew term / fx
+MAX_SKEW = 0.05  # skew term / fx (a linear estimate from a few dozen points reaches 0.01)
 MAX_PRINCIPAL_OFFSET = 0.25  # |cx - centre| / width, |cy - centre| / height
 MAX_FOCAL_DEVIATION = 0.25  # |f / nominal - 1|, when the nominal lens is known
 MAX_RADIAL = 5.0  # |k1| on normalised coordinates (a fisheye is another camera model)

@@ -128,7 +128,9 @@ def figure_residuals(residuals_px: np.ndarray) -> str:
 _CSS = """
 body{font-family:system-ui,-apple-system,Segoe UI,Roboto,sans-serif;margin:24px;color:#222;max-width:1200px}
 .verdict{font-size:28px;font-weight:700;padding:14px 20px;border-radius:8px;color:#fff;display:inline-block}
-.PASS{background:#1a7f37}.FAIL{background:#cf222e}.INCOMPLETE{background:#9a6700}
+.PASS{background:#1a7f37}.FAIL{background:#cf222e}.INCOMPLETE{background:#9a6700}.UNTRUSTED{background:#82071e}
+.alert{color:#fff;background:#cf222e;font-weight:700;padding:10px 16px;border-radius:6px;margin:10px 0}
+.warn{background:#fff8c5;border:1px solid #d4a72c;padding:8px 14px;border-radius:6px;margin:10px 0}
 table{border-collapse:collapse;font-size:13px}td,th{border:1px solid #ccc;padding:3px 7px;text-align:right}
 th{background:#f3f3f3}td.l{text-align:left}tr.fail td{background:#ffebe9}
 .figs img{max-width:560px;margin:6px;border:1px solid #ddd}.kv td{text-align:left}
@@ -157,6 +159,43 @@ def _inconclusive(doc: dict) -> str:
     return f"; {n} too close to their tolerance for this measurement to decide (ISO 14253-1)" if n else ""
 
 
+def _alerts(doc: dict) -> str:
+    """Red banners for what makes the numbers untrustworthy; yellow notes for what the operator should know."""
+    out = []
+    al = doc.get("alignment") or {}
+    if al and not al.get("trusted", True):
+        out.append(f'<div class="alert" id="alignment-alert">ALIGNMENT NOT TRUSTED: '
+                   f'{html.escape("; ".join(al.get("reasons", [])))}. The deviations below are in a frame that '
+                   "cannot be relied on.</div>")
+    sn = doc.get("snooping") or {}
+    if sn and not sn.get("complete", True):
+        out.append(f'<div class="alert" id="snooping-alert">Blunder test stopped before the end: '
+                   f'{html.escape(str(sn.get("stopped")))}</div>')
+    if sn.get("suspect_targets"):
+        out.append(f'<div class="warn">Targets that lost half of their observations as blunders (suspect): '
+                   f'{html.escape(", ".join(sn["suspect_targets"]))}</div>')
+    for n in al.get("notes", []):
+        out.append(f'<div class="warn">Alignment: {html.escape(n)}</div>')
+    return "".join(out)
+
+
+def _alignment_facts(doc: dict) -> dict:
+    al = doc.get("alignment") or {}
+    if not al:
+        return {}
+    ratio = doc.get("predicted_over_achieved") or {}
+    out = {"Alignment": f"{al.get('description', al.get('method'))}; {len(al.get('targets_in_fit', []))} targets "
+                        f"define the frame; rms {_fmt_um(al.get('rms_m'))} um; "
+                        + ("trusted" if al.get("trusted") else "NOT TRUSTED")
+                        + ("" if al.get("stable", True) else ", not stable")}
+    if ratio.get("median") is not None:
+        out["Predicted / achieved sigma"] = (f"{ratio['median']:.2f} (median over {ratio['n']} targets; "
+                                             f"10-90 %: {ratio['p10']:.2f}-{ratio['p90']:.2f})")
+    if doc.get("snooping"):
+        out["Rejected observations"] = f"{doc.get('n_rejected', 0)} (listed in bundle.json and report.json)"
+    return out
+
+
 def render_html(doc: dict, figures: dict[str, str]) -> str:
     """The self-contained HTML report."""
     j = doc["job"]
@@ -180,6 +219,7 @@ def render_html(doc: dict, figures: dict[str, str]) -> str:
         "Job": j["id"], "Part": j.get("part", ""), "Seed": j["seed"], "Started": j["started"],
         "Finished": j["finished"], "Images": doc["images"], "sigma0 [px]": f"{doc['sigma0_px']:.3f}",
         "Datum": doc.get("datum", ""), "Cell calibration": doc.get("cell_calibration", {}).get("status", "unknown"),
+        **_alignment_facts(doc),
         "Versions": ", ".join(f"{k} {v}" for k, v in j["versions"].items()),
     }
     kv = "".join(f"<tr><td><b>{html.escape(k)}</b></td><td>{html.escape(str(v))}</td></tr>" for k, v in facts.items())
@@ -188,6 +228,7 @@ def render_html(doc: dict, figures: dict[str, str]) -> str:
 <style>{_CSS}</style></head><body>
 <h1>Inspection report: {html.escape(j['name'])}</h1>
 <div class="verdict {verdict}" id="verdict">{verdict}: {len(doc['targets']) - n_fail} of {len(doc['targets'])} targets within tolerance{_inconclusive(doc)}</div>
+{_alerts(doc)}
 <h2>Job</h2><table class="kv">{kv}</table>
 <h2>Figures</h2><div class="figs">{figs}</div>
 <h2>Targets</h2>
