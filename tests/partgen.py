@@ -89,8 +89,10 @@ def _inside_any(p: np.ndarray, solids: list, skip: int) -> np.ndarray:
     return out
 
 
-def _place_targets(rng, mesh: trimesh.Trimesh, solids: list, n: int, dot_mm: float) -> tuple[np.ndarray, np.ndarray]:
-    pts, fi = trimesh.sample.sample_surface_even(mesh, 20 * n, radius=2.2 * dot_mm, seed=int(rng.integers(1 << 31)))
+def _flat_spots(rng, mesh: trimesh.Trimesh, solids: list, count: int, spacing_mm: float,
+                rim_mm: float) -> tuple[np.ndarray, np.ndarray]:
+    """Points on the outer surface where a disc of radius ``rim_mm`` lies on one flat patch, spaced apart."""
+    pts, fi = trimesh.sample.sample_surface_even(mesh, count, radius=spacing_mm, seed=int(rng.integers(1 << 31)))
     nrm = mesh.face_normals[fi]
     keep = nrm[:, 2] > -0.3  # not on the underside (the part stands on it)
     # a whole dot (and a margin) must lie on one flat patch: its rim projected onto the surface stays in plane
@@ -98,18 +100,31 @@ def _place_targets(rng, mesh: trimesh.Trimesh, solids: list, n: int, dot_mm: flo
     a[np.linalg.norm(a, axis=1) < 1e-6] = [1.0, 0.0, 0.0]
     a /= np.linalg.norm(a, axis=1, keepdims=True)
     b = np.cross(nrm, a)
-    r = 0.75 * dot_mm
+    r = rim_mm
     for ang in np.linspace(0, 2 * np.pi, 8, endpoint=False):
         q = pts + r * (np.cos(ang) * a + np.sin(ang) * b)
         closest, dist, tri = trimesh.proximity.closest_point(mesh, q)
         keep &= (dist < 0.15) & (np.einsum("ij,ij->i", mesh.face_normals[tri], nrm) > 0.995)
     if solids:  # on the outside of the joined solids only (not on a face buried in a neighbour)
         keep &= ~_inside_any(pts + 0.5 * nrm, solids, -1)
-    pts, nrm = pts[keep], nrm[keep]
-    if len(pts) < n:
-        n = len(pts)
-    order = rng.permutation(len(pts))[:n]
-    return pts[order], nrm[order]
+    return pts[keep], nrm[keep]
+
+
+def _place_targets(rng, mesh: trimesh.Trimesh, solids: list, n: int, dot_mm: float, n_coded: int,
+                   coded_mm: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``n`` dots and up to ``n_coded`` coded markers (ArUco, for identification and ``cell locate``)."""
+    cp, cn = _flat_spots(rng, mesh, solids, 3000, 0.5 * coded_mm, 0.8 * coded_mm)
+    pick: list[int] = []
+    for k in rng.permutation(len(cp)):  # spread the markers: at least three marker sizes apart
+        if len(pick) < n_coded and all(np.linalg.norm(cp[k] - cp[j]) > 3 * coded_mm for j in pick):
+            pick.append(int(k))
+    cp, cn = cp[pick], cn[pick]
+    pts, nrm = _flat_spots(rng, mesh, solids, 30 * n, 1.6 * dot_mm, 0.75 * dot_mm)
+    if len(cp):  # no dot under (or touching) a marker
+        far = np.min(np.linalg.norm(pts[:, None] - cp[None], axis=2), axis=1) > 1.2 * coded_mm
+        pts, nrm = pts[far], nrm[far]
+    order = rng.permutation(len(pts))[: min(n, len(pts))]
+    return pts[order], nrm[order], cp, cn
 
 
 def make_part_job(out: Path, rng: np.random.Generator, kind: str | None = None, n_targets: int | None = None,
@@ -126,7 +141,8 @@ def make_part_job(out: Path, rng: np.random.Generator, kind: str | None = None, 
     mesh.apply_translation([0.0, 0.0, -mesh.bounds[0, 2]])
     dot = 5.0
     n = int(n_targets or rng.integers(100, 401))
-    xyz, nrm = _place_targets(rng, mesh, solids, n, dot)
+    coded_mm = 20.0
+    xyz, nrm, cxyz, cnrm = _place_targets(rng, mesh, solids, n, dot, 8, coded_mm)
     n = len(xyz)
     ids = [f"T{k + 1:04d}" for k in range(n)]
     tol = rng.choice([0.1, 0.15, 0.25, 0.4, 0.5], size=n)  # mm
@@ -134,6 +150,8 @@ def make_part_job(out: Path, rng: np.random.Generator, kind: str | None = None, 
     with (out / "targets.csv").open("w", newline="") as f:
         w = csv.writer(f)
         w.writerow(["id", "x", "y", "z", "nx", "ny", "nz", "kind", "tolerance", "code"])
+        for k, (p, q) in enumerate(zip(cxyz, cnrm)):
+            w.writerow([f"C{k}", *(f"{v:.4f}" for v in p), *(f"{v:.6f}" for v in q), "coded", "", k])
         for i, p, q, t in zip(ids, xyz, nrm, tol):
             w.writerow([i, *(f"{v:.4f}" for v in p), *(f"{v:.6f}" for v in q), "retro", f"{t:g}", -1])
     share = float(rng.uniform(0.0, 0.5) if deviating_share is None else deviating_share)
@@ -161,6 +179,7 @@ def make_part_job(out: Path, rng: np.random.Generator, kind: str | None = None, 
                   f'{np.linalg.norm(xyz[a] - xyz[b]):.4f}, sigma = 0.002 }}', text)
     text = re.sub(r"(?m)^seed = 7$", f"seed = {int(rng.integers(1, 1000))}", text)
     text = re.sub(r"(?m)^target_diameter = .*$", f"target_diameter = {dot}", text)
+    text = re.sub(r"(?m)^coded_size = .*$", f"coded_size = {coded_mm}", text)
     text = text.replace("[planning]\n", "[planning]\nn_candidates = 800\npopulation = 40\ngenerations = 40\n", 1)
     text = re.sub(r"(?m)^seed = 11$", f"seed = {int(rng.integers(1, 1000))}", text)
     if misplacement is not None:  # the part lies shifted on the table and turned about the vertical
