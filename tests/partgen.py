@@ -92,7 +92,17 @@ def _inside_any(p: np.ndarray, solids: list, skip: int) -> np.ndarray:
 def _flat_spots(rng, mesh: trimesh.Trimesh, solids: list, count: int, spacing_mm: float,
                 rim_mm: float) -> tuple[np.ndarray, np.ndarray]:
     """Points on the outer surface where a disc of radius ``rim_mm`` lies on one flat patch, spaced apart."""
-    pts, fi = trimesh.sample.sample_surface_even(mesh, count, radius=spacing_mm, seed=int(rng.integers(1 << 31)))
+    pts, fi = trimesh.sample.sample_surface(mesh, count, seed=int(rng.integers(1 << 31)))
+    kept: list[int] = []  # greedy thinning to the spacing (a Poisson-disc set)
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(pts)
+    taken = np.zeros(len(pts), dtype=bool)
+    for k in range(len(pts)):
+        if not taken[k]:
+            kept.append(k)
+            taken[tree.query_ball_point(pts[k], spacing_mm)] = True
+    pts, fi = pts[kept], fi[kept]
     nrm = mesh.face_normals[fi]
     keep = nrm[:, 2] > -0.3  # not on the underside (the part stands on it)
     # a whole dot (and a margin) must lie on one flat patch: its rim projected onto the surface stays in plane
@@ -113,15 +123,15 @@ def _flat_spots(rng, mesh: trimesh.Trimesh, solids: list, count: int, spacing_mm
 def _place_targets(rng, mesh: trimesh.Trimesh, solids: list, n: int, dot_mm: float, n_coded: int,
                    coded_mm: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """``n`` dots and up to ``n_coded`` coded markers (ArUco, for identification and ``cell locate``)."""
-    cp, cn = _flat_spots(rng, mesh, solids, 3000, 0.5 * coded_mm, 0.8 * coded_mm)
+    cp, cn = _flat_spots(rng, mesh, solids, 4000, 0.5 * coded_mm, 0.8 * coded_mm)
     pick: list[int] = []
     for k in rng.permutation(len(cp)):  # spread the markers: at least three marker sizes apart
         if len(pick) < n_coded and all(np.linalg.norm(cp[k] - cp[j]) > 3 * coded_mm for j in pick):
             pick.append(int(k))
     cp, cn = cp[pick], cn[pick]
-    pts, nrm = _flat_spots(rng, mesh, solids, 30 * n, 1.6 * dot_mm, 0.75 * dot_mm)
+    pts, nrm = _flat_spots(rng, mesh, solids, 20000, 2.2 * dot_mm, 0.75 * dot_mm)
     if len(cp):  # no dot under (or touching) a marker
-        far = np.min(np.linalg.norm(pts[:, None] - cp[None], axis=2), axis=1) > 1.2 * coded_mm
+        far = np.min(np.linalg.norm(pts[:, None] - cp[None], axis=2), axis=1) > 0.85 * coded_mm
         pts, nrm = pts[far], nrm[far]
     order = rng.permutation(len(pts))[: min(n, len(pts))]
     return pts[order], nrm[order], cp, cn
