@@ -129,9 +129,9 @@ def _place_targets(rng, mesh: trimesh.Trimesh, solids: list, n: int, dot_mm: flo
         if len(pick) < n_coded and all(np.linalg.norm(cp[k] - cp[j]) > 3 * coded_mm for j in pick):
             pick.append(int(k))
     cp, cn = cp[pick], cn[pick]
-    pts, nrm = _flat_spots(rng, mesh, solids, 20000, 2.2 * dot_mm, 0.75 * dot_mm)
+    pts, nrm = _flat_spots(rng, mesh, solids, 20000, 2.6 * dot_mm, 0.75 * dot_mm)
     if len(cp):  # no dot under (or touching) a marker
-        far = np.min(np.linalg.norm(pts[:, None] - cp[None], axis=2), axis=1) > 0.85 * coded_mm
+        far = np.min(np.linalg.norm(pts[:, None] - cp[None], axis=2), axis=1) > 1.2 * coded_mm  # marker, quiet zone and a dot
         pts, nrm = pts[far], nrm[far]
     order = rng.permutation(len(pts))[: min(n, len(pts))]
     return pts[order], nrm[order], cp, cn
@@ -155,7 +155,9 @@ def make_part_job(out: Path, rng: np.random.Generator, kind: str | None = None, 
     xyz, nrm, cxyz, cnrm = _place_targets(rng, mesh, solids, n, dot, 8, coded_mm)
     n = len(xyz)
     ids = [f"T{k + 1:04d}" for k in range(n)]
-    tol = rng.choice([0.1, 0.15, 0.25, 0.4, 0.5], size=n)  # mm
+    # mm; at 10x the largest moves a dot 2.5 mm, a fifth of the dot spacing: MEASURE names dots by projecting
+    # the nominal targets, so a dot moved by half the spacing takes its neighbour's name (a limit of the cell)
+    tol = rng.choice([0.05, 0.1, 0.15, 0.2, 0.25], size=n)
     mesh.export(out / "part.stl")
     with (out / "targets.csv").open("w", newline="") as f:
         w = csv.writer(f)

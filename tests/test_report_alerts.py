@@ -31,3 +31,10 @@ def test_a_blunder_test_stopped_at_its_cap_is_said():
           "suspect_targets": ["T0007"]}
     html = render_html(_doc(snooping=sn), {})
     assert 'id="snooping-alert"' in html and "cap of 20" in html and "T0007" in html
+
+
+def test_images_oriented_without_faugeras_toscani_are_listed_with_the_reason():
+    fb = [{"image": "images/0013.png", "method": "PnP from the robot pose",
+           "reason": "Faugeras-Toscani: the 75 points are nearly planar (thickness ratio 0.017 < 0.02)"}]
+    html = render_html(_doc(orientation_fallbacks=fb), {})
+    assert "1 image(s) not calibrated by Faugeras-Toscani" in html and "nearly planar" in html

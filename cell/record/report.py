@@ -174,6 +174,11 @@ def _alerts(doc: dict) -> str:
     if sn.get("suspect_targets"):
         out.append(f'<div class="warn">Targets that lost half of their observations as blunders (suspect): '
                    f'{html.escape(", ".join(sn["suspect_targets"]))}</div>')
+    fb = doc.get("orientation_fallbacks") or []
+    if fb:
+        out.append(f'<div class="warn">{len(fb)} image(s) not calibrated by Faugeras-Toscani, oriented by PnP: '
+                   + html.escape("; ".join(f"{x['image']}: {x['reason']}" for x in fb[:6]))
+                   + ("; ..." if len(fb) > 6 else "") + "</div>")
     for n in al.get("notes", []):
         out.append(f'<div class="warn">Alignment: {html.escape(n)}</div>')
     return "".join(out)

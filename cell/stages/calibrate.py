@@ -50,6 +50,8 @@ def run(ctx) -> None:
             reason = str(exc) if str(exc).startswith("Faugeras-Toscani") else f"Faugeras-Toscani: {exc}"
             rec |= {"method": method, "fallback_reason": reason, "cam_from_part": T, "rms_px": rms}
             ctx.log.log("warning", f"{o['image']}: {reason}; oriented by {method}")
+            ctx.folder.append("orientation_fallback", image=o["image"], station=o["station"], method=method,
+                              reason=reason)
         res.append(rec)
     ft_ok = [r for r in res if r["method"] == "Faugeras-Toscani"]
     start = ("Faugeras-Toscani (median of the accepted images)" if ft_ok else

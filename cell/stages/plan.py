@@ -152,6 +152,10 @@ def run(ctx) -> None:
     p, facts = make_plan(ctx.job, progress=ctx.progress)
     doc = p.to_plan_dict() | {"databases": facts}
     pred = measurement_prediction(ctx.job, np.asarray(p.part_from_cam, dtype=float))
+    if pred is None and ctx.job.spec.camera.observation_weights == "model":
+        doc["prediction"] = {"method": "limiting error propagation of the search (the pre-analysis could not run)"}
+        ctx.log.log("warning", "plan: pre-analysis failed; predicted covariance is the search's (fixed orientations)")
+        ctx.say("  WARNING predicted precision from the search's limiting error propagation (pre-analysis failed)")
     if pred is not None:  # predicted = what the bundle will achieve: its rays, the detector's precision
         cov, n_rays = pred
         for t, c_, n_ in zip(doc["targets"], cov, n_rays):

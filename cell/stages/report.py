@@ -193,6 +193,8 @@ def write_report(ctx) -> str:
         "n_rejected": bundle["n_rejected"],
         "rejected": bundle.get("rejected", []),
         "snooping": bundle.get("snooping"),
+        "orientation_fallbacks": [{"image": r["image"], "method": r["method"], "reason": r["fallback_reason"]}
+                                  for r in f.read_json("calibration.json")["images"] if "fallback_reason" in r],
         "predicted_sigma_max_m": plan["predicted_sigma_max_m"],
         "achieved_sigma_max_m": float(np.nanmax(achieved)),
         "predicted_over_achieved": _predicted_over_achieved(targets),
