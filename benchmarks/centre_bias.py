@@ -7,7 +7,7 @@ renderer's own image jitter. Fully visible, uncoded dots only. Printed: the mean
 image of each dot's normal (what a bias of the centring turns into: an offset of the triangulated
 point along the normal), the rms error, and both by incidence angle.
 
-    .venv/bin/python -m benchmarks.centre_bias [--part-level 0.08] [--background-kernel 41]
+    .venv/bin/python -m benchmarks.centre_bias [--part-level 0.08] [--background-kernel 41] [--centre ellipse] [--real]
 """
 from __future__ import annotations
 
@@ -29,7 +29,8 @@ from cell.loadedjob import load  # noqa: E402
 JOB = Path(__file__).resolve().parents[1] / "examples" / "bracket" / "job.toml"
 
 
-def measure(part_level: float | None = None, kernel: int = 41, n_views: int = 12) -> dict:
+def measure(part_level: float | None = None, kernel: int = 41, n_views: int = 12, centre_method: str = "centroid",
+            real: bool = False) -> dict:
     job = load(JOB)
     sim = make_job_sim_cell(job)
     cam, world, intr = sim.camera, sim.world, job.intrinsics
@@ -45,7 +46,9 @@ def measure(part_level: float | None = None, kernel: int = 41, n_views: int = 12
         part_from_cam = look_at(eye, centre)
         cam_from_part = invert(part_from_cam)
         img, truth = cam.render(part_from_cam, noise=False)
-        det = detect_retro_targets(img, DetectionOptions(background_kernel_px=kernel))
+        opts = (DetectionOptions.for_real_images(centre=centre_method) if real
+                else DetectionOptions(background_kernel_px=kernel, centre=centre_method))
+        det = detect_retro_targets(img, opts)
         ids, kind = np.array(truth["ids"]), np.array(truth["kind"])
         sel = (kind != "coded") & ~np.isin(ids, truth["partial_ids"])
         tid = np.array([index[i] for i in ids[sel]], dtype=int)
@@ -78,8 +81,10 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--part-level", type=float, default=None, help="the part's shading (0: a black part)")
     ap.add_argument("--background-kernel", type=int, default=41)
+    ap.add_argument("--centre", choices=("centroid", "ellipse"), default="centroid")
+    ap.add_argument("--real", action="store_true", help="DetectionOptions.for_real_images() (polarity, kernel found per image)")
     a = ap.parse_args(argv)
-    r = measure(a.part_level, a.background_kernel)
+    r = measure(a.part_level, a.background_kernel, centre_method=a.centre, real=a.real)
     print(f"{r['n']} dot images: mean error along the normal's image {r['along_normal_px']:+.4f} px, "
           f"rms {r['rms_px']:.4f} px, 99% below {r['p99_px']:.4f} px")
     for k, v in r["by_incidence_deg"].items():

@@ -64,5 +64,12 @@ class CalibrationError(CellError):
     """Camera calibration, measurement, or bundle adjustment failed."""
 
 
+class RecordError(CellError):
+    """A job's record (journal, stored files, manifest) is damaged or cannot be written.
+
+    The job is not driven on such a record: the message names the file (and line) and what to do.
+    """
+
+
 class AbortRequested(Exception):
     """The operator asked to stop (Ctrl-C, SIGTERM). A signal, not a failure."""

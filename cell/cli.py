@@ -9,13 +9,16 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import signal
 import sys
+import threading
 from pathlib import Path
 from typing import Callable
 
 from calibration.errors import AbortRequested, CellError, InputError
 
 EXIT_OK, EXIT_FAULT, EXIT_INPUT, EXIT_ABORT = 0, 1, 2, 130
+UNITS = ("m", "mm", "cm", "um", "in", "ft")
 
 
 class Output:
@@ -101,9 +104,26 @@ def cmd_locate(args, out: Output) -> int:
 
 
 def cmd_calibrate(args, out: Output) -> int:
+    if args.what == "camera":
+        from cell.measure_cmd import calibrate_camera_command
+
+        args.images = args.cell_file
+        return calibrate_camera_command(args, out)
     from cell.commands import calibrate
 
     return calibrate(args, out)
+
+
+def cmd_measure(args, out: Output) -> int:
+    from cell.measure_cmd import measure_command
+
+    return measure_command(args, out)
+
+
+def cmd_detect(args, out: Output) -> int:
+    from cell.detect_cmd import detect_command
+
+    return detect_command(args, out)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -144,17 +164,47 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--write", action="store_true", help="write the estimate into the job file's base_from_part")
     c.set_defaults(func=cmd_locate)
 
-    c = sub.add_parser("calibrate", parents=[common], help="calibrate the cell: hand-eye, or reverify with a scale bar")
-    c.add_argument("what", choices=["hand-eye", "reverify"])
-    c.add_argument("cell_file", type=Path, help="the cell file (CELL.toml)")
+    c = sub.add_parser("calibrate", parents=[common],
+                       help="calibrate the cell (hand-eye, reverify with a scale bar) or a camera from photographs")
+    c.add_argument("what", choices=["hand-eye", "reverify", "camera"])
+    c.add_argument("cell_file", type=Path, help="the cell file (CELL.toml); for 'camera' the folder of photographs")
+    c.add_argument("--layout", type=Path, help="camera: the field's targets.csv (id,x,y,z,nx,ny,nz[,kind][,tolerance][,code])")
+    c.add_argument("--camera", type=Path, help="camera: CAMERA.toml to start from (default: EXIF)")
+    c.add_argument("--units", default="mm", choices=sorted(UNITS), help="camera: units of the layout (default mm)")
+    c.add_argument("--out", type=Path, help="camera: the calibrated CAMERA.toml to write")
     c.add_argument("--archive", type=Path, default=Path("archive"))
     c.add_argument("--backend", choices=["sim", "ur"], help="override the cell file's backend")
     c.add_argument("--yes", action="store_true", help="confirm moving the robot without asking")
     c.set_defaults(func=cmd_calibrate)
 
+    c = sub.add_parser("measure", parents=[common], help="measure a folder of photographs: detect, identify, orient, bundle, report")
+    c.add_argument("images", type=Path)
+    c.add_argument("--camera", type=Path, help="CAMERA.toml (default: EXIF, polarity found per image, schneider14 codes)")
+    c.add_argument("--layout", type=Path, help="targets.csv: nominal coordinates and codes (id,x,y,z,nx,ny,nz[,kind][,tolerance][,code])")
+    c.add_argument("--control", type=Path, help="control.csv: id,x,y,z[,sigma] (sigma 0 or absent: held fixed)")
+    c.add_argument("--units", default="mm", choices=sorted(UNITS), help="units of the layout and control files (default mm)")
+    c.add_argument("--out", type=Path, required=True,
+                   help="folder for measure.json, observations.csv, report.json, report.html")
+    c.add_argument("--tolerance", type=float, default=0.5,
+                   help="deviation from the layout allowed where the layout gives none (its units; default 0.5)")
+    c.add_argument("--archive", type=Path, help="also file the measurement in this archive (like a job)")
+    c.set_defaults(func=cmd_measure)
+
+    c = sub.add_parser("detect", parents=[common], help="every detected centre of one image (dots and coded targets)")
+    c.add_argument("image", type=Path)
+    c.add_argument("--camera", type=Path, help="CAMERA.toml: polarity, coded-target family (default: found per image, schneider14)")
+    c.add_argument("--png", type=Path, help="write the image with the detections drawn")
+    c.add_argument("--polarity", choices=["auto", "bright", "dark"], help="override the camera file's polarity")
+    c.add_argument("--family", help="override the camera file's coded_family (aruco, ring12, ring14, schneider12, "
+                                    "schneider14, cct8, cct12)")
+    c.set_defaults(func=cmd_detect)
+
     c = sub.add_parser("archive", parents=[common], help="list, show, compare, verify archived jobs")
     c.add_argument("action", choices=["list", "show", "compare", "verify"])
     c.add_argument("ids", nargs="*")
+    c.add_argument("--repair", action="store_true",
+                   help="with verify: close a job that ended without closing its folder (terminal record, manifest "
+                        "over the files its journal vouches for); never vouches for a changed file")
     c.add_argument("--archive", type=Path, default=Path("archive"))
     c.set_defaults(func=cmd_archive)
     return p
@@ -167,6 +217,11 @@ def main(argv: list[str] | None = None) -> int:
     except SystemExit as exc:  # argparse: usage errors are bad input
         return EXIT_INPUT if exc.code not in (0, None) else EXIT_OK
     out = Output(getattr(args, "json", False))
+    # SIGTERM outside a job's own handling (which stops the robot first) ends a command as Ctrl-C does: exit 130
+    if threading.current_thread() is threading.main_thread():
+        old_term = signal.signal(signal.SIGTERM, _raise_abort)
+    else:
+        old_term = None
     try:
         return int(args.func(args, out))
     except (KeyboardInterrupt, AbortRequested):
@@ -176,12 +231,31 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_ABORT
     except CellError as exc:
         code = EXIT_INPUT if isinstance(exc, InputError) else exc.exit_code
-        out.say(f"cell: error: {exc}")
-        if out.as_json:
-            out.result({"status": "error", "error": type(exc).__name__, "message": str(exc), "exit_code": code})
-        if os.environ.get("CELL_DEBUG"):
-            raise
-        return code
+        return _error(out, type(exc).__name__, str(exc), code)
+    except MemoryError:
+        return _error(out, "MemoryError", "out of memory: the input is too large for this machine", EXIT_FAULT)
+    except OSError as exc:  # disk full, read-only, a file where a folder should be: what and where
+        where = f": {exc.filename}" if exc.filename else ""
+        return _error(out, type(exc).__name__, f"{exc.strerror or exc}{where}", EXIT_FAULT)
+    except Exception as exc:  # a bug: still one line (CELL_DEBUG=1 shows the traceback)
+        return _error(out, type(exc).__name__, f"internal error {type(exc).__name__}: {exc} "
+                      "(set CELL_DEBUG=1 for the traceback, and please report it)", EXIT_FAULT)
+    finally:
+        if old_term is not None:
+            signal.signal(signal.SIGTERM, old_term)
+
+
+def _raise_abort(signum, frame):
+    raise AbortRequested(signal.Signals(signum).name)
+
+
+def _error(out: Output, kind: str, message: str, code: int) -> int:
+    out.say(f"cell: error: {message}")
+    if out.as_json:
+        out.result({"status": "error", "error": kind, "message": message, "exit_code": code})
+    if os.environ.get("CELL_DEBUG"):
+        raise
+    return code
 
 
 if __name__ == "__main__":

@@ -144,16 +144,20 @@ def resume(args, out) -> int:
 
 def archive(args, out) -> int:
     from calibration.errors import InputError
-    from cell.record.archive import Archive
+    from cell.record.archive import Archive, check_archive_root
 
-    a = Archive(args.archive)
+    a = Archive(check_archive_root(args.archive, write=False))
+    if getattr(args, "repair", False) and args.action != "verify":
+        raise InputError("--repair goes with 'cell archive verify ID'")
     if args.action == "list":
-        a.reindex()
-        rows = a.list()
+        rows = a.listing() if args.archive.is_dir() else []
         def human(d):
             for r in d["jobs"]:
-                out.say(f"{r['id']:<40} {r['status']:<9} {r.get('verdict') or '':<10} "
-                        f"{(r.get('failed') if r.get('failed') is not None else ''):>4} failed of {r.get('targets') or '?'}")
+                status = r["status"] + (" (staged: stopped before ACQUIRE; 'cell resume' goes on)" if r.get("staged")
+                                        else "")
+                out.say(f"{r['id']:<40} {status:<9} {r.get('verdict') or '':<10} "
+                        f"{(r.get('failed') if r.get('failed') is not None else ''):>4} failed of {r.get('targets') or '?'}"
+                        + (f"  ! {r['problem']}" if r.get("problem") else ""))
             if not d["jobs"]:
                 out.say(f"no jobs in {args.archive}")
         out.result({"jobs": rows}, human)
@@ -178,8 +182,16 @@ def archive(args, out) -> int:
     if args.action == "verify":
         if len(args.ids) != 1:
             raise InputError("cell archive verify takes one job id")
+        repaired = None
+        if args.repair:
+            from cell.job import repair_job
+
+            repaired = repair_job(a, args.ids[0])
+            out.say(f"{args.ids[0]}: {repaired}")
         problems = a.verify(args.ids[0])
         doc = {"job_id": args.ids[0], "intact": not problems, "problems": problems}
+        if repaired is not None:
+            doc["repaired"] = repaired
         out.result(doc, lambda d: out.say(f"{d['job_id']}: " + ("manifest intact" if d["intact"] else
                                                               "; ".join(d["problems"]))))
         return 0 if not problems else 1

@@ -7,7 +7,7 @@ reports (so a whole job runs through the real driver path).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -49,6 +49,18 @@ def _true_poses(job: LoadedJob) -> tuple[np.ndarray, np.ndarray]:
     return true_bfp, true_ffc
 
 
+def _fixture_mesh(job: LoadedJob):
+    """``[sim] fixture``: boxes in the part frame, one mesh in metres (None when there are none)."""
+    if not job.spec.sim.fixture:
+        return None
+    import trimesh
+
+    k = job.spec.scale
+    boxes = [trimesh.creation.box(extents=[v * k for v in o.size], transform=pose_matrix(o.pose, k))
+             for o in job.spec.sim.fixture]
+    return trimesh.util.concatenate(boxes)
+
+
 def make_job_sim_cell(job: LoadedJob, seed_offset: int = 0):
     """The simulated cell of a job: the true part (CAD + deviations), its true placement and hand-eye.
 
@@ -57,15 +69,19 @@ def make_job_sim_cell(job: LoadedJob, seed_offset: int = 0):
     """
     from cell.setup import robot_model
     from sim_backend.factory import make_sim_cell
-    from sim_backend.sim_camera import Sensor
+    from sim_backend.sim_camera import Photometry, Sensor
 
     s = job.spec
     true_bfp, true_ffc = _true_poses(job)
+    photometry = Photometry()
+    if s.sim.dot_max_incidence_deg is not None:  # glare washes the dots out beyond this incidence
+        photometry = replace(photometry, max_incidence_rad=float(np.deg2rad(s.sim.dot_max_incidence_deg)))
     return make_sim_cell(job.part, s.base_from_part(), s.flange_from_cam(), job.intrinsics, robot=robot_model(job),
                          deviations=job.deviations, image_sigma_px=s.sim.image_sigma_px, seed=s.sim.seed + seed_offset,
-                         sensor=Sensor().with_noise_scale(s.sim.noise),
+                         sensor=Sensor().with_noise_scale(s.sim.noise), photometry=photometry,
+                         fixture=_fixture_mesh(job),
                          motion=s.sim.motion, time_scale=s.sim.time_scale, true_flange_from_cam=true_ffc,
-                         true_base_from_part=true_bfp)
+                         true_base_from_part=true_bfp, coded_family=s.job.coded_family)
 
 
 def open_devices(job: LoadedJob, backend: str, *, seed_offset: int = 0) -> Devices:

@@ -5,6 +5,11 @@ the job's ``units`` and are converted to metres by :func:`load_job`; keys whose
 name carries a unit (``focal_length_mm``, ``pixel_size_um``, ``..._deg``,
 ``..._px``, ``..._s``) are in that unit. Relative paths are relative to the job
 file's folder. Every problem is a ``JobSpecError`` naming the file and the key.
+
+Every number is checked here, at ``cell check``, never after the robot moved: finite
+(NaN and infinity are refused everywhere), within a plausible range, and ordered where
+two keys bound an interval (near < far, elevation min < max, workspace min < max,
+distance min < max).
 """
 from __future__ import annotations
 
@@ -26,7 +31,11 @@ __all__ = ["JobSpec", "Pose", "load_job", "pose_matrix"]
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+
+#: Largest plausible length in a job file, metres (the cell, its obstacles, a part's placement).
+MAX_LENGTH_M = 100.0
 
 
 class Pose(_Strict):
@@ -46,16 +55,26 @@ class ScaleBar(_Strict):
     length: float = Field(gt=0, description="calibrated length between a and b, job units")
     sigma: float = Field(default=0.0, ge=0, description="its standard uncertainty, job units")
 
+    @model_validator(mode="after")
+    def _two_targets(self):
+        if self.a == self.b:
+            raise ValueError(f"a scale bar joins two different targets; a = b = {self.a!r}")
+        return self
+
 
 class JobSection(_Strict):
     name: str = Field(min_length=1)
     mesh: str
     units: Literal["m", "mm", "cm", "um", "in", "ft"]
     targets: str | None = None
-    n_targets: int | None = Field(default=None, gt=0, le=100_000)
+    n_targets: int | None = Field(default=None, ge=6, le=100_000,
+                                  description="at least 6: an image is oriented from 6 or more targets")
     n_coded: int = Field(default=8, ge=0, le=250)
     target_diameter: float = Field(default=6.0, gt=0, description="retro dot diameter, job units")
     coded_size: float = Field(default=20.0, gt=0, description="ArUco marker side, job units")
+    coded_family: Literal["aruco", "ring12", "ring14", "schneider12", "schneider14", "cct8", "cct12"] = Field(
+        default="aruco", description="the coded targets the part carries: ArUco DICT_4X4_250 markers, or ring codes "
+                                     "(a centre dot of target_diameter in a coded ring; calibration.ringcodes)")
     seed: int = 0
     scale_bar: ScaleBar | None = None
 
@@ -67,23 +86,28 @@ class JobSection(_Strict):
 
 
 class CameraSection(_Strict):
-    width: int = Field(gt=0, le=100_000)
-    height: int = Field(gt=0, le=100_000)
+    width: int = Field(ge=64, le=100_000, description="pixels; a smaller sensor cannot measure targets")
+    height: int = Field(ge=64, le=100_000)
     pixel_size_um: float = Field(gt=0, le=100)
     focal_length_mm: float = Field(gt=0, le=2000)
     cx_px: float | None = None
     cy_px: float | None = None
-    k1: float = 0.0
-    k2: float = 0.0
-    k3: float = 0.0
-    p1: float = 0.0
-    p2: float = 0.0
-    sigma_px: float = Field(default=0.05, gt=0, description="image measurement standard deviation")
+    k1: float = Field(default=0.0, ge=-10, le=10, description="radial distortion (normalised coordinates)")
+    k2: float = Field(default=0.0, ge=-100, le=100)
+    k3: float = Field(default=0.0, ge=-1000, le=1000)
+    p1: float = Field(default=0.0, ge=-1, le=1, description="decentring distortion")
+    p2: float = Field(default=0.0, ge=-1, le=1)
+    sigma_px: float = Field(default=0.05, gt=0, le=10, description="image measurement standard deviation")
     near: float = Field(gt=0, description="depth of field, nearest sharp distance, job units")
     far: float = Field(gt=0, description="depth of field, farthest sharp distance, job units")
     device: str | None = Field(default=None, description="OpenCV device index or GStreamer pipeline (real cell)")
-    exposure_s: float = Field(default=0.002, gt=0)
+    exposure_s: float = Field(default=0.002, gt=0, le=10)
     self_calibrate: bool = Field(default=True, description="refine focal length, principal point, radial distortion")
+    polarity: Literal["bright", "dark", "auto"] = Field(
+        default="bright", description="bright: retro-reflective dots; dark: printed dots on a light ground; auto: per image")
+    detection: Literal["cell", "photograph"] = Field(
+        default="cell", description="cell: fixed 41 px background kernel (the lit cell's images); photograph: kernel, "
+                                    "size limits and local half-maximum threshold found per image (docs/decisions/0015)")
     observation_weights: Literal["model", "incidence", "equal"] = Field(
         default="model",
         description="model: each observation's a priori sigma from the detector precision model (incidence, dot "
@@ -95,6 +119,9 @@ class CameraSection(_Strict):
     def _dof(self):
         if self.far <= self.near:
             raise ValueError("camera.far must be greater than camera.near")
+        for key, value, size in (("cx_px", self.cx_px, self.width), ("cy_px", self.cy_px, self.height)):
+            if value is not None and not 0 <= value <= size - 1:
+                raise ValueError(f"camera.{key} = {value} lies outside the image (0..{size - 1} px)")
         return self
 
 
@@ -126,10 +153,29 @@ class CellSection(_Strict):
     max_joint_accel_rad_s2: float = Field(default=1.5, gt=0, le=40)
     max_tcp_speed_m_s: float = Field(default=0.25, gt=0, le=1.0)
     max_tcp_accel_m_s2: float = Field(default=1.0, gt=0, le=10)
-    settle_s: float = Field(default=0.2, ge=0)
+    settle_s: float = Field(default=0.2, ge=0, le=60)
     workspace_min: tuple[float, float, float] | None = Field(default=None, description="flange box, base frame, job units")
     workspace_max: tuple[float, float, float] | None = Field(default=None, description="default: the robot's reach")
     elbow_limit_deg: float = Field(default=180.0, gt=0, le=360)
+
+    @field_validator("camera_box")
+    @classmethod
+    def _box_positive(cls, v):
+        if min(v) <= 0:
+            raise ValueError("camera_box sides must be positive")
+        return v
+
+    @model_validator(mode="after")
+    def _workspace(self):
+        lo, hi = self.workspace_min, self.workspace_max
+        if lo is not None and hi is not None:
+            bad = [axis for axis, a, b in zip("xyz", lo, hi) if a >= b]
+            if bad:
+                raise ValueError(f"cell.workspace_min must be below cell.workspace_max on every axis; "
+                                 f"it is not on {', '.join(bad)} ({list(lo)} vs {list(hi)})")
+        if lo is not None and hi is None or hi is not None and lo is None:
+            raise ValueError("give both cell.workspace_min and cell.workspace_max, or neither")
+        return self
 
 
 class PlanningSection(_Strict):
@@ -147,13 +193,36 @@ class PlanningSection(_Strict):
     n_candidates: int = Field(default=2000, ge=50, le=50_000)
     population: int = Field(default=80, ge=4, le=10_000)
     generations: int = Field(default=150, ge=1, le=100_000)
-    margin_px: float = Field(default=30.0, ge=0)
+    margin_px: float = Field(default=30.0, ge=0, le=10_000)
     lower_bound: bool = Field(default=False, description="also bound how good any network could be (planning.bound)")
+    closed_loop: bool | None = Field(default=None, description="after ADJUST, add stations for targets that miss their "
+                                     "required sigma (default: on when a requirement is set: required_sigma or "
+                                     "mode = 'cheapest')")
+    closed_loop_rounds: int = Field(default=2, ge=1, le=10, description="closed loop: at most this many rounds")
+    closed_loop_max_stations: int = Field(default=8, ge=1, le=100, description="closed loop: extra stations per round")
+
+    def closed_loop_on(self) -> bool:
+        """Whether the CLOSE_LOOP stage adds stations (explicit, or on when a requirement is set)."""
+        if self.closed_loop is not None:
+            return self.closed_loop
+        return self.required_sigma is not None or self.mode == "cheapest"
+
+    @model_validator(mode="after")
+    def _intervals(self):
+        if self.elevation_min_deg >= self.elevation_max_deg:
+            raise ValueError(f"planning.elevation_min_deg ({self.elevation_min_deg}) must be below "
+                             f"planning.elevation_max_deg ({self.elevation_max_deg})")
+        if self.distance_min is not None and self.distance_max is not None and self.distance_min >= self.distance_max:
+            raise ValueError(f"planning.distance_min ({self.distance_min}) must be below "
+                             f"planning.distance_max ({self.distance_max})")
+        if self.min_rays > (self.max_stations if self.mode == "cheapest" else self.n_stations):
+            raise ValueError(f"planning.min_rays ({self.min_rays}) exceeds the number of stations")
+        return self
 
 
 class ReportSection(_Strict):
     tolerance: float = Field(gt=0, description="default tolerance on a target's deviation, job units")
-    sigma_factor: float = Field(default=3.0, gt=0, description="deviation significant beyond k sigma")
+    sigma_factor: float = Field(default=3.0, gt=0, le=100, description="deviation significant beyond k sigma")
 
 
 class AlignmentSection(_Strict):
@@ -187,17 +256,21 @@ class AlignmentSection(_Strict):
 
 
 class SimSection(_Strict):
-    image_sigma_px: float = Field(default=0.0, ge=0, description="an extra random offset per dot (pixels) on top of "
+    image_sigma_px: float = Field(default=0.0, ge=0, le=10, description="an extra random offset per dot (pixels) on top of "
                                   "the rendered photon/read noise, blur and quantisation; 0 = physical")
     seed: int = 0
     deviations: str | None = Field(default=None, description="CSV id,dx,dy,dz in job units")
     motion: Literal["instant", "timed"] = "instant"
-    time_scale: float = Field(default=1.0, gt=0)
-    noise: float = Field(default=1.0, ge=0, description="sensor noise scale (1 = nominal)")
+    time_scale: float = Field(default=1.0, gt=0, le=1000)
+    noise: float = Field(default=1.0, ge=0, le=100, description="sensor noise scale (1 = nominal)")
     base_from_part_error: Pose | None = Field(default=None, description="true placement minus nominal (tests)")
     flange_from_cam_error: Pose | None = None
     base_from_part_true: Pose | None = Field(default=None, description="absolute true placement (wins over _error); "
                                              "stays put when `cell locate --write` updates [cell] base_from_part")
+    dot_max_incidence_deg: float | None = Field(default=None, gt=0, le=90, description="glare: dots seen beyond this "
+                                                "incidence are washed out in the simulated images (the plan does not know)")
+    fixture: list[Obstacle] = Field(default=[], description="boxes in the part frame (job units) that hide dots in the "
+                                    "simulated images but are not in the part's CAD (the plan does not know them)")
 
 
 class JobSpec(_Strict):
@@ -210,6 +283,32 @@ class JobSpec(_Strict):
     report: ReportSection
     alignment: AlignmentSection = AlignmentSection()
     sim: SimSection = SimSection()
+
+    @model_validator(mode="after")
+    def _plausible_lengths(self):
+        """Every length in job units, converted to metres, within MAX_LENGTH_M (1e300 mm is a typo, not a cell)."""
+        k = UNITS_TO_M[self.job.units]
+        c = self.cell
+        lengths = {"job.target_diameter": [self.job.target_diameter], "job.coded_size": [self.job.coded_size],
+                   "camera.near": [self.camera.near], "camera.far": [self.camera.far],
+                   "cell.base_from_part.xyz": c.base_from_part.xyz, "cell.flange_from_cam.xyz": c.flange_from_cam.xyz,
+                   "cell.table_z": [c.table_z], "cell.camera_box": c.camera_box,
+                   "cell.workspace_min": c.workspace_min or (), "cell.workspace_max": c.workspace_max or (),
+                   "report.tolerance": [self.report.tolerance],
+                   "planning.distance_min": [self.planning.distance_min or 0.0],
+                   "planning.distance_max": [self.planning.distance_max or 0.0],
+                   "planning.required_sigma": [self.planning.required_sigma or 0.0]}
+        for i, ob in enumerate(c.obstacles):
+            lengths[f"cell.obstacles[{i}].size"] = ob.size
+            lengths[f"cell.obstacles[{i}].pose.xyz"] = ob.pose.xyz
+        if self.job.scale_bar is not None:
+            lengths["job.scale_bar.length"] = [self.job.scale_bar.length]
+        for key, values in lengths.items():
+            big = [v for v in values if abs(v) * k > MAX_LENGTH_M]
+            if big:
+                raise ValueError(f"{key} = {big[0]} {self.job.units} is {abs(big[0]) * k:.3g} m: beyond any cell "
+                                 f"({MAX_LENGTH_M:g} m); are the units right?")
+        return self
 
     # --- derived values, in SI ---
     @property

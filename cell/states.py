@@ -13,6 +13,7 @@ class State(str, Enum):
     MEASURE = "MEASURE"
     CALIBRATE = "CALIBRATE"
     ADJUST = "ADJUST"
+    CLOSE_LOOP = "CLOSE_LOOP"
     REPORT = "REPORT"
     DONE = "DONE"
     FAULTED = "FAULTED"
@@ -21,7 +22,8 @@ class State(str, Enum):
 
 #: The working stages, in order.
 STAGES: tuple[State, ...] = (
-    State.LOAD, State.PLAN, State.VALIDATE, State.ACQUIRE, State.MEASURE, State.CALIBRATE, State.ADJUST, State.REPORT,
+    State.LOAD, State.PLAN, State.VALIDATE, State.ACQUIRE, State.MEASURE, State.CALIBRATE, State.ADJUST, State.CLOSE_LOOP,
+    State.REPORT,
 )
 TERMINAL = frozenset({State.DONE, State.FAULTED, State.ABORTED})
 

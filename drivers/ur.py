@@ -27,7 +27,9 @@ resource-tracker process that outlives the driver.
 """
 from __future__ import annotations
 
+import itertools
 import os
+import signal
 import subprocess
 import sys
 import threading
@@ -157,7 +159,10 @@ class URRobot:
         self.connect_timeout_s = connect_timeout_s
         self._worker: _Worker | None = None
         self._request_lock = threading.Lock()
-        self._busy = False
+        self._seq = itertools.count(1)
+        #: after :meth:`stop`: when the arm came to rest, ``{"controller_timestamp_s", "after_s"}`` (None: no stop
+        #: was needed, the controller had halted it already)
+        self.last_rest: dict | None = None
 
     # ------------------------------------------------------------ lifecycle
     @property
@@ -172,8 +177,10 @@ class URRobot:
         parent_sock, child_sock = _socketpair()
         root = str(Path(__file__).resolve().parents[1])
         env = dict(os.environ, PYTHONPATH=os.pathsep.join([root, os.environ.get("PYTHONPATH", "")]).rstrip(os.pathsep))
+        # a session of its own: Ctrl-C at the terminal (SIGINT to the foreground process group) reaches this
+        # process, which stops the arm through the child; the child never dies of it mid-move
         process = subprocess.Popen([sys.executable, "-m", "drivers.ur_worker", str(child_sock.fileno())],
-                                   pass_fds=(child_sock.fileno(),), env=env, cwd=root)
+                                   pass_fds=(child_sock.fileno(),), env=env, cwd=root, start_new_session=True)
         child_sock.close()
         self._worker = _Worker(process, Connection(parent_sock.detach()))
         try:
@@ -247,21 +254,43 @@ class URRobot:
         return self._move({"op": "move_pose", "target": matrix_to_pose(target).tolist(), "speed": speed_m_s,
                            "accel": accel_m_s2}, expected)
 
-    def stop(self) -> None:
-        """Decelerate and stop now; never raises for a robot already stopped (or gone)."""
+    def stop(self) -> RobotState | None:
+        """Decelerate and stop now, whatever the client is doing; returns the state once the arm is at rest.
+
+        The stop reaches the client at once as a signal (:meth:`signal_stop`), also while another
+        thread waits for a move; this call then waits (bounded) until the arm is at rest. Never
+        raises: for a robot already stopped, or gone, it returns what it can (None when gone).
+        """
+        worker = self._worker
+        if worker is None:
+            return None
+        self.signal_stop()
+        # a move in flight in another thread ends within the stop's own bound; then ask for the rest state
+        wait_s = 2.5 + self.limits.max_joint_speed_rad_s / self._options["stop_decel"] + self.deadline_s
+        if not self._request_lock.acquire(timeout=wait_s):
+            return None
+        self._request_lock.release()
+        try:
+            value = self._request({"op": "stop"}, wait_s)
+        except DriverError:
+            return None
+        self.last_rest = value.get("rest")
+        return self._to_state(value)
+
+    def signal_stop(self) -> None:
+        """Tell the client to stop the arm now, without waiting: safe from a signal handler or any thread.
+
+        The client (a process of its own) gets ``SIGUSR1``; it sends the controller a ``stopj``
+        within one poll of its loop (a few ms), also in the middle of a move. Any move it is
+        given after this is refused until :meth:`stop` has run.
+        """
         worker = self._worker
         if worker is None:
             return
-        if self._busy:
-            try:
-                with worker.send_lock:
-                    worker.conn.send({"op": "interrupt"})
-            except (OSError, ValueError):
-                pass
-            return
         try:
-            self._request({"op": "stop"}, self.deadline_s)
-        except DriverError:
+            if worker.process.poll() is None:
+                os.kill(worker.process.pid, signal.SIGUSR1)
+        except OSError:
             pass
 
     # ------------------------------------------------------------ internals
@@ -270,11 +299,7 @@ class URRobot:
         request["deadline_s"] = deadline
         # backstop on this side of the pipe: the child's deadline, then its bounded stop, then a margin
         stop_allowance = 2.5 + self.limits.max_joint_speed_rad_s / self._options["stop_decel"]
-        self._busy = True
-        try:
-            reply = self._request(request, deadline + stop_allowance + self.deadline_s)
-        finally:
-            self._busy = False
+        reply = self._request(request, deadline + stop_allowance + self.deadline_s)
         state = self._to_state(reply)
         if not state.safety.normal:  # the child checked already; a second look costs nothing
             raise MotionError(f"UR at {self.host}: move ended with safety status '{state.safety.detail}'")
@@ -287,18 +312,23 @@ class URRobot:
                 self._discard_worker()
                 raise NotConnectedError(f"UR at {self.host}: not connected (the client process is not running); "
                                         "call connect()")
+            seq = next(self._seq)
             try:
                 with worker.send_lock:
-                    worker.conn.send(request)
+                    worker.conn.send(request | {"seq": seq})
                 end = time.monotonic() + timeout_s
-                while not worker.conn.poll(0.05):
-                    if worker.process.poll() is not None:
-                        raise EOFError
-                    if time.monotonic() > end:
-                        self._discard_worker(kill=True)
-                        raise NotConnectedError(f"UR at {self.host}: no answer to '{request['op']}' within "
-                                                f"{timeout_s:.1f} s; the client process was ended, call connect()")
-                reply = worker.conn.recv()
+                while True:
+                    while not worker.conn.poll(0.05):
+                        if worker.process.poll() is not None:
+                            raise EOFError
+                        if time.monotonic() > end:
+                            self._discard_worker(kill=True)
+                            raise NotConnectedError(f"UR at {self.host}: no answer to '{request['op']}' within "
+                                                    f"{timeout_s:.1f} s; the client process was ended, call connect()")
+                    reply = worker.conn.recv()
+                    # a reply to an earlier request whose wait was cut short (an abort unwound it): not ours
+                    if reply.get("seq") == seq:
+                        break
             except (EOFError, OSError):
                 code = worker.process.poll()
                 self._discard_worker(kill=True)

@@ -2,9 +2,16 @@
 
 Run as ``python -m drivers.ur_worker FD`` where FD is one end of a socket pair
 wrapped as a ``multiprocessing.connection.Connection``. Requests are dicts with an
-``op``; each gets one reply ``{"ok": True, "value": ...}`` or ``{"ok": False,
-"error": <name of a DriverError subclass>, "message": ...}``, except ``interrupt``
-(sent by ``URRobot.stop`` during a move), which stops the arm and gets no reply.
+``op`` and a ``seq``; each gets one reply ``{"ok": True, "value": ..., "seq": ...}`` or
+``{"ok": False, "error": <name of a DriverError subclass>, "message": ..., "seq": ...}``.
+
+A stop comes as a signal, not a message, so that it reaches the arm at once whatever
+this process is doing: ``SIGUSR1`` (sent by ``URRobot.signal_stop``) and ``SIGTERM``
+set a flag that the move loop (every few ms) and the idle loop look at; the arm is
+then stopped (``stopj``) and the move answered "stopped on request". The flag stays
+set, refusing any further move, until the parent's ``stop`` request has run (it
+answers with the state at rest and when the arm came to rest). ``SIGINT`` is ignored:
+a Ctrl-C is the parent's to handle (this process also runs in a session of its own).
 
 Moves are sent asynchronously to the controller; the child then polls the RTDE
 state until the arm is at the target, checking on every poll: an interrupt from
@@ -16,6 +23,7 @@ from __future__ import annotations
 
 import math
 import os
+import signal
 import sys
 import time
 from multiprocessing.connection import Connection
@@ -63,25 +71,35 @@ class Worker:
         self._last_ts = None
         self._last_change = 0.0
         self._last_kick = 0.0
-        self._interrupted = False
+        self.stop_requested = False  # set by SIGUSR1 / SIGTERM, cleared by the parent's "stop" request
+        self.last_rest: dict | None = None
+        self._pending: list[dict] = []  # requests read during a move, answered after it
+        self._eof = False
+        self._stop_done = False  # the signalled stop was carried out (last_rest says when the arm came to rest)
+
+    def _on_stop_signal(self, signum, frame) -> None:
+        self.stop_requested, self._stop_done = True, False
 
     # ------------------------------------------------------------ main loop
     def run(self) -> None:
         while True:
-            try:
-                period = self._kick_period() if self.ctrl is not None else 1.0
-                if not self.conn.poll(period):
-                    self._idle()
-                    continue
-                msg = self.conn.recv()
-            except (EOFError, OSError):
-                os._exit(0)  # parent gone: no teardown of the client (it can crash), just leave
+            if self._pending:
+                msg = self._pending.pop(0)
+            else:
+                try:
+                    period = self._kick_period() if self.ctrl is not None else 1.0
+                    if not self.conn.poll(period):
+                        self._idle()
+                        continue
+                    msg = self.conn.recv()
+                except (EOFError, OSError):
+                    self._parent_gone()
             op = msg.get("op")
-            if op == "interrupt":
-                self._try_stop()
-                continue
             try:
-                reply = {"ok": True, "value": getattr(self, f"op_{op}")(msg)}
+                handler = getattr(self, f"op_{op}", None)
+                if handler is None:
+                    raise _Fail("DriverError", f"unknown request {op!r}")
+                reply = {"ok": True, "value": handler(msg)}
             except _Fail as exc:
                 reply = {"ok": False, "error": exc.kind, "message": exc.message}
             except (RuntimeError, ValueError, TypeError) as exc:  # ur-rtde raises these
@@ -89,6 +107,7 @@ class Worker:
                 lost = any(s in str(exc).lower() for s in _CONNECTION_LOST)
                 reply = {"ok": False, "error": "NotConnectedError" if lost else "DriverError",
                          "message": f"ur-rtde: {exc}" + ("; the connection to the robot was lost" if lost else "")}
+            reply["seq"] = msg.get("seq")
             try:
                 self.conn.send(reply)
             except (OSError, ValueError):
@@ -100,9 +119,21 @@ class Worker:
     def _kick_period(self) -> float:
         return 0.25 / self.opts["watchdog_hz"]
 
+    def _parent_gone(self) -> None:
+        """The pipe closed (the parent ended, maybe killed mid-move): stop the arm, then leave.
+
+        No teardown of the client (it has crashed tearing down during a reconnect), just exit.
+        """
+        if self.rcv is not None:
+            self._try_stop()
+        os._exit(0)
+
     def _idle(self) -> None:
         if self.rcv is None:
             return
+        if self.stop_requested and not self._stop_done:
+            self._try_stop()
+            self._stop_done = True
         try:
             self._kick()
         except _Fail:
@@ -192,8 +223,16 @@ class Worker:
         return None
 
     def op_stop(self, msg: dict) -> dict:
-        self._try_stop()
-        return self._state()
+        """Stop (if not yet at rest) and answer the state at rest; clears a signalled stop."""
+        if self.stop_requested and self._stop_done:
+            rest = self.last_rest  # stopped already, when the signal came
+        else:
+            rest = self._try_stop()
+        self.stop_requested, self._stop_done = False, False
+        state = self._state()
+        if rest is not None:
+            state["rest"] = rest
+        return state
 
     def op_move_joints(self, msg: dict) -> dict:
         return self._move(msg, joint_space=True)
@@ -201,28 +240,38 @@ class Worker:
     def op_move_pose(self, msg: dict) -> dict:
         return self._move(msg, joint_space=False)
 
-    def _try_stop(self) -> None:
-        """Decelerate to rest (async stop, kicked and bounded); never raises."""
+    def _try_stop(self) -> dict | None:
+        """Decelerate to rest (async stop, kicked and bounded); never raises.
+
+        Returns when the arm came to rest: ``{"controller_timestamp_s", "after_s"}`` (controller
+        clock, and wall seconds from the stop being sent), or None if no stop was sent (the arm
+        was already halted by the controller, or the link is gone).
+        """
         try:
             state = self._state()
             if state["runtime_state"] != RUNTIME_PLAYING or self._stopped_bits():
-                return
+                return None
+            t_sent = time.monotonic()
             self.ctrl.stopJ(float(self.opts["stop_decel"]), True)
-            end = time.monotonic() + 2.0 + max(abs(v) for v in state["qd"]) / float(self.opts["stop_decel"])
+            end = t_sent + 2.0 + max(abs(v) for v in state["qd"]) / float(self.opts["stop_decel"])
             while time.monotonic() < end:  # the async stop is an async operation: wait for its end
                 self._kick()
                 state = self._state()
                 if not self.ctrl.getAsyncOperationProgressEx().isAsyncOperationRunning() and \
                         max(abs(v) for v in state["qd"]) < 1e-4:
-                    return
+                    self.last_rest = {"controller_timestamp_s": state["timestamp"],
+                                      "after_s": time.monotonic() - t_sent}
+                    return self.last_rest
                 time.sleep(0.004)
         except (_Fail, RuntimeError):
-            return
+            return None
+        return None
 
     def _move(self, msg: dict, joint_space: bool) -> dict:
         target, speed, accel = list(msg["target"]), float(msg["speed"]), float(msg["accel"])
         deadline = time.monotonic() + float(msg["deadline_s"])
-        self._drain_interrupts()
+        if self.stop_requested:
+            raise _Fail("MotionError", "move refused: a stop was requested and not yet acknowledged")
         state = self._state()
         self._check_safe(state, "before the move")
         sent = (self.ctrl.moveJ(target, speed, accel, True) if joint_space
@@ -232,8 +281,12 @@ class Worker:
             self._check_safe(state, "when the move was sent")
             raise _Fail("MotionError", "the controller did not accept the move (ur-rtde returned False)")
         while True:
-            if self._drain_interrupts():
+            if self.stop_requested or self._parent_closed():
+                self.last_rest = None
                 self._try_stop()
+                self._stop_done = True
+                if self._eof:
+                    self._parent_gone()
                 raise _Fail("MotionError", "move stopped on request before reaching its target")
             self._kick()
             state = self._state()
@@ -258,18 +311,33 @@ class Worker:
             return False
         return _rotvec_angle_between(pose[3:], target[3:]) <= float(self.opts["orientation_tol"])
 
-    def _drain_interrupts(self) -> bool:
-        """Consume pending ``interrupt`` messages (the parent sends nothing else during a move)."""
-        seen = False
-        while self.conn.poll(0):
+    def _parent_closed(self) -> bool:
+        """True once the parent's end of the pipe is closed (the parent sends nothing during a move)."""
+        try:
+            if not self.conn.poll(0):
+                return False
+        except (EOFError, OSError):
+            self._eof = True
+            return True
+        # a request during a move: the parent gave up waiting for it (an abort unwound its wait) and asks
+        # for something else, normally a stop. Keep it for the main loop; a stop request also stops this move
+        try:
             msg = self.conn.recv()
-            if msg.get("op") == "interrupt":
-                seen = True
-        return seen
+        except (EOFError, OSError):
+            self._eof = True
+            return True
+        self._pending.append(msg)
+        if msg.get("op") in ("stop", "close"):
+            self.stop_requested = True
+        return False
 
 
 def main(argv: list[str]) -> None:
-    Worker(Connection(int(argv[1]))).run()
+    worker = Worker(Connection(int(argv[1])))
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGUSR1, worker._on_stop_signal)
+    signal.signal(signal.SIGTERM, worker._on_stop_signal)
+    worker.run()
 
 
 if __name__ == "__main__":

@@ -368,6 +368,7 @@ class _Scene:
     gdata: pin.GeometryData
     pair_names: list[tuple[str, str]]
     pool: pin.GeometryPool | None = None
+    margin_pools: dict = field(default_factory=dict)  # security margin (m) -> GeometryPool
 
 
 class RobotModel:
@@ -613,23 +614,29 @@ class RobotModel:
         """Collision check at q (6,): a CollisionReport, truthy when free (distance in .distance_m)."""
         return self.check_collision(q, world)
 
-    def collision_free_many(self, q: np.ndarray, world: CollisionWorld, n_threads: int = 2) -> np.ndarray:
-        """(m,) bool: configurations q (m, 6) free of collision (C++ loop over a pool, in parallel)."""
+    def collision_free_many(self, q: np.ndarray, world: CollisionWorld, n_threads: int = 2,
+                            margin_m: float | None = None) -> np.ndarray:
+        """(m,) bool: configurations q (m, 6) free of collision (C++ loop over a pool, in parallel).
+
+        ``margin_m``: the distance every pair must keep (default: the world's clearance); a larger one
+        certifies a neighbourhood of each configuration (planning.execution's batched move check).
+        """
         q = np.asarray(q, dtype=float).reshape(-1, 6)
         scene = self._scene(world)
         if not scene.pair_names or len(q) == 0:
             return np.ones(len(q), dtype=bool)
-        if scene.pool is None:
-            scene.pool = pin.GeometryPool(self.model, scene.gmodel, max(1, n_threads))
-            for gd in scene.pool.getGeometryDatas():
+        margin = float(world.clearance_m if margin_m is None else margin_m)
+        pool = scene.margin_pools.get(margin)
+        if pool is None or pool.size() < n_threads:
+            if pool is None:
+                pool = pin.GeometryPool(self.model, scene.gmodel, max(1, n_threads))
+            else:
+                pool.resize(n_threads)
+            for gd in pool.getGeometryDatas():
                 for req in gd.collisionRequests:
-                    req.security_margin = float(world.clearance_m)
-        elif scene.pool.size() < n_threads:
-            scene.pool.resize(n_threads)
-            for gd in scene.pool.getGeometryDatas():
-                for req in gd.collisionRequests:
-                    req.security_margin = float(world.clearance_m)
-        hit = pin.computeCollisionsInParallel(max(1, n_threads), scene.pool, np.asfortranarray(q.T), True)
+                    req.security_margin = margin
+            scene.margin_pools[margin] = pool
+        hit = pin.computeCollisionsInParallel(max(1, n_threads), pool, np.asfortranarray(q.T), True)
         return ~np.asarray(hit, dtype=bool)
 
 

@@ -8,14 +8,17 @@ names the file and the problem. Everything inside is in metres.
 from __future__ import annotations
 
 import csv
+import math
 import struct
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import trimesh
+from scipy.spatial import cKDTree
 
 from calibration.errors import PartError
+from planning.target_sampling import spaced_with_clearance
 
 __all__ = ["UNITS_TO_M", "Targets", "Part", "load_mesh", "load_targets", "sample_targets", "load_part", "make_bracket", "mesh_health"]
 
@@ -25,6 +28,10 @@ UNITS_TO_M = {"m": 1.0, "mm": 1e-3, "cm": 1e-2, "um": 1e-6, "in": 0.0254, "ft": 
 SIZE_RANGE_M = (1e-3, 5.0)
 #: How far a target may lie from the mesh surface, as a fraction of the part's size.
 ON_SURFACE_TOL = 2e-3
+#: Fewest targets a job can measure: an image is oriented (Faugeras-Toscani) from 6 or more.
+MIN_TARGETS = 6
+#: Most targets a job can hold (the job file's n_targets maximum).
+MAX_TARGETS = 100_000
 
 
 @dataclass
@@ -145,6 +152,27 @@ def _check_stl_header(path: Path, data: bytes) -> None:
         )
 
 
+def _check_text(path: Path, data: bytes, suffix: str) -> None:
+    """A text mesh format must be text: bytes that are not UTF-8 (random data, a binary file renamed) are
+    refused here, naming the line, instead of surfacing as a decoder's error from inside trimesh."""
+    if suffix == ".ply":
+        end = data.find(b"end_header")
+        if end < 0:
+            raise PartError(f"{path}: PLY file without 'end_header': truncated or not a PLY file")
+        if b"format ascii" not in data[:end]:
+            return  # binary PLY: only its header is text
+        data = data[:end]
+    try:
+        data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        line = data.count(b"\n", 0, exc.start) + 1
+        raise PartError(f"{path}:{line}: not a text {suffix[1:].upper()} file (binary data at byte {exc.start}); "
+                        "is it the right file?") from None
+    if b"\0" in data:
+        line = data.count(b"\n", 0, data.index(b"\0")) + 1
+        raise PartError(f"{path}:{line}: not a text {suffix[1:].upper()} file (a NUL byte); is it the right file?")
+
+
 def _check_obj_indices(path: Path, text: str) -> None:
     """OBJ: face indices are 1-based (or negative); 0 or out of range is an error."""
     n_v = 0
@@ -195,16 +223,31 @@ def load_mesh(path: str | Path, units: str) -> trimesh.Trimesh:
     suffix = path.suffix.lower()
     if suffix not in (".stl", ".obj", ".ply", ".glb", ".gltf", ".off"):
         raise PartError(f"{path}: unsupported mesh format {suffix!r} (use STL, OBJ, PLY or GLB)")
+    try:
+        return _load_mesh(path, units, suffix)
+    except MemoryError:
+        size = path.stat().st_size
+        raise PartError(f"{path}: the mesh ({size / 2**30:.2f} GiB) does not fit in this machine's memory; "
+                        "decimate it (a few million faces suffice for planning)") from None
+    except OSError as exc:
+        raise PartError(f"{path}: cannot read the mesh file ({exc.strerror or exc})") from None
+
+
+def _load_mesh(path: Path, units: str, suffix: str) -> trimesh.Trimesh:
     data = path.read_bytes()
     if not data:
         raise PartError(f"{path}: file is empty")
     if suffix == ".stl":
         _check_stl_header(path, data)
+    if suffix in (".obj", ".off") or suffix in (".stl", ".ply") and data[:5].lower() in (b"solid", b"ply\nf", b"ply\rf"):
+        _check_text(path, data, suffix)
     if suffix == ".obj":
         _check_obj_indices(path, data.decode("latin-1"))
     _check_raw_vertices(path, data, suffix)
     try:
         loaded = trimesh.load(str(path), force="mesh", process=False)
+    except MemoryError:
+        raise
     except Exception as exc:  # trimesh raises many types on corrupt files
         raise PartError(f"{path}: cannot read mesh ({type(exc).__name__}: {exc})") from None
     if not isinstance(loaded, trimesh.Trimesh):
@@ -233,53 +276,82 @@ def load_mesh(path: str | Path, units: str) -> trimesh.Trimesh:
 _REQUIRED = ("id", "x", "y", "z", "nx", "ny", "nz")
 
 
-def load_targets(path: str | Path, units: str) -> Targets:
-    """Read ``id,x,y,z,nx,ny,nz[,kind][,tolerance][,code]`` (lengths in ``units``)."""
+def load_targets(path: str | Path, units: str, max_targets: int = MAX_TARGETS) -> Targets:
+    """Read ``id,x,y,z,nx,ny,nz[,kind][,tolerance][,code]`` (lengths in ``units``).
+
+    Streams the file (bounded memory: it stops at ``max_targets`` + 1 rows, and a line longer
+    than the csv module's field limit is an error, not a read of the whole file into memory).
+    Every problem is a ``PartError`` naming the file and line.
+    """
     path = Path(path)
     if not path.is_file():
         raise PartError(f"{path}: targets file not found")
     scale = UNITS_TO_M[units]
-    with path.open(newline="") as f:
-        reader = csv.DictReader(f)
-        cols = [c.strip() for c in (reader.fieldnames or [])]
-        missing = [c for c in _REQUIRED if c not in cols]
-        if missing:
-            raise PartError(f"{path}: targets CSV lacks column(s) {', '.join(missing)} (needs id,x,y,z,nx,ny,nz)")
-        ids, xyz, nrm, kind, tol, code = [], [], [], [], [], []
-        for lineno, row in enumerate(reader, 2):
-            row = {k.strip(): (v or "").strip() for k, v in row.items() if k is not None}
-            try:
-                p = [float(row[c]) for c in ("x", "y", "z")]
-                n = [float(row[c]) for c in ("nx", "ny", "nz")]
-                t = float(row["tolerance"]) * scale if row.get("tolerance") else np.nan
-                c = int(row["code"]) if row.get("code") else -1
-            except ValueError as exc:
-                raise PartError(f"{path}:{lineno}: {exc}") from None
-            if not np.isfinite(p + n).all():
-                raise PartError(f"{path}:{lineno}: non-finite coordinate or normal")
-            k = row.get("kind") or ("coded" if c >= 0 else "retro")
-            if k not in ("retro", "coded"):
-                raise PartError(f"{path}:{lineno}: kind {k!r} is neither 'retro' nor 'coded'")
-            if k == "coded" and c < 0:
-                raise PartError(f"{path}:{lineno}: coded target {row['id']!r} needs a 'code' (ArUco id)")
-            ids.append(row["id"])
-            xyz.append(p)
-            nrm.append(n)
-            kind.append(k)
-            tol.append(t)
-            code.append(c)
+    ids: list[str] = []
+    num: list[tuple[float, ...]] = []
+    kind: list[str] = []
+    code: list[int] = []
+    isfinite = math.isfinite
+    try:
+        with path.open(newline="", encoding="utf-8-sig") as f:
+            reader = csv.reader(f)
+            header = [c.strip() for c in next(reader, [])]
+            missing = [c for c in _REQUIRED if c not in header]
+            if missing:
+                raise PartError(f"{path}: targets CSV lacks column(s) {', '.join(missing)} (needs id,x,y,z,nx,ny,nz)")
+            col = {c: header.index(c) for c in header if c}
+            i_id = col["id"]
+            i_num = [col[c] for c in ("x", "y", "z", "nx", "ny", "nz")]
+            i_kind, i_tol, i_code = col.get("kind"), col.get("tolerance"), col.get("code")
+            width = len(header)
+            for lineno, row in enumerate(reader, 2):
+                if not row or len(row) == 1 and not row[0].strip():
+                    continue  # a blank line
+                if len(ids) >= max_targets:
+                    raise PartError(f"{path}:{lineno}: more than {max_targets} targets (the most a job can hold)")
+                if len(row) < width:
+                    row = row + [""] * (width - len(row))
+                try:
+                    values = tuple(float(row[i]) for i in i_num)
+                    t_raw = row[i_tol].strip() if i_tol is not None else ""
+                    t = float(t_raw) * scale if t_raw else math.nan
+                    c_raw = row[i_code].strip() if i_code is not None else ""
+                    c = int(c_raw) if c_raw else -1
+                except ValueError as exc:
+                    raise PartError(f"{path}:{lineno}: {exc}") from None
+                if not all(isfinite(v) for v in values):
+                    raise PartError(f"{path}:{lineno}: non-finite coordinate or normal")
+                if t_raw and not (isfinite(t) and t > 0):
+                    raise PartError(f"{path}:{lineno}: tolerance {t_raw!r} must be a positive number")
+                if c_raw and not -1 <= c < 250:
+                    raise PartError(f"{path}:{lineno}: code {c} is not an ArUco id of DICT_4X4_250 (0..249, or -1 for none)")
+                k = (row[i_kind].strip() if i_kind is not None else "") or ("coded" if c >= 0 else "retro")
+                if k not in ("retro", "coded"):
+                    raise PartError(f"{path}:{lineno}: kind {k!r} is neither 'retro' nor 'coded'")
+                tid = row[i_id].strip()
+                if not tid:
+                    raise PartError(f"{path}:{lineno}: empty target id")
+                if k == "coded" and c < 0:
+                    raise PartError(f"{path}:{lineno}: coded target {tid!r} needs a 'code' (ArUco id)")
+                ids.append(tid)
+                num.append(values + (t,))
+                kind.append(k)
+                code.append(c)
+    except (csv.Error, UnicodeDecodeError) as exc:
+        raise PartError(f"{path}: not a readable targets CSV ({exc})") from None
     if not ids:
         raise PartError(f"{path}: no targets")
-    nrm_a = np.array(nrm, dtype=float)
+    arr = np.array(num, dtype=float).reshape(-1, 7)
+    nrm_a = arr[:, 3:6]
     lengths = np.linalg.norm(nrm_a, axis=1)
     if (lengths < 1e-9).any():
         raise PartError(f"{path}: target {ids[int(np.argmin(lengths))]!r} has a zero normal")
     return Targets(
         ids=ids,
-        xyz=np.array(xyz, dtype=float) * scale,
+        xyz=arr[:, :3] * scale,
         normals=nrm_a / lengths[:, None],
         kind=np.array(kind),
-        tolerance_m=np.array(tol, dtype=float),
+        tolerance_m=arr[:, 6].copy(),
         code=np.array(code, dtype=int),
     )
 
@@ -306,23 +378,26 @@ def check_targets(mesh: trimesh.Trimesh, targets: Targets, source: str = "target
             f"{dist[i] * 1e3:.2f} mm away (tolerance {tol * 1e3:.2f} mm): wrong units or wrong file?"
         )
     if target_diameter_m > 0 and len(targets) > 1:
-        from scipy.spatial import cKDTree
-
-        pairs = cKDTree(targets.xyz).query_pairs(target_diameter_m * 1.5, output_type="ndarray")
-        if len(pairs):
-            a, b = pairs[0]
+        # each target's nearest neighbour (O(n log n), O(n) memory; all close pairs could be n^2)
+        dist_nn, nn = cKDTree(targets.xyz).query(targets.xyz, k=2)
+        close = np.flatnonzero(dist_nn[:, 1] < target_diameter_m * 1.5)
+        if len(close):
+            a, b = int(close[0]), int(nn[close[0], 1])
             raise PartError(f"{source}: targets {targets.ids[a]!r} and {targets.ids[b]!r} overlap "
                             f"({np.linalg.norm(targets.xyz[a] - targets.xyz[b]) * 1e3:.2f} mm apart)")
     coded = np.flatnonzero(targets.kind == "coded")
     if coded_size_m > 0 and len(coded):
         reach = coded_size_m * (0.5 + 1 / 6) * np.sqrt(2) + target_diameter_m / 2  # marker + quiet zone corner
-        d = np.linalg.norm(targets.xyz[:, None] - targets.xyz[None, coded], axis=2)
-        d[coded, np.arange(len(coded))] = np.inf
+        k = min(2, len(coded))
+        d, j_near = cKDTree(targets.xyz[coded]).query(targets.xyz, k=k)
+        d, j_near = d.reshape(len(targets), k), j_near.reshape(len(targets), k)
+        own = coded[j_near] == np.arange(len(targets))[:, None]  # a coded target is not under itself
+        d = np.where(own, np.inf, d)
         bad = np.flatnonzero(d.min(axis=1) < reach)
         if len(bad):
             j = int(bad[0])
             raise PartError(f"{source}: target {targets.ids[j]!r} lies under the coded marker "
-                            f"{targets.ids[int(coded[np.argmin(d[j])])]!r} (closer than {reach * 1e3:.1f} mm)")
+                            f"{targets.ids[int(coded[j_near[j, np.argmin(d[j])]])]!r} (closer than {reach * 1e3:.1f} mm)")
     face_n = mesh.face_normals[tri]
     inward = np.flatnonzero(np.einsum("ij,ij->i", face_n, targets.normals) < -0.5)
     if len(inward):
@@ -366,28 +441,12 @@ def sample_targets(
     tri = mesh.triangles[faces]
     pts = tri[:, 0] + r[:, :1] * (tri[:, 1] - tri[:, 0]) + r[:, 1:] * (tri[:, 2] - tri[:, 0])
     nrm = mesh.face_normals[faces]
-    if edge_clearance_m > 0:
-        # keep away from the face's edges so a dot lies flat on one facet
-        keep = _facet_clearance(mesh, pts, faces) >= edge_clearance_m
-        pts, nrm = pts[keep], nrm[keep]
-    chosen: list[int] = []
-    for spacing in (min_spacing_m, 0.7 * min_spacing_m, 0.5 * min_spacing_m, 0.0):
-        chosen = []
-        tree_pts: list[np.ndarray] = []
-        for i in range(len(pts)):
-            if len(chosen) >= n:
-                break
-            if spacing > 0 and tree_pts:
-                d = np.linalg.norm(np.asarray(tree_pts) - pts[i], axis=1).min()
-                if d < spacing:
-                    continue
-            chosen.append(i)
-            tree_pts.append(pts[i])
-        if len(chosen) >= n:
-            break
+    # keep away from the face's edges so a dot lies flat on one facet; spread by a greedy spacing
+    chosen, _ = spaced_with_clearance(mesh, pts, faces, n, (min_spacing_m, 0.7 * min_spacing_m,
+                                                          0.5 * min_spacing_m, 0.0), edge_clearance_m)
     if len(chosen) < n:
         raise PartError(f"could not place {n} targets on the surface")
-    sel = np.array(chosen)
+    sel = chosen
     xyz, normals = pts[sel], nrm[sel]
     # coded targets: farthest-point spread among the samples
     coded_idx: list[int] = []
@@ -405,33 +464,12 @@ def sample_targets(
         code[j] = c
     if coded_idx and coded_clearance_m > 0:
         # a dot under a coded marker's sticker (with its quiet zone) cannot be seen: drop it
-        d = np.linalg.norm(xyz[:, None] - xyz[None, coded_idx], axis=2).min(axis=1)
+        d, _ = cKDTree(xyz[coded_idx]).query(xyz)
         keep = (kind == "coded") | (d >= coded_clearance_m)
         xyz, normals, kind, code = xyz[keep], normals[keep], kind[keep], code[keep]
         n = int(keep.sum())
     ids = [f"C{code[i]}" if kind[i] == "coded" else f"T{i:04d}" for i in range(n)]
     return Targets(ids=ids, xyz=xyz, normals=normals, kind=kind.astype(str), tolerance_m=np.full(n, np.nan), code=code)
-
-
-def _facet_clearance(mesh: trimesh.Trimesh, pts: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Distance from each point to the boundary of the planar facet holding its face."""
-    face_to_facet = np.full(len(mesh.faces), -1)
-    for k, f in enumerate(mesh.facets):
-        face_to_facet[f] = k
-    out = np.full(len(pts), np.inf)
-    boundaries = mesh.facets_boundary
-    for i, (p, f) in enumerate(zip(pts, faces)):
-        k = face_to_facet[f]
-        if k < 0:
-            edges = np.array([[0, 1], [1, 2], [2, 0]])
-            seg = mesh.vertices[mesh.faces[f]][edges]
-        else:
-            seg = mesh.vertices[boundaries[k]]
-        a, b = seg[:, 0], seg[:, 1]
-        ab = b - a
-        t = np.clip(np.einsum("ij,ij->i", p - a, ab) / np.maximum(np.einsum("ij,ij->i", ab, ab), 1e-30), 0, 1)
-        out[i] = np.linalg.norm(a + t[:, None] * ab - p, axis=1).min()
-    return out
 
 
 def load_part(
@@ -461,6 +499,9 @@ def load_part(
         source = f"{n_targets} targets sampled with seed {seed}"
     else:
         raise PartError(f"{mesh_path}: give a targets file or a number of targets to sample")
+    if len(targets) < MIN_TARGETS:
+        raise PartError(f"{source}: {len(targets)} target(s); a job needs at least {MIN_TARGETS} (an image is "
+                        f"oriented from {MIN_TARGETS} or more)")
     check_targets(mesh, targets, source, target_diameter_m=target_diameter_m, coded_size_m=coded_size_m)
     return Part(
         name=name or Path(mesh_path).stem,

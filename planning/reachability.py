@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from calibration.errors import InputError
+from planning.cache import load_arrays, save_arrays
 from planning.kinematics import N_BRANCHES, CollisionWorld, RobotModel, dh_fk, geometric_jacobian
 
 __all__ = [
@@ -255,17 +256,15 @@ class ReachabilityDB:
         opt = options or ReachabilityOptions()
         key = _key(robot, base_from_part, flange_from_cam, part_from_cam, world, opt)
         path = Path(cache_dir) / f"reachability-{key}.npz" if cache_dir is not None else None
-        if path is not None and path.exists():
-            try:
-                with np.load(path, allow_pickle=False) as z:
-                    res = ReachabilityResult(**{k: z[k] for k in ReachabilityResult.__dataclass_fields__})
-                return cls(key=key, result=res, loaded=True)
-            except (OSError, KeyError, ValueError):
-                pass  # a damaged cache file is rebuilt below
+        fields = tuple(ReachabilityResult.__dataclass_fields__)
+        if path is not None:
+            cached = load_arrays(path, fields)  # None when missing or damaged (then rebuilt)
+            if cached is not None:
+                return cls(key=key, result=ReachabilityResult(**cached), loaded=True)
         res = reachability_mask(robot, base_from_part, flange_from_cam, part_from_cam, world, opt)
         if path is not None:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            tmp = path.with_suffix(".tmp.npz")
-            np.savez(tmp, **{k: getattr(res, k) for k in ReachabilityResult.__dataclass_fields__})
-            tmp.replace(path)
+            try:
+                save_arrays(path, {k: getattr(res, k) for k in fields})
+            except OSError:
+                pass  # a cache that cannot be written (full or read-only disk) costs time next run, nothing else
         return cls(key=key, result=res, loaded=False)

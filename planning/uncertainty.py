@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from calibration.camera import Intrinsics, invert, project_with_jacobians
+from calibration.camera import Intrinsics, invert
 from calibration.errors import PlanningError
 
 __all__ = [
@@ -120,14 +120,36 @@ def target_information(
     w = 1.0 / sig**2
     cam_from_part = invert(T)
     out = np.zeros((m, n, 6), dtype=dtype)
-    for i in range(m):
-        cols = np.flatnonzero(visible[i])
-        if len(cols) == 0:
-            continue
-        _, J, _ = project_with_jacobians(intr, cam_from_part[i], xyz[cols])
-        JtJ = np.einsum("nri,nrj->nij", J, J)
-        out[i, cols] = (JtJ[:, _IU[0], _IU[1]] * w[cols, None]).astype(dtype)
+    rows = np.cumsum(visible.sum(axis=1))
+    s0 = 0
+    while s0 < m:  # all visible (station, target) pairs at once, in chunks of about _PAIRS_PER_CHUNK
+        s1 = max(s0 + 1, int(np.searchsorted(rows, (rows[s0 - 1] if s0 else 0) + _PAIRS_PER_CHUNK, side="right")))
+        ci, ti = np.nonzero(visible[s0:s1])
+        if len(ci):
+            ci += s0
+            out[ci, ti] = (point_information(intr, cam_from_part[ci], xyz[ti]) * w[ti, None]).astype(dtype)
+        s0 = s1
     return out
+
+
+_PAIRS_PER_CHUNK = 200_000
+
+
+def point_information(intr: Intrinsics, cam_from_part: np.ndarray, X: np.ndarray) -> np.ndarray:
+    """Upper triangle (6) of ``J^T J`` of each pair of pose ``cam_from_part: (q, 4, 4)`` and point
+    ``X: (q, 3)`` (part frame), ``J = d(uv)/d(X)`` with the lens distortion; (q, 6) in px^2/m^2."""
+    R = cam_from_part[:, :3, :3]
+    Xc = np.einsum("qab,qb->qa", R, X) + cam_from_part[:, :3, 3]
+    iz = 1.0 / Xc[:, 2]
+    xn, yn = Xc[:, 0] * iz, Xc[:, 1] * iz
+    D = intr.distortion_jacobian(np.stack([xn, yn], axis=1))  # (q, 2, 2)
+    # d(uv)/d(Xc) = F D d(xy)/d(Xc), d(xy)/d(Xc) = iz [[1, 0, -xn], [0, 1, -yn]]
+    M = np.empty((len(iz), 2, 3))
+    for r, f in ((0, intr.fx_px), (1, intr.fy_px)):
+        a, b = D[:, r, 0] * f * iz, D[:, r, 1] * f * iz
+        M[:, r, 0], M[:, r, 1], M[:, r, 2] = a, b, -(a * xn + b * yn)
+    J = M @ R  # (q, 2, 3)
+    return np.stack([J[:, 0, i] * J[:, 0, j] + J[:, 1, i] * J[:, 1, j] for i, j in zip(*_IU)], axis=1)
 
 
 def _information_by_model(intr, part_from_cam, xyz, visible, precision: ImagePrecision, dtype) -> np.ndarray:
@@ -144,10 +166,9 @@ def _information_by_model(intr, part_from_cam, xyz, visible, precision: ImagePre
         cols = np.flatnonzero(visible[i])
         if len(cols) == 0:
             continue
-        _, J, _ = project_with_jacobians(intr, cam_from_part[i], xyz[cols])
         w = 1.0 / precision.sigma_px(intr, cam_from_part[i], xyz, cols) ** 2
-        JtJ = np.einsum("nri,nrj->nij", J, J)
-        out[i, cols] = (JtJ[:, _IU[0], _IU[1]] * w[:, None]).astype(dtype)
+        info = point_information(intr, np.repeat(cam_from_part[i][None], len(cols), axis=0), xyz[cols])
+        out[i, cols] = (info * w[:, None]).astype(dtype)
     return out
 
 

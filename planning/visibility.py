@@ -26,8 +26,6 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import tempfile
-import zipfile
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -38,6 +36,7 @@ import trimesh
 
 from calibration.camera import Intrinsics, invert
 from calibration.errors import PlanningError
+from planning.cache import load_arrays, save_arrays
 from planning.stations import N_GENES, ViewingSphere
 
 __all__ = [
@@ -189,25 +188,33 @@ def geometric_visibility(
     target_diameter_m: float,
     options: VisibilityOptions,
 ) -> np.ndarray:
-    """Every test but occlusion, for ``part_from_cam: (m, 4, 4)`` x ``xyz: (n, 3)``; (m, n) bool."""
+    """Every test but occlusion, for ``part_from_cam: (m, 4, 4)`` x ``xyz: (n, 3)``; (m, n) bool.
+
+    The cheap tests (incidence angle, depth of field, target size) run on every pair as matrix
+    products; the projection into the image only on the pairs that pass them.
+    """
     T = np.asarray(part_from_cam, dtype=float).reshape(-1, 4, 4)
+    xyz = np.asarray(xyz, dtype=float)
+    normals = np.asarray(normals, dtype=float)
     cam_from_part = invert(T)
     R, t = cam_from_part[:, :3, :3], cam_from_part[:, :3, 3]
-    Xc = np.einsum("mij,nj->mni", R, xyz) + t[:, None, :]
-    z = Xc[..., 2]
-    front = z > 1e-9
-    zs = np.where(front, z, 1.0)
-    xy = Xc[..., :2] / zs[..., None]
-    xyd = intr.distort(xy.reshape(-1, 2)).reshape(xy.shape)
-    uv = np.stack([intr.fx_px * xyd[..., 0] + intr.cx_px, intr.fy_px * xyd[..., 1] + intr.cy_px], axis=-1)
-    ok = front & intr.in_image(uv, options.margin_px)
-    ok &= (z >= options.near_m) & (z <= options.far_m)
-    ok &= target_diameter_m * intr.fx_px / zs >= options.min_target_px
     eye = T[:, :3, 3]
-    sight = eye[:, None, :] - xyz[None, :, :]
-    dist = np.linalg.norm(sight, axis=-1)
-    cos_inc = np.einsum("mnj,nj->mn", sight, normals) / np.maximum(dist, 1e-12)
-    ok &= cos_inc >= np.cos(options.incidence_max_rad)
+    # incidence: (eye - x) . n >= cos(max) |eye - x|
+    sn = eye @ normals.T - np.sum(xyz * normals, axis=1)[None, :]
+    d2 = np.sum(eye**2, axis=1)[:, None] - 2.0 * (eye @ xyz.T) + np.sum(xyz**2, axis=1)[None, :]
+    ok = sn >= np.cos(options.incidence_max_rad) * np.sqrt(np.maximum(d2, 1e-24))
+    z = R[:, 2, :] @ xyz.T + t[:, 2:3]
+    ok &= (z > 1e-9) & (z >= options.near_m) & (z <= options.far_m)
+    ok &= target_diameter_m * intr.fx_px >= options.min_target_px * np.where(z > 1e-9, z, np.inf)
+    ci, ti = np.nonzero(ok)
+    if len(ci):
+        zc = z[ci, ti]
+        xn = (R[:, 0, :] @ xyz.T + t[:, 0:1])[ci, ti] / zc
+        yn = (R[:, 1, :] @ xyz.T + t[:, 1:2])[ci, ti] / zc
+        xyd = intr.distort(np.stack([xn, yn], axis=1))
+        uv = np.stack([intr.fx_px * xyd[:, 0] + intr.cx_px, intr.fy_px * xyd[:, 1] + intr.cy_px], axis=-1)
+        out = ~intr.in_image(uv, options.margin_px)
+        ok[ci[out], ti[out]] = False
     return ok
 
 
@@ -364,36 +371,22 @@ class VisibilityDB:
         key = _hash_inputs(part, intr, sphere, options, genes)
         path = cache / f"visibility-{key}.npz"
         n = len(part.targets.xyz)
-        if path.is_file():
-            try:
-                with open(path, "rb") as fh, np.load(fh, allow_pickle=False) as z:
-                    visible = z["visible"].astype(bool)
-                    ok = str(z["key"]) == key and visible.shape == (len(genes), n)
-                if ok:
-                    if progress is not None:
-                        progress("visibility (cached)", 1.0)
-                    return cls(genes=genes, part_from_cam=sphere.poses(genes), visible=visible,
-                               key=key, sphere=sphere, options=options, from_cache=True)
-            except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
-                pass  # damaged: rebuild below
+        cached = load_arrays(path, ("key", "visible"))  # None when missing or damaged (then rebuilt)
+        if cached is not None and str(cached["key"]) == key and cached["visible"].shape == (len(genes), n):
+            if progress is not None:
+                progress("visibility (cached)", 1.0)
+            return cls(genes=genes, part_from_cam=sphere.poses(genes), visible=cached["visible"].astype(bool),
+                       key=key, sphere=sphere, options=options, from_cache=True)
         T = sphere.poses(genes)
         visible = compute_visibility(part, intr, T, options, backend=backend, progress=progress)
         db = cls(genes=genes, part_from_cam=T, visible=visible, key=key, sphere=sphere, options=options)
-        db.save(path)
+        try:
+            db.save(path)
+        except OSError:
+            pass  # a cache that cannot be written (full or read-only disk) costs time next run, nothing else
         return db
 
     def save(self, path: str | Path) -> Path:
-        """Write atomically to ``path`` (.npz)."""
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp")
-        try:
-            with os.fdopen(fd, "wb") as f:
-                np.savez_compressed(f, key=np.array(self.key), genes=self.genes, visible=self.visible)
-                f.flush()
-                os.fsync(f.fileno())
-            os.replace(tmp, path)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
-        return path
+        """Write atomically and durably to ``path`` (.npz with a digest; see ``planning.cache``)."""
+        return save_arrays(path, {"key": np.array(self.key), "genes": self.genes, "visible": self.visible},
+                           compress=True)

@@ -55,6 +55,8 @@ def make_sim_cell(
     true_flange_from_cam: np.ndarray | None = None,
     true_base_from_part: np.ndarray | None = None,
     light: Any = None,
+    fixture: Any = None,
+    coded_family: str = "aruco",
 ) -> SimCell:
     """Build a simulated cell around ``part``.
 
@@ -70,6 +72,8 @@ def make_sim_cell(
         motion, time_scale, limits, repeatability_rad, initial_joints: see :class:`SimRobot`.
         true_flange_from_cam, true_base_from_part: the world's real values (default nominal).
         light: any ``drivers.protocols.Light`` (e.g. the serial driver on the pty emulator), or None.
+        fixture: a trimesh in the part frame that hides dots but is not in the CAD (see :class:`World`).
+        coded_family: how the coded targets look (``SimCamera``'s ``coded_family``).
     """
     if isinstance(robot, str):
         from planning.kinematics import load_robot
@@ -86,6 +90,7 @@ def make_sim_cell(
         true_base_from_part=true_base_from_part,
         true_flange_from_cam=true_flange_from_cam,
         seed=seed,
+        fixture=fixture,
     )
     sim_robot = SimRobot(
         world,
@@ -97,5 +102,6 @@ def make_sim_cell(
         initial_joints=initial_joints,
     )
     opts = replace(render or RenderOptions(), image_sigma_px=float(image_sigma_px))
-    camera = SimCamera(world, photometry=photometry or Photometry(), sensor=sensor or Sensor(), options=opts)
+    camera = SimCamera(world, photometry=photometry or Photometry(), sensor=sensor or Sensor(), options=opts,
+                       coded_family=coded_family)
     return SimCell(world=world, robot=sim_robot, camera=camera, light=light)

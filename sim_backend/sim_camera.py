@@ -38,7 +38,7 @@ import cv2
 import numpy as np
 
 from calibration.camera import Intrinsics, invert, project
-from calibration.errors import DriverError, InputError, NotConnectedError
+from calibration.errors import CalibrationError, DriverError, InputError, NotConnectedError
 from drivers.protocols import Frame
 from sim_backend.world import World, marker_axes
 
@@ -51,6 +51,7 @@ __all__ = [
     "aruco_texture",
     "disc_coverage",
     "marker_coverage",
+    "ring_coverage",
     "apply_sensor",
     "SimCamera",
 ]
@@ -338,6 +339,68 @@ def marker_coverage(
     return alpha, white
 
 
+def ring_coverage(
+    lattice: UndistortionLattice,
+    u0: np.ndarray,
+    v0: np.ndarray,
+    h: int,
+    w: int,
+    centre_c: np.ndarray,
+    normal_c: np.ndarray,
+    e1_c: np.ndarray,
+    e2_c: np.ndarray,
+    radius_m: float,
+    bits: np.ndarray,
+    family,
+    shift_px: np.ndarray,
+    supersample: int = 8,
+    adaptive: bool = True,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Coverage of ring-coded targets (``calibration.ringcodes`` layout) for k windows.
+
+    Args:
+        radius_m: the centre dot's radius R; the patch (quiet zone) reaches ``family.quiet`` R.
+        bits: (k, n) 0/1 sector bits, sector b from ``e1`` towards ``e2``.
+        family: the ``calibration.ringcodes.RingFamily`` (its radii).
+    Returns:
+        alpha: (k, h, w) fraction of each pixel covered by the patch; white: by the dot and the set sectors.
+    """
+    n, inner, outer, quiet = bits.shape[1], family.inner, family.outer, family.quiet
+    st = _plane_coords(_pixel_lattice(lattice, u0, v0, h, w, shift_px), centre_c, e1_c, e2_c, normal_c) / radius_m
+    c00, c01, c10, c11 = st[:, :-1, :-1], st[:, :-1, 1:], st[:, 1:, :-1], st[:, 1:, 1:]
+    centre = 0.25 * (c00 + c01 + c10 + c11)
+    hd = 0.5 * np.maximum(np.linalg.norm(c00 - c11, axis=-1), np.linalg.norm(c01 - c10, axis=-1)) * 1.02
+    kk = np.broadcast_to(np.arange(len(u0))[:, None, None], hd.shape)
+
+    def shade(s, t, kidx):
+        rho = np.hypot(s, t)
+        sector = np.floor((np.arctan2(t, s) % (2 * np.pi)) / (2 * np.pi / n)).astype(np.int64) % n
+        inring = (rho >= inner) & (rho <= outer)
+        white = (rho <= 1.0) | (inring & (bits[kidx, sector] > 0))
+        return (rho <= quiet).astype(float), white.astype(float)
+
+    alpha, white = shade(centre[..., 0], centre[..., 1], kk)
+    rho = np.linalg.norm(centre, axis=-1)
+    near_circle = np.zeros(rho.shape, dtype=bool)
+    for rr in (1.0, inner, outer, quiet):
+        near_circle |= np.abs(rho - rr) <= hd
+    ang = np.arctan2(centre[..., 1], centre[..., 0]) % (2 * np.pi / n)
+    near_edge = (np.minimum(ang, 2 * np.pi / n - ang) * rho <= hd) & (rho >= inner - hd) & (rho <= outer + hd)
+    boundary = (near_circle | near_edge) if adaptive else np.ones_like(rho, dtype=bool)
+    idx = np.nonzero(boundary)
+    if len(idx[0]):
+        W = _subpixel_weights(supersample)
+        C = _corner_blocks(st, idx)
+        for a0 in range(0, len(idx[0]), 32768):
+            sl = slice(a0, a0 + 32768)
+            sa = C[sl, :, 0] @ W.T
+            sb = C[sl, :, 1] @ W.T
+            al, wh = shade(sa, sb, idx[0][sl, None])
+            alpha[idx[0][sl], idx[1][sl], idx[2][sl]] = al.mean(axis=1)
+            white[idx[0][sl], idx[1][sl], idx[2][sl]] = wh.mean(axis=1)
+    return alpha, white
+
+
 def apply_sensor(img: np.ndarray, sensor: Sensor, rng: np.random.Generator | None) -> np.ndarray:
     """Blurred irradiance ``img: (h, w)`` (fraction of full scale) -> quantised sensor image.
 
@@ -380,6 +443,9 @@ class SimCamera:
         photometry, sensor, options: see the dataclasses above.
         rng: random stream for noise and jitter (default: a child stream of the world's seed).
         exposure_s: exposure time; brightness scales with it.
+        coded_family: how the coded targets look: "aruco" (DICT_4X4_250 markers of side
+            ``part.coded_size_m``) or a ring-code family (``calibration.ringcodes.RING_FAMILIES``:
+            a centre dot of the part's target diameter inside its code ring).
     """
 
     def __init__(
@@ -391,8 +457,10 @@ class SimCamera:
         options: RenderOptions = RenderOptions(),
         rng: np.random.Generator | None = None,
         exposure_s: float = 0.002,
+        coded_family: str = "aruco",
     ) -> None:
         self.world = world
+        self.coded_family = coded_family
         self.photometry = photometry
         self.sensor = sensor
         self.options = options
@@ -407,7 +475,17 @@ class SimCamera:
         self._lock = threading.Lock()
         targets = world.part.targets
         self._coded = np.asarray(targets.kind) == "coded"
-        self._textures = {int(c): aruco_texture(int(c)) for c in np.asarray(targets.code)[self._coded]}
+        codes = np.asarray(targets.code)[self._coded]
+        if coded_family == "aruco":
+            self._textures = {int(c): aruco_texture(int(c)) for c in codes}
+        else:
+            from calibration.ringcodes import code_bits, ring_family
+
+            try:
+                self._ring_family = ring_family(coded_family)
+                self._textures = {int(c): code_bits(coded_family, int(c)) for c in codes}
+            except CalibrationError as e:
+                raise InputError(f"sim camera: {e}") from None
 
     # --- Camera protocol ---------------------------------------------------
     def connect(self) -> None:
@@ -471,7 +549,7 @@ class SimCamera:
         uv = project(self.intr, cam_from_part, xyz[vis.index]) if len(vis.index) else np.zeros((0, 2))
         coded = self._coded[vis.index]
         corners_uv = {}
-        if coded.any():
+        if coded.any() and self.coded_family == "aruco":
             corners = self.world.true_marker_corners()[vis.index[coded]]
             cuv = project(self.intr, cam_from_part, corners.reshape(-1, 3)).reshape(-1, 4, 2)
             corners_uv = {str(i): c.tolist() for i, c in zip(ids[vis.index[coded]], cuv)}
@@ -511,7 +589,7 @@ class SimCamera:
         shade = np.full(len(d), float(ph.ambient_level))
         hit = tri >= 0
         if hit.any():
-            n = np.asarray(self.world.part.mesh.face_normals)[tri[hit]]
+            n = np.asarray(self.world.scene_mesh.face_normals)[tri[hit]]
             cos = np.abs(np.sum(n * d[hit], axis=1))
             shade[hit] += light * ph.part_level * cos * (ph.reference_distance_m / dist[hit]) ** 2
         small = shade.reshape(gh, gw).astype(np.float32)
@@ -549,6 +627,8 @@ class SimCamera:
     def _extent(self, idx: np.ndarray) -> np.ndarray:
         """(k,) in-plane radius (m) of targets ``idx``: disc radius, or half the patch diagonal."""
         part = self.world.part
+        if self.coded_family != "aruco":
+            return np.where(self._coded[idx], self._ring_family.quiet, 1.0) * 0.5 * part.target_diameter_m
         half_patch = 0.5 * part.coded_size_m * (_MARKER_CELLS + 2 * _QUIET_CELLS) / _MARKER_CELLS * math.sqrt(2)
         return np.where(self._coded[idx], half_patch, 0.5 * part.target_diameter_m)
 
@@ -592,7 +672,11 @@ class SimCamera:
             for gw_, gh_ in sorted(set(zip(bw[sel_kind], bh[sel_kind]))):
                 g = np.nonzero(sel_kind & (bw == gw_) & (bh == gh_))[0]
                 args = (self.lattice, u0[g], v0[g], gh_, gw_, centre_c[g], n_c[g], e1_c[g], e2_c[g])
-                if is_coded:
+                if is_coded and self.coded_family != "aruco":
+                    bits = np.stack([self._textures[int(c)] for c in np.asarray(w.part.targets.code)[idx[g]]])
+                    alpha, white = ring_coverage(*args, 0.5 * float(w.part.target_diameter_m), bits, self._ring_family,
+                                                 shift[g], opt.supersample, opt.adaptive)
+                elif is_coded:
                     tex = np.stack([self._textures[int(c)] for c in np.asarray(w.part.targets.code)[idx[g]]])
                     alpha, white = marker_coverage(*args, float(w.part.coded_size_m), tex, shift[g], opt.supersample, opt.adaptive)
                 else:

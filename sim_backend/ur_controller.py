@@ -287,6 +287,35 @@ class LoopbackURController:
     def moving(self) -> bool:
         return self._motion is not None
 
+    @property
+    def clock_s(self) -> float:
+        """The controller's clock (robot seconds, the RTDE ``timestamp``)."""
+        with self._lock:
+            return self._t
+
+    @property
+    def joint_speeds(self) -> np.ndarray:
+        """(6,) current joint speeds, rad/s."""
+        with self._lock:
+            return self._qd.copy()
+
+    def rest_time_after(self, t0_s: float, tol_rad: float = 1e-9) -> float | None:
+        """From the trace: the controller time (after ``t0_s``) from which the arm no longer moved.
+
+        None when the trace holds nothing after ``t0_s`` or the arm was still moving at its end.
+        """
+        with self._lock:
+            trace = [(t, q) for t, q in self.trace if t >= t0_s]
+        if len(trace) < 2:
+            return None
+        last_q = trace[-1][1]
+        rest = None
+        for t, q in reversed(trace):
+            if np.max(np.abs(q - last_q)) > tol_rad:
+                break
+            rest = t
+        return None if rest == trace[-1][0] and self._motion is not None else rest
+
     def wait_for(self, predicate, timeout_s: float = 5.0) -> bool:
         """Poll ``predicate()`` until true or ``timeout_s`` passes; returns the last value."""
         end = time.monotonic() + timeout_s

@@ -81,6 +81,9 @@ class World:
             zeros by default.
         true_base_from_part, true_flange_from_cam: (4, 4) the real values; default to the
             nominal ones.
+        fixture: a mesh in the part frame (metres) that is in the cell but not in the part's CAD: a
+            clamp or a support that hides dots from some directions. Rays are cast against the part
+            and the fixture together.
         seed: seed of the world's random streams (each device takes its own child stream).
     """
 
@@ -95,8 +98,10 @@ class World:
         true_base_from_part: np.ndarray | None = None,
         true_flange_from_cam: np.ndarray | None = None,
         seed: int = 0,
+        fixture: Any = None,
     ) -> None:
         self.part = part
+        self.fixture = fixture
         n = len(part.targets.xyz)
         self.base_from_part = _check_pose(base_from_part, "base_from_part")
         self.flange_from_cam = _check_pose(flange_from_cam, "flange_from_cam")
@@ -121,6 +126,7 @@ class World:
         self.base_from_flange = np.eye(4)
         self.light_fraction = 1.0  # illumination of the strobe, [0, 1]; a sim light may set it
         self._intersector = None
+        self._scene = None
 
     # --- the part as it really is -----------------------------------------
     @property
@@ -156,18 +162,29 @@ class World:
 
     # --- ray casting ------------------------------------------------------------
     @property
+    def scene_mesh(self):
+        """What rays hit: the part, and the fixture when there is one (its faces after the part's)."""
+        if self._scene is None:
+            self._scene = self.part.mesh
+            if self.fixture is not None and len(self.fixture.faces):
+                import trimesh
+
+                self._scene = trimesh.util.concatenate([self.part.mesh, self.fixture])
+        return self._scene
+
+    @property
     def intersector(self):
-        """Ray-mesh intersector of the part (Embree when available, else trimesh's NumPy one)."""
+        """Ray-mesh intersector of the part and its fixture (Embree when available, else trimesh's NumPy one)."""
         if self._intersector is None:
             try:
                 from trimesh.ray.ray_pyembree import RayMeshIntersector
             except ImportError:  # pragma: no cover - embreex is a dependency
                 from trimesh.ray.ray_triangle import RayMeshIntersector
-            self._intersector = RayMeshIntersector(self.part.mesh)
+            self._intersector = RayMeshIntersector(self.scene_mesh)
         return self._intersector
 
     def first_hit(self, origins: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """First intersection of rays with the part's mesh.
+        """First intersection of rays with the part's mesh (or the fixture).
 
         Args:
             origins: (m, 3) or (3,) ray origins, part frame.

@@ -20,7 +20,7 @@ from cell.record.runlog import read_messages
 from jobutil import (archive_entries, example_run, incoming_entries, job_variant, mahalanobis, records, rigid_fit,
                      run_cell, truth_xyz_m)
 
-STAGES = ["LOAD", "PLAN", "VALIDATE", "ACQUIRE", "MEASURE", "CALIBRATE", "ADJUST", "REPORT"]
+STAGES = ["LOAD", "PLAN", "VALIDATE", "ACQUIRE", "MEASURE", "CALIBRATE", "ADJUST", "CLOSE_LOOP", "REPORT"]
 Vec3 = tuple[float, float, float]
 MaybeVec3 = tuple[float, float, float] | tuple[None, None, None]  # a target no image measured
 Mat3 = tuple[Vec3, Vec3, Vec3]

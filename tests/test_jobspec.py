@@ -50,7 +50,7 @@ def test_example_job_loads_in_si_units():
     ('width = 2448', 'width = "wide"', "'camera.width' = 'wide'"),
     ('units = "mm"', 'units = "furlong"', "'job.units' = 'furlong'"),
     ('far = 700.0', 'far = 100.0', "camera.far must be greater"),
-    ('targets = "targets.csv"', 'targets = "targets.csv"\nn_targets = 5', "exactly one of 'targets'"),
+    ('targets = "targets.csv"', 'targets = "targets.csv"\nn_targets = 50', "exactly one of 'targets'"),
 ])
 def test_bad_job_file_is_one_line_naming_the_key(job_dir, old, new, message):
     p = _edit(job_dir, old, new)

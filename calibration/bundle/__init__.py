@@ -23,9 +23,14 @@ Stages (``bundle_adjust``):
    so the per-target covariance is computed here (its pose block agrees with pycolmap's, a
    test checks it) and returned in the low-rank :class:`PointCovariance` form, so the
    alignment can propagate cross-covariances exactly.
-4. Residual statistics (sigma0, redundancy numbers) and data snooping: the observation with
-   the largest test statistic ``v^T Q_vv^-1 v / s0^2`` (chi-square, 2 dof) above the critical value
-   is removed and the network re-adjusted, until none is left.
+4. Residual statistics (sigma0, redundancy numbers) and data snooping: each observation's test
+   statistic ``v^T Q_vv^-1 v / s0^2`` (chi-square, 2 dof) against the critical value at ``alpha / q``.
+   Many observations are rejected per re-adjustment (the largest failing statistic of each target, at
+   most a tenth of an image's observations; a robust variance factor while blunders inflate ``s0^2``),
+   until none fails; then every rejected observation is tested against the final adjustment and put
+   back (once) if it passes (:mod:`calibration.bundle.snooping`, docs/decisions/0013-scale.md).
+   ``BundleOptions(snooping_batch=False)``: one observation per re-adjustment, as before.
+   ``result.snooping`` says how it stopped (and how many still failed when the cap stopped it).
 
 Observations of unequal precision (:mod:`calibration.weights`): ``obs_sigma_px`` gives each
 image observation its own a priori sigma, ``obs_group`` estimates one variance component per
@@ -34,7 +39,7 @@ solver weights all observations alike, so weighted networks are then iterated to
 optimum by Gauss-Newton on the full normal equations (every datum). Everything downstream
 (sigma0, covariance, redundancy numbers, test statistics) works on the whitened observations.
 
-Modules (docs/decisions/0011-split-layout.md): ``config`` (options, config, result),
+Modules (docs/decisions/0012-split-bundle-planner.md): ``config`` (options, config, result),
 ``adjust`` (the loop above), ``colmap`` (stage 1), ``normal`` (linearised problem), ``datum``
 (stage 2), ``covariance`` (stage 3, the result), ``snooping`` (stage 4's statistics), ``vce``
 (variance components), ``projection``, ``synthetic`` (simulated networks).

@@ -12,11 +12,11 @@ except ImportError:  # pragma: no cover - optional
     threadpool_limits = None
 
 from calibration.bundle.colmap import _pycolmap_solve
-from calibration.bundle.config import BundleConfig, BundleOptions, BundleResult
+from calibration.bundle.config import COLMAP_MODELS, BundleConfig, BundleOptions, BundleResult
 from calibration.bundle.covariance import _result
 from calibration.bundle.datum import _datum_stage
 from calibration.bundle.normal import _Layout, _linearise, _State
-from calibration.bundle.snooping import _statistics
+from calibration.bundle.snooping import _statistics, pick_rejections, predicted_test, test_variance_factor
 from calibration.bundle.vce import _variance_step
 from calibration.camera import Intrinsics
 from calibration.errors import CalibrationError
@@ -88,6 +88,8 @@ def _bundle_adjust(obs_image, obs_target, obs_uv, intrinsics, cam_from_part, poi
     sig0 = check_sigmas(obs_sigma_px, options.sigma_px, len(obs_image))
     sig = sig0.copy()
     weighted = obs_sigma_px is not None or obs_group is not None
+    # models whose distortion pycolmap cannot refine (COLMAP_MODELS) take the full Gauss-Newton iterations too
+    full_gn = weighted or (config.camera_model in COLMAP_MODELS and config.refine_distortion)
     group = None if obs_group is None else check_groups(obs_group, len(obs_image))
     vc = None
     names = config.refined_names()
@@ -95,13 +97,16 @@ def _bundle_adjust(obs_image, obs_target, obs_uv, intrinsics, cam_from_part, poi
     for bar in config.scale_bars:
         linked[[bar.target_a, bar.target_b]] = True
     defect = {"free": 7, "scale_bar": 6, "control": 0}[config.datum]
-    rejected = np.zeros(len(obs_image), dtype=bool)
+    q = len(obs_image)
+    rejected = np.zeros(q, dtype=bool)
+    reinstated = np.zeros(q, dtype=bool)  # put back once: never rejected again by the batch rounds' mistakes
     state = _State(intrinsics, poses0, x0.copy())
-    timings = {"pycolmap_solve": 0.0, "datum": 0.0, "covariance": 0.0}
-    thr = chi2.isf(options.alpha / len(obs_image), 2)
-    held: list[int] = []  # targets whose observations snooping no longer removes
-    stop = ""
+    timings = {"pycolmap_solve": 0.0, "datum": 0.0, "covariance": 0.0, "snooping": 0.0}
+    thr = chi2.isf(options.alpha / q, 2)
+    snoop = {"rounds": 0, "threshold": float(thr), "reinstated": 0, "untestable_rejected": 0,
+             "batch": bool(options.snooping_batch)}
     while True:
+        snoop["rounds"] += 1
         act_obs = ~rejected
         counts = np.bincount(obs_target[act_obs], minlength=n)
         active_pts = counts >= 2
@@ -115,7 +120,7 @@ def _bundle_adjust(obs_image, obs_target, obs_uv, intrinsics, cam_from_part, poi
         timings["pycolmap_solve"] += time.perf_counter() - t0
         for it in range(1, max(options.vce_iterations, 1) + 1 if group is not None else 2):
             t1 = time.perf_counter()
-            state, dconv = _datum_stage(state, x0, lay, config, args, sig[act_obs], options.datum_iterations, weighted)
+            state, dconv = _datum_stage(state, x0, lay, config, args, sig[act_obs], options.datum_iterations, full_gn)
             t2 = time.perf_counter()
             lin = _linearise(state, *args, lay, config, sig[act_obs], defect)
             stats = _statistics(lin, lay, n_obs=int(act_obs.sum()))
@@ -127,41 +132,80 @@ def _bundle_adjust(obs_image, obs_target, obs_uv, intrinsics, cam_from_part, poi
             sig, vc = _variance_step(sig, sig0, group, act_obs, lin, stats, options, it, vc)
             if vc.converged:
                 break
-        T = np.full(len(obs_image), np.nan)
-        T[act_obs] = stats["T"] / stats["s02"]
+        t4 = time.perf_counter()
+        s_test, which = (test_variance_factor(stats["T"], stats["s02"], options.snooping_contamination)
+                         if options.snooping_batch else (stats["s02"], "adjustment"))
+        snoop["variance_factor"] = which
+        T = np.full(q, np.nan)
+        T[act_obs] = stats["T"] / s_test
         testable = np.isfinite(T)
-        # a target losing more than half of its observations is itself suspect (wrong control coordinates,
-        # wrong identification): its remaining observations are held, and the target is named
-        for t_ in np.unique(obs_target[rejected]):
-            if (rejected & (obs_target == t_)).sum() >= 0.5 * (obs_target == t_).sum() and t_ not in held:
-                held.append(int(t_))
-        testable &= ~np.isin(obs_target, held)
-        failing = int(np.sum(np.where(testable, T, 0.0) > thr))
-        if not options.snooping or not testable.any() or failing == 0:
-            stop = "off" if not options.snooping else ("nothing testable" if not testable.any() else "none left")
-            break  # nothing left to test (e.g. two images: no redundancy per observation) or nothing fails
-        if rejected.sum() >= options.max_rejections:
-            stop = f"cap of {options.max_rejections} rejections reached; {failing} observation(s) still fail the test"
+        fails = testable & (T > thr)
+        snoop["still_failing"] = int(fails.sum())
+        stop = None
+        if not options.snooping:
+            stop = "off"
+        elif not testable.any():
+            stop = "nothing testable"  # e.g. two images: no redundancy per observation
+        elif not fails.any():
+            back = _reinstate(options, rejected, reinstated, act_obs, state, lin, lay, stats, s_test, thr,
+                              obs_image, obs_target, obs_uv, sig, snoop)
+            if not back.any():
+                stop = "no observation fails"
+            rejected[back], reinstated[back] = False, True
+            snoop["reinstated"] += int(back.sum())
+        elif rejected.sum() >= options.max_rejections:
+            stop = "max_rejections reached"
+        elif options.snooping_batch:
+            pick = pick_rejections(np.where(reinstated, np.nan, T), thr, obs_image, obs_target,
+                                   options.max_rejections - int(rejected.sum()))
+            if len(pick) == 0:  # only reinstated observations fail: take the largest (the plain rule)
+                pick = [int(np.nanargmax(T))]
+            rejected[pick] = True
+        else:
+            rejected[int(np.nanargmax(T))] = True
+        timings["snooping"] += time.perf_counter() - t4
+        if stop is not None:
+            snoop["stopped_because"] = stop
             break
-        rejected[int(np.nanargmax(np.where(testable, T, np.nan)))] = True
     res = _result(state, lin, stats, lay, T, rejected, act_obs, obs_image, obs_target, obs_uv, options, config,
-                  usable and (dconv or (config.datum == "free" and not weighted)), report, timings,
+                  usable and (dconv or (config.datum == "free" and not full_gn)), report, timings,
                   time.perf_counter() - t_start)
-    res.obs_sigma_px, res.variance_components = sig, vc
-    res.snooping = _snooping_summary(config, stop, thr, T, rejected, held, options)
+    res.obs_sigma_px, res.variance_components, res.snooping = sig, vc, snoop
+    _say_snooping(snoop, config, options, rejected, obs_target)
     if weighted:  # sigma0 in pixels: of an observation of the rms a priori sigma (equal weights: options.sigma_px)
         res.sigma0_px = float(np.sqrt(stats["s02"] * np.mean(sig[act_obs] ** 2)))
     return res
 
 
-def _snooping_summary(config, stop: str, thr: float, T: np.ndarray, rejected: np.ndarray, held: list[int],
-                      options) -> dict:
-    """What data snooping did and did not do: its test, why it stopped, and what it never tests."""
+def _reinstate(options, rejected, reinstated, act_obs, state, lin, lay, stats, s_test, thr, obs_image, obs_target,
+               obs_uv, sig, snoop) -> np.ndarray:
+    """Rejected observations that pass the test against the final adjustment (batch rounds only; each once)."""
+    back = np.zeros(len(rejected), dtype=bool)
+    out = rejected & ~act_obs
+    if not options.snooping_batch or not out.any():
+        return back
+    idx = np.flatnonzero(out & ~reinstated)
+    Tp = predicted_test(state, lin, lay, stats, obs_image[idx], obs_target[idx], obs_uv[idx], sig[idx]) / s_test
+    snoop["untestable_rejected"] = int(np.count_nonzero(~np.isfinite(Tp)))
+    back[idx[np.isfinite(Tp) & (Tp <= thr)]] = True
+    return back
+
+
+def _say_snooping(snoop: dict, config, options, rejected: np.ndarray, obs_target: np.ndarray) -> None:
+    """Add to ``snoop`` what an operator must read: ``complete`` (False: stopped before the end), ``stopped``
+    (why, with how many still fail at the cap), ``n_rejected``, ``suspect_targets`` (targets that lost half of
+    their observations or more: the target itself, e.g. its control coordinates or its name, is suspect) and
+    ``protected`` (observations snooping never tests: scale-bar lengths, control coordinates)."""
+    why = snoop.get("stopped_because", "")
+    snoop["complete"] = why in ("off", "nothing testable", "no observation fails")
+    snoop["stopped"] = (f"cap of {options.max_rejections} rejections reached; {snoop.get('still_failing', 0)} "
+                        "observation(s) still fail the test" if why == "max_rejections reached" else why)
+    snoop["n_rejected"] = int(rejected.sum())
+    n_obs = np.bincount(obs_target, minlength=int(obs_target.max()) + 1 if len(obs_target) else 0)
+    n_rej = np.bincount(obs_target[rejected], minlength=len(n_obs))
+    snoop["suspect_targets"] = [int(t) for t in np.flatnonzero((n_rej > 0) & (2 * n_rej >= n_obs))]
     protected = [f"scale bar {b.target_a}-{b.target_b} length (not tested: it defines the scale)"
                  for b in config.scale_bars]
     if config.control is not None and len(config.control.index):
         protected.append(f"{len(config.control.index)} control target coordinates (not tested: they define the datum)")
-    return {"alpha": options.alpha, "critical_value": float(thr), "n_rejected": int(rejected.sum()),
-            "stopped": stop, "complete": stop in ("none left", "nothing testable", "off"),
-            "max_statistic": float(np.nanmax(T)) if np.isfinite(T).any() else None,
-            "suspect_targets": held, "protected": protected}
+    snoop["protected"] = protected

@@ -10,7 +10,7 @@ from dataclasses import replace
 import numpy as np
 import pycolmap
 
-from calibration.bundle.config import CAMERA_MODELS, BundleConfig, BundleOptions
+from calibration.bundle.config import CAMERA_MODELS, COLMAP_MODELS, BundleConfig, BundleOptions
 from calibration.bundle.normal import _State
 from calibration.camera import Intrinsics
 from calibration.errors import CalibrationError
@@ -25,31 +25,31 @@ def _to_colmap_params(intr: Intrinsics, model: str) -> list[float]:
             f"bundle: camera model {model} has one focal length and radial terms only; "
             f"the intrinsics have fx != fy or tangential/k3 terms: use OPENCV"
         )
-    if intr.k3:
-        raise CalibrationError("bundle: k3 is not supported by the COLMAP models used here; set k3 = 0")
+    if intr.k3 and "k3" not in CAMERA_MODELS[model]:
+        raise CalibrationError(f"bundle: camera model {model} has no k3; use OPENCV_K3 or set k3 = 0")
     vals = {"fx": intr.fx_px, "fy": intr.fy_px, "f": f, "cx": intr.cx_px + _PIXEL_OFFSET,
-            "cy": intr.cy_px + _PIXEL_OFFSET, "k1": intr.k1, "k2": intr.k2, "p1": intr.p1, "p2": intr.p2}
+            "cy": intr.cy_px + _PIXEL_OFFSET, "k1": intr.k1, "k2": intr.k2, "p1": intr.p1, "p2": intr.p2, "k3": intr.k3}
     if model == "PINHOLE" and intr.has_distortion:
         raise CalibrationError("bundle: the PINHOLE model has no distortion; choose a model with distortion terms")
-    return [float(vals[p]) for p in CAMERA_MODELS[model]]
+    return [float(vals[p]) for p in CAMERA_MODELS[model]] + [0.0] * COLMAP_MODELS.get(model, (model, 0))[1]
 
 
 def _from_colmap_params(params: np.ndarray, model: str, base: Intrinsics) -> Intrinsics:
-    d = dict(zip(CAMERA_MODELS[model], (float(v) for v in params)))
+    d = dict(zip(CAMERA_MODELS[model], (float(v) for v in params)))  # COLMAP's extra (held zero) terms dropped
     if "f" in d:
         d["fx"] = d["fy"] = d.pop("f")
     d["cx"] -= _PIXEL_OFFSET
     d["cy"] -= _PIXEL_OFFSET
     return replace(base, fx_px=d["fx"], fy_px=d["fy"], cx_px=d["cx"], cy_px=d["cy"],
-                   k1=d.get("k1", 0.0), k2=d.get("k2", 0.0), p1=d.get("p1", 0.0), p2=d.get("p2", 0.0))
+                   k1=d.get("k1", 0.0), k2=d.get("k2", 0.0), p1=d.get("p1", 0.0), p2=d.get("p2", 0.0), k3=d.get("k3", 0.0))
 
 
 def _pycolmap_solve(state: _State, obs_image, obs_target, obs_uv, active_pts, config: BundleConfig,
                     options: BundleOptions) -> tuple[_State, bool, str]:
     m = len(state.poses)
     rec = pycolmap.Reconstruction()
-    cam = pycolmap.Camera.create_from_model_name(1, config.camera_model, state.intr.fx_px,
-                                                 state.intr.width, state.intr.height)
+    cam = pycolmap.Camera.create_from_model_name(1, COLMAP_MODELS.get(config.camera_model, (config.camera_model, 0))[0],
+                                                 state.intr.fx_px, state.intr.width, state.intr.height)
     cam.params = _to_colmap_params(state.intr, config.camera_model)
     rec.add_camera_with_trivial_rig(cam)
     order = np.lexsort((obs_target, obs_image))
@@ -73,7 +73,8 @@ def _pycolmap_solve(state: _State, obs_image, obs_target, obs_uv, active_pts, co
     opts.print_summary = False
     opts.refine_focal_length = config.refine_focal_length
     opts.refine_principal_point = config.refine_principal_point
-    opts.refine_extra_params = config.refine_distortion
+    # a model with held-zero COLMAP terms keeps its distortion here; the full Gauss-Newton refines it
+    opts.refine_extra_params = config.refine_distortion and config.camera_model not in COLMAP_MODELS
     opts.ceres.solver_options.max_num_iterations = options.max_iterations
     opts.ceres.solver_options.num_threads = options.num_threads
     opts.ceres.solver_options.function_tolerance = 1e-12

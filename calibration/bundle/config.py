@@ -16,8 +16,14 @@ CAMERA_MODELS: dict[str, tuple[str, ...]] = {
     "SIMPLE_RADIAL": ("f", "cx", "cy", "k1"),
     "RADIAL": ("f", "cx", "cy", "k1", "k2"),
     "OPENCV": ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2"),
+    # OpenCV's five-term model (k3 too): COLMAP's FULL_OPENCV with its rational terms k4..k6 held at 0;
+    # pycolmap keeps the distortion fixed and the Gauss-Newton iterations on the full normal equations
+    # refine k1, k2, p1, p2, k3 (calibration.bundle.adjust)
+    "OPENCV_K3": ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3"),
 }
-_GROUPS = {"focal": ("f", "fx", "fy"), "principal": ("cx", "cy"), "distortion": ("k1", "k2", "p1", "p2")}
+#: our model -> COLMAP's model (and how many trailing zero parameters COLMAP's has beyond ours)
+COLMAP_MODELS: dict[str, tuple[str, int]] = {"OPENCV_K3": ("FULL_OPENCV", 3)}
+_GROUPS = {"focal": ("f", "fx", "fy"), "principal": ("cx", "cy"), "distortion": ("k1", "k2", "p1", "p2", "k3")}
 
 
 @dataclass(frozen=True)
@@ -32,7 +38,11 @@ class ScaleBar:
 
 @dataclass(frozen=True)
 class ControlPoints:
-    """Targets with known coordinates: ``index: (k,)`` into the points, ``xyz: (k, 3)``, ``sigma_m: (k,) or (k, 3)``."""
+    """Targets with known coordinates: ``index: (k,)`` into the points, ``xyz: (k, 3)``, ``sigma_m: (k,) or (k, 3)``.
+
+    A target whose sigma is 0 (on all three axes) is truly fixed: its coordinates are not unknowns of the
+    adjustment, it keeps ``xyz`` exactly and its covariance is zero. Positive sigmas weight the control.
+    """
 
     index: np.ndarray
     xyz: np.ndarray
@@ -53,7 +63,15 @@ class BundleOptions:
         alpha: family-wise significance level of data snooping over the whole network
             (each observation is tested at ``alpha / q``, so a clean network keeps all its observations
             with probability ``1 - alpha``).
-        max_rejections: at most this many observations removed (a stop at the cap is said in ``BundleResult.snooping``).
+        max_rejections: at most this many observations removed (``result.snooping`` says when it stopped
+            the tests with observations still failing).
+        snooping_batch: reject many observations per re-adjustment (the largest failing statistic of each
+            target, at most a tenth of an image's observations per round), then test every rejected
+            observation against the final adjustment and put back those that pass
+            (:mod:`calibration.bundle.snooping`); False: one observation per re-adjustment (the old loop).
+        snooping_contamination: the tests divide by a robust variance factor (median of the statistics)
+            while the adjustment's ``s0^2`` exceeds it by more than this factor (blunders mask each other
+            through ``s0^2``); 0: always the adjustment's ``s0^2``.
         datum_iterations: Gauss-Newton iterations for scale bars and control targets.
         blas_threads: BLAS threads for the covariance algebra (None: leave as is). One is the fastest
             for networks of up to a few thousand targets on a 2-core machine (needs threadpoolctl).
@@ -71,6 +89,8 @@ class BundleOptions:
     snooping: bool = True
     alpha: float = 0.01
     max_rejections: int = 20
+    snooping_batch: bool = True
+    snooping_contamination: float = 2.0
     datum_iterations: int = 10
     blas_threads: int | None = 1
     vce_iterations: int = 15
@@ -141,11 +161,12 @@ class BundleResult:
             ``sigma0_px`` is then the a posteriori sigma of an observation whose a priori sigma is the rms of
             those of the observations used: the network's image precision, as with equal weights).
         variance_components: the per-group estimate when ``obs_group`` was given, else None.
-        snooping: what data snooping did: ``critical_value``, ``n_rejected``, ``stopped`` (why it stopped: "none
-            left", or the cap with how many observations still fail), ``complete`` (False: a stop before the end),
-            ``suspect_targets`` (targets that lost half of their observations: their remaining ones are held and the
-            target itself is suspect, e.g. wrong control coordinates) and ``protected`` (scale bars and control
-            coordinates, never tested).
+        snooping: how data snooping went: ``rounds`` (re-adjustments), ``threshold`` (critical value of the
+            divided statistic), ``stopped_because`` ("no observation fails" | "max_rejections reached" |
+            "off" | "nothing testable"), ``still_failing`` (active observations above the threshold when
+            it stopped), ``reinstated`` (observations put back), ``untestable_rejected`` (rejected
+            observations whose target left the network, so they could not be re-tested),
+            ``variance_factor`` ("adjustment" | "robust": what the last round's tests divided by).
     """
 
     points: np.ndarray
@@ -167,7 +188,7 @@ class BundleResult:
     timings: dict = field(default_factory=dict)
     obs_sigma_px: np.ndarray | None = None
     variance_components: VarianceComponents | None = None
-    snooping: dict | None = None
+    snooping: dict = field(default_factory=dict)
 
     def error_ellipsoids(self, k: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
         """Semi-axes ``(n, 3)`` (metres, ascending, times ``k``) and axis directions ``(n, 3, 3)`` (columns)."""

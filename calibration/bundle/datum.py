@@ -9,7 +9,7 @@ import numpy as np
 
 from calibration.alignment import similarity_fit
 from calibration.bundle.config import BundleConfig
-from calibration.bundle.normal import _Layout, _State, _apply_step, _linearise
+from calibration.bundle.normal import _control_sigma, _Layout, _State, _apply_step, _linearise
 from calibration.errors import CalibrationError
 
 
@@ -43,6 +43,11 @@ def _datum_stage(state: _State, x0: np.ndarray, lay: _Layout, config: BundleConf
             )
         s, R, t = similarity_fit(state.points[ci[ok]], np.asarray(config.control.xyz)[ok], with_scale=True)
         state = _apply_similarity(state, s, R, t)
+        fixed = ok & np.all(_control_sigma(config.control) == 0, axis=1)
+        if np.any(fixed):  # truly fixed control sits at its coordinates; the iterations below do not move it
+            pts = state.points.copy()
+            pts[ci[fixed]] = np.asarray(config.control.xyz, dtype=float)[fixed]
+            state = _State(state.intr, state.poses, pts)
         defect = 0
     else:
         bars = [b for b in config.scale_bars if lay.lslot[b.target_a] >= 0 and lay.lslot[b.target_b] >= 0]

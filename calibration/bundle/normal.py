@@ -18,7 +18,7 @@ from calibration.errors import CalibrationError
 
 def _update_intrinsics(intr: Intrinsics, names: tuple[str, ...], delta: np.ndarray) -> Intrinsics:
     d = {"fx_px": intr.fx_px, "fy_px": intr.fy_px, "cx_px": intr.cx_px, "cy_px": intr.cy_px,
-         "k1": intr.k1, "k2": intr.k2, "p1": intr.p1, "p2": intr.p2}
+         "k1": intr.k1, "k2": intr.k2, "p1": intr.p1, "p2": intr.p2, "k3": intr.k3}
     for name, dv in zip(names, delta):
         if name == "f":
             d["fx_px"] += dv
@@ -107,11 +107,15 @@ def _null_space(state: _State, lay: _Layout, d: int) -> tuple[np.ndarray, np.nda
     return Gc[:, :d], Gp[lay.unlinked][:, :, :d]
 
 
-def _linearise(
-    state: _State, obs_image: np.ndarray, obs_target: np.ndarray, obs_uv: np.ndarray, lay: _Layout,
-    config: BundleConfig, sigma_px: float | np.ndarray, defect: int,
-) -> _Linear:
-    m, k, p = lay.m, lay.k, lay.p
+def _jacobians(state: _State, obs_image: np.ndarray, obs_target: np.ndarray, obs_uv: np.ndarray, lay: _Layout,
+               sigma_px: float | np.ndarray):
+    """Whitened residuals and Jacobians of observations (of active targets) at ``state``.
+
+    Returns ``r (q, 2)``, ``Jp (q, 2, 3)`` (zero for linked targets), the compact camera-side
+    ``Jc (q, 2, 6 + k + 3)`` with its columns ``cidx (q, 6 + k + 3)``, the unlinked point ``slot (q,)``
+    and ``is_linked (q,)``.
+    """
+    m, k = lay.m, lay.k
     R = state.poses[obs_image, :3, :3]
     t = state.poses[obs_image, :3, 3]
     uv, Jp, Jpose, Jin = project_observations(state.intr, R, t, state.points[obs_target], lay.names)
@@ -135,6 +139,16 @@ def _linearise(
         Jp = Jp.copy()
         Jp[is_linked] = 0.0
     slot = np.where(is_linked, 0, lay.uslot[obs_target])
+    return r, Jp, Jc, cidx, slot, is_linked
+
+
+def _linearise(
+    state: _State, obs_image: np.ndarray, obs_target: np.ndarray, obs_uv: np.ndarray, lay: _Layout,
+    config: BundleConfig, sigma_px: float | np.ndarray, defect: int,
+) -> _Linear:
+    m, k, p = lay.m, lay.k, lay.p
+    W = 6 + k + 3
+    r, Jp, Jc, cidx, slot, is_linked = _jacobians(state, obs_image, obs_target, obs_uv, lay, sigma_px)
     # camera side: pose and interior blocks by image, linked points by scatter
     HH = np.einsum("qia,qib->qab", Jc, Jc)
     Ncc = np.zeros((p, p))
@@ -166,11 +180,15 @@ def _linearise(
         Npc[:, :, 6 * m : 6 * m + k] = _segment_sum(E[:, :, 6:], slot[un], max(nu, 1))[:nu]
     # extra observations
     extra = []
+    fixed = np.zeros(0, dtype=int)
     if config.control is not None and len(config.control.index):
         ci = np.asarray(config.control.index)
         sig = _control_sigma(config.control)
         keep = (lay.uslot[ci] >= 0) | (lay.lslot[ci] >= 0)
+        fixed = ci[keep & np.all(sig == 0, axis=1)]
         for i, xyz, s in zip(ci[keep], np.asarray(config.control.xyz)[keep], sig[keep]):
+            if np.all(s == 0):  # truly fixed: no observation, its unknowns are removed below
+                continue
             res = (xyz - state.points[i]) / s
             Jx = np.diag(1.0 / s)
             extra.append(res)
@@ -194,8 +212,25 @@ def _linearise(
         Ncc[np.ix_(cols, cols)] += np.outer(Jx, Jx)
         bc[cols] += Jx * res
         extra.append(np.array([res]))
+    # truly fixed control targets: their coordinates are not unknowns. An unlinked one keeps a unit block
+    # (then zeroed, so it neither moves nor enters the reduced system), a linked one a unit block on the
+    # camera side with no right-hand side and no coupling.
+    fu = lay.uslot[fixed][lay.uslot[fixed] >= 0]
+    if len(fu):
+        Npp[fu] = np.eye(3)
+        bp[fu] = 0.0
+        Npc[fu] = 0.0
+    fl = fixed[lay.lslot[fixed] >= 0]
+    if len(fl):
+        cols = lay.link_cols(fl).ravel()
+        Ncc[cols, :] = 0.0
+        Ncc[:, cols] = 0.0
+        Ncc[cols, cols] = 1.0
+        bc[cols] = 0.0
     # Schur complement on the points
     Dinv = np.linalg.inv(Npp)
+    if len(fu):
+        Dinv[fu] = 0.0
     V = np.einsum("nab,nbp->nap", Dinv, Npc)
     V2 = V.reshape(-1, p)
     S = Ncc - Npc.reshape(-1, p).T @ V2
@@ -227,8 +262,10 @@ def _control_sigma(control: ControlPoints) -> np.ndarray:
     if s.ndim == 1:
         s = s[:, None]
     out = np.broadcast_to(s, (k, 3)).astype(float)
-    if np.any(~(out > 0)):
-        raise CalibrationError("bundle: control target standard deviations must be positive")
+    if np.any(~(out >= 0)):
+        raise CalibrationError("bundle: control target standard deviations must be >= 0 (0: held fixed)")
+    if np.any((out == 0).any(axis=1) & (out > 0).any(axis=1)):
+        raise CalibrationError("bundle: a control target is either fixed (sigma 0 on all three axes) or weighted")
     return out
 
 

@@ -46,8 +46,8 @@ def project_observations(
             J_intr[:, 0, c] = 1.0
         elif name == "cy":
             J_intr[:, 1, c] = 1.0
-        elif name in ("k1", "k2"):
-            rp = r2 if name == "k1" else r2 * r2
+        elif name in ("k1", "k2", "k3"):
+            rp = r2 if name == "k1" else r2 * r2 if name == "k2" else r2 * r2 * r2
             J_intr[:, 0, c] = intr.fx_px * xn * rp
             J_intr[:, 1, c] = intr.fy_px * yn * rp
         elif name == "p1":

@@ -1,10 +1,83 @@
-"""Residual statistics of an adjustment: variance factor, redundancy numbers, data-snooping statistic."""
+"""Residual statistics of an adjustment and the data-snooping decisions.
+
+Statistics: variance factor, redundancy numbers, and each observation's test statistic
+``T = v^T Q_vv^-1 v`` (whitened, not yet divided by a variance factor; chi-square with 2 dof times
+the variance factor for a good observation).
+
+Decisions (docs/decisions/0013-scale.md):
+
+- :func:`test_variance_factor`: the variance factor the tests divide by: the adjustment's own
+  ``s0^2`` (Pope's test), unless the network is evidently contaminated (``s0^2`` above
+  ``contamination`` x a robust estimate from the median of the statistics), where the robust one
+  is used (blunders inflate ``s0^2`` and would mask each other).
+- :func:`pick_rejections`: many rejections per round. A blunder spreads into the residuals of the
+  other observations of its target (they share the point) and, much less, of its image (the pose is
+  fixed by many targets). So of the failing observations only those with the largest statistic of
+  their target are rejected in one round, at most a tenth of an image's observations, largest first.
+- :func:`predicted_test`: after the rounds, every rejected observation whose target is still in the
+  network is tested against the final adjustment (its predicted residual with cofactor
+  ``I + J Q_xx J^T``: the same statistic it would have in the adjustment that includes it); one that
+  passes is put back once, and the network re-adjusted.
+"""
 from __future__ import annotations
 
 import numpy as np
 
-from calibration.bundle.normal import _Layout, _Linear
+from calibration.bundle.normal import _jacobians, _Layout, _Linear
 from calibration.errors import CalibrationError
+
+_MEDIAN_CHI2_2 = 2.0 * np.log(2.0)  # median of chi-square with 2 degrees of freedom
+
+
+def _cofactor_blocks(lin: _Linear, lay: _Layout) -> tuple[np.ndarray, np.ndarray]:
+    """``Qpp (nu, 3, 3)`` (points' cofactor blocks) and ``VS = V Sigma (nu, 3, p)``."""
+    nu, p = lin.V.shape[0], lin.Sigma.shape[0]
+    VS = (lin.V.reshape(-1, p) @ lin.Sigma).reshape(nu, 3, p)
+    Qpp = lin.Dinv + np.einsum("nar,nbr->nab", VS, lin.V)
+    return Qpp, VS
+
+
+def _projected_cofactor(lin: _Linear, lay: _Layout, Qpp, VS, Jp, Jc, cidx, slot) -> np.ndarray:
+    """``J Q_xx J^T`` of observations with Jacobians ``Jp, Jc`` (compact) at columns ``cidx``; (q, 2, 2)."""
+    m, k = lay.m, lay.k
+    nu, p = VS.shape[0], VS.shape[2]
+    sl = slot
+    img = cidx[:, 0] // 6
+    w = 6 + k
+    # Q blocks each observation needs, gathered from contiguous per-image blocks
+    Qpc = np.empty((len(sl), 3, w))
+    VSr = VS[:, :, : 6 * m].reshape(nu, 3, m, 6)
+    Qpc[:, :, :6] = -VSr[sl, :, img, :]
+    Sr = lin.Sigma[: 6 * m, : 6 * m].reshape(m, 6, m, 6)
+    Qcc = np.empty((len(sl), w, w))
+    Qcc[:, :6, :6] = Sr[np.arange(m), :, np.arange(m), :][img]
+    if k:
+        Qpc[:, :, 6:] = -VS[:, :, 6 * m : 6 * m + k][sl]
+        SI = lin.Sigma[: 6 * m, 6 * m : 6 * m + k].reshape(m, 6, k)[img]
+        Qcc[:, :6, 6:] = SI
+        Qcc[:, 6:, :6] = np.swapaxes(SI, 1, 2)
+        Qcc[:, 6:, 6:] = lin.Sigma[6 * m : 6 * m + k, 6 * m : 6 * m + k]
+    Jcw = Jc[:, :, :w]
+    Qsl = Qpp[sl]
+    A = (
+        np.einsum("qib,qjb->qij", np.einsum("qia,qab->qib", Jp, Qsl), Jp)
+        + 2 * np.einsum("qib,qjb->qij", np.einsum("qia,qab->qib", Jp, Qpc), Jcw)
+        + np.einsum("qib,qjb->qij", np.einsum("qia,qab->qib", Jcw, Qcc), Jcw)
+    )
+    linked = np.any(cidx[:, w:] != 0, axis=1) | np.any(Jc[:, :, w:] != 0, axis=(1, 2))
+    if np.any(linked):  # observations of scale-bar targets: the general (slow) gather, on few rows
+        cl = cidx[linked]
+        Jl = Jc[linked]
+        Ql = lin.Sigma[cl[:, :, None], cl[:, None, :]]
+        A[linked] = np.einsum("qib,qjb->qij", np.einsum("qia,qab->qib", Jl, Ql), Jl)
+    return 0.5 * (A + np.swapaxes(A, 1, 2))
+
+
+def _quadratic(Q: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """``v^T Q^-1 v`` for 2x2 ``Q: (q, 2, 2)``; nan where ``Q`` is (near) singular."""
+    det = Q[:, 0, 0] * Q[:, 1, 1] - Q[:, 0, 1] ** 2
+    det = np.where(det > 1e-12, det, np.nan)
+    return (Q[:, 1, 1] * v[:, 0] ** 2 - 2 * Q[:, 0, 1] * v[:, 0] * v[:, 1] + Q[:, 0, 0] * v[:, 1] ** 2) / det
 
 
 def _statistics(lin: _Linear, lay: _Layout, n_obs: int) -> dict:
@@ -15,44 +88,67 @@ def _statistics(lin: _Linear, lay: _Layout, n_obs: int) -> dict:
     if dof <= 0:
         raise CalibrationError(f"bundle: no redundancy ({dof} degrees of freedom); more images or targets are needed")
     s02 = r2 / dof
-    nu, p = lin.V.shape[0], lin.Sigma.shape[0]
-    m, k = lay.m, lay.k
-    VS = (lin.V.reshape(-1, p) @ lin.Sigma).reshape(nu, 3, p)
-    Qpp = lin.Dinv + np.einsum("nar,nbr->nab", VS, lin.V)
-    sl, ci = lin.slot, lin.cidx
-    img = ci[:, 0] // 6
-    w = 6 + k
-    # Q blocks each observation needs, gathered from contiguous per-image blocks
-    Qpc = np.empty((len(sl), 3, w))
-    VSr = np.ascontiguousarray(VS[:, :, : 6 * m].reshape(nu, 3, m, 6).transpose(0, 2, 1, 3))
-    Qpc[:, :, :6] = -VSr[sl, img]
-    Sr = lin.Sigma[: 6 * m, : 6 * m].reshape(m, 6, m, 6)
-    Qcc = np.empty((len(sl), w, w))
-    Qcc[:, :6, :6] = Sr[np.arange(m), :, np.arange(m), :][img]
-    if k:
-        Qpc[:, :, 6:] = -VS[:, :, 6 * m : 6 * m + k][sl]
-        SI = lin.Sigma[: 6 * m, 6 * m : 6 * m + k].reshape(m, 6, k)[img]
-        Qcc[:, :6, 6:] = SI
-        Qcc[:, 6:, :6] = np.swapaxes(SI, 1, 2)
-        Qcc[:, 6:, 6:] = lin.Sigma[6 * m : 6 * m + k, 6 * m : 6 * m + k]
-    Jp, Jc = lin.Jp, lin.Jc[:, :, :w]
-    Qsl = Qpp[sl]
-    A = (
-        np.einsum("qib,qjb->qij", np.einsum("qia,qab->qib", Jp, Qsl), Jp)
-        + 2 * np.einsum("qib,qjb->qij", np.einsum("qia,qab->qib", Jp, Qpc), Jc)
-        + np.einsum("qib,qjb->qij", np.einsum("qia,qab->qib", Jc, Qcc), Jc)
-    )
-    linked = np.any(lin.cidx[:, w:] != 0, axis=1) | np.any(lin.Jc[:, :, w:] != 0, axis=(1, 2))
-    if np.any(linked):  # observations of scale-bar targets: the general (slow) gather, on few rows
-        cl = lin.cidx[linked]
-        Jl = lin.Jc[linked]
-        Ql = lin.Sigma[cl[:, :, None], cl[:, None, :]]
-        A[linked] = np.einsum("qib,qjb->qij", np.einsum("qia,qab->qib", Jl, Ql), Jl)
-    A = 0.5 * (A + np.swapaxes(A, 1, 2))
+    Qpp, VS = _cofactor_blocks(lin, lay)
+    A = _projected_cofactor(lin, lay, Qpp, VS, lin.Jp, lin.Jc, lin.cidx, lin.slot)
     Qvv = np.eye(2) - A
     red = 0.5 * np.trace(Qvv, axis1=1, axis2=2)
-    det = Qvv[:, 0, 0] * Qvv[:, 1, 1] - Qvv[:, 0, 1] ** 2
-    det = np.where(det > 1e-12, det, np.nan)  # observations without redundancy cannot be tested
-    v = lin.r_img
-    T = (Qvv[:, 1, 1] * v[:, 0] ** 2 - 2 * Qvv[:, 0, 1] * v[:, 0] * v[:, 1] + Qvv[:, 0, 0] * v[:, 1] ** 2) / det
-    return {"s02": s02, "dof": dof, "T": T, "redundancy": red}
+    T = _quadratic(Qvv, lin.r_img)  # observations without redundancy cannot be tested: nan
+    return {"s02": s02, "dof": dof, "T": T, "redundancy": red, "Qpp": Qpp, "VS": VS}
+
+
+def test_variance_factor(T: np.ndarray, s02: float, contamination: float) -> tuple[float, str]:
+    """The variance factor the tests divide by, and which one ("adjustment" | "robust")."""
+    finite = T[np.isfinite(T)]
+    if contamination <= 0 or len(finite) < 20:
+        return s02, "adjustment"
+    robust = float(np.median(finite)) / _MEDIAN_CHI2_2
+    if robust > 0 and s02 > contamination * robust:
+        return robust, "robust"
+    return s02, "adjustment"
+
+
+def pick_rejections(T: np.ndarray, threshold: float, obs_image: np.ndarray, obs_target: np.ndarray,
+                    budget: int, image_share: float = 0.1) -> np.ndarray:
+    """Observations to reject in one round (indices into ``T``), largest statistic first.
+
+    ``T: (q,)`` divided statistics (nan: untestable or inactive). A failing observation is taken
+    only if its statistic is the largest of its target's; at most ``max(1, image_share x active
+    observations of its image)`` per image, and at most ``budget`` in all.
+    """
+    act = np.isfinite(T)
+    fails = act & (T > threshold)
+    if not fails.any() or budget <= 0:
+        return np.zeros(0, dtype=int)
+    idx = np.flatnonzero(act)
+    n_t = int(obs_target.max()) + 1
+    best = np.full(n_t, -np.inf)
+    np.maximum.at(best, obs_target[idx], T[idx])
+    cand = np.flatnonzero(fails & (T >= best[obs_target]))
+    cand = cand[np.argsort(-T[cand], kind="stable")]
+    # one per target (ties: the first), then the per-image share
+    _, first = np.unique(obs_target[cand], return_index=True)
+    cand = cand[np.sort(first)]
+    per_img = np.bincount(obs_image[idx], minlength=int(obs_image.max()) + 1)
+    cap = np.maximum(1, np.floor(image_share * per_img)).astype(int)
+    rank = np.zeros(len(cand), dtype=int)
+    seen: dict[int, int] = {}
+    for i, j in enumerate(obs_image[cand]):
+        rank[i] = seen.get(int(j), 0)
+        seen[int(j)] = rank[i] + 1
+    cand = cand[rank < cap[obs_image[cand]]]
+    return cand[:budget]
+
+
+def predicted_test(state, lin: _Linear, lay: _Layout, stats: dict, obs_image, obs_target, obs_uv,
+                   sigma_px) -> np.ndarray:
+    """Statistic ``v^T (I + J Q_xx J^T)^-1 v`` (whitened, undivided) of observations left out of the
+    adjustment, at its final state; (q,) nan where their target is not in the adjustment."""
+    out = np.full(len(obs_image), np.nan)
+    ok = (lay.uslot[obs_target] >= 0) | (lay.lslot[obs_target] >= 0)
+    if not ok.any():
+        return out
+    r, Jp, Jc, cidx, slot, _ = _jacobians(state, obs_image[ok], obs_target[ok], obs_uv[ok], lay,
+                                          np.broadcast_to(np.asarray(sigma_px, dtype=float), (len(ok),))[ok])
+    A = _projected_cofactor(lin, lay, stats["Qpp"], stats["VS"], Jp, Jc, cidx, slot)
+    out[ok] = _quadratic(np.eye(2) + A, r)
+    return out

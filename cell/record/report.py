@@ -201,6 +201,28 @@ def _alignment_facts(doc: dict) -> dict:
     return out
 
 
+def _closed_loop_html(doc: dict) -> str:
+    """The closed loop's rounds and the targets that still miss their requirement (with why)."""
+    cl = doc.get("closed_loop")
+    if not cl:
+        return ""
+    req = cl.get("required_sigma_m")
+    rows = "".join(
+        f"<tr><td>{r['round']}</td><td class=l>{html.escape(r['status'])}</td><td>{len(r['targets_short'])}</td>"
+        f"<td class=l>{html.escape(', '.join(r['stations_added']))}</td><td>{len(r['targets_fixed'])}</td>"
+        f"<td>{_num(r.get('time_s'), 1, 1)}</td></tr>"
+        for r in cl["rounds"])
+    unmet = "".join(f'<tr class="fail"><td class=l>{html.escape(u["id"])}</td><td class=l>{html.escape(u["reason"])}</td></tr>'
+                    for u in cl["unmet"])
+    head = ("every target within its requirement" if not cl["unmet"] else
+            f"{len(cl['unmet'])} target(s) still miss their requirement")
+    return (f"<h2>Closed loop</h2><p id=closed-loop>Required sigma {_fmt_um(req) + ' um' if req else 'per target'}: "
+            f"{html.escape(head)}.</p>"
+            "<table class=kv><tr><th>round</th><th>status</th><th>short</th><th>stations added</th><th>fixed</th>"
+            f"<th>time [s]</th></tr>{rows}</table>"
+            + (f"<table class=kv><tr><th>target</th><th>why it still misses</th></tr>{unmet}</table>" if unmet else ""))
+
+
 def render_html(doc: dict, figures: dict[str, str]) -> str:
     """The self-contained HTML report."""
     j = doc["job"]
@@ -240,6 +262,6 @@ def render_html(doc: dict, figures: dict[str, str]) -> str:
 <table id="targets"><tr><th>id</th><th>x [mm]</th><th>y [mm]</th><th>z [mm]</th><th>dx [um]</th><th>dy [um]</th>
 <th>dz [um]</th><th>|d| [um]</th><th>tol [um]</th><th>U (k=2) [um]</th><th>sigma [um]</th><th>predicted [um]</th><th>images</th><th></th></tr>
 {''.join(rows)}</table>
-<h2>Time per stage</h2><table class="kv">{stages}</table>
+{_closed_loop_html(doc)}<h2>Time per stage</h2><table class="kv">{stages}</table>
 </body></html>
 """

@@ -149,12 +149,15 @@ class RunLog:
         self.write("/detections", {"station": station, "ids": ids, "uv": uv})
 
     def close(self) -> None:
+        """Finish and close the file; the file is closed even when finishing fails (a full disk): then raises."""
         if not self.closed:
-            self._w.finish()
-            self._f.flush()
-            os.fsync(self._f.fileno())
-            self._f.close()
             self.closed = True
+            try:
+                self._w.finish()
+                self._f.flush()
+                os.fsync(self._f.fileno())
+            finally:
+                self._f.close()
 
 
 def read_messages(path: Path) -> Iterator[tuple[str, dict]]:

@@ -1,5 +1,7 @@
 """The stages of a job, one module each, in the order of the state table (:mod:`cell.states`).
 
+``close_loop`` adds stations after ADJUST for targets that miss their requirement (decision 0013).
+
 Each stage is a function ``run(ctx)`` that reads what earlier stages wrote into the job folder and
 writes its own result atomically before the state machine moves on. :data:`STAGE_FUNCTIONS` maps
 every working :class:`~cell.states.State` to its stage; the runner (:mod:`cell.job`) reads this
@@ -11,7 +13,7 @@ from __future__ import annotations
 
 from typing import Callable
 
-from cell.stages import acquire, adjust, calibrate, load, measure, plan, report, validate
+from cell.stages import acquire, adjust, calibrate, close_loop, load, measure, plan, report, validate
 from cell.states import STAGES, State
 
 StageFunction = Callable[[object], None]
@@ -25,6 +27,7 @@ STAGE_FUNCTIONS: dict[State, StageFunction] = {
     State.MEASURE: measure.run,
     State.CALIBRATE: calibrate.run,
     State.ADJUST: adjust.run,
+    State.CLOSE_LOOP: close_loop.run,
     State.REPORT: report.run,
 }
 

@@ -7,6 +7,7 @@ import cv2
 import numpy as np
 
 from calibration.errors import DriverError
+from cell.record.integrity import acquired
 from cell.record.jobfolder import atomic_write_bytes, atomic_write_json, sha256_file
 
 
@@ -21,7 +22,7 @@ def run(ctx) -> None:
 
     plan_doc = ctx.folder.read_json("plan.json")
     stations = _stations_in_order(plan_doc)
-    done = {r["station"] for r in ctx.folder.records() if r["event"] == "station_done"}
+    done = set(acquired(list(ctx.folder.records())))  # stations whose image stands (verified on resume)
     if ctx.devices is None:
         ctx.devices = open_devices(ctx.job, ctx.backend)
     dev = ctx.devices
@@ -57,7 +58,7 @@ def run(ctx) -> None:
                           joints=np.asarray(state.joints_rad), base_from_flange=np.asarray(state.base_from_flange),
                           robot_timestamp_s=state.timestamp_s, exposure_s=frame.exposure_s)
     ctx.progress("acquire", 1.0)
-    recs = {r["station"]: r for r in ctx.folder.records() if r["event"] == "station_done"}
+    recs = acquired(list(ctx.folder.records()))
     images = [{"station": s["id"], "order": s["order"], "image": recs[s["id"]]["image"],
                "sha256": recs[s["id"]]["sha256"], "joints": recs[s["id"]]["joints"],
                "base_from_flange": recs[s["id"]]["base_from_flange"]} for s in stations]

@@ -14,7 +14,8 @@ import cv2
 import numpy as np
 
 from calibration.camera import Intrinsics, invert
-from calibration.targets import (DetectionOptions, detect_coded_targets, detect_retro_targets, eccentricity_bias,
+from calibration.ringcodes import RING_FAMILIES, decode_ring_codes
+from calibration.targets import (DetectionOptions, detect_coded_targets, detect_dots, eccentricity_bias,
                                  identify_targets)
 from planning.visibility import Occluder, VisibilityOptions, compute_visibility
 
@@ -66,6 +67,8 @@ class DotMeasurement:
         cam_from_part: (4, 4) the pose the dots were named with.
         n_unidentified: blobs no target was matched to (marker pieces, glints, edges).
         n_partly_hidden: identified dots dropped because an edge of the part clips them.
+        cov: (k, 2, 2) each centre's covariance from the detector (px^2, ``Detections.cov``), or None
+            when the caller gave none.
     """
 
     target: np.ndarray
@@ -73,12 +76,16 @@ class DotMeasurement:
     cam_from_part: np.ndarray
     n_unidentified: int = 0
     n_partly_hidden: int = 0
+    cov: np.ndarray | None = None
 
 
 def name_dots(det_uv: np.ndarray, part, intr: Intrinsics, cam_from_part: np.ndarray, occluder: Occluder, *,
               max_dist_px: float = 25.0, incidence_max_rad: float = float(np.deg2rad(85.0)),
-              coded_ids: np.ndarray | None = None, coded_uv: np.ndarray | None = None) -> DotMeasurement:
+              coded_ids: np.ndarray | None = None, coded_uv: np.ndarray | None = None,
+              det_cov: np.ndarray | None = None) -> DotMeasurement:
     """Identify detected dot centres ``det_uv: (k, 2)`` with an approximate pose and measure them.
+
+    ``det_cov: (k, 2, 2)`` (px^2) travels with the centres it belongs to.
 
     Only dots in view from the pose at no more than ``incidence_max_rad`` are offered to the matcher;
     coded detections (``coded_ids``, ``coded_uv``) refine the pose first (PnP) when there are enough.
@@ -100,22 +107,43 @@ def name_dots(det_uv: np.ndarray, part, intr: Intrinsics, cam_from_part: np.ndar
     tid = match[dots]
     bias = eccentricity_bias(intr, cam_from_part, t.xyz[tid], t.normals[tid], radius)
     return DotMeasurement(tid, det_uv[dots] - bias, np.asarray(cam_from_part, dtype=float),
-                          int((match < 0).sum()), int((~clear).sum()))
+                          int((match < 0).sum()), int((~clear).sum()),
+                          None if det_cov is None else np.asarray(det_cov)[dots])
+
+
+def detection_options(camera) -> DetectionOptions:
+    """The detector's options for a job's ``[camera]`` section (``polarity``, ``detection``)."""
+    polarity = getattr(camera, "polarity", "bright")
+    if getattr(camera, "detection", "cell") == "photograph":
+        return DetectionOptions.for_real_images(polarity=polarity)
+    return DetectionOptions(polarity=polarity)
 
 
 def measure_image(image: np.ndarray, part, intr: Intrinsics, cam_from_part_approx: np.ndarray, occluder: Occluder, *,
                   detection: DetectionOptions | None = None, max_dist_px: float = 25.0,
-                  incidence_max_rad: float = float(np.deg2rad(85.0))) -> tuple[DotMeasurement, dict]:
+                  incidence_max_rad: float = float(np.deg2rad(85.0)),
+                  coded_family: str = "aruco") -> tuple[DotMeasurement, dict]:
     """Detect, identify and measure the dots of one image from its approximate pose.
 
+    ``coded_family``: "aruco" (markers found by OpenCV) or a ring-code family (``calibration.ringcodes``:
+    the code rings around detected dots are read, the rings' pieces dropped). Either way the coded targets
+    name the image and refine its pose; they are not measured (decision 0004).
     Returns the measurement and counts for the record (dots, coded markers seen).
     """
     t = part.targets
     code_to_index = {int(c): i for i, c in enumerate(t.code) if c >= 0}
-    codes, corners, centres = detect_coded_targets(image)
-    known = np.array([int(c) in code_to_index for c in codes], dtype=bool)
-    det = detect_retro_targets(image, detection or DetectionOptions())
-    keep = ~inside_any(det.uv, corners[known], grow=MARKER_GROW)
+    det = detect_dots(image, detection or DetectionOptions())
+    if coded_family in RING_FAMILIES:
+        rc = decode_ring_codes(image, det, coded_family)
+        codes, centres = rc.code, det.uv[rc.index]
+        known = np.array([int(c) in code_to_index for c in codes], dtype=bool)
+        keep = ~rc.ring_parts(det.uv)
+        keep[rc.index] = False
+    else:
+        codes, corners, centres = detect_coded_targets(image)
+        known = np.array([int(c) in code_to_index for c in codes], dtype=bool)
+        keep = ~inside_any(det.uv, corners[known], grow=MARKER_GROW)
     m = name_dots(det.uv[keep], part, intr, cam_from_part_approx, occluder, max_dist_px=max_dist_px,
-                  incidence_max_rad=incidence_max_rad, coded_ids=codes[known], coded_uv=centres[known])
+                  incidence_max_rad=incidence_max_rad, coded_ids=codes[known], coded_uv=centres[known],
+                  det_cov=det.cov[keep])
     return m, {"n_dots": int(keep.sum()), "n_coded": int(known.sum())}

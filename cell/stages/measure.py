@@ -1,4 +1,8 @@
-"""MEASURE: sub-pixel target detection and identification in every image; observations.json."""
+"""MEASURE: sub-pixel target detection and identification in every image; observations.json.
+
+observations.json: ``images``: list of {``station``, ``image``, ``ids``, ``uv`` (k, 2 px), ``cov_px2`` (k, 2, 2:
+each centre's covariance from the detector, px^2, ``calibration.dots.Detections.cov``), counts}.
+"""
 from __future__ import annotations
 
 import cv2
@@ -7,12 +11,14 @@ import numpy as np
 from calibration.camera import invert
 from calibration.errors import CalibrationError
 from cell.record.jobfolder import atomic_write_json
-from cell.stages.imaging import measure_image
+from cell.stages.imaging import detection_options, measure_image
 from planning.visibility import Occluder
 
 
-def run(ctx) -> None:
+def run(ctx, keep: bool = False) -> None:
     """Detect, centre and identify the targets in every image (cell.stages.imaging.measure_image).
+
+    ``keep``: images already in observations.json keep their measurement (the closed loop's rounds).
 
     Dots are named by projecting the nominal targets with the robot's pose and the hand-eye, refined
     by the coded targets (solvePnP) where at least four are seen; coded targets are not measured.
@@ -22,16 +28,24 @@ def run(ctx) -> None:
     ids_all = job.part.targets.ids
     bfp, ffc = job.spec.base_from_part(), job.spec.flange_from_cam()
     occluder = Occluder(job.part.mesh)
+    detection = detection_options(job.spec.camera)
+    # images measured before (a closed-loop round adds images to a measured network): kept as they are
+    path = ctx.folder.file("observations.json")
+    before = {o["image"]: o for o in ctx.folder.read_json("observations.json")["images"]} if keep and path.exists() else {}
     out = []
     for k, im in enumerate(acq["images"]):
+        if im["image"] in before:
+            out.append(before[im["image"]])
+            continue
         ctx.progress("measure", k / len(acq["images"]))
         img = cv2.imread(str(ctx.folder.file(im["image"])), cv2.IMREAD_UNCHANGED)
         if img is None:
             raise CalibrationError(f"{im['image']}: cannot read the image")
         cam_from_part = invert(invert(bfp) @ np.asarray(im["base_from_flange"], dtype=float) @ ffc)
-        m, counts = measure_image(img, job.part, job.intrinsics, cam_from_part, occluder)
+        m, counts = measure_image(img, job.part, job.intrinsics, cam_from_part, occluder, detection=detection,
+                                  coded_family=job.spec.job.coded_family)
         names = [ids_all[int(i)] for i in m.target]
-        out.append({"station": im["station"], "image": im["image"], "ids": names, "uv": m.uv,
+        out.append({"station": im["station"], "image": im["image"], "ids": names, "uv": m.uv, "cov_px2": m.cov,
                     "n_unidentified": m.n_unidentified, "n_partly_hidden": m.n_partly_hidden} | counts)
         ctx.log.detections(im["station"], names, m.uv)
     ctx.progress("measure", 1.0)

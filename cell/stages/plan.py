@@ -15,6 +15,27 @@ from planning.reachability import ReachabilityDB
 from planning.visibility import VisibilityDB, default_cache_dir
 
 
+def load_databases(job: LoadedJob, opts, cache_dir: Path, report) -> tuple[VisibilityDB, ReachabilityDB, object]:
+    """The job's candidate stations: the visibility database and the robot's reachability of each (both cached).
+
+    Used by PLAN and by CLOSE_LOOP (which must see the same candidates). Returns ``(db, reach, robot)``.
+    """
+    from dataclasses import replace
+
+    from planning.visibility import VisibilityOptions
+
+    vis_opts = replace(opts.visibility or VisibilityOptions(), incidence_max_rad=opts.incidence_max_rad)
+    sphere = replace(opts.sphere, max_roll_rad=0.0, max_offset_m=0.0)
+    db = VisibilityDB.load_or_build(job.part, job.intrinsics, sphere, vis_opts, opts.n_candidates, cache_dir, report,
+                                    n_shells=opts.n_shells, backend=opts.backend)
+    report("reachability", 0.0)
+    robot = robot_model(job)
+    reach = ReachabilityDB.load_or_build(robot, job.spec.base_from_part(), job.spec.flange_from_cam(),
+                                         db.part_from_cam, collision_world(job), cache_dir=cache_dir)
+    report("reachability", 1.0)
+    return db, reach, robot
+
+
 def make_plan(job: LoadedJob, progress=None, cache_dir: Path | None = None,
               lower_bound: bool | None = None) -> tuple[NetworkPlan, dict]:
     """Design the network for a job: visibility database, reachability database, evolutionary search.
@@ -30,17 +51,7 @@ def make_plan(job: LoadedJob, progress=None, cache_dir: Path | None = None,
         opts = replace(opts, lower_bound=bool(lower_bound))
     report = progress or (lambda s, f: None)
 
-    from planning.visibility import VisibilityOptions
-
-    vis_opts = replace(opts.visibility or VisibilityOptions(), incidence_max_rad=opts.incidence_max_rad)
-    sphere = replace(opts.sphere, max_roll_rad=0.0, max_offset_m=0.0)
-    db = VisibilityDB.load_or_build(job.part, job.intrinsics, sphere, vis_opts, opts.n_candidates, cache_dir, report,
-                                    n_shells=opts.n_shells, backend=opts.backend)
-    report("reachability", 0.0)
-    robot = robot_model(job)
-    reach = ReachabilityDB.load_or_build(robot, job.spec.base_from_part(), job.spec.flange_from_cam(),
-                                         db.part_from_cam, collision_world(job), cache_dir=cache_dir)
-    report("reachability", 1.0)
+    db, reach, robot = load_databases(job, opts, cache_dir, report)
     reachable = reach.reachable
     n_ok = int(reachable.sum())
     useful = db.visible.any(axis=1)
@@ -62,10 +73,11 @@ def make_plan(job: LoadedJob, progress=None, cache_dir: Path | None = None,
     try:
         extra = {}
         if fn is plan_network:
-            from planning.reachability import reachability_mask
+            from planning.reachability import ReachabilityOptions, reachability_mask
 
             world, bfp, ffc = collision_world(job), job.spec.base_from_part(), job.spec.flange_from_cam()
-            extra["reachable_fn"] = lambda T: reachability_mask(robot, bfp, ffc, T, world).reachable
+            fast = ReachabilityOptions(compute_distances=False)  # the polish needs yes/no, not the margins
+            extra["reachable_fn"] = lambda T: reachability_mask(robot, bfp, ffc, T, world, fast).reachable
         plan = fn(job.part, job.intrinsics, opts, np.random.default_rng(job.spec.job.seed), reachable=reachable,
                   cache_dir=cache_dir, progress=report, seed=job.spec.job.seed, db=db, **extra)
     except PlanningError as exc:

@@ -122,6 +122,20 @@ def _predicted_over_achieved(targets: list[dict]) -> dict:
             "n": int(len(r))}
 
 
+def _closed_loop(f) -> dict | None:
+    """report.json's ``closed_loop`` (when the stage ran with it on): each round and what still misses."""
+    if not f.file("closed_loop.json").exists():
+        return None
+    cl = json.loads(f.file("closed_loop.json").read_text())
+    if not cl.get("enabled"):
+        return None
+    rounds = [{"round": r["round"], "status": r["status"], "stations_added": r.get("stations_added", []),
+               "targets_short": r.get("targets_short", []), "targets_fixed": r.get("targets_fixed", []),
+               "time_s": r.get("time_s")} for r in cl["rounds"]]
+    return {"required_sigma_m": cl.get("required_sigma_m"), "rounds": rounds,
+            "unmet": [{"id": u["id"], "reason": u["reason"]} for u in cl.get("unmet", [])]}
+
+
 def write_report(ctx) -> str:
     job = ctx.job
     f = ctx.folder
@@ -206,6 +220,9 @@ def write_report(ctx) -> str:
         "inconclusive": [ids[j] for j in np.flatnonzero(judged) if decision[j] == "inconclusive"],
         "coded_targets": [ids[j] for j in np.flatnonzero(coded)],
     }
+    loop = _closed_loop(f)
+    if loop is not None:
+        doc["closed_loop"] = loop
     figs = {
         "network": R.figure_network(job.part.mesh, np.array([s["part_from_cam"] for s in plan["stations"]]), nominal),
         "deviations": R.figure_deviations(job.part.mesh, nominal[judged], np.nan_to_num(dev_norm[judged], nan=np.inf),

@@ -30,7 +30,7 @@ Genes searched: azimuth, elevation, distance (:mod:`planning.stations`).  Roll a
 look-at offsets are held at zero during the search, because the database holds its
 candidates at zero roll and offset and so the fitness cannot see them.
 
-Modules (docs/decisions/0011-split-layout.md): ``options`` (:class:`PlannerOptions`), ``result``
+Modules (docs/decisions/0012-split-bundle-planner.md): ``options`` (:class:`PlannerOptions`), ``result``
 (:class:`NetworkPlan`, plan.json), ``setup`` (database, valid candidates, targets, information),
 ``problem`` (fitness on the database, exact evaluation), ``search`` (evolutionary runs, ring seeds,
 exchange descent, the fixed-size search), ``cheapest`` (the Pareto front and its refinement),

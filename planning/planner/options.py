@@ -65,6 +65,11 @@ class PlannerOptions:
         polish_rounds: "fixed" with the "worst" criterion and no reachability mask: rounds
             of exact local polish (planning.polish: stations nudged off the database's
             lattice, ray-cast afresh, exchange descent); 0: off.
+        ladder_base: "fixed" with the "worst" criterion and more stations than this: the network is grown
+            from the plan of ``ladder_base`` stations, doubling (base, 2 base, 4 base, ..., n_stations): each
+            size adds stations greedily to the polished plan of the size below and polishes the result
+            (planning.planner.ladder), so a plan of more stations is never worse than the plans of the ladder's
+            sizes below it; 0: every size searched on its own.
         lower_bound: also compute (planning.bound) how good any network could be on the
             database: "fixed" with the "worst" criterion: a lower bound on the worst target's
             sigma for ``n_stations`` (``search["lower_bound_sigma_m"]``); "cheapest": whether
@@ -107,6 +112,7 @@ class PlannerOptions:
     refine_kicks: int = 8
     ring_seeds: int = 8
     polish_rounds: int = 12
+    ladder_base: int = 32
     lower_bound: bool = False
 
     def check(self) -> None:

@@ -10,6 +10,7 @@ import numpy as np
 from calibration.camera import Intrinsics
 from planning.planner.cheapest import _search_cheapest
 from planning.planner.final import _bound_facts, _exact_check
+from planning.planner.ladder import ladder_sizes, search_ladder
 from planning.planner.options import PlannerOptions, Progress
 from planning.planner.result import NetworkPlan
 from planning.planner.search import _Search, _search_fixed
@@ -61,9 +62,16 @@ def plan_network(
 
     t0 = time.perf_counter()
     search = _Search(s, options, rng, report)
-    found = _search_fixed(search, part, intr, reachable, reachable_fn) if options.mode == "fixed" \
-        else _search_cheapest(search)
+    if options.mode == "fixed" and options.criterion == "worst" and len(ladder_sizes(options.n_stations,
+                                                                                     options.ladder_base)) > 1:
+        found = search_ladder(search, part, intr, reachable, reachable_fn)
+    elif options.mode == "fixed":
+        found = _search_fixed(search, part, intr, reachable, reachable_fn)
+    else:
+        found = _search_cheapest(search)
     timing["search_s"] = time.perf_counter() - t0
+    if "polish_s" in found.polish_stats:  # part of search_s
+        timing["polish_s"] = found.polish_stats.pop("polish_s")
 
     t0 = time.perf_counter()
     kept, final, final_genes, search_fitness = _exact_check(part, intr, options, s, found)

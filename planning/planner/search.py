@@ -3,6 +3,7 @@ and the fixed-size plan's search (with the exact local polish)."""
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -80,10 +81,11 @@ def _search_fixed(search: _Search, part, intr, reachable: np.ndarray | None, rea
     res = search.run(options.n_stations, "fixed", "criterion", "search")
     found = _Found(res, [res.genes[0]], [float(res.objectives[0, 0])])
     if options.polish_rounds > 0 and options.criterion == "worst" and (reachable is None or reachable_fn):
+        t0 = time.perf_counter()
         pol = polish(part, intr, s.sphere, s.vis_opts, s.db, res.genes[0], s.cols, options, reachable_fn=reachable_fn)
         found.networks = [pol.genes]
         found.polish_stats.update(polish_swaps=pol.n_swaps, polish_from=pol.start_worst, polish_to=pol.worst,
-                                  polish_poses=pol.n_poses)
+                                  polish_poses=pol.n_poses, polish_s=time.perf_counter() - t0)
     return found
 
 

@@ -1,0 +1,372 @@
+"""Sub-pixel centres of circular dots in real and rendered images, with each centre's covariance.
+
+:func:`detect_dots` takes a grey or colour image (uint8, or uint16 holding 10-16 bits), bright
+dots on a dark background (retro-reflective targets lit by a ring flash) or dark dots on a light
+one (a printed sheet); ``polarity="auto"`` decides per image on a 4x reduced copy, which also
+gives the typical dot size that the background kernel then adapts to.
+
+1. The background is removed by a top-hat (image minus its morphological opening) with a square
+   kernel larger than the dots; the noise is the MAD of differences of pixels two apart.
+2. Blobs: pixels above ``max(threshold_sigma * noise, local_fraction * local maximum)``. The
+   second term is a local half-maximum (the top-hat dilated over ``local_window`` pixels): on a
+   compressed JPEG the noise estimate is tiny (0.6 grey levels) and a pure noise threshold
+   bridges a dot to its neighbour through their blurred skirts; half the local peak does not.
+3. Blobs are filtered by shape (bounding-box aspect, fill) and by size relative to the image's
+   dots: no fixed pixel counts unless given.
+4. Centre: the intensity-weighted centroid of the blob grown by a margin, over a plane fitted to
+   a ring of background pixels around it, each pixel weighted by the dot's share of it
+   (decision 0007), or (``centre="ellipse"``) an ellipse fitted to the blob's sub-pixel
+   half-level contour. Decision 0015 compares both on tilted, blurred renders.
+5. ``cov``: each centre's 2x2 covariance in px^2 propagated from the pixel noise (the centroid is
+   linear in the grey levels), plus ``cov_floor_px^2`` on the diagonal.
+
+Pixel convention: origin at the centre of the top-left pixel (OpenCV's too).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import cv2
+import numpy as np
+
+from calibration.errors import CalibrationError
+
+__all__ = ["DetectionOptions", "Detections", "to_grey", "detect_dots", "detect_retro_targets", "POLARITIES"]
+
+POLARITIES = ("auto", "bright", "dark")
+
+
+@dataclass(frozen=True)
+class DetectionOptions:
+    """Dot detection.
+
+    Attributes:
+        polarity: "bright" (light dots on a dark ground), "dark" (dark dots on a light ground) or
+            "auto" (decided per image).
+        threshold_sigma: blob threshold = this many noise standard deviations above the local background
+            (ignored when ``threshold`` is given).
+        threshold: absolute threshold on the top-hat in grey levels, or None for automatic.
+        local_fraction: a pixel also has to exceed this fraction of the largest top-hat value within
+            ``local_window`` pixels (a local half-maximum that separates neighbours); 0 disables it.
+        local_window: side (px) of that window, or 0 for automatic (the typical dot diameter + 3).
+        min_area_px: smallest blob (pixels above threshold).
+        max_area_px: largest blob, or None for automatic (what the background kernel can hold).
+        max_aspect: largest bounding-box aspect ratio (elongated blobs are edges or glints).
+        min_fill: smallest fraction of the bounding box covered by the blob.
+        margin_px: the blob is grown by this many pixels for the centroid.
+        min_peak_snr: smallest (peak - background) / noise.
+        subsample: stride of the subsample used for background and noise.
+        background_kernel_px: side of the square opening that estimates the local background, larger
+            than the largest dot; 0 for automatic (from the dots of a 4x reduced copy); -1 for one
+            global level (a dark, uniform scene).
+        centre: "centroid" (intensity-weighted, decision 0007) or "ellipse" (ellipse fit to the half-level contour).
+        cov_floor_px: added in quadrature to each centre's standard deviation (what noise propagation does
+            not see: print, blur, compression); pixels.
+    """
+
+    polarity: str = "bright"
+    threshold_sigma: float = 8.0
+    threshold: float | None = None
+    local_fraction: float = 0.0
+    local_window: int = 0
+    min_area_px: int = 4
+    max_area_px: int | None = 5000
+    max_aspect: float = 3.0
+    min_fill: float = 0.4
+    margin_px: int = 2
+    min_peak_snr: float = 10.0
+    subsample: int = 7
+    background_kernel_px: int = 41
+    centre: str = "centroid"
+    cov_floor_px: float = 0.005
+
+    def __post_init__(self) -> None:
+        if self.polarity not in POLARITIES:
+            raise CalibrationError(f"detection polarity must be one of {POLARITIES}, got {self.polarity!r}")
+        if self.centre not in ("centroid", "ellipse"):
+            raise CalibrationError(f"detection centre must be 'centroid' or 'ellipse', got {self.centre!r}")
+
+    @classmethod
+    def for_real_images(cls, **kw) -> "DetectionOptions":
+        """Defaults for photographs of unknown make: polarity, kernel and size limits from the image."""
+        base = dict(polarity="auto", local_fraction=0.5, max_area_px=None, background_kernel_px=0, cov_floor_px=0.01)
+        base.update(kw)
+        return cls(**base)
+
+
+@dataclass(frozen=True)
+class Detections:
+    """Detected dots.
+
+    Attributes:
+        uv: (k, 2) sub-pixel centres (px, origin at the centre of the top-left pixel).
+        cov: (k, 2, 2) covariance of each centre in px^2 (pixel noise propagated + ``cov_floor_px^2``).
+        area_px: (k,) pixels above threshold.
+        peak: (k,) peak contrast above (bright) or below (dark) the local background, grey levels.
+        flux: (k,) summed background-subtracted grey levels over the grown blob.
+        background: (k,) local background grey level (of the polarised image).
+        noise: global noise standard deviation (grey levels).
+        polarity: "bright" or "dark": what these dots are.
+        axes: (k, 2, 2) each blob's second-moment matrix (px^2) over its grown pixels: the dot's
+            ellipse is ``x^T axes^-1 x = 4`` about the centre (for a uniform disc of radius r, r^2/4 I).
+    """
+
+    uv: np.ndarray
+    area_px: np.ndarray
+    peak: np.ndarray
+    flux: np.ndarray
+    background: np.ndarray
+    noise: float
+    cov: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 2)))
+    polarity: str = "bright"
+    axes: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 2)))
+
+    def __len__(self) -> int:
+        return len(self.uv)
+
+    def subset(self, keep: np.ndarray) -> "Detections":
+        """These detections restricted to ``keep`` (bool mask or indices)."""
+        return replace(self, uv=self.uv[keep], area_px=self.area_px[keep], peak=self.peak[keep], flux=self.flux[keep],
+                       background=self.background[keep], cov=self.cov[keep], axes=self.axes[keep])
+
+
+def to_grey(image: np.ndarray) -> np.ndarray:
+    """A (h, w) uint8/uint16 grey image from grey or colour (h, w, 3|4, OpenCV's BGR order) input."""
+    image = np.asarray(image)
+    if image.dtype not in (np.uint8, np.uint16):
+        raise CalibrationError(f"target detection needs a uint8 or uint16 image, got {image.dtype}")
+    if image.ndim == 3 and image.shape[2] == 1:
+        image = image[..., 0]
+    elif image.ndim == 3 and image.shape[2] in (3, 4):
+        image = cv2.cvtColor(image, cv2.COLOR_BGRA2GRAY if image.shape[2] == 4 else cv2.COLOR_BGR2GRAY)
+    if image.ndim != 2 or min(image.shape) < 8:
+        raise CalibrationError(f"target detection needs a (h, w) grey or (h, w, 3) colour image, got {image.shape}")
+    return np.ascontiguousarray(image)
+
+
+def _invert(image: np.ndarray) -> np.ndarray:
+    return cv2.bitwise_not(image)
+
+
+def _noise(image: np.ndarray, stride: int) -> float:
+    """Pixel noise standard deviation: MAD of differences of pixels two apart along every ``stride``-th row.
+
+    Large bright areas and smooth shading do not count as noise, as they would in the spread of the
+    grey levels themselves.
+    """
+    rows = image[::stride].astype(np.float32)
+    d = (rows[:, 2:] - rows[:, :-2]).ravel()
+    noise = 1.4826 * float(np.median(np.abs(d - np.median(d)))) / np.sqrt(2.0)
+    if noise == 0.0:  # quantised, nearly noise-free (or clipped at black): the spread of the small differences
+        small = d[np.abs(d) <= 3]
+        noise = float(np.std(small)) / np.sqrt(2.0) if len(small) > 1 else 1.0
+    return max(noise, 0.5)
+
+
+def _survey(image: np.ndarray, o: DetectionOptions) -> tuple[int, float, float]:
+    """(compact blobs found, their median and 95th-percentile diameters in px) on copies of a polarised image
+    reduced 4x (dots of 3-100 px) and 8x (up to 200 px)."""
+    n4, d4, big4 = _survey_at(image, o, 4)
+    n8, _, big8 = _survey_at(image, o, 8)
+    return n4 + n8, d4, max(big4, big8)
+
+
+def _survey_at(image: np.ndarray, o: DetectionOptions, s: int) -> tuple[int, float, float]:
+    small = cv2.resize(image, (image.shape[1] // s, image.shape[0] // s), interpolation=cv2.INTER_AREA)
+    kern = cv2.getStructuringElement(cv2.MORPH_RECT, (31, 31))
+    th = cv2.morphologyEx(small, cv2.MORPH_TOPHAT, kern)
+    noise = max(_noise(th, 2), _noise(small, 2))
+    locmax = cv2.dilate(th, cv2.getStructuringElement(cv2.MORPH_RECT, (9, 9)))
+    mask = ((th > o.threshold_sigma * noise) & (th.astype(np.float32) > 0.5 * locmax)).astype(np.uint8)
+    n, _, st, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
+    if n <= 1:
+        return 0, 0.0, 0.0
+    w, h, a = st[1:, 2].astype(float), st[1:, 3].astype(float), st[1:, 4].astype(float)
+    ok = (a >= 2) & (np.maximum(w, h) <= 2.0 * np.minimum(w, h)) & (a >= 0.5 * w * h) & (w < 25) & (h < 25)
+    if not np.any(ok):
+        return 0, 0.0, 0.0
+    d = np.sqrt(4 * a[ok] / np.pi) * s
+    return int(ok.sum()), float(np.median(d)), float(np.percentile(d, 95))
+
+
+def _tophat(image: np.ndarray, kernel: int) -> np.ndarray:
+    """White top-hat with a square ``kernel``; beyond 61 px the opening is taken on a reduced copy (its cost
+    grows with the kernel) and enlarged again: it only has to be the smooth ground under the dots."""
+    if kernel <= 61:
+        return cv2.morphologyEx(image, cv2.MORPH_TOPHAT, cv2.getStructuringElement(cv2.MORPH_RECT, (kernel, kernel)))
+    s = int(np.ceil(kernel / 41))
+    small = cv2.resize(image, (max(image.shape[1] // s, 1), max(image.shape[0] // s, 1)), interpolation=cv2.INTER_AREA)
+    k = 2 * (kernel // (2 * s)) + 1
+    opened = cv2.morphologyEx(small, cv2.MORPH_OPEN, cv2.getStructuringElement(cv2.MORPH_RECT, (k, k)))
+    # the reduced opening can sit above a dark pixel's own level: the top-hat never goes below zero
+    return cv2.subtract(image, cv2.resize(opened, (image.shape[1], image.shape[0]), interpolation=cv2.INTER_LINEAR))
+
+
+def _ring_planes(lab: np.ndarray, dx: np.ndarray, dy: np.ndarray, val: np.ndarray, k: int, fallback: float) -> np.ndarray:
+    """Least-squares plane ``b0 + gx dx + gy dy`` through the ring pixels of each of ``k`` blobs.
+
+    ``lab`` (1..k) names the blob of each ring pixel at offset ``(dx, dy)`` from the blob's centre.
+    Returns (k, 3) ``(b0, gx, gy)``; a blob whose ring cannot carry a plane gets its mean (or
+    ``fallback`` without ring pixels) and no slope.
+    """
+    def s(w):
+        return np.bincount(lab, weights=w, minlength=k + 1)[1:]
+
+    n = s(np.ones_like(dx, dtype=float))
+    A = np.empty((k, 3, 3))
+    A[:, 0, 0] = n
+    A[:, 0, 1] = A[:, 1, 0] = s(dx)
+    A[:, 0, 2] = A[:, 2, 0] = s(dy)
+    A[:, 1, 1] = s(dx * dx)
+    A[:, 1, 2] = A[:, 2, 1] = s(dx * dy)
+    A[:, 2, 2] = s(dy * dy)
+    b = np.stack([s(val), s(val * dx), s(val * dy)], axis=1)
+    coef = np.zeros((k, 3))
+    coef[:, 0] = np.where(n > 0, b[:, 0] / np.maximum(n, 1), fallback)
+    ok = n >= 8
+    if np.any(ok):
+        det = np.linalg.det(A[ok])
+        good = np.flatnonzero(ok)[np.abs(det) > 1e-9 * np.maximum(n[ok], 1) ** 3]
+        if len(good):
+            coef[good] = np.linalg.solve(A[good], b[good][..., None])[..., 0]
+    return coef
+
+
+def detect_dots(image: np.ndarray, options: DetectionOptions | None = None) -> Detections:
+    """Sub-pixel centres and covariances of the dots in ``image`` (grey or colour, uint8/uint16)."""
+    o = options or DetectionOptions()
+    grey = to_grey(image)
+    polarity, kernel, window = o.polarity, o.background_kernel_px, o.local_window
+    if polarity == "auto" or kernel == 0 or (window == 0 and o.local_fraction > 0):
+        cand = ("bright", "dark") if polarity == "auto" else (polarity,)
+        surveys = {p: _survey(grey if p == "bright" else _invert(grey), o) for p in cand}
+        polarity = max(cand, key=lambda p: surveys[p][0])
+        _, d, d_big = surveys[polarity]
+        if kernel == 0:  # holds the largest dots
+            kernel = 41 if d == 0 else int(np.clip(2 * round(0.75 * d_big + 5) + 1, 15, 401))
+        if window == 0:
+            # reaches a dot's own peak from its rim, not a neighbour's: a dim dot is not cut by a bright one
+            window = 9 if d == 0 else int(2 * round(0.5 * d + 1.5) + 1)
+    work = grey if polarity == "bright" else _invert(grey)
+    o = replace(o, polarity=polarity, background_kernel_px=kernel, local_window=max(window, 3))
+    return _detect(work, o)
+
+
+def detect_retro_targets(image: np.ndarray, options: DetectionOptions | None = None) -> Detections:
+    """Sub-pixel centres of bright dots in ``image: (h, w) uint8/uint16`` (the simulated cell's images)."""
+    o = options or DetectionOptions()
+    image = np.asarray(image)
+    if image.ndim != 2 or image.dtype not in (np.uint8, np.uint16):
+        raise CalibrationError(
+            f"target detection needs a (h, w) uint8 or uint16 grey image, got {image.shape} {image.dtype}"
+        )
+    return detect_dots(image, o)
+
+
+def _detect(image: np.ndarray, o: DetectionOptions) -> Detections:
+    """The detector on a polarised image (dots bright), with every option resolved."""
+    if o.background_kernel_px > 0:
+        tophat = _tophat(image, o.background_kernel_px)
+        noise = max(_noise(tophat, o.subsample), _noise(image, o.subsample))
+        thr = o.threshold if o.threshold is not None else o.threshold_sigma * noise
+        bg = float(np.median(image[:: o.subsample, :: o.subsample]))
+    else:
+        bg = float(np.median(image[:: o.subsample, :: o.subsample]))
+        noise = _noise(image, o.subsample)
+        tophat = cv2.subtract(image, np.full_like(image, int(round(bg))))
+        thr = o.threshold - bg if o.threshold is not None else o.threshold_sigma * noise
+    mask = tophat > thr
+    if o.local_fraction > 0:
+        win = cv2.getStructuringElement(cv2.MORPH_RECT, (o.local_window, o.local_window))
+        mask &= tophat.astype(np.float32) > o.local_fraction * cv2.dilate(tophat, win).astype(np.float32)
+    mask = mask.astype(np.uint8)
+    n_lab, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8, ltype=cv2.CV_32S)
+    empty = Detections(np.zeros((0, 2)), np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0), noise,
+                       np.zeros((0, 2, 2)), o.polarity, np.zeros((0, 2, 2)))
+    if n_lab <= 1:
+        return empty
+    w_box = stats[1:, cv2.CC_STAT_WIDTH].astype(float)
+    h_box = stats[1:, cv2.CC_STAT_HEIGHT].astype(float)
+    area = stats[1:, cv2.CC_STAT_AREA].astype(float)
+    max_area = o.max_area_px if o.max_area_px is not None else 0.5 * o.background_kernel_px**2
+    keep = (
+        (area >= o.min_area_px)
+        & (area <= max_area)
+        & (np.maximum(w_box, h_box) / np.minimum(w_box, h_box) <= o.max_aspect)
+        & (area / (w_box * h_box) >= o.min_fill)
+    )
+    # blobs touching the border are cut: their centroid would be biased
+    x0, y0 = stats[1:, cv2.CC_STAT_LEFT], stats[1:, cv2.CC_STAT_TOP]
+    H, W = image.shape
+    m = o.margin_px
+    keep &= (x0 - m - 1 >= 0) & (y0 - m - 1 >= 0) & (x0 + w_box + m + 1 <= W) & (y0 + h_box + m + 1 <= H)
+    if not np.any(keep):
+        return empty
+    # relabel the kept blobs 1..k, grow them by the margin, and a ring further out for the local background
+    remap = np.zeros(n_lab, dtype=np.float32)
+    kept = np.flatnonzero(keep) + 1
+    remap[kept] = np.arange(1, len(kept) + 1, dtype=np.float32)
+    lab = remap[labels]
+    k1 = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * m + 1, 2 * m + 1))
+    k2 = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * m + 5, 2 * m + 5))
+    grown = cv2.dilate(lab, k1)
+    outer = cv2.dilate(lab, k2)
+    k = len(kept)
+    ys, xs = np.nonzero(outer)
+    lo = outer[ys, xs].astype(np.int64)
+    lg = grown[ys, xs].astype(np.int64)
+    val = image[ys, xs].astype(np.float64)
+    ring = lg == 0
+    # local background: a plane fitted to the ring around each blob (decision 0007)
+    xc = (x0 + 0.5 * w_box)[keep]
+    yc = (y0 + 0.5 * h_box)[keep]
+    rl, rdx, rdy, rv = lo[ring], xs[ring] - xc[lo[ring] - 1], ys[ring] - yc[lo[ring] - 1], val[ring]
+    coef = _ring_planes(rl, rdx, rdy, rv, k, bg)
+    # once more without the ring pixels far off the plane (an edge of the part, a neighbour's rim)
+    r = rv - (coef[rl - 1, 0] + coef[rl - 1, 1] * rdx + coef[rl - 1, 2] * rdy)
+    cnt = np.maximum(np.bincount(rl, minlength=k + 1)[1:], 1)
+    rms = np.sqrt(np.bincount(rl, weights=r * r, minlength=k + 1)[1:] / cnt)
+    fit = np.abs(r) <= 2.0 * rms[rl - 1] + 1.0
+    coef = _ring_planes(rl[fit], rdx[fit], rdy[fit], rv[fit], k, bg)
+    bg_local = coef[:, 0]
+    inside = ~ring
+    li, xi, yi, vi = lg[inside], xs[inside], ys[inside], val[inside]
+    bgp = coef[li - 1, 0] + coef[li - 1, 1] * (xi - xc[li - 1]) + coef[li - 1, 2] * (yi - yc[li - 1])
+    top = np.zeros(k + 1)
+    np.maximum.at(top, li, vi)
+    peak = top[1:] - bg_local
+    # the dot hides the surface behind it: a pixel's value is bg (1 - a) + L a for a dot of level L
+    # covering the fraction a, so its share of the dot is (value - bg) / (L - bg), with L ~ the peak
+    span = np.maximum(top[li] - bgp, 1.0)
+    wgt = (vi - bgp) / span
+
+    def per_blob(w):
+        return np.bincount(li, weights=w, minlength=k + 1)[1:]
+
+    sw = per_blob(wgt)
+    sws = np.where(sw > 0, sw, 1.0)
+    uv = np.stack([per_blob(wgt * xi) / sws, per_blob(wgt * yi) / sws], axis=1)
+    dx, dy = xi - uv[li - 1, 0], yi - uv[li - 1, 1]
+    # covariance: u = sum(w x) / sum(w) with w_i = (v_i - b_i) / span_i, so du/dv_i = (x_i - u) / (span_i sum w)
+    g = 1.0 / (span * sws[li - 1]) ** 2
+    cov = np.empty((k, 2, 2))
+    cov[:, 0, 0] = per_blob(g * dx * dx)
+    cov[:, 0, 1] = cov[:, 1, 0] = per_blob(g * dx * dy)
+    cov[:, 1, 1] = per_blob(g * dy * dy)
+    cov *= noise**2
+    # second moments of the dot (its ellipse), for ring decoding and size checks
+    axes = np.empty((k, 2, 2))
+    axes[:, 0, 0] = per_blob(wgt * dx * dx) / sws
+    axes[:, 0, 1] = axes[:, 1, 0] = per_blob(wgt * dx * dy) / sws
+    axes[:, 1, 1] = per_blob(wgt * dy * dy) / sws
+    if o.centre == "ellipse":
+        from calibration.ellipse_fit import contour_ellipse_centres
+
+        e_uv, e_cov, ok = contour_ellipse_centres(image, lab, k, coef, xc, yc, top[1:], noise)
+        uv = np.where(ok[:, None], e_uv, uv)
+        cov = np.where(ok[:, None, None], e_cov, cov)
+    cov += o.cov_floor_px**2 * np.eye(2)
+    good = (sw > 0) & (peak >= o.min_peak_snr * noise)
+    flux = sw * np.maximum(peak, 0.0)
+    return Detections(uv[good], area[keep][good], peak[good], flux[good], bg_local[good], noise, cov[good],
+                      o.polarity, axes[good])

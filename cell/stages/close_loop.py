@@ -1,0 +1,279 @@
+"""CLOSE_LOOP: the cell checks what it measured against what it was asked for, and fixes it while the
+part is still in the cell.
+
+After ADJUST, each target's achieved sigma (sqrt(trace(cov)) of the bundle) is compared with its
+requirement (``[planning] required_sigma``, or tolerance / 10 as in cheapest mode). Targets that miss it,
+or were not measured, go back to the planner with the stations already taken held fixed at the
+information the adjustment achieved (:mod:`planning.augment`): it picks the fewest extra stations among
+the candidates the robot reaches without collision (the same visibility and reachability databases as
+PLAN), with the measured interior orientation and image precision, or proves that no reachable station
+can bring a target within its requirement. The new stations are validated (IK, collisions, order),
+acquired, measured and oriented like the others, and the whole network is adjusted again. Up to
+``[planning] closed_loop_rounds`` rounds.
+
+Resumable like every stage: a round's stations are written into plan.json and its record into
+closed_loop.json (status "planned") before the robot moves; a resumed job goes on with the stations of
+that round that were not yet taken. closed_loop.json holds every round (targets short, stations added,
+targets fixed, time) and every target that still misses, with the reason.
+"""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from calibration.camera import Intrinsics
+from calibration.errors import ReachabilityError
+from cell.record.jobfolder import atomic_write_json
+from cell.stages.acquire import run as acquire_run
+from cell.stages.adjust import run as adjust_run
+from cell.stages.calibrate import run as calibrate_run
+from cell.stages.measure import run as measure_run
+
+NAME = "closed_loop.json"
+
+
+def _requirement(job) -> np.ndarray:
+    from cell.setup import planner_options
+    from planning.planner import required_sigma
+
+    return required_sigma(job.part, planner_options(job))
+
+
+def _achieved(bundle: dict, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per target: covariance (n, 3, 3) (nan where not measured), sigma (inf where not measured), rays."""
+    cov = np.full((n, 3, 3), np.nan)
+    rays = np.zeros(n, dtype=int)
+    for t, rec in enumerate(bundle["targets"][:n]):
+        c = np.asarray(rec.get("cov") if rec.get("cov") is not None else np.full((3, 3), np.nan), dtype=float)
+        if c.shape == (3, 3):
+            cov[t] = c
+        rays[t] = int(rec.get("n_images", 0))
+    tr = np.trace(cov, axis1=1, axis2=2)
+    sigma = np.where(np.isfinite(tr) & (tr > 0), np.sqrt(np.where(tr > 0, tr, 0.0)), np.inf)
+    return cov, sigma, rays
+
+
+def _short(sigma: np.ndarray, rays: np.ndarray, required: np.ndarray, min_rays: int, judged: np.ndarray) -> np.ndarray:
+    """Targets judged (not coded identification aids) whose sigma or rays miss the requirement."""
+    return judged & ~((sigma <= required) & (rays >= min_rays))
+
+
+def _judged(job) -> np.ndarray:
+    return np.asarray(job.part.targets.kind) != "coded"
+
+
+#: a candidate looks at a target within this angle of a direction from which the target was expected but
+#: not seen: it is taken as blocked too (something the CAD does not have: a fixture, a clamp, glare)
+BLOCKED_CONE_DEG = 15.0
+
+
+def _blocked(ctx, db, opts, cols: np.ndarray) -> np.ndarray:
+    """(m, len(cols)) candidates whose view of a target is presumed blocked by what the taken images showed.
+
+    For every image taken, the targets the CAD says it measures (ray casting, the plan's limits) but that
+    were not identified in it were hidden by something the plan does not know. A candidate whose
+    direction to such a target lies within :data:`BLOCKED_CONE_DEG` of a direction it was missed from is
+    not counted on for that target.
+    """
+    from planning.visibility import compute_visibility
+
+    job = ctx.job
+    obs = ctx.folder.read_json("observations.json")["images"]
+    plan_doc = ctx.folder.read_json("plan.json")
+    pfc = {s["id"]: np.asarray(s["part_from_cam"], dtype=float) for s in plan_doc["stations"]}
+    stations = [o["station"] for o in obs if o["station"] in pfc]
+    out = np.zeros((len(db.part_from_cam), len(cols)), dtype=bool)
+    if not stations or cols.size == 0:
+        return out
+    T = np.array([pfc[s] for s in stations])
+    expected = compute_visibility(job.part, job.intrinsics, T, opts.visibility_options(), backend=opts.backend)[:, cols]
+    where = {tid: k for k, tid in enumerate(job.part.targets.ids)}
+    col_of = {int(t): j for j, t in enumerate(cols)}
+    xyz = job.part.targets.xyz[cols]
+    eyes = db.part_from_cam[:, :3, 3]
+    cos_cone = np.cos(np.deg2rad(BLOCKED_CONE_DEG))
+    for k, o in enumerate(obs):
+        if o["station"] not in pfc:
+            continue
+        seen = np.zeros(len(cols), dtype=bool)
+        for tid in o["ids"]:
+            j = col_of.get(where.get(tid, -1))
+            if j is not None:
+                seen[j] = True
+        for j in np.flatnonzero(expected[k] & ~seen):
+            d_miss = T[k][:3, 3] - xyz[j]
+            d_miss /= np.linalg.norm(d_miss)
+            d_c = eyes - xyz[j]
+            d_c /= np.linalg.norm(d_c, axis=1, keepdims=True)
+            out[:, j] |= d_c @ d_miss >= cos_cone
+    return out
+
+
+def _plan_round(ctx, rnd: int, bundle: dict, required: np.ndarray, exclude: set[int]) -> tuple[list[dict], dict]:
+    """Choose and validate this round's extra stations; returns their plan.json entries and the round's facts."""
+    from cell.setup import collision_world, planner_options
+    from cell.stages.plan import load_databases
+    from planning.augment import information_from_covariance, plan_extra_stations
+    from planning.execution import MotionLimits, apply_to_plan, validate_plan
+    from planning.uncertainty import target_information
+    from planning.visibility import default_cache_dir
+
+    job = ctx.job
+    p = job.spec.planning
+    opts = planner_options(job)
+    n = len(job.part.targets.ids)
+    cov, sigma, rays = _achieved(bundle, n)
+    short = _short(sigma, rays, required, p.min_rays, _judged(job))
+    db, reach, robot = load_databases(job, opts, default_cache_dir(), lambda s, f: None)
+    intr = Intrinsics.from_dict(bundle["intrinsics"]) if bundle.get("intrinsics") else job.intrinsics
+    sigma_px = float(bundle.get("sigma0_px") or job.spec.camera.sigma_px)
+    sigma_px = max(sigma_px, 1e-3)
+    cols = np.flatnonzero(short)
+    visible = db.visible[:, cols] & ~_blocked(ctx, db, opts, cols)
+    valid = reach.reachable & visible.any(axis=1)
+    for i in exclude:
+        valid[i] = False
+    N6, measured = information_from_covariance(cov[cols])
+    info = np.zeros((len(valid), len(cols), 6), dtype=np.float32)
+    vi = np.flatnonzero(valid)
+    if vi.size:
+        info[vi] = target_information(intr, db.part_from_cam[vi], job.part.targets.xyz[cols], visible[vi], sigma_px)
+    aug = plan_extra_stations(np.where(measured[:, None], N6, 0.0), np.where(measured, rays[cols], 0),
+                              required[cols], info, visible, valid, min_rays=p.min_rays,
+                              max_new=p.closed_loop_max_stations)
+    ids = list(job.part.targets.ids)
+    facts = {"round": rnd, "targets_short": [ids[int(t)] for t in cols],
+             "sigma_short_m": [float(s) if np.isfinite(s) else None for s in sigma[cols]],
+             "required_short_m": [float(r) for r in required[cols]],
+             "targets_no_station_can_fix": [ids[int(cols[j])] for j in np.flatnonzero(aug.unreachable)],
+             "bound_sigma_m": {ids[int(cols[j])]: (float(aug.bound_sigma[j]) if np.isfinite(aug.bound_sigma[j])
+                                                  else None) for j in np.flatnonzero(aug.unreachable)},
+             "predicted_fixed": [ids[int(cols[j])] for j in np.flatnonzero(aug.met_after & aug.short)],
+             "image_sigma_px": sigma_px, "candidates_valid": int(valid.sum())}
+    if aug.added.size == 0:
+        return [], facts
+    # validate the new stations for the robot: IK branch, collision-free moves, order (from the last station)
+    plan_doc = ctx.folder.read_json("plan.json")
+    last = max(plan_doc["stations"], key=lambda s: s["order"])
+    new_ids = [f"L{rnd}-{k + 1:02d}" for k in range(len(aug.added))]
+    c = job.spec.cell
+    limits = MotionLimits(joint_speed_rad_s=c.max_joint_speed_rad_s, joint_accel_rad_s2=c.max_joint_accel_rad_s2,
+                          settle_s=c.settle_s)
+    pfc = db.part_from_cam[aug.added]
+    try:
+        ep = validate_plan(robot, pfc, job.spec.base_from_part(), job.spec.flange_from_cam(), collision_world(job),
+                           limits, start_q=np.asarray(last["joints"], dtype=float), ids=new_ids)
+    except ReachabilityError as exc:
+        facts["validation_failed"] = str(exc)
+        facts["excluded"] = [int(i) for i in aug.added]
+        return [], facts
+    sub = apply_to_plan({"stations": [{"id": sid, "part_from_cam": T.tolist()} for sid, T in zip(new_ids, pfc)]}, ep)
+    base = max(int(s["order"]) for s in plan_doc["stations"]) + 1
+    stations = [dict(s, order=base + int(s["order"]), round=rnd, candidate=int(i))
+                for s, i in zip(sub["stations"], aug.added)]
+    facts["stations_added"] = new_ids
+    facts["cycle_time_s"] = float(ep.cycle_time_s)
+    return stations, facts
+
+
+def run(ctx) -> None:
+    """CLOSE_LOOP: rounds of extra stations until every target meets its requirement (see the module)."""
+    job = ctx.job
+    p = job.spec.planning
+    if not p.closed_loop_on():
+        atomic_write_json(ctx.folder.file(NAME), {"enabled": False})
+        return
+    required = _requirement(job)
+    n = len(job.part.targets.ids)
+    ids = list(job.part.targets.ids)
+    path = ctx.folder.file(NAME)
+    doc = ctx.folder.read_json(NAME) if path.exists() else {"enabled": True, "rounds": []}
+    if not doc.get("enabled"):
+        doc = {"enabled": True, "rounds": []}
+    uniform = bool(np.allclose(required, required[0]))
+    doc["required_sigma_m"] = float(required[0]) if uniform else None
+    exclude: set[int] = set()
+    for rec in doc["rounds"]:
+        exclude |= set(rec.get("excluded", []))
+    while True:
+        pending = doc["rounds"][-1] if doc["rounds"] and doc["rounds"][-1].get("status") == "planned" else None
+        if pending is None:
+            done_rounds = sum(1 for r in doc["rounds"] if r.get("status") == "done")
+            bundle = ctx.folder.read_json("bundle.json")
+            _, sigma, rays = _achieved(bundle, n)
+            short = _short(sigma, rays, required, p.min_rays, _judged(job))
+            if not short.any() or done_rounds >= p.closed_loop_rounds:
+                break
+            t0 = time.perf_counter()
+            ctx.progress("close_loop", 0.0)
+            rnd = done_rounds + 1
+            stations, facts = _plan_round(ctx, rnd, bundle, required, exclude)
+            if "excluded" in facts:  # the robot could not take them after all: plan again without them
+                exclude |= set(facts["excluded"])
+                doc["rounds"].append(facts | {"status": "failed validation", "time_s": time.perf_counter() - t0})
+                atomic_write_json(path, doc)
+                if len([r for r in doc["rounds"] if r.get("status") == "failed validation"]) > 3:
+                    break
+                continue
+            if not stations:
+                doc["rounds"].append(facts | {"status": "nothing to add", "stations_added": [], "targets_fixed": [],
+                                              "time_s": time.perf_counter() - t0})
+                atomic_write_json(path, doc)
+                break
+            plan_doc = ctx.folder.read_json("plan.json")
+            plan_doc["stations"] = plan_doc["stations"] + stations
+            atomic_write_json(ctx.folder.file("plan.json"), plan_doc)
+            pending = facts | {"status": "planned", "planning_time_s": time.perf_counter() - t0}
+            doc["rounds"].append(pending)
+            atomic_write_json(path, doc)
+            ctx.log.log("info", f"closed loop round {rnd}: {len(stations)} station(s) for "
+                                f"{len(facts['targets_short'])} target(s) short")
+            ctx.say(f"  round {rnd}: {len(facts['targets_short'])} target(s) short of the requirement; "
+                    f"{len(stations)} extra station(s) {', '.join(facts['stations_added'])}")
+        # take, measure, orient the round's stations, then adjust the whole network again
+        t1 = time.perf_counter()
+        acquire_run(ctx)
+        measure_run(ctx, keep=True)
+        calibrate_run(ctx)
+        adjust_run(ctx)
+        bundle = ctx.folder.read_json("bundle.json")
+        _, sigma, rays = _achieved(bundle, n)
+        now_short = _short(sigma, rays, required, p.min_rays, _judged(job))
+        where = {tid: k for k, tid in enumerate(ids)}
+        fixed = [t for t in pending["targets_short"] if not now_short[where[t]]]
+        pending.update(status="done", targets_fixed=fixed,
+                       time_s=pending.get("planning_time_s", 0.0) + time.perf_counter() - t1)
+        atomic_write_json(path, doc)
+        ctx.say(f"  round {pending['round']}: {len(fixed)} of {len(pending['targets_short'])} target(s) now within "
+                "the requirement")
+    # what still misses, and why
+    bundle = ctx.folder.read_json("bundle.json")
+    _, sigma, rays = _achieved(bundle, n)
+    short = _short(sigma, rays, required, p.min_rays, _judged(job))
+    proofs: dict[str, float | None] = {}
+    for r in doc["rounds"]:
+        proofs.update(r.get("bound_sigma_m", {}))
+    unmet = []
+    for t in np.flatnonzero(short):
+        tid = ids[int(t)]
+        s_um = "not measured" if not np.isfinite(sigma[t]) else f"sigma {sigma[t] * 1e6:.1f} um"
+        if tid in proofs:
+            b = proofs[tid]
+            reason = ("no reachable station can measure it" if b is None else
+                      f"no reachable station can: with every reachable candidate added the best possible sigma is "
+                      f"{b * 1e6:.1f} um > required {required[t] * 1e6:.1f} um ({s_um} achieved)")
+        elif rays[t] < p.min_rays:
+            reason = f"{rays[t]} ray(s) of the {p.min_rays} required after {len(doc['rounds'])} round(s)"
+        else:
+            reason = (f"{s_um} > required {required[t] * 1e6:.1f} um after {len(doc['rounds'])} round(s) "
+                      f"(limit [planning] closed_loop_rounds = {p.closed_loop_rounds})")
+        unmet.append({"id": tid, "reason": reason, "sigma_m": float(sigma[t]) if np.isfinite(sigma[t]) else None,
+                      "required_m": float(required[t])})
+    doc["unmet"] = unmet
+    atomic_write_json(path, doc)
+    ctx.progress("close_loop", 1.0)
+    added = sum(len(r.get("stations_added", [])) for r in doc["rounds"] if r.get("status") == "done")
+    ctx.say(f"  closed loop: {len(doc['rounds'])} round(s), {added} extra station(s); "
+            + (f"{len(unmet)} target(s) still short: " + ", ".join(u["id"] for u in unmet[:8])
+               + (" ..." if len(unmet) > 8 else "") if unmet else "every target within its requirement"))

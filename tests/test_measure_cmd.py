@@ -1,0 +1,116 @@
+"""``cell measure`` and ``cell calibrate camera`` on simulated photographs of a ring-coded flat field."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import trimesh
+
+from calibration.alignment import similarity_fit
+from calibration.camera import Intrinsics, look_at
+from cell.cli import main
+from planning.part import Part, Targets
+from sim_backend.sim_camera import SimCamera
+from sim_backend.world import World
+
+TRUE = Intrinsics.from_focal_length(0.008, 5.0e-6, 1280, 1024, k1=-0.06, k2=0.04, p1=2e-4, p2=-1e-4,
+                                    cx_px=645.0, cy_px=508.0)
+RADIUS = 0.0025
+
+
+def _field():
+    g = np.arange(-0.12, 0.121, 0.03)
+    X, Y = np.meshgrid(g, np.arange(-0.09, 0.091, 0.03))
+    xyz = np.column_stack([X.ravel(), Y.ravel(), np.zeros(X.size)])
+    n = len(xyz)
+    code = np.full(n, -1)
+    kind = np.array(["retro"] * n, dtype=object)
+    coded = np.arange(0, n, 4)
+    code[coded] = 1 + np.arange(len(coded)) * 7  # schneider14 codes, numbered from 1
+    kind[coded] = "coded"
+    t = Targets(ids=[f"P{i:02d}" for i in range(n)], xyz=xyz, normals=np.tile([0, 0, 1.0], (n, 1)),
+                kind=kind.astype(str), tolerance_m=np.full(n, np.nan), code=code)
+    plate = trimesh.creation.box(extents=(0.4, 0.3, 0.01))
+    plate.apply_translation((0, 0, -0.005))
+    return Part("sheet", plate, t, target_diameter_m=2 * RADIUS, coded_size_m=0.02)
+
+
+@pytest.fixture(scope="module")
+def photographs(tmp_path_factory):
+    rng = np.random.default_rng(11)
+    part = _field()
+    dev = np.zeros((len(part.targets.xyz), 3))
+    dev[:, 2] = rng.normal(0, 3e-4, len(dev))  # the real sheet is not quite the layout
+    world = World(part, np.eye(4), np.eye(4), TRUE, dev, seed=5)
+    cam = SimCamera(world, coded_family="schneider14")
+    folder = tmp_path_factory.mktemp("photos")
+    for k in range(6):
+        az, el = 2 * np.pi * k / 6, np.radians(50 + 12 * (k % 2))
+        eye = 0.55 * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+        img, _ = cam.render(look_at(eye, np.zeros(3), roll_rad=0.3 * k))
+        cv2.imwrite(str(folder / f"img{k}.png"), img)
+    layout = folder.parent / "layout.csv"
+    t = part.targets
+    rows = ["id,x,y,z,nx,ny,nz,kind,tolerance,code"]
+    rows += [f"{i},{x * 1e3:.4f},{y * 1e3:.4f},{z * 1e3:.4f},0,0,1,{k},,{c}" for i, (x, y, z), k, c in zip(t.ids, t.xyz, t.kind, t.code)]
+    layout.write_text("\n".join(rows) + "\n")
+    camera = folder.parent / "camera.toml"
+    camera.write_text('[camera]\ncoded_family = "schneider14"\nfocal_length_mm = 8.3\npixel_size_um = 5.0\n')
+    return folder, layout, camera, world.true_xyz
+
+
+def test_measure_a_folder_of_photographs_recovers_the_sheet_and_the_camera(photographs, tmp_path, capsys):
+    folder, layout, camera, truth = photographs
+    out = tmp_path / "out"
+    archive = tmp_path / "archive"
+    assert main(["measure", str(folder), "--camera", str(camera), "--layout", str(layout), "--out", str(out), "--json",
+                 "--archive", str(archive), "--tolerance", "0.2"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert all(im["used"] for im in doc["images"])
+    ids = [t["id"] for t in doc["targets"]]
+    assert len(ids) == len(truth)
+    xyz = np.array([t["xyz"] for t in doc["targets"]])
+    s, R, tr = similarity_fit(xyz, truth, with_scale=True)
+    err = s * xyz @ R.T + tr - truth
+    assert np.sqrt(np.mean(np.sum(err**2, axis=1))) < 5e-5  # 50 um on 0.3 mm of bow
+    c = doc["camera"]
+    for name, true in (("fx", TRUE.fx_px), ("cx", TRUE.cx_px), ("cy", TRUE.cy_px)):
+        assert abs(c[name + "_px"] - true) < max(4 * c["sigma"][name], 0.5), name
+    assert doc["sigma0_px"] < 0.1
+    assert (out / "report.html").is_file() and (out / "observations.csv").is_file()
+    # report.json as a job's (the layout is the nominal; the sheet's 0.3 mm bow is within 0.2 mm at most targets)
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["job"]["status"] == "DONE" and len(rep["targets"]) == len(truth)
+    for t in rep["targets"]:
+        d = np.asarray(t["deviation"])
+        assert np.allclose(np.asarray(t["measured"]) - np.asarray(t["nominal"]), d)
+        assert t["pass"] == (np.linalg.norm(d) <= t["tolerance_m"]) and t["tolerance_m"] == pytest.approx(2e-4)
+    # and an archive entry like a robot job's: listed, manifest verifies
+    assert main(["archive", "list", "--archive", str(archive), "--json"]) == 0
+    listed = json.loads(capsys.readouterr().out)
+    assert len(listed["jobs"] if isinstance(listed, dict) else listed) == 1
+    job_id = Path(doc["archive"]).name
+    assert main(["archive", "verify", job_id, "--archive", str(archive)]) == 0
+
+
+def test_calibrate_camera_writes_a_camera_file_that_measure_can_use(photographs, tmp_path, capsys):
+    folder, layout, camera, _ = photographs
+    cal = tmp_path / "calibrated.toml"
+    assert main(["calibrate", "camera", str(folder), "--camera", str(camera), "--layout", str(layout), "--out", str(cal)]) == 0
+    text = cal.read_text()
+    assert "fx_px" in text and "self_calibrate = false" in text
+    fx = float(text.split("fx_px = ")[1].split()[0])
+    assert abs(fx - TRUE.fx_px) < 3.0
+    assert main(["measure", str(folder), "--camera", str(cal), "--layout", str(layout), "--out", str(tmp_path / "o2")]) == 0
+
+
+def test_measure_without_a_layout_or_focal_length_says_what_is_missing(photographs, tmp_path, capsys):
+    folder, layout, _, _ = photographs
+    assert main(["measure", str(folder), "--out", str(tmp_path / "o")]) == 2
+    assert "--layout" in capsys.readouterr().err
+    assert main(["measure", str(folder), "--layout", str(layout), "--out", str(tmp_path / "o")]) == 2
+    assert "focal length" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()

@@ -1,0 +1,92 @@
+"""Data snooping that scales (calibration.bundle.snooping): many rejections per round, re-tests, honesty."""
+from __future__ import annotations
+
+import numpy as np
+
+from calibration.bundle import BundleConfig, BundleOptions, ScaleBar, bundle_adjust, simulate_network
+from calibration.bundle.colmap import _pycolmap_solve
+from calibration.bundle.datum import _datum_stage
+from calibration.bundle.normal import _Layout, _linearise, _State
+from calibration.bundle.snooping import _statistics, pick_rejections, predicted_test
+from calibration.camera import exp_se3
+
+
+def _blundered(rng, n_targets=300, n_images=12, share=0.05):
+    net = simulate_network(rng, n_targets=n_targets, n_images=n_images, sigma_px=0.05)
+    uv = net.obs_uv.copy()
+    bad = rng.random(len(uv)) < share
+    ang = rng.uniform(0, 2 * np.pi, bad.sum())
+    uv[bad] += rng.uniform(1.0, 10.0, bad.sum())[:, None] * np.column_stack([np.cos(ang), np.sin(ang)])
+    poses0 = np.array([exp_se3(rng.normal(0, 0.002, 6)) @ T for T in net.cam_from_part])
+    return net, uv, bad, poses0, net.points + rng.normal(0, 5e-4, net.points.shape)
+
+
+def test_batch_snooping_finds_every_blunder_in_few_rounds_and_matches_truth():
+    rng = np.random.default_rng(21)
+    net, uv, bad, poses0, x0 = _blundered(rng)
+    res = bundle_adjust(net.obs_image, net.obs_target, uv, net.intrinsics, poses0, x0,
+                        BundleOptions(sigma_px=0.05, max_rejections=len(uv)), BundleConfig())
+    assert res.snooping["stopped_because"] == "no observation fails"
+    assert res.snooping["rounds"] <= 8  # one observation per re-adjustment would take ~bad.sum() rounds
+    assert np.array_equal(res.rejected, bad)
+    assert abs(res.sigma0_px / 0.05 - 1) < 0.05
+    # coordinates agree with the truth within their stated uncertainty (free network: after a similarity)
+    from calibration.alignment import similarity_fit
+
+    s, R, t = similarity_fit(res.points, net.points, with_scale=True)
+    err = s * res.points @ R.T + t - net.points
+    z = np.linalg.norm(err, axis=1) / res.sigma_m()
+    assert np.percentile(z, 95) < 3.5
+
+
+def test_cap_is_said_not_silent():
+    rng = np.random.default_rng(22)
+    net, uv, bad, poses0, x0 = _blundered(rng, n_targets=150, n_images=8)
+    res = bundle_adjust(net.obs_image, net.obs_target, uv, net.intrinsics, poses0, x0,
+                        BundleOptions(sigma_px=0.05, max_rejections=5), BundleConfig())
+    assert res.rejected.sum() == 5
+    assert res.snooping["stopped_because"] == "max_rejections reached"
+    assert res.snooping["still_failing"] > 0
+
+
+def test_predicted_test_of_a_left_out_observation_equals_its_statistic_inside():
+    """Baarda's equivalence: the statistic of an observation in the adjustment that includes it equals that of its
+    predicted residual from the adjustment without it (linear model; here to the linearisation error)."""
+    rng = np.random.default_rng(23)
+    net = simulate_network(rng, n_targets=60, n_images=6, sigma_px=0.05)
+    uv = net.obs_uv.copy()
+    i = 17
+    uv[i] += [0.3, -0.2]  # a small blunder, so the statistic is well above noise
+    config = BundleConfig(scale_bars=(ScaleBar(0, 1, float(np.linalg.norm(net.points[0] - net.points[1])), 1e-6),))
+    opts = BundleOptions(sigma_px=0.05, snooping=False)
+    n, m = len(net.points), len(net.cam_from_part)
+    linked = np.zeros(n, bool)
+    linked[[0, 1]] = True
+
+    def adjust(keep):
+        args = (net.obs_image[keep], net.obs_target[keep], uv[keep])
+        lay = _Layout(m, n, (), np.ones(n, bool), linked)
+        st = _State(net.intrinsics, net.cam_from_part.copy(), net.points.copy())
+        st, *_ = _pycolmap_solve(st, *args, np.ones(n, bool), config, opts)
+        st, _ = _datum_stage(st, net.points, lay, config, args, 0.05, 20, True)
+        lin = _linearise(st, *args, lay, config, 0.05, 6)
+        return st, lin, lay, _statistics(lin, lay, int(keep.sum()))
+
+    keep = np.ones(len(uv), bool)
+    _, _, _, full = adjust(keep)
+    keep[i] = False
+    st, lin, lay, stats = adjust(keep)
+    Tp = predicted_test(st, lin, lay, stats, net.obs_image[[i]], net.obs_target[[i]], uv[[i]], np.array([0.05]))
+    assert full["T"][i] > 20
+    assert abs(Tp[0] / full["T"][i] - 1) < 1e-3
+
+
+def test_pick_rejections_takes_one_per_target_and_a_share_per_image():
+    T = np.array([50.0, 40.0, 60.0, 1.0, 45.0, np.nan])
+    img = np.array([0, 1, 1, 0, 0, 1])
+    tgt = np.array([0, 0, 1, 1, 2, 2])
+    got = pick_rejections(T, 30.0, img, tgt, budget=10, image_share=1.0)
+    assert list(got) == [2, 0, 4]  # target 0 only its largest (50 > 40), largest first
+    assert list(pick_rejections(T, 30.0, img, tgt, budget=2, image_share=1.0)) == [2, 0]
+    # a tenth of an image's (3 active) observations: one per image
+    assert list(pick_rejections(T, 30.0, img, tgt, budget=10)) == [2, 0]
