@@ -22,8 +22,10 @@ VERB = r"(?:raise|lower|set|increase|decrease|widen|narrow|relax|reduce|enlarge|
 ADVICE = re.compile(rf"\b{VERB}\s+(?:the\s+)?(\[\w+\]\s+|\w+\.)?([a-z][a-z0-9]*_[a-z0-9_]+)\b")
 QUALIFIED = re.compile(r"\[(\w+)\]\s+([a-z][a-z0-9]*_[a-z0-9_]+)\b"
                        r"|\b(job|camera|cell|planning|report|sim|alignment)\.([a-z][a-z0-9_]*)\b(?![.(])")
-#: messages about another file's schema (the cell file CELL.toml has its own [cell] and [sim])
-OTHER_SCHEMA = ("cell/cellcal/cellfile.py",)
+#: messages about another file's schema (the cell file CELL.toml has its own [cell] and [sim]; `cell measure`'s
+#: camera file has fx_px etc.)
+OTHER_SCHEMA = ("cell/cellcal/cellfile.py", "cell/measure_cmd.py", "cell/camerafile.py")
+FILES = {"json", "csv", "toml", "html", "png", "mcap", "npz", "stl", "pdf"}
 
 
 def _keys(section: str) -> set[str]:
@@ -49,7 +51,7 @@ def _bad_names(text: str) -> list[str]:
     bad = []
     for m in QUALIFIED.finditer(text):
         section, key = (m.group(1), m.group(2)) if m.group(1) else (m.group(3), m.group(4))
-        if section in SECTIONS and key not in _keys(section):
+        if section in SECTIONS and key not in _keys(section) and key not in FILES:
             bad.append(f"{section}.{key}")
     for m in ADVICE.finditer(text):
         prefix, key = m.group(1), m.group(2)
