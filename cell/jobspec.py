@@ -111,8 +111,8 @@ class CameraSection(_Strict):
     observation_weights: Literal["model", "incidence", "equal"] = Field(
         default="model",
         description="model: each observation's a priori sigma from the detector precision model (incidence, dot "
-                    "size in pixels; calibration/data/detector_precision.json), scaled per incidence class by "
-                    "variance components; incidence: one image sigma per incidence class (< 50, 50-70, >= 70 deg) "
+                    "size in pixels; calibration/data/detector_precision.json), scaled by the adjustment's "
+                    "variance factor; incidence: one image sigma per incidence class (< 50, 50-70, >= 70 deg) "
                     "estimated from sigma_px; equal: every observation has sigma_px")
 
     @model_validator(mode="after")
