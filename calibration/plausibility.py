@@ -14,7 +14,7 @@ from calibration.errors import CalibrationError
 
 __all__ = ["intrinsics_problems", "check_adjustment", "MAX_SIGMA0_PX"]
 
-MAX_ASPECT_DEVIATION = 0.05  # |fx / fy - 1|
+MAX_ASPECT_DEVIATION = 0.05  # |(fx / fy) / (nominal fx / fy) - 1| (without a nominal: 0.5 <= fx / fy <= 2)
 MAX_SKEW = 0.05  # skew term / fx (a linear estimate from a few dozen points reaches 0.01)
 MAX_PRINCIPAL_OFFSET = 0.25  # |cx - centre| / width, |cy - centre| / height
 MAX_FOCAL_DEVIATION = 0.25  # |f / nominal - 1|, when the nominal lens is known
@@ -29,8 +29,11 @@ def intrinsics_problems(intr: Intrinsics, nominal: Intrinsics | None = None, ske
     if not (np.isfinite(intr.fx_px) and np.isfinite(intr.fy_px)) or intr.fx_px <= 0 or intr.fy_px <= 0:
         problems.append(f"focal length {intr.fx_px:.1f} x {intr.fy_px:.1f} px")
     else:
-        if abs(intr.fx_px / intr.fy_px - 1) > MAX_ASPECT_DEVIATION:
-            problems.append(f"pixel aspect {intr.fx_px / intr.fy_px:.3f}")
+        aspect = intr.fx_px / intr.fy_px
+        want = nominal.fx_px / nominal.fy_px if nominal is not None else 1.0
+        # against the lens' own aspect when known (rectangular pixels exist); otherwise only absurd ones
+        if (nominal is not None and abs(aspect / want - 1) > MAX_ASPECT_DEVIATION) or not 0.5 <= aspect <= 2.0:
+            problems.append(f"pixel aspect {aspect:.3f}" + (f" vs the camera's {want:.3f}" if nominal is not None else ""))
         if nominal is not None and abs(intr.fx_px / nominal.fx_px - 1) > MAX_FOCAL_DEVIATION:
             problems.append(f"focal length {intr.fx_px:.1f} px vs the lens' {nominal.fx_px:.1f} px")
     if abs(skew_ratio) > MAX_SKEW:

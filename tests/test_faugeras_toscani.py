@@ -114,9 +114,10 @@ def test_an_implausible_interior_orientation_is_refused():
     far_lens = Intrinsics(fx_px=1500.0, fy_px=1500.0, cx_px=1224.0, cy_px=1024.0, width=2448, height=2048)
     with pytest.raises(CalibrationError, match="implausible.*lens"):
         faugeras_toscani(xyz, uv, INTR.width, INTR.height, nominal=far_lens)
-    stretched = uv * np.array([1.0, 1.2])  # non-square pixels: no camera of this kind
-    with pytest.raises(CalibrationError, match="implausible"):
-        faugeras_toscani(xyz, stretched - [0, 200], INTR.width, INTR.height)
+    stretched = uv * np.array([1.0, 1.2])  # pixels 20 % taller than the camera's: not this camera
+    with pytest.raises(CalibrationError, match="pixel aspect"):
+        faugeras_toscani(xyz, stretched - [0, 200], INTR.width, INTR.height, nominal=INTR)
+    faugeras_toscani(xyz, stretched - [0, 200], INTR.width, INTR.height)  # rectangular pixels exist (no nominal)
 
 
 @pytest.mark.parametrize("ratio,expect", [(0.0, "IPPE"), (0.003, "IPPE"), (0.3, "SQPnP")])
