@@ -61,7 +61,8 @@ class Consensus:
         agree: (n,) bool, targets that agree with it under their stated covariance.
         hypotheses: minimal-subset hypotheses scored.
         rival: size of the largest consensus of a hypothesis that mostly disagrees with the best one
-            (0 if none): a rival as large as ``agree`` means two transformations fit the data equally.
+            (0 if none), at the loose bound: a rival as large as ``agree_loose`` (the best one's consensus at
+            the same bound) means two transformations fit the data equally.
         scale_factor: robust ratio of the agreeing targets' residuals to their stated sigma
             (sqrt of the median squared Mahalanobis distance over the chi-square median).
     """
@@ -72,6 +73,7 @@ class Consensus:
     hypotheses: int
     rival: int
     scale_factor: float
+    agree_loose: int = 0
 
 
 @dataclass(frozen=True)
@@ -185,16 +187,18 @@ def consensus_fit(measured: np.ndarray, cov_blocks: np.ndarray, nominal: np.ndar
         if new.sum() < 3:
             break
         agree = new
-    # a rival: a hypothesis whose agreeing set mostly lies outside the best one's
+    # a rival: a hypothesis whose agreeing set (same loose bound) mostly lies outside the best one's
     sets = m2 < bound
-    overlap = (sets & agree[None]).sum(axis=1)
+    best_sets = _m2(X, N, cinv, Rb[None], tb[None])[0] < bound
+    overlap = (sets & best_sets[None]).sum(axis=1)
     size = sets.sum(axis=1)
     rival = int(np.max(np.where(overlap < 0.5 * size, size, 0))) if len(size) else 0
+    best_loose = int(best_sets.sum())
     m2b = _m2(X, N, cinv, Rb[None], tb[None])[0]
     factor = float(np.sqrt(np.median(m2b[agree]) / chi2.median(3))) if agree.any() else float("nan")
     full = np.zeros(len(measured), dtype=bool)
     full[idx[agree]] = True
-    return Consensus(Rb, tb, full, len(trip), rival, factor)
+    return Consensus(Rb, tb, full, len(trip), rival, factor, best_loose)
 
 
 def _expected_truncated_m2(k: float) -> float:
@@ -274,9 +278,9 @@ def robust_best_fit(measured: np.ndarray, cov, nominal: np.ndarray, tolerance_m:
         reasons.append(f"only {n_fit} of {n_cand} targets agree with CAD: the frame rests on a minority")
     if n_fit >= 3 and not _spans(nominal[mask]):
         reasons.append("the targets that agree with CAD lie on one line: the rotation about it is not fixed")
-    if cons.rival >= 0.5 * cons.agree.sum():
+    if cons.rival >= 0.5 * cons.agree_loose:
         reasons.append(f"ambiguous: another placement agrees with {cons.rival} targets "
-                       f"(the best with {int(cons.agree.sum())}); is the part in one piece?")
+                       f"(the best with {cons.agree_loose}, within {3:g}x their stated sigma); is the part in one piece?")
     d = al.deviation[mask]
     C = al.deviation_cov[mask]
     m2 = np.einsum("na,na->n", d, np.linalg.solve(C, d[..., None])[..., 0]) if n_fit else np.array([])

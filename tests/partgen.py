@@ -181,7 +181,9 @@ def make_part_job(out: Path, rng: np.random.Generator, kind: str | None = None, 
         for i, d in deviations.items():
             w.writerow([i, *(f"{v:.5f}" for v in d)])
     # the scale bar: the two targets furthest apart that carry no deviation
-    clean = [k for k in range(n) if ids[k] not in deviations]
+    clean = [k for k in range(n) if ids[k] not in deviations and nrm[k, 2] > 0.7]  # on top: seen by many images
+    if len(clean) < 2:
+        clean = [k for k in range(n) if ids[k] not in deviations]
     P = xyz[clean]
     a, b = np.unravel_index(np.argmax(np.linalg.norm(P[:, None] - P[None], axis=2)), (len(P), len(P)))
     a, b = clean[a], clean[b]
