@@ -11,6 +11,7 @@ with the peak memory it allocated (tracemalloc).
 from __future__ import annotations
 
 import argparse
+import json
 import tempfile
 import time
 import tracemalloc
@@ -80,6 +81,7 @@ def main() -> None:
     mesh = part_mesh()
     print(f"part: box 3 x 2 x 1 m, {len(mesh.faces)} triangles, {mesh.area:.1f} m^2")
 
+    base = None
     for n in [int(v) for v in args.baseline.split(",") if v]:
         pts, faces = candidates(mesh, n, np.random.default_rng(n))
         spacing = 0.6 * np.sqrt(mesh.area / n)
@@ -93,16 +95,18 @@ def main() -> None:
         t_slow = time.perf_counter() - t
         assert np.array_equal(fast, slow), "the vectorised greedy keeps other targets than the sequential one"
         assert np.allclose(clear_fast, clear_slow, rtol=0, atol=1e-12)
+        base = (n, t_fast, t_slow)
         print(f"n = {n:>6}: spacing + clearance vectorised {t_fast:7.3f} s, sequential {t_slow:7.2f} s, "
               f"ratio {t_slow / t_fast:6.1f}x (same {len(fast)} targets, same clearances)")
 
     sizes = sorted({2000, 8000, 25_000, args.max})
-    last = None
+    last, t_max = None, 0.0
     for n in sizes:
         t = time.perf_counter()
         last = sample_targets(mesh, n, np.random.default_rng(1), n_coded=8, edge_clearance_m=0.004,
                               coded_clearance_m=0.02)
-        print(f"sample_targets n = {n:>6}: {time.perf_counter() - t:7.2f} s ({len(last)} targets kept)")
+        t_max = time.perf_counter() - t
+        print(f"sample_targets n = {n:>6}: {t_max:7.2f} s ({len(last)} targets kept)")
     t = time.perf_counter()
     check_targets(mesh, last, target_diameter_m=0.003, coded_size_m=0.01)
     print(f"check_targets (on the surface, overlaps, under a marker) n = {len(last)}: {time.perf_counter() - t:.2f} s")
@@ -127,6 +131,13 @@ def main() -> None:
         assert len(loaded) == len(last) and np.allclose(loaded.xyz, last.xyz, atol=1e-6)
         print(f"load_targets: {len(loaded)} targets from a {size_mb:.1f} MB CSV in {dt:.2f} s, "
               f"peak {peak / 1e6:.0f} MB allocated")
+    summary = {"what": "target sampling and targets CSV (100,000 targets)",
+               "figure": f"{args.max} sampled in {t_max:.2f} s; CSV of {len(loaded)} read in {dt:.2f} s "
+                         f"(peak {peak / 1e6:.0f} MB)"}
+    if base is not None:
+        summary |= {"baseline": f"sequential greedy + per-point clearance at n = {base[0]}: {base[2]:.2f} s",
+                    "ratio": f"{base[2] / base[1]:.0f}x faster at n = {base[0]}"}
+    print("BENCHMARK " + json.dumps(summary), flush=True)
 
 
 if __name__ == "__main__":

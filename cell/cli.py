@@ -114,6 +114,18 @@ def cmd_calibrate(args, out: Output) -> int:
     return calibrate(args, out)
 
 
+def cmd_serve(args, out: Output) -> int:
+    from cell.web.serve import serve
+
+    return serve(args, out)
+
+
+def cmd_users(args, out: Output) -> int:
+    from cell.web.serve import users
+
+    return users(args, out)
+
+
 def cmd_measure(args, out: Output) -> int:
     from cell.measure_cmd import measure_command
 
@@ -151,12 +163,16 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--archive", type=Path, default=Path("archive"))
     c.add_argument("--backend", choices=["sim", "ur"], help="override the job file's [cell] backend")
     c.add_argument("--yes", action="store_true", help="confirm moving the robot without asking")
+    c.add_argument("--serial", help="the part's serial number (goes into the report and the archive)")
+    c.add_argument("--operator", help="who runs the job (default: the login name)")
+    c.add_argument("--cell-id", help="this cell's id (default: $CELL_ID)")
     c.set_defaults(func=cmd_run)
 
     c = sub.add_parser("resume", parents=[common], help="resume a faulted or interrupted job")
     c.add_argument("job_id")
     c.add_argument("--archive", type=Path, default=Path("archive"))
     c.add_argument("--yes", action="store_true", help="confirm resuming from the measured robot pose")
+    c.add_argument("--operator", help="who resumes the job (default: the login name)")
     c.set_defaults(func=cmd_resume)
 
     c = sub.add_parser("locate", parents=[common], help="estimate where the part sits (base_from_part) from a few images")
@@ -207,6 +223,28 @@ def build_parser() -> argparse.ArgumentParser:
                         "over the files its journal vouches for); never vouches for a changed file")
     c.add_argument("--archive", type=Path, default=Path("archive"))
     c.set_defaults(func=cmd_archive)
+
+    c = sub.add_parser("serve", parents=[common], help="the web console (operator screen, archive, JSON API)")
+    c.add_argument("--host", default="127.0.0.1", help="address to listen on (default: this computer only)")
+    c.add_argument("--port", type=int, default=8765)
+    c.add_argument("--archive", type=Path, default=Path("archive"))
+    c.add_argument("--programs", type=Path, default=Path("programs"),
+                   help="folder of part programs: job files kept as templates (NAME.toml or NAME/job.toml)")
+    c.add_argument("--cell-id", help="this cell's id (default: $CELL_ID)")
+    c.add_argument("--certfile", type=Path, help="TLS certificate (PEM); with --keyfile the console speaks HTTPS only")
+    c.add_argument("--keyfile", type=Path, help="TLS private key (PEM)")
+    c.set_defaults(func=cmd_serve)
+
+    c = sub.add_parser("users", parents=[common], help="console accounts: add (password on stdin), passwd, remove, list")
+    c.add_argument("action", choices=["add", "passwd", "remove", "list"])
+    c.add_argument("name", nargs="?")
+    c.add_argument("--role", choices=["operator", "engineer", "admin"])
+    c.add_argument("--archive", type=Path, default=Path("archive"))
+    c.set_defaults(func=cmd_users)
+
+    from cell.camera_cmd import add_camera_parser
+
+    add_camera_parser(sub, common)
     return p
 
 

@@ -132,14 +132,24 @@ def run(args, out) -> int:
     backend = args.backend
     if (backend or "") == "ur":
         _confirm(args, out, "This job moves the robot.")
-    return _finish(start_job(args.job, args.archive, backend, out), out)
+    return _finish(start_job(args.job, args.archive, backend, out, serial=args.serial,
+                             operator=args.operator or _login_name(), cell_id=args.cell_id), out)
+
+
+def _login_name() -> str | None:
+    import getpass
+
+    try:
+        return getpass.getuser()
+    except (KeyError, OSError):  # no name for this uid (containers)
+        return None
 
 
 def resume(args, out) -> int:
     from cell.job import resume_job
 
     _confirm(args, out, f"Resuming {args.job_id} moves the robot from its measured pose.")
-    return _finish(resume_job(args.job_id, args.archive, out), out)
+    return _finish(resume_job(args.job_id, args.archive, out, operator=args.operator or _login_name()), out)
 
 
 def archive(args, out) -> int:

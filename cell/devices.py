@@ -7,6 +7,7 @@ reports (so a whole job runs through the real driver path).
 """
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -88,7 +89,21 @@ def open_devices(job: LoadedJob, backend: str, *, seed_offset: int = 0) -> Devic
     s = job.spec
     if backend == "sim":
         sim = make_job_sim_cell(job, seed_offset)
-        d = Devices(robot=sim.robot, camera=sim.camera, light=sim.light, world=sim.world)
+        faults = _frame_faults_from_env()
+        if faults:
+            sim.camera.inject_frame_faults(faults, late_s=s.camera.frame_timeout_s + s.camera.exposure_s + 0.2)
+        light, closers = sim.light, []
+        if s.sim.light:
+            # the real Gardasoft driver on the emulated controller (a pseudo-terminal): every pulse it fires is recorded
+            from sim_backend.gardasoft_emulator import GardasoftSerialEmulator
+
+            emulator = GardasoftSerialEmulator()
+            closers.append(emulator.close)
+            light = _gardasoft(emulator.port, s.cell)
+            light.emulator = emulator
+            if s.cell.light_input is not None:  # the camera's strobe line wired to the controller's trigger input
+                sim.camera.strobe_out = lambda: emulator.controller.input_edge(s.cell.light_input)
+        d = Devices(robot=sim.robot, camera=sim.camera, light=light, world=sim.world, _closers=closers)
     elif backend == "ur":
         from cell.setup import robot_model
         from drivers.ur import CellLimits, URRobot
@@ -104,10 +119,19 @@ def open_devices(job: LoadedJob, backend: str, *, seed_offset: int = 0) -> Devic
                             max_tcp_speed_m_s=s.cell.max_tcp_speed_m_s, max_tcp_accel_m_s2=s.cell.max_tcp_accel_m_s2,
                             workspace_min_m=tuple(map(float, box_lo)), workspace_max_m=tuple(map(float, box_hi)))
         robot = URRobot(s.cell.host, limits=limits, robot=s.cell.robot)
-        if s.camera.device is not None:
+        if s.camera.device is not None and s.camera.driver == "genicam":
+            from drivers.genicam import GenICamCamera
+
+            c = s.camera
+            camera = GenICamCamera(c.device, producer=c.producer, pixel_format=c.pixel_format, exposure_s=c.exposure_s,
+                                   gain_db=c.gain_db, trigger=c.trigger, strobe_line=c.strobe_line,
+                                   timeout_s=c.frame_timeout_s)
+            world = None
+        elif s.camera.device is not None:
             from drivers.opencv_camera import OpenCVCamera
 
-            camera = OpenCVCamera(s.camera.device, exposure_s=s.camera.exposure_s)
+            camera = OpenCVCamera(int(s.camera.device) if s.camera.device.isdigit() else s.camera.device,
+                                  exposure_s=s.camera.exposure_s)
             world = None
         else:
             # no real camera configured: the simulated camera follows the real robot's reported pose
@@ -116,9 +140,7 @@ def open_devices(job: LoadedJob, backend: str, *, seed_offset: int = 0) -> Devic
             camera = _FollowingCamera(sim.camera, robot, world)
         light = None
         if s.cell.light_port:
-            from drivers.serial_light import SerialLight
-
-            light = SerialLight(s.cell.light_port)
+            light = _gardasoft(s.cell.light_port, s.cell)
         d = Devices(robot=robot, camera=camera, light=light, world=world)
     else:
         raise InputError(f"unknown backend {backend!r} (use sim or ur)")
@@ -127,6 +149,40 @@ def open_devices(job: LoadedJob, backend: str, *, seed_offset: int = 0) -> Devic
             dev.connect()
             d._closers.append(dev.close)
     return d
+
+
+FRAME_FAULTS_ENV = "CELL_SIM_FRAME_FAULTS"
+
+
+def _frame_faults_from_env() -> dict[int, str]:
+    """Faults of the simulated camera for this session (tests): ``CELL_SIM_FRAME_FAULTS='{"3": "missing"}'`` makes
+    the 3rd capture of the session fail (``missing``, ``late``, ``duplicate``). A hardware fault, not part of the
+    job: a resumed session without the variable has a mended camera."""
+    import json
+
+    text = os.environ.get(FRAME_FAULTS_ENV, "").strip()
+    if not text:
+        return {}
+    try:
+        doc = json.loads(text)
+        faults = {int(k): str(v) for k, v in doc.items()}
+    except (ValueError, AttributeError, TypeError):
+        raise InputError(f"{FRAME_FAULTS_ENV}={text!r}: give a JSON object such as {{\"3\": \"missing\"}}") from None
+    bad = sorted(set(faults.values()) - {"missing", "late", "duplicate"})
+    if bad:
+        raise InputError(f"{FRAME_FAULTS_ENV}: unknown fault(s) {bad}; use missing, late or duplicate")
+    return faults
+
+
+def _gardasoft(where: str, cell):
+    """The Gardasoft RT controller at ``where``: a serial device path, or ``tcp://HOST[:PORT]`` (Ethernet models)."""
+    from drivers.gardasoft import TCP_PORT, GardasoftRT
+
+    kw = dict(channel=cell.light_channel, trigger_input=cell.light_input, brightness_pct=cell.light_brightness_pct)
+    if where.startswith("tcp://"):
+        host, _, port = where[len("tcp://"):].partition(":")
+        return GardasoftRT(host=host, tcp_port=int(port) if port else TCP_PORT, **kw)
+    return GardasoftRT(where, **kw)
 
 
 class _FollowingCamera:

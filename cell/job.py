@@ -27,6 +27,7 @@ from cell.record import integrity
 from cell.record.archive import Archive, check_archive_root, check_job_id
 from cell.record.jobfolder import (JobFolder, JournalDamaged, atomic_write_bytes, atomic_write_json, new_job_id,
                                    utc_now)
+from cell.record.runinfo import make_run_info, read_run_info, write_run_info
 from cell.record.runlog import RunLog, next_log_path
 from cell.stages import STAGE_FUNCTIONS
 from cell.states import STAGES, State, check_transition
@@ -203,8 +204,11 @@ class JobRunner:
         self.folder = JobFolder(dst)
         self.staged = False
         recs = list(self.folder.records())
+        info = read_run_info(self.folder.path)
         self.archive.record(self.folder.job_id, name=self.job.spec.job.name, part=self.job.part.name,
-                            status=self.state.value, started=recs[0]["t"] if recs else None)
+                            status=self.state.value, started=recs[0]["t"] if recs else None,
+                            part_number=info["part"]["number"], serial=info["part"]["serial"],
+                            operator=info["operator"], cell_id=info["cell_id"])
 
     def run(self, start: State, resumed_from: State | None = None) -> JobResult:
         log = RunLog(next_log_path(self.folder.path))
@@ -213,6 +217,7 @@ class JobRunner:
         self._ctx = ctx
         self._thread = threading.current_thread()
         self.state = resumed_from or State.CREATED
+        log.job(self.folder.job_id, read_run_info(self.folder.path))
         on_main = threading.current_thread() is threading.main_thread()
         old_handlers = {}
         if on_main:  # signals reach only the main thread; a console runs jobs elsewhere and calls abort()
@@ -362,9 +367,15 @@ class JobRunner:
         self.folder.append("robot_stopped", **rec)
 
 
-def start_job(job_path: Path, archive_root: Path, backend: str | None, out) -> JobResult:
-    """``cell run``: LOAD (before anything is written), then the whole job."""
+def start_job(job_path: Path, archive_root: Path, backend: str | None, out, *, serial: str | None = None,
+              operator: str | None = None, cell_id: str | None = None) -> JobResult:
+    """``cell run``: LOAD (before anything is written), then the whole job.
+
+    ``serial`` (the part's serial number), ``operator`` and ``cell_id`` (default: ``$CELL_ID``) go
+    into the job's run.json, its journal, run log, report and archive row.
+    """
     job = load(job_path)  # bad input fails here, before any folder exists
+    info = make_run_info(job.spec, serial, operator, cell_id)  # a bad serial fails here too
     archive = Archive(check_archive_root(Path(archive_root), write=True).resolve())
     job_id = new_job_id(job.spec.job.name)
     incoming = archive.root / ".incoming" / job_id
@@ -377,15 +388,17 @@ def start_job(job_path: Path, archive_root: Path, backend: str | None, out) -> J
     folder = JobFolder(incoming)
     lock = folder.lock()
     try:
-        return _start_staged(job_path, job, archive, folder, job_id, backend, out)
+        return _start_staged(job_path, job, archive, folder, job_id, backend, out, info)
     finally:
         os.close(lock)
 
 
 def _start_staged(job_path: Path, job: LoadedJob, archive: Archive, folder: JobFolder, job_id: str,
-                  backend: str | None, out) -> JobResult:
+                  backend: str | None, out, info: dict) -> JobResult:
     incoming = folder.path
-    folder.append("created", name=job.spec.job.name, job_file=str(job_path), backend=backend or job.spec.cell.backend)
+    write_run_info(incoming, info)
+    folder.append("created", name=job.spec.job.name, job_file=str(job_path), backend=backend or job.spec.cell.backend,
+                  **info)
     _copy_inputs(job, incoming)
     # the staged copy is what runs; messages name the operator's job file
     job = dataclasses.replace(load_from_folder(incoming), path=Path(job_path))
@@ -394,14 +407,14 @@ def _start_staged(job_path: Path, job: LoadedJob, archive: Archive, folder: JobF
     return runner.run(State.LOAD)
 
 
-def resume_job(job_id: str, archive_root: Path, out) -> JobResult:
+def resume_job(job_id: str, archive_root: Path, out, *, operator: str | None = None) -> JobResult:
     """``cell resume``: verify the job's record, then continue from the first stage that did not finish.
 
     Before anything moves: the journal must read whole (a damaged line is an error naming it, never a
     rewind); a finished job is never driven again (one that died after DONE is only closed); every
     stored file is checked against the sha256 its journal recorded, and a station whose image fails
     (changed, missing, undecodable) is acquired again, alone; damage that cannot be retaken stops
-    the resume with a clear message, having changed nothing.
+    the resume with a clear message, having changed nothing. ``operator``: who resumes it (journalled).
     """
     root = check_archive_root(Path(archive_root), write=False)
     archive = Archive(root.resolve())
@@ -411,7 +424,7 @@ def resume_job(job_id: str, archive_root: Path, out) -> JobResult:
     except OSError as exc:
         raise InputError(f"{folder.path}: cannot write the job folder ({_os_reason(exc)})") from None
     try:
-        return _resume_locked(job_id, archive, folder, out)
+        return _resume_locked(job_id, archive, folder, out, operator)
     finally:
         os.close(lock)
 
@@ -420,7 +433,7 @@ def resume_job(job_id: str, archive_root: Path, out) -> JobResult:
 _BEFORE_MOTION = frozenset({State.LOAD.value, State.PLAN.value, State.VALIDATE.value})
 
 
-def _resume_locked(job_id: str, archive: Archive, folder: JobFolder, out) -> JobResult:
+def _resume_locked(job_id: str, archive: Archive, folder: JobFolder, out, operator: str | None = None) -> JobResult:
     recs, damage = folder.read_journal()
     if damage is not None:
         raise RecordError(f"{damage}; the job is not resumed and nothing was changed: a damaged journal cannot say "
@@ -458,7 +471,7 @@ def _resume_locked(job_id: str, archive: Archive, folder: JobFolder, out) -> Job
         folder.append("terminal", status="FAULTED",
                       reason=f"{last_state.value}: the process ended without a terminal record (killed or crashed)")
         last_state = State.FAULTED
-    folder.append("resumed", stage=start.value if start else "DONE")
+    folder.append("resumed", stage=start.value if start else "DONE", **({"operator": operator} if operator else {}))
     partial = folder.remove_partial_files()
     if partial:
         folder.append("note", text=f"removed {len(partial)} partial file(s) of an interrupted write: {', '.join(partial)}")

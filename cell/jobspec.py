@@ -59,12 +59,17 @@ class ScaleBar(_Strict):
     def _two_targets(self):
         if self.a == self.b:
             raise ValueError(f"a scale bar joins two different targets; a = b = {self.a!r}")
+        if self.sigma >= self.length:
+            raise ValueError(f"the scale bar's sigma ({self.sigma}) must be below its length ({self.length})")
         return self
 
 
 class JobSection(_Strict):
     name: str = Field(min_length=1)
-    mesh: str
+    mesh: str = Field(description="the part: STEP/IGES (its own units honoured) or a mesh (STL/OBJ/PLY/GLB, in `units`)")
+    tessellation_tolerance: float | None = Field(
+        default=None, gt=0, description="STEP/IGES: largest distance of the tessellation from the surface, job units "
+                                        "(default 0.01 mm)")
     units: Literal["m", "mm", "cm", "um", "in", "ft"]
     targets: str | None = None
     n_targets: int | None = Field(default=None, ge=6, le=100_000,
@@ -75,8 +80,10 @@ class JobSection(_Strict):
     coded_family: Literal["aruco", "ring12", "ring14", "schneider12", "schneider14", "cct8", "cct12"] = Field(
         default="aruco", description="the coded targets the part carries: ArUco DICT_4X4_250 markers, or ring codes "
                                      "(a centre dot of target_diameter in a coded ring; calibration.ringcodes)")
-    seed: int = 0
+    seed: int = Field(default=0, ge=0, lt=2**63, description="random seed (a non-negative integer)")
     scale_bar: ScaleBar | None = None
+    number: str | None = Field(default=None, max_length=80, description="the part number (drawing), e.g. 'BR-1002'")
+    revision: str | None = Field(default=None, max_length=40, description="the part's drawing revision")
 
     @model_validator(mode="after")
     def _targets_or_count(self):
@@ -100,8 +107,17 @@ class CameraSection(_Strict):
     sigma_px: float = Field(default=0.05, gt=0, le=10, description="image measurement standard deviation")
     near: float = Field(gt=0, description="depth of field, nearest sharp distance, job units")
     far: float = Field(gt=0, description="depth of field, farthest sharp distance, job units")
-    device: str | None = Field(default=None, description="OpenCV device index or GStreamer pipeline (real cell)")
+    device: str | None = Field(default=None, description="real cell: a GenICam camera's serial number / user id "
+                               "(driver genicam), or an OpenCV device index or GStreamer pipeline (driver opencv)")
+    driver: Literal["genicam", "opencv"] = Field(default="genicam", description="how `device` is opened")
+    producer: str | None = Field(default=None, description="GenTL producer .cti (default: GENICAM_GENTL64_PATH)")
+    pixel_format: str = Field(default="Mono8", description="GenICam pixel format (Mono8/10/12/16, Mono10p/12p ...)")
+    gain_db: float | None = Field(default=None, description="GenICam Gain (dB); None: leave the camera's")
+    trigger: str = Field(default="software", description="GenICam frame trigger: software, off, or a line (Line1)")
+    strobe_line: str | None = Field(default=None, description="GenICam output line that fires the light (Line2)")
     exposure_s: float = Field(default=0.002, gt=0, le=10)
+    frame_timeout_s: float = Field(default=2.0, gt=0, le=600, description="longest time from trigger to frame beyond the "
+                                   "exposure; a later frame faults the station and it is retaken")
     self_calibrate: bool = Field(default=True, description="refine focal length, principal point, radial distortion")
     polarity: Literal["bright", "dark", "auto"] = Field(
         default="bright", description="bright: retro-reflective dots; dark: printed dots on a light ground; auto: per image")
@@ -142,7 +158,12 @@ class CellSection(_Strict):
     robot: Literal["ur5e", "ur10e"] = "ur5e"
     backend: Literal["sim", "ur"] = "sim"
     host: str = "127.0.0.1"
-    light_port: str | None = Field(default=None, description="serial port of the light controller (real cell)")
+    light_port: str | None = Field(default=None, description="the Gardasoft RT light controller (real cell): a "
+                                   "serial port, or tcp://HOST[:PORT]")
+    light_channel: int = Field(default=1, ge=1, le=8, description="the light's output channel on the controller")
+    light_input: int | None = Field(default=None, ge=1, le=8, description="controller trigger input wired to the "
+                                    "camera's strobe line; None: the light is fired by a software trigger")
+    light_brightness_pct: float = Field(default=100.0, gt=0, le=1000, description="pulse brightness, % of rating")
     cell_file: str | None = Field(default=None, description="the cell's CELL.toml: its calibration status goes in the report")
     base_from_part: Pose
     flange_from_cam: Pose
@@ -153,7 +174,12 @@ class CellSection(_Strict):
     max_joint_accel_rad_s2: float = Field(default=1.5, gt=0, le=40)
     max_tcp_speed_m_s: float = Field(default=0.25, gt=0, le=1.0)
     max_tcp_accel_m_s2: float = Field(default=1.0, gt=0, le=10)
-    settle_s: float = Field(default=0.2, ge=0, le=60)
+    settle_s: float = Field(default=0.2, ge=0, le=60, description="the arm counts as settled when every joint has been "
+                            "slower than settle_speed_rad_s for this long (controller clock)")
+    settle_speed_rad_s: float = Field(default=0.002, gt=0, le=1)
+    settle_timeout_s: float = Field(default=10.0, gt=0, le=600)
+    retakes: int = Field(default=2, ge=0, le=10, description="retakes of a station whose frame came late, twice "
+                         "or never, before the job faults")
     workspace_min: tuple[float, float, float] | None = Field(default=None, description="flange box, base frame, job units")
     workspace_max: tuple[float, float, float] | None = Field(default=None, description="default: the robot's reach")
     elbow_limit_deg: float = Field(default=180.0, gt=0, le=360)
@@ -258,11 +284,12 @@ class AlignmentSection(_Strict):
 class SimSection(_Strict):
     image_sigma_px: float = Field(default=0.0, ge=0, le=10, description="an extra random offset per dot (pixels) on top of "
                                   "the rendered photon/read noise, blur and quantisation; 0 = physical")
-    seed: int = 0
+    seed: int = Field(default=0, ge=0, lt=2**63, description="random seed (a non-negative integer)")
     deviations: str | None = Field(default=None, description="CSV id,dx,dy,dz in job units")
     motion: Literal["instant", "timed"] = "instant"
     time_scale: float = Field(default=1.0, gt=0, le=1000)
     noise: float = Field(default=1.0, ge=0, le=100, description="sensor noise scale (1 = nominal)")
+    light: bool = Field(default=False, description="the sim cell's light: the Gardasoft RT driver on its emulator")
     base_from_part_error: Pose | None = Field(default=None, description="true placement minus nominal (tests)")
     flange_from_cam_error: Pose | None = None
     base_from_part_true: Pose | None = Field(default=None, description="absolute true placement (wins over _error); "

@@ -75,6 +75,7 @@ def load(job_path: str | Path, overrides: dict[str, str] | None = None) -> Loade
         name=j.name,
         target_diameter_m=j.target_diameter * s,
         coded_size_m=j.coded_size * s,
+        tessellation_tolerance=j.tessellation_tolerance,
     )
     ids = part.targets.ids
     scale_bar = None

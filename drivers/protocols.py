@@ -37,12 +37,15 @@ class RobotState:
         base_from_flange: (4, 4) measured flange pose in the robot base frame.
         safety: safety status at the time of the reading.
         timestamp_s: controller time of the reading (seconds); freshness is judged by it.
+        joint_speeds_rad_s: (6,) measured joint speeds, when the controller reports them (RTDE
+            ``actual_qd``); None otherwise (then settling is judged from successive positions).
     """
 
     joints_rad: np.ndarray
     base_from_flange: np.ndarray
     safety: SafetyStatus
     timestamp_s: float
+    joint_speeds_rad_s: np.ndarray | None = None
 
 
 @runtime_checkable
@@ -104,7 +107,7 @@ class Camera(Protocol):
 
 @runtime_checkable
 class Light(Protocol):
-    """A light/strobe controller (typically on a serial line)."""
+    """A light/strobe controller (serial line or Ethernet; the real one is ``drivers.gardasoft.GardasoftRT``)."""
 
     def connect(self) -> None: ...
 
@@ -114,4 +117,8 @@ class Light(Protocol):
         """Set the light's intensity in ``[0, 1]``."""
 
     def strobe(self, duration_s: float) -> None:
-        """Fire one flash of ``duration_s`` (and the camera trigger wired to it)."""
+        """Fire one flash of ``duration_s`` now (a software trigger of the controller)."""
+
+    def arm(self, duration_s: float) -> None:
+        """Pulse mode: one flash of ``duration_s`` per edge on the controller's trigger input (the camera's
+        strobe line), so the light fires with the exposure itself."""

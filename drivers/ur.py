@@ -19,7 +19,9 @@ What this driver adds to ur-rtde:
 * the controller's RTDE watchdog is armed, and kicked by the child while it waits;
 * freshness is judged by the RTDE ``timestamp``, not by ``isConnected()``;
 * the safety status is checked after each move; it never unlocks a protective stop
-  or resumes on its own: that is the operator's act.
+  or resumes on its own: that is the operator's act;
+* :meth:`URRobot.stop` reaches the client at once, as a signal, whatever it is doing (also in
+  the middle of a move another thread waits for), and reports when the arm came to rest.
 
 The child is a fresh interpreter (spawn semantics) started with ``subprocess``
 rather than ``multiprocessing``: the latter's spawn context starts a
@@ -366,7 +368,9 @@ class URRobot:
         return RobotState(joints_rad=np.asarray(value["q"], dtype=float),
                           base_from_flange=pose_to_matrix(value["pose"]),
                           safety=safety_from_bits(int(value["safety_bits"]), int(value["runtime_state"])),
-                          timestamp_s=float(value["timestamp"]))
+                          timestamp_s=float(value["timestamp"]),
+                          joint_speeds_rad_s=np.asarray(value["qd"], dtype=float) if value.get("qd") is not None
+                          else None)
 
 
 def _socketpair():

@@ -18,6 +18,7 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from calibration.errors import PartError
+from planning.cad import IGES_SUFFIXES, STEP_SUFFIXES, load_brep
 from planning.target_sampling import spaced_with_clearance
 
 __all__ = ["UNITS_TO_M", "Targets", "Part", "load_mesh", "load_targets", "sample_targets", "load_part", "make_bracket", "mesh_health"]
@@ -208,8 +209,12 @@ def _check_raw_vertices(path: Path, data: bytes, suffix: str) -> None:
                 raise PartError(f"{path}:{lineno}: non-finite (NaN/inf) vertex coordinate")
 
 
-def load_mesh(path: str | Path, units: str) -> trimesh.Trimesh:
-    """Load a CAD mesh (STL, OBJ, PLY, GLB), check it, and scale it to metres.
+def load_mesh(path: str | Path, units: str, tessellation_tolerance: float | None = None) -> trimesh.Trimesh:
+    """Load a CAD part (STEP/IGES, tessellated; or a mesh: STL, OBJ, PLY, GLB), check it, scale it to metres.
+
+    A STEP or IGES file carries its own length unit, which is honoured (:mod:`planning.cad`); a mesh
+    file has none, so it is scaled by ``units``. ``tessellation_tolerance`` (in ``units``) is the
+    largest distance of the tessellation from the B-rep surface (STEP/IGES only; default 0.01 mm).
 
     Raises:
         PartError: the file is missing, unreadable, empty, has non-finite vertices,
@@ -221,10 +226,10 @@ def load_mesh(path: str | Path, units: str) -> trimesh.Trimesh:
     if not path.is_file():
         raise PartError(f"{path}: mesh file not found")
     suffix = path.suffix.lower()
-    if suffix not in (".stl", ".obj", ".ply", ".glb", ".gltf", ".off"):
-        raise PartError(f"{path}: unsupported mesh format {suffix!r} (use STL, OBJ, PLY or GLB)")
+    if suffix not in (".stl", ".obj", ".ply", ".glb", ".gltf", ".off") + STEP_SUFFIXES + IGES_SUFFIXES:
+        raise PartError(f"{path}: unsupported CAD format {suffix!r} (use STEP, IGES, STL, OBJ, PLY or GLB)")
     try:
-        return _load_mesh(path, units, suffix)
+        return _load_mesh(path, units, suffix, tessellation_tolerance)
     except MemoryError:
         size = path.stat().st_size
         raise PartError(f"{path}: the mesh ({size / 2**30:.2f} GiB) does not fit in this machine's memory; "
@@ -233,10 +238,13 @@ def load_mesh(path: str | Path, units: str) -> trimesh.Trimesh:
         raise PartError(f"{path}: cannot read the mesh file ({exc.strerror or exc})") from None
 
 
-def _load_mesh(path: Path, units: str, suffix: str) -> trimesh.Trimesh:
+def _load_mesh(path: Path, units: str, suffix: str, tessellation_tolerance: float | None) -> trimesh.Trimesh:
     data = path.read_bytes()
     if not data:
         raise PartError(f"{path}: file is empty")
+    if suffix in STEP_SUFFIXES + IGES_SUFFIXES:
+        tol = None if tessellation_tolerance is None else tessellation_tolerance * UNITS_TO_M[units]
+        return _checked(path, load_brep(path, tol), 1.0, "the file's own")
     if suffix == ".stl":
         _check_stl_header(path, data)
     if suffix in (".obj", ".off") or suffix in (".stl", ".ply") and data[:5].lower() in (b"solid", b"ply\nf", b"ply\rf"):
@@ -259,14 +267,21 @@ def _load_mesh(path: Path, units: str, suffix: str) -> trimesh.Trimesh:
         raise PartError(f"{path}: mesh has non-finite (NaN/inf) vertex coordinates")
     if mesh.faces.max() >= len(mesh.vertices) or mesh.faces.min() < 0:
         raise PartError(f"{path}: face indices out of range")
-    mesh = trimesh.Trimesh(vertices=mesh.vertices * UNITS_TO_M[units], faces=mesh.faces, process=True)
+    return _checked(path, mesh, UNITS_TO_M[units], repr(units))
+
+
+def _checked(path: Path, mesh: trimesh.Trimesh, scale: float, units: str) -> trimesh.Trimesh:
+    """``mesh`` times ``scale`` (to metres), vertices merged, checked for area and a plausible size."""
+    if not np.isfinite(mesh.vertices).all():
+        raise PartError(f"{path}: mesh has non-finite (NaN/inf) vertex coordinates")
+    mesh = trimesh.Trimesh(vertices=mesh.vertices * scale, faces=mesh.faces, process=True)
     if len(mesh.faces) == 0 or mesh.area <= 0:
         raise PartError(f"{path}: mesh has no area (all faces degenerate)")
     diag = float(np.linalg.norm(mesh.extents))
     lo, hi = SIZE_RANGE_M
     if not lo <= diag <= hi:
         raise PartError(
-            f"{path}: part is {diag:.4g} m across with units={units!r}, outside {lo}..{hi} m: are the units right?"
+            f"{path}: part is {diag:.4g} m across with {units} units, outside {lo}..{hi} m: are the units right?"
         )
     return mesh
 
@@ -483,9 +498,10 @@ def load_part(
     name: str | None = None,
     target_diameter_m: float = 0.006,
     coded_size_m: float = 0.02,
+    tessellation_tolerance: float | None = None,
 ) -> Part:
     """Load and check a part: mesh plus targets (from a CSV, or ``n_targets`` sampled with ``seed``)."""
-    mesh = load_mesh(mesh_path, units)
+    mesh = load_mesh(mesh_path, units, tessellation_tolerance)
     if targets_csv is not None:
         targets = load_targets(targets_csv, units)
         source = str(targets_csv)

@@ -472,6 +472,11 @@ class SimCamera:
         self._connected = False
         self._fail_captures = 0
         self._frame_id = 0
+        self._captures = 0
+        self._frame_faults: dict[int, str] = {}
+        self._last_frame: Frame | None = None
+        self.late_frame_s = 1.0
+        self.strobe_out = None  # called as each exposure starts: the strobe line, wired e.g. to a light controller
         self._lock = threading.Lock()
         targets = world.part.targets
         self._coded = np.asarray(targets.kind) == "coded"
@@ -499,23 +504,44 @@ class SimCamera:
         with self._lock:
             if not self._connected:
                 raise NotConnectedError("sim camera: not connected; call connect() first")
-            if self._fail_captures:
-                self._fail_captures -= 1
+            self._captures += 1
+            fault = self._frame_faults.pop(self._captures, None)
+            if self._fail_captures or fault == "missing":
+                self._fail_captures = max(0, self._fail_captures - (fault != "missing"))
                 raise DriverError("sim camera: frame timeout (injected fault); retry the capture")
+            if fault == "duplicate" and self._last_frame is not None:
+                return self._last_frame  # the previous frame delivered again (a double trigger, a stale buffer)
+            triggered = time.time()
+            if self.strobe_out is not None:
+                self.strobe_out()  # the camera's strobe output goes high as the exposure starts
             image, truth = self.render()
+            if fault == "late":
+                time.sleep(self.late_frame_s)
             self._frame_id += 1
             meta = {
                 "frame_id": self._frame_id,
                 "device": "sim",
                 "bit_depth": self.sensor.bit_depth,
+                "triggered_host_s": triggered,
                 "sim_truth": truth,
             }
-            return Frame(image=image, timestamp_s=time.time(), exposure_s=self.exposure_s, meta=meta)
+            self._last_frame = Frame(image=image, timestamp_s=time.time(), exposure_s=self.exposure_s, meta=meta)
+            return self._last_frame
 
     # --- fault injection -----------------------------------------------------
     def inject_capture_failure(self, n: int = 1) -> None:
         """The next ``n`` captures raise ``DriverError`` (a frame timeout)."""
         self._fail_captures += int(n)
+
+    def inject_frame_faults(self, faults: dict[int, str], late_s: float = 1.0) -> None:
+        """Faults by capture number (1 = the first capture after this call): ``"missing"`` (no frame: a
+        timeout), ``"late"`` (the frame comes ``late_s`` after its exposure), ``"duplicate"`` (the previous
+        frame is delivered again)."""
+        bad = {k: v for k, v in faults.items() if v not in ("missing", "late", "duplicate")}
+        if bad:
+            raise ValueError(f"unknown frame faults {bad}")
+        self._frame_faults = {self._captures + int(k): v for k, v in faults.items()}
+        self.late_frame_s = float(late_s)
 
     def inject_disconnect(self) -> None:
         """The connection drops: captures raise ``NotConnectedError`` until ``connect()``."""

@@ -208,6 +208,7 @@ class LoopbackURController:
         q0 = np.array([0.0, -1.3, 1.6, -1.87, -1.57, 0.0]) if joints_rad is None else np.asarray(joints_rad, float)
         self._lock = threading.RLock()
         self._q, self._qd = q0.copy(), np.zeros(6)
+        self.robot_mode = "RUNNING"  # the dashboard's robotmode: POWER_OFF -> (power on) IDLE -> (brake release) RUNNING
         self._t = 0.0
         self._flange_from_tcp = np.eye(4)
         self._motion = None
@@ -653,7 +654,18 @@ class LoopbackURController:
         if cmd == "get robot model":
             return "UR5"
         if cmd == "robotmode":
-            return "Robotmode: RUNNING"
+            return f"Robotmode: {self.robot_mode}"
+        if cmd == "power on":
+            if self.robot_mode == "POWER_OFF":
+                self.robot_mode = "IDLE"
+            return "Powering on"
+        if cmd == "brake release":
+            if self.robot_mode == "IDLE":
+                self.robot_mode = "RUNNING"
+            return "Brake releasing"
+        if cmd == "power off":
+            self.robot_mode = "POWER_OFF"
+            return "Powering off"
         if cmd == "safetystatus":
             names = {SAFETY_NORMAL: "NORMAL", SAFETY_PROTECTIVE_STOP: "PROTECTIVE_STOP",
                      SAFETY_ROBOT_EMERGENCY_STOP: "ROBOT_EMERGENCY_STOP"}

@@ -9,7 +9,8 @@ import cv2
 import numpy as np
 
 from calibration.camera import Intrinsics, invert
-from calibration.errors import AbortRequested, CalibrationError, InputError, PlanningError, ReachabilityError
+from calibration.errors import (AbortRequested, CalibrationError, DriverError, InputError, PlanningError,
+                                ReachabilityError)
 from calibration.targets import refine_pose_pnp
 from cell.stages import imaging
 from cell.cellcal.cellfile import CellFile, pose_from_matrix
@@ -194,16 +195,33 @@ def measure_image(img: np.ndarray, part, intr: Intrinsics, cam_from_part_approx:
     return m.target, m.uv, m.cam_from_part
 
 
-def capture_at(devices, q: np.ndarray, c) -> tuple[np.ndarray, np.ndarray]:
-    """Move to joints ``q``, capture; returns ``(image, base_from_flange measured)``."""
+def capture_at(devices, q: np.ndarray, c, exposure_s: float = 0.002,
+               frame_timeout_s: float = 2.0) -> tuple[np.ndarray, np.ndarray]:
+    """Move to joints ``q``, wait until the arm has settled, take a triggered exposure (as ACQUIRE does:
+    :mod:`cell.stages.exposure`, a late / repeated / missing frame retaken up to ``c.retakes`` times);
+    returns ``(image, base_from_flange measured)``."""
+    from cell.stages.acquire import SIM_HOLD_S
+    from cell.stages.exposure import ExposureTaker, FrameFault, wait_settled
+
     devices.robot.move_joints(q, c.max_joint_speed_rad_s, c.max_joint_accel_rad_s2)
-    st = devices.robot.state()
-    if not st.safety.normal:
-        raise CalibrationError(f"robot not in normal mode after the move ({st.safety.detail})")
-    if devices.light is not None:
-        devices.light.strobe(0.002)
-    frame = devices.camera.capture()
-    return frame.image, np.asarray(st.base_from_flange, dtype=float)
+    taker = getattr(devices, "exposure_taker", None)
+    if taker is None:  # one per session, so that no frame is used twice
+        taker = devices.exposure_taker = ExposureTaker(
+            devices.robot, devices.camera, devices.light, exposure_s=exposure_s, frame_timeout_s=frame_timeout_s,
+            light_by_line=devices.light is not None and c.light_input is not None)
+    hold_s = c.settle_s if c.backend != "sim" else min(c.settle_s, SIM_HOLD_S)
+    for attempt in range(1, c.retakes + 2):
+        try:
+            st, host_s, peak = wait_settled(devices.robot, speed_tol_rad_s=c.settle_speed_rad_s, hold_s=hold_s,
+                                            timeout_s=c.settle_timeout_s)
+        except DriverError as exc:
+            raise CalibrationError(f"robot: {exc}") from None
+        try:
+            frame, _ = taker.take("", attempt, st, host_s, peak, hold_s)
+            return frame.image, np.asarray(st.base_from_flange, dtype=float)
+        except FrameFault:
+            if attempt > c.retakes:
+                raise
 
 
 def record_folder(archive_root: Path, cell_name: str, kind: str) -> JobFolder:

@@ -20,6 +20,7 @@ import numpy as np
 
 from calibration.errors import InputError
 from cell.record.jobfolder import JobFolder
+from cell.record.runinfo import read_run_info
 
 #: what a job id may be made of: letters, digits, '-', '_', '.', '+', ':' (not first: '.'); no separators
 JOB_ID_PATTERN = re.compile(r"[A-Za-z0-9_+:-][A-Za-z0-9_.+:-]{0,199}")
@@ -86,9 +87,22 @@ CREATE TABLE IF NOT EXISTS jobs (
     failed INTEGER,
     sigma0_px REAL,
     verdict TEXT,
-    folder TEXT NOT NULL
+    folder TEXT NOT NULL,
+    part_number TEXT,
+    serial TEXT,
+    operator TEXT,
+    cell_id TEXT
 );
 """
+#: columns added after the first release: an index written before them gets them on open
+_ADDED = ("part_number", "serial", "operator", "cell_id")
+
+
+def _add_columns(con: sqlite3.Connection) -> None:
+    have = {r[1] for r in con.execute("PRAGMA table_info(jobs)")}
+    for col in _ADDED:
+        if col not in have:
+            con.execute(f"ALTER TABLE jobs ADD COLUMN {col} TEXT")
 
 
 class Archive:
@@ -108,6 +122,7 @@ class Archive:
             con = sqlite3.connect(path, timeout=10)
             con.execute("PRAGMA journal_mode=WAL")
             con.executescript(_SCHEMA)
+            _add_columns(con)
             return con
         except sqlite3.OperationalError:  # locked, disk full, read-only: not damage
             if con is not None:
@@ -124,6 +139,7 @@ class Archive:
             con = sqlite3.connect(path, timeout=10)
             con.execute("PRAGMA journal_mode=WAL")
             con.executescript(_SCHEMA)
+            _add_columns(con)
             self.reindex()
             return con
 
@@ -200,6 +216,12 @@ class Archive:
         start = recs[0].get("t") if recs else None
         name = next((r.get("name") for r in recs if r.get("event") == "created"), d.name)
         fields = {"name": str(name), "status": str(status), "started": start}
+        try:
+            info = read_run_info(d)
+            fields |= {"part_number": info["part"]["number"], "serial": info["part"]["serial"],
+                       "operator": info["operator"], "cell_id": info["cell_id"]}
+        except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError) as exc:
+            self.problems[d.name] = f"run.json damaged ({type(exc).__name__}: {exc})"
         rep = d / "report.json"
         if rep.is_file():
             try:

@@ -21,7 +21,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from cell.record.jobfolder import JobFolder, sha256_file
-from cell.states import STAGES, State
+from cell.states import STAGES
 
 _ORDER = {s.value: i for i, s in enumerate(STAGES)}
 

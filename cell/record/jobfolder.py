@@ -23,13 +23,15 @@ from typing import Any, Iterator
 
 import numpy as np
 
+from calibration.errors import RecordError
+
 MANIFEST = "manifest.json"
 JOURNAL = "journal.jsonl"
 #: where files that failed verification are moved (kept for the record, out of the job's data)
 DAMAGED = "damaged"
 
 
-class JournalDamaged(Exception):
+class JournalDamaged(RecordError):
     """A complete journal line that does not read back as the record written (``line`` 1-based)."""
 
     def __init__(self, path: Path, line: int, why: str):

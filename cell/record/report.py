@@ -115,13 +115,31 @@ def figure_sigma(predicted: np.ndarray, achieved: np.ndarray) -> str:
     return _png(fig)
 
 
-def figure_residuals(residuals_px: np.ndarray) -> str:
+def accepted_residuals(residuals_px: np.ndarray, rejected: np.ndarray | None) -> tuple[np.ndarray, float]:
+    """The accepted observations' residuals ``(m, 2)`` and the histogram's half-range (5 % beyond the largest)."""
+    r = np.asarray(residuals_px, dtype=float)
+    keep = np.isfinite(r).all(axis=1)
+    if rejected is not None and len(rejected) == len(r):
+        keep &= ~np.asarray(rejected, dtype=bool)
+    a = r[keep]
+    return a, (float(np.max(np.abs(a))) * 1.05 if a.size else 1.0)
+
+
+def figure_residuals(residuals_px: np.ndarray, rejected: np.ndarray | None = None) -> str:
+    """Histogram of the accepted observations' image residuals (u and v), its axis scaled to them.
+
+    ``rejected: (n,) bool`` marks the observations the bundle adjustment rejected: they are left out
+    (one gross outlier would stretch the axis far past the accepted ones) and listed apart in the report.
+    """
     fig, ax = plt.subplots(figsize=(5, 4))
-    r = residuals_px[np.isfinite(residuals_px).all(axis=1)]
-    ax.hist(r.ravel(), bins=60, color="tab:gray")
-    ax.set_xlabel("image residual [px] (u and v)")
+    a, lim = accepted_residuals(residuals_px, rejected)
+    n_rej = 0 if rejected is None else int(np.asarray(rejected, dtype=bool).sum())
+    ax.hist(a.ravel(), bins=60, range=(-lim, lim), color="tab:gray")
+    ax.set_xlim(-lim, lim)
+    ax.set_xlabel("image residual [px] (u and v), accepted observations")
     ax.set_ylabel("count")
-    ax.set_title(f"Residuals: rms {np.sqrt(np.mean(r ** 2)):.3f} px, {len(r)} observations")
+    rms = float(np.sqrt(np.mean(a ** 2))) if a.size else float("nan")
+    ax.set_title(f"Residuals: rms {rms:.3f} px, {len(a)} accepted" + (f", {n_rej} rejected (listed below)" if n_rej else ""))
     return _png(fig)
 
 
@@ -133,7 +151,8 @@ body{font-family:system-ui,-apple-system,Segoe UI,Roboto,sans-serif;margin:24px;
 .warn{background:#fff8c5;border:1px solid #d4a72c;padding:8px 14px;border-radius:6px;margin:10px 0}
 table{border-collapse:collapse;font-size:13px}td,th{border:1px solid #ccc;padding:3px 7px;text-align:right}
 th{background:#f3f3f3}td.l{text-align:left}tr.fail td{background:#ffebe9}
-.figs img{max-width:560px;margin:6px;border:1px solid #ddd}.kv td{text-align:left}
+.figs img{max-width:560px;margin:6px;border:1px solid #ddd}.fig3d{max-width:1100px;margin:8px 0}
+@media print{.noprint{display:none}}.kv td{text-align:left}
 """
 
 
@@ -197,8 +216,19 @@ def _alignment_facts(doc: dict) -> dict:
         out["Predicted / achieved sigma"] = (f"{ratio['median']:.2f} (median over {ratio['n']} targets; "
                                              f"10-90 %: {ratio['p10']:.2f}-{ratio['p90']:.2f})")
     if doc.get("snooping"):
-        out["Rejected observations"] = f"{doc.get('n_rejected', 0)} (listed in bundle.json and report.json)"
+        out["Rejected observations"] = f"{doc.get('n_rejected', 0)} (listed in bundle.json and in report.json rejected_observations)"
     return out
+
+
+def _rejected_table(doc: dict) -> str:
+    rej = doc.get("rejected_observations") or []
+    if not rej:
+        return ""
+    rows = "".join(f"<tr><td class=l>{html.escape(str(r.get('image')))}</td><td class=l>{html.escape(str(r.get('target')))}</td>"
+                   f"<td>{_num((r.get('residual_px') or [None, None])[0], 1, 2)}</td>"
+                   f"<td>{_num((r.get('residual_px') or [None, None])[1], 1, 2)}</td></tr>" for r in rej)
+    return (f"<h3>Observations rejected by the bundle adjustment ({len(rej)})</h3><table id=rejected><tr><th>image</th>"
+            f"<th>target</th><th>residual u [px]</th><th>residual v [px]</th></tr>{rows}</table>")
 
 
 def _closed_loop_html(doc: dict) -> str:
@@ -223,8 +253,8 @@ def _closed_loop_html(doc: dict) -> str:
             + (f"<table class=kv><tr><th>target</th><th>why it still misses</th></tr>{unmet}</table>" if unmet else ""))
 
 
-def render_html(doc: dict, figures: dict[str, str]) -> str:
-    """The self-contained HTML report."""
+def render_html(doc: dict, figures: dict[str, str], interactive: str = "") -> str:
+    """The self-contained HTML report (``interactive``: the 3-D section of :mod:`cell.record.figures3d`)."""
     j = doc["job"]
     verdict = doc["verdict"]
     n_fail = sum(not t["pass"] for t in doc["targets"])
@@ -243,7 +273,12 @@ def render_html(doc: dict, figures: dict[str, str]) -> str:
     stages = "".join(f"<tr><td class=l>{html.escape(k)}</td><td>{v:.2f}</td></tr>" for k, v in doc["stage_times_s"].items())
     figs = "".join(f'<img alt="{html.escape(k)}" src="data:image/png;base64,{v}">' for k, v in figures.items())
     facts = {
-        "Job": j["id"], "Part": j.get("part", ""), "Seed": j["seed"], "Started": j["started"],
+        "Job": j["id"], "Part": j.get("part", ""),
+        "Part number / revision": " / ".join(str(v) for v in ((doc.get("part") or {}).get("number"),
+                                                              (doc.get("part") or {}).get("revision")) if v) or "\u2014",
+        "Serial number": (doc.get("part") or {}).get("serial") or "\u2014",
+        "Operator": doc.get("operator") or "\u2014", "Cell": doc.get("cell_id") or "\u2014",
+        "Seed": j["seed"], "Started": j["started"],
         "Finished": j["finished"], "Images": doc["images"], "sigma0 [px]": f"{doc['sigma0_px']:.3f}",
         "Datum": doc.get("datum", ""), "Cell calibration": doc.get("cell_calibration", {}).get("status", "unknown"),
         **_alignment_facts(doc),
@@ -258,10 +293,12 @@ def render_html(doc: dict, figures: dict[str, str]) -> str:
 {_alerts(doc)}
 <h2>Job</h2><table class="kv">{kv}</table>
 <h2>Figures</h2><div class="figs">{figs}</div>
+{_rejected_table(doc)}
 <h2>Targets</h2>
 <table id="targets"><tr><th>id</th><th>x [mm]</th><th>y [mm]</th><th>z [mm]</th><th>dx [um]</th><th>dy [um]</th>
 <th>dz [um]</th><th>|d| [um]</th><th>tol [um]</th><th>U (k=2) [um]</th><th>sigma [um]</th><th>predicted [um]</th><th>images</th><th></th></tr>
 {''.join(rows)}</table>
 {_closed_loop_html(doc)}<h2>Time per stage</h2><table class="kv">{stages}</table>
+{interactive}
 </body></html>
 """

@@ -66,6 +66,36 @@ _SCHEMAS: dict[str, dict] = {
             "uv": {"type": "array", "items": {"type": "array", "items": {"type": "number"}}},
         },
     },
+    "cell.Job": {
+        "type": "object",
+        "properties": {
+            "job_id": {"type": "string"},
+            "part": {"type": "object", "properties": {k: {"type": ["string", "null"]} for k in ("number", "revision", "serial")}},
+            "operator": {"type": ["string", "null"]},
+            "cell_id": {"type": ["string", "null"]},
+        },
+    },
+    "cell.Exposure": {
+        "type": "object",
+        "description": "one triggered exposure at a station: trigger, frame, the robot state at the frame's instant",
+        "properties": {
+            "station": {"type": "string"},
+            "attempt": {"type": "integer"},
+            "outcome": {"type": "string", "enum": ["ok", "late", "duplicate", "missing", "stale", "moved"]},
+            "detail": {"type": "string"},
+            "trigger_host_s": {"type": "number"},
+            "light": {"type": "string"},
+            "frame_host_s": {"type": ["number", "null"]},
+            "frame_id": {"type": ["integer", "null"]},
+            "device_timestamp_ns": {"type": ["integer", "null"]},
+            "latency_s": {"type": ["number", "null"]},
+            "exposure_s": {"type": ["number", "null"]},
+            "robot_timestamp_s": {"type": ["number", "null"]},
+            "joints_rad": {"type": ["array", "null"], "items": {"type": "number"}},
+            "settled_for_s": {"type": ["number", "null"]},
+            "max_joint_speed_rad_s": {"type": ["number", "null"]},
+        },
+    },
     "foxglove.Log": {
         "type": "object",
         "properties": {
@@ -83,7 +113,9 @@ TOPICS = {
     "/robot/flange_pose": "foxglove.PoseInFrame",
     "/camera/image": "foxglove.CompressedImage",
     "/detections": "cell.Detections",
+    "/camera/exposure": "cell.Exposure",
     "/log": "foxglove.Log",
+    "/job": "cell.Job",
 }
 LOG_LEVELS = {"debug": 1, "info": 2, "warning": 3, "error": 4, "fatal": 5}
 
@@ -126,6 +158,10 @@ class RunLog:
     def state(self, a: str, b: str, cause: str = "") -> None:
         self.write("/state", {"from": a, "to": b, "cause": cause}, sync=True)
 
+    def job(self, job_id: str, meta: dict) -> None:
+        """Which part (number, revision, serial), who runs it, on which cell: once per session."""
+        self.write("/job", {"job_id": job_id, **meta}, sync=True)
+
     def log(self, level: str, message: str) -> None:
         self.write("/log", {"timestamp": _stamp(time.time_ns()), "level": LOG_LEVELS[level], "message": message,
                             "name": "cell"})
@@ -144,6 +180,10 @@ class RunLog:
     def image(self, png: bytes, station: str) -> None:
         self.write("/camera/image", {"timestamp": _stamp(time.time_ns()), "frame_id": f"camera/{station}",
                                      "data": base64.b64encode(png).decode(), "format": "png"})
+
+    def exposure(self, record: dict) -> None:
+        """One triggered exposure (:class:`cell.stages.exposure.Exposure` as a dict), good or faulted."""
+        self.write("/camera/exposure", record, sync=record.get("outcome") != "ok")
 
     def detections(self, station: str, ids: list[str], uv) -> None:
         self.write("/detections", {"station": station, "ids": ids, "uv": uv})

@@ -1,7 +1,8 @@
-"""ACQUIRE: move to each station, strobe, capture; a station is done when its image is on disk and journalled."""
+"""ACQUIRE: move to each station, wait until the arm has settled, trigger the camera with the light pulsing in
+the exposure, check the frame (:mod:`cell.stages.exposure`); a station is done when its image is on disk and
+journalled. A frame that comes late, twice or never is logged (``/camera/exposure``, journal ``frame_fault``) and
+the station retaken (``[cell] retakes``), so no frame is ever stored as another station's."""
 from __future__ import annotations
-
-import time
 
 import cv2
 import numpy as np
@@ -9,6 +10,9 @@ import numpy as np
 from calibration.errors import DriverError
 from cell.record.integrity import acquired
 from cell.record.jobfolder import atomic_write_bytes, atomic_write_json, sha256_file
+from cell.stages.exposure import ExposureTaker, FrameFault, wait_settled
+
+SIM_HOLD_S = 0.02
 
 
 def _stations_in_order(plan_doc: dict) -> list[dict]:
@@ -28,6 +32,12 @@ def run(ctx) -> None:
     dev = ctx.devices
     c = ctx.job.spec.cell
     (ctx.folder.path / "images").mkdir(exist_ok=True)
+    cam = ctx.job.spec.camera
+    light_by_line = dev.light is not None and c.light_input is not None
+    taker = ExposureTaker(dev.robot, dev.camera, dev.light, exposure_s=cam.exposure_s,
+                          frame_timeout_s=cam.frame_timeout_s, light_by_line=light_by_line)
+    # the simulated arm is still the instant it arrives: a short hold proves it without slowing the sim down
+    hold_s = c.settle_s if ctx.backend != "sim" else min(c.settle_s, SIM_HOLD_S)
     for k, s in enumerate(stations):
         sid = s["id"]
         if sid in done:
@@ -35,19 +45,26 @@ def run(ctx) -> None:
         ctx.progress("acquire", k / len(stations))
         q = np.asarray(s["joints"], dtype=float)
         ctx.folder.append("station_start", station=sid)
-        state = dev.robot.move_joints(q, c.max_joint_speed_rad_s, c.max_joint_accel_rad_s2)
-        if c.settle_s and ctx.backend != "sim":
-            time.sleep(c.settle_s)
-        state = dev.robot.state()
-        if not state.safety.normal:
-            raise DriverError(f"station {sid}: robot not in normal mode after the move ({state.safety.detail})")
-        err = float(np.max(np.abs(np.asarray(state.joints_rad) - q)))
-        if err > 1e-3:
-            raise DriverError(f"station {sid}: robot stopped {err:.4f} rad away from the station's joints")
-        ctx.log.robot(state.joints_rad, state.base_from_flange, state.timestamp_s, sid)
-        if dev.light is not None:
-            dev.light.strobe(ctx.job.spec.camera.exposure_s)
-        frame = dev.camera.capture()
+        dev.robot.move_joints(q, c.max_joint_speed_rad_s, c.max_joint_accel_rad_s2)
+        for attempt in range(1, c.retakes + 2):
+            state, state_host_s, peak = wait_settled(dev.robot, speed_tol_rad_s=c.settle_speed_rad_s, hold_s=hold_s,
+                                                     timeout_s=c.settle_timeout_s, station=sid)
+            err = float(np.max(np.abs(np.asarray(state.joints_rad) - q)))
+            if err > 1e-3:
+                raise DriverError(f"station {sid}: robot stopped {err:.4f} rad away from the station's joints")
+            try:
+                frame, rec = taker.take(sid, attempt, state, state_host_s, peak, hold_s)
+                break
+            except FrameFault as fault:
+                ctx.log.exposure(fault.record.as_dict())
+                ctx.folder.append("frame_fault", station=sid, attempt=attempt, outcome=fault.outcome, detail=str(fault))
+                ctx.log.log("warning", f"{fault}; retaking" if attempt <= c.retakes else str(fault))
+                ctx.say(f"  {fault}" + ("; retaking" if attempt <= c.retakes else ""))
+                if attempt > c.retakes:
+                    raise DriverError(f"{fault} ({attempt} attempts); the station is not stored: resume retakes it") \
+                        from None
+        ctx.log.robot(state.joints_rad, state.base_from_flange, rec.robot_timestamp_s, sid)
+        ctx.log.exposure(rec.as_dict())
         ok, png = cv2.imencode(".png", frame.image)
         if not ok:
             raise DriverError(f"station {sid}: could not encode the image")
@@ -56,7 +73,9 @@ def run(ctx) -> None:
         ctx.log.image(png.tobytes(), sid)
         ctx.folder.append("station_done", station=sid, image=name, sha256=sha256_file(ctx.folder.file(name)),
                           joints=np.asarray(state.joints_rad), base_from_flange=np.asarray(state.base_from_flange),
-                          robot_timestamp_s=state.timestamp_s, exposure_s=frame.exposure_s)
+                          robot_timestamp_s=rec.robot_timestamp_s, exposure_s=frame.exposure_s,
+                          frame_id=rec.frame_id, trigger_host_s=rec.trigger_host_s, frame_host_s=rec.frame_host_s,
+                          attempts=attempt)
     ctx.progress("acquire", 1.0)
     recs = acquired(list(ctx.folder.records()))
     images = [{"station": s["id"], "order": s["order"], "image": recs[s["id"]]["image"],

@@ -122,6 +122,26 @@ def _predicted_over_achieved(targets: list[dict]) -> dict:
             "n": int(len(r))}
 
 
+def _run_info(folder) -> dict:
+    """report.json's ``part`` {number, revision, serial}, ``operator``, ``cell_id`` (null when unknown)."""
+    from cell.record.runinfo import read_run_info
+
+    info = read_run_info(folder)
+    return {"part": info["part"], "operator": info["operator"], "cell_id": info["cell_id"]}
+
+
+def rejected_mask(bundle: dict) -> np.ndarray:
+    """(n_observations,) bool: the observations the bundle adjustment rejected, found by their residuals
+    (bundle.json lists each rejected one with its residual, in the order of ``residuals_px``)."""
+    res = np.asarray(bundle["residuals_px"], dtype=float)
+    mask = np.zeros(len(res), dtype=bool)
+    for r in bundle.get("rejected", []):
+        hit = np.flatnonzero(np.all(res == np.asarray(r["residual_px"], dtype=float), axis=1) & ~mask)
+        if len(hit):
+            mask[hit[0]] = True
+    return mask
+
+
 def _closed_loop(f) -> dict | None:
     """report.json's ``closed_loop`` (when the stage ran with it on): each round and what still misses."""
     if not f.file("closed_loop.json").exists():
@@ -198,6 +218,7 @@ def write_report(ctx) -> str:
                 "sim_seed": job.spec.sim.seed if ctx.backend == "sim" else None, "backend": ctx.backend,
                 "status": "DONE", "started": started, "finished": utc_now(), "versions": _versions()},
         "verdict": verdict,
+        **_run_info(f.path),
         "images": len(bundle["images"]),
         "sigma0_px": bundle["sigma0_px"],
         "datum": bundle["datum"],
@@ -205,7 +226,6 @@ def write_report(ctx) -> str:
         "intrinsics": bundle["intrinsics"],
         "n_observations": bundle["n_observations"],
         "n_rejected": bundle["n_rejected"],
-        "rejected": bundle.get("rejected", []),
         "snooping": bundle.get("snooping"),
         "orientation_fallbacks": [{"image": r["image"], "method": r["method"], "reason": r["fallback_reason"]}
                                   for r in f.read_json("calibration.json")["images"] if "fallback_reason" in r],
@@ -219,6 +239,7 @@ def write_report(ctx) -> str:
         "decision_rule": DECISION_RULE,
         "inconclusive": [ids[j] for j in np.flatnonzero(judged) if decision[j] == "inconclusive"],
         "coded_targets": [ids[j] for j in np.flatnonzero(coded)],
+        "rejected_observations": bundle.get("rejected", []),
     }
     loop = _closed_loop(f)
     if loop is not None:
@@ -229,13 +250,22 @@ def write_report(ctx) -> str:
                                           tol[judged], passed[judged]),
         "ellipsoids": R.figure_ellipsoids(job.part.mesh, al.aligned[ok], cov[ok]),
         "sigma": R.figure_sigma(np.array([t["predicted_sigma_m"] for t in targets], dtype=float), achieved[judged]),
-        "residuals": R.figure_residuals(np.asarray(bundle["residuals_px"], dtype=float)),
+        "residuals": R.figure_residuals(np.asarray(bundle["residuals_px"], dtype=float), rejected_mask(bundle)),
     }
+    from cell.record import figures3d as F3
+
+    stations = np.array([s["part_from_cam"] for s in plan["stations"]])
+    judged_ids = [t for t, j in zip(ids, judged) if j]
+    interactive = F3.html_block({
+        "deviations": F3.deviations_3d(job.part.mesh, nominal[judged], judged_ids, dev_norm[judged], tol[judged],
+                                       passed[judged]),
+        "network": F3.network_3d(job.part.mesh, stations, nominal, list(ids)),
+    })
     # the REPORT stage's own time is not known yet: the report lists the stages before it
     atomic_write_json(f.file("report.json"), doc)
     from cell.record.jobfolder import to_jsonable
 
-    atomic_write_bytes(f.file("report.html"), R.render_html(to_jsonable(doc), figs).encode())
+    atomic_write_bytes(f.file("report.html"), R.render_html(to_jsonable(doc), figs, interactive).encode())
     return verdict
 
 

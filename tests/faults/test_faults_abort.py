@@ -138,3 +138,74 @@ def test_abort_by_sigterm_sigint_and_console_stops_the_arm_within_its_stopping_t
     assert not abort_job(folder.name, "console")  # nothing runs any more
     print("\narm at rest after the abort: " + ", ".join(f"{k} {v:.3f} s" for k, v in took.items())
           + f" (stopping time at 1 rad/s: {1.0 / STOP_DECEL:.3f} s)")
+
+
+@pytest.mark.timeout(300)
+def test_console_abort_of_a_job_in_another_process_ends_it_aborted_with_the_arm_at_rest(tmp_path):
+    """abort_job(id, archive_root=...) reaches a job run by another process (the pid in its lock)."""
+    from cell.job import abort_job
+
+    job = job_variant(tmp_path / "job", {"sim": {"motion": "timed", "time_scale": 1.0},
+                                         "planning": {"generations": 20, "population": 24}})
+    archive = tmp_path / "archive"
+    proc = subprocess.Popen([*cell_command(), "run", str(job), "--archive", str(archive), "--json"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=child_env())
+    try:
+        end = time.monotonic() + 200
+        folder = None
+        while time.monotonic() < end and proc.poll() is None:
+            dirs = [d for d in archive.iterdir() if d.is_dir() and not d.name.startswith(".")] if archive.exists() else []
+            if dirs and any(r["event"] == "station_start" for r in records(dirs[0])):
+                folder = dirs[0]
+                break
+            time.sleep(0.02)
+        assert folder is not None, "the job never started a station"
+        assert abort_job(folder.name, "console", archive_root=archive)
+        out, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 130 and "Traceback" not in err, err[-3000:]
+    assert json.loads(out)["status"] == "ABORTED"
+    recs = records(folder)
+    assert [r for r in recs if r["event"] == "robot_stopped"][-1]["abort_reason"] == "SIGTERM"
+    assert recs[-1]["event"] == "terminal" and recs[-1]["status"] == "ABORTED"
+    assert not abort_job(folder.name, "console", archive_root=archive)  # nothing runs it any more
+
+
+def test_ur_client_ignores_ctrl_c_and_stops_the_arm_on_sigterm(capfd):
+    """The client process: SIGINT (a terminal's Ctrl-C, were it in the group) neither kills it nor prints a
+    traceback, the move goes on; SIGTERM stops the arm at once ('stopped on request')."""
+    from calibration.errors import MotionError
+    from drivers.ur import CellLimits, URRobot
+    from planning.kinematics import load_robot
+    from sim_backend.ur_controller import LoopbackURController
+
+    model = load_robot("ur5e")
+    q0 = np.array([0.0, -1.3, 1.6, -1.87, -1.57, 0.0])
+    ctrl = None
+    for k in range(40):
+        try:
+            ctrl = LoopbackURController(f"127.0.7.{10 + k}", model=model, joints_rad=q0, time_scale=2.0).start()
+            break
+        except OSError:
+            continue
+    assert ctrl is not None
+    try:
+        with URRobot(ctrl.host, CellLimits(), deadline_s=3.0, model=model) as arm:
+            pid = arm._worker.process.pid
+            assert os.getpgid(pid) != os.getpgid(0)  # a session of its own: a terminal's Ctrl-C does not reach it
+            threading.Timer(0.2, os.kill, (pid, signal.SIGINT)).start()
+            np.testing.assert_allclose(arm.move_joints(q0 + 0.4, 0.8, 1.5).joints_rad, q0 + 0.4, atol=1e-6)
+            assert arm.connected
+            threading.Timer(0.2, os.kill, (pid, signal.SIGTERM)).start()
+            with pytest.raises(MotionError, match="stopped on request"):
+                arm.move_joints(q0, 0.8, 1.5)
+            assert not ctrl.moving and np.max(np.abs(ctrl.joints - q0)) > 0.05
+            rest = arm.stop()
+            assert rest is not None and arm.connected
+            np.testing.assert_allclose(arm.move_joints(q0, 0.8, 1.5).joints_rad, q0, atol=1e-6)  # usable again
+    finally:
+        ctrl.close()
+    assert "Traceback" not in capfd.readouterr().err

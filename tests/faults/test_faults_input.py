@@ -35,6 +35,7 @@ CASES = {
     "settle_s = 1e300": ({"cell": {"settle_s": 1e300}}, "cell.settle_s"),
     "placement 1e300 mm": ({"cell": {"base_from_part": PLACE | {"xyz": [1e300, 0.0, 0.0]}}}, "beyond any cell"),
     "scale bar to itself": ({"job": {"scale_bar": {"a": "T0094", "b": "T0094", "length": 1.0}}}, "two different"),
+    "negative seed": ({"job": {"seed": -1}}, "job.seed"),
     "one target": ({"job": {"targets": "one.csv", "scale_bar": None}}, "at least 6"),
     "garbage obj": ({"job": {"mesh": "garbage.obj"}}, "not a text OBJ"),
 }

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from cell.cli import main as cell_main
-from faultutil import copy_job, cut_journal, journal_lines, kill_during_acquire, snapshot
+from faultutil import copy_job, cut_journal, kill_during_acquire, snapshot
 from jobutil import example_run, records, run_cell
 
 

@@ -1,0 +1,93 @@
+"""The console's ASGI application: FastAPI, one router for pages and one for the API."""
+from __future__ import annotations
+
+from contextlib import asynccontextmanager
+from pathlib import Path
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import HTMLResponse, JSONResponse
+from fastapi.templating import Jinja2Templates
+from starlette.exceptions import HTTPException as StarletteHTTPException
+
+from calibration.errors import InputError
+from cell.web import api, pages
+from cell.web.deps import Config
+from cell.web.runner import Busy
+from cell.web.service import Console
+from cell.web.store import NotFound
+from cell.web.users import UserStore
+
+TEMPLATES = Path(__file__).parent / "templates"
+
+
+def _wants_html(request: Request) -> bool:
+    return not request.url.path.startswith("/api/") and "text/html" in request.headers.get("accept", "")
+
+
+def _error(request: Request, status: int, message: str, headers=None):
+    if _wants_html(request):
+        t = request.app.state.templates
+        return t.TemplateResponse(request, "error.html", {"status": status, "message": message, "me": None,
+                                                          "csrf": "", "running": None},
+                                  status_code=status, headers=headers)
+    return JSONResponse({"detail": message}, status_code=status, headers=headers)
+
+
+def create_app(config: Config) -> FastAPI:
+    archive = Path(config.archive).resolve()
+    archive.mkdir(parents=True, exist_ok=True)
+    users = UserStore(archive / "console.sqlite")
+    console = Console(archive, config.programs, users, config.cell_id, config.chromium)
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI):
+        console.view.refresh()
+        yield
+        console.runner.close()
+
+    app = FastAPI(title="Inspection cell console", lifespan=lifespan, docs_url=None, redoc_url=None,
+                  openapi_url=None)
+    app.state.config = config
+    app.state.users = users
+    app.state.console = console
+    app.state.templates = Jinja2Templates(directory=str(TEMPLATES))
+    app.include_router(api.router)
+    app.include_router(pages.router)
+
+    @app.exception_handler(StarletteHTTPException)
+    async def http_error(request: Request, exc: StarletteHTTPException):
+        return _error(request, exc.status_code, str(exc.detail), getattr(exc, "headers", None))
+
+    @app.exception_handler(Busy)
+    async def busy(request: Request, exc: Busy):
+        return _error(request, 409, str(exc))
+
+    @app.exception_handler(NotFound)
+    async def not_found(request: Request, exc: NotFound):
+        return _error(request, 404, str(exc))
+
+    @app.exception_handler(InputError)
+    async def bad_input(request: Request, exc: InputError):
+        return _error(request, 400, str(exc))
+
+    @app.exception_handler(RequestValidationError)
+    async def invalid(request: Request, exc: RequestValidationError):
+        # never echo the input back (it may hold a password): only where and what
+        msg = "; ".join(f"{'.'.join(str(x) for x in e['loc'])}: {e['msg']}" for e in exc.errors())
+        return _error(request, 422, msg)
+
+    @app.middleware("http")
+    async def headers(request: Request, call_next):
+        r = await call_next(request)
+        r.headers.setdefault("X-Content-Type-Options", "nosniff")
+        r.headers.setdefault("X-Frame-Options", "DENY")
+        r.headers.setdefault("Referrer-Policy", "same-origin")
+        if config.tls:
+            r.headers.setdefault("Strict-Transport-Security", "max-age=31536000")
+        return r
+
+    return app
+
+
+__all__ = ["create_app", "Config", "HTMLResponse"]
