@@ -29,7 +29,7 @@ control points).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.stats import chi2
@@ -104,7 +104,6 @@ class AlignmentOutcome:
     residual_ratio: float = float("nan")
     iterations: int = 0
     consensus: Consensus | None = None
-    extra: dict = field(default_factory=dict)
 
 
 def _inverse_blocks(blocks: np.ndarray) -> np.ndarray:
