@@ -1,8 +1,8 @@
 """Scaling profile of a job: planning, validation and adjustment at 1k..50k targets x 16..128 stations.
 
 Each configuration is a synthetic job built from the example (examples/bracket/job.toml: same camera,
-cell and robot; ``n`` targets drawn uniformly by area on the bracket's non-downward faces, away from
-facet edges). It runs in its own process (so the peak memory is that configuration's) and prints the
+cell and robot; ``n`` targets sampled on the bracket's non-downward faces, away from facet edges, by
+planning.part.sample_targets; ``sample`` its time). It runs in its own process (so the peak memory is that configuration's) and prints the
 time of each phase:
 
 - ``visibility``: the visibility database, built afresh (no cache);
@@ -23,9 +23,6 @@ good observations were rejected.
     .venv/bin/python -m benchmarks.bench_scale --quick          # 1k x 16/29, 5k x 29 (minutes)
     .venv/bin/python -m benchmarks.bench_scale --targets 1000 5000 --stations 29 64
     .venv/bin/python -m benchmarks.bench_scale --one 1000 29     # one configuration, JSON line
-
-Targets are sampled by the benchmark itself (no spacing rule): planning.part.sample_targets is
-profiled elsewhere (benchmarks of issue 20).
 """
 from __future__ import annotations
 
@@ -48,30 +45,11 @@ sys.path.insert(0, str(ROOT))
 JOB = ROOT / "examples" / "bracket" / "job.toml"
 
 
-def synthetic_targets(mesh, n: int, rng: np.random.Generator, edge_clearance_m: float = 0.006):
-    """``n`` targets drawn by area on faces with normal z >= -0.1, at least ``edge_clearance_m`` from a facet edge."""
-    from planning.part import Targets, _facet_clearance
+def synthetic_targets(mesh, n: int, rng: np.random.Generator):
+    """``n`` targets sampled on the faces with normal z >= -0.1, 6 mm from facet edges (planning.part.sample_targets)."""
+    from planning.part import sample_targets
 
-    area = mesh.area_faces.copy()
-    area[mesh.face_normals[:, 2] < -0.1] = 0.0
-    area /= area.sum()
-    pts_all, nrm_all = [], []
-    need = n
-    while need > 0:
-        m = int(need * 1.6) + 100
-        faces = rng.choice(len(mesh.faces), size=m, p=area)
-        r = rng.random((m, 2))
-        flip = r.sum(axis=1) > 1
-        r[flip] = 1 - r[flip]
-        tri = mesh.triangles[faces]
-        pts = tri[:, 0] + r[:, :1] * (tri[:, 1] - tri[:, 0]) + r[:, 1:] * (tri[:, 2] - tri[:, 0])
-        keep = _facet_clearance(mesh, pts, faces) >= edge_clearance_m
-        pts_all.append(pts[keep][:need])
-        nrm_all.append(mesh.face_normals[faces][keep][:need])
-        need -= len(pts_all[-1])
-    xyz, nrm = np.vstack(pts_all), np.vstack(nrm_all)
-    return Targets(ids=[f"T{i:05d}" for i in range(n)], xyz=xyz, normals=nrm, kind=np.full(n, "retro"),
-                   tolerance_m=np.full(n, np.nan), code=np.full(n, -1))
+    return sample_targets(mesh, n, rng, edge_clearance_m=0.006, min_normal_z=-0.1)
 
 
 def _peak_gb() -> float:
@@ -204,7 +182,7 @@ def adjust_cap(q: int) -> int:
     return max_rejections(q)
 
 
-PHASES = ("visibility_s", "reach_s", "information_s", "search_s", "polish_s", "final_s", "validate_s", "adjust_s",
+PHASES = ("sample_s", "visibility_s", "reach_s", "information_s", "search_s", "polish_s", "final_s", "validate_s", "adjust_s",
           "adjust_old_s")
 
 

@@ -21,7 +21,7 @@ Steps (``validate_plan``):
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -270,10 +270,10 @@ def check_move(
     return MoveCheck(labels[0], labels[1], True, float(best[0]), best[1], float(best[2]), n, duration_s)
 
 
-def certify_moves(robot: RobotModel, world: CollisionWorld, path: np.ndarray, levers: np.ndarray,
+def certify_moves(robot: RobotModel, world: CollisionWorld, starts: np.ndarray, ends: np.ndarray, levers: np.ndarray,
                   deltas_m: tuple[float, ...] = (0.02, 0.005), n_threads: int = 2
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Moves ``path[t] -> path[t + 1]`` (joint-linear) proven free by batched checks.
+    """Moves ``starts[t] -> ends[t]`` (joint-linear, (t, 6) each) proven free by batched checks.
 
     For each ``delta`` in turn (on the moves not yet proven), each move is sampled so finely that no
     point of the arm moves (relative to another body) by more than ``delta / 2`` between a
@@ -283,8 +283,8 @@ def certify_moves(robot: RobotModel, world: CollisionWorld, path: np.ndarray, le
     :func:`check_move`. Returns (t,) proven, (t,) the clearance each guarantees (nan: not proven),
     (t,) samples checked.
     """
-    path = np.asarray(path, dtype=float)
-    dq = np.diff(path, axis=0)
+    qa = np.asarray(starts, dtype=float).reshape(-1, 6)
+    dq = np.asarray(ends, dtype=float).reshape(-1, 6) - qa
     bound = 2.0 * np.abs(dq) @ levers
     proven = np.zeros(len(dq), dtype=bool)
     guaranteed = np.full(len(dq), np.nan)
@@ -296,7 +296,7 @@ def certify_moves(robot: RobotModel, world: CollisionWorld, path: np.ndarray, le
         n = np.maximum(2, np.ceil(bound[todo] / delta).astype(int) + 1)
         owner = np.repeat(np.arange(len(todo)), n)
         s = np.concatenate([np.linspace(0.0, 1.0, k) for k in n])
-        q = path[todo][owner] + s[:, None] * dq[todo][owner]
+        q = qa[todo][owner] + s[:, None] * dq[todo][owner]
         free = robot.collision_free_many(q, world, n_threads=n_threads, margin_m=world.clearance_m + delta)
         ok = np.bincount(owner, weights=~free, minlength=len(todo)) == 0
         samples[todo] += n
@@ -394,13 +394,14 @@ def validate_plan(
 
     # 2-3. order and branch choice, refined in turn
     nodes_q = [start[None]] + cand
-    cost = np.zeros((k + 1, k + 1))
-    for a in range(k + 1):
-        for b in range(k + 1):
-            if a != b:
-                d = nodes_q[b][None, :, :] - nodes_q[a][:, None, :]
-                d = np.pi - np.mod(np.pi - d, 2 * np.pi)
-                cost[a, b] = float(np.min(move_time(d, speed, accel)))
+    # every branch of every node against every other at once: cost = the fastest pair of branches
+    allq = np.concatenate(nodes_q)
+    node = np.repeat(np.arange(k + 1), [len(c) for c in nodes_q])
+    d = allq[None, :, :] - allq[:, None, :]
+    pair = move_time(np.pi - np.mod(np.pi - d, 2 * np.pi), speed, accel)  # (B, B)
+    first = np.searchsorted(node, np.arange(k + 1))  # nodes are contiguous runs of branches
+    cost = np.minimum.reduceat(np.minimum.reduceat(pair, first, axis=0), first, axis=1)
+    np.fill_diagonal(cost, 0.0)
     seq = [s - 1 for s in _tour(cost, lim.return_to_start)]
     forbidden: set[tuple[int, int, int]] = set()
     choice, _ = _viterbi([cand[s] for s in seq], start, lim.return_to_start, speed, accel, forbidden, wrap=True)
@@ -419,6 +420,8 @@ def validate_plan(
 
     # 4. unwrap along the path and check every move; forbid colliding branch pairs
     levers = lever_arms(robot)
+    proofs: dict[bytes, tuple] = {}  # move (joints at both ends) -> batched proof; exact: -> check_move
+    exact: dict[bytes, MoveCheck] = {}
     for _attempt in range(max_repairs + 1):
         path = [start]
         for s, c in zip(seq, choice):
@@ -429,17 +432,26 @@ def validate_plan(
             labels.append("start")
         moves: list[MoveCheck] = []
         bad = None
+        keys = [np.concatenate([path[t], path[t + 1]]).tobytes() for t in range(len(path) - 1)]
         if world is not None:  # most moves are far from everything: proven free at once, the rest checked closely
-            certified, guaranteed, n_samples = certify_moves(robot, world, np.array(path), levers, lim.certify_deltas_m)
+            new = [t for t in range(len(keys)) if keys[t] not in proofs]  # a repair changes a few moves only
+            if new:
+                c, g, n_s = certify_moves(robot, world, np.array([path[t] for t in new]),
+                                          np.array([path[t + 1] for t in new]), levers, lim.certify_deltas_m)
+                for i, t in enumerate(new):
+                    proofs[keys[t]] = (c[i], g[i], n_s[i])
         for t in range(len(path) - 1):
             dur = float(move_time(path[t + 1] - path[t], speed, accel))
             if world is None:
                 mc = MoveCheck(labels[t], labels[t + 1], True, float("nan"), ("", ""), 0.0, 0, dur)
-            elif certified[t]:
-                mc = MoveCheck(labels[t], labels[t + 1], True, float(guaranteed[t]), ("", ""), 0.0,
-                               int(n_samples[t]), dur)
+            elif proofs[keys[t]][0]:
+                mc = MoveCheck(labels[t], labels[t + 1], True, float(proofs[keys[t]][1]), ("", ""), 0.0,
+                               int(proofs[keys[t]][2]), dur)
             else:
-                mc = check_move(robot, world, path[t], path[t + 1], levers, lim.check_resolution_rad, (labels[t], labels[t + 1]), dur)
+                if keys[t] not in exact:
+                    exact[keys[t]] = check_move(robot, world, path[t], path[t + 1], levers, lim.check_resolution_rad,
+                                                (labels[t], labels[t + 1]), dur)
+                mc = replace(exact[keys[t]], start=labels[t], end=labels[t + 1], duration_s=dur)
             moves.append(mc)
             if not mc.free:
                 bad = t

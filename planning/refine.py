@@ -124,7 +124,10 @@ def _cover_step(info, vis8, S, N, cnt, pool, min_rays):
     best = (int(np.count_nonzero(short_now)), int(short_now.sum()), -1, -1)
     for i in range(len(S)):
         ci = cnt - vis8[S[i]]
-        c_new = ci[None].astype(np.int32) + vis8[pool]
+        need = np.flatnonzero(ci < min_rays)  # only targets left short by the removal can be short after it
+        if need.size == 0:
+            continue  # (cannot happen while the network is short: removing a station never adds rays)
+        c_new = ci[need][None].astype(np.int32) + vis8[np.ix_(pool, need)]
         sh = np.maximum(min_rays - c_new, 0)
         n_short, total = np.count_nonzero(sh, axis=1), sh.sum(axis=1)
         j = int(np.lexsort((total, n_short))[0])

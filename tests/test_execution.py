@@ -155,15 +155,15 @@ def test_batched_certification_proves_only_moves_that_keep_their_clearance():
     blocked = CollisionWorld(table_z=0.0, obstacles=(BoxObstacle("post", (0.06, 0.06, 0.06), box),))
     levers = lever_arms(robot)
     path = np.array([qa, qb])
-    assert not certify_moves(robot, blocked, path, levers)[0][0]
+    assert not certify_moves(robot, blocked, path[:-1], path[1:], levers)[0][0]
     for lift in (0.12, 0.16, 0.17, 0.19, 0.25):  # the post above the path: hit, grazing, clear
         near = box.copy()
         near[2, 3] += lift
         world = CollisionWorld(table_z=0.0, obstacles=(BoxObstacle("post", (0.06, 0.06, 0.06), near),))
-        proven, guaranteed, _ = certify_moves(robot, world, path, levers)
+        proven, guaranteed, _ = certify_moves(robot, world, path[:-1], path[1:], levers)
         d = min(robot.check_collision(qa + s * (qb - qa), world).distance_m for s in np.linspace(0, 1, 200))
         if proven[0]:  # what it proves holds at every configuration checked densely
             assert d >= guaranteed[0] - 1e-9 and guaranteed[0] > world.clearance_m
         else:  # not proven: some sample came within clearance + the finest delta
             assert d < world.clearance_m + 0.005 + 0.002
-    assert certify_moves(robot, CollisionWorld(table_z=0.0), path, levers)[0][0]
+    assert certify_moves(robot, CollisionWorld(table_z=0.0), path[:-1], path[1:], levers)[0][0]

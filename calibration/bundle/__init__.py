@@ -28,7 +28,7 @@ Stages (``bundle_adjust``):
    Many observations are rejected per re-adjustment (the largest failing statistic of each target, at
    most a tenth of an image's observations; a robust variance factor while blunders inflate ``s0^2``),
    until none fails; then every rejected observation is tested against the final adjustment and put
-   back (once) if it passes (:mod:`calibration.bundle.snooping`, docs/decisions/0013-scale.md).
+   back (once) if it passes (:mod:`calibration.bundle.snooping`, docs/decisions/0019-scale.md).
    ``BundleOptions(snooping_batch=False)``: one observation per re-adjustment, as before.
    ``result.snooping`` says how it stopped (and how many still failed when the cap stopped it).
 

@@ -16,7 +16,13 @@ from calibration.bundle.config import COLMAP_MODELS, BundleConfig, BundleOptions
 from calibration.bundle.covariance import _result
 from calibration.bundle.datum import _datum_stage
 from calibration.bundle.normal import _Layout, _linearise, _State
-from calibration.bundle.snooping import _statistics, pick_rejections, predicted_test, test_variance_factor
+from calibration.bundle.snooping import (
+    _statistics,
+    local_followers,
+    pick_rejections,
+    predicted_test,
+    test_variance_factor,
+)
 from calibration.bundle.vce import _variance_step
 from calibration.camera import Intrinsics
 from calibration.errors import CalibrationError
@@ -115,12 +121,17 @@ def _bundle_adjust(obs_image, obs_target, obs_uv, intrinsics, cam_from_part, poi
             raise CalibrationError("bundle: an image has fewer than 3 observed targets; drop it or identify more targets")
         lay = _Layout(m, n, names, active_pts, linked)
         args = (obs_image[act_obs], obs_target[act_obs], obs_uv[act_obs])
-        t0 = time.perf_counter()
-        state, usable, report = _pycolmap_solve(state, *args, active_pts, config, options)
-        timings["pycolmap_solve"] += time.perf_counter() - t0
+        # after a batch of rejections the network is already near its optimum: Gauss-Newton on our own normal
+        # equations (the datum stage's iterations, which the statistics need anyway) finishes it
+        warm = options.snooping_batch and snoop["rounds"] > 1
+        if not warm:
+            t0 = time.perf_counter()
+            state, usable, report = _pycolmap_solve(state, *args, active_pts, config, options)
+            timings["pycolmap_solve"] += time.perf_counter() - t0
         for it in range(1, max(options.vce_iterations, 1) + 1 if group is not None else 2):
             t1 = time.perf_counter()
-            state, dconv = _datum_stage(state, x0, lay, config, args, sig[act_obs], options.datum_iterations, full_gn)
+            state, dconv = _datum_stage(state, x0, lay, config, args, sig[act_obs], options.datum_iterations,
+                                        full_gn or warm)
             t2 = time.perf_counter()
             lin = _linearise(state, *args, lay, config, sig[act_obs], defect)
             stats = _statistics(lin, lay, n_obs=int(act_obs.sum()))
@@ -161,6 +172,9 @@ def _bundle_adjust(obs_image, obs_target, obs_uv, intrinsics, cam_from_part, poi
             if len(pick) == 0:  # only reinstated observations fail: take the largest (the plain rule)
                 pick = [int(np.nanargmax(T))]
             rejected[pick] = True
+            more = local_followers(np.asarray(pick), T, thr, obs_target, np.flatnonzero(act_obs), lin.r_img, lin.Jp,
+                                   s_test, reinstated | rejected, options.max_rejections - int(rejected.sum()))
+            rejected[more] = True
         else:
             rejected[int(np.nanargmax(T))] = True
         timings["snooping"] += time.perf_counter() - t4
@@ -168,7 +182,7 @@ def _bundle_adjust(obs_image, obs_target, obs_uv, intrinsics, cam_from_part, poi
             snoop["stopped_because"] = stop
             break
     res = _result(state, lin, stats, lay, T, rejected, act_obs, obs_image, obs_target, obs_uv, options, config,
-                  usable and (dconv or (config.datum == "free" and not full_gn)), report, timings,
+                  usable and (dconv or (config.datum == "free" and not full_gn and not warm)), report, timings,
                   time.perf_counter() - t_start)
     res.obs_sigma_px, res.variance_components, res.snooping = sig, vc, snoop
     _say_snooping(snoop, config, options, rejected, obs_target)

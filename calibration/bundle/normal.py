@@ -150,22 +150,28 @@ def _linearise(
     W = 6 + k + 3
     r, Jp, Jc, cidx, slot, is_linked = _jacobians(state, obs_image, obs_target, obs_uv, lay, sigma_px)
     # camera side: pose and interior blocks by image, linked points by scatter
-    HH = np.einsum("qia,qib->qab", Jc, Jc)
     Ncc = np.zeros((p, p))
-    PP = _segment_sum(HH[:, :6, :6], obs_image, m)
+    # per image, one product of its stacked rows (no per-observation (W, W) blocks: 1.7 GB at 2.5 M observations)
+    order = np.argsort(obs_image, kind="stable")
+    starts = np.searchsorted(obs_image[order], np.arange(m + 1))
+    II = np.zeros((k, k))
     for j in range(m):
-        Ncc[6 * j : 6 * j + 6, 6 * j : 6 * j + 6] = PP[j]
+        A = Jc[order[starts[j] : starts[j + 1]], :, : 6 + k].reshape(-1, 6 + k)
+        H = A.T @ A
+        Ncc[6 * j : 6 * j + 6, 6 * j : 6 * j + 6] = H[:6, :6]
+        if k:
+            Ncc[6 * j : 6 * j + 6, 6 * m : 6 * m + k] = H[:6, 6:]
+            Ncc[6 * m : 6 * m + k, 6 * j : 6 * j + 6] = H[6:, :6]
+            II += H[6:, 6:]
     if k:
-        PI = _segment_sum(HH[:, :6, 6 : 6 + k], obs_image, m).reshape(6 * m, k)
-        Ncc[: 6 * m, 6 * m : 6 * m + k] = PI
-        Ncc[6 * m : 6 * m + k, : 6 * m] = PI.T
-        Ncc[6 * m : 6 * m + k, 6 * m : 6 * m + k] = HH[:, 6 : 6 + k, 6 : 6 + k].sum(axis=0)
+        Ncc[6 * m : 6 * m + k, 6 * m : 6 * m + k] = II
     if np.any(is_linked):
         lmask = np.zeros((W, W), dtype=bool)
         lmask[6 + k :, :] = True
         lmask[:, 6 + k :] = True
         cl = cidx[is_linked]
-        np.add.at(Ncc, (cl[:, :, None], cl[:, None, :]), HH[is_linked] * lmask)
+        HH = np.einsum("qia,qib->qab", Jc[is_linked], Jc[is_linked])
+        np.add.at(Ncc, (cl[:, :, None], cl[:, None, :]), HH * lmask)
     bc = np.bincount(cidx.ravel(), weights=np.einsum("qia,qi->qa", Jc, r).ravel(), minlength=p)
     # point side (unlinked points)
     nu = len(lay.unlinked)

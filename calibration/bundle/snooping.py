@@ -4,7 +4,7 @@ Statistics: variance factor, redundancy numbers, and each observation's test sta
 ``T = v^T Q_vv^-1 v`` (whitened, not yet divided by a variance factor; chi-square with 2 dof times
 the variance factor for a good observation).
 
-Decisions (docs/decisions/0013-scale.md):
+Decisions (docs/decisions/0019-scale.md):
 
 - :func:`test_variance_factor`: the variance factor the tests divide by: the adjustment's own
   ``s0^2`` (Pope's test), unless the network is evidently contaminated (``s0^2`` above
@@ -38,37 +38,36 @@ def _cofactor_blocks(lin: _Linear, lay: _Layout) -> tuple[np.ndarray, np.ndarray
 
 
 def _projected_cofactor(lin: _Linear, lay: _Layout, Qpp, VS, Jp, Jc, cidx, slot) -> np.ndarray:
-    """``J Q_xx J^T`` of observations with Jacobians ``Jp, Jc`` (compact) at columns ``cidx``; (q, 2, 2)."""
+    """``J Q_xx J^T`` of observations with Jacobians ``Jp, Jc`` (compact) at columns ``cidx``; (q, 2, 2).
+
+    Image by image: the camera blocks of an image are shared by its observations (no per-observation
+    copies of them).
+    """
     m, k = lay.m, lay.k
-    nu, p = VS.shape[0], VS.shape[2]
-    sl = slot
-    img = cidx[:, 0] // 6
     w = 6 + k
-    # Q blocks each observation needs, gathered from contiguous per-image blocks
-    Qpc = np.empty((len(sl), 3, w))
-    VSr = VS[:, :, : 6 * m].reshape(nu, 3, m, 6)
-    Qpc[:, :, :6] = -VSr[sl, :, img, :]
-    Sr = lin.Sigma[: 6 * m, : 6 * m].reshape(m, 6, m, 6)
-    Qcc = np.empty((len(sl), w, w))
-    Qcc[:, :6, :6] = Sr[np.arange(m), :, np.arange(m), :][img]
-    if k:
-        Qpc[:, :, 6:] = -VS[:, :, 6 * m : 6 * m + k][sl]
-        SI = lin.Sigma[: 6 * m, 6 * m : 6 * m + k].reshape(m, 6, k)[img]
-        Qcc[:, :6, 6:] = SI
-        Qcc[:, 6:, :6] = np.swapaxes(SI, 1, 2)
-        Qcc[:, 6:, 6:] = lin.Sigma[6 * m : 6 * m + k, 6 * m : 6 * m + k]
-    Jcw = Jc[:, :, :w]
-    Qsl = Qpp[sl]
-    A = (
-        np.einsum("qib,qjb->qij", np.einsum("qia,qab->qib", Jp, Qsl), Jp)
-        + 2 * np.einsum("qib,qjb->qij", np.einsum("qia,qab->qib", Jp, Qpc), Jcw)
-        + np.einsum("qib,qjb->qij", np.einsum("qia,qab->qib", Jcw, Qcc), Jcw)
-    )
+    img = cidx[:, 0] // 6
+    A = np.empty((len(slot), 2, 2))
+    Sig = lin.Sigma
+    order = np.argsort(img, kind="stable")
+    starts = np.searchsorted(img[order], np.arange(m + 1))
+    for j in range(m):
+        o = order[starts[j] : starts[j + 1]]
+        if len(o) == 0:
+            continue
+        cols = np.r_[6 * j : 6 * j + 6, 6 * m : 6 * m + k] if k else np.arange(6 * j, 6 * j + 6)
+        sl = slot[o]
+        Jpo, Jco = Jp[o], Jc[o, :, :w]
+        Qpc = -VS[sl[:, None, None], np.arange(3)[None, :, None], cols[None, None, :]]  # (qj, 3, w)
+        Qcc = Sig[np.ix_(cols, cols)]  # (w, w), shared by the image
+        JpQ = np.einsum("qia,qab->qib", Jpo, Qpp[sl])
+        A[o] = (np.einsum("qib,qjb->qij", JpQ, Jpo)
+                + 2 * np.einsum("qib,qjb->qij", np.einsum("qia,qab->qib", Jpo, Qpc), Jco)
+                + np.einsum("qib,qjb->qij", Jco @ Qcc, Jco))
     linked = np.any(cidx[:, w:] != 0, axis=1) | np.any(Jc[:, :, w:] != 0, axis=(1, 2))
     if np.any(linked):  # observations of scale-bar targets: the general (slow) gather, on few rows
         cl = cidx[linked]
         Jl = Jc[linked]
-        Ql = lin.Sigma[cl[:, :, None], cl[:, None, :]]
+        Ql = Sig[cl[:, :, None], cl[:, None, :]]
         A[linked] = np.einsum("qib,qjb->qij", np.einsum("qia,qab->qib", Jl, Ql), Jl)
     return 0.5 * (A + np.swapaxes(A, 1, 2))
 
@@ -151,4 +150,55 @@ def predicted_test(state, lin: _Linear, lay: _Layout, stats: dict, obs_image, ob
                                           np.broadcast_to(np.asarray(sigma_px, dtype=float), (len(ok),))[ok])
     A = _projected_cofactor(lin, lay, stats["Qpp"], stats["VS"], Jp, Jc, cidx, slot)
     out[ok] = _quadratic(np.eye(2) + A, r)
+    return out
+
+
+def local_followers(picked: np.ndarray, T: np.ndarray, threshold: float, obs_target: np.ndarray,
+                    act_idx: np.ndarray, r_img: np.ndarray, Jp: np.ndarray, s_test: float,
+                    excluded: np.ndarray, budget: int) -> list[int]:
+    """Further rejections in the same round, among the other failing observations of the picked targets.
+
+    With the picked observation removed, the target's point is re-estimated from its other rays with the
+    cameras held (one Gauss-Newton step of the point alone) and their statistics recomputed
+    (``Q_vv = I - J (J^T J)^-1 J^T`` of the point alone); the largest that still fails is rejected
+    too, and so on. A second blunder of the same target then goes in the same round instead of the
+    next. The next round re-tests everything with the full adjustment, and the final re-test puts
+    back any observation wrongly taken. ``act_idx``: the active observations ``r_img, Jp`` belong to
+    (whitened; ``Jp`` zero for scale-bar targets, which are left to the next round).
+    """
+    pos = np.full(len(T), -1)
+    pos[act_idx] = np.arange(len(act_idx))
+    fails = np.isfinite(T) & (T > threshold) & ~excluded
+    out: list[int] = []
+    picked_set = {int(p) for p in picked}
+    multi = np.bincount(obs_target[fails], minlength=int(obs_target.max()) + 1)
+    todo = sorted({int(obs_target[p]) for p in picked if multi[obs_target[p]] >= 2})
+    if not todo:
+        return out
+    testable = np.flatnonzero(np.isfinite(T))
+    testable = testable[np.isin(obs_target[testable], todo)]
+    order = testable[np.argsort(obs_target[testable], kind="stable")]
+    starts = np.searchsorted(obs_target[order], todo + [todo[-1] + 1])
+    for i, t in enumerate(todo):
+        if len(out) >= budget:
+            break
+        rest = [int(o) for o in order[starts[i] : starts[i + 1]] if int(o) not in picked_set]
+        while len(rest) >= 3 and len(out) < budget:
+            P = pos[rest]
+            J, r = Jp[P], r_img[P]
+            N = np.einsum("qia,qib->ab", J, J)
+            if not np.any(N) or np.linalg.cond(N) > 1e12:
+                break
+            Ninv = np.linalg.inv(N)
+            rr = r - np.einsum("qia,a->qi", J, Ninv @ np.einsum("qia,qi->a", J, r))
+            Q = np.eye(2) - np.einsum("qia,ab,qjb->qij", J, Ninv, J)
+            det = Q[:, 0, 0] * Q[:, 1, 1] - Q[:, 0, 1] ** 2
+            ok = det > 1e-12
+            Tl = np.full(len(rest), -np.inf)
+            Tl[ok] = (Q[ok, 1, 1] * rr[ok, 0] ** 2 - 2 * Q[ok, 0, 1] * rr[ok, 0] * rr[ok, 1]
+                      + Q[ok, 0, 0] * rr[ok, 1] ** 2) / det[ok] / s_test
+            j = int(np.argmax(Tl))
+            if not (Tl[j] > threshold) or not fails[rest[j]]:
+                break
+            out.append(rest.pop(j))
     return out

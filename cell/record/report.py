@@ -19,7 +19,7 @@ import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
-from mpl_toolkits.mplot3d.art3d import Poly3DCollection  # noqa: E402
+from mpl_toolkits.mplot3d.art3d import Line3DCollection, Poly3DCollection  # noqa: E402
 
 
 def _png(fig) -> str:
@@ -74,7 +74,8 @@ def figure_deviations(mesh, nominal: np.ndarray, dev_norm: np.ndarray, tol: np.n
     ax = fig.add_subplot(projection="3d")
     _mesh_axes(ax, mesh, alpha=0.12)
     ratio = dev_norm / tol
-    sc = ax.scatter(*(nominal * 1000).T, c=np.clip(ratio, 0, 2), cmap="RdYlGn_r", vmin=0, vmax=2, s=18)
+    size = float(np.clip(18 * np.sqrt(200 / max(len(nominal), 1)), 1, 18))  # thousands of targets stay apart
+    sc = ax.scatter(*(nominal * 1000).T, c=np.clip(ratio, 0, 2), cmap="RdYlGn_r", vmin=0, vmax=2, s=size)
     bad = ~passed
     if bad.any():
         ax.scatter(*(nominal[bad] * 1000).T, s=90, facecolors="none", edgecolors="red", linewidths=1.2)
@@ -93,12 +94,16 @@ def figure_ellipsoids(mesh, measured: np.ndarray, cov: np.ndarray) -> str:
     axes = np.sqrt(np.clip(w, 0, None))
     size = np.ptp(measured, axis=0).max()
     scale = size / 25 / max(axes.max(), 1e-12)
-    for p, a, v in zip(measured * 1000, axes * scale * 1000, V):
-        for k, col in zip(range(3), ("tab:red", "tab:green", "tab:blue")):
-            d = v[:, k] * a[k]
-            ax.plot(*np.c_[p - d, p + d], color=col, lw=1.0)
+    shown = np.argsort(-axes.sum(axis=1))[:FIGURE_ELLIPSOIDS]  # the least precise targets
+    if len(shown) < len(measured):
+        ax.scatter(*(measured * 1000).T, s=0.5, c="0.8")
+    p = measured[shown] * 1000
+    for k, col in zip(range(3), ("tab:red", "tab:green", "tab:blue")):
+        d = V[shown, :, k] * (axes[shown, k] * scale * 1000)[:, None]
+        ax.add_collection3d(Line3DCollection(np.stack([p - d, p + d], axis=1), colors=col, linewidths=1.0))
     _equal_3d(ax, measured * 1000)
-    ax.set_title(f"Error ellipsoids (1 sigma axes x {scale:.0f})")
+    extra = f", the {len(shown)} least precise of {len(measured)} targets" if len(shown) < len(measured) else ""
+    ax.set_title(f"Error ellipsoids (1 sigma axes x {scale:.0f}{extra})")
     return _png(fig)
 
 
@@ -253,13 +258,24 @@ def _closed_loop_html(doc: dict) -> str:
             + (f"<table class=kv><tr><th>target</th><th>why it still misses</th></tr>{unmet}</table>" if unmet else ""))
 
 
+#: the HTML table lists at most this many targets besides those that fail or are undecided (all are in report.json)
+TABLE_ROWS = 1000
+#: the ellipsoid figure draws at most this many (the least precise); the others would hide the part
+FIGURE_ELLIPSOIDS = 400
+
+
 def render_html(doc: dict, figures: dict[str, str], interactive: str = "") -> str:
     """The self-contained HTML report (``interactive``: the 3-D section of :mod:`cell.record.figures3d`)."""
     j = doc["job"]
     verdict = doc["verdict"]
     n_fail = sum(not t["pass"] for t in doc["targets"])
     rows = []
-    for t in sorted(doc["targets"], key=lambda t: (t["pass"], -(t["deviation_norm_m"] or 0))):
+    ordered = sorted(doc["targets"], key=lambda t: (t["pass"], -(t["deviation_norm_m"] or 0)))
+    # every target that fails, is undecided or was not measured is listed; the others up to TABLE_ROWS in all
+    listed = [t for i, t in enumerate(ordered)
+              if i < TABLE_ROWS or not t["pass"] or t.get("decision") == "inconclusive" or t["measured"][0] is None]
+    more = len(ordered) - len(listed)
+    for t in listed:
         cls = "" if t["pass"] else ' class="fail"'
         rows.append(
             f"<tr{cls}><td class=l>{html.escape(t['id'])}</td>"
@@ -298,6 +314,7 @@ def render_html(doc: dict, figures: dict[str, str], interactive: str = "") -> st
 <table id="targets"><tr><th>id</th><th>x [mm]</th><th>y [mm]</th><th>z [mm]</th><th>dx [um]</th><th>dy [um]</th>
 <th>dz [um]</th><th>|d| [um]</th><th>tol [um]</th><th>U (k=2) [um]</th><th>sigma [um]</th><th>predicted [um]</th><th>images</th><th></th></tr>
 {''.join(rows)}</table>
+{f'<p id="more-targets">{more} more targets within tolerance (smaller deviations) are not listed here: report.json has every target.</p>' if more else ''}
 {_closed_loop_html(doc)}<h2>Time per stage</h2><table class="kv">{stages}</table>
 {interactive}
 </body></html>

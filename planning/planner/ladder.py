@@ -9,7 +9,7 @@ lowers the worst target most, evaluated exactly on the hardest targets) and poli
 (planning.polish, which never raises the worst). So the plan of ``k`` stations is never worse than
 the plans of the ladder's sizes below it, and the expensive evolutionary search runs only at the
 base size. (Searching 64 or 128 stations directly gave *worse* plans than 29 on the example part:
-issue 21, docs/decisions/0013-scale.md.)
+issue 21, docs/decisions/0019-scale.md.)
 """
 from __future__ import annotations
 
@@ -18,7 +18,6 @@ from dataclasses import replace
 import numpy as np
 
 from planning.planner.final import _exact_variants
-from planning.planner.options import PlannerOptions
 from planning.planner.search import _Found, _Search, _search_fixed
 from planning.polish import polish
 from planning.refine import _sigma6
