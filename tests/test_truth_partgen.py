@@ -5,7 +5,7 @@ Per run, report.json's deviations against the injected truth: sqrt(mean m^2 / 3)
 least 97 % of the untouched targets inside their 99 % ellipsoid, at most 2 % of them flagged significant,
 every deviation beyond tolerance failed, the alignment trusted. One run with the part misplaced by
 10 mm / 5 deg, found by ``cell locate --write`` first: never a quiet wrong number. More seeds (and the
-ones that fail today): benchmarks/truth_partgen.py, decision 0019.
+ones that fail today): benchmarks/truth_partgen.py, decision 0021.
 """
 from __future__ import annotations
 
@@ -61,7 +61,7 @@ def test_random_part_deviations_match_the_truth(tmp_path):
     _check(fig, report)
 
 
-@pytest.mark.xfail(strict=True, reason="known (decision 0019): located and measured, alignment trusted, ratio 1.07, but 6 of "
+@pytest.mark.xfail(strict=True, reason="known (decision 0021): located and measured, alignment trusted, ratio 1.07, but 6 of "
                                        "81 untouched targets 3-8 um off against a stated 1.5-3 um (92.6 % in the 99 % "
                                        "ellipsoid, 7.4 % false significant); strict: passes -> remove this mark")
 def test_a_misplaced_part_is_located_and_never_reported_quietly_wrong(tmp_path):
