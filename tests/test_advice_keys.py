@@ -20,8 +20,8 @@ PACKAGES = ("calibration", "planning", "cell", "sim_backend", "drivers")
 SECTIONS = {name: f.annotation for name, f in JobSpec.model_fields.items()}
 VERB = r"(?:raise|lower|set|increase|decrease|widen|narrow|relax|reduce|enlarge|shorten|lengthen|use|give|add)"
 ADVICE = re.compile(rf"\b{VERB}\s+(?:the\s+)?(\[\w+\]\s+|\w+\.)?([a-z][a-z0-9]*_[a-z0-9_]+)\b")
-QUALIFIED = re.compile(r"\[(\w+)\]\s+([a-z][a-z0-9]*_[a-z0-9_]+)\b"
-                       r"|\b(job|camera|cell|planning|report|sim|alignment)\.([a-z][a-z0-9_]*)\b(?![.(])")
+QUALIFIED = re.compile(r"\[(\w+)\]\s+([a-z][a-z0-9]*_[a-z0-9_]+)\b")  # "[planning] min_rays"; a bare "job.x" may be
+# report.json's (job.finished), so the dotted form counts only after a verb of advice (ADVICE)
 #: messages about another file's schema (the cell file CELL.toml has its own [cell] and [sim]; `cell measure`'s
 #: camera file has fx_px etc.)
 OTHER_SCHEMA = ("cell/cellcal/cellfile.py", "cell/measure_cmd.py", "cell/camerafile.py")
@@ -50,14 +50,18 @@ def _messages():
 def _bad_names(text: str) -> list[str]:
     bad = []
     for m in QUALIFIED.finditer(text):
-        section, key = (m.group(1), m.group(2)) if m.group(1) else (m.group(3), m.group(4))
+        section, key = m.group(1), m.group(2)
         if section in SECTIONS and key not in _keys(section) and key not in FILES:
             bad.append(f"{section}.{key}")
     for m in ADVICE.finditer(text):
         prefix, key = m.group(1), m.group(2)
-        if prefix:
+        if prefix and prefix.startswith("["):
             continue  # checked above with its section
-        if key not in ALL_KEYS:
+        section = prefix[:-1] if prefix else None
+        if section in SECTIONS:
+            if key not in _keys(section):
+                bad.append(f"{section}.{key}")
+        elif key not in ALL_KEYS:
             bad.append(key)
     return bad
 
@@ -66,6 +70,8 @@ def test_the_checker_catches_the_names_the_issue_found():
     assert _bad_names("raise incidence_max_rad, or set allow_unmeasurable") == ["incidence_max_rad", "allow_unmeasurable"]
     assert _bad_names("raise [planning] incidence_max_deg or lower [planning] min_rays") == []
     assert _bad_names("move the part (cell.base_from_part) or raise [planning] n_station") == ["planning.n_station"]
+    assert _bad_names("set planning.incidence_max_rad") == ["planning.incidence_max_rad"]
+    assert _bad_names("report.json: job.finished is not a time") == []
 
 
 def test_every_key_an_error_message_advises_exists_in_the_job_schema():
