@@ -18,6 +18,10 @@ def _human_check(doc: dict, out) -> None:
     c = doc["camera"]
     out.say(f"camera {c['width']} x {c['height']} px, f = {c['fx_px']:.1f} px, sigma {c['sigma_px']} px")
     out.say(f"cell   {doc['cell']['robot']} ({doc['cell']['backend']}), {doc['cell']['obstacles']} obstacle(s)")
+    r = doc.get("measurability")
+    if r:
+        out.say(f"reach  every target seen by >= {r['min_rays']} of {r['reachable']} reachable candidate stations "
+                f"({r['candidates']} on the viewing sphere)")
     if "plan" in doc:
         pl = doc["plan"]
         out.say(f"plan   {pl['stations']} stations reachable and collision-free; cycle time {pl['cycle_time_s']:.1f} s")
@@ -29,6 +33,18 @@ def check(args, out) -> int:
 
     job = load(args.job)
     doc = {"status": "ok"} | job.summary()
+    from calibration.errors import JobSpecError
+    from cell.stages.plan import unmeasurable_targets
+
+    reach = unmeasurable_targets(job)
+    doc["measurability"] = reach
+    if reach["unmeasurable"]:
+        bad = reach["unmeasurable"]
+        raise JobSpecError(
+            f"{job.path}: {len(bad)} target(s) cannot be seen by [planning] min_rays = {reach['min_rays']} reachable "
+            f"stations (e.g. " + ", ".join(f"{t}: {reach['rays'][t]}" for t in bad[:5]) + "): lower [planning] "
+            "min_rays, raise [planning] incidence_max_deg, widen [planning] elevation_min_deg / elevation_max_deg, "
+            "or move the part ([cell] base_from_part)")
     if args.plan is not None:
         from cell.stages.validate import validate_plan_file
 
