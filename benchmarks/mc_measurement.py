@@ -12,6 +12,7 @@ a rigid fit, as the end-to-end test compares):
   sigma ratio (issue 7's target: 1.00 +- 0.10 over >= 40 runs);
 * the share of targets inside their 3-sigma ellipsoid (chi-square, 3 degrees of freedom);
 * per target, the rms error over the runs / the rms stated sigma (median over the targets);
+* the same ratio by each target's class of largest incidence among its rays (< 50, 50-70, >= 70 deg);
 * interior orientation: the bundle's focal length and principal point against the simulated
   camera's, and OpenCV's ``calibrateCamera`` on the same observations given the *true* target
   coordinates (its best case) — the issue asks for at least OpenCV's accuracy.
@@ -120,6 +121,17 @@ def one_run(workdir: Path, run: int, sim_seed: int, **overrides) -> dict:
     m2[ok] = np.einsum("ni,nij,nj->n", err[ok], np.linalg.inv(covr[ok]), err[ok])
     # the scale the datum gave: a similarity fit to the truth, in ppm
     scale_ppm = float((similarity_fit(X[ok], truth[ok], with_scale=True)[0] - 1.0) * 1e6)
+    # each target's class: the largest incidence among the rays that measured it
+    from calibration.weights import incidence_angles
+
+    obs_doc = json.loads((folder / "observations.json").read_text())
+    index = job.part.targets.index()
+    oi = np.concatenate([np.full(len(o["ids"]), k) for k, o in enumerate(obs_doc["images"])]).astype(int)
+    ot = np.array([index[t] for o in obs_doc["images"] for t in o["ids"]], dtype=int)
+    poses = np.array([im["cam_from_part"] for im in bundle["images"]], dtype=float)
+    ang = np.degrees(incidence_angles(job.part.targets.xyz, job.part.targets.normals, poses, oi, ot))
+    max_inc = np.full(len(X), np.nan)
+    np.fmax.at(max_inc, ot, ang)
     ba = bundle["intrinsics"]
     true_intr = job.intrinsics  # the simulated camera renders with the job's interior orientation
     obs = json.loads((folder / "observations.json").read_text())
@@ -133,7 +145,7 @@ def one_run(workdir: Path, run: int, sim_seed: int, **overrides) -> dict:
         "ba_cy_err_px": ba["cy_px"] - true_intr.cy_px,
         "cv_f_err_px": ocv["f"] - true_intr.fx_px, "cv_cx_err_px": ocv["cx"] - true_intr.cx_px,
         "cv_cy_err_px": ocv["cy"] - true_intr.cy_px,
-        "_err": err, "_cov": covr, "_m2": m2,
+        "_err": err, "_cov": covr, "_m2": m2, "_max_inc": max_inc,
     }
 
 
@@ -149,6 +161,15 @@ def summarise(runs: list[dict]) -> dict:
     spread = np.sqrt(np.mean(((err[:, seen] - err[:, seen].mean(axis=0)) ** 2).sum(axis=2), axis=0)
                      * len(runs) / max(len(runs) - 1, 1))
     bias = np.linalg.norm(err[:, seen].mean(axis=0), axis=1)
+
+    inc = np.concatenate([r["_max_inc"] for r in runs])
+    m2_all = np.concatenate([r["_m2"] for r in runs])
+    by_class = {}
+    for lo, hi in ((0, 50), (50, 70), (70, 90)):
+        sel = np.isfinite(m2_all) & (inc >= lo) & (inc < hi)
+        if sel.any():
+            by_class[f"{lo}-{hi} deg"] = {"targets": int(sel.sum()), "ratio": float(np.sqrt(m2_all[sel].mean() / 3)),
+                                          "within_3sigma": float(np.mean(m2_all[sel] <= CHI2_3SIGMA))}
 
     def rms(key):
         return float(np.sqrt(np.mean([r[key] ** 2 for r in runs])))
@@ -170,6 +191,7 @@ def summarise(runs: list[dict]) -> dict:
         "ba_pp_rms_err_px": float(np.sqrt(np.mean([r["ba_cx_err_px"] ** 2 + r["ba_cy_err_px"] ** 2 for r in runs]))),
         "cv_pp_rms_err_px": float(np.sqrt(np.mean([r["cv_cx_err_px"] ** 2 + r["cv_cy_err_px"] ** 2 for r in runs]))),
         "median_run_s": float(np.median([r["elapsed_s"] for r in runs])),
+        "by_largest_incidence": by_class,
     }
 
 

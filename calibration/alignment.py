@@ -26,6 +26,7 @@ __all__ = [
     "similarity_fit",
     "helmert_basis",
     "align_to_cad",
+    "transformed_alignment",
     "deviation_sigma_level",
 ]
 
@@ -123,15 +124,6 @@ def helmert_basis(points: np.ndarray, with_scale: bool = True) -> np.ndarray:
     return G
 
 
-def _projector(G: np.ndarray, w: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """``(P, H)`` of the S-transformation holding ``sum_i w_i G_i^T x_i`` fixed, each (n, 3, d)."""
-    n, _, d = G.shape
-    H = G if w is None else G * np.asarray(w, dtype=float)[:, None, None]
-    HtG = np.einsum("nad,nae->de", H, G)
-    P = G @ np.linalg.inv(HtG)
-    return P, H
-
-
 def similarity_fit(
     src: np.ndarray, dst: np.ndarray, with_scale: bool = False, weights: np.ndarray | None = None
 ) -> tuple[float, np.ndarray, np.ndarray]:
@@ -214,22 +206,61 @@ def align_to_cad(
         raise CalibrationError(
             f"align_to_cad: measured {measured.shape} and nominal {nominal.shape} must both be (n, 3)"
         )
-    pc = cov if isinstance(cov, PointCovariance) else PointCovariance.independent(cov)
-    if pc.n != len(measured):
-        raise CalibrationError(f"align_to_cad: covariance for {pc.n} targets, {len(measured)} measured")
+    pc = _as_point_covariance(cov, len(measured))
     finite = np.all(np.isfinite(measured), axis=1) & np.all(np.isfinite(nominal), axis=1)
     mask = finite if fit_mask is None else (np.asarray(fit_mask, dtype=bool) & finite)
     s, R, t = similarity_fit(measured[mask], nominal[mask], with_scale=with_scale)
+    return transformed_alignment(measured, pc, nominal, s, R, t,
+                                 lambda G: G * mask[finite_index(finite)][:, None, None].astype(float),
+                                 with_scale=with_scale, rms_mask=mask)
+
+
+def finite_index(finite: np.ndarray) -> np.ndarray:
+    """Indices of the finite targets (the rows the datum matrices are built over)."""
+    return np.flatnonzero(finite)
+
+
+def _as_point_covariance(cov, n: int) -> PointCovariance:
+    pc = cov if isinstance(cov, PointCovariance) else PointCovariance.independent(cov)
+    if pc.n != n:
+        raise CalibrationError(f"alignment: covariance for {pc.n} targets, {n} measured")
+    return pc
+
+
+def transformed_alignment(measured: np.ndarray, cov, nominal: np.ndarray, s: float, R: np.ndarray, t: np.ndarray,
+                          datum, with_scale: bool = False, rms_mask: np.ndarray | None = None) -> Alignment:
+    """The :class:`Alignment` of a given transformation ``x -> s R x + t`` and the datum that defined it.
+
+    Args:
+        measured, nominal: (n, 3); cov: :class:`PointCovariance` or (n, 3, 3).
+        s, R, t: the transformation (scale, (3, 3) rotation, (3,) translation).
+        datum: what the transformation holds fixed, for the covariance: a function of the Helmert basis
+            ``G: (f, 3, d)`` at the f finite aligned targets returning ``H: (f, 3, d)`` with ``H^T G``
+            invertible (the S-transformation ``I - G (H^T G)^-1 H^T``: e.g. ``G * w`` for a weighted best
+            fit, unit vectors along the locked axes for RPS), or None: no transformation uncertainty (the
+            measurement's own frame).
+        with_scale: the transformation includes a fitted scale (d = 7, else 6).
+        rms_mask: (n,) the targets whose rms deviation is reported (default: all finite).
+    """
+    measured = np.asarray(measured, dtype=float)
+    nominal = np.asarray(nominal, dtype=float)
+    pc = _as_point_covariance(cov, len(measured))
+    finite = np.all(np.isfinite(measured), axis=1) & np.all(np.isfinite(nominal), axis=1)
     aligned = np.full_like(measured, np.nan)
     aligned[finite] = s * measured[finite] @ R.T + t
     deviation = aligned - nominal
-    # propagate: rotate, then the S-transformation of the fit (at the aligned points)
-    idx = np.flatnonzero(finite)
+    # propagate: rotate, then the S-transformation of the datum (at the aligned points)
+    idx = finite_index(finite)
     sub = pc.select(idx).rotated(s * R)
-    G = helmert_basis(np.where(finite[:, None], aligned, 0.0)[idx], with_scale=with_scale)
-    w = mask[idx].astype(float)
-    P, H = _projector(G, w)
-    dev_pc_sub = sub.s_transform(P, H)
+    if datum is None:
+        dev_pc_sub = sub
+    else:
+        G = helmert_basis(aligned[idx], with_scale=with_scale)
+        H = np.asarray(datum(G), dtype=float)
+        HtG = np.einsum("nad,nae->de", H, G)
+        if np.linalg.cond(HtG) > 1e12:
+            raise CalibrationError("alignment: the datum targets do not fix the transformation (singular datum)")
+        dev_pc_sub = sub.s_transform(G @ np.linalg.inv(HtG), H)
     D = np.full((len(measured), 3, 3), np.nan)
     Uf = np.full((len(measured), 3, dev_pc_sub.U.shape[2]), np.nan)
     D[idx] = dev_pc_sub.D
@@ -240,7 +271,8 @@ def align_to_cad(
     T = np.eye(4)
     T[:3, :3] = s * R
     T[:3, 3] = t
-    rms = float(np.sqrt(np.mean(np.sum(deviation[mask] ** 2, axis=1))))
+    rm = finite if rms_mask is None else (np.asarray(rms_mask, dtype=bool) & finite)
+    rms = float(np.sqrt(np.mean(np.sum(deviation[rm] ** 2, axis=1)))) if rm.any() else float("nan")
     return Alignment(T, s, aligned, deviation, blocks, dev_pc, rms)
 
 

@@ -17,7 +17,15 @@ and ``x = -(B^T B)^-1 B^T C m3``. The data are normalised first (translation and
 isotropic scale, which only rescales ``m3`` and so keeps the constraint), then ``M`` is
 split into ``alpha_u, alpha_v, u0, v0`` and ``(R, T)`` (seed eq. 1-5).
 
-It needs at least 6 points that are not coplanar (a plane leaves ``M`` undetermined).
+It needs at least 6 points that are not coplanar (a plane leaves ``M`` undetermined). Near a plane
+it is not undetermined but ill-conditioned: the focal length and the distance trade off, and noise
+of a tenth of a pixel moves the focal length by percent (a warped sheet of paper, thickness ratio
+0.003, returned 57 px for a 2336 px lens). So the method refuses, with a :class:`CalibrationError`
+that says why, inputs it cannot calibrate from (:func:`check_conditioning`: too few points, points
+thinner than ``NEAR_PLANAR_RATIO`` of their extent, image points bunched or on a line), and results
+that are not a camera (:func:`check_plausible`: non-square pixels, skew, principal point off the
+image centre, a focal length far from the nominal lens). Callers then orient the image another way
+(PnP from the robot pose, or a plane's homography) and say so.
 """
 from __future__ import annotations
 
@@ -27,11 +35,20 @@ import numpy as np
 
 from calibration.camera import Intrinsics, decompose_projection_matrix, project
 from calibration.errors import CalibrationError
+from calibration.plausibility import intrinsics_problems
 
-__all__ = ["FTResult", "faugeras_toscani", "estimate_projection_matrix", "combine_intrinsics"]
+__all__ = ["FTResult", "faugeras_toscani", "estimate_projection_matrix", "combine_intrinsics", "check_conditioning",
+           "check_plausible", "orient_without_ft"]
 
 #: smallest singular value of the centred points over the largest below which the points count as coplanar
 COPLANAR_RATIO = 1e-3
+#: ... and below which they are too flat for a trustworthy projection matrix (the interior orientation
+#: then trades off with the distance; 0.02: the focal length scatters ~0.2 % at 0.1 px noise, 0.003: ~2 %, biased)
+NEAR_PLANAR_RATIO = 0.02
+#: fewest points accepted (6 determine M exactly, with no check at all)
+MIN_POINTS = 8
+#: the image points' spread (standard deviation along their principal axes) as a share of the image diagonal
+MIN_IMAGE_SPREAD = (0.05, 0.02)
 
 
 @dataclass(frozen=True)
@@ -75,6 +92,41 @@ def _check_geometry(xyz: np.ndarray, uv: np.ndarray) -> None:
             f"Faugeras-Toscani: the {n} points are coplanar (thickness ratio {s[2] / max(s[0], 1e-300):.1e} "
             f"< {COPLANAR_RATIO:g}); the projection matrix is undetermined: use targets on more than one plane"
         )
+
+
+def check_conditioning(xyz: np.ndarray, uv: np.ndarray, width: int, height: int) -> float:
+    """Refuse point sets Faugeras-Toscani cannot calibrate from reliably; returns the thickness ratio.
+
+    Raises :class:`CalibrationError` for fewer than :data:`MIN_POINTS` points, points thinner than
+    :data:`NEAR_PLANAR_RATIO` of their extent (smallest over largest singular value of the centred
+    points), or image points spread less than :data:`MIN_IMAGE_SPREAD` of the image diagonal.
+    """
+    xyz = np.asarray(xyz, dtype=float)
+    uv = np.asarray(uv, dtype=float)
+    _check_geometry(xyz, uv)
+    n = len(xyz)
+    if n < MIN_POINTS:
+        raise CalibrationError(f"Faugeras-Toscani: {n} points; at least {MIN_POINTS} are needed for a checked "
+                               "estimate (6 fit it exactly, with no redundancy)")
+    s = np.linalg.svd(xyz - xyz.mean(axis=0), compute_uv=False)
+    ratio = float(s[2] / s[0])
+    if ratio < NEAR_PLANAR_RATIO:
+        raise CalibrationError(f"Faugeras-Toscani: the {n} points are nearly planar (thickness ratio {ratio:.3f} < "
+                               f"{NEAR_PLANAR_RATIO:g}); the interior orientation would be ill-conditioned")
+    su = np.linalg.svd(uv - uv.mean(axis=0), compute_uv=False) / np.sqrt(n)
+    diag = float(np.hypot(width, height))
+    if su[0] < MIN_IMAGE_SPREAD[0] * diag or su[1] < MIN_IMAGE_SPREAD[1] * diag:
+        raise CalibrationError(f"Faugeras-Toscani: the {n} image points are bunched or on a line (spread "
+                               f"{su[0]:.0f} x {su[1]:.0f} px, needs {MIN_IMAGE_SPREAD[0] * diag:.0f} x "
+                               f"{MIN_IMAGE_SPREAD[1] * diag:.0f})")
+    return ratio
+
+
+def check_plausible(intr: Intrinsics, skew_ratio: float, nominal: Intrinsics | None = None) -> None:
+    """Refuse an interior orientation that is not a camera (:mod:`calibration.plausibility`); :class:`CalibrationError`."""
+    problems = intrinsics_problems(intr, nominal, skew_ratio)
+    if problems:
+        raise CalibrationError("Faugeras-Toscani: implausible interior orientation: " + "; ".join(problems))
 
 
 def estimate_projection_matrix(xyz: np.ndarray, uv: np.ndarray) -> np.ndarray:
@@ -130,20 +182,24 @@ def estimate_projection_matrix(xyz: np.ndarray, uv: np.ndarray) -> np.ndarray:
     return M / np.linalg.norm(M[2, :3])
 
 
-def faugeras_toscani(xyz: np.ndarray, uv: np.ndarray, width: int, height: int) -> FTResult:
+def faugeras_toscani(xyz: np.ndarray, uv: np.ndarray, width: int, height: int,
+                     nominal: Intrinsics | None = None) -> FTResult:
     """Calibrate one image from known points.
 
     Args:
-        xyz: (n, 3) target coordinates (part frame, metres), n >= 6, not coplanar.
+        xyz: (n, 3) target coordinates (part frame, metres), n >= :data:`MIN_POINTS`, not (nearly) coplanar.
         uv: (n, 2) their image coordinates (pixels, origin at the centre of the top-left pixel).
         width, height: image size in pixels.
+        nominal: the lens' nominal interior orientation, if known: a focal length far from it is refused.
 
     Returns:
-        :class:`FTResult`. Raises :class:`CalibrationError` for too few or coplanar points,
+        :class:`FTResult`. Raises :class:`CalibrationError` for ill-conditioned input
+        (:func:`check_conditioning`), an implausible interior orientation (:func:`check_plausible`),
         or when the points lie behind the recovered camera.
     """
     xyz = np.asarray(xyz, dtype=float)
     uv = np.asarray(uv, dtype=float)
+    check_conditioning(xyz, uv, width, height)
     M = estimate_projection_matrix(xyz, uv)
     # sign: the points must be in front of the camera (positive third coordinate)
     depth = xyz @ M[2, :3] + M[2, 3]
@@ -167,6 +223,7 @@ def faugeras_toscani(xyz: np.ndarray, uv: np.ndarray, width: int, height: int) -
             f"Faugeras-Toscani: {n_behind} of {len(xyz)} points fall behind the recovered camera; "
             "the correspondences are wrong (check target identification)"
         )
+    check_plausible(intr, float(c_uv / intr.fx_px), nominal)
     res = project(intr, cam_from_part, xyz) - uv
     rms = float(np.sqrt(np.mean(np.sum(res**2, axis=1))))
     return FTResult(
@@ -191,3 +248,49 @@ def combine_intrinsics(results: list[FTResult]) -> Intrinsics:
     med = np.median(arr, axis=0)
     i0 = results[0].intrinsics
     return Intrinsics(fx_px=med[0], fy_px=med[1], cx_px=med[2], cy_px=med[3], width=i0.width, height=i0.height)
+
+
+def orient_without_ft(xyz: np.ndarray, uv: np.ndarray, intr: Intrinsics, guess: np.ndarray | None = None,
+                      max_rms_px: float = 10.0) -> tuple[np.ndarray, float, str]:
+    """Exterior orientation with a known interior orientation, for images Faugeras-Toscani refuses.
+
+    Args:
+        xyz: (n, 3) points (part frame), n >= 4; uv: (n, 2) pixels.
+        intr: interior orientation (the nominal lens).
+        guess: (4, 4) ``cam_from_part`` to start from (e.g. the robot's pose and the hand-eye): iterative PnP;
+            None: IPPE (the planar PnP) for (nearly) planar points, SQPnP otherwise, then refined.
+        max_rms_px: a larger reprojection error means the orientation is wrong: refused.
+
+    Returns ``(cam_from_part (4, 4), rms_px, method)``; raises :class:`CalibrationError` when it fails.
+    """
+    import cv2
+
+    xyz = np.asarray(xyz, dtype=float)
+    uv = np.asarray(uv, dtype=float)
+    if len(xyz) < 4:
+        raise CalibrationError(f"{len(xyz)} points; an orientation by PnP needs at least 4")
+    K, dist = intr.K, intr.dist_coeffs
+    if guess is not None:
+        rvec0, _ = cv2.Rodrigues(np.asarray(guess, dtype=float)[:3, :3])
+        ok, rvec, tvec = cv2.solvePnP(xyz, uv, K, dist, rvec0.copy(), np.asarray(guess, float)[:3, 3].copy(),
+                                      useExtrinsicGuess=True, flags=cv2.SOLVEPNP_ITERATIVE)
+        method = "PnP from the robot pose"
+    else:
+        s = np.linalg.svd(xyz - xyz.mean(axis=0), compute_uv=False)
+        planar = s[2] < NEAR_PLANAR_RATIO * s[0]
+        flag = cv2.SOLVEPNP_IPPE if planar else cv2.SOLVEPNP_SQPNP
+        ok, rvec, tvec = cv2.solvePnP(xyz, uv, K, dist, flags=flag)
+        if ok:
+            rvec, tvec = cv2.solvePnPRefineLM(xyz, uv, K, dist, rvec, tvec)
+        method = "planar PnP (IPPE)" if planar else "PnP (SQPnP)"
+    if not ok:
+        raise CalibrationError(f"{method} failed")
+    T = np.eye(4)
+    T[:3, :3] = cv2.Rodrigues(rvec)[0]
+    T[:3, 3] = np.ravel(tvec)
+    if np.any(xyz @ T[2, :3] + T[2, 3] <= 0):
+        raise CalibrationError(f"{method}: points behind the camera; the identification is wrong")
+    rms = float(np.sqrt(np.mean(np.sum((project(intr, T, xyz) - uv) ** 2, axis=1))))
+    if not np.isfinite(rms) or rms > max_rms_px:
+        raise CalibrationError(f"{method}: reprojection rms {rms:.2f} px (more than {max_rms_px:g} px)")
+    return T, rms, method

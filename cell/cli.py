@@ -158,9 +158,12 @@ def build_parser() -> argparse.ArgumentParser:
                         "whether one station fewer could meet the requirement)")
     c.set_defaults(func=cmd_plan)
 
+    url_help = "the archive database: sqlite:///PATH or postgresql://USER@HOST:PORT/DB (default: CELL_ARCHIVE_URL, " \
+               "the cell file's [archive] url, else SQLite in the archive folder)"
     c = sub.add_parser("run", parents=[common], help="run a whole inspection job")
     c.add_argument("job", type=Path)
     c.add_argument("--archive", type=Path, default=Path("archive"))
+    c.add_argument("--archive-url", help=url_help)
     c.add_argument("--backend", choices=["sim", "ur"], help="override the job file's [cell] backend")
     c.add_argument("--yes", action="store_true", help="confirm moving the robot without asking")
     c.add_argument("--serial", help="the part's serial number (goes into the report and the archive)")
@@ -171,6 +174,7 @@ def build_parser() -> argparse.ArgumentParser:
     c = sub.add_parser("resume", parents=[common], help="resume a faulted or interrupted job")
     c.add_argument("job_id")
     c.add_argument("--archive", type=Path, default=Path("archive"))
+    c.add_argument("--archive-url", help=url_help)
     c.add_argument("--yes", action="store_true", help="confirm resuming from the measured robot pose")
     c.add_argument("--operator", help="who resumes the job (default: the login name)")
     c.set_defaults(func=cmd_resume)
@@ -215,13 +219,22 @@ def build_parser() -> argparse.ArgumentParser:
                                     "schneider14, cct8, cct12)")
     c.set_defaults(func=cmd_detect)
 
-    c = sub.add_parser("archive", parents=[common], help="list, show, compare, verify archived jobs")
-    c.add_argument("action", choices=["list", "show", "compare", "verify"])
+    c = sub.add_parser("archive", parents=[common],
+                       help="list, show, compare, verify archived jobs; sync the index; push a job to shared storage")
+    c.add_argument("action", choices=["list", "show", "compare", "verify", "sync", "push"])
     c.add_argument("ids", nargs="*")
     c.add_argument("--repair", action="store_true",
                    help="with verify: close a job that ended without closing its folder (terminal record, manifest "
                         "over the files its journal vouches for); never vouches for a changed file")
-    c.add_argument("--archive", type=Path, default=Path("archive"))
+    c.add_argument("--archive", type=Path, default=None, help="the job folders (default ./archive, or the folder of "
+                   "a sqlite:/// archive url)")
+    c.add_argument("--archive-url", help=url_help)
+    for key in ("part", "serial", "verdict", "status", "since", "until", "cell-id"):
+        c.add_argument(f"--{key}", help=f"list: only jobs with this {key}" if key not in ("since", "until") else
+                       f"list: jobs started {'at or after' if key == 'since' else 'before'} this ISO 8601 time")
+    c.add_argument("--limit", type=int, default=None, help="list: at most this many jobs (newest first)")
+    c.add_argument("--offset", type=int, default=0)
+    c.add_argument("--to", help="push: the shared storage (a folder or s3://bucket/prefix; default CELL_ARCHIVE_PUSH)")
     c.set_defaults(func=cmd_archive)
 
     c = sub.add_parser("serve", parents=[common], help="the web console (operator screen, archive, JSON API)")
@@ -230,6 +243,7 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--archive", type=Path, default=Path("archive"))
     c.add_argument("--programs", type=Path, default=Path("programs"),
                    help="folder of part programs: job files kept as templates (NAME.toml or NAME/job.toml)")
+    c.add_argument("--archive-url", help=url_help + "; the jobs the console starts are indexed there too")
     c.add_argument("--cell-id", help="this cell's id (default: $CELL_ID)")
     c.add_argument("--certfile", type=Path, help="TLS certificate (PEM); with --keyfile the console speaks HTTPS only")
     c.add_argument("--keyfile", type=Path, help="TLS private key (PEM)")

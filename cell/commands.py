@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import json
 
+from calibration.errors import CellError
+
 
 def _human_check(doc: dict, out) -> None:
     p = doc["part"]
@@ -16,6 +18,10 @@ def _human_check(doc: dict, out) -> None:
     c = doc["camera"]
     out.say(f"camera {c['width']} x {c['height']} px, f = {c['fx_px']:.1f} px, sigma {c['sigma_px']} px")
     out.say(f"cell   {doc['cell']['robot']} ({doc['cell']['backend']}), {doc['cell']['obstacles']} obstacle(s)")
+    r = doc.get("measurability")
+    if r:
+        out.say(f"reach  every target seen by >= {r['min_rays']} of {r['reachable']} reachable candidate stations "
+                f"({r['candidates']} on the viewing sphere)")
     if "plan" in doc:
         pl = doc["plan"]
         out.say(f"plan   {pl['stations']} stations reachable and collision-free; cycle time {pl['cycle_time_s']:.1f} s")
@@ -27,6 +33,18 @@ def check(args, out) -> int:
 
     job = load(args.job)
     doc = {"status": "ok"} | job.summary()
+    from calibration.errors import JobSpecError
+    from cell.stages.plan import unmeasurable_targets
+
+    reach = unmeasurable_targets(job)
+    doc["measurability"] = reach
+    if reach["unmeasurable"]:
+        bad = reach["unmeasurable"]
+        raise JobSpecError(
+            f"{job.path}: {len(bad)} target(s) cannot be seen by [planning] min_rays = {reach['min_rays']} reachable "
+            f"stations (e.g. " + ", ".join(f"{t}: {reach['rays'][t]}" for t in bad[:5]) + "): lower [planning] "
+            "min_rays, raise [planning] incidence_max_deg, widen [planning] elevation_min_deg / elevation_max_deg, "
+            "or move the part ([cell] base_from_part)")
     if args.plan is not None:
         from cell.stages.validate import validate_plan_file
 
@@ -117,7 +135,8 @@ def run(args, out) -> int:
     if (backend or "") == "ur":
         _confirm(args, out, "This job moves the robot.")
     return _finish(start_job(args.job, args.archive, backend, out, serial=args.serial,
-                             operator=args.operator or _login_name(), cell_id=args.cell_id), out)
+                             operator=args.operator or _login_name(), cell_id=args.cell_id,
+                             archive_url=args.archive_url), out)
 
 
 def _login_name() -> str | None:
@@ -133,18 +152,63 @@ def resume(args, out) -> int:
     from cell.job import resume_job
 
     _confirm(args, out, f"Resuming {args.job_id} moves the robot from its measured pose.")
-    return _finish(resume_job(args.job_id, args.archive, out, operator=args.operator or _login_name()), out)
+    return _finish(resume_job(args.job_id, args.archive, out, operator=args.operator or _login_name(),
+                              archive_url=args.archive_url), out)
+
+
+def _open_archive(args):
+    """``--archive`` / ``--archive-url`` of ``cell archive``: the folders and the index."""
+    import os
+    from pathlib import Path
+
+    from cell.record.archive import Archive, check_archive_root, resolve_url
+
+    url = resolve_url(args.archive_url, args.archive or Path("archive"))
+    root = args.archive
+    if root is None:  # a sqlite:/// url names its folder; otherwise ./archive
+        root = Path(url[len("sqlite:///"):]).parent if url.startswith("sqlite:///") else Path("archive")
+    return Archive(check_archive_root(root, write=False), url, push=args.to or os.environ.get("CELL_ARCHIVE_PUSH"))
 
 
 def archive(args, out) -> int:
     from calibration.errors import InputError
-    from cell.record.archive import Archive, check_archive_root
 
-    a = Archive(check_archive_root(args.archive, write=False))
-    if getattr(args, "repair", False) and args.action != "verify":
+    a = _open_archive(args)
+    try:
+        return _archive_action(a, args, out)
+    finally:
+        for line in a.messages:
+            out.say(f"archive: {line}")
+        a.close()
+
+
+def _archive_action(a, args, out) -> int:
+    from pathlib import Path
+
+    from calibration.errors import InputError
+    from cell.record.archive import INCOMING, check_job_id
+
+    if getattr(args, "repair", False) and not (args.action == "verify" and args.ids):
         raise InputError("--repair goes with 'cell archive verify ID'")
     if args.action == "list":
-        rows = a.listing() if args.archive.is_dir() else []
+        filters = {k: getattr(args, k) for k in ("part", "serial", "verdict", "status", "since", "until", "cell_id")}
+        url = a.url
+        if url.startswith("sqlite:///") and not Path(url[len("sqlite:///"):]).exists() and not a.root.is_dir():
+            rows, total = [], 0  # no archive here yet: nothing to list, nothing created
+        else:
+            if a.root.is_dir():
+                a.catch_up()  # folders the index does not hold yet (copied in, or indexed elsewhere)
+            rows = a.index.list_jobs(**filters, limit=args.limit, offset=args.offset,
+                                     newest_first=args.limit is not None)
+            total = a.index.count_jobs(**filters)
+            for r in rows:
+                r["staged"] = False
+                if r.get("problem") is None:
+                    r.pop("problem", None)
+            if args.offset == 0 and not any(v is not None for v in filters.values()):
+                rows += a.staged_rows()
+        doc = {"archive": a.index.url if rows or total else url, "total": total, "jobs": rows,
+               "outbox": a.outbox.pending()}
         def human(d):
             for r in d["jobs"]:
                 status = r["status"] + (" (staged: stopped before ACQUIRE; 'cell resume' goes on)" if r.get("staged")
@@ -153,13 +217,25 @@ def archive(args, out) -> int:
                         f"{(r.get('failed') if r.get('failed') is not None else ''):>4} failed of {r.get('targets') or '?'}"
                         + (f"  ! {r['problem']}" if r.get("problem") else ""))
             if not d["jobs"]:
-                out.say(f"no jobs in {args.archive}")
-        out.result({"jobs": rows}, human)
+                out.say(f"no jobs in {d['archive']}")
+            if d["outbox"]:
+                out.say(f"{len(d['outbox'])} job(s) wait in the outbox for the database: run 'cell archive sync'")
+        out.result(doc, human)
         return 0
     if args.action == "show":
         if len(args.ids) != 1:
             raise InputError("cell archive show takes one job id")
-        doc = a.show(args.ids[0])
+        job_id = check_job_id(args.ids[0])
+        if (a.root / job_id).exists() or (a.root / INCOMING / job_id).exists() or (a.root / job_id).is_symlink():
+            doc = a.show(job_id)
+        else:  # another cell's job: what the index holds
+            row = a.index.get_job(job_id)
+            if row is None:
+                raise InputError(f"{a.index.url}: no job {job_id!r} in the archive (see 'cell archive list')")
+            tl = a.index.job_targets(job_id)
+            doc = {"id": job_id, "folder": row["folder"], "origin": row["origin"], "verdict": row["verdict"],
+                   "sigma0_px": row["sigma0_px"], "targets": len(tl), "failed": [t["id"] for t in tl if t["pass"] is False],
+                   "index": row}
         out.result(doc, lambda d: out.say(json.dumps(d, indent=1, default=str)))
         return 0
     if args.action == "compare":
@@ -174,8 +250,19 @@ def archive(args, out) -> int:
         out.result(doc, human)
         return 0
     if args.action == "verify":
+        if not args.ids:  # the index against the folders
+            doc = a.verify_index()
+            def human(d):
+                out.say(f"{d['checked']} job folders, {d['indexed']} indexed, {len(d['outbox'])} in the outbox: "
+                        + ("index matches the folders" if d["intact"] else f"{len(d['problems'])} problem(s)"))
+                for p in d["problems"]:
+                    out.say(f"  {p}")
+                for p in d["damaged"]:
+                    out.say(f"  {p} (a damaged folder: 'cell archive verify ID' says more)")
+            out.result(doc, human)
+            return 0 if doc["intact"] else 1
         if len(args.ids) != 1:
-            raise InputError("cell archive verify takes one job id")
+            raise InputError("cell archive verify takes one job id (or none: the index against the folders)")
         repaired = None
         if args.repair:
             from cell.job import repair_job
@@ -189,6 +276,22 @@ def archive(args, out) -> int:
         out.result(doc, lambda d: out.say(f"{d['job_id']}: " + ("manifest intact" if d["intact"] else
                                                               "; ".join(d["problems"]))))
         return 0 if not problems else 1
+    if args.action == "sync":
+        doc = a.sync()
+        def human(d):
+            out.say(f"drained {len(d['drained'])} from the outbox, indexed {len(d['indexed'])} more, "
+                    f"{len(d['pending'])} still waiting; pushed {len(d['pushed'])}, {len(d['push_pending'])} pushes waiting")
+            for e in d["problems"]:
+                out.say(f"  {e} (indexed as far as it reads)")
+        out.result(doc, human)
+        return 0 if not doc["pending"] and not doc["push_pending"] else 1
+    if args.action == "push":
+        if not args.ids:
+            raise InputError("cell archive push takes one or more job ids")
+        docs = [a.push(j) for j in args.ids]
+        out.result({"pushed": docs}, lambda d: [out.say(f"{x['job_id']} -> {x['dest']}: {x['files']} files, "
+                                                           f"{x['bytes']} bytes, verified") for x in d["pushed"]])
+        return 0
     raise InputError(f"unknown archive action {args.action!r}")
 
 

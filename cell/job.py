@@ -296,9 +296,10 @@ class JobRunner:
             return (f"the end of this session could not be recorded ({_os_reason(exc)}); fix that (free space), then "
                     f"'cell resume {self.folder.job_id}' closes the job")
         try:
-            self.archive.reindex(only=self.folder.path)
-        except (OSError, sqlite3.Error):
-            pass  # the index is rebuilt from the folders by 'cell archive list'
+            for line in self.archive.job_closed(self.folder.path):  # index (or the outbox) and push
+                self.out.say(f"archive: {line}")
+        except (OSError, sqlite3.Error, CellError) as exc:  # the folder is the record; 'cell archive sync' indexes it
+            self.out.say(f"archive: {self.folder.job_id} not indexed ({exc}); 'cell archive sync' indexes it")
         return ""
 
     def _end_early(self, ctx: Context, log: RunLog, exc: BaseException) -> tuple[State, str, bool]:
@@ -367,22 +368,42 @@ class JobRunner:
         self.folder.append("robot_stopped", **rec)
 
 
+def open_archive(job: LoadedJob, archive_root: Path, archive_url: str | None = None) -> Archive:
+    """The job's archive: folders in ``archive_root``, the index at ``--archive-url``, else
+    ``CELL_ARCHIVE_URL``, else the cell file's ``[archive] url``, else SQLite in the folder."""
+    from cell.record.archive import resolve_url
+
+    cf_url = cf_push = None
+    if job.spec.cell.cell_file is not None:
+        from cell.cellcal.cellfile import load_cell_file
+        from cell.jobspec import resolve
+
+        cf, _ = load_cell_file(resolve(job.folder, job.spec.cell.cell_file))
+        cf_url, cf_push = cf.archive.url, cf.archive.push
+    root = Path(archive_root).resolve()
+    return Archive(root, resolve_url(archive_url, root, cf_url), push=os.environ.get("CELL_ARCHIVE_PUSH") or cf_push)
+
+
 def start_job(job_path: Path, archive_root: Path, backend: str | None, out, *, serial: str | None = None,
-              operator: str | None = None, cell_id: str | None = None) -> JobResult:
+              operator: str | None = None, cell_id: str | None = None, archive_url: str | None = None) -> JobResult:
     """``cell run``: LOAD (before anything is written), then the whole job.
 
     ``serial`` (the part's serial number), ``operator`` and ``cell_id`` (default: ``$CELL_ID``) go
-    into the job's run.json, its journal, run log, report and archive row.
+    into the job's run.json, its journal, run log, report and archive row; a cell id also goes into
+    the job's id (``<time>-<cell>-<name>``): the cells of a site share one index. ``archive_url``: the
+    index (:func:`open_archive`).
     """
     job = load(job_path)  # bad input fails here, before any folder exists
     info = make_run_info(job.spec, serial, operator, cell_id)  # a bad serial fails here too
-    archive = Archive(check_archive_root(Path(archive_root), write=True).resolve())
-    job_id = new_job_id(job.spec.job.name)
+    root = check_archive_root(Path(archive_root), write=True).resolve()
+    archive = open_archive(job, root, archive_url)
+    stem = f"{info['cell_id']}-{job.spec.job.name}" if info["cell_id"] else job.spec.job.name
+    job_id = new_job_id(stem)
     incoming = archive.root / ".incoming" / job_id
     k = 1
     while incoming.exists() or (archive.root / job_id).exists():
         k += 1
-        job_id = f"{new_job_id(job.spec.job.name)}-{k}"
+        job_id = f"{new_job_id(stem)}-{k}"
         incoming = archive.root / ".incoming" / job_id
     incoming.mkdir(parents=True)
     folder = JobFolder(incoming)
@@ -391,6 +412,7 @@ def start_job(job_path: Path, archive_root: Path, backend: str | None, out, *, s
         return _start_staged(job_path, job, archive, folder, job_id, backend, out, info)
     finally:
         os.close(lock)
+        archive.close()  # the index's connections end with the job (a console runs many in one process)
 
 
 def _start_staged(job_path: Path, job: LoadedJob, archive: Archive, folder: JobFolder, job_id: str,
@@ -407,7 +429,8 @@ def _start_staged(job_path: Path, job: LoadedJob, archive: Archive, folder: JobF
     return runner.run(State.LOAD)
 
 
-def resume_job(job_id: str, archive_root: Path, out, *, operator: str | None = None) -> JobResult:
+def resume_job(job_id: str, archive_root: Path, out, *, operator: str | None = None,
+               archive_url: str | None = None) -> JobResult:
     """``cell resume``: verify the job's record, then continue from the first stage that did not finish.
 
     Before anything moves: the journal must read whole (a damaged line is an error naming it, never a
@@ -424,9 +447,22 @@ def resume_job(job_id: str, archive_root: Path, out, *, operator: str | None = N
     except OSError as exc:
         raise InputError(f"{folder.path}: cannot write the job folder ({_os_reason(exc)})") from None
     try:
+        archive = _archive_of(folder, archive.root, archive_url)
         return _resume_locked(job_id, archive, folder, out, operator)
     finally:
         os.close(lock)
+        archive.close()
+
+
+def _archive_of(folder: JobFolder, root: Path, archive_url: str | None) -> Archive:
+    """The archive a resumed job writes to: as :func:`open_archive` with the job's own copy of its file;
+    when that copy does not load (the resume then says why), the index the command line and environment name."""
+    from cell.record.archive import resolve_url
+
+    try:
+        return open_archive(load_from_folder(folder.path), root, archive_url)
+    except Exception:  # noqa: BLE001  (the resume's own checks report a damaged job; this only picks the index)
+        return Archive(root, resolve_url(archive_url, root), push=os.environ.get("CELL_ARCHIVE_PUSH"))
 
 
 #: files a job stores before its robot moves, which its images depend on

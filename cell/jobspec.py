@@ -124,10 +124,12 @@ class CameraSection(_Strict):
     detection: Literal["cell", "photograph"] = Field(
         default="cell", description="cell: fixed 41 px background kernel (the lit cell's images); photograph: kernel, "
                                     "size limits and local half-maximum threshold found per image (docs/decisions/0015)")
-    observation_weights: Literal["incidence", "equal"] = Field(
-        default="incidence",
-        description="incidence: estimate one image sigma per incidence class (< 50, 50-70, >= 70 deg) in the "
-                    "bundle adjustment (variance components); equal: every observation has sigma_px")
+    observation_weights: Literal["model", "incidence", "equal"] = Field(
+        default="model",
+        description="model: each observation's a priori sigma from the detector precision model (incidence, dot "
+                    "size in pixels; calibration/data/detector_precision.json), scaled by the adjustment's "
+                    "variance factor; incidence: one image sigma per incidence class (< 50, 50-70, >= 70 deg) "
+                    "estimated from sigma_px; equal: every observation has sigma_px")
 
     @model_validator(mode="after")
     def _dof(self):
@@ -249,8 +251,39 @@ class ReportSection(_Strict):
     sigma_factor: float = Field(default=3.0, gt=0, le=100, description="deviation significant beyond k sigma")
 
 
+class AlignmentSection(_Strict):
+    """How the measured targets are brought into the part frame (the report's deviations are in it)."""
+
+    method: Literal["best_fit", "rps", "bundle_frame"] = Field(
+        default="best_fit",
+        description="best_fit: rigid fit to CAD over the targets that agree with it (robust); rps: 3-2-1 on the "
+                    "datum targets of 'rps'; bundle_frame: the measurement's own frame (a fixtured part whose "
+                    "datum is the fixture's control points)")
+    targets: list[str] | None = Field(default=None, description="best_fit: only these targets may define the frame")
+    rps: dict[str, str] | None = Field(
+        default=None, description="rps: datum target id -> the part axes it locks, e.g. "
+                                  "{ T0001 = \"z\", T0002 = \"z\", T0003 = \"z\", T0004 = \"x\", T0005 = \"x\", T0006 = \"y\" }")
+    on_untrusted: Literal["flag", "fault"] = Field(
+        default="flag", description="an alignment that cannot be trusted: flag (report marked 'alignment not "
+                                    "trusted' in red, verdict UNTRUSTED) or fault the job")
+
+    @model_validator(mode="after")
+    def _rps_needs_datum(self):
+        if self.method == "rps" and not self.rps:
+            raise ValueError("method 'rps' needs 'rps' = { target = \"axes\", ... } (six locked axes for 3-2-1)")
+        if self.rps and sum(len(a) for a in self.rps.values()) < 6:
+            raise ValueError(f"'rps' locks {sum(len(a) for a in self.rps.values())} axes; a 3-2-1 alignment locks 6 "
+                             "(3 targets along the primary axis, 2 along the secondary, 1 along the tertiary)")
+        if self.method != "rps" and self.rps:
+            raise ValueError(f"'rps' is given but method is {self.method!r}: set method = \"rps\"")
+        if self.targets is not None and self.method != "best_fit":
+            raise ValueError("'targets' chooses the targets of a best fit: set method = \"best_fit\"")
+        return self
+
+
 class SimSection(_Strict):
-    image_sigma_px: float = Field(default=0.03, ge=0, le=10)
+    image_sigma_px: float = Field(default=0.0, ge=0, le=10, description="an extra random offset per dot (pixels) on top of "
+                                  "the rendered photon/read noise, blur and quantisation; 0 = physical")
     seed: int = Field(default=0, ge=0, lt=2**63, description="random seed (a non-negative integer)")
     deviations: str | None = Field(default=None, description="CSV id,dx,dy,dz in job units")
     motion: Literal["instant", "timed"] = "instant"
@@ -275,6 +308,7 @@ class JobSpec(_Strict):
     cell: CellSection
     planning: PlanningSection = PlanningSection()
     report: ReportSection
+    alignment: AlignmentSection = AlignmentSection()
     sim: SimSection = SimSection()
 
     @model_validator(mode="after")

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from calibration.camera import Intrinsics
-from calibration.errors import JobSpecError
+from calibration.errors import CalibrationError, JobSpecError
 from cell.jobspec import JobSpec, load_deviations, load_job, resolve
 from planning.part import Part, load_part
 
@@ -93,6 +93,19 @@ def load(job_path: str | Path, overrides: dict[str, str] | None = None) -> Loade
                 f"{nominal / s:.4f} {j.units} between {j.scale_bar.a} and {j.scale_bar.b} by more than 1%"
             )
         scale_bar = (a, b, length, j.scale_bar.sigma * s)
+    al = spec.alignment
+    named = [("alignment.targets", t) for t in (al.targets or [])] + [("alignment.rps", t) for t in (al.rps or {})]
+    index = part.targets.index()
+    for key, tid in named:
+        if tid not in index:
+            raise JobSpecError(f"{job_path}: {key} names target {tid!r}, which the part does not have")
+    if al.rps:
+        from calibration.robust_alignment import rps_locks
+
+        try:
+            rps_locks({index[t]: a for t, a in al.rps.items()})
+        except CalibrationError as exc:
+            raise JobSpecError(f"{job_path}: alignment.rps: {exc}") from None
     deviations = np.zeros((len(ids), 3))
     if spec.sim.deviations:
         deviations = load_deviations(resolve(folder, spec.sim.deviations), ids, s)

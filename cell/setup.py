@@ -36,6 +36,9 @@ def planner_options(job: LoadedJob) -> PlannerOptions:
         incidence_max_rad=float(np.deg2rad(p.incidence_max_deg)),
         criterion=p.criterion,
         sigma_px=c.sigma_px,
+        # the search ranks networks with one image sigma: with the detector model (image_precision(job)) it chose
+        # low grazing stations on the example whose dots MEASURE misnamed (FT rms 7.5 px, bundle diverged);
+        # plan.json's predicted covariance is computed with the model on the measured rays (stages.plan)
         mode=p.mode,
         required_sigma_m=None if p.required_sigma is None else p.required_sigma * k,
         default_tolerance_m=s.report.tolerance * k,
@@ -66,3 +69,14 @@ def collision_world(job: LoadedJob, clearance_m: float = 0.005) -> CollisionWorl
     )
     return CollisionWorld(part_mesh=job.part.mesh, base_from_part=job.spec.base_from_part(), table_z=c.table_z * k,
                           obstacles=obstacles, clearance_m=clearance_m)
+
+
+def image_precision(job):
+    """The planner's image precision: the detector model (``[camera] observation_weights = "model"``), else None."""
+    from planning.uncertainty import ImagePrecision
+
+    s = job.spec
+    if s.camera.observation_weights != "model":
+        return None
+    return ImagePrecision(np.asarray(job.part.targets.normals, dtype=float), job.part.target_diameter_m,
+                          noise_scale=s.sim.noise if s.cell.backend == "sim" else 1.0)

@@ -89,7 +89,7 @@ def polish_network(
     genes: np.ndarray,
     cols: np.ndarray,
     min_rays: int,
-    sigma_px: float,
+    sigma_px,
     *,
     step_rad: float,
     step_m: float,
@@ -171,6 +171,6 @@ def polish(part, intr: Intrinsics, sphere: ViewingSphere, vis_opts: VisibilityOp
     n_dirs = max(1, len(db.genes) // max(1, options.n_shells))
     step_rad = 0.5 * float(np.sqrt(band / n_dirs))
     step_m = 0.04 * (sphere.distance_max_m - sphere.distance_min_m)
-    return polish_network(part, intr, sphere, vis_opts, genes, cols, options.min_rays, options.sigma_px,
+    return polish_network(part, intr, sphere, vis_opts, genes, cols, options.min_rays, options.image_sigma(cols),
                           step_rad=step_rad, step_m=step_m, offset_m=0.1 * float(part.radius),
                           rounds=options.polish_rounds, backend=options.backend, reachable_fn=reachable_fn)

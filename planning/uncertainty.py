@@ -28,6 +28,7 @@ from calibration.errors import PlanningError
 from planning.sparse_info import SparseInfo, add_rows
 
 __all__ = [
+    "ImagePrecision",
     "CRITERIA",
     "NetworkEval",
     "target_information",
@@ -54,12 +55,48 @@ def sym_from_6(s6: np.ndarray) -> np.ndarray:
     return out
 
 
+@dataclass(frozen=True)
+class ImagePrecision:
+    """The image precision of a dot by its geometry, for planning: the detector model
+    (:mod:`calibration.detector_model`: incidence angle, dot diameter in pixels, sensor noise).
+
+    Attributes:
+        normals: (n, 3) unit outward normals of the targets the information is computed for.
+        diameter_m: the dots' diameter.
+        model: the detector model (None: the repository's measured one).
+        noise_scale: the sensor's noise relative to the one the model was measured with.
+    """
+
+    normals: np.ndarray
+    diameter_m: float
+    model: object | None = None
+    noise_scale: float = 1.0
+
+    def subset(self, cols: np.ndarray) -> "ImagePrecision":
+        """The same precision for a subset of the targets."""
+        return ImagePrecision(np.asarray(self.normals)[cols], self.diameter_m, self.model, self.noise_scale)
+
+    def sigma_px(self, intr: Intrinsics, cam_from_part: np.ndarray, xyz: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        """Sigma of one image coordinate ``(k,)`` pixels of targets ``cols`` seen from one station."""
+        from calibration.detector_model import load_model
+
+        model = self.model or load_model()
+        Xc = xyz[cols] @ cam_from_part[:3, :3].T + cam_from_part[:3, 3]
+        centre = -cam_from_part[:3, :3].T @ cam_from_part[:3, 3]
+        sight = centre - xyz[cols]
+        sight /= np.linalg.norm(sight, axis=1, keepdims=True)
+        nrm = np.asarray(self.normals, dtype=float)[cols]
+        theta = np.arccos(np.clip(np.einsum("ka,ka->k", sight, nrm), -1.0, 1.0))
+        d_px = intr.fx_px * self.diameter_m / np.maximum(Xc[:, 2], 1e-9)
+        return model.sigma_px(theta, d_px, self.noise_scale)
+
+
 def target_information(
     intr: Intrinsics,
     part_from_cam: np.ndarray,
     xyz: np.ndarray,
     visible: np.ndarray,
-    sigma_px: float | np.ndarray,
+    sigma_px: "float | np.ndarray | ImagePrecision",
     dtype: type = np.float32,
     sparse: bool = False,
 ):
@@ -69,10 +106,13 @@ def target_information(
     pairs only), never materialising the dense array.
 
     ``part_from_cam: (m, 4, 4)``, ``xyz: (n, 3)``, ``visible: (m, n)`` bool,
-    ``sigma_px``: image measurement standard deviation (scalar, or (n,) per target).
+    ``sigma_px``: image measurement standard deviation (scalar, (n,) per target, or an
+    :class:`ImagePrecision` for the (n,) targets: per station and target from the detector model).
     ``J = d(uv)/d(point)`` (2 x 3, pixels per metre) includes the lens distortion.
     Zero where not visible. Units: 1/m^2.
     """
+    if isinstance(sigma_px, ImagePrecision):
+        return _information_by_model(intr, part_from_cam, xyz, visible, sigma_px, dtype, sparse)
     T = np.asarray(part_from_cam, dtype=float).reshape(-1, 4, 4)
     xyz = np.asarray(xyz, dtype=float)
     visible = np.asarray(visible, dtype=bool)
@@ -126,6 +166,31 @@ def point_information(intr: Intrinsics, cam_from_part: np.ndarray, X: np.ndarray
         M[:, r, 0], M[:, r, 1], M[:, r, 2] = a, b, -(a * xn + b * yn)
     J = M @ R  # (q, 2, 3)
     return np.stack([J[:, 0, i] * J[:, 0, j] + J[:, 1, i] * J[:, 1, j] for i, j in zip(*_IU)], axis=1)
+
+
+def _information_by_model(intr, part_from_cam, xyz, visible, precision: ImagePrecision, dtype, sparse=False):
+    T = np.asarray(part_from_cam, dtype=float).reshape(-1, 4, 4)
+    xyz = np.asarray(xyz, dtype=float)
+    visible = np.asarray(visible, dtype=bool)
+    m, n = len(T), len(xyz)
+    if visible.shape != (m, n) or np.asarray(precision.normals).shape != (n, 3):
+        raise PlanningError(f"target_information: visible {visible.shape} and normals "
+                            f"{np.asarray(precision.normals).shape} must match ({m}, {n}) and ({n}, 3)")
+    cam_from_part = invert(T)
+    rows = np.concatenate([[0], np.cumsum(visible.sum(axis=1))])
+    out = np.empty((int(rows[-1]), 6), dtype=dtype) if sparse else np.zeros((m, n, 6), dtype=dtype)
+    indices = np.empty(len(out) if sparse else 0, dtype=np.int32)
+    for i in range(m):
+        cols = np.flatnonzero(visible[i])
+        if len(cols) == 0:
+            continue
+        w = 1.0 / precision.sigma_px(intr, cam_from_part[i], xyz, cols) ** 2
+        info = point_information(intr, np.repeat(cam_from_part[i][None], len(cols), axis=0), xyz[cols])
+        if sparse:
+            out[rows[i]:rows[i + 1]], indices[rows[i]:rows[i + 1]] = (info * w[:, None]).astype(dtype), cols
+        else:
+            out[i, cols] = (info * w[:, None]).astype(dtype)
+    return SparseInfo(rows, indices, out, n) if sparse else out
 
 
 def _invert6(N: np.ndarray, n_rays: np.ndarray, min_rays: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -1,11 +1,16 @@
 #!/usr/bin/env bash
-# The whole test suite: set up (venv, packages, a headless browser for the report test), then pytest.
+# The whole test suite: set up (venv, packages, a headless browser for the report test, a PostgreSQL server
+# for the archive tests), then pytest.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh
-if ! command -v chromium >/dev/null 2>&1 && [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
-  (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null) \
-    || echo "setup: could not install chromium; the browser test of the report will be skipped" >&2
+# Debian packages the tests use: chromium (the report in a browser), postgresql (the site archive's server)
+need=()
+command -v chromium >/dev/null 2>&1 || need+=(chromium)
+compgen -G "/usr/lib/postgresql/*/bin/pg_ctl" >/dev/null || need+=(postgresql)
+if [ "${#need[@]}" -gt 0 ] && [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
+  (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "${need[@]}" >/dev/null) \
+    || echo "setup: could not install ${need[*]}; the tests that need them will be skipped, saying why" >&2
 fi
 set +e
 .venv/bin/python -m pytest "$@"

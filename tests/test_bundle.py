@@ -313,3 +313,38 @@ def test_opencv_k3_model_recovers_a_strong_sixth_order_term():
     assert abs(res.intrinsics.k3) > 3 * sd[8]  # determined, not just allowed
     with pytest.raises(CalibrationError, match="no k3"):
         _run(net, poses0, x0, config=replace(cfg, camera_model="OPENCV"), intr=replace(start, k3=-0.1))
+
+
+def test_snooping_says_when_it_stops_at_its_cap_and_lists_what_it_never_tests():
+    rng = np.random.default_rng(12)
+    net = simulate_network(rng, n_targets=120, n_images=10)
+    uv = net.obs_uv.copy()
+    bad = rng.choice(len(uv), 8, replace=False)
+    uv[bad] += rng.choice([-1.0, 1.0], (8, 2)) * 2.0  # eight 2-px blunders, cap at five
+    bar = ScaleBar(0, 1, float(np.linalg.norm(net.points[0] - net.points[1])), 1e-6)
+    res = _run(net, *_start(rng, net), uv=uv, config=BundleConfig(scale_bars=(bar,)),
+               options=BundleOptions(sigma_px=net.sigma_px, max_rejections=5))
+    sn = res.snooping
+    assert res.rejected.sum() == 5 and sn["n_rejected"] == 5 and not sn["complete"]
+    assert sn["stopped_because"] == "max_rejections reached"
+    import re
+
+    still = re.search(r"cap of 5 rejections reached; (\d+) observation\(s\) still fail", sn["stopped"])
+    assert still and int(still.group(1)) >= 3  # the three blunders left (and clean ones they smear)
+    assert any("scale bar 0-1" in p for p in sn["protected"])
+    full = _run(net, *_start(rng, net), uv=uv, config=BundleConfig(scale_bars=(bar,)))
+    assert full.snooping["complete"] and full.snooping["stopped"] == "no observation fails"
+    assert set(bad) <= set(np.flatnonzero(full.rejected))
+
+
+def test_a_wrong_control_point_is_named_suspect():
+    rng = np.random.default_rng(13)
+    net = simulate_network(rng, n_targets=150, n_images=12)
+    idx = np.arange(0, 150, 15)
+    sig = 1e-5
+    xyz = net.points[idx] + rng.normal(0, sig, (len(idx), 3))
+    xyz[0] += [2e-3, 0, 0]  # control coordinates 2 mm off (a typo in the control file)
+    res = _run(net, *_start(rng, net), config=BundleConfig(control=ControlPoints(idx, xyz, np.full(len(idx), sig))),
+               options=BundleOptions(sigma_px=net.sigma_px, max_rejections=200))
+    assert int(idx[0]) in res.snooping["suspect_targets"]
+    assert any("control" in p for p in res.snooping["protected"])

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from cell.record.archive import Archive
-from cell.record.jobfolder import JobFolder, atomic_write_json
+from cell.record.jobfolder import JobFolder, atomic_write_json, utc_now
 from cell.record.runlog import RunLog, read_messages
 from cell.states import STAGES, TRANSITIONS, State, TransitionError, check_transition
 
@@ -89,9 +89,10 @@ def _fake_job(root, job_id, deviations, part="bracket"):
     f.path.mkdir(parents=True)
     f.append("created", name="bracket")
     f.append("state", **{"from": "REPORT", "to": "DONE"})
-    targets = [{"id": f"T{i}", "measured": [0.0, 0.0, d], "deviation_norm_m": abs(d), "achieved_sigma_m": 1e-5,
+    targets = [{"id": f"T{i}", "nominal": [0.0, 0.0, 0.0], "measured": [0.0, 0.0, d], "deviation": [0.0, 0.0, d],
+                "deviation_norm_m": abs(d), "achieved_sigma_m": 1e-5,
                 "pass": abs(d) < 1e-4} for i, d in enumerate(deviations)]
-    atomic_write_json(f.file("report.json"), {"job": {"id": job_id, "part": part, "finished": "now"},
+    atomic_write_json(f.file("report.json"), {"job": {"id": job_id, "part": part, "finished": utc_now()},
                                               "verdict": "PASS", "sigma0_px": 1.0, "targets": targets})
     f.write_manifest()
     return f

@@ -57,11 +57,19 @@ class TargetContract(_Contract):
     achieved_sigma_m: float | None
 
 
+class AlignmentContract(_Contract):
+    method: str
+    targets_in_fit: list[str]
+    rms_m: float = Field(ge=0)
+    trusted: bool
+
+
 class ReportContract(_Contract):
     job: JobContract
     images: int = Field(gt=0)
     sigma0_px: float = Field(gt=0)
     targets: list[TargetContract]
+    alignment: AlignmentContract
 
 
 @pytest.fixture(scope="module")
@@ -121,6 +129,14 @@ def test_report_json_follows_the_contract(example):
         # the achieved sigma is sqrt(trace(cov)) of the point (before the CAD fit, which changes it little)
         assert t.achieved_sigma_m == pytest.approx(np.sqrt(np.trace(c)), rel=0.1)
     assert len(report["not_measured"]) <= 0.05 * len(doc.targets)
+    # the frame: a trusted robust best fit over the targets that agree with CAD (not the deviating ones)
+    al = doc.alignment
+    assert al.method == "best_fit" and al.trusted and report["alignment"]["stable"]
+    assert set(_deviations(job)).isdisjoint(al.targets_in_fit)
+    assert len(al.targets_in_fit) >= 0.9 * len(doc.targets) and al.rms_m < 10e-6
+    # predicted (pre-analysis with the detector model) = achieved, and the report shows the ratio
+    assert 0.75 <= report["predicted_over_achieved"]["median"] <= 1.25
+    assert report["snooping"]["complete"]
 
 
 def test_injected_deviations_beyond_tolerance_fail_and_those_within_are_significant(example):

@@ -84,6 +84,30 @@ def test_cli_check_prints_summary_and_json():
     doc = json.loads(r.stdout)
     assert doc["part"]["targets"] == 200 and doc["part"]["mesh"]["watertight"] is True
     assert "check  OK" in r.stderr
+    assert doc["measurability"]["unmeasurable"] == [] and doc["measurability"]["min_rays"] == 3
+
+
+def test_cli_check_names_targets_that_cannot_get_min_rays_stations(job_dir):
+    # the walls' dots face sideways: within 10 deg of their normal no station above 20 deg elevation sees them
+    _edit(job_dir, "incidence_max_deg = 60.0", "incidence_max_deg = 10.0")
+    r = _cli("check", job_dir / "job.toml")
+    assert r.returncode == 2, r.stderr
+    line = [l for l in r.stderr.splitlines() if l.strip()]
+    assert len(line) == 1 and "cannot be seen by [planning] min_rays = 3" in line[0] and "T0" in line[0]
+    assert "[planning] incidence_max_deg" in line[0]
+
+
+@pytest.mark.parametrize("table,message", [
+    ('[alignment]\nmethod = "rps"', "needs 'rps'"),
+    ('[alignment]\nmethod = "rps"\nrps = { T0001 = "z", T0002 = "z" }', "locks 2 axes"),
+    ('[alignment]\nmethod = "rps"\nrps = { T0001 = "z", T0002 = "z", T0003 = "z", T0004 = "x", T0005 = "x", '
+     'NOPE = "y" }', "NOPE"),
+    ('[alignment]\ntargets = ["T0001", "T9999"]', "T9999"),
+])
+def test_alignment_section_is_checked_at_load(job_dir, table, message):
+    (job_dir / "job.toml").write_text((job_dir / "job.toml").read_text() + "\n" + table + "\n")
+    with pytest.raises(JobSpecError, match=message):
+        load(job_dir / "job.toml")
 
 
 @pytest.mark.parametrize("case", ["unknown_key", "missing_mesh", "truncated_stl", "targets_missing_column",

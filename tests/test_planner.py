@@ -277,7 +277,7 @@ def test_a_network_too_small_for_min_rays_is_an_error_not_a_silent_plan(scene, f
     part, intr = scene
     _, cache, _ = fixed_plan
     # three stations would each have to see every target, including all four side faces
-    with pytest.raises(PlanningError, match="raise n_stations or lower min_rays"):
+    with pytest.raises(PlanningError, match=r"raise \[planning\] n_stations or lower \[planning\] min_rays"):
         plan_network(part, intr, _options(n_stations=3, generations=10), np.random.default_rng(0), cache_dir=cache)
 
 

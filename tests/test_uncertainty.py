@@ -267,3 +267,32 @@ def test_sparse_information_selects_and_stacks_candidates():
     np.testing.assert_array_equal(sp.select(rows).toarray(), dense[rows])
     both = SparseInfo.vstack([SparseInfo.from_dense(dense[:3], vis[:3]), sp.select(rows)])
     np.testing.assert_array_equal(both.toarray(), np.concatenate([dense[:3], dense[rows]]))
+
+
+def test_image_precision_by_the_detector_model_weights_each_ray_by_its_geometry():
+    from calibration.detector_model import DetectorModel, load_model
+    from planning.uncertainty import ImagePrecision
+
+    rng = np.random.default_rng(3)
+    xyz = rng.uniform(-0.05, 0.05, (20, 3))
+    normals = np.tile([0.0, 0.0, 1.0], (20, 1))
+    T = ring(6, 0.6, 40.0)
+    vis = np.ones((6, 20), bool)
+    flat = DetectorModel(a_px=0.02, b_px=0.0, p=1.0, q=1.0)  # no geometry term: one sigma for every ray
+    a = target_information(INTR, T, xyz, vis, 0.02, dtype=np.float64)
+    b = target_information(INTR, T, xyz, vis, ImagePrecision(normals, 0.005, flat), dtype=np.float64)
+    np.testing.assert_allclose(a, b, rtol=1e-12)
+    prec = ImagePrecision(normals, 0.005)
+    vis[2, :7] = False
+    np.testing.assert_array_equal(  # the sparse layout (issue 21) holds the same values
+        target_information(INTR, T, xyz, vis, prec, sparse=True).toarray(), target_information(INTR, T, xyz, vis, prec))
+    # the measured model: a grazing ray carries less information than a face-on one at the same distance
+    steep, grazing = ring(1, 0.6, 85.0), ring(1, 0.6, 12.0)
+    prec = ImagePrecision(normals[:1], 0.005)
+    i_steep = target_information(INTR, steep, np.zeros((1, 3)), np.ones((1, 1), bool), prec, dtype=np.float64)
+    i_graz = target_information(INTR, grazing, np.zeros((1, 3)), np.ones((1, 1), bool), prec, dtype=np.float64)
+    s_steep = prec.sigma_px(INTR, invert(steep[0]), np.zeros((1, 3)), np.array([0]))[0]
+    s_graz = prec.sigma_px(INTR, invert(grazing[0]), np.zeros((1, 3)), np.array([0]))[0]
+    assert s_graz > 3 * s_steep and s_steep == pytest.approx(load_model().sigma_px(np.radians(5.0), 0.005 * INTR.fx_px / 0.6),
+                                                            rel=0.05)
+    assert i_graz[0, 0, [0, 3, 5]].sum() < i_steep[0, 0, [0, 3, 5]].sum()

@@ -185,6 +185,7 @@ def _bundle_adjust(obs_image, obs_target, obs_uv, intrinsics, cam_from_part, poi
                   usable and (dconv or (config.datum == "free" and not full_gn and not warm)), report, timings,
                   time.perf_counter() - t_start)
     res.obs_sigma_px, res.variance_components, res.snooping = sig, vc, snoop
+    _say_snooping(snoop, config, options, rejected, obs_target)
     if weighted:  # sigma0 in pixels: of an observation of the rms a priori sigma (equal weights: options.sigma_px)
         res.sigma0_px = float(np.sqrt(stats["s02"] * np.mean(sig[act_obs] ** 2)))
     return res
@@ -202,3 +203,23 @@ def _reinstate(options, rejected, reinstated, act_obs, state, lin, lay, stats, s
     snoop["untestable_rejected"] = int(np.count_nonzero(~np.isfinite(Tp)))
     back[idx[np.isfinite(Tp) & (Tp <= thr)]] = True
     return back
+
+
+def _say_snooping(snoop: dict, config, options, rejected: np.ndarray, obs_target: np.ndarray) -> None:
+    """Add to ``snoop`` what an operator must read: ``complete`` (False: stopped before the end), ``stopped``
+    (why, with how many still fail at the cap), ``n_rejected``, ``suspect_targets`` (targets that lost half of
+    their observations or more: the target itself, e.g. its control coordinates or its name, is suspect) and
+    ``protected`` (observations snooping never tests: scale-bar lengths, control coordinates)."""
+    why = snoop.get("stopped_because", "")
+    snoop["complete"] = why in ("off", "nothing testable", "no observation fails")
+    snoop["stopped"] = (f"cap of {options.max_rejections} rejections reached; {snoop.get('still_failing', 0)} "
+                        "observation(s) still fail the test" if why == "max_rejections reached" else why)
+    snoop["n_rejected"] = int(rejected.sum())
+    n_obs = np.bincount(obs_target, minlength=int(obs_target.max()) + 1 if len(obs_target) else 0)
+    n_rej = np.bincount(obs_target[rejected], minlength=len(n_obs))
+    snoop["suspect_targets"] = [int(t) for t in np.flatnonzero((n_rej > 0) & (2 * n_rej >= n_obs))]
+    protected = [f"scale bar {b.target_a}-{b.target_b} length (not tested: it defines the scale)"
+                 for b in config.scale_bars]
+    if config.control is not None and len(config.control.index):
+        protected.append(f"{len(config.control.index)} control target coordinates (not tested: they define the datum)")
+    snoop["protected"] = protected

@@ -18,6 +18,9 @@ relative paths are relative to the cell file's folder):
   measurement error ``E_MPE = max_permissible_error + max_permissible_error_per_length * L``, the planner's
   ``stations_per_position`` (each sees both ends), ``n_candidates``, tilt and incidence limits
   and the reverification ``interval_days``.
+* ``[archive]``: ``url`` of the archive database (``sqlite:///PATH`` or ``postgresql://...``; the
+  command line's ``--archive-url`` and ``CELL_ARCHIVE_URL`` come first) and ``push``, the shared
+  storage (a folder or ``s3://bucket/prefix``) every closed job is copied to.
 * ``[sim]``: as a job file's ``[sim]``, but the simulated cell's real hand-eye is stated absolutely
   (``flange_from_cam_true``: calibration rewrites ``flange_from_cam``, the truth stays); ``base_from_part_error``
   is the artefacts' true placement error.
@@ -110,6 +113,16 @@ class CellSimSection(SimSection):
                                   "when calibrated, the truth does not); default: the file's")
 
 
+class ArchiveSection(_Strict):
+    """Where the cell's jobs are indexed and copied for the site (``--archive-url`` and
+    ``CELL_ARCHIVE_URL`` come first)."""
+
+    url: str | None = Field(default=None, pattern=r"^(sqlite:///|postgres(ql)?(\+psycopg)?://)",
+                            description="the archive database: sqlite:///PATH or postgresql://USER@HOST:PORT/DB")
+    push: str | None = Field(default=None, min_length=1,
+                             description="shared storage every closed job is copied to: a folder or s3://bucket/prefix")
+
+
 class CellFile(_Strict):
     """A whole cell file, validated. Use :func:`load_cell_file`."""
 
@@ -118,6 +131,7 @@ class CellFile(_Strict):
     hand_eye: HandEyeSection | None = None
     reverification: ReverificationSection | None = None
     sim: CellSimSection = CellSimSection()
+    archive: ArchiveSection = ArchiveSection()
 
     @model_validator(mode="after")
     def _sim_has_no_deviations(self):

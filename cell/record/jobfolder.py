@@ -389,6 +389,10 @@ def _parse_line(raw: bytes) -> tuple[dict | None, str | None]:
         return rec, None
     if h != _line_hash(json.dumps(rec)):
         return None, "record damaged (its checksum differs)"
+    # the checksum is over the record as JSON text: a flipped digit that parses to the same float
+    # (the 17th of a double) would pass it, so the line must also be byte for byte what append() wrote
+    if raw.decode("utf-8") != json.dumps(rec | {"h": h}):
+        return None, "record damaged (its bytes differ from the record they spell)"
     rec["_hashed"] = True
     return rec, None
 

@@ -151,7 +151,9 @@ def figure_residuals(residuals_px: np.ndarray, rejected: np.ndarray | None = Non
 _CSS = """
 body{font-family:system-ui,-apple-system,Segoe UI,Roboto,sans-serif;margin:24px;color:#222;max-width:1200px}
 .verdict{font-size:28px;font-weight:700;padding:14px 20px;border-radius:8px;color:#fff;display:inline-block}
-.PASS{background:#1a7f37}.FAIL{background:#cf222e}.INCOMPLETE{background:#9a6700}
+.PASS{background:#1a7f37}.FAIL{background:#cf222e}.INCOMPLETE{background:#9a6700}.UNTRUSTED{background:#82071e}
+.alert{color:#fff;background:#cf222e;font-weight:700;padding:10px 16px;border-radius:6px;margin:10px 0}
+.warn{background:#fff8c5;border:1px solid #d4a72c;padding:8px 14px;border-radius:6px;margin:10px 0}
 table{border-collapse:collapse;font-size:13px}td,th{border:1px solid #ccc;padding:3px 7px;text-align:right}
 th{background:#f3f3f3}td.l{text-align:left}tr.fail td{background:#ffebe9}
 .figs img{max-width:560px;margin:6px;border:1px solid #ddd}.fig3d{max-width:1100px;margin:8px 0}
@@ -179,6 +181,48 @@ def _status(t: dict) -> str:
 def _inconclusive(doc: dict) -> str:
     n = len(doc.get("inconclusive", []))
     return f"; {n} too close to their tolerance for this measurement to decide (ISO 14253-1)" if n else ""
+
+
+def _alerts(doc: dict) -> str:
+    """Red banners for what makes the numbers untrustworthy; yellow notes for what the operator should know."""
+    out = []
+    al = doc.get("alignment") or {}
+    if al and not al.get("trusted", True):
+        out.append(f'<div class="alert" id="alignment-alert">ALIGNMENT NOT TRUSTED: '
+                   f'{html.escape("; ".join(al.get("reasons", [])))}. The deviations below are in a frame that '
+                   "cannot be relied on.</div>")
+    sn = doc.get("snooping") or {}
+    if sn and not sn.get("complete", True):
+        out.append(f'<div class="alert" id="snooping-alert">Blunder test stopped before the end: '
+                   f'{html.escape(str(sn.get("stopped")))}</div>')
+    if sn.get("suspect_targets"):
+        out.append(f'<div class="warn">Targets that lost half of their observations as blunders (suspect): '
+                   f'{html.escape(", ".join(sn["suspect_targets"]))}</div>')
+    fb = doc.get("orientation_fallbacks") or []
+    if fb:
+        out.append(f'<div class="warn">{len(fb)} image(s) not calibrated by Faugeras-Toscani, oriented by PnP: '
+                   + html.escape("; ".join(f"{x['image']}: {x['reason']}" for x in fb[:6]))
+                   + ("; ..." if len(fb) > 6 else "") + "</div>")
+    for n in al.get("notes", []):
+        out.append(f'<div class="warn">Alignment: {html.escape(n)}</div>')
+    return "".join(out)
+
+
+def _alignment_facts(doc: dict) -> dict:
+    al = doc.get("alignment") or {}
+    if not al:
+        return {}
+    ratio = doc.get("predicted_over_achieved") or {}
+    out = {"Alignment": f"{al.get('description', al.get('method'))}; {len(al.get('targets_in_fit', []))} targets "
+                        f"define the frame; rms {_fmt_um(al.get('rms_m'))} um; "
+                        + ("trusted" if al.get("trusted") else "NOT TRUSTED")
+                        + ("" if al.get("stable", True) else ", not stable")}
+    if ratio.get("median") is not None:
+        out["Predicted / achieved sigma"] = (f"{ratio['median']:.2f} (median over {ratio['n']} targets; "
+                                             f"10-90 %: {ratio['p10']:.2f}-{ratio['p90']:.2f})")
+    if doc.get("snooping"):
+        out["Rejected observations"] = f"{doc.get('n_rejected', 0)} (listed in bundle.json and in report.json rejected_observations)"
+    return out
 
 
 def _rejected_table(doc: dict) -> str:
@@ -253,6 +297,7 @@ def render_html(doc: dict, figures: dict[str, str], interactive: str = "") -> st
         "Seed": j["seed"], "Started": j["started"],
         "Finished": j["finished"], "Images": doc["images"], "sigma0 [px]": f"{doc['sigma0_px']:.3f}",
         "Datum": doc.get("datum", ""), "Cell calibration": doc.get("cell_calibration", {}).get("status", "unknown"),
+        **_alignment_facts(doc),
         "Versions": ", ".join(f"{k} {v}" for k, v in j["versions"].items()),
     }
     kv = "".join(f"<tr><td><b>{html.escape(k)}</b></td><td>{html.escape(str(v))}</td></tr>" for k, v in facts.items())
@@ -261,6 +306,7 @@ def render_html(doc: dict, figures: dict[str, str], interactive: str = "") -> st
 <style>{_CSS}</style></head><body>
 <h1>Inspection report: {html.escape(j['name'])}</h1>
 <div class="verdict {verdict}" id="verdict">{verdict}: {len(doc['targets']) - n_fail} of {len(doc['targets'])} targets within tolerance{_inconclusive(doc)}</div>
+{_alerts(doc)}
 <h2>Job</h2><table class="kv">{kv}</table>
 <h2>Figures</h2><div class="figs">{figs}</div>
 {_rejected_table(doc)}

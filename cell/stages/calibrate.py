@@ -2,36 +2,22 @@
 where an image gives it no depth; calibration.json."""
 from __future__ import annotations
 
-import cv2
 import numpy as np
 
-from calibration.camera import invert, project
+from calibration.camera import invert
 from calibration.errors import CalibrationError
-from calibration.faugeras_toscani import faugeras_toscani
+from calibration.faugeras_toscani import faugeras_toscani, orient_without_ft
 from cell.record.jobfolder import atomic_write_json
-
-
-def _pnp_from_robot(job, xyz: np.ndarray, uv: np.ndarray, base_from_flange: np.ndarray) -> tuple[np.ndarray, float]:
-    """Exterior orientation by PnP with the nominal camera, started from the robot's pose and the hand-eye."""
-    cam_from_part = invert(invert(job.spec.base_from_part()) @ base_from_flange @ job.spec.flange_from_cam())
-    rvec, _ = cv2.Rodrigues(cam_from_part[:3, :3])
-    ok, rvec, tvec = cv2.solvePnP(xyz, uv, job.intrinsics.K, job.intrinsics.dist_coeffs, rvec.copy(),
-                                  cam_from_part[:3, 3].copy(), useExtrinsicGuess=True, flags=cv2.SOLVEPNP_ITERATIVE)
-    if not ok:
-        raise CalibrationError("PnP from the robot pose failed")
-    T = np.eye(4)
-    T[:3, :3] = cv2.Rodrigues(rvec)[0]
-    T[:3, 3] = tvec.ravel()
-    rms = float(np.sqrt(np.mean(np.sum((project(job.intrinsics, T, xyz) - uv) ** 2, axis=1))))
-    return T, rms
 
 
 def run(ctx) -> None:
     """Faugeras-Toscani per image: interior and exterior orientation from the nominal targets.
 
-    An image whose targets are nearly coplanar (one face of the part fills it) gives Faugeras-Toscani
-    no depth to work with: it fails, or returns an orientation far from the robot's. Such an image
-    is oriented by PnP with the nominal camera instead, started from the robot pose, and says so.
+    Faugeras-Toscani refuses what it cannot calibrate from (too few points, nearly coplanar ones, bunched
+    image points, an implausible interior orientation: see :mod:`calibration.faugeras_toscani`), and an
+    orientation far from the robot's is refused here. Such an image is oriented by PnP with the nominal
+    camera instead, started from the robot pose, and says so (calibration.json, journal, console). When
+    no image passes, the adjustment starts from the nominal lens (said too); never from a refused estimate.
     """
     job = ctx.job
     obs = ctx.folder.read_json("observations.json")
@@ -45,7 +31,7 @@ def run(ctx) -> None:
         robot_pose = invert(invert(job.spec.base_from_part()) @ bff @ job.spec.flange_from_cam())
         rec = {"station": o["station"], "image": o["image"], "n_points": len(uv)}
         try:
-            ft = faugeras_toscani(xyz, uv, job.intrinsics.width, job.intrinsics.height)
+            ft = faugeras_toscani(xyz, uv, job.intrinsics.width, job.intrinsics.height, nominal=job.intrinsics)
             centre_gap = float(np.linalg.norm(invert(ft.cam_from_part)[:3, 3] - invert(robot_pose)[:3, 3]))
             if centre_gap > 0.1 * float(np.linalg.norm(robot_pose[:3, 3])):
                 raise CalibrationError(f"its camera centre is {centre_gap * 1e3:.0f} mm from the robot's")
@@ -56,15 +42,28 @@ def run(ctx) -> None:
             if len(uv) < 4:
                 raise CalibrationError(f"image {o['image']} (station {o['station']}): only {len(uv)} targets "
                                        "identified; cannot orient it") from None
-            T, rms = _pnp_from_robot(job, xyz, uv, bff)
-            rec |= {"method": "PnP from the robot pose", "fallback_reason": f"Faugeras-Toscani: {exc}",
-                    "cam_from_part": T, "rms_px": rms}
-            ctx.log.log("warning", f"{o['image']}: Faugeras-Toscani unusable ({exc}); oriented by PnP")
+            try:
+                T, rms, method = orient_without_ft(xyz, uv, job.intrinsics, guess=robot_pose)
+            except CalibrationError as exc2:
+                raise CalibrationError(f"image {o['image']} (station {o['station']}): Faugeras-Toscani refused "
+                                       f"({exc}) and {exc2}") from None
+            reason = str(exc) if str(exc).startswith("Faugeras-Toscani") else f"Faugeras-Toscani: {exc}"
+            rec |= {"method": method, "fallback_reason": reason, "cam_from_part": T, "rms_px": rms}
+            ctx.log.log("warning", f"{o['image']}: {reason}; oriented by {method}")
+            ctx.folder.append("orientation_fallback", image=o["image"], station=o["station"], method=method,
+                              reason=reason)
         res.append(rec)
-    atomic_write_json(ctx.folder.file("calibration.json"), {"method": "Faugeras-Toscani", "images": res})
     ft_ok = [r for r in res if r["method"] == "Faugeras-Toscani"]
+    start = ("Faugeras-Toscani (median of the accepted images)" if ft_ok else
+             "the nominal lens: Faugeras-Toscani refused every image (see fallback_reason per image)")
+    atomic_write_json(ctx.folder.file("calibration.json"), {"method": "Faugeras-Toscani", "images": res,
+                                                            "interior_start": start,
+                                                            "n_fallback": len(res) - len(ft_ok)})
     if not ft_ok:
-        raise CalibrationError("Faugeras-Toscani failed on every image: check the target identification")
+        ctx.log.log("warning", "Faugeras-Toscani refused every image; interior orientation starts from the nominal lens")
+        ctx.say(f"  WARNING Faugeras-Toscani refused all {len(res)} images (e.g. {res[0]['fallback_reason']}); "
+                "every image oriented by PnP from the robot pose, interior orientation from the nominal lens")
+        return
     fx = np.array([r["alpha_u"] for r in ft_ok])
     ctx.say(f"  alpha_u {fx.mean():.1f} +- {fx.std():.1f} px over {len(ft_ok)} images "
             f"(nominal {job.intrinsics.fx_px:.1f}); rms {np.median([r['rms_px'] for r in ft_ok]):.3f} px"

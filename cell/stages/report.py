@@ -7,7 +7,9 @@ from importlib import metadata
 
 import numpy as np
 
-from calibration.alignment import PointCovariance, align_to_cad
+from calibration.alignment import PointCovariance
+from calibration.errors import CalibrationError
+from calibration.robust_alignment import AlignmentOutcome, frame_alignment, robust_best_fit, rps_align, rps_locks
 from cell.record import report as R
 from cell.record.jobfolder import atomic_write_bytes, atomic_write_json, utc_now
 
@@ -23,24 +25,48 @@ def _versions() -> dict:
     return out
 
 
-def robust_alignment(measured, pc, nominal, ok, tol, k, iterations: int = 5):
-    """Rigid best fit to CAD that leaves out the targets that deviate.
+def align_measurement(job, measured: np.ndarray, pc: PointCovariance, ok: np.ndarray, datum: str) -> AlignmentOutcome:
+    """The job's alignment (``[alignment]``): robust best fit (default), RPS / 3-2-1, or the bundle's frame."""
+    spec = job.spec.alignment
+    nominal = job.part.targets.xyz
+    tol = job.tolerance_m
+    k = job.spec.report.sigma_factor
+    measurable = ok & (job.part.targets.kind != "coded")
+    if spec.method == "rps":
+        index = job.part.targets.index()
+        return rps_align(measured, pc, nominal, rps_locks({index[t]: a for t, a in spec.rps.items()}), tol, k)
+    if spec.method == "bundle_frame":
+        return frame_alignment(measured, pc, nominal, fixtured=datum == "control",
+                               why=f"the bundle's datum is '{datum}' (inner constraints on the CAD nominals), not a "
+                                   "fixture's control points: use best_fit or rps")
+    cand = measurable
+    if spec.targets is not None:
+        index = job.part.targets.index()
+        chosen = np.zeros(len(ok), dtype=bool)
+        chosen[[index[t] for t in spec.targets]] = True
+        cand = cand & chosen
+    return robust_best_fit(measured, pc, nominal, tol, k, candidates=cand,
+                           rng=np.random.default_rng(job.spec.job.seed))
 
-    A least-squares fit over all targets is pulled by the very deviations it should reveal (six
-    targets off by half a millimetre shift a 200-target fit by ~10 um): refit without the
-    targets that are beyond their tolerance or significant at ``k`` sigma, until the set is stable.
-    """
-    mask = ok.copy()
-    for _ in range(iterations):
-        al = align_to_cad(measured, pc, nominal, with_scale=False, fit_mask=mask)
-        dev = np.linalg.norm(al.deviation, axis=1)
-        new = ok & (dev <= tol) & ~(al.sigma_level() > k)
-        if new.sum() < max(6, ok.sum() // 2):  # never fit to a handful: keep the last fit
-            break
-        if np.array_equal(new, mask):
-            break
-        mask = new
-    return al, mask
+
+def alignment_doc(out: AlignmentOutcome, ids: list[str], spec) -> dict:
+    """report.json's ``alignment``: the contract's method, targets_in_fit (ids), rms_m, trusted, and why."""
+    al = out.alignment
+    doc = {"method": out.method, "targets_in_fit": [ids[j] for j in np.flatnonzero(out.fit_mask)],
+           "rms_m": al.rms_m, "trusted": bool(out.trusted), "stable": bool(out.stable),
+           "reasons": list(out.reasons), "notes": list(out.notes), "residual_ratio": out.residual_ratio,
+           "part_from_measured": al.part_from_measured, "scale": al.scale, "iterations": out.iterations,
+           "on_untrusted": spec.on_untrusted,
+           "description": {"best_fit": "rigid best fit to CAD over the targets that agree with it (consensus over "
+                                       "minimal subsets, then exclusion of targets beyond tolerance or significant)",
+                           "rps": "RPS / 3-2-1 on the named datum targets",
+                           "bundle_frame": "the bundle adjustment's own frame (fixtured part)"}[out.method]}
+    if out.consensus is not None:
+        doc["consensus"] = {"agree": int(out.consensus.agree.sum()), "rival": out.consensus.rival,
+                            "hypotheses": out.consensus.hypotheses, "scale_factor": out.consensus.scale_factor}
+    if out.method == "rps":
+        doc["rps"] = dict(spec.rps)
+    return doc
 
 
 def _calibration_status(ctx) -> dict:
@@ -83,6 +109,17 @@ def conformance(deviation: np.ndarray, deviation_cov: np.ndarray, tol: np.ndarra
         U[ok] = k * np.sqrt(np.maximum(np.where(length[ok] > 1e-12, along, largest), 0.0))
     decision = np.where(length + U <= tol, "conforming", np.where(length - U > tol, "nonconforming", "inconclusive"))
     return U, [str(x) if m else None for x, m in zip(decision, ok)]
+
+
+def _predicted_over_achieved(targets: list[dict]) -> dict:
+    """Predicted / achieved sigma over the measured targets: median, and the 10 / 90 % quantiles."""
+    r = np.array([t["predicted_sigma_m"] / t["achieved_sigma_m"] for t in targets
+                  if np.isfinite(t["predicted_sigma_m"]) and np.isfinite(t["achieved_sigma_m"])
+                  and t["achieved_sigma_m"] > 0])
+    if not len(r):
+        return {"median": None, "p10": None, "p90": None, "n": 0}
+    return {"median": float(np.median(r)), "p10": float(np.quantile(r, 0.1)), "p90": float(np.quantile(r, 0.9)),
+            "n": int(len(r))}
 
 
 def _run_info(folder) -> dict:
@@ -133,7 +170,13 @@ def write_report(ctx) -> str:
     ok = np.isfinite(measured).all(axis=1)
     tol = job.tolerance_m
     k = job.spec.report.sigma_factor
-    al, fit_mask = robust_alignment(measured, pc, nominal, ok, tol, k)
+    outcome = align_measurement(job, measured, pc, ok, bundle["datum"])
+    al = outcome.alignment
+    if not outcome.trusted and job.spec.alignment.on_untrusted == "fault":
+        raise CalibrationError("alignment not trusted: " + "; ".join(outcome.reasons))
+    if not outcome.trusted:
+        ctx.log.log("warning", "alignment not trusted: " + "; ".join(outcome.reasons))
+        ctx.say("  WARNING alignment not trusted: " + "; ".join(outcome.reasons))
     dev_norm = np.linalg.norm(al.deviation, axis=1)
     level = al.sigma_level()
     predicted = {t["id"]: (np.sqrt(np.trace(t["predicted_cov"])) if t["predicted_cov"] is not None else np.nan)
@@ -162,7 +205,9 @@ def write_report(ctx) -> str:
         if r["event"] == "stage_done":
             times[r["stage"]] = times.get(r["stage"], 0.0) + r["duration_s"]
     judged = ~coded
-    if not passed[judged & ok].all():
+    if not outcome.trusted:
+        verdict = "UNTRUSTED"
+    elif not passed[judged & ok].all():
         verdict = "FAIL"
     elif not ok[judged].all():
         verdict = "INCOMPLETE"
@@ -177,13 +222,16 @@ def write_report(ctx) -> str:
         "images": len(bundle["images"]),
         "sigma0_px": bundle["sigma0_px"],
         "datum": bundle["datum"],
-        "alignment": {"part_from_measured": al.part_from_measured, "rms_m": al.rms_m, "scale": al.scale,
-                      "targets_in_fit": int(fit_mask.sum()), "method": "rigid, iterative exclusion of deviating targets"},
+        "alignment": alignment_doc(outcome, ids, job.spec.alignment),
         "intrinsics": bundle["intrinsics"],
         "n_observations": bundle["n_observations"],
         "n_rejected": bundle["n_rejected"],
+        "snooping": bundle.get("snooping"),
+        "orientation_fallbacks": [{"image": r["image"], "method": r["method"], "reason": r["fallback_reason"]}
+                                  for r in f.read_json("calibration.json")["images"] if "fallback_reason" in r],
         "predicted_sigma_max_m": plan["predicted_sigma_max_m"],
         "achieved_sigma_max_m": float(np.nanmax(achieved)),
+        "predicted_over_achieved": _predicted_over_achieved(targets),
         "stage_times_s": times,
         "cell_calibration": _calibration_status(ctx),
         "targets": targets,

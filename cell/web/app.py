@@ -38,13 +38,16 @@ def create_app(config: Config) -> FastAPI:
     archive = Path(config.archive).resolve()
     archive.mkdir(parents=True, exist_ok=True)
     users = UserStore(archive / "console.sqlite")
-    console = Console(archive, config.programs, users, config.cell_id, config.chromium)
+    console = Console(archive, config.programs, users, config.cell_id, config.chromium, config.archive_url)
 
     @asynccontextmanager
     async def lifespan(app: FastAPI):
         console.view.refresh()
         yield
-        console.runner.close()
+        try:
+            console.runner.close()
+        finally:
+            console.view.close()
 
     app = FastAPI(title="Inspection cell console", lifespan=lifespan, docs_url=None, redoc_url=None,
                   openapi_url=None)

@@ -21,6 +21,8 @@ class Config:
     cell_id: str | None = None
     tls: bool = False
     chromium: str | None = None
+    #: the archive's index database (``--archive-url``; None: ``CELL_ARCHIVE_URL``, else SQLite in ``archive``)
+    archive_url: str | None = None
 
 
 @dataclass

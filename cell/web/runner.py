@@ -58,9 +58,11 @@ def _cell_command() -> list[str]:
 class CellRunner:
     """Starts, watches and stops the one job of this cell."""
 
-    def __init__(self, archive_root: Path, cell_id: str | None = None):
+    def __init__(self, archive_root: Path, cell_id: str | None = None, archive_url: str | None = None):
         self.root = Path(archive_root).resolve()
         self.cell_id = cell_id
+        #: the index the console reads: the jobs it starts are indexed there too (None: the children's default)
+        self.archive_url = archive_url
         self.work = self.root / ".console"
         self.work.mkdir(parents=True, exist_ok=True)
         self._lock = threading.Lock()
@@ -82,12 +84,15 @@ class CellRunner:
         """A job of this archive that another process runs now (its ``.lock`` held), e.g. ``cell run``."""
         from cell.record.archive import Archive
 
-        a = Archive(self.root)
+        a = Archive(self.root, self.archive_url)
         mine = self.current.job_id if self.current is not None and self.current.alive() else None
         candidates = [f for f in a.staged()]
-        for row in a.list():
-            if row.get("status") not in ("DONE", "FAULTED", "ABORTED"):
-                candidates.append(JobFolder(self.root / row["id"]))
+        try:
+            for row in a.list():
+                if row.get("status") not in ("DONE", "FAULTED", "ABORTED") and row.get("origin") == a.origin:
+                    candidates.append(JobFolder(self.root / row["id"]))
+        finally:
+            a.close()
         for f in candidates:
             if f.job_id != mine and f.path.is_dir() and f.running_pid() is not None:
                 return f.job_id
@@ -99,6 +104,10 @@ class CellRunner:
         err, out = self.work / f"{stem}.err", self.work / f"{stem}.json"
         env = dict(os.environ)
         env.pop("CELL_DEBUG", None)
+        if self.archive_url:
+            # the child's --archive-url, given through its environment: a password in the URL stays out of
+            # the process list (CELL_ARCHIVE_URL ranks with --archive-url, above the cell file's url)
+            env["CELL_ARCHIVE_URL"] = self.archive_url
         with open(err, "wb") as fe, open(out, "wb") as fo:
             proc = subprocess.Popen([*_cell_command(), *args, "--archive", str(self.root), "--json"],
                                     stdout=fo, stderr=fe, stdin=subprocess.DEVNULL, env=env, start_new_session=True)

@@ -23,13 +23,17 @@ def serve(args, out) -> int:
     tls = args.certfile is not None
     if args.host not in ("127.0.0.1", "localhost", "::1") and not tls:
         out.say(f"warning: serving on {args.host} without TLS: passwords and sessions cross the network in clear")
+    from cell.record.archive import resolve_url
+
+    url = resolve_url(getattr(args, "archive_url", None), Path(args.archive))  # --archive-url, else CELL_ARCHIVE_URL
     cfg = Config(archive=Path(args.archive), programs=Path(args.programs), cell_id=args.cell_id or os.environ.get("CELL_ID"),
-                 tls=tls)
+                 tls=tls, archive_url=url)
     app = create_app(cfg)
     if not app.state.users.users():
         out.say(f"no users yet: add one with  cell users add NAME --role admin --archive {args.archive}")
     scheme = "https" if tls else "http"
-    out.say(f"console on {scheme}://{args.host}:{args.port}/  (archive {cfg.archive}, programs {cfg.programs})")
+    out.say(f"console on {scheme}://{args.host}:{args.port}/  (archive {cfg.archive}, index "
+            f"{url.split('@')[-1]}, programs {cfg.programs})")
     uvicorn.run(app, host=args.host, port=args.port, ssl_certfile=args.certfile, ssl_keyfile=args.keyfile,
                 log_level="warning", access_log=False, server_header=False)
     return 0

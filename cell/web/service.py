@@ -28,12 +28,12 @@ class Console:
     """The console's state: the archive it reads, the runner it drives, the users it knows."""
 
     def __init__(self, archive: Path, programs: Path, users: UserStore, cell_id: str | None = None,
-                 chromium: str | None = None):
+                 chromium: str | None = None, archive_url: str | None = None):
         self.root = Path(archive).resolve()
         self.programs_dir = Path(programs).resolve()
         self.users = users
-        self.view = ArchiveView(self.root)
-        self.runner = CellRunner(self.root, cell_id)
+        self.view = ArchiveView(self.root, archive_url)
+        self.runner = CellRunner(self.root, cell_id, self.view.url)
         self.chromium = chromium or next((p for p in (shutil.which("chromium"), shutil.which("chromium-browser"),
                                                       shutil.which("google-chrome")) if p), None)
 

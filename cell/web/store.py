@@ -1,8 +1,8 @@
 """What the console reads from the archive, behind one small adapter.
 
-Today it reads the SQLite index of :class:`cell.record.archive.Archive` and the job folders'
-report.json, run.json and journal. When the archive grows a query API (list_jobs, get_job,
-target_trend, job_targets: issue 19), only this module changes.
+Lists, trends and a part's targets are queries of the archive's index (SQLite or PostgreSQL:
+:func:`cell.record.archive.open_index`, issue 19); a job's journal, audit trail and report.json are
+read from its folder (the index does not hold them).
 
 Every job id that comes from a URL goes through :func:`job_folder`, which refuses anything that
 is not a plain folder name directly inside the archive.
@@ -11,13 +11,13 @@ from __future__ import annotations
 
 import json
 import re
-from datetime import datetime
+from datetime import datetime, timedelta, timezone
 from pathlib import Path
 
 import numpy as np
 
 from calibration.errors import InputError
-from cell.record.archive import Archive
+from cell.record.archive import Archive, IndexUnavailable
 from cell.record.jobfolder import JobFolder
 from cell.record.runinfo import read_run_info
 
@@ -61,12 +61,38 @@ def _parse_time(s: str | None) -> datetime | None:
     return d if d.tzinfo is not None else d.astimezone()
 
 
-class ArchiveView:
-    """Read-only questions the console asks of the archive at ``root``."""
+def _utc_ms(t: str | None) -> str | None:
+    """An index time as ISO 8601 UTC with milliseconds (the backends' trend queries format it differently)."""
+    if not t:
+        return None
+    return datetime.fromisoformat(t).astimezone(timezone.utc).isoformat(timespec="milliseconds")
 
-    def __init__(self, root: Path):
+
+class ArchiveView:
+    """Read-only questions the console asks of the archive at ``root``, whose index is at ``url``.
+
+    ``url``: ``sqlite:///PATH`` or ``postgresql://...`` (None: ``CELL_ARCHIVE_URL``, else the SQLite
+    index in the archive folder). Lists and trends are queries of the index (one open index per view:
+    :meth:`close` it); a job's journal, audit and report are read from its folder.
+    """
+
+    #: rows fetched per query while filtering serials by substring (the index matches serials exactly)
+    PAGE = 500
+
+    def __init__(self, root: Path, url: str | None = None):
+        from cell.record.archive import resolve_url
+
         self.root = Path(root).resolve()
-        self.archive = Archive(self.root)
+        self.url = resolve_url(url, self.root)
+        self.archive = Archive(self.root, self.url)
+
+    @property
+    def index(self):
+        """The open index (one per view; ``IndexUnavailable`` while the database cannot be reached)."""
+        return self.archive.index
+
+    def close(self) -> None:
+        self.archive.close()
 
     def refresh(self, job_id: str | None = None) -> None:
         """Bring the index up to date with the folders (one job, or all)."""
@@ -75,34 +101,50 @@ class ArchiveView:
         else:
             self.archive.reindex(only=job_folder(self.root, job_id))
 
+    def _drain(self) -> None:
+        try:
+            self.archive.drain()  # jobs whose index write waited for the database
+        except IndexUnavailable:
+            pass
+
+    def _rows(self, part: str | None, limit: int | None, offset: int = 0, **filters) -> list[dict]:
+        """Index rows, newest first; ``part`` matches the part number or the part's name (two queries, merged)."""
+        ix = self.index
+        if not part:
+            return ix.list_jobs(limit=limit, offset=offset, **filters)
+        n = None if limit is None else limit + offset
+        rows = {r["id"]: r for r in ix.list_jobs(part_number=part, limit=n, **filters)}
+        rows |= {r["id"]: r for r in ix.list_jobs(part=part, limit=n, **filters)}
+        out = sorted(rows.values(), key=lambda r: (r.get("started") or "", r["id"]), reverse=True)
+        return out[offset:] if limit is None else out[offset:offset + limit]
+
     def list_jobs(self, part: str | None = None, serial: str | None = None, verdict: str | None = None,
                   operator: str | None = None, since: str | None = None, until: str | None = None,
                   status: str | None = None, limit: int = 500) -> list[dict]:
         """Jobs, newest first, filtered. ``part`` matches the part number or the part's name; ``serial`` a
-        substring; ``since``/``until`` the start time (dates are inclusive)."""
+        substring (any case); ``since``/``until`` the start time (both inclusive; a date is the whole day)."""
         t0, t1 = _parse_time(since), _parse_time(until)
-        if t1 is not None and len(until or "") == 10:  # a date: the whole day
-            t1 = t1.replace(hour=23, minute=59, second=59)
-        out = []
-        for r in reversed(self.archive.list()):
-            if part and part not in (r.get("part_number"), r.get("part"), r.get("name")):
-                continue
-            if serial and serial.lower() not in (r.get("serial") or "").lower():
-                continue
-            if verdict and (r.get("verdict") or "").upper() != verdict.upper():
-                continue
-            if status and r.get("status") != status.upper():
-                continue
-            if operator and (r.get("operator") or "") != operator:
-                continue
-            t = _parse_time(r.get("started"))
-            if (t0 and (t is None or t < t0)) or (t1 and (t is None or t > t1)):
-                continue
+        if t1 is not None:
+            # the index's until is exclusive: the next day of a date, else the next microsecond
+            t1 += timedelta(days=1) if len(until or "") == 10 else timedelta(microseconds=1)
+        filters = {"verdict": verdict.upper() if verdict else None, "status": status.upper() if status else None,
+                   "operator": operator or None, "since": t0, "until": t1}
+        filters = {k: v for k, v in filters.items() if v is not None}
+        self._drain()
+        if not serial:
+            rows = self._rows(part, limit, **filters)
+        else:  # a substring: filtered here, page by page, until ``limit`` rows match
+            rows, offset, s = [], 0, serial.lower()
+            while len(rows) < limit:
+                page = self._rows(part, self.PAGE, offset, **filters)
+                rows += [r for r in page if s in (r.get("serial") or "").lower()]
+                if len(page) < self.PAGE:
+                    break
+                offset += self.PAGE
+            rows = rows[:limit]
+        for r in rows:
             r.pop("folder", None)
-            out.append(r)
-            if len(out) >= limit:
-                break
-        return out
+        return rows
 
     def report(self, job_id: str) -> dict | None:
         p = job_folder(self.root, job_id) / "report.json"
@@ -128,24 +170,18 @@ class ArchiveView:
         return doc
 
     # --- trends ----------------------------------------------------------------------
-    def _part_reports(self, part: str) -> list[tuple[dict, dict]]:
-        """(index row, report.json) of every DONE job of ``part`` (number or name), oldest first."""
-        rows = [r for r in self.archive.list() if r.get("status") == "DONE"
-                and part in (r.get("part_number"), r.get("part"), r.get("name"))]
-        out = []
-        for r in rows:
-            rep = self.report(r["id"])
-            if rep is not None:
-                out.append((r, rep))
-        out.sort(key=lambda rr: (rr[1]["job"].get("finished") or "", rr[0]["id"]))
-        return out
+    def _done_jobs(self, part: str) -> dict[str, dict]:
+        """Index rows of the DONE jobs of ``part`` (its number or its name), by id."""
+        self._drain()
+        return {r["id"]: r for r in self._rows(part, None, status="DONE")}
 
     def job_targets(self, part: str) -> list[str]:
-        """Target ids measured in the jobs of ``part`` (those of its latest job)."""
-        reps = self._part_reports(part)
-        if not reps:
+        """Target ids measured in the finished jobs of ``part`` (from the index), sorted."""
+        names = {r["part"] for r in self._done_jobs(part).values() if r.get("part")}
+        ids = sorted({t for name in names for t in self.index.part_targets(name)})
+        if not ids:
             raise NotFound(f"no finished job of part {part!r}")
-        return [t["id"] for t in reps[-1][1]["targets"]]
+        return ids
 
     def target_trend(self, part: str, target: str, axis: str = "norm") -> dict:
         """One target's deviation over the part's jobs (or a group's: ``target`` = ids joined by commas).
@@ -153,29 +189,39 @@ class ArchiveView:
         ``axis``: ``norm`` (|deviation|, one-sided: 0..tolerance) or ``x``/``y``/``z`` (a signed component
         in the part frame, two-sided: -tolerance..+tolerance). ``value_m`` is the charted value; for a
         group it is the group's worst per part (largest |d|, or the component farthest from zero), with
-        ``target`` naming which one.
+        ``target`` naming which one. One index query per target (and part name), no folder read.
         """
         if axis not in ("norm", "x", "y", "z"):
             raise InputError(f"axis {axis!r}: norm, x, y or z")
         group = [t.strip() for t in target.split(",") if t.strip()]
         if not group or len(group) > 500:
             raise InputError("name one target, or a group of up to 500 separated by commas")
+        done = self._done_jobs(part)
+        names = sorted({r["part"] for r in done.values() if r.get("part")})
+        members = list(dict.fromkeys(group))
+        per_target: list[dict[str, dict]] = []  # per group member: job id -> its trend point
+        for tid in members:
+            pts_t = {}
+            for name in names:
+                for p in self.index.target_trend(name, tid):
+                    if p["job_id"] in done and p["deviation_norm_m"] is not None and \
+                            (axis == "norm" or p["deviation"] is not None):
+                        pts_t[p["job_id"]] = p
+            per_target.append(pts_t)
+        # a part where the group was not all measured is no point of the trend
+        jobs = set.intersection(*(set(d) for d in per_target)) if per_target else set()
+        order = sorted(jobs, key=lambda j: (per_target[0][j]["finished"] or "", j))
         pts, tols = [], []
-        for row, rep in self._part_reports(part):
-            by_id = {t["id"]: t for t in rep["targets"]}
+        for jid in order:
             cand = []
-            for tid in group:
-                t = by_id.get(tid)
-                if t is None or t["deviation_norm_m"] is None:
-                    continue
+            for tid, d in zip(members, per_target):
+                t = d[jid]
                 v = t["deviation_norm_m"] if axis == "norm" else t["deviation"]["xyz".index(axis)]
-                cand.append((abs(v) / t["tolerance_m"], v, t))
-            if len(cand) < len(group):  # a part where the group was not all measured is no point of the trend
-                continue
-            _, v, t = max(cand, key=lambda c: c[0])
-            pts.append({"job_id": row["id"], "serial": (rep.get("part") or {}).get("serial") or row.get("serial"),
-                        "finished": rep["job"].get("finished"), "deviation_norm_m": t["deviation_norm_m"],
-                        "value_m": v, "sigma_m": t.get("achieved_sigma_m"), "pass": t["pass"], "target": t["id"]})
+                cand.append((abs(v) / t["tolerance_m"], v, t, tid))
+            _, v, t, tid = max(cand, key=lambda c: c[0])
+            pts.append({"job_id": jid, "serial": t["serial"] or done[jid].get("serial"), "finished": _utc_ms(t["finished"]),
+                        "deviation_norm_m": t["deviation_norm_m"], "value_m": v, "sigma_m": t["sigma_m"],
+                        "pass": t["pass"], "target": tid})
             tols.append(t["tolerance_m"])
         if not pts:
             raise NotFound(f"no measurement of target {target!r} in the finished jobs of part {part!r}")
@@ -185,6 +231,7 @@ class ArchiveView:
         lsl, usl = (None, tol) if axis == "norm" else (-tol, tol)
         return {"part": part, "target": target, "group": group, "axis": axis, "points": pts, "tolerance_m": tol,
                 "lsl": lsl, "usl": usl}
+
 
 def reverifications(root: Path) -> list[dict]:
     """The cell's reverification records (scale-bar length errors against the MPE), oldest first."""

@@ -176,13 +176,15 @@ def render_and_measure(
 
 def calibrate_images(part, obs: Observations, width: int, height: int) -> tuple[list[FTResult], Intrinsics]:
     """Faugeras-Toscani on every image (nominal 3-D targets), and the median interior orientation."""
-    res = []
+    res, refused = [], []
     for k in range(obs.n_images):
         sel = obs.obs_image == k
         try:
             res.append(faugeras_toscani(part.targets.xyz[obs.obs_target[sel]], obs.obs_uv[sel], width, height))
-        except CalibrationError as exc:
-            raise CalibrationError(f"image {k + 1}: {exc}") from None
+        except CalibrationError as exc:  # ill-conditioned or implausible: left out of the median, said
+            refused.append(f"image {k + 1}: {exc}")
+    if not res:
+        raise CalibrationError("Faugeras-Toscani refused every image: " + "; ".join(refused[:3]))
     return res, combine_intrinsics(res)
 
 

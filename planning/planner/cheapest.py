@@ -35,7 +35,8 @@ def _search_cheapest(search: _Search) -> _Found:
             f"no network of at most {k} stations reaches the required precision"
             + (f" (best: sigma/required = {top['sigma_ratio_max']:.2f} with {top['n_stations']} stations)"
                if top and math.isfinite(top["sigma_ratio_max"]) else "")
-            + ": raise n_stations, relax the requirement, or lower sigma_px"
+            + ": raise [planning] max_stations, relax [planning] required_sigma (or the tolerances), or use a camera "
+              "with smaller image noise ([camera] sigma_px)"
         )
     # refine: a fixed-size search (seeded with the front) for one station fewer, while it succeeds
     for _ in range(options.cheapest_refine):

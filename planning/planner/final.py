@@ -37,7 +37,7 @@ def _exact_check(part, intr, options: PlannerOptions, s: _SetUp, found: _Found) 
             short = int(np.count_nonzero(final["n_rays"][cols] < options.min_rays))
             raise PlanningError(
                 f"no network of {k} stations found measures every target with {options.min_rays} rays "
-                f"(the best leaves {short} target(s) short): raise n_stations or lower min_rays"
+                f"(the best leaves {short} target(s) short): raise [planning] n_stations or lower [planning] min_rays"
             )
         if options.mode == "fixed" or (final["violation"] == 0 and final["score"] <= 1.0):
             break

@@ -11,7 +11,7 @@ from calibration.camera import Intrinsics
 from calibration.errors import InputError
 from planning.evolution import EvolutionOptions
 from planning.stations import ViewingSphere
-from planning.uncertainty import CRITERIA
+from planning.uncertainty import CRITERIA, ImagePrecision
 from planning.visibility import VisibilityOptions
 
 Progress = Callable[[str, float], None]
@@ -28,6 +28,8 @@ class PlannerOptions:
         incidence_max_rad: largest angle between a target's normal and its line of sight.
         criterion: "worst" | "mean" | "max_axis" | "trace" (see planning.uncertainty).
         sigma_px: image measurement standard deviation (pixels).
+        image_precision: the image precision per station and target from the detector model
+            (:class:`planning.uncertainty.ImagePrecision`); None: ``sigma_px`` for every ray.
         mode: "fixed" | "cheapest".
         required_sigma_m: "cheapest": required sigma per target (scalar or (n,)); None ->
             each target's tolerance / ``tolerance_ratio``.
@@ -80,6 +82,7 @@ class PlannerOptions:
     incidence_max_rad: float = float(np.deg2rad(60.0))
     criterion: str = "worst"
     sigma_px: float = 0.05
+    image_precision: ImagePrecision | None = None
     mode: str = "fixed"
     required_sigma_m: float | np.ndarray | None = None
     tolerance_ratio: float = 10.0
@@ -133,6 +136,12 @@ class PlannerOptions:
             raise InputError("planning options: population must be >= 4 and generations >= 0")
         if self.mode == "fixed" and self.n_elite >= self.population:
             raise InputError("planning options: n_elite must be smaller than the population")
+
+    def image_sigma(self, cols: np.ndarray | None = None):
+        """What :func:`planning.uncertainty.target_information` takes for the targets ``cols`` (None: all)."""
+        if self.image_precision is None:
+            return self.sigma_px
+        return self.image_precision if cols is None else self.image_precision.subset(cols)
 
     def visibility_options(self) -> VisibilityOptions:
         """The measurability limits, with this plan's incidence angle."""

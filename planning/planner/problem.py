@@ -66,7 +66,7 @@ def _exact(part, intr: Intrinsics, options: PlannerOptions, vis_opts: Visibility
     T = sphere.poses(genes)
     visible = compute_visibility(part, intr, T, vis_opts, backend=options.backend)
     cov, n_rays = covariance_for_network(
-        intr, T, part.targets.xyz, visible, options.sigma_px, min_rays=options.min_rays
+        intr, T, part.targets.xyz, visible, options.image_sigma(), min_rays=options.min_rays
     )
     c6 = cov[:, _IU[0], _IU[1]][cols][None]
     sig = np.sqrt(np.trace(cov, axis1=1, axis2=2))[cols][None]

@@ -42,8 +42,8 @@ def required_sigma(part, options: PlannerOptions) -> np.ndarray:
             tol[np.isnan(tol)] = options.default_tolerance_m
         if np.any(np.isnan(tol)):
             raise InputError(
-                "planning mode 'cheapest' needs a required precision: set required_sigma_m, or give every "
-                "target a tolerance (targets file or [report] default tolerance)"
+                "planning mode 'cheapest' needs a required precision: set [planning] required_sigma, or give every "
+                "target a tolerance (targets file, or [report] tolerance for the others)"
             )
         req = tol / options.tolerance_ratio
     if np.any(~(req > 0)):
@@ -117,8 +117,9 @@ def _set_up(part, intr: Intrinsics, options: PlannerOptions, reachable: np.ndarr
         if not options.allow_unmeasurable:
             raise PlanningError(
                 f"{len(bad)} target(s) cannot be measured by {options.min_rays} valid stations "
-                f"(e.g. {', '.join(bad[:5])}): lower min_rays, raise incidence_max_rad, widen the viewing "
-                "sphere, or set allow_unmeasurable to plan without them"
+                f"(e.g. {', '.join(bad[:5])}): lower [planning] min_rays, raise [planning] incidence_max_deg, widen "
+                "the viewing sphere ([planning] elevation_min_deg, elevation_max_deg, distance_min, distance_max), "
+                "or remove those targets from the targets file"
             )
     cols = np.flatnonzero(measurable)
     if cols.size == 0:
@@ -127,7 +128,7 @@ def _set_up(part, intr: Intrinsics, options: PlannerOptions, reachable: np.ndarr
     vis = db.visible[:, cols]
     # dense while it is small (fastest), else only the visible pairs (same values; issue 21: 50k targets)
     sparse = vis.shape[0] * vis.shape[1] * 6 * 4 > DENSE_LIMIT_BYTES
-    info = target_information(intr, db.part_from_cam, xyz[cols], vis, options.sigma_px, sparse=sparse)
+    info = target_information(intr, db.part_from_cam, xyz[cols], vis, options.image_sigma(cols), sparse=sparse)
     report("information", 1.0)
     required = required_sigma(part, options) if options.mode == "cheapest" else None
     problem = _Problem(db, info, vis, valid, options, None if required is None else required[cols])

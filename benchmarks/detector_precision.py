@@ -1,0 +1,140 @@
+"""Measure the dot detector's precision on the simulated camera: the model behind predicted = achieved.
+
+Views all around the example part (examples/bracket) at several distances and elevations are rendered by
+the simulated camera *with* its sensor noise (photons, read noise, blur, 8-bit quantisation; no image
+jitter), ``--repeats`` times each with fresh noise. Every fully visible, uncoded dot's detected centre
+(``calibration.targets.detect_retro_targets``, the cell's detector) is compared with the exact projection
+of its true centre plus the ellipse's eccentricity (what the cell corrects). Per dot image the error is
+recorded with the incidence angle (normal vs line of sight) and the dot's diameter in pixels
+(``f * D / depth``, the ellipse's major axis).
+
+The error of one coordinate has a random part (sensor noise) and a part fixed by the geometry (shading
+under the dot, pixel sampling of a thin ellipse); both scatter from observation to observation, so the
+model is their total: the rms per coordinate, by incidence class and dot size class, then fitted as
+
+    sigma_px(theta, d)^2 = a^2 + (b / (d cos theta))^2 ... in the form of calibration.detector_model
+
+and written (with the raw class table, the conditions and this command) to
+``calibration/data/detector_precision.json``; the cell's planner and bundle read it from there.
+
+    .venv/bin/python -m benchmarks.detector_precision [--repeats 2] [--views 36] [--write]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from calibration.camera import invert, look_at, project  # noqa: E402
+from calibration.detector_model import DATA_PATH, DetectorModel, fit_model  # noqa: E402
+from calibration.targets import DetectionOptions, detect_retro_targets, eccentricity_bias  # noqa: E402
+from cell.devices import make_job_sim_cell  # noqa: E402
+from cell.loadedjob import load  # noqa: E402
+
+JOB = Path(__file__).resolve().parents[1] / "examples" / "bracket" / "job.toml"
+INCIDENCE_EDGES = (0, 20, 35, 50, 60, 65, 70, 75, 80, 86)
+SIZE_EDGES = (0, 14, 18, 22, 30, 100)
+
+
+def collect(n_views: int, repeats: int, seed: int = 0) -> dict:
+    job = load(JOB)
+    sim = make_job_sim_cell(job)
+    cam, world, intr = sim.camera, sim.world, job.intrinsics
+    cam.rng = np.random.default_rng(seed)
+    xyz, nrm = world.true_xyz, world.normals
+    radius = job.part.target_diameter_m / 2
+    centre = xyz.mean(axis=0)
+    index = {t: i for i, t in enumerate(job.part.targets.ids)}
+    rng = np.random.default_rng(seed)
+    rows = []  # view, target, incidence deg, diameter px, eu, ev, repeat
+    for k in range(n_views):
+        az = 2 * np.pi * k / n_views + rng.uniform(-0.2, 0.2)
+        el = np.deg2rad(rng.uniform(8, 85))
+        dist = rng.uniform(0.35, 0.7)
+        eye = centre + dist * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+        part_from_cam = look_at(eye, centre + rng.normal(0, 0.02, 3), roll_rad=rng.uniform(-np.pi, np.pi))
+        cam_from_part = invert(part_from_cam)
+        for r in range(repeats):
+            img, truth = cam.render(part_from_cam, noise=True)
+            det = detect_retro_targets(img, DetectionOptions())
+            ids, kind = np.array(truth["ids"]), np.array(truth["kind"])
+            sel = (kind != "coded") & ~np.isin(ids, truth["partial_ids"])
+            if not sel.any() or len(det.uv) == 0:
+                continue
+            tid = np.array([index[i] for i in ids[sel]], dtype=int)
+            uv = (project(intr, cam_from_part, xyz[tid])
+                  + eccentricity_bias(intr, cam_from_part, xyz[tid], nrm[tid], radius)
+                  + np.array(truth["shift_px"])[sel])
+            d, j = cKDTree(det.uv).query(uv)
+            ok = d < 1.0
+            e = det.uv[j[ok]] - uv[ok]
+            Xc = xyz[tid[ok]] @ cam_from_part[:3, :3].T + cam_from_part[:3, 3]
+            v = eye - xyz[tid[ok]]
+            inc = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", v, nrm[tid[ok]]) / np.linalg.norm(v, axis=1),
+                                               -1, 1)))
+            dpx = intr.fx_px * 2 * radius / Xc[:, 2]
+            for t_, a_, s_, (eu, ev) in zip(tid[ok], inc, dpx, e):
+                rows.append((k, int(t_), float(a_), float(s_), float(eu), float(ev), r))
+    return {"rows": np.array(rows, dtype=float), "fx_px": intr.fx_px, "diameter_m": 2 * radius}
+
+
+def class_table(rows: np.ndarray) -> list[dict]:
+    inc, size, e = rows[:, 2], rows[:, 3], rows[:, 4:6]
+    out = []
+    for i0, i1 in zip(INCIDENCE_EDGES[:-1], INCIDENCE_EDGES[1:]):
+        for s0, s1 in zip(SIZE_EDGES[:-1], SIZE_EDGES[1:]):
+            m = (inc >= i0) & (inc < i1) & (size >= s0) & (size < s1)
+            if m.sum() < 20:
+                continue
+            out.append({"incidence_deg": [i0, i1], "diameter_px": [s0, s1], "n": int(m.sum()),
+                        "rms_px": float(np.sqrt(np.mean(e[m] ** 2))),
+                        "mean_incidence_deg": float(inc[m].mean()), "mean_diameter_px": float(size[m].mean())})
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--views", type=int, default=36)
+    ap.add_argument("--repeats", type=int, default=2)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--write", action="store_true", help=f"write the fitted model to {DATA_PATH}")
+    a = ap.parse_args(argv)
+    t0 = time.perf_counter()
+    data = collect(a.views, a.repeats, a.seed)
+    rows = data["rows"]
+    table = class_table(rows)
+    model = fit_model(rows[:, 2], rows[:, 3], rows[:, 4:6])
+    pred = model.sigma_px(np.radians(rows[:, 2]), rows[:, 3])
+    z = rows[:, 4:6] / pred[:, None]
+    print(f"{len(rows)} dot images from {a.views} views x {a.repeats} ({time.perf_counter() - t0:.0f} s)")
+    print(f"model: {model.describe()}")
+    print(f"normalised error rms (1 = the model fits): {np.sqrt(np.mean(z**2)):.3f}")
+    print(f"{'incidence':>10s} {'d px':>8s} {'n':>6s} {'rms px':>8s} {'model':>8s} {'ratio':>6s}")
+    for c in table:
+        m = ((rows[:, 2] >= c["incidence_deg"][0]) & (rows[:, 2] < c["incidence_deg"][1])
+             & (rows[:, 3] >= c["diameter_px"][0]) & (rows[:, 3] < c["diameter_px"][1]))
+        mp = float(np.sqrt(np.mean(pred[m] ** 2)))
+        c["model_px"] = mp
+        print(f"{c['incidence_deg'][0]:4.0f}-{c['incidence_deg'][1]:<4.0f} {c['diameter_px'][0]:3.0f}-{c['diameter_px'][1]:<4.0f}"
+              f" {c['n']:6d} {c['rms_px']:8.4f} {mp:8.4f} {c['rms_px'] / mp:6.2f}")
+    if a.write:
+        doc = model.to_dict() | {
+            "measured_by": f"python -m benchmarks.detector_precision --views {a.views} --repeats {a.repeats} "
+                           f"--seed {a.seed} --write",
+            "conditions": "examples/bracket job's simulated camera: 8 mm lens, 2448 x 2048, 3.45 um pixels, 5 mm dots, "
+                          "sensor noise scale 1 (photons, read noise, 0.7 px blur, 8 bits), no image jitter",
+            "n_dot_images": int(len(rows)), "normalised_rms": float(np.sqrt(np.mean(z**2))), "classes": table}
+        DATA_PATH.write_text(json.dumps(doc, indent=1) + "\n")
+        print(f"written {DATA_PATH}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,381 @@
+"""The archive of one cell: one folder per job, closed by a manifest, listed in an index.
+
+The folders and their manifests are the record; the index (SQLite next to them, or the site's
+PostgreSQL) can always be rebuilt from them (:meth:`Archive.reindex`). Every index write goes
+through :meth:`Archive._to_index`: when the database is away the job waits in the outbox
+(``.outbox/index/``) and is written at the next write that reaches it, or by :meth:`Archive.sync`.
+"""
+from __future__ import annotations
+
+import json
+import os
+import socket
+import time
+from pathlib import Path
+
+import numpy as np
+
+from calibration.errors import InputError
+from cell.record.archive.ids import INCOMING, JOB_ID_PATTERN, resolve_job_id
+from cell.record.archive.index import ArchiveIndex, IndexConflict, IndexUnavailable
+from cell.record.archive.outbox import Outbox
+from cell.record.archive.records import job_record, manifest_sha256
+from cell.record.jobfolder import JOURNAL, JobFolder
+
+
+def _is_job_folder(d: Path) -> bool:
+    """A job's folder in the archive: named like a job id, not a link, with a journal."""
+    return (d.is_dir() and not d.is_symlink() and not d.name.startswith(".") and bool(JOB_ID_PATTERN.fullmatch(d.name))
+            and (d / JOURNAL).is_file())
+
+
+class Archive:
+    """The archive at ``root`` (default ``./archive``), indexed in the database at ``url``.
+
+    ``url`` None: ``CELL_ARCHIVE_URL``, else ``sqlite:///<root>/index.sqlite``. ``push`` (a path or
+    fsspec URL): where closed jobs are copied for the site (:meth:`push`).
+    """
+
+    def __init__(self, root: Path, url: str | None = None, *, push: str | None = None):
+        from cell.record.archive import resolve_url
+
+        self.root = Path(root)
+        self.url = url or resolve_url(None, self.root)  # CELL_ARCHIVE_URL, else SQLite in the folder
+        self.push_dest = push
+        self.outbox = Outbox(self.root)
+        self.push_outbox = Outbox(self.root, "push")
+        self._index: ArchiveIndex | None = None
+        self._down_until = 0.0
+        self.origin = f"{socket.gethostname()}:{self.root.resolve()}"
+        self.messages: list[str] = []  # what the archive had to say (outbox, catch-up) for the caller
+        #: job id -> what is damaged in its folder, found by the last :meth:`reindex` / :meth:`catch_up`
+        self.problems: dict[str, str] = {}
+
+    # --- the index ------------------------------------------------------------------
+    @property
+    def index(self) -> ArchiveIndex:
+        """The open index (raises ``IndexUnavailable`` while the database cannot be reached)."""
+        if self._index is None:
+            from cell.record.archive import open_index
+
+            self._index = open_index(self.url)
+            if getattr(self._index, "rebuilt_from", None):  # an index older than the migrations: rebuilt
+                self.messages.append(f"the old index was set aside as {self._index.rebuilt_from}; rebuilt from the folders")
+                self.reindex()
+        return self._index
+
+    def close(self) -> None:
+        if self._index is not None:
+            self._index.close()
+            self._index = None
+
+    #: after the database could not be reached, writes go straight to the outbox for this long (a host
+    #: that drops packets costs a connect timeout per try: not at every state change of a running job);
+    #: ``CELL_ARCHIVE_RETRY_S`` sets it
+    RETRY_AFTER_S = float(os.environ.get("CELL_ARCHIVE_RETRY_S", "5"))
+
+    def _to_index(self, job_id: str, write) -> bool:
+        """Run ``write(index)``; on an unreachable database put ``job_id`` in the outbox. True if written."""
+        if time.monotonic() < self._down_until:
+            self.outbox.add(job_id, "the archive database was unreachable moments ago")
+            return False
+        try:
+            self.drain()
+            write(self.index)
+            return True
+        except IndexUnavailable as exc:
+            self._down_until = time.monotonic() + self.RETRY_AFTER_S
+            self.outbox.add(job_id, str(exc))
+            self.messages.append(f"archive index unreachable: {job_id} waits in the outbox ({exc})")
+            return False
+        except IndexConflict as exc:  # never overwrite another cell's job: keep it waiting, loudly
+            self.outbox.add(job_id, str(exc))
+            self.messages.append(str(exc))
+            return False
+
+    def drain(self) -> list[str]:
+        """Index every job waiting in the outbox (oldest first); returns their ids.
+
+        Stops at the first that cannot be written because the database is away (raises
+        ``IndexUnavailable``); a job whose folder is gone leaves the outbox with a message.
+        """
+        done = []
+        for job_id in self.outbox.pending():
+            d = self.root / job_id
+            if _is_job_folder(d):
+                try:
+                    self.index.index_job(job_record(d.resolve(), self.origin))
+                except (IndexConflict, InputError) as exc:  # stays in the outbox; verify names it
+                    self.messages.append(f"outbox: {job_id} cannot be indexed: {exc}")
+                    continue
+            else:
+                self.messages.append(f"outbox: {job_id} has no folder in {self.root}; dropped from the outbox")
+            self.outbox.done(job_id)
+            done.append(job_id)
+        return done
+
+    def folder(self, job_id: str) -> JobFolder:
+        """The job's folder (see :func:`~cell.record.archive.ids.resolve_job_id`)."""
+        return resolve_job_id(self.root, job_id)
+
+    def staged(self) -> list[JobFolder]:
+        """Jobs still in ``.incoming`` (stopped before ACQUIRE): listed, resumable."""
+        inc = self.root / INCOMING
+        if not inc.is_dir():
+            return []
+        return [JobFolder(d) for d in sorted(inc.iterdir()) if d.is_dir() and not d.is_symlink()
+                and JOB_ID_PATTERN.fullmatch(d.name)]
+
+    def record(self, job_id: str, **fields) -> None:
+        """A running job's state (``status``, and ``name``, ``part``, ``started`` when known)."""
+        status = fields.pop("status", "CREATED")
+        folder = str((self.root / job_id).resolve())
+        self._to_index(job_id, lambda ix: ix.set_status(job_id, origin=self.origin, folder=folder, status=status,
+                                                        **fields))
+
+    def index_folder(self, path: Path) -> bool:
+        """Write one job folder's record (row and target values, one transaction); False: it waits in the outbox."""
+        path = Path(path)
+        rec = job_record(path.resolve(), self.origin)
+        if rec.problem:
+            self.problems[path.name] = rec.problem
+        return self._to_index(path.name, lambda ix: ix.index_job(rec))
+
+    def job_closed(self, path: Path) -> list[str]:
+        """A job folder was closed (manifest written): index it, push it when a destination is set.
+
+        Returns what the archive has to say (a job waiting in the outbox, a failed push that waits
+        for ``cell archive sync``); never raises for an unreachable database or storage.
+        """
+        from cell.record.archive.push import PushError
+
+        path = Path(path)
+        try:
+            self.index_folder(path)
+        except InputError as exc:  # a folder the index cannot read: the folder stays the record
+            self.outbox.add(path.name, str(exc))
+            self.messages.append(f"{path.name} cannot be indexed: {exc}")
+        if self.push_dest:
+            try:
+                doc = self.push(path.name)
+                self.messages.append(f"pushed {doc['files']} files ({doc['bytes']} bytes) to {doc['dest']}, verified")
+            except PushError as exc:
+                self.push_outbox.add(path.name, str(exc))
+                self.messages.append(f"{exc}; the push waits for 'cell archive sync'")
+        said, self.messages = self.messages, []
+        return said
+
+    def list(self) -> list[dict]:
+        """Every job of the index, oldest first."""
+        try:
+            self.drain()
+        except IndexUnavailable:
+            pass
+        return self.index.list_jobs(limit=None, newest_first=False)
+
+    def _job_dirs(self) -> list[Path]:
+        if not self.root.is_dir():
+            return []
+        return sorted(d for d in self.root.iterdir() if _is_job_folder(d))
+
+    def reindex(self, only: Path | None = None) -> int:
+        """Write the index records of the job folders (their journals and reports); ``only`` one folder.
+
+        A folder that is not a job (no journal) is skipped; a job whose journal or report is damaged
+        is indexed from what reads (its problem in :attr:`problems` and in the index), never failing
+        the others.
+        """
+        n = 0
+        dirs = [Path(only)] if only is not None else self._job_dirs()
+        for d in dirs:
+            if not (d / JOURNAL).is_file():
+                continue
+            self.index_folder(d)
+            n += 1
+        return n
+
+    def catch_up(self) -> list[str]:
+        """Drain the outbox and index the job folders the index does not hold yet (a listing's first step:
+        a directory listing and one query, not a read of every folder); returns the ids indexed."""
+        try:
+            self.drain()
+            known = self.index.job_ids(origin=self.origin)
+        except IndexUnavailable:
+            return []
+        new = [d for d in self._job_dirs() if d.name not in known]
+        for d in new:
+            self.index_folder(d)
+        return [d.name for d in new]
+
+    def listing(self, **filters) -> list[dict]:
+        """``cell archive list``: the index's jobs (caught up with the folders first), oldest first, and the
+        staged ones (in ``.incoming``) after them; a row whose folder could not be read whole has ``problem``."""
+        self.catch_up()
+        rows = self.index.list_jobs(limit=None, newest_first=False, **filters)
+        for r in rows:
+            r["staged"] = False
+            if r.get("problem") is None:
+                r.pop("problem", None)
+        if not any(v is not None for v in filters.values()):
+            rows += self.staged_rows()
+        return rows
+
+    def staged_rows(self) -> list[dict]:
+        """Rows of the jobs in ``.incoming`` (not in the index: they may still be refused as bad input)."""
+        rows = []
+        for f in self.staged():
+            rec = job_record(f.path, self.origin)
+            row = {"id": f.job_id, "folder": str(f.path), "staged": True, "name": rec.name, "status": rec.status,
+                   "started": rec.started, "part": rec.part, "verdict": rec.verdict}
+            if rec.problem:
+                row["problem"] = rec.problem
+            rows.append(row)
+        return rows
+
+    def sync(self) -> dict:
+        """``cell archive sync``: drain the outbox, then index every folder the index lacks or holds stale.
+
+        Stale: another manifest hash or state than the folder's, or fewer target rows than the row
+        claims. Returns {``drained``, ``indexed``, ``pending`` (still in the outbox), ``pushed``,
+        ``push_pending``, ``problems`` (folders indexed only as far as they read, one line each)}.
+        """
+        drained = self.drain()
+        state = self.index.index_state(origin=self.origin)
+        indexed, problems = [], []
+        for d in self._job_dirs():
+            have = state.get(d.name)
+            rec = job_record(d.resolve(), self.origin)
+            if rec.problem:
+                problems.append(f"{d.name}: {rec.problem}")
+            if (have is None or have["manifest_sha256"] != rec.manifest_sha256 or have["status"] != rec.status
+                    or (have["targets"] or 0) != have["target_rows"]):
+                self.index.index_job(rec)
+                indexed.append(d.name)
+        pushed = self.drain_pushes()
+        return {"drained": drained, "indexed": indexed, "pending": self.outbox.pending(), "pushed": pushed,
+                "push_pending": self.push_outbox.pending(), "problems": problems}
+
+    def verify_index(self) -> dict:
+        """``cell archive verify`` without a job id: the index against the folders of this cell.
+
+        Problems: a folder the index lacks, a row whose folder is gone, a different manifest hash or
+        state, a row whose target rows are not the count it claims (a half-written job), a report
+        whose targets are not the rows. Jobs still in the outbox are listed apart (not problems), and
+        so are folders that do not read whole (``damaged``: indexed as far as they read).
+        """
+        state = self.index.index_state(origin=self.origin)
+        pending = set(self.outbox.pending())
+        problems, damaged, checked = [], [], 0
+        folders = {d.name: d for d in self._job_dirs()}
+        for job_id, d in folders.items():
+            checked += 1
+            have = state.get(job_id)
+            if job_id in pending:
+                continue
+            if have is None:
+                problems.append(f"{job_id}: folder not in the index (run 'cell archive sync')")
+                continue
+            if have["manifest_sha256"] != manifest_sha256(d):
+                problems.append(f"{job_id}: the index holds another manifest than the folder's")
+            rec = job_record(d.resolve(), self.origin)
+            if rec.problem:
+                damaged.append(f"{job_id}: {rec.problem}")
+            if have["status"] != rec.status:
+                problems.append(f"{job_id}: index says {have['status']}, the journal {rec.status}")
+            if (have["targets"] or 0) != have["target_rows"]:
+                problems.append(f"{job_id}: index row claims {have['targets']} targets, holds {have['target_rows']}")
+            elif have["target_rows"] != len(rec.targets):
+                problems.append(f"{job_id}: report has {len(rec.targets)} targets, the index {have['target_rows']}")
+        for job_id, have in state.items():
+            if job_id not in folders:
+                problems.append(f"{job_id}: in the index but no folder in {self.root}")
+        return {"checked": checked, "indexed": len(state), "outbox": sorted(pending), "problems": problems,
+                "damaged": damaged, "intact": not problems}
+
+    def push(self, job_id: str, dest: str | None = None) -> dict:
+        """Copy the closed job folder to shared storage and check the copy against its manifest."""
+        from cell.record.archive.push import push_job
+
+        dest = dest or self.push_dest or os.environ.get("CELL_ARCHIVE_PUSH")
+        if not dest:
+            raise InputError("cell archive push: no destination (give --to, CELL_ARCHIVE_PUSH or the cell file's "
+                             "[archive] push)")
+        return push_job(self.folder(job_id).path, dest)
+
+    def drain_pushes(self) -> list[str]:
+        """Push the jobs whose automatic push failed earlier (storage away); returns the ids pushed."""
+        from cell.record.archive.push import PushError
+
+        done = []
+        for job_id in self.push_outbox.pending():
+            try:
+                self.push(job_id)
+            except PushError as exc:
+                self.messages.append(str(exc))
+                break
+            self.push_outbox.done(job_id)
+            done.append(job_id)
+        return done
+
+    def show(self, job_id: str) -> dict:
+        folder = self.folder(job_id)
+        recs, damage = folder.read_journal()
+        doc = {"id": job_id, "folder": str(folder.path), "journal": recs[-5:]}
+        if damage is not None:
+            doc["problem"] = f"journal damaged: {damage}"
+        rep = folder.file("report.json")
+        if rep.is_file():
+            try:
+                r = json.loads(rep.read_text(encoding="utf-8"))
+                doc |= {"job": r["job"], "verdict": r.get("verdict"), "sigma0_px": r.get("sigma0_px"),
+                        "targets": len(r["targets"]), "failed": [t["id"] for t in r["targets"] if not t["pass"]]}
+            except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError, AttributeError) as exc:
+                doc["problem"] = f"report.json damaged ({type(exc).__name__}: {exc})"
+        return doc
+
+    def compare(self, ids: list[str]) -> dict:
+        """Deviation trends of the same part over several jobs: per target, the deviation norm in each job."""
+        if len(ids) < 2:
+            raise InputError("cell archive compare needs at least two job ids")
+        reports = []
+        for j in ids:
+            p = self.folder(j).file("report.json")
+            if not p.exists():
+                raise InputError(f"{j}: has no report (status: not DONE)")
+            try:
+                doc = json.loads(p.read_text(encoding="utf-8"))
+                if not isinstance(doc.get("targets"), list) or not isinstance(doc.get("job"), dict):
+                    raise ValueError("no 'targets' list or 'job' table")
+            except (OSError, UnicodeDecodeError, ValueError, AttributeError) as exc:
+                raise InputError(f"{j}: report.json is damaged ({exc}); see 'cell archive verify {j}'") from None
+            reports.append(doc)
+        parts = {r["job"].get("part") for r in reports}
+        if len(parts) > 1:
+            raise InputError(f"cell archive compare: the jobs inspect different parts ({', '.join(map(str, parts))})")
+        common = set.intersection(*({t["id"] for t in r["targets"]} for r in reports))
+        rows = []
+        for tid in sorted(common):
+            dev = [next(t for t in r["targets"] if t["id"] == tid) for r in reports]
+            norms = [d["deviation_norm_m"] for d in dev]
+            sig = [d["achieved_sigma_m"] for d in dev]
+            change = np.asarray(dev[-1]["measured"]) - np.asarray(dev[0]["measured"])
+            sig_change = float(np.hypot(sig[0], sig[-1]))
+            rows.append({"id": tid, "deviation_norm_m": norms, "pass": [d["pass"] for d in dev],
+                         "drift_m": float(np.linalg.norm(change)),
+                         "drift_significant": bool(np.linalg.norm(change) > 3 * sig_change)})
+        return {"jobs": ids, "part": parts.pop(), "targets": rows,
+                "drifting": [r["id"] for r in rows if r["drift_significant"]]}
+
+    def verify(self, job_id: str) -> list[str]:
+        """Problems of the job's folder against its manifest and its journal (empty: intact)."""
+        from cell.record import integrity
+
+        folder = self.folder(job_id)
+        problems = folder.verify_manifest()
+        recs, damage = folder.read_journal()
+        if damage is not None:
+            problems.append(f"journal damaged: {damage}")
+        found = integrity.check_stored(folder, recs, decode_images=False)
+        problems += [f"station {sid}: {why}" for sid, why in found.stations.items()]
+        problems += [f"{rel}: {why} (per the journal)" for rel, (why, _) in found.files.items()]
+        return list(dict.fromkeys(problems))

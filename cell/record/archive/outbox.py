@@ -1,0 +1,49 @@
+"""The outbox: jobs of this cell whose index write is waiting for the database.
+
+One small file per job, ``<archive>/.outbox/index/<job_id>.json`` ({``job_id``, ``since``, ``reason``}),
+written atomically when a write to the index fails because the database cannot be reached. The
+folder holds the job's truth, so the outbox holds no copy of it: draining re-reads the folder and
+writes its record in one transaction, then removes the file. A process killed between the two
+leaves the file, and the next drain writes the same record again (idempotent: one row per job).
+Pushes to shared storage that failed wait the same way in ``.outbox/push/``.
+"""
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+from cell.record.jobfolder import atomic_write_json, utc_now
+
+OUTBOX = ".outbox"
+
+
+class Outbox:
+    def __init__(self, root: Path, kind: str = "index"):
+        self.path = Path(root) / OUTBOX / kind
+
+    def add(self, job_id: str, reason: str) -> None:
+        p = self.path / f"{job_id}.json"
+        if p.exists():  # keep the first failure's time
+            return
+        atomic_write_json(p, {"job_id": job_id, "since": utc_now(), "reason": reason})
+
+    def pending(self) -> list[str]:
+        """Job ids waiting, oldest first."""
+        if not self.path.is_dir():
+            return []
+        files = [p for p in self.path.glob("*.json") if not p.name.startswith(".")]
+        files.sort(key=lambda p: (p.stat().st_mtime, p.name))
+        return [p.name[:-len(".json")] for p in files]
+
+    def entry(self, job_id: str) -> dict:
+        try:
+            return json.loads((self.path / f"{job_id}.json").read_text())
+        except (OSError, ValueError):
+            return {"job_id": job_id}
+
+    def done(self, job_id: str) -> None:
+        try:
+            os.unlink(self.path / f"{job_id}.json")
+        except FileNotFoundError:
+            pass

@@ -1,0 +1,225 @@
+"""Random parts with known truth for whole-job tests: plates with bosses, pockets and flanges, curved skins.
+
+:func:`make_part_job` writes a job folder (mesh STL, targets CSV, deviations CSV, job.toml) for the
+simulated cell. The part is built from boxes and cylinders (joined by concatenation: the ray caster and
+the renderer only need the outer surfaces) or is a thin box bent into a curved skin; 100-400 dots are
+placed on its outer faces where a whole dot fits on one flat patch (checked by projecting its rim onto
+the surface), with a random tolerance each. Deviations (the simulated part differs from CAD by them)
+are drawn on a share of the targets at 0.5x, 3x or 10x their tolerance or at ``five_sigma_m``, in
+random directions. Everything comes from one ``numpy.random.Generator``: a seed is a part.
+
+    python -m tests.partgen OUT_DIR [--seed 3]     writes a job folder and prints its summary
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "bracket"
+KINDS = ("plate", "skin")
+
+
+@dataclass(frozen=True)
+class GeneratedPart:
+    folder: Path
+    job: Path
+    kind: str
+    n_targets: int
+    deviations: dict  # id -> (3,) mm
+    categories: dict  # id -> "0.5x" | "3x" | "10x" | "5sigma"
+
+
+def _box(lo, hi) -> trimesh.Trimesh:
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    return trimesh.creation.box(extents=hi - lo, transform=trimesh.transformations.translation_matrix((lo + hi) / 2))
+
+
+def _plate(rng) -> tuple[trimesh.Trimesh, list]:
+    """A plate (with an optional pocket) plus bosses and a flange; returns the mesh and its solids (for 'inside')."""
+    L, W, T = rng.uniform(220, 340), rng.uniform(150, 220), rng.uniform(12, 25)
+    solids = []
+    if rng.random() < 0.5:  # a pocket: a floor and four walls around it
+        px, py = rng.uniform(50, 0.35 * L), rng.uniform(40, 0.3 * W)
+        cx, cy = rng.uniform(-0.15 * L, 0.15 * L), rng.uniform(-0.1 * W, 0.1 * W)
+        depth = rng.uniform(0.4, 0.7) * T
+        solids += [_box((-L / 2, -W / 2, 0), (L / 2, W / 2, T - depth)),
+                   _box((-L / 2, -W / 2, T - depth), (cx - px / 2, W / 2, T)),
+                   _box((cx + px / 2, -W / 2, T - depth), (L / 2, W / 2, T)),
+                   _box((cx - px / 2, -W / 2, T - depth), (cx + px / 2, cy - py / 2, T)),
+                   _box((cx - px / 2, cy + py / 2, T - depth), (cx + px / 2, W / 2, T))]
+    else:
+        solids.append(_box((-L / 2, -W / 2, 0), (L / 2, W / 2, T)))
+    for _ in range(rng.integers(1, 4)):  # bosses
+        r, h = rng.uniform(12, 30), rng.uniform(15, 50)
+        x, y = rng.uniform(-0.35 * L, 0.35 * L), rng.uniform(-0.3 * W, 0.3 * W)
+        solids.append(trimesh.creation.cylinder(radius=r, height=h, sections=48,
+                                                transform=trimesh.transformations.translation_matrix((x, y, T + h / 2))))
+    if rng.random() < 0.7:  # a flange standing on one long edge
+        Hf, tf = rng.uniform(50, 110), rng.uniform(8, 15)
+        side = rng.choice([-1, 1])
+        y0 = side * W / 2
+        solids.append(_box((-L / 2, min(y0, y0 - side * tf), T), (L / 2, max(y0, y0 - side * tf), T + Hf)))
+    return trimesh.util.concatenate(solids), solids
+
+
+def _skin(rng) -> tuple[trimesh.Trimesh, list]:
+    """A thin panel bent about y (a curved skin), 300-450 mm long."""
+    L, W, T = rng.uniform(300, 420), rng.uniform(160, 240), rng.uniform(6, 10)
+    m = _box((-L / 2, -W / 2, 0), (L / 2, W / 2, T))
+    v, f = trimesh.remesh.subdivide_to_size(m.vertices, m.faces, max_edge=12.0)
+    sag = rng.uniform(20, 70)  # mm at the ends
+    v = v.copy()
+    v[:, 2] += sag * (2 * v[:, 0] / L) ** 2
+    return trimesh.Trimesh(v, f, process=True), []
+
+
+def _inside_any(p: np.ndarray, solids: list, skip: int) -> np.ndarray:
+    out = np.zeros(len(p), dtype=bool)
+    for k, s in enumerate(solids):
+        if k == skip:
+            continue
+        lo, hi = s.bounds
+        out |= np.all((p > lo + 1e-3) & (p < hi - 1e-3), axis=1) & s.contains(p)
+    return out
+
+
+def _flat_spots(rng, mesh: trimesh.Trimesh, solids: list, count: int, spacing_mm: float,
+                rim_mm: float) -> tuple[np.ndarray, np.ndarray]:
+    """Points on the outer surface where a disc of radius ``rim_mm`` lies on one flat patch, spaced apart."""
+    pts, fi = trimesh.sample.sample_surface(mesh, count, seed=int(rng.integers(1 << 31)))
+    kept: list[int] = []  # greedy thinning to the spacing (a Poisson-disc set)
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(pts)
+    taken = np.zeros(len(pts), dtype=bool)
+    for k in range(len(pts)):
+        if not taken[k]:
+            kept.append(k)
+            taken[tree.query_ball_point(pts[k], spacing_mm)] = True
+    pts, fi = pts[kept], fi[kept]
+    nrm = mesh.face_normals[fi]
+    keep = nrm[:, 2] > -0.3  # not on the underside (the part stands on it)
+    # a whole dot (and a margin) must lie on one flat patch: its rim projected onto the surface stays in plane
+    a = np.cross(nrm, [0.0, 0.0, 1.0])
+    a[np.linalg.norm(a, axis=1) < 1e-6] = [1.0, 0.0, 0.0]
+    a /= np.linalg.norm(a, axis=1, keepdims=True)
+    b = np.cross(nrm, a)
+    r = rim_mm
+    for ang in np.linspace(0, 2 * np.pi, 8, endpoint=False):
+        q = pts + r * (np.cos(ang) * a + np.sin(ang) * b)
+        closest, dist, tri = trimesh.proximity.closest_point(mesh, q)
+        keep &= (dist < 0.15) & (np.einsum("ij,ij->i", mesh.face_normals[tri], nrm) > 0.995)
+    if solids:  # on the outside of the joined solids only (not on a face buried in a neighbour)
+        keep &= ~_inside_any(pts + 0.5 * nrm, solids, -1)
+    return pts[keep], nrm[keep]
+
+
+def _place_targets(rng, mesh: trimesh.Trimesh, solids: list, n: int, dot_mm: float, n_coded: int,
+                   coded_mm: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``n`` dots and up to ``n_coded`` coded markers (ArUco, for identification and ``cell locate``)."""
+    cp, cn = _flat_spots(rng, mesh, solids, 4000, 0.5 * coded_mm, 0.8 * coded_mm)
+    pick: list[int] = []
+    for k in rng.permutation(len(cp)):  # spread the markers: at least three marker sizes apart
+        if len(pick) < n_coded and all(np.linalg.norm(cp[k] - cp[j]) > 3 * coded_mm for j in pick):
+            pick.append(int(k))
+    cp, cn = cp[pick], cn[pick]
+    pts, nrm = _flat_spots(rng, mesh, solids, 20000, 2.6 * dot_mm, 0.75 * dot_mm)
+    if len(cp):  # no dot under (or touching) a marker
+        far = np.min(np.linalg.norm(pts[:, None] - cp[None], axis=2), axis=1) > 1.2 * coded_mm  # marker, quiet zone and a dot
+        pts, nrm = pts[far], nrm[far]
+    order = rng.permutation(len(pts))[: min(n, len(pts))]
+    return pts[order], nrm[order], cp, cn
+
+
+def make_part_job(out: Path, rng: np.random.Generator, kind: str | None = None, n_targets: int | None = None,
+                  deviating_share: float | None = None, five_sigma_m: float = 25e-6,
+                  misplacement: tuple[float, float] | None = None) -> GeneratedPart:
+    """Write a random part's job folder into ``out``; returns what was made (with the injected truth).
+
+    ``misplacement``: (mm, deg) by which the simulated part lies away from its nominal placement (shifted on
+    the table, turned about the vertical; ``[sim] base_from_part_true``), for jobs that locate the part first.
+    """
+    out.mkdir(parents=True, exist_ok=True)
+    kind = kind or str(rng.choice(KINDS))
+    mesh, solids = _plate(rng) if kind == "plate" else _skin(rng)
+    mesh.apply_translation([0.0, 0.0, -mesh.bounds[0, 2]])
+    dot = 5.0
+    n = int(n_targets or rng.integers(100, 401))
+    coded_mm = 20.0
+    xyz, nrm, cxyz, cnrm = _place_targets(rng, mesh, solids, n, dot, 8, coded_mm)
+    n = len(xyz)
+    ids = [f"T{k + 1:04d}" for k in range(n)]
+    # mm; at 10x the largest moves a dot 2.5 mm, a fifth of the dot spacing: MEASURE names dots by projecting
+    # the nominal targets, so a dot moved by half the spacing takes its neighbour's name (a limit of the cell)
+    tol = rng.choice([0.05, 0.1, 0.15, 0.2, 0.25], size=n)
+    mesh.export(out / "part.stl")
+    with (out / "targets.csv").open("w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["id", "x", "y", "z", "nx", "ny", "nz", "kind", "tolerance", "code"])
+        for k, (p, q) in enumerate(zip(cxyz, cnrm)):
+            w.writerow([f"C{k}", *(f"{v:.4f}" for v in p), *(f"{v:.6f}" for v in q), "coded", "", k])
+        for i, p, q, t in zip(ids, xyz, nrm, tol):
+            w.writerow([i, *(f"{v:.4f}" for v in p), *(f"{v:.6f}" for v in q), "retro", f"{t:g}", -1])
+    share = float(rng.uniform(0.0, 0.5) if deviating_share is None else deviating_share)
+    chosen = rng.choice(n, int(round(share * n)), replace=False)
+    deviations, categories = {}, {}
+    for j in chosen:
+        cat = str(rng.choice(["0.5x", "3x", "10x", "5sigma"]))
+        size = {"0.5x": 0.5 * tol[j], "3x": 3 * tol[j], "10x": 10 * tol[j], "5sigma": five_sigma_m * 1e3}[cat]
+        d = rng.normal(size=3)
+        deviations[ids[j]] = d / np.linalg.norm(d) * size
+        categories[ids[j]] = cat
+    with (out / "deviations.csv").open("w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["id", "dx", "dy", "dz"])
+        for i, d in deviations.items():
+            w.writerow([i, *(f"{v:.5f}" for v in d)])
+    # the scale bar: the two targets furthest apart that carry no deviation
+    clean = [k for k in range(n) if ids[k] not in deviations and nrm[k, 2] > 0.7]  # on top: seen by many images
+    if len(clean) < 2:
+        clean = [k for k in range(n) if ids[k] not in deviations]
+    P = xyz[clean]
+    a, b = np.unravel_index(np.argmax(np.linalg.norm(P[:, None] - P[None], axis=2)), (len(P), len(P)))
+    a, b = clean[a], clean[b]
+    text = (EXAMPLE / "job.toml").read_text()
+    text = text.replace('name = "bracket"', f'name = "gen-{kind}"').replace('mesh = "bracket.stl"', 'mesh = "part.stl"')
+    text = re.sub(r"(?m)^scale_bar = .*$", f'scale_bar = {{ a = "{ids[a]}", b = "{ids[b]}", length = '
+                  f'{np.linalg.norm(xyz[a] - xyz[b]):.4f}, sigma = 0.002 }}', text)
+    text = re.sub(r"(?m)^seed = 7$", f"seed = {int(rng.integers(1, 1000))}", text)
+    text = re.sub(r"(?m)^target_diameter = .*$", f"target_diameter = {dot}", text)
+    text = re.sub(r"(?m)^coded_size = .*$", f"coded_size = {coded_mm}", text)
+    text = text.replace("[planning]\n", "[planning]\nn_candidates = 800\npopulation = 40\ngenerations = 40\n", 1)
+    text = re.sub(r"(?m)^seed = 11$", f"seed = {int(rng.integers(1, 1000))}", text)
+    if misplacement is not None:  # the part lies shifted on the table and turned about the vertical
+        mm, deg = misplacement
+        m = re.search(r"(?m)^base_from_part = \{ xyz = \[([^\]]*)\], rpy_deg = \[([^\]]*)\] \}", text)
+        xyz0 = np.array([float(v) for v in m.group(1).split(",")])
+        rpy0 = np.array([float(v) for v in m.group(2).split(",")])
+        ang = rng.uniform(0, 2 * np.pi)
+        xyz1 = xyz0 + mm * np.array([np.cos(ang), np.sin(ang), 0.0])
+        rpy1 = rpy0 + np.array([0.0, 0.0, deg * rng.choice([-1, 1])])
+        text += (f"base_from_part_true = {{ xyz = [{xyz1[0]:.3f}, {xyz1[1]:.3f}, {xyz1[2]:.3f}], "
+                 f"rpy_deg = [{rpy1[0]:.3f}, {rpy1[1]:.3f}, {rpy1[2]:.3f}] }}\n")
+    (out / "job.toml").write_text(text)
+    return GeneratedPart(out, out / "job.toml", kind, n, deviations, categories)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("out", type=Path)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--kind", choices=KINDS)
+    a = ap.parse_args(argv)
+    g = make_part_job(a.out, np.random.default_rng(a.seed), a.kind)
+    print(f"{g.kind}: {g.n_targets} targets, {len(g.deviations)} deviating -> {g.job}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,82 @@
+"""Truth on parts the suite has never seen: random plates and skins, deviations at 0.5x / 3x / 10x tolerance
+and 5 sigma on up to half of the targets (tests/partgen.py), whole jobs on the simulated cell.
+
+Per run, report.json's deviations against the injected truth: sqrt(mean m^2 / 3) within 1.00 +- 0.15, at
+least 97 % of the untouched targets inside their 99 % ellipsoid, at most 2 % of them flagged significant,
+every deviation beyond tolerance failed, the alignment trusted. One run with the part misplaced by
+10 mm / 5 deg, found by ``cell locate --write`` first: never a quiet wrong number. More seeds (and the
+ones that fail today): benchmarks/truth_partgen.py, decision 0021.
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.stats import chi2
+
+from tests.jobutil import run_cell
+from tests.partgen import make_part_job
+
+pytestmark = pytest.mark.slow
+
+
+def truth_figures(report: dict, part) -> dict:
+    """Deviations in report.json against the injected truth (``part.deviations``, mm)."""
+    m2, untouched, significant, beyond_failed = [], [], [], []
+    for t in report["targets"]:
+        if t["measured"][0] is None:
+            continue
+        d = np.asarray(part.deviations.get(t["id"], np.zeros(3))) * 1e-3
+        e = np.asarray(t["deviation"]) - d
+        m2.append(float(e @ np.linalg.solve(np.asarray(t["cov"]), e)))
+        untouched.append(t["id"] not in part.deviations)
+        significant.append(bool(t["significant"]))
+        if np.linalg.norm(d) > t["tolerance_m"]:
+            beyond_failed.append(not t["pass"])
+    m2, untouched, significant = np.array(m2), np.array(untouched), np.array(significant)
+    return {"ratio": float(np.sqrt(m2.mean() / 3)), "n": int(len(m2)),
+            "untouched_in_99": float(np.mean(m2[untouched] <= chi2.ppf(0.99, 3))),
+            "false_significant": float(np.mean(significant[untouched])),
+            "beyond_tolerance": len(beyond_failed), "beyond_tolerance_failed": int(sum(beyond_failed))}
+
+
+def _check(fig: dict, report: dict) -> None:
+    assert report["alignment"]["trusted"], report["alignment"]["reasons"]
+    assert 0.85 <= fig["ratio"] <= 1.15, fig
+    assert fig["untouched_in_99"] >= 0.97, fig
+    assert fig["false_significant"] <= 0.02, fig
+    assert fig["beyond_tolerance_failed"] == fig["beyond_tolerance"], fig
+
+
+def test_random_part_deviations_match_the_truth(tmp_path):
+    """A random skin (seed 100, as benchmarks/truth_partgen.py draws it): every truth criterion holds."""
+    part = make_part_job(tmp_path / "job", np.random.default_rng(100))
+    run = run_cell("run", str(part.job), "--archive", str(tmp_path / "archive"), timeout=900)
+    assert run.code == 0, run.stderr[-3000:]
+    report = json.loads((Path(run.doc["folder"]) / "report.json").read_text())
+    fig = truth_figures(report, part)
+    print(f"\n{part.kind} seed 100: {fig}")
+    _check(fig, report)
+
+
+@pytest.mark.xfail(strict=True, reason="known (decision 0021): located and measured, alignment trusted, ratio 1.07, but 6 of "
+                                       "81 untouched targets 3-8 um off against a stated 1.5-3 um (92.6 % in the 99 % "
+                                       "ellipsoid, 7.4 % false significant); strict: passes -> remove this mark")
+def test_a_misplaced_part_is_located_and_never_reported_quietly_wrong(tmp_path):
+    """Misplaced by 10 mm / 5 deg, found by ``cell locate --write``, then measured: either the truth criteria
+    hold, or the report says the alignment is not trusted (verdict UNTRUSTED, with its reasons)."""
+    part = make_part_job(tmp_path / "job", np.random.default_rng(5), "plate", deviating_share=0.25,
+                         misplacement=(10.0, 5.0))
+    loc = run_cell("locate", str(part.job), "--write", timeout=600)
+    assert loc.code == 0, loc.stderr[-3000:]
+    run = run_cell("run", str(part.job), "--archive", str(tmp_path / "archive"), timeout=900)
+    assert run.code == 0, run.stderr[-3000:]
+    report = json.loads((Path(run.doc["folder"]) / "report.json").read_text())
+    fig = truth_figures(report, part)
+    print(f"\nmisplaced plate: {fig}, alignment {report['alignment']['trusted']} {report['alignment']['reasons']}")
+    if report["alignment"]["trusted"]:
+        _check(fig, report)
+    else:
+        assert report["verdict"] == "UNTRUSTED" and report["alignment"]["reasons"]
