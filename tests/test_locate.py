@@ -68,7 +68,9 @@ def test_locate_finds_a_part_15_mm_and_3_deg_off_within_half_a_millimetre_and_wr
     assert np.all(np.asarray(s["sigma_translation_m"]) < 50e-6)  # and not inflated into uselessness
     # the coded stage alone already lands within a few pixels of every dot
     assert s["coded"]["n_markers"] >= 6 and not s["coded"]["dropped"]
-    assert s["n_observations"] >= 100 and 0.02 < s["sigma0_px"] < 0.06
+    # sigma0 is the dots' image precision: with the physical simulator (no added jitter, [sim] image_sigma_px = 0)
+    # the centres scatter by about 0.01 px (benchmarks/centre_bias), not the 0.03 px jitter this once assumed
+    assert s["n_observations"] >= 100 and 0.004 < s["sigma0_px"] < 0.06
     assert s["truth"]["error_m"] == pytest.approx(dt)
     # only the base_from_part line changed, and the file reads back as the estimate
     old, new = before.decode().splitlines(keepends=True), job_path.read_text().splitlines(keepends=True)
