@@ -20,12 +20,16 @@ sizes found per image) and nothing tuned. Printed:
 * the same from our own chain: Zhang start (``calibration.planar``), then our self-calibrating bundle
   (camera model OPENCV_K3, every grid point truly fixed control) on our centres.
 
-    .venv/bin/python -m benchmarks.real_circle_grid --repo /work/.mirror/ros-industrial+industrial_calibration/repo [--centre ellipse]
+    .venv/bin/python -m benchmarks.real_circle_grid --repo CLONE [--centre ellipse]
+
+CLONE: a clone (work tree or git directory) of github:ros-industrial/industrial_calibration, or set
+``CELL_REAL_DATA`` to a folder holding it as ``ros-industrial+industrial_calibration/repo``.
 """
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import subprocess
 import sys
 import time
@@ -133,11 +137,13 @@ def run(repo: Path, centre: str = "centroid") -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--repo", type=Path, default=Path("/work/.mirror/ros-industrial+industrial_calibration/repo"),
+    data = os.environ.get("CELL_REAL_DATA")
+    ap.add_argument("--repo", type=Path,
+                    default=Path(data) / "ros-industrial+industrial_calibration" / "repo" if data else None,
                     help="clone of ros-industrial/industrial_calibration (git directory or work tree)")
     ap.add_argument("--centre", choices=("centroid", "ellipse"), default="centroid")
     a = ap.parse_args(argv)
-    if not a.repo.exists():
+    if a.repo is None or not a.repo.exists():
         print(f"real_circle_grid: no clone at {a.repo}; fetch github:ros-industrial/industrial_calibration", file=sys.stderr)
         return 2
     r = run(a.repo, a.centre)

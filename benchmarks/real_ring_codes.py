@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import subprocess
 import sys
 import time
@@ -35,7 +36,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from cell.camerafile import CameraFile  # noqa: E402
 from cell.detect_cmd import detect_targets  # noqa: E402
 
-MIRROR = Path("/work/.mirror")
+#: folder holding the clones as ``owner+name/repo`` (set CELL_REAL_DATA), or pass --cct and --sheet
+MIRROR = Path(os.environ.get("CELL_REAL_DATA", "real-data"))
 
 
 def _read(repo: Path, path: str) -> np.ndarray:
@@ -112,6 +114,10 @@ def main(argv: list[str] | None = None) -> int:
                       "missed": len(want) - correct, "outside": 0}, dt, "numbers printed under the targets"))
     else:
         print(f"real_ring_codes: no clone at {a.sheet}; skipped", file=sys.stderr)
+    if not rows:
+        print("real_ring_codes: none of the image sets is here: clone them under CELL_REAL_DATA (owner+name/repo) "
+              "or pass --cct / --sheet", file=sys.stderr)
+        return 2
     for name, r, dt, note in rows:
         print(f"{name}: {r['correct']}/{r['expected']} read correctly, {r['wrong_in_grid']} wrong, {r['missed']} missed, "
               f"{r['outside']} codes read elsewhere in the scene; {dt:.2f} s ({note})")
