@@ -211,12 +211,19 @@ def run(ctx) -> None:
             stations, facts = _plan_round(ctx, rnd, bundle, required, exclude)
             if "excluded" in facts:  # the robot could not take them after all: plan again without them
                 exclude |= set(facts["excluded"])
+                msg = (f"closed loop round {rnd}: the robot cannot take the chosen stations "
+                       f"({facts['validation_failed']}); planning again without them")
+                ctx.log.log("warning", msg)
+                ctx.say(f"  WARNING {msg}")
                 doc["rounds"].append(facts | {"status": "failed validation", "time_s": time.perf_counter() - t0})
                 atomic_write_json(path, doc)
                 if len([r for r in doc["rounds"] if r.get("status") == "failed validation"]) > 3:
                     break
                 continue
             if not stations:
+                ctx.log.log("warning", f"closed loop round {rnd}: no reachable station helps the "
+                                       f"{len(facts['targets_short'])} target(s) short")
+                ctx.say(f"  round {rnd}: no reachable station helps the {len(facts['targets_short'])} target(s) short")
                 doc["rounds"].append(facts | {"status": "nothing to add", "stations_added": [], "targets_fixed": [],
                                               "time_s": time.perf_counter() - t0})
                 atomic_write_json(path, doc)
