@@ -160,6 +160,10 @@ def write_report(ctx) -> str:
     job = ctx.job
     f = ctx.folder
     bundle = json.loads(f.file("bundle.json").read_text())
+    sc = bundle.get("screening") or {}
+    if sc.get("scale_established") is False:  # the job declares a scale bar: no report in the CAD's scale
+        raise CalibrationError(f"scale not established: {sc.get('scale')}; add stations that see both ends "
+                               "([planning] closed_loop = true plans them) or check the scale bar's targets")
     plan = json.loads(f.file("plan.json").read_text())
     ids = job.part.targets.ids
     nominal = job.part.targets.xyz
@@ -240,6 +244,8 @@ def write_report(ctx) -> str:
         "inconclusive": [ids[j] for j in np.flatnonzero(judged) if decision[j] == "inconclusive"],
         "coded_targets": [ids[j] for j in np.flatnonzero(coded)],
         "rejected_observations": bundle.get("rejected", []),
+        "left_out": {"observations": len(sc.get("dropped_observations", [])),
+                     "targets": sc.get("dropped_targets", []), "images": sc.get("dropped_images", [])},
     }
     loop = _closed_loop(f)
     if loop is not None:
