@@ -125,8 +125,9 @@ def run_bundle(ctx) -> dict:
     poses_all = np.array([r["cam_from_part"] for r in cal["images"]], dtype=float)
     intr0 = initial_intrinsics(job, cal)
     ids = list(job.part.targets.ids)
-    # the screening's rays need poses that go with the common interior orientation (the adjustment starts from
-    # the per-image ones, as before)
+    # poses that go with the common interior orientation: the screening's rays and the adjustment start from them
+    # (Faugeras-Toscani's per-image poses, paired with the common interior orientation, are pixels off: on a thin
+    # network with glare the adjustment started from them diverged, 100 targets behind a camera)
     poses_screen = resect(intr0, poses_all, obs_image, job.part.targets.xyz[obs_target], obs_uv)
     scale_pair = tuple(job.scale_bar[:2]) if job.scale_bar is not None else None
     drop_t: dict[int, str] = {}
@@ -138,7 +139,7 @@ def run_bundle(ctx) -> dict:
             raise CalibrationError(f"bundle: {int(scr.keep_images.sum())} of {len(poses_all)} images usable "
                                    "(see the screening reasons in the log); nothing to adjust")
         try:
-            res, sub = _adjust(ctx, scr, obs_image, obs_target, obs_uv, poses_all, intr0)
+            res, sub = _adjust(ctx, scr, obs_image, obs_target, obs_uv, poses_screen, intr0)
         except CalibrationError as exc:
             bad = getattr(exc, "targets", None)
             if bad is None or attempt == MAX_RETRIES:

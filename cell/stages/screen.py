@@ -13,6 +13,8 @@ orientation (CALIBRATE: Faugeras-Toscani or PnP per image):
 - a target whose rays meet at less than :data:`MIN_INTERSECTION_DEG` is not determined: dropped (it stays
   unmeasured; the closed loop can add stations for it);
 - an image left with fewer than :data:`MIN_IMAGE_OBS` usable observations is dropped from the adjustment;
+- images not linked to the main block of the network (glare can split it into blocks that share no
+  targets: no common datum, a covariance of metres) are dropped; their targets stay unmeasured;
 - the scale bar needs both its ends usable; otherwise the scale is not established (said, not guessed).
 
 Everything dropped is listed with its reason (bundle.json ``screening``, the journal, the console).
@@ -29,6 +31,8 @@ from calibration.camera import Intrinsics, project
 GROSS_PX = 2.0
 #: rays of one target must span at least this angle for the target to be determined
 MIN_INTERSECTION_DEG = 2.0
+#: two images are linked when they share this many targets (a relative orientation needs five points)
+LINK_TARGETS = 5
 #: an image needs this many usable observations to stay in the adjustment (its pose has 6 parameters)
 MIN_IMAGE_OBS = 5
 
@@ -105,6 +109,33 @@ def _span_deg(d: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip(np.min(d @ d.T), -1.0, 1.0))))
 
 
+def _keep_main_block(s: Screening, obs_image: np.ndarray, obs_target: np.ndarray, m: int, n_targets: int) -> bool:
+    """Keep the block of images linked to each other (:data:`LINK_TARGETS` common targets) with the most
+    observations; the images of other blocks are dropped (the network's blocks have no common datum: its
+    covariance would be metres). Returns whether anything was dropped."""
+    from scipy.sparse import csr_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    rays = np.bincount(obs_target[s.keep_obs], minlength=n_targets)
+    u = s.keep_obs & (rays[obs_target] >= 2)
+    A = csr_matrix((np.ones(int(u.sum())), (obs_image[u], obs_target[u])), shape=(m, n_targets))
+    common = (A @ A.T).toarray()
+    n_blocks, label = connected_components(csr_matrix(common >= LINK_TARGETS), directed=False)
+    alive = np.flatnonzero(s.keep_images)
+    if n_blocks <= 1 or len(alive) == 0:
+        return False
+    size = np.bincount(label[obs_image[u]], minlength=n_blocks)
+    main = int(np.argmax(size))
+    if len(np.unique(label[alive])) <= 1:
+        return False
+    for i in alive[label[alive] != main]:
+        s.images[int(i)] = (f"not linked to the main network (shares fewer than {LINK_TARGETS} targets with its "
+                            f"images; {n_blocks} separate blocks)")
+        s.keep_images[i] = False
+        s.keep_obs &= obs_image != i
+    return True
+
+
 def screen_network(obs_image: np.ndarray, obs_target: np.ndarray, obs_uv: np.ndarray, intr: Intrinsics,
                    poses: np.ndarray, n_targets: int, *, scale_pair: tuple[int, int] | None = None,
                    drop_targets: dict | None = None, drop_images: dict | None = None,
@@ -172,6 +203,7 @@ def screen_network(obs_image: np.ndarray, obs_target: np.ndarray, obs_uv: np.nda
             s.keep_images[i] = False
             s.keep_obs &= obs_image != i
             changed = True
+        changed |= _keep_main_block(s, obs_image, obs_target, m, n_targets)
         if not changed:
             break
     if scale_pair is not None:
