@@ -99,20 +99,23 @@ def _adjust(ctx, scr: Screening, obs_image, obs_target, obs_uv, poses_all, intr0
         obs_sigma = np.maximum(obs_sigma, 1e-4)
     res = bundle_adjust(img, tgt, uv, intr0, poses0, targets.xyz, options, config, obs_sigma_px=obs_sigma,
                         obs_group=groups)
-    if not res.converged:
-        raise CalibrationError(f"bundle adjustment did not converge: {res.summary}")
-    check_adjustment(res.sigma0_px, res.intrinsics, job.intrinsics)  # a converged nonsense is a failure
     return res, (kept_images, sel, img, tgt, uv, groups)
 
 
 def _wild_targets(res) -> tuple[np.ndarray, np.ndarray, float]:
     """Targets whose sigma exceeds :data:`WILD_SIGMA_FACTOR` times the median target's: (indices, sigmas, median)."""
-    sig = np.sqrt(np.trace(res.cov, axis1=1, axis2=2))
+    tr = np.trace(res.cov, axis1=1, axis2=2)
+    sig = np.sqrt(np.where(tr > 0, tr, np.nan))
     fin = np.isfinite(sig)
     if fin.sum() < 3:
         return np.zeros(0, dtype=int), sig, float("nan")
     med = float(np.median(sig[fin]))
     return np.flatnonzero(fin & (sig > WILD_SIGMA_FACTOR * med)), sig, med
+
+
+def _weakest(sig: np.ndarray, med: float) -> np.ndarray:
+    """When the adjustment did not settle: the targets beyond 10x the median sigma (none: nothing to drop)."""
+    return np.flatnonzero(np.isfinite(sig) & (sig > 10.0 * med)) if np.isfinite(med) else np.zeros(0, dtype=int)
 
 
 def run_bundle(ctx) -> dict:
@@ -151,6 +154,8 @@ def run_bundle(ctx) -> dict:
                                    f"({', '.join(ids[int(t)] for t in bad[:8])}); dropped, adjusting again")
             continue
         wild, sig, med = _wild_targets(res)
+        if not res.converged and not wild.size:  # the weakest targets are what keeps an adjustment from settling
+            wild = _weakest(sig, med)
         if wild.size and attempt < MAX_RETRIES:
             for t in wild:
                 drop_t[int(t)] = (f"sigma {sig[t] * 1e3:.3g} mm, {sig[t] / med:.0f}x the median target's: "
@@ -159,6 +164,13 @@ def run_bundle(ctx) -> dict:
                                    f"({', '.join(ids[int(t)] for t in wild[:8])}); dropped, adjusting again")
             continue
         break
+    if not res.converged:
+        raise CalibrationError(f"bundle adjustment did not converge: {res.summary}")
+    check_adjustment(res.sigma0_px, res.intrinsics, job.intrinsics)  # a converged nonsense is a failure
+    var = np.diagonal(res.cov, axis1=1, axis2=2)
+    if np.any(np.isfinite(var).all(axis=1) & (var <= 0).any(axis=1)):  # a singular network, not a measurement
+        raise CalibrationError("bundle: the network is not determined (a target's variance is not positive): its "
+                               "images are too weakly linked; see the screening in the log")
     dt = time.perf_counter() - t0
     kept_images, sel, img, tgt, uv, groups = sub
     n_img = np.bincount(tgt[~res.rejected], minlength=len(ids))

@@ -29,6 +29,7 @@ from cell.stages.acquire import run as acquire_run
 from cell.stages.adjust import run as adjust_run
 from cell.stages.calibrate import run as calibrate_run
 from cell.stages.measure import run as measure_run
+from cell.stages.screen import LINK_TARGETS
 
 NAME = "closed_loop.json"
 
@@ -110,6 +111,8 @@ def _blocked(ctx, db, opts, cols: np.ndarray) -> np.ndarray:
     return out
 
 
+#: a closed-loop station must see this many targets the adjustment measured (the screening's link)
+LINK_STATION = LINK_TARGETS
 #: a learned incidence limit needs this share of the dots expected beyond it to have been lost
 LOST_SHARE = 0.8
 
@@ -185,6 +188,14 @@ def _plan_round(ctx, rnd: int, bundle: dict, required: np.ndarray, exclude: set[
     if limit is not None:  # the images lost their dots beyond it: candidates must see the targets within it
         visible &= _incidence(db, job.part.targets.xyz[cols], job.part.targets.normals[cols]) <= limit
     valid = reach.reachable & visible.any(axis=1)
+    # a new image must tie into the measured network (the adjustment leaves out images not linked to its main
+    # block): candidates that see fewer than LINK_STATION measured targets within the limits are no use
+    measured_all = np.isfinite(sigma) & (rays >= 2)
+    if measured_all.any():
+        seen_all = db.visible[:, measured_all]
+        if limit is not None:
+            seen_all &= _incidence(db, job.part.targets.xyz[measured_all], job.part.targets.normals[measured_all]) <= limit
+        valid &= seen_all.sum(axis=1) >= LINK_STATION
     for i in exclude:
         valid[i] = False
     N6, measured = information_from_covariance(cov[cols])

@@ -31,8 +31,9 @@ from calibration.camera import Intrinsics, project
 GROSS_PX = 2.0
 #: rays of one target must span at least this angle for the target to be determined
 MIN_INTERSECTION_DEG = 2.0
-#: two images are linked when they share this many targets (a relative orientation needs five points)
-LINK_TARGETS = 5
+#: two images are linked when they share this many targets (a relative orientation needs five points; with
+#: five, glare at 58.5 deg left a block tied by scale-free pairs: a singular covariance, every variance < 0)
+LINK_TARGETS = 8
 #: an image needs this many usable observations to stay in the adjustment (its pose has 6 parameters)
 MIN_IMAGE_OBS = 5
 

@@ -1,0 +1,149 @@
+"""Hampered first networks on the simulated cell: a fixture the plan did not know, glare, a station the robot
+cannot reach. MEASURE leaves what it cannot name with certainty unnamed (with the reason), ADJUST leaves out
+what it cannot use (with the reason) instead of faulting, and CLOSE_LOOP adds stations until every reachable
+target meets its requirement; the measured coordinates agree with the simulated truth within their stated
+covariance. Plus the kernels of those checks on data with a known answer."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from jobutil import job_variant, mahalanobis, records, rigid_fit, run_cell, truth_xyz_m
+from scipy.stats import chi2
+
+from calibration.bundle.synthetic import simulate_network
+from calibration.camera import Intrinsics, invert, look_at
+from calibration.targets import ellipse_moments, shape_ratios
+from cell.stages.screen import GROSS_PX, screen_network
+
+REQUIRED_MM = 0.016  # the example's 16-station plan predicts 13 um at worst: met when nothing hampers it
+FIXTURE = [{"name": "clamp", "size": [20.0, 120.0, 20.0], "pose": {"xyz": [-40.0, 0.0, 110.0]}}]
+
+
+# --- kernels --------------------------------------------------------------------------------------------
+def _disc_moments(radius_px: float, keep=lambda x, y: np.ones_like(x, dtype=bool), n: int = 400) -> np.ndarray:
+    """Second moments of a uniformly bright disc sampled on a fine grid, only where ``keep``."""
+    g = np.linspace(-radius_px, radius_px, n)
+    x, y = np.meshgrid(g, g)
+    m = (x**2 + y**2 <= radius_px**2) & keep(x, y)
+    x, y = x[m] - x[m].mean(), y[m] - y[m].mean()
+    return np.array([[np.mean(x * x), np.mean(x * y)], [np.mean(x * y), np.mean(y * y)]])
+
+
+def test_shape_ratios_accept_a_whole_dot_and_reject_a_clipped_or_merged_one():
+    intr = Intrinsics(2300.0, 2300.0, 1223.5, 1023.5, 2448, 2048)
+    T = invert(look_at(np.array([0.0, 0.0, 0.5]), np.zeros(3)))
+    pred = ellipse_moments(intr, T, np.zeros((1, 3)), np.array([[0.0, 0.0, 1.0]]), 0.0025)
+    r_px = 2300.0 * 0.0025 / 0.5  # a face-on disc of 11.5 px radius: moments r^2/4
+    assert pred[0] == pytest.approx(np.eye(2) * r_px**2 / 4, rel=1e-6)
+    whole = _disc_moments(r_px)
+    clipped = _disc_moments(r_px, lambda x, y: x < 0.3 * r_px)  # a fixture's edge across the dot
+    merged = _disc_moments(r_px) + np.diag([(0.8 * r_px) ** 2, 0.0])  # two dots run together
+    lo, hi = shape_ratios(np.stack([whole, clipped, merged]), np.repeat(pred, 3, axis=0), blur_px=1.0)
+    assert 0.97 < lo[0] <= 1.01 and hi[0] <= 1.01
+    assert lo[1] < 0.85  # clipped: shrinks across the cut
+    assert hi[2] > 1.5  # merged: grows along the pair
+    # a target seen edge-on has no ellipse: not a number, never "accepted"
+    lo, hi = shape_ratios(whole[None], np.zeros((1, 2, 2)))
+    assert np.isnan(lo[0]) and np.isnan(hi[0])
+
+
+def test_screening_drops_gross_observations_undetermined_targets_and_unlinked_images_with_reasons():
+    rng = np.random.default_rng(5)
+    net = simulate_network(rng, n_targets=60, n_images=8, sigma_px=0.05)
+    oi, ot, uv = net.obs_image.copy(), net.obs_target.copy(), net.obs_uv.copy()
+    q_bad = int(np.flatnonzero(ot == 3)[1])
+    uv[q_bad] += [6.0, -4.0]  # a misnamed dot
+    # an image far from the others, seeing only targets nobody else sees: its own block
+    extra_pts = rng.uniform(-0.05, 0.05, (8, 3)) + [3.0, 0.0, 0.0]
+    T_far = invert(look_at(np.array([3.0, 0.0, 0.8]), np.array([3.0, 0.0, 0.0])))
+    T_far2 = invert(look_at(np.array([3.3, 0.0, 0.8]), np.array([3.0, 0.0, 0.0])))
+    from calibration.camera import project
+
+    pts = np.vstack([net.points, extra_pts])
+    poses = np.concatenate([net.cam_from_part, T_far[None], T_far2[None]])
+    for k, T in enumerate((T_far, T_far2)):
+        oi = np.concatenate([oi, np.full(8, 8 + k)])
+        ot = np.concatenate([ot, 60 + np.arange(8)])
+        uv = np.vstack([uv, project(net.intrinsics, T, extra_pts)])
+    s = screen_network(oi, ot, uv, net.intrinsics, poses, len(pts), scale_pair=(0, 60))
+    assert q_bad in s.obs and f"> {GROSS_PX} px" in s.obs[q_bad]
+    assert len(s.obs) <= 3, s.obs  # the clean observations stay (0.05 px noise)
+    assert not s.keep_images[8] and not s.keep_images[9]
+    assert "not linked to the main network" in s.images[8]
+    assert s.keep_images[:8].all()
+    assert not s.scale_ok and "60 usable in 0 image(s)" in s.scale_reason
+    # a clean network keeps everything; a target seen twice from one place is not determined
+    s2 = screen_network(net.obs_image, net.obs_target, net.obs_uv, net.intrinsics, net.cam_from_part, 60)
+    assert not s2.obs and not s2.targets and not s2.images and s2.scale_ok
+    poses3 = np.concatenate([net.cam_from_part, net.cam_from_part[:1]])  # station 0 taken twice
+    extra = invert(net.cam_from_part[0]) @ np.array([0.01, 0.02, 0.7, 1.0])  # a target only station 0 sees
+    uv_extra = project(net.intrinsics, net.cam_from_part[0], extra[None, :3])
+    oi3 = np.concatenate([net.obs_image, [0, 8]])
+    ot3 = np.concatenate([net.obs_target, [60, 60]])
+    uv3 = np.vstack([net.obs_uv, uv_extra, uv_extra + 0.03])
+    s3 = screen_network(oi3, ot3, uv3, net.intrinsics, poses3, 61)
+    assert "not determined" in s3.targets[60]
+    assert set(s3.targets) == {60}
+    assert set(s3.images) == {8} and "0 usable observation(s)" in s3.images[8]  # it saw nothing else: dropped too
+
+
+# --- whole jobs -------------------------------------------------------------------------------------------
+def _run(tmp_path: Path, sim: dict, planning: dict | None = None):
+    job = job_variant(tmp_path / "job", {"planning": {"required_sigma": REQUIRED_MM, "closed_loop_rounds": 3}
+                                         | (planning or {}), "sim": sim})
+    res = run_cell("run", str(job), "--archive", str(tmp_path / "archive"), "--yes", timeout=900)
+    assert res.doc is not None, res.stderr[-3000:]
+    return job, Path(res.doc["folder"]), res
+
+
+def _check_truth_and_requirement(job: Path, folder: Path) -> dict:
+    report = json.loads((folder / "report.json").read_text())
+    cl = report["closed_loop"]
+    unmet = {u["id"]: u["reason"] for u in cl["unmet"]}
+    assert all(unmet.values())
+    for t in report["targets"]:
+        if t["id"] not in unmet:
+            assert t["achieved_sigma_m"] <= REQUIRED_MM * 1e-3 * (1 + 1e-9), t["id"]
+    ids, _, true_xyz = truth_xyz_m(job)
+    where = {tid: k for k, tid in enumerate(ids)}
+    T = [t for t in report["targets"] if t["id"] not in report["not_measured"]]
+    meas = np.array([t["measured"] for t in T], dtype=float)
+    cov = np.array([t["cov"] for t in T], dtype=float)
+    truth = np.array([true_xyz[where[t["id"]]] for t in T])
+    fit = rigid_fit(meas, truth)
+    m2 = mahalanobis(meas @ fit[:3, :3].T + fit[:3, 3] - truth, cov) ** 2
+    assert np.mean(m2 <= chi2.ppf(0.9973, 3)) >= 0.95, f"{np.mean(m2 <= chi2.ppf(0.9973, 3)):.1%} within 3 sigma"
+    assert 0.8 <= m2.mean() <= 6.0, f"mean squared normalised error {m2.mean():.2f} (3 expected)"
+    return report
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(600)
+def test_fixture_the_plan_did_not_know_dots_left_unnamed_and_closed_loop_brings_targets_within_requirement(tmp_path):
+    job, folder, res = _run(tmp_path, {"fixture": FIXTURE})
+    assert res.doc["status"] == "DONE", res.stderr[-2000:]
+    obs = json.loads((folder / "observations.json").read_text())
+    # the fixture clips dots: they are left unnamed, each with its reason, counted and journalled
+    assert obs["dropped_by_reason"].get("shape unlike the target's ellipse", 0) >= 10, obs["dropped_by_reason"]
+    assert all(d["reason"] for o in obs["images"] for d in o["dropped"])
+    assert any(r["event"] == "identification_dropped" and r["total"] == obs["n_dropped"] for r in records(folder))
+    report = _check_truth_and_requirement(job, folder)
+    rounds = [r for r in report["closed_loop"]["rounds"] if r["status"] == "done"]
+    assert rounds and sum(len(r["stations_added"]) for r in rounds) >= 1
+    assert len(report["closed_loop"]["unmet"]) <= 2, report["closed_loop"]["unmet"]
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(600)
+def test_station_the_robot_cannot_reach_is_skipped_and_closed_loop_makes_up_for_it(tmp_path):
+    job, folder, res = _run(tmp_path, {"unreachable_stations": ["S003", "S007"]})
+    assert res.doc["status"] == "DONE", res.stderr[-2000:]
+    acq = json.loads((folder / "acquisition.json").read_text())
+    assert {s["station"] for s in acq["skipped"]} == {"S003", "S007"}
+    assert all("cannot reach" in s["reason"] for s in acq["skipped"])
+    assert {r["station"] for r in records(folder) if r["event"] == "station_skipped"} == {"S003", "S007"}
+    report = _check_truth_and_requirement(job, folder)
+    assert len(report["closed_loop"]["unmet"]) <= 2, report["closed_loop"]["unmet"]
