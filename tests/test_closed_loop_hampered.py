@@ -147,3 +147,17 @@ def test_station_the_robot_cannot_reach_is_skipped_and_closed_loop_makes_up_for_
     assert {r["station"] for r in records(folder) if r["event"] == "station_skipped"} == {"S003", "S007"}
     report = _check_truth_and_requirement(job, folder)
     assert len(report["closed_loop"]["unmet"]) <= 2, report["closed_loop"]["unmet"]
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(600)
+def test_glare_beyond_55_deg_screened_network_and_closed_loop_measure_every_target(tmp_path):
+    job, folder, res = _run(tmp_path, {"dot_max_incidence_deg": 55.0})
+    assert res.doc["status"] == "DONE", res.stderr[-2000:]
+    loop = json.loads((folder / "closed_loop.json").read_text())
+    # the images lost their dots beyond the glare: the loop learnt that limit from them and planned within it
+    learned = [r["incidence_limit_learned_deg"] for r in loop["rounds"] if r.get("incidence_limit_learned_deg")]
+    assert learned and all(50.0 <= a <= 56.0 for a in learned), learned
+    report = _check_truth_and_requirement(job, folder)
+    assert len(report["closed_loop"]["unmet"]) <= 3, report["closed_loop"]["unmet"]
+    assert len(report["not_measured"]) <= 3, report["not_measured"]
