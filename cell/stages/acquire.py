@@ -87,7 +87,8 @@ def run(ctx) -> None:
     images = [{"station": s["id"], "order": s["order"], "image": recs[s["id"]]["image"],
                "sha256": recs[s["id"]]["sha256"], "joints": recs[s["id"]]["joints"],
                "base_from_flange": recs[s["id"]]["base_from_flange"]} for s in stations if s["id"] in recs]
-    missed = [{"station": s["id"], "reason": skipped.get(s["id"], "not taken")} for s in stations if s["id"] not in recs]
+    missed = [{"station": s["id"], "reason": skipped.get(s["id"], "not taken")} for s in stations
+              if s["id"] not in recs]
     if len(images) < 2:
         raise DriverError(f"{len(images)} of {len(stations)} stations taken; nothing to measure")
     atomic_write_json(ctx.folder.file("acquisition.json"), {"images": images, "skipped": missed})

@@ -194,7 +194,8 @@ def _plan_round(ctx, rnd: int, bundle: dict, required: np.ndarray, exclude: set[
     if measured_all.any():
         seen_all = db.visible[:, measured_all]
         if limit is not None:
-            seen_all &= _incidence(db, job.part.targets.xyz[measured_all], job.part.targets.normals[measured_all]) <= limit
+            t = job.part.targets
+            seen_all &= _incidence(db, t.xyz[measured_all], t.normals[measured_all]) <= limit
         valid &= seen_all.sum(axis=1) >= LINK_STATION
     for i in exclude:
         valid[i] = False
