@@ -5,18 +5,22 @@ target meets its requirement; the measured coordinates agree with the simulated 
 covariance. Plus the kernels of those checks on data with a known answer."""
 from __future__ import annotations
 
+import itertools
 import json
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
-from jobutil import job_variant, mahalanobis, records, rigid_fit, run_cell, truth_xyz_m
+from jobutil import REPO, child_env, job_variant, mahalanobis, records, rigid_fit, run_cell, truth_xyz_m
 from scipy.stats import chi2
 
 from calibration.bundle.synthetic import simulate_network
 from calibration.camera import Intrinsics, invert, look_at
 from calibration.targets import ellipse_moments, shape_ratios
 from cell.stages.screen import GROSS_PX, screen_network
+from planning.augment import _sigma, plan_extra_stations
 
 REQUIRED_MM = 0.016  # the example's 16-station plan predicts 13 um at worst: met when nothing hampers it
 FIXTURE = [{"name": "clamp", "size": [20.0, 120.0, 20.0], "pose": {"xyz": [-40.0, 0.0, 110.0]}}]
@@ -161,3 +165,50 @@ def test_glare_beyond_55_deg_screened_network_and_closed_loop_measure_every_targ
     report = _check_truth_and_requirement(job, folder)
     assert len(report["closed_loop"]["unmet"]) <= 3, report["closed_loop"]["unmet"]
     assert len(report["not_measured"]) <= 3, report["not_measured"]
+
+
+POOL = 12  # candidates in the small case: 2^12 subsets at most
+
+
+def _meets(N_have, rays, req, min_rays, sel, info, visible):
+    sel = list(sel)
+    sig, ok = _sigma(N_have + info[sel].sum(axis=0), rays + visible[sel].sum(axis=0), min_rays)
+    return ok & (sig <= req)
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(600)
+def test_extra_stations_for_the_fixture_within_one_of_exhaustive_search_on_a_small_pool(tmp_path):
+    """Each closed-loop round of the fixture job, its real planning problem (the achieved information of the
+    taken stations, the cell's candidate database) cut down to the planner's stations plus the candidates that
+    see most short targets, 12 in all: the planner's count is within one of the exhaustive minimum."""
+    job = job_variant(tmp_path / "job", {"planning": {"required_sigma": REQUIRED_MM, "closed_loop_rounds": 2},
+                                         "sim": {"fixture": FIXTURE}})
+    out = tmp_path / "rounds.npz"
+    p = subprocess.run([sys.executable, str(REPO / "tests" / "augment_capture.py"), str(job), str(tmp_path / "a"),
+                        str(out)], capture_output=True, text=True, env=child_env(), timeout=600)
+    assert p.returncode == 0, p.stderr[-2000:]
+    z = np.load(out)
+    assert str(z["status"]) == "DONE"
+    n_rounds = len([k for k in z.files if k.endswith("_added")])
+    assert n_rounds >= 1
+    compared = 0
+    for r in range(n_rounds):
+        N_have, rays, req = z[f"r{r}_N_have"], z[f"r{r}_rays"], z[f"r{r}_required"]
+        info, visible, added = z[f"r{r}_info"], z[f"r{r}_visible"], z[f"r{r}_added"]
+        min_rays = int(z[f"r{r}_min_rays"])
+        sig0, ok0 = _sigma(N_have, rays, min_rays)
+        short = ~(ok0 & (sig0 <= req))
+        order = np.argsort(-visible[:, short].sum(axis=1), kind="stable")
+        pool = list(dict.fromkeys([int(a) for a in added] + [int(c) for c in order]))[:POOL]
+        aug = plan_extra_stations(N_have, rays, req, info[pool], visible[pool], np.ones(len(pool), dtype=bool),
+                                  min_rays=min_rays, max_new=len(pool))
+        fixable = aug.short & ~aug.unreachable
+        if not fixable.any():
+            continue
+        assert np.all(_meets(N_have, rays, req, min_rays, aug.added, info[pool], visible[pool])[fixable])
+        best = next(k for k in range(len(pool) + 1) for sel in itertools.combinations(range(len(pool)), k)
+                    if np.all(_meets(N_have, rays, req, min_rays, sel, info[pool], visible[pool])[fixable]))
+        assert len(aug.added) <= best + 1, (r, len(aug.added), best)
+        compared += 1
+    assert compared >= 1
