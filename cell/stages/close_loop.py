@@ -216,6 +216,10 @@ def _plan_round(ctx, rnd: int, bundle: dict, required: np.ndarray, exclude: set[
                                                   else None) for j in np.flatnonzero(aug.unreachable)},
              "predicted_fixed": [ids[int(cols[j])] for j in np.flatnonzero(aug.met_after & aug.short)],
              "image_sigma_px": sigma_px, "candidates_valid": int(valid.sum()),
+             "candidate_rule": (f"reachable without collision, seeing it within the plan's limits"
+                                + ("" if limit is None else f" and within the {np.degrees(limit):.1f} deg incidence "
+                                   "beyond which the images lost their dots")
+                                + f", and seeing {LINK_STATION} measured targets to tie into the network"),
              "incidence_limit_learned_deg": None if limit is None else float(np.degrees(limit)),
              "incidence_evidence": inc_facts}
     if aug.added.size == 0:
@@ -326,17 +330,20 @@ def run(ctx) -> None:
     _, sigma, rays = _achieved(bundle, n)
     short = _short(sigma, rays, required, p.min_rays, _judged(job))
     proofs: dict[str, float | None] = {}
+    rule: dict[str, str] = {}
     for r in doc["rounds"]:
         proofs.update(r.get("bound_sigma_m", {}))
+        rule.update({tid: r.get("candidate_rule", "reachable") for tid in r.get("bound_sigma_m", {})})
     unmet = []
     for t in np.flatnonzero(short):
         tid = ids[int(t)]
         s_um = "not measured" if not np.isfinite(sigma[t]) else f"sigma {sigma[t] * 1e6:.1f} um"
         if tid in proofs:
             b = proofs[tid]
-            reason = ("no reachable station can measure it" if b is None else
+            reason = ((f"no candidate station can measure it ({s_um}; candidates: {rule[tid]})") if b is None else
                       f"no reachable station can: with every reachable candidate added the best possible sigma is "
-                      f"{b * 1e6:.1f} um > required {required[t] * 1e6:.1f} um ({s_um} achieved)")
+                      f"{b * 1e6:.1f} um > required {required[t] * 1e6:.1f} um ({s_um} achieved; candidates: "
+                      f"{rule[tid]})")
         elif rays[t] < p.min_rays:
             reason = f"{rays[t]} ray(s) of the {p.min_rays} required after {len(doc['rounds'])} round(s)"
         else:
