@@ -212,3 +212,14 @@ def test_extra_stations_for_the_fixture_within_one_of_exhaustive_search_on_a_sma
         assert len(aug.added) <= best + 1, (r, len(aug.added), best)
         compared += 1
     assert compared >= 1
+
+
+def test_report_names_what_the_adjustment_left_out():
+    from cell.record.report import _alerts
+
+    doc = {"left_out": {"observations": 3, "targets": [{"id": "T0164", "reason": "its 2 rays meet at 0.0 deg"}],
+                        "images": [{"image": "images/0003.png", "station": "S010", "reason": "4 usable observation(s)"}]}}
+    html = _alerts(doc)
+    assert 'id="left-out"' in html and "3 gross observation(s)" in html
+    assert "T0164: its 2 rays meet at 0.0 deg" in html and "images/0003.png (S010): 4 usable" in html
+    assert "left-out" not in _alerts({"left_out": {"observations": 0, "targets": [], "images": []}})
