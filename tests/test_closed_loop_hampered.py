@@ -223,3 +223,22 @@ def test_report_names_what_the_adjustment_left_out():
     assert 'id="left-out"' in html and "3 gross observation(s)" in html
     assert "T0164: its 2 rays meet at 0.0 deg" in html and "images/0003.png (S010): 4 usable" in html
     assert "left-out" not in _alerts({"left_out": {"observations": 0, "targets": [], "images": []}})
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(600)
+def test_scale_bar_end_lost_to_glare_without_closed_loop_faults_with_one_line(tmp_path):
+    job = job_variant(tmp_path / "job", {"planning": {"required_sigma": REQUIRED_MM, "closed_loop": False},
+                                         "sim": {"dot_max_incidence_deg": 52.0}})
+    res = run_cell("run", str(job), "--archive", str(tmp_path / "archive"), "--yes", timeout=600)
+    assert res.code == 1 and res.doc is not None, res.stderr[-2000:]
+    assert res.doc["status"] == "FAULTED"
+    folder = Path(res.doc["folder"])
+    bundle = json.loads((folder / "bundle.json").read_text())
+    sc = bundle["screening"]
+    assert sc["scale_established"] is False and "T0094-T0100" in sc["scale"]
+    assert bundle["datum"] == "free"  # adjusted, but in no scale of its own: not reported
+    assert not (folder / "report.json").exists()
+    line = [ln for ln in res.stderr.splitlines() if "scale not established" in ln and "FAULTED" in ln]
+    assert len(line) == 1 and "T0094-T0100" in line[0], res.stderr[-2000:]
+    assert any(r["event"] == "adjustment_screening" and r["scale_established"] is False for r in records(folder))
