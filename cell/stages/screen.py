@@ -170,14 +170,16 @@ def screen_network(obs_image: np.ndarray, obs_target: np.ndarray, obs_uv: np.nda
             idx = order[bounds[t]:bounds[t + 1]]
             idx = idx[s.keep_obs[idx]]
             while len(idx) >= 3:  # leave one out: the ray farthest from the others' intersection
-                res = np.empty(len(idx))
+                res = np.full(len(idx), np.nan)  # nan: the other rays do not intersect (one station twice)
                 for j in range(len(idx)):
                     rest = np.delete(idx, j)
+                    if _span_deg(dirs[rest]) < MIN_INTERSECTION_DEG:
+                        continue
                     X = _intersect(centres[rest], dirs[rest])
                     res[j] = np.linalg.norm(uv[idx[j]] - project(intr, poses[obs_image[idx[j]]], X[None])[0])
-                worst = int(np.argmax(res))
-                if not res[worst] > GROSS_PX:
+                if not np.any(res > GROSS_PX):
                     break
+                worst = int(np.nanargmax(res))
                 s.obs[int(idx[worst])] = (f"{res[worst]:.1f} px from the intersection of its target's other "
                                           f"{len(idx) - 1} rays (> {GROSS_PX} px): misnamed or clipped")
                 s.keep_obs[idx[worst]] = False
