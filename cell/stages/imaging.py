@@ -35,9 +35,10 @@ SHAPE_MIN = 0.85
 SHAPE_MAX = 1.5
 BLUR_PX = 1.0
 #: an image whose named dots a resection (pose only, the nominal interior orientation) leaves with a median
-#: residual above this is named by a wrong pose or a shifted pattern: its naming is not trusted at all. Real
-#: deviations of a few targets do not move a median; a wrong naming moves every dot.
-RESECTION_MEDIAN_PX = 3.0
+#: residual above this is named inconsistently: its naming is not trusted at all. Real deviations of a few
+#: targets do not move a median; a naming that is wrong dot by dot does. A third of the matching window, so
+#: that an uncorrected lens (a real camera's distortion before ADJUST estimates it) is not taken for one.
+RESECTION_MEDIAN_PX = 8.0
 #: fewest named dots for the resection check (below it the image's naming is kept unchecked and said so)
 RESECTION_MIN_DOTS = 8
 

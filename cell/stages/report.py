@@ -151,7 +151,8 @@ def _closed_loop(f) -> dict | None:
         return None
     rounds = [{"round": r["round"], "status": r["status"], "stations_added": r.get("stations_added", []),
                "targets_short": r.get("targets_short", []), "targets_fixed": r.get("targets_fixed", []),
-               "time_s": r.get("time_s")} for r in cl["rounds"]]
+               "time_s": r.get("time_s"), "incidence_limit_learned_deg": r.get("incidence_limit_learned_deg")}
+              for r in cl["rounds"]]
     return {"required_sigma_m": cl.get("required_sigma_m"), "rounds": rounds,
             "unmet": [{"id": u["id"], "reason": u["reason"]} for u in cl.get("unmet", [])]}
 
