@@ -94,6 +94,45 @@ def test_screening_drops_gross_observations_undetermined_targets_and_unlinked_im
     assert set(s3.images) == {8} and "0 usable observation(s)" in s3.images[8]  # it saw nothing else: dropped too
 
 
+def _plate(n_side: int = 7):
+    import trimesh
+
+    from planning.part import Part, Targets
+
+    g = np.linspace(-0.12, 0.12, n_side)
+    P = np.array([(x, y, 0.0) for x in g for y in g])
+    n = len(P)
+    t = Targets(ids=[f"T{i}" for i in range(n)], xyz=P, normals=np.tile([0, 0, 1.0], (n, 1)),
+                kind=np.array(["retro"] * n), tolerance_m=np.full(n, np.nan), code=np.full(n, -1))
+    plate = trimesh.creation.box(extents=(0.5, 0.5, 0.02))
+    plate.apply_translation((0, 0, -0.01))
+    return Part("plate", plate, t, target_diameter_m=0.005, coded_size_m=0.02), P
+
+
+def test_naming_no_pose_explains_is_dropped_whole_and_a_few_deviating_dots_are_not():
+    from calibration.camera import project
+    from cell.stages.imaging import RESECTION_MEDIAN_PX, name_dots
+    from planning.visibility import Occluder
+
+    part, P = _plate()
+    intr = Intrinsics.from_focal_length(0.008, 3.45e-6, 2448, 2048)
+    cam_from_part = invert(look_at(np.array([0.03, -0.05, 0.5]), np.zeros(3), up=(0, 1, 0)))
+    uv = project(intr, cam_from_part, P)
+    rng = np.random.default_rng(3)
+    occ = Occluder(part.mesh)
+    # a few dots off by 10 px (the part deviates there): named, kept; the rest fit the resection
+    dev = uv.copy()
+    dev[[4, 17, 30]] += [10.0, 0.0]
+    m = name_dots(dev, part, intr, cam_from_part, occ)
+    assert len(m.target) == len(P) and not m.dropped and m.resection_median_px < 1.5
+    # every dot off by 10-12 px in its own direction: a naming no pose explains, dropped whole with the reason
+    ang = rng.uniform(0, 2 * np.pi, len(P))
+    bad = uv + rng.uniform(10.0, 12.0, (len(P), 1)) * np.column_stack([np.cos(ang), np.sin(ang)])
+    m = name_dots(bad, part, intr, cam_from_part, occ)
+    assert len(m.target) == 0 and m.resection_median_px > RESECTION_MEDIAN_PX
+    assert len(m.dropped) >= 40 and all("naming is inconsistent" in why for _, why in m.dropped)
+
+
 # --- whole jobs -------------------------------------------------------------------------------------------
 def _run(tmp_path: Path, sim: dict, planning: dict | None = None):
     job = job_variant(tmp_path / "job", {"planning": {"required_sigma": REQUIRED_MM, "closed_loop_rounds": 3}
