@@ -35,7 +35,7 @@ from typing import Any
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
-from calibration.errors import LimitError, MotionError, NotConnectedError, ProtectiveStopError
+from calibration.errors import LimitError, MotionError, MoveRefusedError, NotConnectedError, ProtectiveStopError
 from drivers.protocols import RobotState, SafetyStatus
 from sim_backend.world import World
 
@@ -220,7 +220,7 @@ class SimRobot:
         self._check_rate("joint acceleration", accel_rad_s2, self.limits.max_joint_accel_rad_s2, "rad/s^2")
         self._check_joint_limits(q1[None], "target")
         if len(self._unreachable) and np.any(np.max(np.abs(self._unreachable - q1), axis=1) < 1e-6):
-            raise MotionError("sim robot: move refused, the target is not reachable (injected: [sim] "
+            raise MoveRefusedError("sim robot: move refused, the target is not reachable (injected: [sim] "
                               "unreachable_stations); the arm did not move")
         q0 = self._q.copy()
         lead = float(np.max(np.abs(q1 - q0)))

@@ -7,7 +7,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from calibration.errors import DriverError, LimitError, MotionError, ProtectiveStopError
+from calibration.errors import DriverError, MoveRefusedError
 from cell.record.integrity import acquired
 from cell.record.jobfolder import atomic_write_bytes, atomic_write_json, sha256_file
 from cell.stages.exposure import ExposureTaker, FrameFault, wait_settled
@@ -95,17 +95,16 @@ def run(ctx) -> None:
 
 
 def _move_or_skip(ctx, robot, sid: str, q: np.ndarray, skipped: dict, q_next) -> bool:
-    """Move to a station; a move the controller refuses before the arm moves skips the station (journal
-    ``station_skipped``, log, console) when the move from here to the next station is collision-free too.
-    Anything else (a protective stop, the cell's own limits, an arm that moved and stopped) faults the job."""
+    """Move to a station; a move the controller refuses before the arm moves (``MoveRefusedError``) skips the
+    station (journal ``station_skipped``, log, console) when the move from here to the next station is
+    collision-free too. Anything else (a protective stop, the cell's own limits, an abort, an arm that moved
+    and stopped) faults the job as before."""
     c = ctx.job.spec.cell
     q_from = np.asarray(robot.state().joints_rad, dtype=float)
     try:
         robot.move_joints(q, c.max_joint_speed_rad_s, c.max_joint_accel_rad_s2)
         return True
-    except (ProtectiveStopError, LimitError):
-        raise
-    except MotionError as exc:
+    except MoveRefusedError as exc:  # only a refusal before any motion: a stop, a limit, an abort still fault
         if float(np.max(np.abs(np.asarray(robot.state().joints_rad, dtype=float) - q_from))) > 1e-4:
             raise
         if q_next is not None:
