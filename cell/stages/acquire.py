@@ -26,14 +26,15 @@ def run(ctx) -> None:
 
     plan_doc = ctx.folder.read_json("plan.json")
     stations = _stations_in_order(plan_doc)
-    done = set(acquired(list(ctx.folder.records())))  # stations whose image stands (verified on resume)
+    recs0 = list(ctx.folder.records())
+    done = set(acquired(recs0))  # stations whose image stands (verified on resume)
     if ctx.devices is None:
         ctx.devices = open_devices(ctx.job, ctx.backend)
     dev = ctx.devices
     unreachable = ctx.job.spec.sim.unreachable_stations if ctx.backend == "sim" else []
     if unreachable and hasattr(dev.robot, "inject_unreachable"):  # the sim's knob: a station the robot is kept from
         dev.robot.inject_unreachable([s["joints"] for s in stations if s["id"] in set(unreachable)])
-    skipped = {r["station"]: r["reason"] for r in ctx.folder.records() if r["event"] == "station_skipped"}
+    skipped = {r["station"]: r["reason"] for r in recs0 if r["event"] == "station_skipped"}
     c = ctx.job.spec.cell
     (ctx.folder.path / "images").mkdir(exist_ok=True)
     cam = ctx.job.spec.camera
