@@ -1,18 +1,24 @@
 """Retro-target detection on a 5 MP image with 1000 targets (target: <= 100 ms; precision <= 0.02 px).
 
 Run from the repository root:  .venv/bin/python -m benchmarks.bench_detection
-[--real] [--centre ellipse] [--dark] [--colour] [--jpeg QUALITY]
+[--real] [--centre ellipse] [--dark] [--colour] [--jpeg QUALITY] [--before REV]
 (``--real``: the defaults for photographs, ``DetectionOptions.for_real_images()``: polarity, kernel and
 size limits found per image; ``--dark``: the image inverted, dark dots on a light ground; ``--jpeg``:
 the image through a JPEG round trip at that quality.)
 The image is rendered like the simulated camera's (discs, 0.7 px blur, 0.70 / 0.08 of full scale,
 shot and read noise of a 10 000 e- sensor, 8 bits); precision is the scatter of the centres
-about the truth. Baseline, in the same process: the textbook SciPy route (white top-hat,
-threshold, ``ndimage.label``, ``ndimage.center_of_mass`` per blob), timed and scored the same way.
+about the truth. Baselines, in the same process and on the same image: the detector as it was
+before issue 21 (``calibration/dots.py`` at git revision ``--before``, loaded by ``git show``: two
+full-image dilations of the label image), whose centres must agree with today's; and the textbook
+SciPy route (white top-hat, threshold, ``ndimage.label``, ``ndimage.center_of_mass`` per blob).
+Times are wall clock (best and median of ``--repeat``) with the 1-minute load average beside them: the
+machine is shared, so the ratio to the baseline timed in the same process is the figure that holds.
 """
 from __future__ import annotations
 
 import argparse
+import json
+import os
 import time
 
 import cv2
@@ -20,8 +26,12 @@ import numpy as np
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
+from benchmarks.baseline_code import load_at
 from calibration.targets import DetectionOptions, detect_dots
 from tests.test_targets import grid_uv, render_dots
+
+#: main before issue 21's detector work (the render branch started here)
+BEFORE_REV = "e52f1ee"
 
 
 def baseline_scipy(img: np.ndarray, noise: float) -> np.ndarray:
@@ -47,7 +57,9 @@ def main() -> None:
     ap.add_argument("--dark", action="store_true", help="dark dots on a light ground (the image inverted)")
     ap.add_argument("--colour", action="store_true", help="a 3-channel BGR copy of the image")
     ap.add_argument("--jpeg", type=int, default=0, help="JPEG round trip at this quality (0: none)")
+    ap.add_argument("--before", default=BEFORE_REV, help="git revision of the detector to compare with")
     a = ap.parse_args()
+    before = load_at("calibration/dots.py", a.before)
     rng = np.random.default_rng(0)
     h, w = 2048, 2448
     uv = grid_uv(rng, h, w, 40, 25, border=40)
@@ -61,11 +73,16 @@ def main() -> None:
     if a.colour:
         img = cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)
     opts = DetectionOptions.for_real_images(centre=a.centre) if a.real else DetectionOptions(centre=a.centre)
-    times = []
-    for _ in range(a.repeat):
+    load0 = os.getloadavg()[0]
+    times, old_times = [], []
+    for _ in range(a.repeat):  # interleaved: both see the same load
         t0 = time.perf_counter()
         det = detect_dots(img, opts)
         times.append(time.perf_counter() - t0)
+        t0 = time.perf_counter()
+        old = before.detect_dots(img, opts)
+        old_times.append(time.perf_counter() - t0)
+    load1 = os.getloadavg()[0]
     d, j, err = _errors(uv, det.uv)
     base_times = []
     for _ in range(max(3, a.repeat // 3)):
@@ -78,7 +95,14 @@ def main() -> None:
     sd = np.sqrt(np.concatenate([det.cov[:, 0, 0], det.cov[:, 1, 1]]))
     print(f"options: {'real-image defaults' if a.real else 'defaults'}, centre {a.centre}, polarity found {det.polarity}"
           f"; stated sigma (cov) median {np.median(sd):.4f} px")
-    print(f"detection: best {min(times) * 1e3:.1f} ms, median {np.median(times) * 1e3:.1f} ms")
+    print(f"detection: best {min(times) * 1e3:.1f} ms, median {np.median(times) * 1e3:.1f} ms "
+          f"(load average {load0:.1f} -> {load1:.1f} on {os.cpu_count()} cores)")
+    same = len(old) == len(det) and np.allclose(old.uv, det.uv, rtol=0, atol=1e-9)
+    print(f"before issue 21 (calibration/dots.py at {a.before}): best {min(old_times) * 1e3:.1f} ms, median "
+          f"{np.median(old_times) * 1e3:.1f} ms, ratio before / now {min(old_times) / min(times):.2f}x (best), "
+          f"{np.median(old_times) / np.median(times):.2f}x (median); centres "
+          + (f"agree (max difference {np.abs(old.uv - det.uv).max():.1e} px)" if same else
+             f"DIFFER ({len(old)} before, {len(det)} now)"))
     m = d < 1.0  # a detection more than 1 px from every target is a false one, counted apart
     print(f"centre error (the {int(m.sum())} within 1 px of a target; {int((~m).sum())} false detections): "
           f"bias ({err[m, 0].mean():+.4f}, {err[m, 1].mean():+.4f}) px, "
@@ -87,6 +111,12 @@ def main() -> None:
           f"median {np.median(base_times) * 1e3:.1f} ms, found {len(base)}, centre std "
           f"({berr[bd < 1.0, 0].std():.4f}, {berr[bd < 1.0, 1].std():.4f}) px within 1 px of a target")
     print(f"ratio baseline / ours (best): {min(base_times) / min(times):.2f}x")
+    print("BENCHMARK " + json.dumps({
+        "what": f"retro-target detection ({w * h / 1e6:.1f} MP, {len(uv)} targets)",
+        "figure": f"{min(times) * 1e3:.1f} ms best, {np.median(times) * 1e3:.1f} ms median (load {load0:.1f}); centre std "
+                  f"{err[m, 0].std():.4f}/{err[m, 1].std():.4f} px",
+        "baseline": f"before issue 21 ({a.before}) {min(old_times) * 1e3:.1f} ms; scipy.ndimage {min(base_times) * 1e3:.1f} ms",
+        "ratio": f"{min(old_times) / min(times):.2f}x faster than before; {min(times) * 1e3 / 100:.2f} of the 100 ms budget"}))
 
 
 if __name__ == "__main__":
