@@ -152,29 +152,40 @@ def _noise(image: np.ndarray, stride: int) -> float:
     """Pixel noise standard deviation: MAD of differences of pixels two apart along every ``stride``-th row.
 
     Large bright areas and smooth shading do not count as noise, as they would in the spread of the
-    grey levels themselves. The grey levels are integers, so both medians are exact order statistics of a
-    histogram (what ``np.median`` gives, in one pass instead of two partitions).
+    grey levels themselves. The differences are integers: both medians are exact order statistics read
+    from one histogram of them (what ``np.median`` gives, without two partitions of the data).
     """
-    rows = image[::stride].astype(np.int32)
-    d = (rows[:, 2:] - rows[:, :-2]).ravel()
-    med2 = _twice_median_of_ints(d)  # 2 x median: an integer
-    mad = 0.25 * _twice_median_of_ints(np.abs(2 * d - med2))  # median |d - median(d)|, from |2 d - 2 median|
+    rows = image[::stride]
+    if rows.dtype == np.uint8:  # differences + 255 in 0..510: OpenCV's histogram
+        d = cv2.subtract(rows[:, 2:], rows[:, :-2], dtype=cv2.CV_16S)
+        shifted = cv2.add(d, 255, dtype=cv2.CV_16U)
+        counts = cv2.calcHist([shifted], [0], None, [511], [0, 511]).ravel().astype(np.int64)
+        values = np.arange(-255, 256)
+    else:
+        d = rows[:, 2:].astype(np.int32) - rows[:, :-2]
+        lo = int(d.min())
+        counts = np.bincount((d - lo).ravel())
+        values = lo + np.arange(len(counts))
+    med2 = _twice_median(values, counts)  # 2 x median: an integer
+    # median |d - median(d)| from the histogram of |2 d - 2 median|
+    mad = 0.25 * _twice_median(np.arange(int(np.abs(2 * values - med2).max()) + 1),
+                               np.bincount(np.abs(2 * values - med2), weights=counts).astype(np.int64))
     noise = 1.4826 * mad / np.sqrt(2.0)
     if noise == 0.0:  # quantised, nearly noise-free (or clipped at black): the spread of the small differences
+        d = np.asarray(d, dtype=np.int32).ravel()
         small = d[np.abs(d) <= 3].astype(np.float32)
         noise = float(np.std(small)) / np.sqrt(2.0) if len(small) > 1 else 1.0
     return max(noise, 0.5)
 
 
-def _twice_median_of_ints(v: np.ndarray) -> int:
-    """2 x the median of the integers ``v: (n,)`` (n >= 1), exactly; by a histogram."""
-    lo = int(v.min())
-    cs = np.cumsum(np.bincount(v - lo))
-    n = len(v)
-    upper = lo + int(np.searchsorted(cs, n // 2 + 1))  # the element of rank n // 2 (from 0)
+def _twice_median(values: np.ndarray, counts: np.ndarray) -> int:
+    """2 x the median of integers given as a histogram: ``counts[i]`` times ``values[i]`` (increasing), exactly."""
+    cs = np.cumsum(counts)
+    n = int(cs[-1])
+    upper = int(values[np.searchsorted(cs, n // 2 + 1)])  # the element of rank n // 2 (from 0)
     if n % 2:
         return 2 * upper
-    return lo + int(np.searchsorted(cs, n // 2)) + upper
+    return int(values[np.searchsorted(cs, n // 2)]) + upper
 
 
 def _survey(image: np.ndarray, o: DetectionOptions) -> tuple[int, float, float]:

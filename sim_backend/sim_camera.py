@@ -247,6 +247,18 @@ def _subpixel_weights(n: int) -> np.ndarray:
     return np.stack([(1 - fy) * (1 - fx), (1 - fy) * fx, fy * (1 - fx), fy * fx], axis=1)
 
 
+def _norm2(x: np.ndarray) -> np.ndarray:
+    """Length of the 2-vectors ``x: (..., 2)`` (as ``np.linalg.norm(x, axis=-1)``, without its generic reduction)."""
+    x0, x1 = x[..., 0], x[..., 1]
+    return np.sqrt(x0 * x0 + x1 * x1)
+
+
+def _half_diagonal(c00: np.ndarray, c01: np.ndarray, c10: np.ndarray, c11: np.ndarray) -> np.ndarray:
+    """Half the longer diagonal of each pixel's quadrilateral of corners (..., 2), grown by 2 %: the reach of
+    its footprint from its centre."""
+    return 0.5 * np.maximum(_norm2(c00 - c11), _norm2(c01 - c10)) * 1.02
+
+
 def _corner_blocks(st: np.ndarray, idx: tuple[np.ndarray, ...]) -> np.ndarray:
     """Plane coords of the 4 corners of the pixels ``idx = (k, i, j)``, (b, 4, 2)."""
     k, i, j = idx
@@ -287,8 +299,8 @@ def disc_coverage(
     st = _plane_coords(_pixel_lattice(lattice, u0, v0, h, w, shift_px), centre_c, e1_c, e2_c, normal_c)
     c00, c01, c10, c11 = st[:, :-1, :-1], st[:, :-1, 1:], st[:, 1:, :-1], st[:, 1:, 1:]
     centre = 0.25 * (c00 + c01 + c10 + c11)
-    half_diag = 0.5 * np.maximum(np.linalg.norm(c00 - c11, axis=-1), np.linalg.norm(c01 - c10, axis=-1)) * 1.02
-    rho = np.linalg.norm(centre, axis=-1)
+    half_diag = _half_diagonal(c00, c01, c10, c11)
+    rho = _norm2(centre)
     cov = (rho < radius_m).astype(float)
     boundary = np.abs(rho - radius_m) <= half_diag if adaptive else np.ones_like(rho, dtype=bool)
     idx = np.nonzero(boundary)
@@ -347,7 +359,7 @@ def marker_coverage(
     ab = (st + half) / cell  # cell coordinates, patch spans [0, G)
     c00, c01, c10, c11 = ab[:, :-1, :-1], ab[:, :-1, 1:], ab[:, 1:, :-1], ab[:, 1:, 1:]
     centre = 0.25 * (c00 + c01 + c10 + c11)
-    hd = 0.5 * np.maximum(np.linalg.norm(c00 - c11, axis=-1), np.linalg.norm(c01 - c10, axis=-1)) * 1.02
+    hd = _half_diagonal(c00, c01, c10, c11)
     a, b = centre[..., 0], centre[..., 1]
     outside = (a < -hd) | (a > G + hd) | (b < -hd) | (b > G + hd)
     uniform = (np.abs(a - np.round(a)) > hd) & (np.abs(b - np.round(b)) > hd)
@@ -357,6 +369,16 @@ def marker_coverage(
     kk = np.broadcast_to(np.arange(len(u0))[:, None, None], a.shape)
     alpha = inside.astype(float)
     white = np.where(inside, textures[kk, ib, ia], 0.0)
+    # a pixel across the edges of cells of one colour, all in the patch, is uniform too (issue 21: half of a
+    # marker's cell edges part equal cells; supersampling them gave alpha 1 and that colour exactly)
+    a0, a1 = np.floor(a - hd).astype(np.int64), np.floor(a + hd).astype(np.int64)
+    b0, b1 = np.floor(b - hd).astype(np.int64), np.floor(b + hd).astype(np.int64)
+    near = ~outside & ~uniform & (a0 >= 0) & (a1 < G) & (b0 >= 0) & (b1 < G) & (a1 - a0 <= 1) & (b1 - b0 <= 1)
+    q = np.nonzero(near)
+    t00 = textures[q[0], b0[q], a0[q]]
+    one = ((t00 == textures[q[0], b0[q], a1[q]]) & (t00 == textures[q[0], b1[q], a0[q]])
+           & (t00 == textures[q[0], b1[q], a1[q]]))
+    uniform[q[0][one], q[1][one], q[2][one]] = True
     boundary = ~outside & ~uniform if adaptive else np.ones_like(a, dtype=bool)
     idx = np.nonzero(boundary)
     if len(idx[0]):
@@ -409,7 +431,7 @@ def ring_coverage(
     st = _plane_coords(_pixel_lattice(lattice, u0, v0, h, w, shift_px), centre_c, e1_c, e2_c, normal_c) / radius_m
     c00, c01, c10, c11 = st[:, :-1, :-1], st[:, :-1, 1:], st[:, 1:, :-1], st[:, 1:, 1:]
     centre = 0.25 * (c00 + c01 + c10 + c11)
-    hd = 0.5 * np.maximum(np.linalg.norm(c00 - c11, axis=-1), np.linalg.norm(c01 - c10, axis=-1)) * 1.02
+    hd = _half_diagonal(c00, c01, c10, c11)
     kk = np.broadcast_to(np.arange(len(u0))[:, None, None], hd.shape)
 
     def shade(s, t, kidx):
@@ -420,7 +442,7 @@ def ring_coverage(
         return (rho <= quiet).astype(float), white.astype(float)
 
     alpha, white = shade(centre[..., 0], centre[..., 1], kk)
-    rho = np.linalg.norm(centre, axis=-1)
+    rho = _norm2(centre)
     near_circle = np.zeros(rho.shape, dtype=bool)
     for rr in (1.0, inner, outer, quiet):
         near_circle |= np.abs(rho - rr) <= hd
@@ -808,8 +830,7 @@ class SimCamera:
     def _visibility_mask(self, u0: int, v0: int, h: int, w: int, target: int, cam_from_part: np.ndarray, shift: np.ndarray) -> np.ndarray:
         """(h, w) 1 where the ray through the pixel centre reaches the target's plane unoccluded."""
         part_from_cam = invert(cam_from_part)
-        uu, vv = np.meshgrid(u0 + np.arange(w) - shift[0], v0 + np.arange(h) - shift[1])
-        xy = self.lattice(uu, vv).reshape(-1, 2)
+        xy = self.lattice.on_grid((u0 + np.arange(w) - shift[0])[None], (v0 + np.arange(h) - shift[1])[None]).reshape(-1, 2)
         d = np.column_stack([xy, np.ones(len(xy))]) @ part_from_cam[:3, :3].T
         C = part_from_cam[:3, 3]
         P0, n = self.world.true_xyz[target], self.world.normals[target]
