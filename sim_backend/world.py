@@ -126,7 +126,7 @@ class World:
         self.base_from_flange = np.eye(4)
         self.light_fraction = 1.0  # illumination of the strobe, [0, 1]; a sim light may set it
         self._intersector = None
-        self._embree = None  # (scene, origin): Embree on the mesh moved near the origin (float32)
+        self._embree = None  # (scene, centre, face normals, first vertices): Embree on the mesh moved to its centre
         self._scene = None
 
     # --- the part as it really is -----------------------------------------
@@ -244,9 +244,3 @@ class World:
             self._embree = (scene, centre, np.ascontiguousarray(mesh.face_normals, dtype=float),
                             np.ascontiguousarray(np.asarray(mesh.vertices, dtype=float)[faces[:, 0]]))
         return self._embree
-        loc, idx_ray, idx_tri = self.intersector.intersects_location(o, d, multiple_hits=False)
-        if len(idx_ray):
-            dd = np.einsum("ij,ij->i", loc - o[idx_ray], d[idx_ray])
-            dist[idx_ray] = dd
-            tri[idx_ray] = idx_tri
-        return dist, tri
