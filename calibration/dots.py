@@ -303,6 +303,13 @@ def _busy_pairs(busy: np.ndarray) -> np.ndarray:
     return np.flatnonzero(np.repeat(pair, 2)[:n])
 
 
+def _bucket(n: np.ndarray) -> np.ndarray:
+    """Sizes ``n`` (px, >= 1) rounded up to a multiple of 8, or of a quarter of their power of two above 32."""
+    n = np.asarray(n, dtype=np.int64)
+    q = 2 ** np.maximum(np.floor(np.log2(np.maximum(n, 1))).astype(np.int64) - 2, 3)
+    return q * -(-n // q)
+
+
 def _grown_blobs(labels: np.ndarray, remap: np.ndarray, x0: np.ndarray, y0: np.ndarray, w: np.ndarray, h: np.ndarray,
                  m: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The pixels of the kept blobs grown by ``m`` and of a ring 2 px further out, with their labels.
@@ -328,10 +335,10 @@ def _grown_blobs(labels: np.ndarray, remap: np.ndarray, x0: np.ndarray, y0: np.n
     k1 = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * m + 1, 2 * m + 1))
     k2 = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
     x0, y0, w, h = (np.asarray(a, dtype=np.int64) for a in (x0, y0, w, h))
-    # window sizes rounded up to 8 px (few groups), at most the image; windows shifted into the image, whose
-    # own edge is the dilation's border as it is for the whole image
-    bw = np.minimum(8 * -(-(w + 2 * pad) // 8), W)
-    bh = np.minimum(8 * -(-(h + 2 * pad) // 8), H)
+    # window sizes rounded up (to 8 px, or a quarter of their octave: few groups of sizes), at most the image;
+    # windows shifted into the image, whose own edge is the dilation's border as it is for the whole image
+    bw = np.minimum(_bucket(w + 2 * pad), W)
+    bh = np.minimum(_bucket(h + 2 * pad), H)
     wx = np.clip(x0 - pad, 0, W - bw)
     wy = np.clip(y0 - pad, 0, H - bh)
     small = remap.max() < 65536  # uint16 labels dilate faster than float32 ones
