@@ -23,6 +23,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import sys
 import time
 from pathlib import Path
 
@@ -31,14 +32,11 @@ import numpy as np
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
-import sys  # noqa: E402
-from pathlib import Path as _Path  # noqa: E402
-
-sys.path.insert(0, str(_Path(__file__).resolve().parents[1]))  # run as a script or with -m, from anywhere
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run as a script or with -m, from anywhere
 
 from benchmarks.baseline_code import load_at  # noqa: E402
-from calibration.targets import DetectionOptions, detect_dots
-from tests.test_targets import grid_uv, render_dots
+from calibration.targets import DetectionOptions, detect_dots  # noqa: E402
+from tests.test_targets import grid_uv, render_dots  # noqa: E402
 
 #: main before issue 21's detector work (the render branch started here)
 BEFORE_REV = "e52f1ee"

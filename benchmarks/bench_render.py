@@ -16,26 +16,23 @@ and the parts of today's render (part background, targets, blur, sensor noise + 
 from __future__ import annotations
 
 import argparse
-import time
-from dataclasses import replace
-
-import numpy as np
-
 import json
 import os
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
 
 import cv2
+import numpy as np
 
-import sys  # noqa: E402
-from pathlib import Path as _Path  # noqa: E402
-
-sys.path.insert(0, str(_Path(__file__).resolve().parents[1]))  # run as a script or with -m, from anywhere
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run as a script or with -m, from anywhere
 
 from benchmarks.baseline_code import load_at  # noqa: E402
-from calibration.camera import Intrinsics, invert, look_at
-from planning.part import Part, make_bracket, sample_targets
-from sim_backend.sim_camera import RenderOptions, SimCamera, apply_sensor
-from sim_backend.world import World
+from calibration.camera import Intrinsics, invert, look_at  # noqa: E402
+from planning.part import Part, make_bracket, sample_targets  # noqa: E402
+from sim_backend.sim_camera import RenderOptions, SimCamera, apply_sensor  # noqa: E402
+from sim_backend.world import World  # noqa: E402
 
 #: main before issue 21's render work (the render branch started here)
 BEFORE_REV = "e52f1ee"
