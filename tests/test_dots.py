@@ -169,8 +169,11 @@ def test_blob_margins_from_windows_are_the_whole_image_dilations():
 
     rng = np.random.default_rng(12)
     mask = _random_blobs(rng, 230, 310, 60)
+    cv2.circle(mask, (150, 110), 45, 1, -1)  # a blob whose window is rounded to a quarter octave (> 64 px)
+    cv2.rectangle(mask, (0, 200), (309, 203), 1, -1)  # one as wide as the image
     n_lab, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8, ltype=cv2.CV_32S)
-    kept = np.flatnonzero(rng.random(n_lab - 1) < 0.7) + 1  # some blobs dropped: they neither grow nor block
+    # some blobs dropped (they neither grow nor block); the big ones kept
+    kept = np.flatnonzero((rng.random(n_lab - 1) < 0.7) | (stats[1:, cv2.CC_STAT_AREA] > 1000)) + 1
     remap = np.zeros(n_lab, np.float32)
     remap[kept] = np.arange(1, len(kept) + 1)
     for m in (0, 2, 3):
