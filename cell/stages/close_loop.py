@@ -342,8 +342,8 @@ def run(ctx) -> None:
             b = proofs[tid]
             reason = ((f"no candidate station can measure it ({s_um}; candidates: {rule[tid]})") if b is None else
                       f"no reachable station can: with every reachable candidate added the best possible sigma is "
-                      f"{b * 1e6:.1f} um > required {required[t] * 1e6:.1f} um ({s_um} achieved; candidates: "
-                      f"{rule[tid]})")
+                      f"{b * 1e6:.1f} um > required {required[t] * 1e6:.1f} um ("
+                      + (s_um if not np.isfinite(sigma[t]) else f"{s_um} achieved") + f"; candidates: {rule[tid]})")
         elif rays[t] < p.min_rays:
             reason = f"{rays[t]} ray(s) of the {p.min_rays} required after {len(doc['rounds'])} round(s)"
         else:
