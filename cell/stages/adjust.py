@@ -9,7 +9,7 @@ import numpy as np
 
 from calibration.bundle import BundleConfig, BundleOptions, ScaleBar, bundle_adjust
 from calibration.camera import Intrinsics
-from calibration.detector_model import load_model, observation_sigmas
+from calibration.detector_model import load_model, observation_covariances, observation_sigmas
 from calibration.errors import CalibrationError
 from calibration.plausibility import check_adjustment
 from calibration.weights import INCIDENCE_EDGES_DEG, group_labels, incidence_angles, incidence_groups
@@ -25,6 +25,14 @@ def observation_arrays(job, obs_doc: dict) -> tuple[np.ndarray, np.ndarray, np.n
             tgt.append(index[tid])
             uv.append(p)
     return np.asarray(img, dtype=int), np.asarray(tgt, dtype=int), np.asarray(uv, dtype=float).reshape(-1, 2)
+
+
+def background_bounds(obs_doc: dict) -> np.ndarray | None:
+    """The detector's bound on each observation's error from a background that is not a plane, ``(q, 2, 2)``
+    px^2 in the order of :func:`observation_arrays`; None when observations.json has none (measured before)."""
+    if not obs_doc["images"] or any(o.get("bg_cov_px2") is None for o in obs_doc["images"]):
+        return None
+    return np.concatenate([np.asarray(o["bg_cov_px2"], dtype=float).reshape(-1, 2, 2) for o in obs_doc["images"]])
 
 
 def initial_intrinsics(job, cal_doc: dict) -> Intrinsics:
@@ -85,6 +93,11 @@ def run_bundle(ctx) -> dict:
                                        job.part.target_diameter_m,
                                        noise_scale=job.spec.sim.noise if ctx.backend == "sim" else 1.0)
         obs_sigma = np.maximum(obs_sigma, 1e-4)
+        # a dot next to an edge or a step of the shading: the detector's background bound, its measured share
+        # (docs/decisions/0022); the covariance is then 2x2 per observation
+        bg = background_bounds(obs)
+        if bg is not None and np.any(bg):
+            obs_sigma = observation_covariances(obs_sigma, bg)
     t0 = time.perf_counter()
     res = bundle_adjust(obs_image, obs_target, obs_uv, intr0, poses0, targets.xyz, options, config,
                         obs_sigma_px=obs_sigma, obs_group=groups)
@@ -132,8 +145,14 @@ def _weights_doc(job, res, groups) -> dict:
     """The a priori image sigmas the adjustment used: one per incidence class (estimated) or one for all."""
     vc = res.variance_components
     if job.spec.camera.observation_weights == "model":
-        used = res.obs_sigma_px[~res.rejected] if res.obs_sigma_px is not None else np.array([np.nan])
+        s = res.obs_sigma_px
+        if s is not None and s.ndim == 3:  # 2x2 covariances: the rms sigma of a coordinate
+            s = np.sqrt(np.trace(s, axis1=1, axis2=2) / 2)
+        used = s[~res.rejected] if s is not None else np.array([np.nan])
+        C = res.obs_sigma_px
+        n_bg = int(np.count_nonzero((C[:, 0, 1] != 0) | (C[:, 0, 0] != C[:, 1, 1]))) if C is not None and C.ndim == 3 else 0
         return {"method": "model", "detector_model": load_model().to_dict(),
+                "observations_with_background_bound": n_bg,
                 "a_priori_sigma_px": {"median": float(np.median(used)), "p90": float(np.quantile(used, 0.9)),
                                       "max": float(np.max(used))},
                 "variance_factor": float((res.sigma0_px / np.sqrt(np.mean(used**2))) ** 2)}
