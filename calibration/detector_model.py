@@ -18,7 +18,7 @@ shading next to it) carries a further error the geometry cannot predict; the det
 (``Detections.background_cov``, observations.json ``bg_cov_px2``) and the bundle adds ``c^2`` times that
 bound to the model's variance (:func:`observation_covariances`); ``c`` (``c_background``), the share of the
 bound that such errors reach on average, is measured by ``benchmarks/detector_precision.py --fit-background``
-against the simulated truth (docs/decisions/0022).
+against the simulated truth (docs/decisions/0023).
 """
 from __future__ import annotations
 

@@ -94,7 +94,7 @@ def run_bundle(ctx) -> dict:
                                        noise_scale=job.spec.sim.noise if ctx.backend == "sim" else 1.0)
         obs_sigma = np.maximum(obs_sigma, 1e-4)
         # a dot next to an edge or a step of the shading: the detector's background bound, its measured share
-        # (docs/decisions/0022); the covariance is then 2x2 per observation
+        # (docs/decisions/0023); the covariance is then 2x2 per observation
         bg = background_bounds(obs)
         if bg is not None and np.any(bg):
             model_sigma, obs_sigma = obs_sigma, observation_covariances(obs_sigma, bg)
