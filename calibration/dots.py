@@ -485,8 +485,8 @@ def _detect(image: np.ndarray, o: DetectionOptions) -> Detections:
     rms = np.sqrt(np.bincount(rl, weights=r * r, minlength=k + 1)[1:] / cnt)
     fit = np.abs(r) <= 2.0 * rms[rl - 1] + 1.0
     coef = _ring_planes(rl[fit], rdx[fit], rdy[fit], rv[fit], k, bg)
-    misfit = _ring_misfit(rl[fit], rdx[fit], rdy[fit],
-                          rv[fit] - (coef[rl[fit] - 1, 0] + coef[rl[fit] - 1, 1] * rdx[fit] + coef[rl[fit] - 1, 2] * rdy[fit]), k)
+    lf, dxf, dyf = rl[fit], rdx[fit], rdy[fit]
+    misfit = _ring_misfit(lf, dxf, dyf, rv[fit] - (coef[lf - 1, 0] + coef[lf - 1, 1] * dxf + coef[lf - 1, 2] * dyf), k)
     bg_local = coef[:, 0]
     inside = ~ring
     li, xi, yi, vi = lg[inside], xs[inside], ys[inside], val[inside]
