@@ -271,9 +271,10 @@ def _ring_misfit(lab: np.ndarray, dx: np.ndarray, dy: np.ndarray, r: np.ndarray,
 
     The mean square of the residuals is the pixel noise plus the misfit; neighbours along the ring
     share the misfit but not the noise, so half the mean square of their differences is the noise
-    alone, where the dot is: misfit^2 = ms(r) - ms(diff) / 2. For white noise of variance s^2 over n
-    ring pixels that estimate scatters by about 2 s^2 / sqrt(n): a misfit below ``z`` times that cannot
-    be told from the noise and is 0.
+    alone, where the dot is: misfit^2 = ms(r) - ms(diff) / 2, which is the mean product of neighbours
+    (the ring's lag-one autocovariance). For white noise of variance s^2 over n ring pixels those n
+    products are uncorrelated, each of variance s^4: the estimate scatters by s^2 / sqrt(n), and a misfit
+    below ``z`` times that cannot be told from the noise and is 0.
     """
     order = np.lexsort((np.arctan2(dy, dx), lab))
     lo, ro = lab[order], r[order]
@@ -283,7 +284,7 @@ def _ring_misfit(lab: np.ndarray, dx: np.ndarray, dy: np.ndarray, r: np.ndarray,
     noise2 /= np.maximum(n_d, 1)
     n = np.bincount(lab, minlength=k + 1)[1:]
     excess = np.bincount(lab, weights=r * r, minlength=k + 1)[1:] / np.maximum(n, 1) - noise2
-    significant = (n >= 8) & (excess > z * 2.0 * noise2 / np.sqrt(np.maximum(n, 1)))
+    significant = (n >= 8) & (excess > z * noise2 / np.sqrt(np.maximum(n, 1)))
     return np.where(significant, np.sqrt(np.maximum(excess, 0.0)), 0.0)
 
 
