@@ -14,6 +14,7 @@ from calibration.bundle.config import BundleConfig, ControlPoints
 from calibration.bundle.projection import project_observations
 from calibration.camera import Intrinsics, exp_se3, skew
 from calibration.errors import CalibrationError
+from calibration.weights import whitening
 
 
 def _update_intrinsics(intr: Intrinsics, names: tuple[str, ...], delta: np.ndarray) -> Intrinsics:
@@ -111,6 +112,8 @@ def _jacobians(state: _State, obs_image: np.ndarray, obs_target: np.ndarray, obs
                sigma_px: float | np.ndarray):
     """Whitened residuals and Jacobians of observations (of active targets) at ``state``.
 
+    ``sigma_px``: one sigma, ``(q,)`` sigmas or ``(q, 2, 2)`` covariances (px^2) of the observations.
+
     Returns ``r (q, 2)``, ``Jp (q, 2, 3)`` (zero for linked targets), the compact camera-side
     ``Jc (q, 2, 6 + k + 3)`` with its columns ``cidx (q, 6 + k + 3)``, the unlinked point ``slot (q,)``
     and ``is_linked (q,)``.
@@ -124,9 +127,15 @@ def _jacobians(state: _State, obs_image: np.ndarray, obs_target: np.ndarray, obs
         exc = CalibrationError("bundle: a target is behind a camera that observes it; check identification")
         exc.targets = np.unique(obs_target[behind])  # which ones: a caller may drop them and adjust again
         raise exc
-    w = 1.0 / np.broadcast_to(np.asarray(sigma_px, dtype=float), (len(uv),))  # (q,) weights^(1/2)
-    r = (obs_uv - uv) * w[:, None]
-    Jp, Jpose, Jin = Jp * w[:, None, None], Jpose * w[:, None, None], Jin * w[:, None, None]
+    sig = np.asarray(sigma_px, dtype=float)
+    if sig.ndim == 3:  # a 2x2 covariance per observation: whiten with the inverse of its Cholesky factor
+        W = whitening(sig)
+        r = np.einsum("qij,qj->qi", W, obs_uv - uv)
+        Jp, Jpose, Jin = (np.einsum("qij,qja->qia", W, J) for J in (Jp, Jpose, Jin))
+    else:
+        w = 1.0 / np.broadcast_to(sig, (len(uv),))  # (q,) weights^(1/2)
+        r = (obs_uv - uv) * w[:, None]
+        Jp, Jpose, Jin = Jp * w[:, None, None], Jpose * w[:, None, None], Jin * w[:, None, None]
     is_linked = lay.lslot[obs_target] >= 0
     # compact camera-side Jacobian: pose (6) | interior (k) | linked point (3)
     W = 6 + k + 3

@@ -30,7 +30,7 @@ MARKER_GROW = 1.33
 #: in the other's metric). Blur only grows a dot, so below SHAPE_MIN it was clipped (an edge or a fixture the
 #: CAD does not have, glare eating one side); above SHAPE_MAX, after BLUR_PX of blur is allowed for, it is
 #: two blobs merged or a glint. On the example's renders whole dots lie in 0.99..1.41 (1,224 dots), the
-#: clipped ones that biased centres by 1-24 px mostly below 0.85 or above 1.9 (decision 0023, hamper).
+#: clipped ones that biased centres by 1-24 px mostly below 0.85 or above 1.9 (decision 0024, hamper).
 SHAPE_MIN = 0.85
 SHAPE_MAX = 1.5
 BLUR_PX = 1.0
@@ -89,6 +89,8 @@ class DotMeasurement:
         n_partly_hidden: identified dots dropped because an edge of the part clips them.
         cov: (k, 2, 2) each centre's covariance from the detector (px^2, ``Detections.cov``), or None
             when the caller gave none.
+        bg_cov: (k, 2, 2) the detector's bound on each centre's error from a background that is not a
+            plane (px^2, ``Detections.background_cov``), or None.
         dropped: (target index, reason) of every dot that was named and then left unnamed (partly hidden,
             shape unlike its target's ellipse, the image's naming inconsistent); never silent.
         resection_median_px: median residual of the resection on the named dots (None: too few to check).
@@ -100,6 +102,7 @@ class DotMeasurement:
     n_unidentified: int = 0
     n_partly_hidden: int = 0
     cov: np.ndarray | None = None
+    bg_cov: np.ndarray | None = None
     dropped: list = field(default_factory=list)
     resection_median_px: float | None = None
 
@@ -112,12 +115,14 @@ class DotMeasurement:
 def name_dots(det_uv: np.ndarray, part, intr: Intrinsics, cam_from_part: np.ndarray, occluder: Occluder, *,
               max_dist_px: float = 25.0, incidence_max_rad: float = float(np.deg2rad(85.0)),
               coded_ids: np.ndarray | None = None, coded_uv: np.ndarray | None = None,
-              det_cov: np.ndarray | None = None, det_axes: np.ndarray | None = None) -> DotMeasurement:
+              det_cov: np.ndarray | None = None, det_bg_cov: np.ndarray | None = None,
+              det_axes: np.ndarray | None = None) -> DotMeasurement:
     """Identify detected dot centres ``det_uv: (k, 2)`` with an approximate pose and measure them.
 
-    ``det_cov: (k, 2, 2)`` (px^2) travels with the centres it belongs to. ``det_axes: (k, 2, 2)`` (px^2,
-    ``Detections.axes``): each named dot's shape is checked against its target's ellipse (:data:`SHAPE_MIN`,
-    :data:`SHAPE_MAX`) and dropped with the reason when it is not that ellipse; None: no shape check.
+    ``det_cov, det_bg_cov: (k, 2, 2)`` (px^2) travel with the centres they belong to. ``det_axes: (k, 2, 2)``
+    (px^2, ``Detections.axes``): each named dot's shape is checked against its target's ellipse
+    (:data:`SHAPE_MIN`, :data:`SHAPE_MAX`) and dropped with the reason when it is not that ellipse; None: no
+    shape check.
 
     Only dots in view from the pose at no more than ``incidence_max_rad`` are offered to the matcher;
     coded detections (``coded_ids``, ``coded_uv``) refine the pose first (PnP) when there are enough.
@@ -162,7 +167,8 @@ def name_dots(det_uv: np.ndarray, part, intr: Intrinsics, cam_from_part: np.ndar
             dots, tid, uv = dots[:0], tid[:0], uv[:0]
     return DotMeasurement(tid, uv, np.asarray(cam_from_part, dtype=float),
                           int((match < 0).sum()), int((~clear).sum()),
-                          None if det_cov is None else np.asarray(det_cov)[dots], dropped, med)
+                          None if det_cov is None else np.asarray(det_cov)[dots],
+                          None if det_bg_cov is None else np.asarray(det_bg_cov)[dots], dropped, med)
 
 
 def detection_options(camera) -> DetectionOptions:
@@ -200,5 +206,6 @@ def measure_image(image: np.ndarray, part, intr: Intrinsics, cam_from_part_appro
         keep = ~inside_any(det.uv, corners[known], grow=MARKER_GROW)
     m = name_dots(det.uv[keep], part, intr, cam_from_part_approx, occluder, max_dist_px=max_dist_px,
                   incidence_max_rad=incidence_max_rad, coded_ids=codes[known], coded_uv=centres[known],
-                  det_cov=det.cov[keep], det_axes=det.axes[keep] if shape_check else None)
+                  det_cov=det.cov[keep], det_bg_cov=None if det.background_cov is None else det.background_cov[keep],
+                  det_axes=det.axes[keep] if shape_check else None)
     return m, {"n_dots": int(keep.sum()), "n_coded": int(known.sum())}

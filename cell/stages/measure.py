@@ -1,7 +1,9 @@
 """MEASURE: sub-pixel target detection and identification in every image; observations.json.
 
 observations.json: ``images``: list of {``station``, ``image``, ``ids``, ``uv`` (k, 2 px), ``cov_px2`` (k, 2, 2:
-each centre's covariance from the detector, px^2, ``calibration.dots.Detections.cov``), counts,
+each centre's covariance from the detector, px^2, ``calibration.dots.Detections.cov``), ``bg_cov_px2`` (k, 2, 2:
+the detector's bound on each centre's error from a background that is not a plane, px^2,
+``Detections.background_cov``; ADJUST adds its share to the image precision), counts,
 ``dropped``: list of {``id``, ``reason``} (dots that were named and then left unnamed: partly hidden,
 shape unlike the target's ellipse, the image's naming inconsistent), ``resection_median_px``};
 ``n_dropped`` (all images) and ``dropped_by_reason`` at the top level.
@@ -50,6 +52,7 @@ def run(ctx, keep: bool = False) -> None:
         names = [ids_all[int(i)] for i in m.target]
         dropped = [{"id": ids_all[i], "reason": why} for i, why in m.dropped]
         out.append({"station": im["station"], "image": im["image"], "ids": names, "uv": m.uv, "cov_px2": m.cov,
+                    "bg_cov_px2": m.bg_cov,
                     "n_unidentified": m.n_unidentified, "n_partly_hidden": m.n_partly_hidden,
                     "n_shape_rejected": m.n_shape, "dropped": dropped,
                     "resection_median_px": m.resection_median_px} | counts)
