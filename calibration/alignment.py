@@ -95,9 +95,9 @@ class PointCovariance:
         HtD = np.einsum("nad,nab->dnb", H, self.D)  # (d, n, 3) = rows of H^T D
         DH = np.swapaxes(HtD, 0, 1).transpose(0, 2, 1)  # (n, 3, d)
         HtDH = np.einsum("dna,nae->de", HtD, H)
-        HtU = np.einsum("nad,nar->dr", H, self.U)
-        SU = self.U - np.einsum("nad,dr->nar", P, HtU)
         r = self.U.shape[2]
+        HtU = H.reshape(3 * n, d).T @ self.U.reshape(3 * n, r)
+        SU = self.U - (P.reshape(3 * n, d) @ HtU).reshape(n, 3, r)
         C = np.zeros((2 * d + r, 2 * d + r))
         C[:d, :d] = HtDH
         C[:d, d : 2 * d] = -np.eye(d)

@@ -30,6 +30,16 @@ def _update_intrinsics(intr: Intrinsics, names: tuple[str, ...], delta: np.ndarr
     return replace(intr, **d)
 
 
+def _outer_sum(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """``A^T B`` of stacked 2-row matrices ``A: (q, 2, a)``, ``B: (q, 2, b)``, (q, a, b) (no tiny-matrix einsum)."""
+    return A[:, 0, :, None] * B[:, 0, None, :] + A[:, 1, :, None] * B[:, 1, None, :]
+
+
+def _rows_dot(A: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """``A^T r`` of ``A: (q, 2, a)``, ``r: (q, 2)``, (q, a)."""
+    return A[:, 0, :] * r[:, 0, None] + A[:, 1, :] * r[:, 1, None]
+
+
 def _segment_sum(values: np.ndarray, ids: np.ndarray, size: int) -> np.ndarray:
     """Sum ``values: (q, ...)`` by ``ids: (q,)`` into ``(size, ...)``."""
     shape = values.shape[1:]
@@ -170,15 +180,15 @@ def _linearise(
         lmask[6 + k :, :] = True
         lmask[:, 6 + k :] = True
         cl = cidx[is_linked]
-        HH = np.einsum("qia,qib->qab", Jc[is_linked], Jc[is_linked])
+        HH = _outer_sum(Jc[is_linked], Jc[is_linked])
         np.add.at(Ncc, (cl[:, :, None], cl[:, None, :]), HH * lmask)
-    bc = np.bincount(cidx.ravel(), weights=np.einsum("qia,qi->qa", Jc, r).ravel(), minlength=p)
+    bc = np.bincount(cidx.ravel(), weights=_rows_dot(Jc, r).ravel(), minlength=p)
     # point side (unlinked points)
     nu = len(lay.unlinked)
     un = ~is_linked
-    Npp = _segment_sum(np.einsum("qia,qib->qab", Jp, Jp), slot, max(nu, 1))[:nu]
-    bp = _segment_sum(np.einsum("qia,qi->qa", Jp, r), slot, max(nu, 1))[:nu]
-    E = np.einsum("qia,qib->qab", Jp[un], Jc[un, :, : 6 + k])  # (qu, 3, 6 + k)
+    Npp = _segment_sum(_outer_sum(Jp, Jp), slot, max(nu, 1))[:nu]
+    bp = _segment_sum(_rows_dot(Jp, r), slot, max(nu, 1))[:nu]
+    E = _outer_sum(Jp[un], Jc[un, :, : 6 + k])  # (qu, 3, 6 + k)
     Npc = np.zeros((nu, 3, p))
     # one observation per (target, image): the pose blocks are assigned, not summed
     Npc[slot[un][:, None, None], np.arange(3)[None, :, None], cidx[un][:, None, :6]] = E[:, :, :6]
@@ -237,7 +247,7 @@ def _linearise(
     Dinv = np.linalg.inv(Npp)
     if len(fu):
         Dinv[fu] = 0.0
-    V = np.einsum("nab,nbp->nap", Dinv, Npc)
+    V = np.matmul(Dinv, Npc)
     V2 = V.reshape(-1, p)
     S = Ncc - Npc.reshape(-1, p).T @ V2
     bred = bc - V2.T @ bp.reshape(-1)
@@ -254,7 +264,7 @@ def _linearise(
             "(too few targets per image, or a datum that does not fix the network)"
         ) from exc
     dc = Sigma @ bred
-    dp = np.einsum("nab,nb->na", Dinv, bp) - V @ dc
+    dp = np.matmul(Dinv, bp[:, :, None])[:, :, 0] - V @ dc
     r_extra = np.concatenate(extra) if extra else np.zeros(0)
     return _Linear(r, r_extra, Dinv, V, Sigma, dc, dp, Jp, Jc, cidx, slot, defect)
 
