@@ -15,7 +15,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.stats import chi2, norm
+from scipy.special import chdtrc, ndtri  # chi2.sf, norm.isf without importing scipy.stats (~1 s)
 
 from calibration.camera import skew
 from calibration.errors import CalibrationError
@@ -288,6 +288,6 @@ def deviation_sigma_level(deviation: np.ndarray, cov: np.ndarray) -> np.ndarray:
     out = np.full(len(d), np.nan)
     ok = np.all(np.isfinite(d), axis=1) & np.all(np.isfinite(C), axis=(1, 2))
     m2 = np.einsum("na,na->n", d[ok], np.linalg.solve(C[ok], d[ok][..., None])[..., 0])
-    p = chi2.sf(m2, 3)
-    out[ok] = norm.isf(np.clip(p, 1e-300, 1.0) / 2.0)
+    p = chdtrc(3, m2)  # chi2.sf(m2, 3)
+    out[ok] = -ndtri(np.clip(p, 1e-300, 1.0) / 2.0)  # norm.isf
     return out
