@@ -22,7 +22,53 @@ from mpl_toolkits.mplot3d.art3d import Line3DCollection, Poly3DCollection  # noq
 
 from planning.uncertainty import ellipsoid_axes  # noqa: E402
 
-__all__ = ["plot_plan", "ellipsoid_surfaces"]
+__all__ = ["plot_plan", "ellipsoid_surfaces", "figure_png"]
+
+
+def figure_png(fig, *, dpi: float | None = None, tight: bool = False, pad_inches: float = 0.1) -> bytes:
+    """PNG bytes of ``fig``, drawn once.
+
+    ``fig.savefig`` draws a figure twice when it has a layout engine (``tight_layout`` leaves one) or when
+    ``bbox_inches="tight"``: a dry run to lay it out or measure it, then the picture; 3-D axes make each draw
+    costly. Here the figure is drawn once on an Agg canvas and the PNG is written from that buffer with
+    savefig's own writer and metadata. ``tight``: the picture is cut to the artists' bounding box plus
+    ``pad_inches``, as ``bbox_inches="tight"`` does; when that box reaches outside the figure (a label beyond
+    its edge) savefig's tight path, which grows the canvas, is used instead.
+    """
+    import io
+
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.image import imsave
+
+    if dpi is not None:
+        fig.set_dpi(dpi)
+    canvas = FigureCanvasAgg(fig)
+    canvas.draw()
+    rgba = np.asarray(canvas.buffer_rgba())
+    if tight:
+        bb = fig.get_tightbbox(canvas.get_renderer())
+        w_in, h_in = fig.get_size_inches()
+        if bb.x0 < 0 or bb.y0 < 0 or bb.x1 > w_in or bb.y1 > h_in:
+            buf = io.BytesIO()
+            fig.savefig(buf, format="png", dpi=fig.dpi, bbox_inches="tight", pad_inches=pad_inches)
+            return buf.getvalue()
+        bb = bb.padded(pad_inches)
+        H, W = rgba.shape[:2]
+        d = fig.dpi
+        c0, c1 = int(np.floor(bb.x0 * d)), int(np.ceil(bb.x1 * d))
+        r0, r1 = H - int(np.ceil(bb.y1 * d)), H - int(np.floor(bb.y0 * d))
+        # the padding may reach past the canvas: there the picture is the figure's background, as savefig's
+        face = np.round(np.asarray(matplotlib.colors.to_rgba(fig.get_facecolor())) * 255).astype(np.uint8)
+        out = np.empty((r1 - r0, c1 - c0, 4), dtype=np.uint8)
+        out[...] = face
+        rs, cs = max(r0, 0), max(c0, 0)
+        part = rgba[rs : min(r1, H), cs : min(c1, W)]
+        out[rs - r0 : rs - r0 + part.shape[0], cs - c0 : cs - c0 + part.shape[1]] = part
+        rgba = out
+    buf = io.BytesIO()
+    imsave(buf, rgba, format="png", origin="upper", dpi=fig.dpi,
+           metadata={"Software": f"Matplotlib version{matplotlib.__version__}, https://matplotlib.org/"})
+    return buf.getvalue()
 
 
 def ellipsoid_surfaces(centres: np.ndarray, axes: np.ndarray, dirs: np.ndarray, scale: float,
@@ -141,7 +187,7 @@ def plot_plan(part, plan, path_png, *, max_ellipsoids: int = 400, title: str | N
         # 4: sigma per target
         ax = fig.add_subplot(2, 2, 4)
         if finite.any():
-            ax.hist(sigma[finite] * 1e6, bins=40, color="tab:green")
+            ax.hist(sigma[finite] * 1e6, bins=40, color="tab:green", histtype="stepfilled")  # one polygon, not 40 bars
         ax.set_xlabel("target sigma = sqrt(trace(cov)) (um)")
         ax.set_ylabel("targets")
         ax.set_title(f"max {plan.predicted_sigma_max_m * 1e6:.2f} um, mean {plan.predicted_sigma_mean_m * 1e6:.2f} um"
@@ -149,10 +195,11 @@ def plot_plan(part, plan, path_png, *, max_ellipsoids: int = 400, title: str | N
         fig.suptitle(title or f"network plan: {getattr(part, 'name', '')} (seed {plan.seed})")
         fig.tight_layout()
         path_png.parent.mkdir(parents=True, exist_ok=True)
+        png = figure_png(fig)  # one draw (tight_layout leaves a layout engine: savefig would draw twice)
         fd, tmp = tempfile.mkstemp(dir=path_png.parent, prefix=path_png.name + ".", suffix=".tmp")
         try:
             with os.fdopen(fd, "wb") as f:
-                fig.savefig(f, format="png")
+                f.write(png)
             os.replace(tmp, path_png)
         except BaseException:
             Path(tmp).unlink(missing_ok=True)

@@ -21,12 +21,16 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 from mpl_toolkits.mplot3d.art3d import Line3DCollection, Poly3DCollection  # noqa: E402
 
+from planning.plot import figure_png  # noqa: E402
+
 
 def _png(fig) -> str:
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
-    plt.close(fig)
-    return base64.b64encode(buf.getvalue()).decode()
+    """The figure as base64 PNG at 110 dpi, cut to its artists (drawn once: :func:`planning.plot.figure_png`)."""
+    try:
+        png = figure_png(fig, dpi=110, tight=True)
+    finally:
+        plt.close(fig)
+    return base64.b64encode(png).decode()
 
 
 def _mesh_axes(ax, mesh, alpha=0.18):
@@ -50,16 +54,17 @@ def figure_network(mesh, stations_part_from_cam: np.ndarray, xyz: np.ndarray) ->
     _mesh_axes(ax, mesh)
     ax.scatter(*(xyz * 1000).T, s=4, c="k")
     pts = [xyz * 1000]
+    segments = []  # every station's pyramid in one collection (one artist, not five lines per station)
     for k, T in enumerate(stations_part_from_cam):
         c = T[:3, 3] * 1000
         R = T[:3, :3]
         s = 40.0
         corners = [c + s * (R @ np.array([x, y, 1.5])) for x, y in ((-1, -0.8), (1, -0.8), (1, 0.8), (-1, 0.8))]
-        for p in corners:
-            ax.plot(*np.c_[c, p], color="tab:blue", lw=0.7)
-        ax.plot(*np.array(corners + corners[:1]).T, color="tab:blue", lw=0.7)
+        segments += [(c, p) for p in corners] + [(corners[i], corners[(i + 1) % 4]) for i in range(4)]
         ax.text(*c, str(k + 1), fontsize=6, color="tab:blue")
         pts.append(c[None])
+    if segments:
+        ax.add_collection3d(Line3DCollection(np.array(segments), colors="tab:blue", linewidths=0.7))
     _equal_3d(ax, np.vstack(pts))
     ax.set_xlabel("x [mm]")
     ax.set_ylabel("y [mm]")
@@ -139,7 +144,7 @@ def figure_residuals(residuals_px: np.ndarray, rejected: np.ndarray | None = Non
     fig, ax = plt.subplots(figsize=(5, 4))
     a, lim = accepted_residuals(residuals_px, rejected)
     n_rej = 0 if rejected is None else int(np.asarray(rejected, dtype=bool).sum())
-    ax.hist(a.ravel(), bins=60, range=(-lim, lim), color="tab:gray")
+    ax.hist(a.ravel(), bins=60, range=(-lim, lim), color="tab:gray", histtype="stepfilled")  # one polygon, not 60 bars
     ax.set_xlim(-lim, lim)
     ax.set_xlabel("image residual [px] (u and v), accepted observations")
     ax.set_ylabel("count")
