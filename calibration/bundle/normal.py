@@ -8,11 +8,12 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from calibration.alignment import helmert_basis
 from calibration.bundle.config import BundleConfig, ControlPoints
 from calibration.bundle.projection import project_observations
-from calibration.camera import Intrinsics, exp_se3, skew
+from calibration.camera import Intrinsics, skew
 from calibration.errors import CalibrationError
 
 
@@ -105,12 +106,11 @@ def _null_space(state: _State, lay: _Layout, d: int) -> tuple[np.ndarray, np.nda
     Gc = np.zeros((lay.p, 7))
     R = state.poses[:, :3, :3]
     tt = state.poses[:, :3, 3] + np.einsum("mab,b->ma", R, c0)  # translation w.r.t. the centred frame
-    for j in range(lay.m):
-        Rj, tj = R[j], tt[j]
-        Gc[6 * j : 6 * j + 3, 3:6] = -Rj
-        Gc[6 * j + 3 : 6 * j + 6, 0:3] = -Rj
-        Gc[6 * j + 3 : 6 * j + 6, 3:6] = -skew(tj) @ Rj
-        Gc[6 * j + 3 : 6 * j + 6, 6] = tj
+    G = Gc[: 6 * lay.m].reshape(lay.m, 6, 7)  # a view: every image's 6 x 7 block at once
+    G[:, 0:3, 3:6] = -R
+    G[:, 3:6, 0:3] = -R
+    G[:, 3:6, 3:6] = -np.matmul(skew(tt), R)
+    G[:, 3:6, 6] = tt
     if len(lay.linked):
         cols = lay.link_cols(lay.linked)
         Gc[cols.ravel(), :] = Gp[lay.linked].reshape(-1, 7)
@@ -287,9 +287,12 @@ def _control_sigma(control: ControlPoints) -> np.ndarray:
 
 def _apply_step(state: _State, lin: _Linear, lay: _Layout) -> _State:
     m, k = lay.m, lay.k
-    poses = state.poses.copy()
-    for j in range(m):
-        poses[j] = exp_se3(lin.dc[6 * j : 6 * j + 6]) @ poses[j]
+    xi = lin.dc[: 6 * m].reshape(m, 6)
+    E = np.zeros((m, 4, 4))  # exp_se3 of every image's step at once
+    E[:, :3, :3] = Rotation.from_rotvec(xi[:, :3]).as_matrix()
+    E[:, :3, 3] = xi[:, 3:]
+    E[:, 3, 3] = 1.0
+    poses = np.matmul(E, state.poses)
     intr = _update_intrinsics(state.intr, lay.names, lin.dc[6 * m : 6 * m + k]) if k else state.intr
     pts = state.points.copy()
     pts[lay.unlinked] += lin.dp
