@@ -60,6 +60,19 @@ def test_gauss_newton_hands_an_unconverged_solve_to_pycolmap():
         _adjust(net, poses0, x0, solver="newton")
 
 
+def test_a_start_gauss_newton_cannot_take_goes_to_pycolmap_and_reaches_the_same_optimum():
+    """Poses 0.3 rad and targets 10 cm off: the undamped steps fail, Levenberg-Marquardt gets there."""
+    rng = np.random.default_rng(0)
+    net = simulate_network(rng, n_targets=80, n_images=8, sigma_px=0.05)
+    far = np.array([exp_se3(rng.normal(0, 0.3, 6)) @ T for T in net.cam_from_part])
+    res = _adjust(net, far, net.points + rng.normal(0, 0.1, net.points.shape))
+    near = np.array([exp_se3(rng.normal(0, 0.002, 6)) @ T for T in net.cam_from_part])
+    x_near = net.points + rng.normal(0, 5e-4, net.points.shape)
+    assert "Ceres" in res.summary and "(Gauss-Newton" in res.summary  # the summary says why it handed over
+    good = _adjust(net, near, x_near)
+    assert res.sigma0_px == pytest.approx(good.sigma0_px, rel=1e-6)
+
+
 def test_gauss_newton_with_a_scale_bar_keeps_the_bar_and_matches_pycolmap():
     net, poses0, x0 = _network(seed=5)
     L = float(np.linalg.norm(net.points[0] - net.points[1]))

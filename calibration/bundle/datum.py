@@ -71,7 +71,7 @@ def _datum_stage(state: _State, x0: np.ndarray, lay: _Layout, config: BundleConf
             cost = float(np.sum(lin.r_img**2) + np.sum(lin.r_extra**2))
             trace.setdefault("initial_cost", cost)
             trace["iterations"] = it + 1
-            if cost > trace.get("final_cost", np.inf) * (1.0 + 1e-6) + 1e-12:
+            if not np.isfinite(cost) or cost > trace.get("final_cost", np.inf) * (1.0 + 1e-6) + 1e-12:
                 trace["diverged"] = True
                 return state, False
             trace["final_cost"] = cost

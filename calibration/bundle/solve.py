@@ -35,7 +35,7 @@ def _solve(state: _State, x0: np.ndarray, lay: _Layout, config: BundleConfig, ar
         try:
             new, converged = _datum_stage(state, x0, lay, config, args, sigma_px, options.gn_iterations,
                                           weighted=True, trace=trace)
-        except CalibrationError as exc:  # behind a camera or singular on the way: let Levenberg-Marquardt try
+        except (CalibrationError, np.linalg.LinAlgError) as exc:  # behind a camera, singular: Levenberg-Marquardt
             converged, why = False, f"Gauss-Newton stopped: {exc}"
         else:
             if converged:
