@@ -65,6 +65,7 @@ def _datum_stage(state: _State, x0: np.ndarray, lay: _Layout, config: BundleConf
         state = _apply_similarity(state, s, np.eye(3), np.zeros(3))
         defect = 6
     converged = False
+    prev = np.inf
     for it in range(iterations):
         lin = _linearise(state, *args, lay, config, sigma_px, defect)
         if trace is not None:
@@ -79,9 +80,12 @@ def _datum_stage(state: _State, x0: np.ndarray, lay: _Layout, config: BundleConf
         step = max(np.max(np.abs(lin.dp), initial=0.0), np.max(np.abs(lin.dc[6 * lay.m + lay.k:]), initial=0.0))
         if trace is not None:  # rad and m
             step = max(step, np.max(np.abs(lin.dc[: 6 * lay.m]), initial=0.0))
-        if step < 1e-10:
+        # converged: a step below 1e-10, or one below 1e-8 that shrank a thousandfold (Gauss-Newton's quadratic
+        # convergence: the next would be ~1e-14, not worth a linearisation to find out)
+        if step < 1e-10 or (step < 1e-8 and step < 1e-3 * prev):
             converged = True
             break
+        prev = step
     if datum != "control":  # back onto the initial coordinates (gauge moves of the free iterations, too)
         s, R, t = similarity_fit(state.points[act], x0[act], with_scale=datum == "free")
         state = _apply_similarity(state, s, R, t)
