@@ -88,6 +88,30 @@ class _Layout:
         self.uslot = np.full(n, -1)
         self.uslot[self.unlinked] = np.arange(len(self.unlinked))
         self.p = 6 * m + self.k + 3 * len(self.linked)
+        self._structures: list[tuple[np.ndarray, ...]] = []
+
+    def structure(self, obs_image: np.ndarray, obs_target: np.ndarray) -> tuple[np.ndarray, ...]:
+        """What depends only on which observations are used, not on the state: ``cidx (q, 6 + k + 3)`` (the
+        compact camera-side columns), the unlinked point ``slot (q,)``, ``is_linked (q,)`` and the observations
+        grouped by image (``order``, ``starts``). Computed once per set of observations (the arrays themselves,
+        held here, are the key: the Gauss-Newton iterations of a round linearise the same arrays many times)."""
+        for entry in self._structures:
+            if entry[0] is obs_image and entry[1] is obs_target:
+                return entry[2:]
+        m, k = self.m, self.k
+        is_linked = self.lslot[obs_target] >= 0
+        cidx = np.zeros((len(obs_image), 6 + k + 3), dtype=int)
+        cidx[:, :6] = 6 * obs_image[:, None] + np.arange(6)
+        cidx[:, 6 : 6 + k] = 6 * m + np.arange(k)
+        if np.any(is_linked):
+            cidx[is_linked, 6 + k :] = self.link_cols(obs_target[is_linked])
+        slot = np.where(is_linked, 0, self.uslot[obs_target])
+        order = np.argsort(obs_image, kind="stable")
+        starts = np.searchsorted(obs_image[order], np.arange(m + 1))
+        for a in (cidx, slot, is_linked, order, starts):
+            a.flags.writeable = False  # shared by every linearisation of these observations
+        self._structures = [(obs_image, obs_target, cidx, slot, is_linked, order, starts)] + self._structures[:3]
+        return cidx, slot, is_linked, order, starts
 
     def link_cols(self, targets: np.ndarray) -> np.ndarray:
         """(len, 3) camera-side columns of linked targets."""
@@ -134,21 +158,16 @@ def _jacobians(state: _State, obs_image: np.ndarray, obs_target: np.ndarray, obs
     w = 1.0 / np.broadcast_to(np.asarray(sigma_px, dtype=float), (len(uv),))  # (q,) weights^(1/2)
     r = (obs_uv - uv) * w[:, None]
     Jp, Jpose, Jin = Jp * w[:, None, None], Jpose * w[:, None, None], Jin * w[:, None, None]
-    is_linked = lay.lslot[obs_target] >= 0
+    cidx, slot, is_linked, _, _ = lay.structure(obs_image, obs_target)
     # compact camera-side Jacobian: pose (6) | interior (k) | linked point (3)
     W = 6 + k + 3
     Jc = np.zeros((len(r), 2, W))
     Jc[:, :, :6] = Jpose
     Jc[:, :, 6 : 6 + k] = Jin
-    cidx = np.zeros((len(r), W), dtype=int)
-    cidx[:, :6] = 6 * obs_image[:, None] + np.arange(6)
-    cidx[:, 6 : 6 + k] = 6 * m + np.arange(k)
     if np.any(is_linked):
         Jc[is_linked, :, 6 + k :] = Jp[is_linked]
-        cidx[is_linked, 6 + k :] = lay.link_cols(obs_target[is_linked])
         Jp = Jp.copy()
         Jp[is_linked] = 0.0
-    slot = np.where(is_linked, 0, lay.uslot[obs_target])
     return r, Jp, Jc, cidx, slot, is_linked
 
 
@@ -162,8 +181,7 @@ def _linearise(
     # camera side: pose and interior blocks by image, linked points by scatter
     Ncc = np.zeros((p, p))
     # per image, one product of its stacked rows (no per-observation (W, W) blocks: 1.7 GB at 2.5 M observations)
-    order = np.argsort(obs_image, kind="stable")
-    starts = np.searchsorted(obs_image[order], np.arange(m + 1))
+    *_, order, starts = lay.structure(obs_image, obs_target)
     II = np.zeros((k, k))
     for j in range(m):
         A = Jc[order[starts[j] : starts[j + 1]], :, : 6 + k].reshape(-1, 6 + k)
