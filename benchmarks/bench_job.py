@@ -8,8 +8,9 @@ Run from the repository root::
 
 Each run is ``cell run JOB --yes`` in a fresh process (imports included, as an operator meets it) into a
 temporary archive; the planning caches are warmed by one untimed run first. The baseline runs the same command
-with ``PYTHONPATH=<baseline-src>`` (same interpreter and packages), alternating with ours so both see the same
-load. Prints wall time and each stage's duration (from the job's journal): best and median, the load average,
+with ``<baseline-src>`` first on ``sys.path`` (same interpreter and packages; checked), alternating with ours so both see the same
+load. Prints wall time, the process's CPU time (user + system: less at the mercy of other work on a shared
+machine than wall time) and each stage's duration (from the job's journal): best and median, the load average,
 and the ratio ours / baseline.
 """
 from __future__ import annotations
@@ -17,6 +18,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import resource
 import subprocess
 import sys
 import tempfile
@@ -31,12 +33,19 @@ STAGES = ("LOAD", "PLAN", "VALIDATE", "ACQUIRE", "MEASURE", "CALIBRATE", "ADJUST
 def _run(job: str, src: Path | None, archive: Path) -> dict:
     env = dict(os.environ, OMP_NUM_THREADS=os.environ.get("OMP_NUM_THREADS", "1"))
     if src is not None:
-        env["PYTHONPATH"] = str(src)
-    code = "import sys; from cell.cli import main; sys.argv = ['cell'] + sys.argv[1:]; sys.exit(main())"
+        env["BENCH_JOB_SRC"] = str(src)
+    # the console script's own entry point where the version has one (cell.cli.entry), else main
+    # (the baseline's directory goes first on sys.path: '' (the working directory, this checkout) would win)
+    code = ("import os, sys; src = os.environ.get('BENCH_JOB_SRC'); src and sys.path.insert(0, src); "
+            "import cell.cli as c; assert not src or c.__file__.startswith(src), c.__file__; "
+            "sys.argv = ['cell'] + sys.argv[1:]; f = getattr(c, 'entry', None); sys.exit(f() if f else c.main())")
+    r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
     out = subprocess.run([sys.executable, "-c", code, "run", job, "--yes", "--archive", str(archive)],
                          env=env, capture_output=True, text=True)
     wall = time.perf_counter() - t0
+    r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu = (r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime)
     if out.returncode not in (0, 1):  # 1: the job ran and its verdict is FAIL (the example's deviations)
         raise SystemExit(f"cell run failed ({out.returncode}): {out.stderr.strip().splitlines()[-1:]}")
     folder = max((p for p in archive.iterdir() if p.is_dir() and (p / "journal.jsonl").exists()),
@@ -46,7 +55,7 @@ def _run(job: str, src: Path | None, archive: Path) -> dict:
         rec = json.loads(line)
         if rec.get("event") == "stage_done":
             stages[rec["stage"]] = float(rec["duration_s"])
-    return {"wall": wall, **stages}
+    return {"wall": wall, "cpu": cpu, **stages}
 
 
 def _summary(runs: list[dict], key: str) -> tuple[float, float]:
@@ -74,7 +83,7 @@ def main() -> None:
     print(f"{a.job}: {a.repeat} runs each, load average {min(loads):.2f}..{max(loads):.2f}")
     head = f"{'':10s}" + "".join(f"{n + ' best':>17s}{n + ' median':>17s}" for n in variants)
     print(head + ("   ratio (best, median)" if len(variants) == 2 else ""))
-    for key in ("wall",) + STAGES:
+    for key in ("wall", "cpu") + STAGES:
         row = f"{key:10s}"
         vals = {}
         for n in variants:
