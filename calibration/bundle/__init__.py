@@ -5,7 +5,7 @@ Stages (``bundle_adjust``):
 0. Gauss-Newton on our own normal equations (stage 2's iterations, from the start, the datum and weights
    included) solves first; when it does not converge (cost rising, no convergence within
    ``BundleOptions.gn_iterations``) stage 1 solves from the same start (:mod:`calibration.bundle.solve`,
-   docs/decisions/0023-bundlefast-gauss-newton-first-solve.md). ``BundleOptions(solver="pycolmap")``: stage 1 always.
+   docs/decisions/0024-bundlefast-gauss-newton-first-solve.md). ``BundleOptions(solver="pycolmap")``: stage 1 always.
 1. A ``pycolmap.Reconstruction`` is built from our data (one camera: PINHOLE,
    SIMPLE_RADIAL, RADIAL or OPENCV; one image per station with ``cam_from_world`` =
    our ``cam_from_part``; one 3-D point per target; the 2-D observations). COLMAP's pixel

@@ -27,7 +27,7 @@ from calibration.bundle.snooping import (
 from calibration.bundle.vce import _variance_step
 from calibration.camera import Intrinsics
 from calibration.errors import CalibrationError
-from calibration.weights import check_groups, check_sigmas
+from calibration.weights import check_groups, check_sigmas, mean_variance
 
 
 def _validate(obs_image, obs_target, obs_uv, m, n):
@@ -68,7 +68,8 @@ def bundle_adjust(
         points: (n, 3) initial targets (e.g. the CAD nominals); the free-network datum keeps their
             centroid, orientation and scale.
         options: solver settings; config: what is refined and the datum.
-        obs_sigma_px: (q,) a priori sigma of each observation's coordinates (pixels); None: all
+        obs_sigma_px: (q,) a priori sigma of each observation's coordinates (pixels), or (q, 2, 2) the
+            covariance of each observation (px^2: the residuals are whitened with it); None: all
             ``options.sigma_px``.
         obs_group: (q,) int group of each observation: estimate one variance component per group
             (:mod:`calibration.weights`), starting from ``obs_sigma_px``; None: the sigmas stay as given.
@@ -98,6 +99,8 @@ def _bundle_adjust(obs_image, obs_target, obs_uv, intrinsics, cam_from_part, poi
     # models whose distortion pycolmap cannot refine (COLMAP_MODELS) take the full Gauss-Newton iterations too
     full_gn = weighted or (config.camera_model in COLMAP_MODELS and config.refine_distortion)
     group = None if obs_group is None else check_groups(obs_group, len(obs_image))
+    if group is not None and sig0.ndim == 3:
+        raise CalibrationError("bundle: variance components (obs_group) take sigmas (q,), not covariances (q, 2, 2)")
     vc = None
     names = config.refined_names()
     _to_colmap_params(intrinsics, config.camera_model)  # the model must hold the intrinsics (whichever solver runs)
@@ -193,7 +196,7 @@ def _bundle_adjust(obs_image, obs_target, obs_uv, intrinsics, cam_from_part, poi
     res.obs_sigma_px, res.variance_components, res.snooping = sig, vc, snoop
     _say_snooping(snoop, config, options, rejected, obs_target)
     if weighted:  # sigma0 in pixels: of an observation of the rms a priori sigma (equal weights: options.sigma_px)
-        res.sigma0_px = float(np.sqrt(stats["s02"] * np.mean(sig[act_obs] ** 2)))
+        res.sigma0_px = float(np.sqrt(stats["s02"] * mean_variance(sig[act_obs])))
     return res
 
 

@@ -15,6 +15,7 @@ from calibration.bundle.config import BundleConfig, ControlPoints
 from calibration.bundle.projection import project_observations
 from calibration.camera import Intrinsics, skew
 from calibration.errors import CalibrationError
+from calibration.weights import whitening
 
 
 def _update_intrinsics(intr: Intrinsics, names: tuple[str, ...], delta: np.ndarray) -> Intrinsics:
@@ -145,6 +146,8 @@ def _jacobians(state: _State, obs_image: np.ndarray, obs_target: np.ndarray, obs
                sigma_px: float | np.ndarray):
     """Whitened residuals and Jacobians of observations (of active targets) at ``state``.
 
+    ``sigma_px``: one sigma, ``(q,)`` sigmas or ``(q, 2, 2)`` covariances (px^2) of the observations.
+
     Returns ``r (q, 2)``, ``Jp (q, 2, 3)`` (zero for linked targets), the compact camera-side
     ``Jc (q, 2, 6 + k + 3)`` with its columns ``cidx (q, 6 + k + 3)``, the unlinked point ``slot (q,)``
     and ``is_linked (q,)``.
@@ -155,9 +158,15 @@ def _jacobians(state: _State, obs_image: np.ndarray, obs_target: np.ndarray, obs
     uv, Jp, Jpose, Jin = project_observations(state.intr, R, t, state.points[obs_target], lay.names)
     if np.any(~np.isfinite(uv)) or np.any(np.einsum("qb,qb->q", R[:, 2], state.points[obs_target]) + t[:, 2] <= 0):
         raise CalibrationError("bundle: a target is behind a camera that observes it; check identification")
-    w = 1.0 / np.broadcast_to(np.asarray(sigma_px, dtype=float), (len(uv),))  # (q,) weights^(1/2)
-    r = (obs_uv - uv) * w[:, None]
-    Jp, Jpose, Jin = Jp * w[:, None, None], Jpose * w[:, None, None], Jin * w[:, None, None]
+    sig = np.asarray(sigma_px, dtype=float)
+    if sig.ndim == 3:  # a 2x2 covariance per observation: whiten with the inverse of its Cholesky factor
+        Wh = whitening(sig)
+        r = np.matmul(Wh, (obs_uv - uv)[:, :, None])[:, :, 0]
+        Jp, Jpose, Jin = (np.matmul(Wh, J) for J in (Jp, Jpose, Jin))
+    else:
+        w = 1.0 / np.broadcast_to(sig, (len(uv),))  # (q,) weights^(1/2)
+        r = (obs_uv - uv) * w[:, None]
+        Jp, Jpose, Jin = Jp * w[:, None, None], Jpose * w[:, None, None], Jin * w[:, None, None]
     cidx, slot, is_linked, _, _ = lay.structure(obs_image, obs_target)
     # compact camera-side Jacobian: pose (6) | interior (k) | linked point (3)
     W = 6 + k + 3

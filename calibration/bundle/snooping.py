@@ -149,8 +149,9 @@ def predicted_test(state, lin: _Linear, lay: _Layout, stats: dict, obs_image, ob
     ok = (lay.uslot[obs_target] >= 0) | (lay.lslot[obs_target] >= 0)
     if not ok.any():
         return out
-    r, Jp, Jc, cidx, slot, _ = _jacobians(state, obs_image[ok], obs_target[ok], obs_uv[ok], lay,
-                                          np.broadcast_to(np.asarray(sigma_px, dtype=float), (len(ok),))[ok])
+    sig = np.asarray(sigma_px, dtype=float)
+    sig = sig[ok] if sig.ndim == 3 else np.broadcast_to(sig, (len(ok),))[ok]
+    r, Jp, Jc, cidx, slot, _ = _jacobians(state, obs_image[ok], obs_target[ok], obs_uv[ok], lay, sig)
     A = _projected_cofactor(lin, lay, stats["Qpp"], stats["VS"], Jp, Jc, cidx, slot)
     out[ok] = _quadratic(np.eye(2) + A, r)
     return out
