@@ -4,18 +4,19 @@ from __future__ import annotations
 import time
 
 import numpy as np
-from scipy.stats import chi2
+from scipy.special import chdtri  # chi2.isf without importing scipy.stats (~1 s of a job's start)
 
 try:  # BLAS threads fight with Ceres' threads on small machines: small dense algebra runs faster on one
     from threadpoolctl import threadpool_limits
 except ImportError:  # pragma: no cover - optional
     threadpool_limits = None
 
-from calibration.bundle.colmap import _pycolmap_solve
+from calibration.bundle.colmap import _to_colmap_params
 from calibration.bundle.config import COLMAP_MODELS, BundleConfig, BundleOptions, BundleResult
 from calibration.bundle.covariance import _result
 from calibration.bundle.datum import _datum_stage
 from calibration.bundle.normal import _Layout, _linearise, _State
+from calibration.bundle.solve import _solve
 from calibration.bundle.snooping import (
     _statistics,
     local_followers,
@@ -102,6 +103,7 @@ def _bundle_adjust(obs_image, obs_target, obs_uv, intrinsics, cam_from_part, poi
         raise CalibrationError("bundle: variance components (obs_group) take sigmas (q,), not covariances (q, 2, 2)")
     vc = None
     names = config.refined_names()
+    _to_colmap_params(intrinsics, config.camera_model)  # the model must hold the intrinsics (whichever solver runs)
     linked = np.zeros(n, dtype=bool)
     for bar in config.scale_bars:
         linked[[bar.target_a, bar.target_b]] = True
@@ -110,8 +112,8 @@ def _bundle_adjust(obs_image, obs_target, obs_uv, intrinsics, cam_from_part, poi
     rejected = np.zeros(q, dtype=bool)
     reinstated = np.zeros(q, dtype=bool)  # put back once: never rejected again by the batch rounds' mistakes
     state = _State(intrinsics, poses0, x0.copy())
-    timings = {"pycolmap_solve": 0.0, "datum": 0.0, "covariance": 0.0, "snooping": 0.0}
-    thr = chi2.isf(options.alpha / q, 2)
+    timings = {"solve": 0.0, "datum": 0.0, "covariance": 0.0, "snooping": 0.0}
+    thr = chdtri(2, options.alpha / q)  # chi2.isf(alpha / q, 2)
     snoop = {"rounds": 0, "threshold": float(thr), "reinstated": 0, "untestable_rejected": 0,
              "batch": bool(options.snooping_batch)}
     while True:
@@ -127,14 +129,18 @@ def _bundle_adjust(obs_image, obs_target, obs_uv, intrinsics, cam_from_part, poi
         # after a batch of rejections the network is already near its optimum: Gauss-Newton on our own normal
         # equations (the datum stage's iterations, which the statistics need anyway) finishes it
         warm = options.snooping_batch and snoop["rounds"] > 1
+        on_datum = False
         if not warm:
             t0 = time.perf_counter()
-            state, usable, report = _pycolmap_solve(state, *args, active_pts, config, options)
-            timings["pycolmap_solve"] += time.perf_counter() - t0
+            state, usable, report, on_datum = _solve(state, x0, lay, config, args, sig[act_obs], active_pts, options)
+            timings["solve"] += time.perf_counter() - t0
         for it in range(1, max(options.vce_iterations, 1) + 1 if group is not None else 2):
             t1 = time.perf_counter()
-            state, dconv = _datum_stage(state, x0, lay, config, args, sig[act_obs], options.datum_iterations,
-                                        full_gn or warm)
+            if it == 1 and on_datum:  # the solve ended at the optimum for these sigmas, in the datum
+                dconv = True
+            else:
+                state, dconv = _datum_stage(state, x0, lay, config, args, sig[act_obs], options.datum_iterations,
+                                            full_gn or warm)
             t2 = time.perf_counter()
             lin = _linearise(state, *args, lay, config, sig[act_obs], defect)
             stats = _statistics(lin, lay, n_obs=int(act_obs.sum()))

@@ -43,7 +43,9 @@ def run(ctx, keep: bool = False) -> None:
             out.append(before[im["image"]])
             continue
         ctx.progress("measure", k / len(acq["images"]))
-        img = cv2.imread(str(ctx.folder.file(im["image"])), cv2.IMREAD_UNCHANGED)
+        kept = ctx.cache.get("frames", {}).get(im["image"])  # this session's ACQUIRE: the same pixels, decoded
+        img = kept[1] if kept is not None and kept[0] == im["sha256"] else \
+            cv2.imread(str(ctx.folder.file(im["image"])), cv2.IMREAD_UNCHANGED)
         if img is None:
             raise CalibrationError(f"{im['image']}: cannot read the image")
         cam_from_part = invert(invert(bfp) @ np.asarray(im["base_from_flange"], dtype=float) @ ffc)
