@@ -25,9 +25,9 @@ import numpy as np
 from calibration.camera import Intrinsics
 from planning.refine import network_sigma, swap_descent
 from planning.stations import ViewingSphere
-from planning.sparse_info import DENSE_LIMIT_BYTES, SparseInfo
+from planning.sparse_info import SparseInfo
 from planning.uncertainty import target_information
-from planning.visibility import VisibilityOptions, compute_visibility
+from planning.visibility import Occluder, VisibilityOptions, compute_visibility
 
 __all__ = ["PolishResult", "local_variants", "polish", "polish_network"]
 
@@ -114,11 +114,14 @@ def polish_network(
     xyz = np.asarray(part.targets.xyz, dtype=float)[cols]
     cur = np.array(genes, dtype=float)
     k = len(cur)
+    sub = _TargetSubset(part, cols)
+    occluder = Occluder(part.mesh, backend=backend) if vis_opts.check_occlusion else None
+    cache = _VariantCache()
 
-    def evaluate(g: np.ndarray, sparse: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    def evaluate(g: np.ndarray) -> tuple[SparseInfo, np.ndarray]:
         T = sphere.poses(g)
-        vis = compute_visibility(part, intr, T, vis_opts, backend=backend)[:, cols]
-        return target_information(intr, T, xyz, vis, sigma_px, dtype=np.float64, sparse=sparse), vis
+        vis = compute_visibility(sub, intr, T, vis_opts, backend=backend, occluder=occluder)
+        return target_information(intr, T, xyz, vis, sigma_px, dtype=np.float64, sparse=True), vis
 
     info_cur, vis_cur = evaluate(cur)
     sig = network_sigma(info_cur, vis_cur, np.arange(k), min_rays)
@@ -132,30 +135,84 @@ def polish_network(
         hard = sig >= focus * worst
         movers = np.flatnonzero(vis_cur[:, hard].any(axis=1))
         var = local_variants(cur[movers], sphere, step_rad, step_m, offset_m).reshape(-1, cur.shape[1])
-        # the variants' information only on their visible pairs when dense would be large (same values)
-        sparse = (k + len(var)) * len(cols) * 6 * 8 > DENSE_LIMIT_BYTES // 4
-        info_v, vis_v = evaluate(var, sparse)
-        n_poses += len(var)
-        keep = vis_v.any(axis=1)
-        if reachable_fn is not None and keep.any():
-            idx = np.flatnonzero(keep)
-            keep[idx[~np.asarray(reachable_fn(sphere.poses(var[idx])), dtype=bool)]] = False
-        if sparse:
-            info = SparseInfo.vstack([SparseInfo.from_dense(info_cur, vis_cur),
-                                      info_v.select(np.flatnonzero(keep))])
-        else:
-            info = np.concatenate([info_cur, info_v[keep]])
-        vis = np.concatenate([vis_cur, vis_v[keep]])
+        # a variant met in an earlier round (its station did not move, the steps did not change) is not
+        # ray-cast again: its rows are the same
+        new = cache.missing(var)
+        if len(new):
+            info_n, vis_n = evaluate(var[new])
+            n_poses += len(new)
+            ok = vis_n.any(axis=1)
+            if reachable_fn is not None and ok.any():
+                idx = np.flatnonzero(ok)
+                ok[idx[~np.asarray(reachable_fn(sphere.poses(var[new][idx])), dtype=bool)]] = False
+            cache.add(var[new], info_n, vis_n, ok)
+        rows, keep = cache.lookup(var)
+        info = SparseInfo.vstack([info_cur, cache.info_rows(rows[keep])])
+        vis = np.concatenate([vis_cur, cache.vis[rows[keep]]])
         pool_genes = np.concatenate([cur, var[keep]])
-        r = swap_descent(info, vis, np.arange(len(info)), np.arange(k), min_rays)
+        r = swap_descent(info, vis, np.arange(len(vis)), np.arange(k), min_rays)
         if r.worst < worst:
             n_swaps += r.n_swaps
-            cur, info_cur, vis_cur = pool_genes[r.stations], info[r.stations], vis[r.stations]
+            cur, info_cur, vis_cur = pool_genes[r.stations], info.select(r.stations), vis[r.stations]
             sig = network_sigma(info_cur, vis_cur, np.arange(k), min_rays)
             worst = float(sig.max())
         else:
             step_rad, step_m, offset_m = 0.5 * step_rad, 0.5 * step_m, 0.5 * offset_m
     return PolishResult(cur, worst, start, n_rounds, n_swaps, n_poses)
+
+
+class _TargetSubset:
+    """The part with only the targets ``cols`` (what compute_visibility needs: mesh, targets, diameter)."""
+
+    def __init__(self, part, cols: np.ndarray):
+        self.name = getattr(part, "name", "?")
+        self.mesh = part.mesh
+        self.target_diameter_m = part.target_diameter_m
+        self.targets = _Targets(np.asarray(part.targets.xyz, dtype=float)[cols],
+                                np.asarray(part.targets.normals, dtype=float)[cols])
+
+
+@dataclass
+class _Targets:
+    xyz: np.ndarray
+    normals: np.ndarray
+
+
+class _VariantCache:
+    """Ray-cast variants by their exact genes: information rows (CSR, float64), visibility, usable."""
+
+    def __init__(self):
+        self.index: dict[bytes, int] = {}
+        self.store: SparseInfo | None = None
+        self.vis = np.zeros((0, 0), dtype=bool)
+        self.ok = np.zeros(0, dtype=bool)
+
+    def missing(self, var: np.ndarray) -> np.ndarray:
+        """Indices of the rows of ``var`` not cached (first occurrences only)."""
+        seen, out = set(), []
+        for i, g in enumerate(var):
+            key = g.tobytes()
+            if key not in self.index and key not in seen:
+                seen.add(key)
+                out.append(i)
+        return np.array(out, dtype=np.intp)
+
+    def add(self, var: np.ndarray, info: SparseInfo, vis: np.ndarray, ok: np.ndarray) -> None:
+        base = len(self.ok)
+        for i, g in enumerate(var):
+            self.index[g.tobytes()] = base + i
+        self.store = info if self.store is None else SparseInfo.vstack([self.store, info])
+        self.vis = np.concatenate([self.vis, vis]) if len(self.vis) else vis.copy()
+        self.ok = np.concatenate([self.ok, ok])
+
+    def lookup(self, var: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Cache row of each variant, and whether it is usable (sees a target, reachable)."""
+        rows = np.array([self.index[g.tobytes()] for g in var], dtype=np.intp)
+        return rows, self.ok[rows]
+
+    def info_rows(self, rows: np.ndarray) -> SparseInfo:
+        """The information of cache rows ``rows``, in that order."""
+        return self.store.select(rows)
 
 
 def polish(part, intr: Intrinsics, sphere: ViewingSphere, vis_opts: VisibilityOptions, db, genes: np.ndarray,

@@ -75,28 +75,21 @@ class SparseInfo:
 
     def take(self, rows, cols=None) -> np.ndarray:
         """Dense ``(len(rows), len(cols) or n, 6)``, equal to ``dense[rows][:, cols]``."""
+        from planning import kernels
+
         rows = np.arange(self.shape[0])[rows].reshape(-1) if not isinstance(rows, np.ndarray) \
             else np.asarray(rows).reshape(-1)
-        rows = np.where(rows < 0, rows + self.shape[0], rows)
-        which, e = self._entries(rows)
-        t = self.indices[e]
+        if rows.dtype == bool:
+            rows = np.flatnonzero(rows)
+        rows = np.where(rows < 0, rows + self.shape[0], rows).astype(np.intp)
         if cols is None:
-            out = np.zeros((len(rows), self.shape[1], 6), dtype=self.dtype)
-            out[which, t] = self.data[e]
-            return out
+            return kernels.rows_dense(self.indptr, self.indices, self.data, rows, self.shape[1])
         cols = np.arange(self.shape[1])[cols].reshape(-1) if not isinstance(cols, np.ndarray) \
             else np.asarray(cols).reshape(-1)
         if cols.dtype == bool:
             cols = np.flatnonzero(cols)
-        out = np.zeros((len(rows), len(cols), 6), dtype=self.dtype)
-        pos = np.full(self.shape[1], -1, dtype=np.int64)
-        pos[cols] = np.arange(len(cols))
-        if np.count_nonzero(pos >= 0) != len(np.unique(cols)) or len(np.unique(cols)) != len(cols):
-            return self.take(rows)[:, cols]  # repeated columns: gather whole rows
-        p = pos[t]
-        keep = p >= 0
-        out[which[keep], p[keep]] = self.data[e[keep]]
-        return out
+        cols = np.where(cols < 0, cols + self.shape[1], cols).astype(np.intp)
+        return kernels.gather(self.indptr, self.indices, self.data, rows, cols)
 
     def __getitem__(self, key):
         if not isinstance(key, tuple):
@@ -148,6 +141,8 @@ def add_rows(info, acc: np.ndarray, rows: np.ndarray | None, cand: np.ndarray) -
         else:
             acc[rows] += info[cand]
         return
-    which, e = info._entries(np.asarray(cand))
-    r = which if rows is None else np.asarray(rows)[which]
-    acc[r, info.indices[e]] += info.data[e]
+    from planning import kernels
+
+    cand = np.asarray(cand, dtype=np.intp)
+    rows = np.arange(len(cand)) if rows is None else np.asarray(rows, dtype=np.intp)
+    kernels.add_rows(info.indptr, info.indices, info.data, acc, rows, cand)

@@ -1,0 +1,374 @@
+"""Compiled (numba) kernels of the planner's hot loops, on the candidate x target information kept
+sparse (CSR by candidate: ``indptr (m+1)``, ``indices (nnz,)`` target, ``data (nnz, 6)``; the entries of a
+row are its visible targets, in increasing order).
+
+Each kernel does exactly the floating-point operations of the NumPy code it replaces, in the same order
+(no fast-math: no reassociation, no fused multiply-add), so the planner's choices and figures are the same
+bit for bit; the tests compare them with the NumPy reference. What they save is the work NumPy cannot skip:
+the zeros of the dense ``(candidates, targets, 6)`` array, the temporaries of the closed-form 3x3 inverse, and
+candidates whose score already exceeds the best exchange found (an exact early exit).
+docs/decisions/0022-planspeed-numba.md says what each bought.
+
+* :func:`population_fitness`: the evolutionary search's fitness of whole populations (limiting error
+  propagation, :func:`planning.uncertainty.evaluate_networks` + criterion + violation) with no
+  ``population x targets`` array;
+* :func:`strict_step`: one best-improvement exchange of :mod:`planning.refine`;
+* :func:`gather`: ``dense[rows][:, cols]`` of a CSR information for few columns (binary search per pair);
+* :func:`pair_information`: ``J^T J`` of (pose, point) pairs (:func:`planning.uncertainty.point_information`).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+# relative determinant below which a normal matrix is singular (planning.uncertainty._DET_MIN)
+DET_MIN = 1e-12
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _sigma_invert6(n0, n1, n2, n3, n4, n5, rays, min_rays):
+    """sqrt(trace(N^-1)) as :func:`planning.uncertainty._invert6` computes it (inf where insufficient)."""
+    tr = n0 + n3 + n5
+    s = tr / 3.0 if tr > 0 else 1.0
+    a, b, c, d, e, f = n0 / s, n1 / s, n2 / s, n3 / s, n4 / s, n5 / s
+    A = d * f - e * e
+    B = c * e - b * f
+    C = b * e - c * d
+    D = a * f - c * c
+    F = a * d - b * b
+    det = a * A + b * B + c * C
+    if rays >= min_rays and det > DET_MIN:
+        k = 1.0 / (det * s)
+        return math.sqrt((A + D + F) * k)
+    return math.inf
+
+
+@njit(cache=True, nogil=True, inline="always")
+def sigma6(a, b, c, d, e, f, rays, min_rays):
+    """sqrt(trace(N^-1)) as :func:`planning.refine._sigma6` computes it (inf where insufficient)."""
+    tr = a + d + f
+    A = d * f - e * e
+    D = a * f - c * c
+    F = a * d - b * b
+    det = a * A + b * (c * e - b * f) + c * (b * e - c * d)
+    s = tr / 3.0 if tr > 0 else 1.0
+    s3 = math.pow(s, 3.0)
+    if rays >= min_rays and det > DET_MIN * s3:
+        return math.sqrt((A + D + F) / det)
+    return math.inf
+
+
+@njit(cache=True, nogil=True)
+def sigma6_rows(N, cnt, min_rays):
+    """:func:`sigma6` of ``N: (n, 6)`` float64, ``cnt: (n,)``; (n,) float64."""
+    out = np.empty(N.shape[0])
+    for t in range(N.shape[0]):
+        out[t] = sigma6(N[t, 0], N[t, 1], N[t, 2], N[t, 3], N[t, 4], N[t, 5], cnt[t], min_rays)
+    return out
+
+
+@njit(cache=True, nogil=True)
+def population_fitness(indptr, indices, data, stations, n, min_rays, kind, required, out_value, out_violation,
+                       out_short):
+    """Fitness of networks ``stations: (p, k)`` (sorted, -1 = off, no repeats) on a CSR information.
+
+    The information of a network's stations is summed per target in the information's precision and
+    station order (as ``evaluate_networks``), inverted in closed form (``_invert6``), and reduced:
+    ``kind`` 0: worst sigma over the sufficient targets; 2: max sigma / required over them. ``out_value (p,)`` gets it (0 when no target is sufficient, the criterion's ``penalty=0``
+    form), ``out_violation (p,)`` the shortfall of rays summed over targets plus one per target with
+    enough rays but a singular geometry, ``out_short (p,)`` the targets not sufficient.
+    """
+    p, k = stations.shape
+    acc = np.zeros((n, 6), dtype=data.dtype)
+    cnt = np.zeros(n, dtype=np.int32)
+    for q in range(p):
+        acc[:] = 0
+        cnt[:] = 0
+        for j in range(k):
+            c = stations[q, j]
+            if c < 0:
+                continue
+            for e in range(indptr[c], indptr[c + 1]):
+                t = indices[e]
+                for u in range(6):
+                    acc[t, u] += data[e, u]
+                cnt[t] += 1
+        best = -math.inf
+        n_ok = 0
+        short = 0
+        singular = 0
+        for t in range(n):
+            sg = _sigma_invert6(np.float64(acc[t, 0]), np.float64(acc[t, 1]), np.float64(acc[t, 2]),
+                                np.float64(acc[t, 3]), np.float64(acc[t, 4]), np.float64(acc[t, 5]), cnt[t], min_rays)
+            if sg < math.inf:
+                n_ok += 1
+                v = sg / required[t] if kind == 2 else sg
+                if v > best:
+                    best = v
+            else:
+                if cnt[t] < min_rays:
+                    short += min_rays - cnt[t]
+                else:
+                    singular += 1
+        out_value[q] = best if n_ok > 0 else 0.0
+        out_violation[q] = short + singular
+        out_short[q] = n - n_ok
+
+
+@njit(cache=True, nogil=True)
+def add_rows(indptr, indices, data, acc, rows, cand):
+    """``acc[rows[i]] += dense[cand[i]]`` for each i (rows distinct), in the data's precision."""
+    for i in range(cand.shape[0]):
+        r = rows[i]
+        for e in range(indptr[cand[i]], indptr[cand[i] + 1]):
+            t = indices[e]
+            for u in range(6):
+                acc[r, t, u] += data[e, u]
+
+
+@njit(cache=True, nogil=True)
+def _find(indices, lo, hi, t):
+    """Position of ``t`` in the sorted ``indices[lo:hi]``, or -1."""
+    while lo < hi:
+        mid = (lo + hi) >> 1
+        v = indices[mid]
+        if v < t:
+            lo = mid + 1
+        elif v > t:
+            hi = mid
+        else:
+            return mid
+    return -1
+
+
+@njit(cache=True, nogil=True)
+def gather(indptr, indices, data, rows, cols):
+    """``dense[rows][:, cols]``: (len(rows), len(cols), 6) in the data's precision, zero where not visible."""
+    out = np.zeros((rows.shape[0], cols.shape[0], 6), dtype=data.dtype)
+    for i in range(rows.shape[0]):
+        lo, hi = indptr[rows[i]], indptr[rows[i] + 1]
+        for jj in range(cols.shape[0]):
+            e = _find(indices, lo, hi, cols[jj])
+            if e >= 0:
+                for u in range(6):
+                    out[i, jj, u] = data[e, u]
+    return out
+
+
+@njit(cache=True, nogil=True)
+def rows_dense(indptr, indices, data, rows, n):
+    """``dense[rows]``: (len(rows), n, 6) in the data's precision."""
+    out = np.zeros((rows.shape[0], n, 6), dtype=data.dtype)
+    for i in range(rows.shape[0]):
+        for e in range(indptr[rows[i]], indptr[rows[i] + 1]):
+            for u in range(6):
+                out[i, indices[e], u] = data[e, u]
+    return out
+
+
+@njit(cache=True, nogil=True)
+def network_normal(indptr, indices, data, stations, n):
+    """Normal matrices ``(n, 6)`` float64 and ray counts ``(n,)`` int32 of a network: the stations' rows
+    summed in float64, one station after the other (``info[stations].sum(axis=0, dtype=np.float64)``)."""
+    N = np.zeros((n, 6))
+    cnt = np.zeros(n, dtype=np.int32)
+    for j in range(stations.shape[0]):
+        c = stations[j]
+        for e in range(indptr[c], indptr[c + 1]):
+            t = indices[e]
+            for u in range(6):
+                N[t, u] += np.float64(data[e, u])
+            cnt[t] += 1
+    return N, cnt
+
+
+@njit(cache=True, nogil=True)
+def exchange(indptr, indices, data, N, cnt, sig, old, new, min_rays):
+    """Replace station ``old`` by ``new`` in the network's ``N (n, 6)``, ``cnt`` and ``sig`` (in place):
+    ``N += info[new] - info[old]`` on the targets either sees, and their sigmas recomputed."""
+    a, a1 = indptr[old], indptr[old + 1]
+    b, b1 = indptr[new], indptr[new + 1]
+    while a < a1 or b < b1:
+        ta = indices[a] if a < a1 else 1 << 30
+        tb = indices[b] if b < b1 else 1 << 30
+        if ta == tb:
+            t = ta
+            for u in range(6):
+                N[t, u] += np.float64(data[b, u]) - np.float64(data[a, u])
+            a += 1
+            b += 1
+        elif ta < tb:
+            t = ta
+            for u in range(6):
+                N[t, u] += 0.0 - np.float64(data[a, u])
+            cnt[t] -= 1
+            a += 1
+        else:
+            t = tb
+            for u in range(6):
+                N[t, u] += np.float64(data[b, u])
+            cnt[t] += 1
+            b += 1
+        sig[t] = sigma6(N[t, 0], N[t, 1], N[t, 2], N[t, 3], N[t, 4], N[t, 5], cnt[t], min_rays)
+
+
+_TOP = 32
+
+
+@njit(cache=True, nogil=True)
+def strict_step(indptr, indices, data, vis, S, N, cnt, sig, target, pool, min_rays):
+    """The best exchange lowering the worst sigma below ``target`` (planning.refine._strict_step).
+
+    ``vis: (m, n)`` bool, the information's visibility; ``S: (k,)`` the network; ``N, cnt, sig`` its normal
+    matrices, rays and sigmas; ``pool``: the candidates a station may move to, in order.
+    Returns ``(new_worst, slot, candidate)``; slot -1 when no exchange lowers the worst.
+
+    Removing station ``j`` changes only the targets it sees: their sigmas without it are computed on its
+    entries, every other target keeps ``sig``. A target is critical for ``j`` when its sigma without ``j``
+    is ``>= target``; an exchange ``(j, c)`` helps only if ``c`` sees all of them, and its new worst is
+    the larger of the worst over the non-critical targets (``rest``) and over the critical ones with ``c``.
+    Candidates are scored in pool order and dropped as soon as a critical target reaches the best found.
+    """
+    k = S.shape[0]
+    n = sig.shape[0]
+    # the removal sigmas on each station's own entries
+    off = np.zeros(k + 1, dtype=np.int64)
+    for j in range(k):
+        off[j + 1] = off[j] + indptr[S[j] + 1] - indptr[S[j]]
+    srm = np.empty(off[k])
+    minrm = sig.copy()  # min over stations of the removal sigma (stations that do not see t keep sig[t])
+    for j in range(k):
+        e0 = indptr[S[j]]
+        for q in range(off[j], off[j + 1]):
+            e = e0 + q - off[j]
+            t = indices[e]
+            v = sigma6(N[t, 0] - np.float64(data[e, 0]), N[t, 1] - np.float64(data[e, 1]),
+                       N[t, 2] - np.float64(data[e, 2]), N[t, 3] - np.float64(data[e, 3]),
+                       N[t, 4] - np.float64(data[e, 4]), N[t, 5] - np.float64(data[e, 5]), cnt[t] - 1, min_rays)
+            srm[q] = v
+    # targets every station sees: min over the stations only
+    for t in range(n):
+        if cnt[t] >= k:
+            minrm[t] = math.inf
+    for j in range(k):
+        e0 = indptr[S[j]]
+        for q in range(off[j], off[j + 1]):
+            t = indices[e0 + q - off[j]]
+            if srm[q] < minrm[t]:
+                minrm[t] = srm[q]
+    # globally critical targets, and the largest non-critical sigmas (descending)
+    n_g = 0
+    for t in range(n):
+        if sig[t] >= target:
+            n_g += 1
+    crit_g = np.empty(n_g, dtype=np.int64)
+    top = np.full(_TOP, -1, dtype=np.int64)
+    n_top = 0
+    g = 0
+    for t in range(n):
+        v = sig[t]
+        if v >= target:
+            crit_g[g] = t
+            g += 1
+            continue
+        if n_top == _TOP and v <= sig[top[n_top - 1]]:
+            continue
+        # insert, keeping the first of equal values first (a stable descending order)
+        pos = n_top if n_top < _TOP else _TOP - 1
+        while pos > 0 and sig[top[pos - 1]] < v:
+            pos -= 1
+        last = n_top if n_top < _TOP else _TOP - 1
+        for r in range(last, pos, -1):
+            top[r] = top[r - 1]
+        top[pos] = t
+        if n_top < _TOP:
+            n_top += 1
+    # rest[j]: the worst of the targets that stay non-critical without station j (at least 0)
+    rest = np.zeros(k)
+    for j in range(k):
+        r = 0.0
+        for q in range(off[j], off[j + 1]):
+            if srm[q] < target and srm[q] > r:
+                r = srm[q]
+        row = vis[S[j]]
+        found = False
+        for h in range(n_top):
+            t = top[h]
+            if not row[t]:
+                if sig[t] > r:
+                    r = sig[t]
+                found = True
+                break
+        if not found and n_top == _TOP:  # every listed target is seen by j: scan the others
+            for t in range(n):
+                if not row[t] and sig[t] < target and sig[t] > r:
+                    r = sig[t]
+        rest[j] = r
+    # the current worst target is critical for every station: only candidates seeing it can help
+    wt = 0
+    for t in range(n):
+        if minrm[t] > minrm[wt]:
+            wt = t
+    order = np.argsort(rest, kind="mergesort")
+    best_w, best_j, best_c = target, -1, -1
+    cj = np.empty(n, dtype=np.int64)
+    base = np.empty((n, 6))
+    cbase = np.empty(n, dtype=np.int64)
+    for oi in range(k):
+        j = order[oi]
+        if rest[j] >= best_w:
+            break
+        row = vis[S[j]]
+        nc = 0
+        for g in range(n_g):
+            t = crit_g[g]
+            if not row[t]:
+                cj[nc] = t
+                for u in range(6):
+                    base[nc, u] = N[t, u]
+                cbase[nc] = cnt[t]
+                nc += 1
+        e0 = indptr[S[j]]
+        for q in range(off[j], off[j + 1]):
+            if srm[q] >= target:
+                e = e0 + q - off[j]
+                t = indices[e]
+                cj[nc] = t
+                for u in range(6):
+                    base[nc, u] = N[t, u] - np.float64(data[e, u])
+                cbase[nc] = cnt[t] - 1
+                nc += 1
+        for pi in range(pool.shape[0]):
+            c = pool[pi]
+            vrow = vis[c]
+            if not vrow[wt]:
+                continue
+            sees = True
+            for h in range(nc):
+                if not vrow[cj[h]]:
+                    sees = False
+                    break
+            if not sees:
+                continue
+            lo, hi = indptr[c], indptr[c + 1]
+            mx = -math.inf
+            for h in range(nc):
+                e = _find(indices, lo, hi, cj[h])
+                if e >= 0:
+                    v = sigma6(base[h, 0] + np.float64(data[e, 0]), base[h, 1] + np.float64(data[e, 1]),
+                               base[h, 2] + np.float64(data[e, 2]), base[h, 3] + np.float64(data[e, 3]),
+                               base[h, 4] + np.float64(data[e, 4]), base[h, 5] + np.float64(data[e, 5]),
+                               cbase[h] + 1, min_rays)
+                else:
+                    v = sigma6(base[h, 0] + 0.0, base[h, 1] + 0.0, base[h, 2] + 0.0, base[h, 3] + 0.0,
+                               base[h, 4] + 0.0, base[h, 5] + 0.0, cbase[h] + 1, min_rays)
+                if v > mx:
+                    mx = v
+                    if mx >= best_w:
+                        break
+            w = mx if mx > rest[j] else rest[j]
+            if w < best_w:
+                best_w, best_j, best_c = w, j, c
+    return best_w, best_j, best_c
