@@ -1,5 +1,5 @@
 """Compiled (numba) kernels of the planner's hot loops, on the candidate x target information kept
-sparse (CSR by candidate: ``indptr (m+1)``, ``indices (nnz,)`` target, ``data (nnz, 6)``; the entries of a
+sparse (rows ``[starts[i], ends[i])`` of ``indices (nnz,)`` target and ``data (nnz, 6)``, planning.sparse_info; the entries of a
 row are its visible targets, in increasing order).
 
 Each kernel does exactly the floating-point operations of the NumPy code it replaces, in the same order
@@ -70,7 +70,7 @@ def sigma6_rows(N, cnt, min_rays):
 
 
 @njit(cache=True, nogil=True)
-def population_fitness(indptr, indices, data, stations, n, min_rays, kind, required, out_value, out_violation,
+def population_fitness(starts, ends, indices, data, stations, n, min_rays, kind, required, out_value, out_violation,
                        out_short):
     """Fitness of networks ``stations: (p, k)`` (sorted, -1 = off, no repeats) on a CSR information.
 
@@ -90,7 +90,7 @@ def population_fitness(indptr, indices, data, stations, n, min_rays, kind, requi
             c = stations[q, j]
             if c < 0:
                 continue
-            for e in range(indptr[c], indptr[c + 1]):
+            for e in range(starts[c], ends[c]):
                 t = indices[e]
                 for u in range(6):
                     acc[t, u] += data[e, u]
@@ -118,11 +118,11 @@ def population_fitness(indptr, indices, data, stations, n, min_rays, kind, requi
 
 
 @njit(cache=True, nogil=True)
-def add_rows(indptr, indices, data, acc, rows, cand):
+def add_rows(starts, ends, indices, data, acc, rows, cand):
     """``acc[rows[i]] += dense[cand[i]]`` for each i (rows distinct), in the data's precision."""
     for i in range(cand.shape[0]):
         r = rows[i]
-        for e in range(indptr[cand[i]], indptr[cand[i] + 1]):
+        for e in range(starts[cand[i]], ends[cand[i]]):
             t = indices[e]
             for u in range(6):
                 acc[r, t, u] += data[e, u]
@@ -144,11 +144,11 @@ def _find(indices, lo, hi, t):
 
 
 @njit(cache=True, nogil=True)
-def gather(indptr, indices, data, rows, cols):
+def gather(starts, ends, indices, data, rows, cols):
     """``dense[rows][:, cols]``: (len(rows), len(cols), 6) in the data's precision, zero where not visible."""
     out = np.zeros((rows.shape[0], cols.shape[0], 6), dtype=data.dtype)
     for i in range(rows.shape[0]):
-        lo, hi = indptr[rows[i]], indptr[rows[i] + 1]
+        lo, hi = starts[rows[i]], ends[rows[i]]
         for jj in range(cols.shape[0]):
             e = _find(indices, lo, hi, cols[jj])
             if e >= 0:
@@ -158,25 +158,25 @@ def gather(indptr, indices, data, rows, cols):
 
 
 @njit(cache=True, nogil=True)
-def rows_dense(indptr, indices, data, rows, n):
+def rows_dense(starts, ends, indices, data, rows, n):
     """``dense[rows]``: (len(rows), n, 6) in the data's precision."""
     out = np.zeros((rows.shape[0], n, 6), dtype=data.dtype)
     for i in range(rows.shape[0]):
-        for e in range(indptr[rows[i]], indptr[rows[i] + 1]):
+        for e in range(starts[rows[i]], ends[rows[i]]):
             for u in range(6):
                 out[i, indices[e], u] = data[e, u]
     return out
 
 
 @njit(cache=True, nogil=True)
-def network_normal(indptr, indices, data, stations, n):
+def network_normal(starts, ends, indices, data, stations, n):
     """Normal matrices ``(n, 6)`` float64 and ray counts ``(n,)`` int32 of a network: the stations' rows
     summed in float64, one station after the other (``info[stations].sum(axis=0, dtype=np.float64)``)."""
     N = np.zeros((n, 6))
     cnt = np.zeros(n, dtype=np.int32)
     for j in range(stations.shape[0]):
         c = stations[j]
-        for e in range(indptr[c], indptr[c + 1]):
+        for e in range(starts[c], ends[c]):
             t = indices[e]
             for u in range(6):
                 N[t, u] += np.float64(data[e, u])
@@ -185,11 +185,11 @@ def network_normal(indptr, indices, data, stations, n):
 
 
 @njit(cache=True, nogil=True)
-def exchange(indptr, indices, data, N, cnt, sig, old, new, min_rays):
+def exchange(starts, ends, indices, data, N, cnt, sig, old, new, min_rays):
     """Replace station ``old`` by ``new`` in the network's ``N (n, 6)``, ``cnt`` and ``sig`` (in place):
     ``N += info[new] - info[old]`` on the targets either sees, and their sigmas recomputed."""
-    a, a1 = indptr[old], indptr[old + 1]
-    b, b1 = indptr[new], indptr[new + 1]
+    a, a1 = starts[old], ends[old]
+    b, b1 = starts[new], ends[new]
     while a < a1 or b < b1:
         ta = indices[a] if a < a1 else 1 << 30
         tb = indices[b] if b < b1 else 1 << 30
@@ -218,7 +218,7 @@ _TOP = 32
 
 
 @njit(cache=True, nogil=True)
-def strict_step(indptr, indices, data, vis, S, N, cnt, sig, target, pool, min_rays):
+def strict_step(starts, ends, indices, data, vis, S, N, cnt, sig, target, pool, min_rays):
     """The best exchange lowering the worst sigma below ``target`` (planning.refine._strict_step).
 
     ``vis: (m, n)`` bool, the information's visibility; ``S: (k,)`` the network; ``N, cnt, sig`` its normal
@@ -236,11 +236,11 @@ def strict_step(indptr, indices, data, vis, S, N, cnt, sig, target, pool, min_ra
     # the removal sigmas on each station's own entries
     off = np.zeros(k + 1, dtype=np.int64)
     for j in range(k):
-        off[j + 1] = off[j] + indptr[S[j] + 1] - indptr[S[j]]
+        off[j + 1] = off[j] + ends[S[j]] - starts[S[j]]
     srm = np.empty(off[k])
     minrm = sig.copy()  # min over stations of the removal sigma (stations that do not see t keep sig[t])
     for j in range(k):
-        e0 = indptr[S[j]]
+        e0 = starts[S[j]]
         for q in range(off[j], off[j + 1]):
             e = e0 + q - off[j]
             t = indices[e]
@@ -253,7 +253,7 @@ def strict_step(indptr, indices, data, vis, S, N, cnt, sig, target, pool, min_ra
         if cnt[t] >= k:
             minrm[t] = math.inf
     for j in range(k):
-        e0 = indptr[S[j]]
+        e0 = starts[S[j]]
         for q in range(off[j], off[j + 1]):
             t = indices[e0 + q - off[j]]
             if srm[q] < minrm[t]:
@@ -330,7 +330,7 @@ def strict_step(indptr, indices, data, vis, S, N, cnt, sig, target, pool, min_ra
                     base[nc, u] = N[t, u]
                 cbase[nc] = cnt[t]
                 nc += 1
-        e0 = indptr[S[j]]
+        e0 = starts[S[j]]
         for q in range(off[j], off[j + 1]):
             if srm[q] >= target:
                 e = e0 + q - off[j]
@@ -352,7 +352,7 @@ def strict_step(indptr, indices, data, vis, S, N, cnt, sig, target, pool, min_ra
                     break
             if not sees:
                 continue
-            lo, hi = indptr[c], indptr[c + 1]
+            lo, hi = starts[c], ends[c]
             mx = -math.inf
             for h in range(nc):
                 e = _find(indices, lo, hi, cj[h])

@@ -116,15 +116,16 @@ def polish_network(
     k = len(cur)
     sub = _TargetSubset(part, cols)
     occluder = Occluder(part.mesh, backend=backend) if vis_opts.check_occlusion else None
-    cache = _VariantCache()
+    cache = _VariantCache(len(cols))
 
     def evaluate(g: np.ndarray) -> tuple[SparseInfo, np.ndarray]:
         T = sphere.poses(g)
         vis = compute_visibility(sub, intr, T, vis_opts, backend=backend, occluder=occluder)
         return target_information(intr, T, xyz, vis, sigma_px, dtype=np.float64, sparse=True), vis
 
-    info_cur, vis_cur = evaluate(cur)
-    sig = network_sigma(info_cur, vis_cur, np.arange(k), min_rays)
+    info0, vis0 = evaluate(cur)
+    cur_rows = cache.add(info0, vis0, np.ones(k, dtype=bool))
+    sig = network_sigma(cache.info(cur_rows), vis0, np.arange(k), min_rays)
     start = worst = float(sig.max())
     n_rounds = n_swaps = 0
     n_poses = k
@@ -133,7 +134,7 @@ def polish_network(
     for _ in range(rounds):
         n_rounds += 1
         hard = sig >= focus * worst
-        movers = np.flatnonzero(vis_cur[:, hard].any(axis=1))
+        movers = np.flatnonzero(cache.vis[cur_rows][:, hard].any(axis=1))
         var = local_variants(cur[movers], sphere, step_rad, step_m, offset_m).reshape(-1, cur.shape[1])
         # a variant met in an earlier round (its station did not move, the steps did not change) is not
         # ray-cast again: its rows are the same
@@ -145,16 +146,16 @@ def polish_network(
             if reachable_fn is not None and ok.any():
                 idx = np.flatnonzero(ok)
                 ok[idx[~np.asarray(reachable_fn(sphere.poses(var[new][idx])), dtype=bool)]] = False
-            cache.add(var[new], info_n, vis_n, ok)
+            cache.add(info_n, vis_n, ok, var[new])
         rows, keep = cache.lookup(var)
-        info = SparseInfo.vstack([info_cur, cache.info_rows(rows[keep])])
-        vis = np.concatenate([vis_cur, cache.vis[rows[keep]]])
+        pool_rows = np.concatenate([cur_rows, rows[keep]])
         pool_genes = np.concatenate([cur, var[keep]])
-        r = swap_descent(info, vis, np.arange(len(vis)), np.arange(k), min_rays)
+        r = swap_descent(cache.info(pool_rows), cache.vis[pool_rows], np.arange(len(pool_rows)), np.arange(k),
+                         min_rays)
         if r.worst < worst:
             n_swaps += r.n_swaps
-            cur, info_cur, vis_cur = pool_genes[r.stations], info.select(r.stations), vis[r.stations]
-            sig = network_sigma(info_cur, vis_cur, np.arange(k), min_rays)
+            cur, cur_rows = pool_genes[r.stations], pool_rows[r.stations]
+            sig = network_sigma(cache.info(cur_rows), cache.vis[cur_rows], np.arange(k), min_rays)
             worst = float(sig.max())
         else:
             step_rad, step_m, offset_m = 0.5 * step_rad, 0.5 * step_m, 0.5 * offset_m
@@ -179,13 +180,19 @@ class _Targets:
 
 
 class _VariantCache:
-    """Ray-cast variants by their exact genes: information rows (CSR, float64), visibility, usable."""
+    """Ray-cast poses: information rows (float64, in buffers that double when full, so appending costs the
+    new rows only), visibility, usable; variants are found again by their exact genes."""
 
-    def __init__(self):
+    def __init__(self, n: int):
+        self.n = n
         self.index: dict[bytes, int] = {}
-        self.store: SparseInfo | None = None
-        self.vis = np.zeros((0, 0), dtype=bool)
-        self.ok = np.zeros(0, dtype=bool)
+        self.m = self.nnz = 0
+        self.starts = np.zeros(64, dtype=np.int64)
+        self.ends = np.zeros(64, dtype=np.int64)
+        self.ok = np.zeros(64, dtype=bool)
+        self.vis = np.zeros((64, n), dtype=bool)
+        self.indices = np.zeros(1 << 16, dtype=np.int32)
+        self.data = np.zeros((1 << 16, 6))
 
     def missing(self, var: np.ndarray) -> np.ndarray:
         """Indices of the rows of ``var`` not cached (first occurrences only)."""
@@ -197,22 +204,37 @@ class _VariantCache:
                 out.append(i)
         return np.array(out, dtype=np.intp)
 
-    def add(self, var: np.ndarray, info: SparseInfo, vis: np.ndarray, ok: np.ndarray) -> None:
-        base = len(self.ok)
-        for i, g in enumerate(var):
-            self.index[g.tobytes()] = base + i
-        self.store = info if self.store is None else SparseInfo.vstack([self.store, info])
-        self.vis = np.concatenate([self.vis, vis]) if len(self.vis) else vis.copy()
-        self.ok = np.concatenate([self.ok, ok])
+    @staticmethod
+    def _fit(a: np.ndarray, size: int) -> np.ndarray:
+        if size <= len(a):
+            return a
+        out = np.empty((max(size, 2 * len(a)),) + a.shape[1:], dtype=a.dtype)
+        out[:len(a)] = a
+        return out
+
+    def add(self, info: SparseInfo, vis: np.ndarray, ok: np.ndarray, var: np.ndarray | None = None) -> np.ndarray:
+        """Store rows (``var``: the genes they are found by; None: not found by genes); their cache rows."""
+        r, m0, e0, nnz = len(vis), self.m, self.nnz, len(info.indices)
+        self.starts, self.ends = self._fit(self.starts, m0 + r), self._fit(self.ends, m0 + r)
+        self.ok, self.vis = self._fit(self.ok, m0 + r), self._fit(self.vis, m0 + r)
+        self.indices, self.data = self._fit(self.indices, e0 + nnz), self._fit(self.data, e0 + nnz)
+        self.starts[m0:m0 + r], self.ends[m0:m0 + r] = e0 + info.indptr[:-1], e0 + info.indptr[1:]
+        self.ok[m0:m0 + r], self.vis[m0:m0 + r] = ok, vis
+        self.indices[e0:e0 + nnz], self.data[e0:e0 + nnz] = info.indices, info.data
+        if var is not None:
+            for i, g in enumerate(var):
+                self.index[g.tobytes()] = m0 + i
+        self.m, self.nnz = m0 + r, e0 + nnz
+        return np.arange(m0, m0 + r)
 
     def lookup(self, var: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Cache row of each variant, and whether it is usable (sees a target, reachable)."""
         rows = np.array([self.index[g.tobytes()] for g in var], dtype=np.intp)
         return rows, self.ok[rows]
 
-    def info_rows(self, rows: np.ndarray) -> SparseInfo:
-        """The information of cache rows ``rows``, in that order."""
-        return self.store.select(rows)
+    def info(self, rows: np.ndarray) -> SparseInfo:
+        """The information of cache rows ``rows``, in that order (a view: no copy)."""
+        return SparseInfo.view(self.starts[rows], self.ends[rows], self.indices, self.data, self.n)
 
 
 def polish(part, intr: Intrinsics, sphere: ViewingSphere, vis_opts: VisibilityOptions, db, genes: np.ndarray,

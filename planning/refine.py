@@ -65,7 +65,7 @@ def network_sigma(info: np.ndarray, visible: np.ndarray, stations: np.ndarray, m
     ``info: (m, n, 6)`` (or SparseInfo), ``visible: (m, n)`` bool, ``stations: (k,)`` distinct int.
     """
     if isinstance(info, SparseInfo):
-        N, cnt = kernels.network_normal(info.indptr, info.indices, info.data, np.asarray(stations, dtype=np.intp),
+        N, cnt = kernels.network_normal(info.starts, info.ends, info.indices, info.data, np.asarray(stations, dtype=np.intp),
                                         info.shape[1])
         return kernels.sigma6_rows(N, cnt, min_rays)
     N = info[stations].sum(axis=0, dtype=np.float64)
@@ -109,7 +109,7 @@ class SwapResult:
 
 def _strict_step(sp: SparseInfo, visible, S, N, cnt, sig, worst, pool, min_rays, rel_tol):
     """Best exchange lowering the worst: (new_worst, slot, candidate) or None (planning.kernels.strict_step)."""
-    w, i, c = kernels.strict_step(sp.indptr, sp.indices, sp.data, visible, S, N, cnt, sig, worst * (1.0 - rel_tol),
+    w, i, c = kernels.strict_step(sp.starts, sp.ends, sp.indices, sp.data, visible, S, N, cnt, sig, worst * (1.0 - rel_tol),
                                   pool, min_rays)
     return None if i < 0 else (float(w), int(i), int(c))
 
@@ -165,7 +165,7 @@ def swap_descent(
     t0 = time.perf_counter()
     visible = np.ascontiguousarray(visible, dtype=bool)
     sp = as_csr(info, visible)
-    N, cnt = kernels.network_normal(sp.indptr, sp.indices, sp.data, S, sp.shape[1])
+    N, cnt = kernels.network_normal(sp.starts, sp.ends, sp.indices, sp.data, S, sp.shape[1])
     sig = kernels.sigma6_rows(N, cnt, min_rays)
     worst = start = float(sig.max())
     history: list[dict] = []
@@ -193,7 +193,7 @@ def swap_descent(
         if move is None:
             break
         _, i, c = move
-        kernels.exchange(sp.indptr, sp.indices, sp.data, N, cnt, sig, S[i], c, min_rays)
+        kernels.exchange(sp.starts, sp.ends, sp.indices, sp.data, N, cnt, sig, S[i], c, min_rays)
         S[i] = c
         worst = float(sig.max())
         history.append({"swap": len(history) + 1, "kind": kind, "worst": worst,

@@ -36,7 +36,12 @@ def greedy_cover(visible: np.ndarray, candidates: np.ndarray, k: int, min_rays: 
         (k,) int candidate indices (repeats only if fewer than ``k`` candidates exist).
     """
     V = visible[candidates].astype(np.float32)
-    rarity = 1.0 / np.maximum(V.sum(axis=0), 1.0)
+    return _greedy_cover(V, 1.0 / np.maximum(V.sum(axis=0), 1.0), candidates, k, min_rays, rng, noise)
+
+
+def _greedy_cover(V: np.ndarray, rarity: np.ndarray, candidates: np.ndarray, k: int, min_rays: int,
+                  rng: np.random.Generator, noise: float = 0.3) -> np.ndarray:
+    """:func:`greedy_cover` on ``V = visible[candidates]`` as float32 and its ``rarity`` (computed once for many)."""
     count = np.zeros(V.shape[1], dtype=np.float32)
     chosen: list[int] = []
     free = np.ones(len(candidates), dtype=bool)
@@ -129,8 +134,11 @@ def initial_population(valid_idx: np.ndarray, visible: np.ndarray, candidate_gen
         short = bits.sum(axis=1) < min_rays
         bits[short, :min_rays] = True
     n_greedy = int(round(greedy_fraction * P))
+    if n_greedy:
+        V = visible[v].astype(np.float32)
+        rarity = 1.0 / np.maximum(V.sum(axis=0), 1.0)
     for i in range(n_greedy):
         size = k if mode == "fixed" else int(rng.integers(min_rays, k + 1))
-        pick[i, :size] = greedy_cover(visible, v, size, min_rays, rng)
+        pick[i, :size] = _greedy_cover(V, rarity, v, size, min_rays, rng)
         bits[i] = np.arange(k) < size
     return candidate_genes[pick].copy(), bits
