@@ -372,3 +372,116 @@ def strict_step(starts, ends, indices, data, vis, S, N, cnt, sig, target, pool, 
             if w < best_w:
                 best_w, best_j, best_c = w, j, c
     return best_w, best_j, best_c
+
+
+@njit(cache=True, nogil=True)
+def geometric_ok(part_from_cam, cam_from_part, xyz, normals, cos_max, near, far, size_px, min_px, cam, out):
+    """Every visibility test but occlusion (planning.visibility.geometric_visibility), pair by pair with an
+    early exit; ``out (m, n)`` bool. ``cam``: fx, fy, cx, cy, k1, k2, k3, p1, p2, distorted (0/1), and the
+    image limits umin, umax, vmin, vmax (the margin applied)."""
+    fx, fy, cx, cy, k1, k2, k3, p1, p2 = cam[0], cam[1], cam[2], cam[3], cam[4], cam[5], cam[6], cam[7], cam[8]
+    distorted = cam[9] != 0.0
+    umin, umax, vmin, vmax = cam[10], cam[11], cam[12], cam[13]
+    m, n = out.shape
+    xn2 = np.empty(n)
+    xx = np.empty(n)
+    for t in range(n):
+        xn2[t] = xyz[t, 0] * normals[t, 0] + xyz[t, 1] * normals[t, 1] + xyz[t, 2] * normals[t, 2]
+        xx[t] = xyz[t, 0] * xyz[t, 0] + xyz[t, 1] * xyz[t, 1] + xyz[t, 2] * xyz[t, 2]
+    for i in range(m):
+        e0, e1, e2 = part_from_cam[i, 0, 3], part_from_cam[i, 1, 3], part_from_cam[i, 2, 3]
+        ee = e0 * e0 + e1 * e1 + e2 * e2
+        R = cam_from_part[i]
+        for t in range(n):
+            out[i, t] = False
+            x0, x1, x2 = xyz[t, 0], xyz[t, 1], xyz[t, 2]
+            sn = (e0 * normals[t, 0] + e1 * normals[t, 1] + e2 * normals[t, 2]) - xn2[t]
+            d2 = ee - 2.0 * (e0 * x0 + e1 * x1 + e2 * x2) + xx[t]
+            if not sn >= cos_max * math.sqrt(max(d2, 1e-24)):
+                continue
+            z = R[2, 0] * x0 + R[2, 1] * x1 + R[2, 2] * x2 + R[2, 3]
+            if not (z > 1e-9 and z >= near and z <= far and size_px >= min_px * z):
+                continue
+            xn = (R[0, 0] * x0 + R[0, 1] * x1 + R[0, 2] * x2 + R[0, 3]) / z
+            yn = (R[1, 0] * x0 + R[1, 1] * x1 + R[1, 2] * x2 + R[1, 3]) / z
+            if distorted:
+                r2 = xn * xn + yn * yn
+                radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+                xd = xn * radial + 2 * p1 * xn * yn + p2 * (r2 + 2 * xn * xn)
+                yd = yn * radial + p1 * (r2 + 2 * yn * yn) + 2 * p2 * xn * yn
+            else:
+                xd, yd = xn, yn
+            u = fx * xd + cx
+            v = fy * yd + cy
+            out[i, t] = u >= umin and u <= umax and v >= vmin and v <= vmax
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _pair_info(R, X0, X1, X2, fx, fy, k1, k2, k3, p1, p2, distorted, out):
+    """``J^T J`` (upper triangle, 6) of one pose ``R: (4, 4) cam_from_part`` and point, J = d(uv)/dX."""
+    xc0 = R[0, 0] * X0 + R[0, 1] * X1 + R[0, 2] * X2 + R[0, 3]
+    xc1 = R[1, 0] * X0 + R[1, 1] * X1 + R[1, 2] * X2 + R[1, 3]
+    xc2 = R[2, 0] * X0 + R[2, 1] * X1 + R[2, 2] * X2 + R[2, 3]
+    iz = 1.0 / xc2
+    xn, yn = xc0 * iz, xc1 * iz
+    if distorted:
+        r2 = xn * xn + yn * yn
+        radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        dr = k1 + 2 * k2 * r2 + 3 * k3 * r2 * r2
+        d00 = radial + 2 * xn * xn * dr + 2 * p1 * yn + 6 * p2 * xn
+        d01 = 2 * xn * yn * dr + 2 * p1 * xn + 2 * p2 * yn
+        d11 = radial + 2 * yn * yn * dr + 6 * p1 * yn + 2 * p2 * xn
+        d10 = d01
+    else:
+        d00, d01, d10, d11 = 1.0, 0.0, 0.0, 1.0
+    a0, b0 = d00 * fx * iz, d01 * fx * iz
+    a1, b1 = d10 * fy * iz, d11 * fy * iz
+    c0, c1 = -(a0 * xn + b0 * yn), -(a1 * xn + b1 * yn)
+    j00 = a0 * R[0, 0] + b0 * R[1, 0] + c0 * R[2, 0]
+    j01 = a0 * R[0, 1] + b0 * R[1, 1] + c0 * R[2, 1]
+    j02 = a0 * R[0, 2] + b0 * R[1, 2] + c0 * R[2, 2]
+    j10 = a1 * R[0, 0] + b1 * R[1, 0] + c1 * R[2, 0]
+    j11 = a1 * R[0, 1] + b1 * R[1, 1] + c1 * R[2, 1]
+    j12 = a1 * R[0, 2] + b1 * R[1, 2] + c1 * R[2, 2]
+    out[0] = j00 * j00 + j10 * j10
+    out[1] = j00 * j01 + j10 * j11
+    out[2] = j00 * j02 + j10 * j12
+    out[3] = j01 * j01 + j11 * j11
+    out[4] = j01 * j02 + j11 * j12
+    out[5] = j02 * j02 + j12 * j12
+
+
+@njit(cache=True, nogil=True)
+def information_rows(cam_from_part, xyz, visible, w, cam, indptr, indices, data):
+    """The information ``J^T J * w[t]`` of every visible pair, CSR by pose: fills ``indices``, ``data`` (in
+    its precision) at the rows ``indptr`` (the visible pairs counted per pose)."""
+    fx, fy, k1, k2, k3, p1, p2 = cam[0], cam[1], cam[4], cam[5], cam[6], cam[7], cam[8]
+    distorted = cam[9] != 0.0
+    v = np.empty(6)
+    m, n = visible.shape
+    for i in range(m):
+        e = indptr[i]
+        R = cam_from_part[i]
+        for t in range(n):
+            if visible[i, t]:
+                _pair_info(R, xyz[t, 0], xyz[t, 1], xyz[t, 2], fx, fy, k1, k2, k3, p1, p2, distorted, v)
+                for u in range(6):
+                    data[e, u] = v[u] * w[t]
+                indices[e] = t
+                e += 1
+
+
+@njit(cache=True, nogil=True)
+def pair_information(cam_from_part, X, cam, out):
+    """``J^T J`` of pairs ``cam_from_part: (q, 4, 4)``, ``X: (q, 3)``; fills ``out (q, 6)``."""
+    fx, fy, k1, k2, k3, p1, p2 = cam[0], cam[1], cam[4], cam[5], cam[6], cam[7], cam[8]
+    distorted = cam[9] != 0.0
+    for q in range(X.shape[0]):
+        _pair_info(cam_from_part[q], X[q, 0], X[q, 1], X[q, 2], fx, fy, k1, k2, k3, p1, p2, distorted, out[q])
+
+
+def camera_vector(intr, margin_px: float = 0.0) -> np.ndarray:
+    """The camera as the kernels take it: fx, fy, cx, cy, k1, k2, k3, p1, p2, distorted, image limits."""
+    return np.array([intr.fx_px, intr.fy_px, intr.cx_px, intr.cy_px, intr.k1, intr.k2, intr.k3, intr.p1, intr.p2,
+                     1.0 if intr.has_distortion else 0.0, -0.5 + margin_px, intr.width - 0.5 - margin_px,
+                     -0.5 + margin_px, intr.height - 0.5 - margin_px], dtype=np.float64)

@@ -146,7 +146,7 @@ def polish_network(
             if reachable_fn is not None and ok.any():
                 idx = np.flatnonzero(ok)
                 ok[idx[~np.asarray(reachable_fn(sphere.poses(var[new][idx])), dtype=bool)]] = False
-            cache.add(info_n, vis_n, ok, var[new])
+            cache.add(info_n, vis_n, ok, var[new], parents=np.repeat(cur[movers], 10, axis=0)[new])
         rows, keep = cache.lookup(var)
         pool_rows = np.concatenate([cur_rows, rows[keep]])
         pool_genes = np.concatenate([cur, var[keep]])
@@ -157,8 +157,12 @@ def polish_network(
             cur, cur_rows = pool_genes[r.stations], pool_rows[r.stations]
             sig = network_sigma(cache.info(cur_rows), cache.vis[cur_rows], np.arange(k), min_rays)
             worst = float(sig.max())
+            # with the same steps, the variants of stations still in the network come again, and this round's
+            # may (a station moved and back)
+            cur_rows = cache.keep(np.concatenate([cur_rows, rows]), {g.tobytes() for g in cur})[:k]
         else:
             step_rad, step_m, offset_m = 0.5 * step_rad, 0.5 * step_m, 0.5 * offset_m
+            cur_rows = cache.keep(cur_rows, set())  # new steps: no variant comes again
     return PolishResult(cur, worst, start, n_rounds, n_swaps, n_poses)
 
 
@@ -193,6 +197,8 @@ class _VariantCache:
         self.vis = np.zeros((64, n), dtype=bool)
         self.indices = np.zeros(1 << 16, dtype=np.int32)
         self.data = np.zeros((1 << 16, 6))
+        self.keys: list[bytes | None] = []
+        self.parents: list[bytes | None] = []
 
     def missing(self, var: np.ndarray) -> np.ndarray:
         """Indices of the rows of ``var`` not cached (first occurrences only)."""
@@ -212,8 +218,10 @@ class _VariantCache:
         out[:len(a)] = a
         return out
 
-    def add(self, info: SparseInfo, vis: np.ndarray, ok: np.ndarray, var: np.ndarray | None = None) -> np.ndarray:
-        """Store rows (``var``: the genes they are found by; None: not found by genes); their cache rows."""
+    def add(self, info: SparseInfo, vis: np.ndarray, ok: np.ndarray, var: np.ndarray | None = None,
+            parents: np.ndarray | None = None) -> np.ndarray:
+        """Store rows (``var``: the genes they are found by, ``parents``: the stations they vary; None: not
+        found by genes); their cache rows."""
         r, m0, e0, nnz = len(vis), self.m, self.nnz, len(info.indices)
         self.starts, self.ends = self._fit(self.starts, m0 + r), self._fit(self.ends, m0 + r)
         self.ok, self.vis = self._fit(self.ok, m0 + r), self._fit(self.vis, m0 + r)
@@ -221,11 +229,34 @@ class _VariantCache:
         self.starts[m0:m0 + r], self.ends[m0:m0 + r] = e0 + info.indptr[:-1], e0 + info.indptr[1:]
         self.ok[m0:m0 + r], self.vis[m0:m0 + r] = ok, vis
         self.indices[e0:e0 + nnz], self.data[e0:e0 + nnz] = info.indices, info.data
-        if var is not None:
-            for i, g in enumerate(var):
-                self.index[g.tobytes()] = m0 + i
+        keys = [None] * r if var is None else [g.tobytes() for g in var]
+        for i, key in enumerate(keys):
+            if key is not None:
+                self.index[key] = m0 + i
+        self.keys += keys
+        self.parents += [None] * r if parents is None else [g.tobytes() for g in parents]
         self.m, self.nnz = m0 + r, e0 + nnz
         return np.arange(m0, m0 + r)
+
+    def keep(self, rows: np.ndarray, parents: set) -> np.ndarray:
+        """Drop every row but ``rows`` (the network) and the variants of the stations ``parents`` (gene bytes;
+        the variants that may come again): the cache holds what can still be used, not every pose the polish
+        cast. Returns the new row numbers of ``rows``."""
+        again = [i for i, p in enumerate(self.parents) if p is not None and p in parents]
+        order = np.unique(np.concatenate([rows, np.array(again, dtype=np.intp)]).astype(np.intp))
+        new_of = np.full(self.m, -1, dtype=np.intp)
+        new_of[order] = np.arange(len(order))
+        lens = self.ends[order] - self.starts[order]
+        offs = np.concatenate([[0], np.cumsum(lens)])
+        e = np.repeat(self.starts[order] - offs[:-1], lens) + np.arange(int(offs[-1]))
+        self.indices[:len(e)], self.data[:len(e)] = self.indices[e], self.data[e]
+        self.starts[:len(order)], self.ends[:len(order)] = offs[:-1], offs[1:]
+        self.ok[:len(order)], self.vis[:len(order)] = self.ok[order], self.vis[order]
+        self.keys = [self.keys[i] for i in order]
+        self.parents = [self.parents[i] for i in order]
+        self.index = {key: i for i, key in enumerate(self.keys) if key is not None}
+        self.m, self.nnz = len(order), int(offs[-1])
+        return new_of[rows]
 
     def lookup(self, var: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Cache row of each variant, and whether it is usable (sees a target, reachable)."""

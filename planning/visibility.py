@@ -43,6 +43,7 @@ __all__ = [
     "VisibilityOptions",
     "Occluder",
     "geometric_visibility",
+    "geometric_visibility_compiled",
     "compute_visibility",
     "VisibilityDB",
     "default_cache_dir",
@@ -218,6 +219,22 @@ def geometric_visibility(
     return ok
 
 
+def geometric_visibility_compiled(intr: Intrinsics, part_from_cam: np.ndarray, xyz: np.ndarray, normals: np.ndarray,
+                                  target_diameter_m: float, options: VisibilityOptions) -> np.ndarray:
+    """:func:`geometric_visibility` compiled (planning.kernels.geometric_ok: each pair tested on its own, stopping
+    at the first test it fails, no ``(m, n)`` temporaries); the same answers but where a pair lies within
+    rounding (1e-15) of a limit."""
+    from planning import kernels
+
+    T = np.ascontiguousarray(np.asarray(part_from_cam, dtype=float).reshape(-1, 4, 4))
+    out = np.empty((len(T), len(xyz)), dtype=bool)
+    kernels.geometric_ok(T, np.ascontiguousarray(invert(T)), np.ascontiguousarray(xyz, dtype=float),
+                         np.ascontiguousarray(normals, dtype=float), float(np.cos(options.incidence_max_rad)),
+                         float(options.near_m), float(options.far_m), float(target_diameter_m * intr.fx_px),
+                         float(options.min_target_px), kernels.camera_vector(intr, options.margin_px), out)
+    return out
+
+
 def compute_visibility(
     part,
     intr: Intrinsics,
@@ -246,7 +263,7 @@ def compute_visibility(
     out = np.zeros((m, len(xyz)), dtype=bool)
     for c0 in range(0, m, chunk_cameras):
         c1 = min(c0 + chunk_cameras, m)
-        ok = geometric_visibility(intr, T[c0:c1], xyz, normals, part.target_diameter_m, options)
+        ok = geometric_visibility_compiled(intr, T[c0:c1], xyz, normals, part.target_diameter_m, options)
         if options.check_occlusion:
             ci, ti = np.nonzero(ok)
             starts = xyz[ti] + options.ray_offset_m * normals[ti]
