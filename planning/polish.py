@@ -118,13 +118,23 @@ def polish_network(
     occluder = Occluder(part.mesh, backend=backend) if vis_opts.check_occlusion else None
     cache = _VariantCache(len(cols))
 
-    def evaluate(g: np.ndarray) -> tuple[SparseInfo, np.ndarray]:
+    def evaluate(g: np.ndarray, parent_rows: np.ndarray | None = None) -> tuple[SparseInfo, np.ndarray, np.ndarray]:
+        """Information, visibility and geometric tests of poses ``g``; a pose with the camera centre of its
+        parent (cache rows ``parent_rows``, -1: none) reuses the parent's occlusion answers."""
         T = sphere.poses(g)
-        vis = compute_visibility(sub, intr, T, vis_opts, backend=backend, occluder=occluder)
-        return target_information(intr, T, xyz, vis, sigma_px, dtype=np.float64, sparse=True), vis
+        geo = np.empty((len(g), len(cols)), dtype=bool)
+        known = free = None
+        if parent_rows is not None and np.any(parent_rows >= 0):
+            known = np.zeros_like(geo)
+            free = np.zeros_like(geo)
+            same = np.flatnonzero(parent_rows >= 0)
+            known[same], free[same] = cache.geo[parent_rows[same]], cache.vis[parent_rows[same]]
+        vis = compute_visibility(sub, intr, T, vis_opts, backend=backend, occluder=occluder, rays_known=known,
+                                 rays_free=free, geometric_out=geo)
+        return target_information(intr, T, xyz, vis, sigma_px, dtype=np.float64, sparse=True), vis, geo
 
-    info0, vis0 = evaluate(cur)
-    cur_rows = cache.add(info0, vis0, np.ones(k, dtype=bool))
+    info0, vis0, geo0 = evaluate(cur)
+    cur_rows = cache.add(info0, vis0, geo0, np.ones(k, dtype=bool))
     sig = network_sigma(cache.info(cur_rows), vis0, np.arange(k), min_rays)
     start = worst = float(sig.max())
     n_rounds = n_swaps = 0
@@ -140,13 +150,17 @@ def polish_network(
         # ray-cast again: its rows are the same
         new = cache.missing(var)
         if len(new):
-            info_n, vis_n = evaluate(var[new])
+            parents = np.repeat(cur[movers], 10, axis=0)[new]
+            # a look-at offset keeps the camera centre: the occlusion segments are the parent's
+            same_eye = np.all(var[new][:, :3] == parents[:, :3], axis=1)
+            parent_rows = np.where(same_eye, np.repeat(cur_rows[movers], 10)[new], -1)
+            info_n, vis_n, geo_n = evaluate(var[new], parent_rows)
             n_poses += len(new)
             ok = vis_n.any(axis=1)
             if reachable_fn is not None and ok.any():
                 idx = np.flatnonzero(ok)
                 ok[idx[~np.asarray(reachable_fn(sphere.poses(var[new][idx])), dtype=bool)]] = False
-            cache.add(info_n, vis_n, ok, var[new], parents=np.repeat(cur[movers], 10, axis=0)[new])
+            cache.add(info_n, vis_n, geo_n, ok, var[new], parents=parents)
         rows, keep = cache.lookup(var)
         pool_rows = np.concatenate([cur_rows, rows[keep]])
         pool_genes = np.concatenate([cur, var[keep]])
@@ -195,6 +209,7 @@ class _VariantCache:
         self.ends = np.zeros(64, dtype=np.int64)
         self.ok = np.zeros(64, dtype=bool)
         self.vis = np.zeros((64, n), dtype=bool)
+        self.geo = np.zeros((64, n), dtype=bool)  # the pairs whose occlusion was tested (geometric tests passed)
         self.indices = np.zeros(1 << 16, dtype=np.int32)
         self.data = np.zeros((1 << 16, 6))
         self.keys: list[bytes | None] = []
@@ -218,16 +233,16 @@ class _VariantCache:
         out[:len(a)] = a
         return out
 
-    def add(self, info: SparseInfo, vis: np.ndarray, ok: np.ndarray, var: np.ndarray | None = None,
+    def add(self, info: SparseInfo, vis: np.ndarray, geo: np.ndarray, ok: np.ndarray, var: np.ndarray | None = None,
             parents: np.ndarray | None = None) -> np.ndarray:
         """Store rows (``var``: the genes they are found by, ``parents``: the stations they vary; None: not
         found by genes); their cache rows."""
         r, m0, e0, nnz = len(vis), self.m, self.nnz, len(info.indices)
         self.starts, self.ends = self._fit(self.starts, m0 + r), self._fit(self.ends, m0 + r)
-        self.ok, self.vis = self._fit(self.ok, m0 + r), self._fit(self.vis, m0 + r)
+        self.ok, self.vis, self.geo = self._fit(self.ok, m0 + r), self._fit(self.vis, m0 + r), self._fit(self.geo, m0 + r)
         self.indices, self.data = self._fit(self.indices, e0 + nnz), self._fit(self.data, e0 + nnz)
         self.starts[m0:m0 + r], self.ends[m0:m0 + r] = e0 + info.indptr[:-1], e0 + info.indptr[1:]
-        self.ok[m0:m0 + r], self.vis[m0:m0 + r] = ok, vis
+        self.ok[m0:m0 + r], self.vis[m0:m0 + r], self.geo[m0:m0 + r] = ok, vis, geo
         self.indices[e0:e0 + nnz], self.data[e0:e0 + nnz] = info.indices, info.data
         keys = [None] * r if var is None else [g.tobytes() for g in var]
         for i, key in enumerate(keys):
@@ -244,6 +259,15 @@ class _VariantCache:
         cast. Returns the new row numbers of ``rows``."""
         again = [i for i, p in enumerate(self.parents) if p is not None and p in parents]
         order = np.unique(np.concatenate([rows, np.array(again, dtype=np.intp)]).astype(np.intp))
+        live = np.zeros(self.m, dtype=bool)
+        live[order] = True
+        lens = self.ends[:self.m] - self.starts[:self.m]
+        if lens[~live].sum() <= lens[live].sum():  # few dead rows: forget them, move nothing
+            for i in np.flatnonzero(~live):
+                if self.keys[i] is not None:
+                    self.index.pop(self.keys[i], None)
+                self.keys[i] = self.parents[i] = None
+            return rows
         new_of = np.full(self.m, -1, dtype=np.intp)
         new_of[order] = np.arange(len(order))
         lens = self.ends[order] - self.starts[order]
@@ -251,7 +275,7 @@ class _VariantCache:
         e = np.repeat(self.starts[order] - offs[:-1], lens) + np.arange(int(offs[-1]))
         self.indices[:len(e)], self.data[:len(e)] = self.indices[e], self.data[e]
         self.starts[:len(order)], self.ends[:len(order)] = offs[:-1], offs[1:]
-        self.ok[:len(order)], self.vis[:len(order)] = self.ok[order], self.vis[order]
+        self.ok[:len(order)], self.vis[:len(order)], self.geo[:len(order)] = self.ok[order], self.vis[order], self.geo[order]
         self.keys = [self.keys[i] for i in order]
         self.parents = [self.parents[i] for i in order]
         self.index = {key: i for i, key in enumerate(self.keys) if key is not None}
