@@ -47,14 +47,17 @@ def _sigma_invert6(n0, n1, n2, n3, n4, n5, rays, min_rays):
 
 @njit(cache=True, nogil=True, inline="always")
 def sigma6(a, b, c, d, e, f, rays, min_rays):
-    """sqrt(trace(N^-1)) as :func:`planning.refine._sigma6` computes it (inf where insufficient)."""
+    """sqrt(trace(N^-1)) as :func:`planning.refine._sigma6` computes it (inf where insufficient).
+
+    The singularity threshold's ``s^3`` is ``s * s * s`` here, NumPy's ``s ** 3`` calls ``pow``: the two
+    can differ by an ulp, which changes the verdict only for a determinant within 1e-16 of the threshold."""
     tr = a + d + f
     A = d * f - e * e
     D = a * f - c * c
     F = a * d - b * b
     det = a * A + b * (c * e - b * f) + c * (b * e - c * d)
     s = tr / 3.0 if tr > 0 else 1.0
-    s3 = math.pow(s, 3.0)
+    s3 = s * s * s
     if rays >= min_rays and det > DET_MIN * s3:
         return math.sqrt((A + D + F) / det)
     return math.inf
@@ -218,11 +221,26 @@ _TOP = 32
 
 
 @njit(cache=True, nogil=True)
-def strict_step(starts, ends, indices, data, vis, S, N, cnt, sig, target, pool, min_rays):
+def removal_sigmas(starts, ends, indices, data, S, N, cnt, min_rays, off, j0, j1, srm):
+    """Sigma of each target a station sees, without that station: ``srm[off[j]:off[j+1]]`` for the
+    entries of station ``S[j]``, ``j0 <= j < j1`` (``N - info``, one ray fewer)."""
+    for j in range(j0, j1):
+        e0 = starts[S[j]]
+        for q in range(off[j], off[j + 1]):
+            e = e0 + q - off[j]
+            t = indices[e]
+            srm[q] = sigma6(N[t, 0] - np.float64(data[e, 0]), N[t, 1] - np.float64(data[e, 1]),
+                            N[t, 2] - np.float64(data[e, 2]), N[t, 3] - np.float64(data[e, 3]),
+                            N[t, 4] - np.float64(data[e, 4]), N[t, 5] - np.float64(data[e, 5]), cnt[t] - 1, min_rays)
+
+
+@njit(cache=True, nogil=True)
+def strict_step(starts, ends, indices, data, vis, S, N, cnt, sig, target, pool, min_rays, off, srm):
     """The best exchange lowering the worst sigma below ``target`` (planning.refine._strict_step).
 
     ``vis: (m, n)`` bool, the information's visibility; ``S: (k,)`` the network; ``N, cnt, sig`` its normal
-    matrices, rays and sigmas; ``pool``: the candidates a station may move to, in order.
+    matrices, rays and sigmas; ``pool``: the candidates a station may move to, in order; ``srm`` the
+    removal sigmas (:func:`removal_sigmas`) at offsets ``off``.
     Returns ``(new_worst, slot, candidate)``; slot -1 when no exchange lowers the worst.
 
     Removing station ``j`` changes only the targets it sees: their sigmas without it are computed on its
@@ -233,31 +251,24 @@ def strict_step(starts, ends, indices, data, vis, S, N, cnt, sig, target, pool, 
     """
     k = S.shape[0]
     n = sig.shape[0]
-    # the removal sigmas on each station's own entries
-    off = np.zeros(k + 1, dtype=np.int64)
-    for j in range(k):
-        off[j + 1] = off[j] + ends[S[j]] - starts[S[j]]
-    srm = np.empty(off[k])
-    minrm = sig.copy()  # min over stations of the removal sigma (stations that do not see t keep sig[t])
-    for j in range(k):
-        e0 = starts[S[j]]
-        for q in range(off[j], off[j + 1]):
-            e = e0 + q - off[j]
-            t = indices[e]
-            v = sigma6(N[t, 0] - np.float64(data[e, 0]), N[t, 1] - np.float64(data[e, 1]),
-                       N[t, 2] - np.float64(data[e, 2]), N[t, 3] - np.float64(data[e, 3]),
-                       N[t, 4] - np.float64(data[e, 4]), N[t, 5] - np.float64(data[e, 5]), cnt[t] - 1, min_rays)
-            srm[q] = v
-    # targets every station sees: min over the stations only
+    # min over stations of the removal sigma (stations that do not see t keep sig[t]), and each station's
+    # worst non-critical removal sigma
+    minrm = sig.copy()
     for t in range(n):
-        if cnt[t] >= k:
+        if cnt[t] >= k:  # every station sees t: min over the stations only
             minrm[t] = math.inf
+    rest = np.zeros(k)
     for j in range(k):
         e0 = starts[S[j]]
+        r = 0.0
         for q in range(off[j], off[j + 1]):
+            v = srm[q]
             t = indices[e0 + q - off[j]]
-            if srm[q] < minrm[t]:
-                minrm[t] = srm[q]
+            if v < minrm[t]:
+                minrm[t] = v
+            if v < target and v > r:
+                r = v
+        rest[j] = r
     # globally critical targets, and the largest non-critical sigmas (descending)
     n_g = 0
     for t in range(n):
@@ -285,13 +296,9 @@ def strict_step(starts, ends, indices, data, vis, S, N, cnt, sig, target, pool, 
         top[pos] = t
         if n_top < _TOP:
             n_top += 1
-    # rest[j]: the worst of the targets that stay non-critical without station j (at least 0)
-    rest = np.zeros(k)
+    # rest[j] also covers the targets j does not see: their sigmas, the non-critical ones
     for j in range(k):
-        r = 0.0
-        for q in range(off[j], off[j + 1]):
-            if srm[q] < target and srm[q] > r:
-                r = srm[q]
+        r = rest[j]
         row = vis[S[j]]
         found = False
         for h in range(n_top):
@@ -472,12 +479,62 @@ def information_rows(cam_from_part, xyz, visible, w, cam, indptr, indices, data)
 
 
 @njit(cache=True, nogil=True)
+def segments(cast, starts_all, eyes, origin):
+    """The occlusion segments of the pairs ``cast (c, n)`` bool, from ``starts_all[t]`` to ``eyes[i]``, as
+    Embree takes them (planning.visibility.Occluder.occluded: origins moved by ``origin``, unit directions,
+    lengths, float32 from the float64 values): ``(ci, ti, o, d, length)``."""
+    c, n = cast.shape
+    q = 0
+    for i in range(c):
+        for t in range(n):
+            if cast[i, t]:
+                q += 1
+    ci = np.empty(q, dtype=np.int64)
+    ti = np.empty(q, dtype=np.int64)
+    o = np.empty((q, 3), dtype=np.float32)
+    d = np.empty((q, 3), dtype=np.float32)
+    length = np.empty(q, dtype=np.float32)
+    q = 0
+    for i in range(c):
+        for t in range(n):
+            if cast[i, t]:
+                ci[q], ti[q] = i, t
+                s0, s1, s2 = starts_all[t, 0], starts_all[t, 1], starts_all[t, 2]
+                o[q, 0], o[q, 1], o[q, 2] = s0 - origin[0], s1 - origin[1], s2 - origin[2]
+                d0, d1, d2 = eyes[i, 0] - s0, eyes[i, 1] - s1, eyes[i, 2] - s2
+                ln = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+                dv = ln if ln > 0 else 1.0
+                d[q, 0], d[q, 1], d[q, 2] = d0 / dv, d1 / dv, d2 / dv
+                length[q] = ln
+                q += 1
+    return ci, ti, o, d, length
+
+
+@njit(cache=True, nogil=True)
 def pair_information(cam_from_part, X, cam, out):
     """``J^T J`` of pairs ``cam_from_part: (q, 4, 4)``, ``X: (q, 3)``; fills ``out (q, 6)``."""
     fx, fy, k1, k2, k3, p1, p2 = cam[0], cam[1], cam[4], cam[5], cam[6], cam[7], cam[8]
     distorted = cam[9] != 0.0
     for q in range(X.shape[0]):
         _pair_info(cam_from_part[q], X[q, 0], X[q, 1], X[q, 2], fx, fy, k1, k2, k3, p1, p2, distorted, out[q])
+
+
+_POOL = None
+
+
+def in_two(n: int, call, min_size: int = 2) -> None:
+    """``call(lo, hi)`` over ``[0, n)`` in two halves on two threads (the kernels release the GIL), or once
+    when ``n < min_size``."""
+    global _POOL
+    if n < max(2, min_size):
+        call(0, n)
+        return
+    if _POOL is None:
+        from concurrent.futures import ThreadPoolExecutor
+
+        _POOL = ThreadPoolExecutor(2, thread_name_prefix="planning-kernels")
+    h = n // 2
+    list(_POOL.map(lambda b: call(*b), [(0, h), (h, n)]))
 
 
 def camera_vector(intr, margin_px: float = 0.0) -> np.ndarray:

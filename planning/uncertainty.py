@@ -130,8 +130,11 @@ def target_information(
     indices = np.empty(int(indptr[-1]), dtype=np.int32)
     data = np.empty((int(indptr[-1]), 6), dtype=dtype)
     # every visible pair, pose by pose, compiled (planning.kernels: the values of point_information)
-    kernels.information_rows(cam_from_part, np.ascontiguousarray(xyz), np.ascontiguousarray(visible),
-                             np.ascontiguousarray(w), kernels.camera_vector(intr), indptr, indices, data)
+    xyz, visible, w, cam = np.ascontiguousarray(xyz), np.ascontiguousarray(visible), np.ascontiguousarray(w), \
+        kernels.camera_vector(intr)
+    kernels.in_two(m, lambda a, b: kernels.information_rows(cam_from_part[a:b], xyz, visible[a:b], w, cam,
+                                                            indptr[a:b + 1], indices, data),
+                   min_size=max(2, 400_000 // max(1, n)))
     sp = SparseInfo(indptr, indices, data, n)
     return sp if sparse else sp.toarray()
 

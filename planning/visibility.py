@@ -161,6 +161,33 @@ class Occluder:
                 run(sl)
         return out
 
+    def occluded_pairs(self, cast: np.ndarray, starts_all: np.ndarray, eyes: np.ndarray,
+                       chunk: int = 1 << 18) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The segments of the pairs ``cast (c, n)`` bool, from ``starts_all[t]`` to ``eyes[i]``: their
+        ``(ci, ti)`` and whether each hits the mesh (the answers of :meth:`occluded` on the same segments)."""
+        if self.backend == "numpy":
+            ci, ti = np.nonzero(cast)
+            return ci, ti, self.occluded(starts_all[ti], eyes[ci], chunk)
+        from planning import kernels
+
+        ci, ti, o, d, length = kernels.segments(np.ascontiguousarray(cast), np.ascontiguousarray(starts_all),
+                                                np.ascontiguousarray(eyes), np.ascontiguousarray(self._origin))
+        r = len(ci)
+        out = np.empty(r, dtype=bool)
+
+        def run(sl: slice) -> None:
+            hit = self._scene.run(o[sl], d[sl], query="OCCLUDED", dists=length[sl])
+            out[sl] = (np.asarray(hit) != -1) & (length[sl] > 0)
+
+        slices = [slice(i, min(i + chunk, r)) for i in range(0, r, chunk)]
+        if self.workers > 1 and len(slices) > 1:
+            with ThreadPoolExecutor(self.workers) as pool:
+                list(pool.map(run, slices))
+        else:
+            for sl in slices:
+                run(sl)
+        return ci, ti, out
+
     def _occluded_numpy(self, starts: np.ndarray, ends: np.ndarray) -> np.ndarray:
         d = ends - starts
         length = np.linalg.norm(d, axis=1)
@@ -227,11 +254,14 @@ def geometric_visibility_compiled(intr: Intrinsics, part_from_cam: np.ndarray, x
     from planning import kernels
 
     T = np.ascontiguousarray(np.asarray(part_from_cam, dtype=float).reshape(-1, 4, 4))
+    cfp = np.ascontiguousarray(invert(T))
+    xyz, normals = np.ascontiguousarray(xyz, dtype=float), np.ascontiguousarray(normals, dtype=float)
+    cam = kernels.camera_vector(intr, options.margin_px)
     out = np.empty((len(T), len(xyz)), dtype=bool)
-    kernels.geometric_ok(T, np.ascontiguousarray(invert(T)), np.ascontiguousarray(xyz, dtype=float),
-                         np.ascontiguousarray(normals, dtype=float), float(np.cos(options.incidence_max_rad)),
-                         float(options.near_m), float(options.far_m), float(target_diameter_m * intr.fx_px),
-                         float(options.min_target_px), kernels.camera_vector(intr, options.margin_px), out)
+    args = (float(np.cos(options.incidence_max_rad)), float(options.near_m), float(options.far_m),
+            float(target_diameter_m * intr.fx_px), float(options.min_target_px), cam)
+    kernels.in_two(len(T), lambda a, b: kernels.geometric_ok(T[a:b], cfp[a:b], xyz, normals, *args, out[a:b]),
+                   min_size=max(2, 200_000 // max(1, len(xyz))))
     return out
 
 
@@ -280,8 +310,7 @@ def compute_visibility(
             cast = ok if rays_known is None else ok & ~rays_known[c0:c1]
             if rays_known is not None:
                 ok &= ~rays_known[c0:c1] | rays_free[c0:c1]
-            ci, ti = np.nonzero(cast)
-            blocked = occluder.occluded(starts_all[ti], T[c0 + ci, :3, 3])
+            ci, ti, blocked = occluder.occluded_pairs(cast, starts_all, T[c0:c1, :3, 3])
             ok[ci[blocked], ti[blocked]] = False
         out[c0:c1] = ok
         if progress is not None:
