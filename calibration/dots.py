@@ -152,15 +152,40 @@ def _noise(image: np.ndarray, stride: int) -> float:
     """Pixel noise standard deviation: MAD of differences of pixels two apart along every ``stride``-th row.
 
     Large bright areas and smooth shading do not count as noise, as they would in the spread of the
-    grey levels themselves.
+    grey levels themselves. The differences are integers: both medians are exact order statistics read
+    from one histogram of them (what ``np.median`` gives, without two partitions of the data).
     """
-    rows = image[::stride].astype(np.float32)
-    d = (rows[:, 2:] - rows[:, :-2]).ravel()
-    noise = 1.4826 * float(np.median(np.abs(d - np.median(d)))) / np.sqrt(2.0)
+    rows = image[::stride]
+    if rows.dtype == np.uint8:  # differences + 255 in 0..510: OpenCV's histogram
+        d = cv2.subtract(rows[:, 2:], rows[:, :-2], dtype=cv2.CV_16S)
+        shifted = cv2.add(d, 255, dtype=cv2.CV_16U)
+        counts = cv2.calcHist([shifted], [0], None, [511], [0, 511]).ravel().astype(np.int64)
+        values = np.arange(-255, 256)
+    else:
+        d = rows[:, 2:].astype(np.int32) - rows[:, :-2]
+        lo = int(d.min())
+        counts = np.bincount((d - lo).ravel())
+        values = lo + np.arange(len(counts))
+    med2 = _twice_median(values, counts)  # 2 x median: an integer
+    # median |d - median(d)| from the histogram of |2 d - 2 median|
+    mad = 0.25 * _twice_median(np.arange(int(np.abs(2 * values - med2).max()) + 1),
+                               np.bincount(np.abs(2 * values - med2), weights=counts).astype(np.int64))
+    noise = 1.4826 * mad / np.sqrt(2.0)
     if noise == 0.0:  # quantised, nearly noise-free (or clipped at black): the spread of the small differences
-        small = d[np.abs(d) <= 3]
+        d = np.asarray(d, dtype=np.int32).ravel()
+        small = d[np.abs(d) <= 3].astype(np.float32)
         noise = float(np.std(small)) / np.sqrt(2.0) if len(small) > 1 else 1.0
     return max(noise, 0.5)
+
+
+def _twice_median(values: np.ndarray, counts: np.ndarray) -> int:
+    """2 x the median of integers given as a histogram: ``counts[i]`` times ``values[i]`` (increasing), exactly."""
+    cs = np.cumsum(counts)
+    n = int(cs[-1])
+    upper = int(values[np.searchsorted(cs, n // 2 + 1)])  # the element of rank n // 2 (from 0)
+    if n % 2:
+        return 2 * upper
+    return int(values[np.searchsorted(cs, n // 2)]) + upper
 
 
 def _survey(image: np.ndarray, o: DetectionOptions) -> tuple[int, float, float]:
@@ -232,6 +257,113 @@ def _ring_planes(lab: np.ndarray, dx: np.ndarray, dy: np.ndarray, val: np.ndarra
     return coef
 
 
+def _above(image: np.ndarray, thr: float) -> np.ndarray:
+    """(h, w) uint8 1 where the integer ``image`` exceeds ``thr`` (any real), 0 elsewhere."""
+    if image.dtype == np.uint8:
+        return cv2.threshold(image, thr, 1, cv2.THRESH_BINARY)[1]  # x > floor(thr): x > thr for integers
+    return (image > int(np.floor(thr))).view(np.uint8)
+
+
+def _components(mask: np.ndarray) -> tuple[int, np.ndarray, np.ndarray]:
+    """``cv2.connectedComponentsWithStats(mask, 8-connectivity)``: (n, (H, W) int32 labels, (n, 5) stats).
+
+    Labelled on the rows and columns that hold a blob pixel only (issue 21: dots cover a few per cent of
+    an image; labelling costs per pixel): empty rows and columns are dropped, one empty pair kept between
+    runs so that no two blobs touch, in aligned pairs so that OpenCV's 2 x 2 block scan numbers the blobs
+    as it does on the whole image. Labels and stats are those of the whole image.
+    """
+    H, W = mask.shape
+    ri = _busy_pairs(cv2.reduce(mask, 1, cv2.REDUCE_MAX).ravel() > 0)
+    ci = _busy_pairs(mask.max(axis=0) > 0)
+    if len(ri) == 0:  # no blob at all
+        return 1, np.zeros((H, W), dtype=np.int32), np.array([[0, 0, W, H, H * W]], dtype=np.int32)
+    if len(ri) * len(ci) > 0.6 * H * W:
+        n, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8, ltype=cv2.CV_32S)
+        return n, labels, stats
+    n, lc, sc, _ = cv2.connectedComponentsWithStats(mask[ri][:, ci], connectivity=8, ltype=cv2.CV_32S)
+    labels = np.zeros((H, W), dtype=np.int32)
+    labels[np.ix_(ri, ci)] = lc
+    stats = sc.copy()
+    if n > 1:
+        L, T, Wc, Hc = (sc[1:, i] for i in (cv2.CC_STAT_LEFT, cv2.CC_STAT_TOP, cv2.CC_STAT_WIDTH, cv2.CC_STAT_HEIGHT))
+        stats[1:, cv2.CC_STAT_LEFT], stats[1:, cv2.CC_STAT_TOP] = ci[L], ri[T]
+        stats[1:, cv2.CC_STAT_WIDTH] = ci[L + Wc - 1] - ci[L] + 1
+        stats[1:, cv2.CC_STAT_HEIGHT] = ri[T + Hc - 1] - ri[T] + 1
+    stats[0] = (0, 0, W, H, H * W - int(stats[1:, cv2.CC_STAT_AREA].sum()))
+    return n, labels, stats
+
+
+def _busy_pairs(busy: np.ndarray) -> np.ndarray:
+    """Indices of the aligned pairs (2i, 2i+1) with a busy member, and of the pair after each run of them."""
+    n = len(busy)
+    b = np.zeros(n + n % 2, dtype=bool)
+    b[:n] = busy
+    pair = b.reshape(-1, 2).any(axis=1)
+    pair[1:] |= pair[:-1].copy()
+    return np.flatnonzero(np.repeat(pair, 2)[:n])
+
+
+def _bucket(n: np.ndarray) -> np.ndarray:
+    """Sizes ``n`` (px, >= 1) rounded up to a multiple of 8, or of a quarter of their power of two above 32."""
+    n = np.asarray(n, dtype=np.int64)
+    q = 2 ** np.maximum(np.floor(np.log2(np.maximum(n, 1))).astype(np.int64) - 2, 3)
+    return q * -(-n // q)
+
+
+def _grown_blobs(labels: np.ndarray, remap: np.ndarray, x0: np.ndarray, y0: np.ndarray, w: np.ndarray, h: np.ndarray,
+                 m: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The pixels of the kept blobs grown by ``m`` and of a ring 2 px further out, with their labels.
+
+    Exactly what dilating the whole relabelled image ``remap[labels]`` with discs of diameter ``2 m + 1``
+    (``grown``) and ``2 m + 5`` (``outer``) and taking its non-zero pixels gives, but computed in windows
+    around the kept blobs only (issue 21: the two full-image dilations were the detector's hot spot): a
+    window holds the blob's box grown by ``r = m + 2`` (where its ``outer`` label can reach) plus ``r`` of
+    context, so the dilation inside it sees every pixel it would see in the whole image. Windows of one
+    size are stacked into one tall image and dilated together; a window's rows near its neighbours in the
+    stack are never read.
+
+    Args:
+        labels: (H, W) int32 component labels; ``remap`` (n_lab,) float32 maps them to 1..k (0: dropped).
+        x0, y0, w, h: (k,) the kept blobs' boxes (px), in the order of their new labels.
+    Returns:
+        ys, xs: (p,) pixels whose ``outer`` label is > 0, window by window (each blob's in raster order);
+        lo, lg: (p,) int64 their ``outer`` and ``grown`` labels.
+    """
+    H, W = labels.shape
+    r = m + 2
+    pad = 2 * r
+    k1 = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * m + 1, 2 * m + 1))
+    k2 = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+    x0, y0, w, h = (np.asarray(a, dtype=np.int64) for a in (x0, y0, w, h))
+    # window sizes rounded up (to 8 px, or a quarter of their octave: few groups of sizes), at most the image;
+    # windows shifted into the image, whose own edge is the dilation's border as it is for the whole image
+    bw = np.minimum(_bucket(w + 2 * pad), W)
+    bh = np.minimum(_bucket(h + 2 * pad), H)
+    wx = np.clip(x0 - pad, 0, W - bw)
+    wy = np.clip(y0 - pad, 0, H - bh)
+    small = remap.max() < 65536  # uint16 labels dilate faster than float32 ones
+    table = remap.astype(np.uint16) if small else remap
+    own = np.arange(1, len(x0) + 1).astype(table.dtype)
+    out: list[tuple[np.ndarray, ...]] = []
+    order = np.lexsort((bh, bw))
+    cuts = np.flatnonzero((np.diff(bw[order]) != 0) | (np.diff(bh[order]) != 0)) + 1
+    for g in np.split(order, cuts):
+        gw, gh = int(bw[g[0]]), int(bh[g[0]])
+        win = table[np.lib.stride_tricks.sliding_window_view(labels, (gh, gw))[wy[g], wx[g]]]  # (n, gh, gw)
+        stack = win.reshape(-1, gw)
+        grown = cv2.dilate(stack, k1).reshape(win.shape)
+        outer = cv2.dilate(stack, k2).reshape(win.shape)
+        # the part of each window that is exact: the blob's box grown by r (its outer label reaches no further)
+        ry, rx = y0[g] - r - wy[g], x0[g] - r - wx[g]
+        rows = (np.arange(gh) >= ry[:, None]) & (np.arange(gh) < (ry + h[g] + 2 * r)[:, None])
+        cols = (np.arange(gw) >= rx[:, None]) & (np.arange(gw) < (rx + w[g] + 2 * r)[:, None])
+        sel = (outer == own[g][:, None, None]) & rows[:, :, None] & cols[:, None, :]
+        i, yy, xx = np.nonzero(sel)
+        out.append((g[i], wy[g][i] + yy, wx[g][i] + xx, grown[i, yy, xx]))
+    blob, ys, xs, lg = (np.concatenate(a) for a in zip(*out))
+    return ys, xs, blob + 1, lg.astype(np.int64)
+
+
 def detect_dots(image: np.ndarray, options: DetectionOptions | None = None) -> Detections:
     """Sub-pixel centres and covariances of the dots in ``image`` (grey or colour, uint8/uint16)."""
     o = options or DetectionOptions()
@@ -275,12 +407,13 @@ def _detect(image: np.ndarray, o: DetectionOptions) -> Detections:
         noise = _noise(image, o.subsample)
         tophat = cv2.subtract(image, np.full_like(image, int(round(bg))))
         thr = o.threshold - bg if o.threshold is not None else o.threshold_sigma * noise
-    mask = tophat > thr
+    mask = _above(tophat, thr)
     if o.local_fraction > 0:
         win = cv2.getStructuringElement(cv2.MORPH_RECT, (o.local_window, o.local_window))
-        mask &= tophat.astype(np.float32) > o.local_fraction * cv2.dilate(tophat, win).astype(np.float32)
-    mask = mask.astype(np.uint8)
-    n_lab, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8, ltype=cv2.CV_32S)
+        local = cv2.dilate(tophat, win).astype(np.float32)
+        local *= np.float32(o.local_fraction)
+        mask &= cv2.compare(tophat.astype(np.float32), local, cv2.CMP_GT)  # 0/255: keeps mask's 0/1
+    n_lab, labels, stats = _components(mask)
     empty = Detections(np.zeros((0, 2)), np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0), noise,
                        np.zeros((0, 2, 2)), o.polarity, np.zeros((0, 2, 2)))
     if n_lab <= 1:
@@ -305,16 +438,10 @@ def _detect(image: np.ndarray, o: DetectionOptions) -> Detections:
     # relabel the kept blobs 1..k, grow them by the margin, and a ring further out for the local background
     remap = np.zeros(n_lab, dtype=np.float32)
     kept = np.flatnonzero(keep) + 1
-    remap[kept] = np.arange(1, len(kept) + 1, dtype=np.float32)
-    lab = remap[labels]
-    k1 = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * m + 1, 2 * m + 1))
-    k2 = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * m + 5, 2 * m + 5))
-    grown = cv2.dilate(lab, k1)
-    outer = cv2.dilate(lab, k2)
     k = len(kept)
-    ys, xs = np.nonzero(outer)
-    lo = outer[ys, xs].astype(np.int64)
-    lg = grown[ys, xs].astype(np.int64)
+    remap[kept] = np.arange(1, k + 1, dtype=np.float32)
+    ys, xs, lo, lg = _grown_blobs(labels, remap, x0[keep], y0[keep], stats[kept, cv2.CC_STAT_WIDTH],
+                                  stats[kept, cv2.CC_STAT_HEIGHT], m)
     val = image[ys, xs].astype(np.float64)
     ring = lg == 0
     # local background: a plane fitted to the ring around each blob (decision 0007)
@@ -362,7 +489,7 @@ def _detect(image: np.ndarray, o: DetectionOptions) -> Detections:
     if o.centre == "ellipse":
         from calibration.ellipse_fit import contour_ellipse_centres
 
-        e_uv, e_cov, ok = contour_ellipse_centres(image, lab, k, coef, xc, yc, top[1:], noise)
+        e_uv, e_cov, ok = contour_ellipse_centres(image, remap[labels], k, coef, xc, yc, top[1:], noise)
         uv = np.where(ok[:, None], e_uv, uv)
         cov = np.where(ok[:, None, None], e_cov, cov)
     cov += o.cov_floor_px**2 * np.eye(2)

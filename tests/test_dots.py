@@ -126,3 +126,65 @@ def test_a_job_camera_section_chooses_the_detector_settings():
     o = detection_options(SimpleNamespace(polarity="dark", detection="photograph"))
     assert o == DetectionOptions.for_real_images(polarity="dark")
     assert detection_options(SimpleNamespace(polarity="bright", detection="cell")) == DetectionOptions()
+
+
+def _random_blobs(rng, h, w, n):
+    """A uint8 0/1 mask of ``n`` random blobs (discs, bars, clusters that touch) of 1-30 px, some at the border."""
+    mask = np.zeros((h, w), np.uint8)
+    for _ in range(n):
+        x, y = int(rng.integers(-3, w + 3)), int(rng.integers(-3, h + 3))
+        if rng.random() < 0.5:
+            cv2.circle(mask, (x, y), int(rng.integers(0, 15)), 1, -1)
+        else:
+            cv2.rectangle(mask, (x, y), (x + int(rng.integers(0, 30)), y + int(rng.integers(0, 4))), 1, -1)
+    return mask
+
+
+def test_blob_labelling_on_busy_rows_and_columns_is_the_whole_image_labelling():
+    """Issue 21: labels and stats from the compacted mask are those of OpenCV on the whole mask."""
+    from calibration.dots import _busy_pairs, _components
+
+    rng = np.random.default_rng(11)
+    compacted = 0
+    for h, w, n in ((601, 817, 25), (1000, 1201, 60), (256, 320, 400), (97, 131, 3), (64, 64, 0)):
+        mask = _random_blobs(rng, h, w, n)
+        compacted += 0 < len(_busy_pairs(mask.max(axis=1) > 0)) * len(_busy_pairs(mask.max(axis=0) > 0)) < 0.6 * h * w
+        n_ref, lab_ref, st_ref, _ = cv2.connectedComponentsWithStats(mask, connectivity=8, ltype=cv2.CV_32S)
+        n_lab, lab, st = _components(mask)
+        assert n_lab == n_ref
+        # the same partition of the pixels (numbering is OpenCV's own; compared through the first pixel of each label)
+        flat, ref = lab.ravel(), lab_ref.ravel()
+        first = np.unique(ref, return_index=True)[1]
+        assert np.array_equal(np.sort(flat[first]), np.arange(n_ref))
+        perm = np.zeros(n_ref, int)
+        perm[ref[first]] = flat[first]
+        assert np.array_equal(perm[ref], flat)
+        assert np.array_equal(st[perm[1:]], st_ref[1:])
+    assert compacted == 3  # the compacted path, besides the whole image (busy) and no blob at all
+
+
+def test_blob_margins_from_windows_are_the_whole_image_dilations():
+    """Issue 21: the grown blobs and background rings found in windows are the whole-image dilations' pixels."""
+    from calibration.dots import _grown_blobs
+
+    rng = np.random.default_rng(12)
+    mask = _random_blobs(rng, 230, 310, 60)
+    cv2.circle(mask, (150, 110), 45, 1, -1)  # a blob whose window is rounded to a quarter octave (> 64 px)
+    cv2.rectangle(mask, (0, 200), (309, 203), 1, -1)  # one as wide as the image
+    n_lab, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8, ltype=cv2.CV_32S)
+    # some blobs dropped (they neither grow nor block); the big ones kept
+    kept = np.flatnonzero((rng.random(n_lab - 1) < 0.7) | (stats[1:, cv2.CC_STAT_AREA] > 1000)) + 1
+    remap = np.zeros(n_lab, np.float32)
+    remap[kept] = np.arange(1, len(kept) + 1)
+    for m in (0, 2, 3):
+        lab = remap[labels]
+        grown = cv2.dilate(lab, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * m + 1, 2 * m + 1)))
+        outer = cv2.dilate(lab, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * m + 5, 2 * m + 5)))
+        ys, xs = np.nonzero(outer)
+        s = stats[kept]
+        ys2, xs2, lo2, lg2 = _grown_blobs(labels, remap, s[:, 0], s[:, 1], s[:, 2], s[:, 3], m)
+        ref = np.lexsort((xs, ys))
+        got = np.lexsort((xs2, ys2))
+        assert np.array_equal(ys[ref], ys2[got]) and np.array_equal(xs[ref], xs2[got])
+        assert np.array_equal(outer[ys, xs][ref].astype(int), lo2[got])
+        assert np.array_equal(grown[ys, xs][ref].astype(int), lg2[got])

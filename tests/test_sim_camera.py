@@ -368,3 +368,58 @@ def test_sensor_noise_scale_is_checked():
     with pytest.raises(InputError, match="noise scale"):
         Sensor().with_noise_scale(-1.0)
     assert Sensor().with_noise_scale(1.0) == Sensor()
+
+
+def test_lattice_on_pixel_grids_equals_the_pointwise_interpolation():
+    """Issue 21: the separable (matrix) form of the lattice gives the bilinear values, extrapolation included."""
+    lat = UndistortionLattice(INTR, 4.0)
+    rng = np.random.default_rng(3)
+    u0 = np.array([-40.0, 0.0, 1203.0, 2430.0])  # two windows reach beyond the lattice's margin
+    v0 = np.array([-35.0, 2030.0, 977.0, 5.0])
+    U = u0[:, None] + np.arange(31) - 0.5 - rng.normal(0, 0.4, (4, 1))
+    V = v0[:, None] + np.arange(23) - 0.5 - rng.normal(0, 0.4, (4, 1))
+    ref = lat(np.broadcast_to(U[:, None, :], (4, 23, 31)), np.broadcast_to(V[:, :, None], (4, 23, 31)))
+    np.testing.assert_allclose(lat.on_grid(U, V), ref, rtol=0, atol=1e-14)
+    exact = UndistortionLattice(Intrinsics.from_focal_length(0.012, 3.45e-6, 2448, 2048))
+    np.testing.assert_allclose(exact.on_grid(U, V), exact(np.broadcast_to(U[:, None, :], (4, 23, 31)),
+                                                          np.broadcast_to(V[:, :, None], (4, 23, 31))))
+
+
+@pytest.mark.parametrize("sensor", [Sensor(), Sensor(bit_depth=12), Sensor(noise=False)])
+def test_sensor_in_row_blocks_is_shot_and_read_noise_of_one_stream(sensor):
+    """Issue 21: the block size does not change the image; it is the sensor model on one normal stream."""
+    from sim_backend.sim_camera import apply_sensor, standard_normal_image
+
+    rng = np.random.default_rng(4)
+    x = (rng.random((37, 53)) * 1.2 - 0.05).astype(np.float32)  # below black and above full scale too
+    full = 2.0**sensor.bit_depth - 1
+    e = x.astype(np.float64) * sensor.full_well_e
+    if sensor.noise:  # photons: none below zero irradiance
+        e = np.maximum(e, 0)
+        e = e + np.sqrt(e + sensor.read_noise_e**2) * standard_normal_image(np.random.default_rng(9), x.shape)
+    ref = np.clip(np.rint(e / sensor.full_well_e * full + sensor.black_level * full), 0, full)
+    images = [apply_sensor(x, sensor, np.random.default_rng(9), block_rows=b) for b in (1, 5, 32, 100)]
+    for img in images:
+        np.testing.assert_array_equal(img, images[0])
+    assert images[0].dtype == (np.uint8 if sensor.bit_depth == 8 else np.uint16)
+    assert np.abs(images[0].astype(float) - ref).max() <= 1  # float32 arithmetic: a rounding may differ by 1 DN
+
+
+def test_first_hit_agrees_with_trimesh_ray_casting():
+    """Issue 21: Embree without trimesh's wrapper gives the same triangles and float64 distances."""
+    mesh = trimesh.creation.box(extents=(0.2, 0.1, 0.05))
+    mesh = trimesh.util.concatenate([mesh, trimesh.creation.icosphere(radius=0.03).apply_translation([0.05, 0, 0.05])])
+    part = Part("blocks", mesh, _targets(np.zeros((1, 3))), target_diameter_m=0.006)
+    w = World(part, np.eye(4), np.eye(4), INTR)
+    rng = np.random.default_rng(5)
+    origin = np.array([0.02, -0.3, 0.4])
+    dirs = -origin + rng.normal(0, 0.08, (2000, 3))
+    dist, tri = w.first_hit(origin, dirs)
+    d = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
+    loc, ray, t = w.intersector.intersects_location(np.broadcast_to(origin, d.shape), d, multiple_hits=False)
+    ref = np.full(len(d), np.inf)
+    ref[ray] = np.einsum("ij,ij->i", loc - origin, d[ray])
+    assert 100 < np.isfinite(dist).sum() < len(d)  # some rays miss
+    np.testing.assert_array_equal(np.isfinite(dist), np.isfinite(ref))
+    np.testing.assert_allclose(dist[np.isfinite(ref)], ref[np.isfinite(ref)], rtol=0, atol=1e-9)
+    assert np.mean(tri[ray] == t) > 0.99  # a ray through a shared edge may name either triangle
