@@ -239,7 +239,8 @@ class _VariantCache:
         found by genes); their cache rows."""
         r, m0, e0, nnz = len(vis), self.m, self.nnz, len(info.indices)
         self.starts, self.ends = self._fit(self.starts, m0 + r), self._fit(self.ends, m0 + r)
-        self.ok, self.vis, self.geo = self._fit(self.ok, m0 + r), self._fit(self.vis, m0 + r), self._fit(self.geo, m0 + r)
+        self.ok, self.vis = self._fit(self.ok, m0 + r), self._fit(self.vis, m0 + r)
+        self.geo = self._fit(self.geo, m0 + r)
         self.indices, self.data = self._fit(self.indices, e0 + nnz), self._fit(self.data, e0 + nnz)
         self.starts[m0:m0 + r], self.ends[m0:m0 + r] = e0 + info.indptr[:-1], e0 + info.indptr[1:]
         self.ok[m0:m0 + r], self.vis[m0:m0 + r], self.geo[m0:m0 + r] = ok, vis, geo
@@ -275,7 +276,8 @@ class _VariantCache:
         e = np.repeat(self.starts[order] - offs[:-1], lens) + np.arange(int(offs[-1]))
         self.indices[:len(e)], self.data[:len(e)] = self.indices[e], self.data[e]
         self.starts[:len(order)], self.ends[:len(order)] = offs[:-1], offs[1:]
-        self.ok[:len(order)], self.vis[:len(order)], self.geo[:len(order)] = self.ok[order], self.vis[order], self.geo[order]
+        for a in (self.ok, self.vis, self.geo):
+            a[:len(order)] = a[order]
         self.keys = [self.keys[i] for i in order]
         self.parents = [self.parents[i] for i in order]
         self.index = {key: i for i, key in enumerate(self.keys) if key is not None}

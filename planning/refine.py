@@ -65,8 +65,8 @@ def network_sigma(info: np.ndarray, visible: np.ndarray, stations: np.ndarray, m
     ``info: (m, n, 6)`` (or SparseInfo), ``visible: (m, n)`` bool, ``stations: (k,)`` distinct int.
     """
     if isinstance(info, SparseInfo):
-        N, cnt = kernels.network_normal(info.starts, info.ends, info.indices, info.data, np.asarray(stations, dtype=np.intp),
-                                        info.shape[1])
+        N, cnt = kernels.network_normal(info.starts, info.ends, info.indices, info.data,
+                                        np.asarray(stations, dtype=np.intp), info.shape[1])
         return kernels.sigma6_rows(N, cnt, min_rays)
     N = info[stations].sum(axis=0, dtype=np.float64)
     cnt = visible[stations].sum(axis=0)

@@ -432,7 +432,8 @@ class VisibilityDB:
         path = cache / f"visibility-{key}.npz"
         n = len(part.targets.xyz)
         cached = load_arrays(path, ("key", "visible_bits"))  # None when missing or damaged (then rebuilt)
-        if cached is not None and str(cached["key"]) == key and cached["visible_bits"].shape == (len(genes), -(-n // 8)):
+        shape = (len(genes), -(-n // 8))
+        if cached is not None and str(cached["key"]) == key and cached["visible_bits"].shape == shape:
             if progress is not None:
                 progress("visibility (cached)", 1.0)
             visible = np.unpackbits(cached["visible_bits"], axis=1, count=n).astype(bool)

@@ -77,8 +77,8 @@ class _Problem:
         value, violation, short = np.empty(p), np.empty(p), np.empty(p, dtype=np.int64)
 
         def run(lo: int, hi: int) -> None:
-            kernels.population_fitness(info.starts, info.ends, info.indices, info.data, st[lo:hi], n, self.opt.min_rays, kind,
-                                       req, value[lo:hi], violation[lo:hi], short[lo:hi])
+            kernels.population_fitness(info.starts, info.ends, info.indices, info.data, st[lo:hi], n,
+                                       self.opt.min_rays, kind, req, value[lo:hi], violation[lo:hi], short[lo:hi])
 
         workers = min(2, os.cpu_count() or 1)
         if workers > 1 and p > 1:
