@@ -23,7 +23,7 @@ good observations were rejected.
     .venv/bin/python -m benchmarks.bench_scale --quick          # 1k x 16/29, 5k x 29 (minutes)
     .venv/bin/python -m benchmarks.bench_scale --targets 1000 5000 --stations 29 64
     .venv/bin/python -m benchmarks.bench_scale --one 1000 29     # one configuration, JSON line
-    .venv/bin/python -m benchmarks.bench_scale --one 1000 29 --no-adjust --bound   # and plan / lower bound
+    .venv/bin/python -m benchmarks.bench_scale --one 1000 29 --no-adjust --bound  # and plan / bound
 """
 from __future__ import annotations
 

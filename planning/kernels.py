@@ -1,6 +1,6 @@
 """Compiled (numba) kernels of the planner's hot loops, on the candidate x target information kept
-sparse (rows ``[starts[i], ends[i])`` of ``indices (nnz,)`` target and ``data (nnz, 6)``, planning.sparse_info; the entries of a
-row are its visible targets, in increasing order).
+sparse (planning.sparse_info: row ``i`` is ``indices[starts[i]:ends[i]]``, its visible targets in increasing
+order, and ``data[starts[i]:ends[i]]``, their ``(., 6)`` information).
 
 Each kernel does exactly the floating-point operations of the NumPy code it replaces, in the same order
 (no fast-math: no reassociation, no fused multiply-add), so the planner's choices and figures are the same
@@ -79,8 +79,8 @@ def population_fitness(starts, ends, indices, data, stations, n, min_rays, kind,
 
     The information of a network's stations is summed per target in the information's precision and
     station order (as ``evaluate_networks``), inverted in closed form (``_invert6``), and reduced:
-    ``kind`` 0: worst sigma over the sufficient targets; 2: max sigma / required over them. ``out_value (p,)`` gets it (0 when no target is sufficient, the criterion's ``penalty=0``
-    form), ``out_violation (p,)`` the shortfall of rays summed over targets plus one per target with
+    ``kind`` 0: worst sigma over the sufficient targets; 2: max sigma / required over them. ``out_value (p,)``
+    gets it (0 when no target is sufficient, the criterion's ``penalty=0`` form), ``out_violation (p,)`` the shortfall of rays summed over targets plus one per target with
     enough rays but a singular geometry, ``out_short (p,)`` the targets not sufficient.
     """
     p, k = stations.shape
