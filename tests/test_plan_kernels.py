@@ -123,3 +123,38 @@ def test_sparse_views_share_their_buffers_and_answer_like_the_dense_array():
     np.testing.assert_array_equal(view.compact().toarray(), view.toarray())
     np.testing.assert_array_equal(network_sigma(view, vis[rows], np.array([0, 2, 4]), 2),
                                   network_sigma(info.astype(np.float64), vis, rows[[0, 2, 4]], 2))
+
+
+def test_compiled_visibility_equals_numpy_and_shared_camera_centres_reuse_the_rays():
+    """The compiled geometric tests equal planning.visibility.geometric_visibility (with lens distortion), and a
+    pose that keeps another's camera centre (a look-at offset) gets the visibility a fresh ray cast gives it
+    from that pose's occlusion answers."""
+    from calibration.camera import Intrinsics
+    from planning.stations import ViewingSphere
+    from planning.visibility import (VisibilityOptions, compute_visibility, geometric_visibility,
+                                     geometric_visibility_compiled)
+    from tests.test_planner import _box_part
+
+    part = _box_part(300, seed=2)
+    intr = Intrinsics(fx_px=2000.0, fy_px=2000.0, cx_px=639.5, cy_px=511.5, width=1280, height=1024,
+                      k1=-0.1, k2=0.03, p1=2e-4, p2=-1e-4)
+    sphere = ViewingSphere.for_part(part, intr)
+    genes = sphere.candidates(40, 3)
+    T = sphere.poses(genes)
+    xyz, nrm = part.targets.xyz, part.targets.normals
+    for opts in (VisibilityOptions(), VisibilityOptions(margin_px=40.0, near_m=0.2, far_m=0.6, min_target_px=12.0)):
+        ref = geometric_visibility(intr, T, xyz, nrm, part.target_diameter_m, opts)
+        assert 0 < ref.sum() < ref.size
+        np.testing.assert_array_equal(geometric_visibility_compiled(intr, T, xyz, nrm, part.target_diameter_m, opts),
+                                      ref)
+    opts = VisibilityOptions()
+    geo = np.empty((len(T), len(xyz)), dtype=bool)
+    vis = compute_visibility(part, intr, T, opts, geometric_out=geo)
+    moved = genes.copy()
+    moved[:, 4] += 0.12  # look-at offsets: the same camera centres
+    moved[:, 5] -= 0.08
+    T2 = sphere.poses(moved)
+    fresh = compute_visibility(part, intr, T2, opts)
+    reused = compute_visibility(part, intr, T2, opts, rays_known=geo, rays_free=vis)
+    np.testing.assert_array_equal(reused, fresh)
+    assert np.any(fresh != vis)  # the offsets do change what is seen: the test compares something
