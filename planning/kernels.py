@@ -80,8 +80,9 @@ def population_fitness(starts, ends, indices, data, stations, n, min_rays, kind,
     The information of a network's stations is summed per target in the information's precision and
     station order (as ``evaluate_networks``), inverted in closed form (``_invert6``), and reduced:
     ``kind`` 0: worst sigma over the sufficient targets; 2: max sigma / required over them. ``out_value (p,)``
-    gets it (0 when no target is sufficient, the criterion's ``penalty=0`` form), ``out_violation (p,)`` the shortfall of rays summed over targets plus one per target with
-    enough rays but a singular geometry, ``out_short (p,)`` the targets not sufficient.
+    gets it (0 when no target is sufficient, the criterion's ``penalty=0`` form), ``out_violation (p,)`` the
+    shortfall of rays summed over targets plus one per target with enough rays but a singular geometry,
+    ``out_short (p,)`` the targets not sufficient.
     """
     p, k = stations.shape
     acc = np.zeros((n, 6), dtype=data.dtype)
@@ -519,22 +520,31 @@ def pair_information(cam_from_part, X, cam, out):
         _pair_info(cam_from_part[q], X[q, 0], X[q, 1], X[q, 2], fx, fy, k1, k2, k3, p1, p2, distorted, out[q])
 
 
-_POOL = None
-
-
 def in_two(n: int, call, min_size: int = 2) -> None:
-    """``call(lo, hi)`` over ``[0, n)`` in two halves on two threads (the kernels release the GIL), or once
-    when ``n < min_size``."""
-    global _POOL
+    """``call(lo, hi)`` over ``[0, n)`` in two halves, the second on a thread of its own (the kernels release
+    the GIL; the thread is joined before returning), or once when ``n < min_size``."""
     if n < max(2, min_size):
         call(0, n)
         return
-    if _POOL is None:
-        from concurrent.futures import ThreadPoolExecutor
+    import threading
 
-        _POOL = ThreadPoolExecutor(2, thread_name_prefix="planning-kernels")
     h = n // 2
-    list(_POOL.map(lambda b: call(*b), [(0, h), (h, n)]))
+    err: list[BaseException] = []
+
+    def second() -> None:
+        try:
+            call(h, n)
+        except BaseException as e:  # noqa: BLE001 - re-raised in the caller's thread
+            err.append(e)
+
+    t = threading.Thread(target=second, name="planning-kernels")
+    t.start()
+    try:
+        call(0, h)
+    finally:
+        t.join()
+    if err:
+        raise err[0]
 
 
 def camera_vector(intr, margin_px: float = 0.0) -> np.ndarray:

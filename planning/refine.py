@@ -116,24 +116,11 @@ def _strict_step(sp: SparseInfo, visible, S, N, cnt, sig, worst, pool, min_rays,
     half = int(np.searchsorted(off, off[-1] / 2))
     parts = [(0, half), (half, len(S))]
     if off[-1] > 200_000 and 0 < half < len(S):
-        list(_pool().map(lambda b: kernels.removal_sigmas(*sp_args, S, N, cnt, min_rays, off, b[0], b[1], srm), parts))
+        kernels.in_two(2, lambda a, b: kernels.removal_sigmas(*sp_args, S, N, cnt, min_rays, off, *parts[a], srm))
     else:
         kernels.removal_sigmas(*sp_args, S, N, cnt, min_rays, off, 0, len(S), srm)
     w, i, c = kernels.strict_step(*sp_args, visible, S, N, cnt, sig, worst * (1.0 - rel_tol), pool, min_rays, off, srm)
     return None if i < 0 else (float(w), int(i), int(c))
-
-
-_POOL = None
-
-
-def _pool():
-    """Two worker threads for the compiled kernels (which release the GIL)."""
-    global _POOL
-    if _POOL is None:
-        from concurrent.futures import ThreadPoolExecutor
-
-        _POOL = ThreadPoolExecutor(2, thread_name_prefix="planning-refine")
-    return _POOL
 
 
 def _cover_step(vis8, S, N, cnt, pool, min_rays):

@@ -158,3 +158,18 @@ def test_compiled_visibility_equals_numpy_and_shared_camera_centres_reuse_the_ra
     reused = compute_visibility(part, intr, T2, opts, rays_known=geo, rays_free=vis)
     np.testing.assert_array_equal(reused, fresh)
     assert np.any(fresh != vis)  # the offsets do change what is seen: the test compares something
+
+
+def test_in_two_covers_the_range_once_and_raises_the_threads_error():
+    seen = []
+    kernels.in_two(11, lambda a, b: seen.append((a, b)))
+    assert sorted(seen) == [(0, 5), (5, 11)]
+    kernels.in_two(3, lambda a, b: seen.append((a, b)), min_size=4)
+    assert seen[-1] == (0, 3)
+
+    def fail(a, b):
+        if a > 0:
+            raise ValueError("second half")
+
+    with pytest.raises(ValueError, match="second half"):
+        kernels.in_two(8, fail)

@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import os
-from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -80,13 +79,7 @@ class _Problem:
             kernels.population_fitness(info.starts, info.ends, info.indices, info.data, st[lo:hi], n,
                                        self.opt.min_rays, kind, req, value[lo:hi], violation[lo:hi], short[lo:hi])
 
-        workers = min(2, os.cpu_count() or 1)
-        if workers > 1 and p > 1:
-            half = (p + 1) // 2
-            with ThreadPoolExecutor(workers) as pool:
-                list(pool.map(lambda b: run(*b), [(0, half), (half, p)]))
-        else:
-            run(0, p)
+        kernels.in_two(p, run, min_size=2 if (os.cpu_count() or 1) > 1 else p + 1)
         return value, violation
 
 
