@@ -3,9 +3,10 @@
 Each configuration (targets x stations, built as in ``benchmarks.bench_scale``: the example's camera, cell and
 robot, targets sampled on the bracket) is planned by ``bench_scale --one N K --no-adjust`` in this tree and in
 the baseline tree (``git archive`` of ``--baseline``, default the commit before the planner kernels), one after
-the other, ``--repeat`` times, alternating, so both see the same load. (Not in one process: both trees are
-the package ``planning``.) Printed per configuration: the phases' best times of each, the ratio
-baseline / now, the planned worst sigma of each and whether the plans are identical, peak memory, and the
+the other, ``--repeat`` times, alternating, so both see the same load (today's ``bench_scale.py`` in both trees,
+so the jobs are built the same way). (Not in one process: both trees are the package ``planning``.) Printed per configuration: the phases' best times of each, the ratio
+baseline / now, the planned worst sigma of each and whether the plans' stations are identical (a digest of their
+genes), peak memory, and the
 load average before and after (the machine is shared; ratios from alternated runs hold better than the
 absolute seconds).
 
@@ -47,6 +48,8 @@ def export_tree(rev: str, dest: Path) -> Path:
     tar.write_bytes(p.stdout)
     with tarfile.open(tar) as t:
         t.extractall(dest / "tree", filter="data")
+    # the same job builder and report for both trees (today's bench_scale: it also prints the plan's digest)
+    (dest / "tree" / "benchmarks" / "bench_scale.py").write_text((ROOT / "benchmarks" / "bench_scale.py").read_text())
     return dest / "tree"
 
 
@@ -203,9 +206,15 @@ def main(argv=None) -> int:
                     if v and w:
                         line += f" {w / v:6.2f}x"
                 print(line)
-            print(f"  worst sigma: now {b_now['worst_um']:.6f} um" + (
-                f", baseline {b_old['worst_um']:.6f} um ({'identical' if b_old['worst_um'] == b_now['worst_um'] else 'differs'})"
-                if b_old and "error" not in b_old else (f", baseline: {b_old['error']}" if b_old else "")))
+            line = f"  worst sigma: now {b_now['worst_um']:.9f} um"
+            if b_old and "error" not in b_old:
+                same = b_old.get("genes_sha") is not None and b_old.get("genes_sha") == b_now.get("genes_sha")
+                rel = abs(b_now["worst_um"] / b_old["worst_um"] - 1.0)
+                line += (f", baseline {b_old['worst_um']:.9f} um (relative difference {rel:.1e}); stations "
+                         + ("identical" if same else "differ" if b_old.get("genes_sha") else "not compared"))
+            elif b_old:
+                line += f", baseline: {b_old['error']}"
+            print(line)
             print(f"  polish: {b_now.get('polish')}")
             print("  per run (now): " + ", ".join(f"{r.get('plan_s', float('nan')):.2f} s" for r in now)
                   + ("; baseline: " + ", ".join(f"{r.get('plan_s', float('nan')):.2f} s" for r in old) if old else ""),

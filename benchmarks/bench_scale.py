@@ -141,6 +141,7 @@ def one(n_targets: int, n_stations: int, seed: int, blunders: float, baseline: b
     out.update(information_s=tm.get("information_s"), search_s=tm.get("search_s", 0) - tm.get("polish_s", 0),
                polish_s=tm.get("polish_s"), final_s=tm.get("final_s"))
     out["worst_um"] = plan.predicted_sigma_max_m * 1e6
+    out["genes_sha"] = __import__("hashlib").sha256(np.ascontiguousarray(plan.genes).tobytes()).hexdigest()[:16]
     if bound and "lower_bound_sigma_m" in plan.search:
         # the bound covers networks of the database's candidates: the search's network (on the database) is one,
         # the polished plan has left the database (continuous poses, look-at offsets) and can be below it
