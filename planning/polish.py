@@ -14,6 +14,12 @@ Only the stations that see the hardest targets (sigma within ``focus`` of the wo
 are nudged: an exchange lowers the worst only if the new station sees every critical
 target, and stations that see none of the hard targets cannot change the worst.
 
+Every pose ray-cast is kept in a cache while it can come again: a round whose steps did not change meets the
+variants of the stations that did not move once more, and they are not cast again; a look-at-offset variant keeps
+its station's camera centre, so its occlusion answers are its station's (only its geometric tests and information
+are new). The exchange descent works on a view of the cache (no copies). The same poses, answers and choices as
+casting every variant afresh (docs/decisions/0023-planspeed-numba.md).
+
 Deterministic: no randomness, fixed step pattern.
 """
 from __future__ import annotations
