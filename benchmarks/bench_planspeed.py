@@ -215,7 +215,7 @@ def main(argv=None) -> int:
             elif b_old:
                 line += f", baseline: {b_old['error']}"
             print(line)
-            print(f"  polish: {b_now.get('polish')}")
+            print(f"  polish: {b_now.get('polish')}; stations digest {b_now.get('genes_sha')}")
             print("  per run (now): " + ", ".join(f"{r.get('plan_s', float('nan')):.2f} s" for r in now)
                   + ("; baseline: " + ", ".join(f"{r.get('plan_s', float('nan')):.2f} s" for r in old) if old else ""),
                   flush=True)

@@ -124,9 +124,9 @@ def polish_network(
     occluder = Occluder(part.mesh, backend=backend) if vis_opts.check_occlusion else None
     cache = _VariantCache(len(cols))
 
-    def evaluate(g: np.ndarray, parent_rows: np.ndarray | None = None) -> tuple[SparseInfo, np.ndarray, np.ndarray]:
-        """Information, visibility and geometric tests of poses ``g``; a pose with the camera centre of its
-        parent (cache rows ``parent_rows``, -1: none) reuses the parent's occlusion answers."""
+    def visibility(g: np.ndarray, parent_rows: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Poses, visibility and geometric tests of ``g``; a pose with the camera centre of its parent (cache
+        rows ``parent_rows``, -1: none) reuses the parent's occlusion answers."""
         T = sphere.poses(g)
         geo = np.empty((len(g), len(cols)), dtype=bool)
         known = free = None
@@ -137,10 +137,18 @@ def polish_network(
             known[same], free[same] = cache.geo[parent_rows[same]], cache.vis[parent_rows[same]]
         vis = compute_visibility(sub, intr, T, vis_opts, backend=backend, occluder=occluder, rays_known=known,
                                  rays_free=free, geometric_out=geo)
-        return target_information(intr, T, xyz, vis, sigma_px, dtype=np.float64, sparse=True), vis, geo
+        return T, vis, geo
 
-    info0, vis0, geo0 = evaluate(cur)
-    cur_rows = cache.add(info0, vis0, geo0, np.ones(k, dtype=bool))
+    def information(T: np.ndarray, vis: np.ndarray, used: np.ndarray) -> SparseInfo:
+        """The information of the poses ``used`` (the others get empty rows: they never enter a pool)."""
+        info = target_information(intr, T[used], xyz, vis[used], sigma_px, dtype=np.float64, sparse=True)
+        lens = np.zeros(len(T), dtype=np.int64)
+        lens[used] = np.diff(info.indptr)
+        return SparseInfo(np.concatenate([[0], np.cumsum(lens)]), info.indices, info.data, len(cols))
+
+    T0, vis0, geo0 = visibility(cur)
+    all_k = np.ones(k, dtype=bool)
+    cur_rows = cache.add(information(T0, vis0, all_k), vis0, geo0, all_k)
     sig = network_sigma(cache.info(cur_rows), vis0, np.arange(k), min_rays)
     start = worst = float(sig.max())
     n_rounds = n_swaps = 0
@@ -160,13 +168,14 @@ def polish_network(
             # a look-at offset keeps the camera centre: the occlusion segments are the parent's
             same_eye = np.all(var[new][:, :3] == parents[:, :3], axis=1)
             parent_rows = np.where(same_eye, np.repeat(cur_rows[movers], 10)[new], -1)
-            info_n, vis_n, geo_n = evaluate(var[new], parent_rows)
+            T_n, vis_n, geo_n = visibility(var[new], parent_rows)
             n_poses += len(new)
             ok = vis_n.any(axis=1)
             if reachable_fn is not None and ok.any():
                 idx = np.flatnonzero(ok)
                 ok[idx[~np.asarray(reachable_fn(sphere.poses(var[new][idx])), dtype=bool)]] = False
-            cache.add(info_n, vis_n, geo_n, ok, var[new], parents=parents)
+            # information only for the usable variants (seeing something, reachable)
+            cache.add(information(T_n, vis_n, ok), vis_n, geo_n, ok, var[new], parents=parents)
         rows, keep = cache.lookup(var)
         pool_rows = np.concatenate([cur_rows, rows[keep]])
         pool_genes = np.concatenate([cur, var[keep]])
