@@ -18,12 +18,18 @@ and written (with the raw class table, the conditions and this command) to
 ``calibration/data/detector_precision.json``; the cell's planner and bundle read it from there.
 
     .venv/bin/python -m benchmarks.detector_precision [--repeats 2] [--views 36] [--write]
+
+``--fit-background`` measures instead the model's ``c_background`` (the share of the detector's bound on
+the error from a background that is not a plane: ``Detections.background_cov``) by maximum likelihood with
+the stored geometry model held, on views of parts with edges and steps next to their dots: the example
+and generated plates (``--plates 3``, tests/partgen.py, seeds from 300); ``--write`` stores it.
 """
 from __future__ import annotations
 
 import argparse
 import json
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -33,7 +39,7 @@ from scipy.spatial import cKDTree
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from calibration.camera import invert, look_at, project  # noqa: E402
-from calibration.detector_model import DATA_PATH, DetectorModel, fit_model  # noqa: E402
+from calibration.detector_model import DATA_PATH, DetectorModel, fit_background, fit_model, load_model  # noqa: E402
 from calibration.targets import DetectionOptions, detect_retro_targets, eccentricity_bias  # noqa: E402
 from cell.devices import make_job_sim_cell  # noqa: E402
 from cell.loadedjob import load  # noqa: E402
@@ -43,8 +49,8 @@ INCIDENCE_EDGES = (0, 20, 35, 50, 60, 65, 70, 75, 80, 86)
 SIZE_EDGES = (0, 14, 18, 22, 30, 100)
 
 
-def collect(n_views: int, repeats: int, seed: int = 0) -> dict:
-    job = load(JOB)
+def collect(n_views: int, repeats: int, seed: int = 0, job_path: Path = JOB) -> dict:
+    job = load(job_path)
     sim = make_job_sim_cell(job)
     cam, world, intr = sim.camera, sim.world, job.intrinsics
     cam.rng = np.random.default_rng(seed)
@@ -53,7 +59,7 @@ def collect(n_views: int, repeats: int, seed: int = 0) -> dict:
     centre = xyz.mean(axis=0)
     index = {t: i for i, t in enumerate(job.part.targets.ids)}
     rng = np.random.default_rng(seed)
-    rows = []  # view, target, incidence deg, diameter px, eu, ev, repeat
+    rows = []  # view, target, incidence deg, diameter px, eu, ev, repeat, background bound b00, b01, b11
     for k in range(n_views):
         az = 2 * np.pi * k / n_views + rng.uniform(-0.2, 0.2)
         el = np.deg2rad(rng.uniform(8, 85))
@@ -80,8 +86,9 @@ def collect(n_views: int, repeats: int, seed: int = 0) -> dict:
             inc = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", v, nrm[tid[ok]]) / np.linalg.norm(v, axis=1),
                                                -1, 1)))
             dpx = intr.fx_px * 2 * radius / Xc[:, 2]
-            for t_, a_, s_, (eu, ev) in zip(tid[ok], inc, dpx, e):
-                rows.append((k, int(t_), float(a_), float(s_), float(eu), float(ev), r))
+            B = det.background_cov[j[ok]]
+            for t_, a_, s_, (eu, ev), b in zip(tid[ok], inc, dpx, e, B):
+                rows.append((k, int(t_), float(a_), float(s_), float(eu), float(ev), r, b[0, 0], b[0, 1], b[1, 1]))
     return {"rows": np.array(rows, dtype=float), "fx_px": intr.fx_px, "diameter_m": 2 * radius}
 
 
@@ -99,13 +106,52 @@ def class_table(rows: np.ndarray) -> list[dict]:
     return out
 
 
+def measure_background(n_views: int, repeats: int, seed: int, plates: int, write: bool) -> int:
+    """``c_background`` by maximum likelihood on the example and ``plates`` generated plates."""
+    from tests.partgen import make_part_job
+
+    t0 = time.perf_counter()
+    model = load_model()
+    parts = [("examples/bracket", JOB)]
+    with tempfile.TemporaryDirectory(prefix="detector-precision-") as tmp:
+        for k in range(plates):
+            g = make_part_job(Path(tmp) / f"plate{k}", np.random.default_rng(300 + k), "plate")
+            parts.append((f"tests.partgen plate seed {300 + k}", g.job))
+        rows = np.vstack([collect(n_views, repeats, seed + i, path)["rows"] for i, (_, path) in enumerate(parts)])
+    e, B = rows[:, 4:6], rows[:, [7, 8, 8, 9]].reshape(-1, 2, 2)
+    c = fit_background(model, rows[:, 2], rows[:, 3], e, B)
+    s2 = model.sigma_px(np.radians(rows[:, 2]), rows[:, 3]) ** 2
+    flagged = np.any(B != 0, axis=(1, 2))
+    print(f"{len(rows)} dot images from {len(parts)} parts x {n_views} views x {repeats} "
+          f"({time.perf_counter() - t0:.0f} s); {flagged.sum()} with a background misfit")
+    print(f"c_background = {c:.3f} (the model's geometry term held: {model.describe()})")
+    for name, cc in (("without the bound", 0.0), ("with c", c)):
+        var = s2[:, None] + cc**2 * np.stack([B[:, 0, 0], B[:, 1, 1]], axis=1)
+        z = e / np.sqrt(var)
+        print(f"  {name:18s}: normalised rms, dots with a misfit {np.sqrt(np.mean(z[flagged] ** 2)):.2f} "
+              f"({flagged.sum()}), without {np.sqrt(np.mean(z[~flagged] ** 2)):.2f} ({(~flagged).sum()})")
+    if write:
+        doc = json.loads(DATA_PATH.read_text())
+        doc["c_background"] = c
+        doc["c_background_measured_by"] = (f"python -m benchmarks.detector_precision --fit-background --views {n_views} "
+                                           f"--repeats {repeats} --seed {seed} --plates {plates} --write")
+        doc["c_background_dots"] = {"n": int(len(rows)), "with_misfit": int(flagged.sum())}
+        DATA_PATH.write_text(json.dumps(doc, indent=1) + "\n")
+        print(f"written {DATA_PATH}")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--views", type=int, default=36)
     ap.add_argument("--repeats", type=int, default=2)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--write", action="store_true", help=f"write the fitted model to {DATA_PATH}")
+    ap.add_argument("--fit-background", action="store_true", help="measure c_background (geometry model held)")
+    ap.add_argument("--plates", type=int, default=3, help="generated plates besides the example (--fit-background)")
     a = ap.parse_args(argv)
+    if a.fit_background:
+        return measure_background(a.views, a.repeats, a.seed, a.plates, a.write)
     t0 = time.perf_counter()
     data = collect(a.views, a.repeats, a.seed)
     rows = data["rows"]

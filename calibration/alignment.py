@@ -15,7 +15,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.stats import chi2, norm
+from scipy.special import chdtrc, ndtri  # chi2.sf, norm.isf without importing scipy.stats (~1 s)
 
 from calibration.camera import skew
 from calibration.errors import CalibrationError
@@ -95,9 +95,9 @@ class PointCovariance:
         HtD = np.einsum("nad,nab->dnb", H, self.D)  # (d, n, 3) = rows of H^T D
         DH = np.swapaxes(HtD, 0, 1).transpose(0, 2, 1)  # (n, 3, d)
         HtDH = np.einsum("dna,nae->de", HtD, H)
-        HtU = np.einsum("nad,nar->dr", H, self.U)
-        SU = self.U - np.einsum("nad,dr->nar", P, HtU)
         r = self.U.shape[2]
+        HtU = H.reshape(3 * n, d).T @ self.U.reshape(3 * n, r)
+        SU = self.U - (P.reshape(3 * n, d) @ HtU).reshape(n, 3, r)
         C = np.zeros((2 * d + r, 2 * d + r))
         C[:d, :d] = HtDH
         C[:d, d : 2 * d] = -np.eye(d)
@@ -288,6 +288,6 @@ def deviation_sigma_level(deviation: np.ndarray, cov: np.ndarray) -> np.ndarray:
     out = np.full(len(d), np.nan)
     ok = np.all(np.isfinite(d), axis=1) & np.all(np.isfinite(C), axis=(1, 2))
     m2 = np.einsum("na,na->n", d[ok], np.linalg.solve(C[ok], d[ok][..., None])[..., 0])
-    p = chi2.sf(m2, 3)
-    out[ok] = norm.isf(np.clip(p, 1e-300, 1.0) / 2.0)
+    p = chdtrc(3, m2)  # chi2.sf(m2, 3)
+    out[ok] = -ndtri(np.clip(p, 1e-300, 1.0) / 2.0)  # norm.isf
     return out

@@ -12,6 +12,13 @@ simulated camera by ``benchmarks/detector_precision.py`` and stored with its con
 that measured it in ``calibration/data/detector_precision.json`` (:data:`DATA_PATH`). The planner predicts
 with it and the bundle adjustment starts its weights from it (the variance components then scale it
 to what the images show), so both use the same image precision.
+
+A dot whose local background is not the plane the detector fits (an edge of the part or a step of its
+shading next to it) carries a further error the geometry cannot predict; the detector bounds it per dot
+(``Detections.background_cov``, observations.json ``bg_cov_px2``) and the bundle adds ``c^2`` times that
+bound to the model's variance (:func:`observation_covariances`); ``c`` (``c_background``), the share of the
+bound that such errors reach on average, is measured by ``benchmarks/detector_precision.py --fit-background``
+against the simulated truth (docs/decisions/0023).
 """
 from __future__ import annotations
 
@@ -24,7 +31,8 @@ import numpy as np
 
 from calibration.errors import CalibrationError
 
-__all__ = ["DetectorModel", "fit_model", "load_model", "observation_sigmas", "DATA_PATH"]
+__all__ = ["DetectorModel", "fit_model", "fit_background", "load_model", "observation_sigmas",
+           "observation_covariances", "DATA_PATH"]
 
 DATA_PATH = Path(__file__).resolve().parent / "data" / "detector_precision.json"
 D_REF_PX = 20.0
@@ -41,6 +49,7 @@ class DetectorModel:
     p: float
     q: float
     version: str = "1"
+    c_background: float = 0.0
 
     def sigma_px(self, incidence_rad, diameter_px, noise_scale: float = 1.0) -> np.ndarray:
         """Standard deviation of one coordinate, ``(k,)`` pixels, for incidence ``(k,)`` rad and dot size ``(k,)`` px.
@@ -54,11 +63,13 @@ class DetectorModel:
 
     def describe(self) -> str:
         return (f"sigma^2 = {self.a_px:.4f}^2 + {self.b_px:.4f}^2 (d/{D_REF_PX:g} px)^-{2 * self.p:.2f} "
-                f"cos(theta)^-{2 * self.q:.2f} px^2 (version {self.version})")
+                f"cos(theta)^-{2 * self.q:.2f} px^2, + {self.c_background:.3f}^2 x the detector's background bound "
+                f"(version {self.version})")
 
     def to_dict(self) -> dict:
         return {"model": "sigma_px^2 = a^2 + b^2 (d / d_ref)^(-2p) cos(theta)^(-2q)", "d_ref_px": D_REF_PX,
-                "a_px": self.a_px, "b_px": self.b_px, "p": self.p, "q": self.q, "version": self.version}
+                "a_px": self.a_px, "b_px": self.b_px, "p": self.p, "q": self.q, "c_background": self.c_background,
+                "version": self.version}
 
 
 def fit_model(incidence_deg: np.ndarray, diameter_px: np.ndarray, errors_px: np.ndarray,
@@ -85,6 +96,28 @@ def fit_model(incidence_deg: np.ndarray, diameter_px: np.ndarray, errors_px: np.
     return DetectorModel(float(np.exp(r.x[0])), float(np.exp(r.x[1])), float(r.x[2]), float(r.x[3]), version)
 
 
+def fit_background(model: DetectorModel, incidence_deg: np.ndarray, diameter_px: np.ndarray, errors_px: np.ndarray,
+                   background_cov: np.ndarray) -> float:
+    """Maximum-likelihood ``c`` of ``e ~ N(0, sigma_px^2 I + c^2 B)`` for centre errors ``errors_px: (k, 2)`` with
+    the detector's background bounds ``B: (k, 2, 2)``, the geometry model held as it is."""
+    from scipy.optimize import minimize_scalar
+
+    s2 = model.sigma_px(np.radians(np.asarray(incidence_deg, dtype=float)), np.asarray(diameter_px, dtype=float)) ** 2
+    e = np.asarray(errors_px, dtype=float)
+    B = np.asarray(background_cov, dtype=float)
+    if not np.any(B):
+        raise CalibrationError("detector model: no dot with a background misfit; c cannot be measured")
+
+    def nll(log_c):
+        C = s2[:, None, None] * np.eye(2) + np.exp(2 * log_c) * B
+        det = C[:, 0, 0] * C[:, 1, 1] - C[:, 0, 1] ** 2
+        quad = (C[:, 1, 1] * e[:, 0] ** 2 - 2 * C[:, 0, 1] * e[:, 0] * e[:, 1] + C[:, 0, 0] * e[:, 1] ** 2) / det
+        return float(np.sum(np.log(det) + quad))
+
+    r = minimize_scalar(nll, bounds=(-8.0, 3.0), method="bounded")
+    return float(np.exp(r.x))
+
+
 @lru_cache(maxsize=4)
 def load_model(path: str | None = None) -> DetectorModel:
     """The model in the repository (``calibration/data/detector_precision.json``) or at ``path``."""
@@ -92,7 +125,7 @@ def load_model(path: str | None = None) -> DetectorModel:
     try:
         doc = json.loads(p.read_text())
         return DetectorModel(float(doc["a_px"]), float(doc["b_px"]), float(doc["p"]), float(doc["q"]),
-                             str(doc.get("version", "1")))
+                             str(doc.get("version", "1")), float(doc.get("c_background", 0.0)))
     except (OSError, KeyError, ValueError) as exc:
         raise CalibrationError(f"{p}: cannot read the detector precision model ({exc})") from None
 
@@ -114,3 +147,19 @@ def observation_sigmas(points: np.ndarray, normals: np.ndarray, cam_from_part: n
     theta = np.arccos(np.clip(np.einsum("qa,qa->q", sight, nrm), -1.0, 1.0))
     d_px = fx_px * diameter_m / np.maximum(Xc[:, 2], 1e-9)
     return model.sigma_px(theta, d_px, noise_scale)
+
+
+def observation_covariances(sigma_px: np.ndarray, background_cov: np.ndarray | None,
+                            model: DetectorModel | None = None) -> np.ndarray:
+    """A priori covariance of each observation ``(q, 2, 2)`` px^2: the model's ``sigma_px: (q,)`` on both
+    coordinates plus ``c_background^2`` times the detector's background bound ``background_cov: (q, 2, 2)``
+    (None: no bound, e.g. a job measured before the detector gave one)."""
+    model = model or load_model()
+    s = np.asarray(sigma_px, dtype=float)
+    C = s[:, None, None] ** 2 * np.eye(2)
+    if background_cov is not None:
+        B = np.asarray(background_cov, dtype=float)
+        if B.shape != C.shape or not np.all(np.isfinite(B)):
+            raise CalibrationError(f"observation covariances: background bounds must be {C.shape} finite, got {B.shape}")
+        C = C + model.c_background**2 * B
+    return C

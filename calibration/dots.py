@@ -19,6 +19,11 @@ gives the typical dot size that the background kernel then adapts to.
    half-level contour. Decision 0015 compares both on tilted, blurred renders.
 5. ``cov``: each centre's 2x2 covariance in px^2 propagated from the pixel noise (the centroid is
    linear in the grey levels), plus ``cov_floor_px^2`` on the diagonal.
+6. ``background_cov``: what a background that is not the fitted plane does to the centre (an edge of
+   the part or a step of its shading near the dot; docs/decisions/0023): the ring's residuals about
+   the plane have a smooth part (the misfit, significant at 3 standard errors of the pixel noise) and
+   a misfit ``e`` of one sign over each half of the dot moves the centroid by ``e sum|(x_i - u) . a|
+   / (span_i sum w)`` along a direction ``a``: that bound along the dot's two principal axes, px^2.
 
 Pixel convention: origin at the centre of the top-left pixel (OpenCV's too).
 """
@@ -109,6 +114,8 @@ class Detections:
         polarity: "bright" or "dark": what these dots are.
         axes: (k, 2, 2) each blob's second-moment matrix (px^2) over its grown pixels: the dot's
             ellipse is ``x^T axes^-1 x = 4`` about the centre (for a uniform disc of radius r, r^2/4 I).
+        background_cov: (k, 2, 2) bound of the centre's error from a local background that is not a
+            plane (px^2; zero where the ring shows no significant misfit), or None.
     """
 
     uv: np.ndarray
@@ -120,6 +127,7 @@ class Detections:
     cov: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 2)))
     polarity: str = "bright"
     axes: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 2)))
+    background_cov: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.uv)
@@ -127,7 +135,8 @@ class Detections:
     def subset(self, keep: np.ndarray) -> "Detections":
         """These detections restricted to ``keep`` (bool mask or indices)."""
         return replace(self, uv=self.uv[keep], area_px=self.area_px[keep], peak=self.peak[keep], flux=self.flux[keep],
-                       background=self.background[keep], cov=self.cov[keep], axes=self.axes[keep])
+                       background=self.background[keep], cov=self.cov[keep], axes=self.axes[keep],
+                       background_cov=None if self.background_cov is None else self.background_cov[keep])
 
 
 def to_grey(image: np.ndarray) -> np.ndarray:
@@ -255,6 +264,28 @@ def _ring_planes(lab: np.ndarray, dx: np.ndarray, dy: np.ndarray, val: np.ndarra
         if len(good):
             coef[good] = np.linalg.solve(A[good], b[good][..., None])[..., 0]
     return coef
+
+
+def _ring_misfit(lab: np.ndarray, dx: np.ndarray, dy: np.ndarray, r: np.ndarray, k: int, z: float = 3.0) -> np.ndarray:
+    """The smooth part of each ring's residuals ``r`` about its background plane, (k,) grey levels.
+
+    The mean square of the residuals is the pixel noise plus the misfit; neighbours along the ring
+    share the misfit but not the noise, so half the mean square of their differences is the noise
+    alone, where the dot is: misfit^2 = ms(r) - ms(diff) / 2, which is the mean product of neighbours
+    (the ring's lag-one autocovariance). For white noise of variance s^2 over n ring pixels those n
+    products are uncorrelated, each of variance s^4: the estimate scatters by s^2 / sqrt(n), and a misfit
+    below ``z`` times that cannot be told from the noise and is 0.
+    """
+    order = np.lexsort((np.arctan2(dy, dx), lab))
+    lo, ro = lab[order], r[order]
+    same = lo[1:] == lo[:-1]
+    n_d = np.bincount(lo[1:], weights=same.astype(float), minlength=k + 1)[1:]
+    noise2 = 0.5 * np.bincount(lo[1:], weights=np.where(same, np.diff(ro) ** 2, 0.0), minlength=k + 1)[1:]
+    noise2 /= np.maximum(n_d, 1)
+    n = np.bincount(lab, minlength=k + 1)[1:]
+    excess = np.bincount(lab, weights=r * r, minlength=k + 1)[1:] / np.maximum(n, 1) - noise2
+    significant = (n >= 8) & (excess > z * noise2 / np.sqrt(np.maximum(n, 1)))
+    return np.where(significant, np.sqrt(np.maximum(excess, 0.0)), 0.0)
 
 
 def _above(image: np.ndarray, thr: float) -> np.ndarray:
@@ -415,7 +446,7 @@ def _detect(image: np.ndarray, o: DetectionOptions) -> Detections:
         mask &= cv2.compare(tophat.astype(np.float32), local, cv2.CMP_GT)  # 0/255: keeps mask's 0/1
     n_lab, labels, stats = _components(mask)
     empty = Detections(np.zeros((0, 2)), np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0), noise,
-                       np.zeros((0, 2, 2)), o.polarity, np.zeros((0, 2, 2)))
+                       np.zeros((0, 2, 2)), o.polarity, np.zeros((0, 2, 2)), np.zeros((0, 2, 2)))
     if n_lab <= 1:
         return empty
     w_box = stats[1:, cv2.CC_STAT_WIDTH].astype(float)
@@ -455,6 +486,8 @@ def _detect(image: np.ndarray, o: DetectionOptions) -> Detections:
     rms = np.sqrt(np.bincount(rl, weights=r * r, minlength=k + 1)[1:] / cnt)
     fit = np.abs(r) <= 2.0 * rms[rl - 1] + 1.0
     coef = _ring_planes(rl[fit], rdx[fit], rdy[fit], rv[fit], k, bg)
+    lf, dxf, dyf = rl[fit], rdx[fit], rdy[fit]
+    misfit = _ring_misfit(lf, dxf, dyf, rv[fit] - (coef[lf - 1, 0] + coef[lf - 1, 1] * dxf + coef[lf - 1, 2] * dyf), k)
     bg_local = coef[:, 0]
     inside = ~ring
     li, xi, yi, vi = lg[inside], xs[inside], ys[inside], val[inside]
@@ -493,7 +526,15 @@ def _detect(image: np.ndarray, o: DetectionOptions) -> Detections:
         uv = np.where(ok[:, None], e_uv, uv)
         cov = np.where(ok[:, None, None], e_cov, cov)
     cov += o.cov_floor_px**2 * np.eye(2)
+    # a misfit e of one sign over each half of the dot, along each principal axis a of the dot's ellipse:
+    # the centroid moves by e sum|(x_i - u) . a| / (span_i sum w)
+    _, vec = np.linalg.eigh(axes)  # (k, 2, 2): columns are the axes
+    h = 1.0 / (span * sws[li - 1])
+    a1 = per_blob(h * np.abs(dx * vec[li - 1, 0, 0] + dy * vec[li - 1, 1, 0]))
+    a2 = per_blob(h * np.abs(dx * vec[li - 1, 0, 1] + dy * vec[li - 1, 1, 1]))
+    bcov = (misfit**2)[:, None, None] * (a1[:, None, None] ** 2 * np.einsum("ka,kb->kab", vec[:, :, 0], vec[:, :, 0])
+                                         + a2[:, None, None] ** 2 * np.einsum("ka,kb->kab", vec[:, :, 1], vec[:, :, 1]))
     good = (sw > 0) & (peak >= o.min_peak_snr * noise)
     flux = sw * np.maximum(peak, 0.0)
     return Detections(uv[good], area[keep][good], peak[good], flux[good], bg_local[good], noise, cov[good],
-                      o.polarity, axes[good])
+                      o.polarity, axes[good], bcov[good])

@@ -32,7 +32,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.stats import chi2
+from scipy.special import chdtr, chdtri, gammaincinv, ndtr  # scipy.stats' own kernels, without its import
 
 from calibration.alignment import Alignment, align_to_cad, similarity_fit, transformed_alignment
 from calibration.camera import skew
@@ -49,7 +49,7 @@ __all__ = [
 ]
 
 #: chi-square (3 dof) bound of a target agreeing with a hypothesis in the consensus (99.9 %)
-CHI2_AGREE = float(chi2.ppf(0.999, 3))
+CHI2_AGREE = float(2.0 * gammaincinv(1.5, 0.999))  # chi2.ppf(0.999, 3)
 
 
 @dataclass(frozen=True)
@@ -194,7 +194,7 @@ def consensus_fit(measured: np.ndarray, cov_blocks: np.ndarray, nominal: np.ndar
     rival = int(np.max(np.where(overlap < 0.5 * size, size, 0))) if len(size) else 0
     best_loose = int(best_sets.sum())
     m2b = _m2(X, N, cinv, Rb[None], tb[None])[0]
-    factor = float(np.sqrt(np.median(m2b[agree]) / chi2.median(3))) if agree.any() else float("nan")
+    factor = float(np.sqrt(np.median(m2b[agree]) / (2.0 * gammaincinv(1.5, 0.5)))) if agree.any() else float("nan")
     full = np.zeros(len(measured), dtype=bool)
     full[idx[agree]] = True
     return Consensus(Rb, tb, full, len(trip), rival, factor, best_loose)
@@ -202,10 +202,8 @@ def consensus_fit(measured: np.ndarray, cov_blocks: np.ndarray, nominal: np.ndar
 
 def _expected_truncated_m2(k: float) -> float:
     """E[m^2 | target passes the k-sigma test] for chi-square 3 dof (the test keeps the ones below the bound)."""
-    from scipy.stats import norm
-
-    c = float(chi2.isf(2 * norm.sf(k), 3))
-    return 3.0 * float(chi2.cdf(c, 5) / chi2.cdf(c, 3))
+    c = float(chdtri(3, 2 * ndtr(-k)))  # chi2.isf(2 norm.sf(k), 3)
+    return 3.0 * float(chdtr(5, c) / chdtr(3, c))
 
 
 def _spans(points: np.ndarray) -> bool:

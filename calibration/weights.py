@@ -35,6 +35,8 @@ __all__ = [
     "incidence_angles",
     "incidence_groups",
     "variance_component_factors",
+    "mean_variance",
+    "whitening",
 ]
 
 #: class edges of the incidence angle between a dot's normal and the line of sight (degrees)
@@ -133,12 +135,42 @@ def check_groups(obs_group, q: int) -> np.ndarray:
 
 
 def check_sigmas(obs_sigma_px, default_px: float, q: int) -> np.ndarray:
-    """``obs_sigma_px`` (None, scalar or (q,)) as a (q,) positive float array."""
+    """``obs_sigma_px`` (None, scalar or (q,)) as a (q,) positive float array, or a (q, 2, 2) covariance of
+    each observation (px^2) checked symmetric positive definite."""
     if obs_sigma_px is None:
         return np.full(q, float(default_px))
     s = np.asarray(obs_sigma_px, dtype=float)
     if s.ndim == 0:
         s = np.full(q, float(s))
+    if s.ndim == 3:
+        det = s[:, 0, 0] * s[:, 1, 1] - s[:, 0, 1] * s[:, 1, 0] if s.shape == (q, 2, 2) else None
+        if (det is None or not np.all(np.isfinite(s)) or np.any(s[:, 0, 1] != s[:, 1, 0]) or np.any(s[:, 0, 0] <= 0)
+                or np.any(det <= 0)):
+            raise CalibrationError(f"bundle: observation covariances must be ({q}, 2, 2) symmetric positive definite px^2, "
+                                   f"got shape {s.shape}")
+        return s.copy()
     if s.shape != (q,) or not np.all(np.isfinite(s)) or np.any(s <= 0):
         raise CalibrationError(f"bundle: obs_sigma_px must be ({q},) positive finite pixels, got shape {s.shape}")
     return s.copy()
+
+
+def whitening(sigma: np.ndarray) -> np.ndarray:
+    """Per observation the matrix ``W`` with ``W C W^T = I``: ``(q, 2, 2)`` from sigmas ``(q,)`` (``I / sigma``) or
+    from covariances ``C: (q, 2, 2)`` (the inverse of C's Cholesky factor)."""
+    s = np.asarray(sigma, dtype=float)
+    if s.ndim == 1:
+        return np.eye(2)[None] / s[:, None, None]
+    l11 = np.sqrt(s[:, 0, 0])
+    l21 = s[:, 1, 0] / l11
+    l22 = np.sqrt(s[:, 1, 1] - l21**2)
+    W = np.zeros_like(s)
+    W[:, 0, 0] = 1.0 / l11
+    W[:, 1, 0] = -l21 / (l11 * l22)
+    W[:, 1, 1] = 1.0 / l22
+    return W
+
+
+def mean_variance(sigma: np.ndarray) -> float:
+    """Mean variance of one image coordinate over observations with sigmas ``(q,)`` or covariances ``(q, 2, 2)``."""
+    s = np.asarray(sigma, dtype=float)
+    return float(np.mean(s**2)) if s.ndim == 1 else float(np.mean(np.trace(s, axis1=1, axis2=2)) / 2)

@@ -129,7 +129,10 @@ def _finish(result, out) -> int:
 
 
 def run(args, out) -> int:
+    from cell.cli import settle_loaded_modules
     from cell.job import start_job
+
+    settle_loaded_modules()
 
     backend = args.backend
     if (backend or "") == "ur":
@@ -149,7 +152,10 @@ def _login_name() -> str | None:
 
 
 def resume(args, out) -> int:
+    from cell.cli import settle_loaded_modules
     from cell.job import resume_job
+
+    settle_loaded_modules()
 
     _confirm(args, out, f"Resuming {args.job_id} moves the robot from its measured pose.")
     return _finish(resume_job(args.job_id, args.archive, out, operator=args.operator or _login_name(),

@@ -128,6 +128,30 @@ def test_a_job_camera_section_chooses_the_detector_settings():
     assert detection_options(SimpleNamespace(polarity="bright", detection="cell")) == DetectionOptions()
 
 
+def test_a_step_of_the_background_next_to_a_dot_is_bounded_in_its_background_covariance():
+    """Dots 2-5 px from a step of the surface (an edge of the part next to them) are off by 5-20x their noise
+    sigma; the detector's background bound covers them, and is zero where the ring around a dot is a plane."""
+    rng = np.random.default_rng(2)
+    dists = np.array([-60, -12, -9, -8, -7.5, -7], float)  # dot centre to the step, px (radius 5)
+    edges = 100 + 120 * np.arange(len(dists))
+    h, w = 120, int(edges.max() + 120)
+    uv = np.stack([edges + dists + rng.uniform(-0.5, 0.5, len(dists)), 60 + rng.uniform(-0.5, 0.5, len(dists))], 1)
+    bg = np.full((h, w), 0.08)
+    for e in edges:
+        bg[:, e:e + 60] = 0.16  # wider than the top-hat kernel: ground, not a blob
+    det = detect_dots(render_dots(rng, h, w, uv, radius_px=5.0, bg_level=bg), DetectionOptions())
+    j, d = _match(uv, det.uv)
+    order = np.argsort(j)
+    assert len(det) == len(uv) and np.all(j[order] == np.arange(len(uv)))
+    err = np.linalg.norm(det.uv[order] - uv, axis=1)
+    noise = np.sqrt(np.linalg.eigvalsh(det.cov[order])[:, 1])
+    bound = np.sqrt(np.linalg.eigvalsh(det.background_cov[order])[:, 1])
+    far = np.abs(dists) >= 12
+    assert np.all(bound[far] == 0) and np.all(err[far] < 4 * noise[far])
+    assert np.all(err[~far] > 5 * noise[~far]) and np.all(bound[~far] > 0)
+    assert np.all(err[~far] <= bound[~far])
+
+
 def _random_blobs(rng, h, w, n):
     """A uint8 0/1 mask of ``n`` random blobs (discs, bars, clusters that touch) of 1-30 px, some at the border."""
     mask = np.zeros((h, w), np.uint8)

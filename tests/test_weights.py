@@ -148,3 +148,35 @@ def test_bad_observation_sigmas_and_groups_are_refused():
                       obs_sigma_px=np.zeros(len(uv)))
     with pytest.raises(CalibrationError, match="obs_group"):
         bundle_adjust(net.obs_image, net.obs_target, uv, net.intrinsics, poses0, x0, obs_group=group[:-1])
+
+
+def test_a_2x2_covariance_per_observation_whitens_the_adjustment_and_states_honest_errors():
+    """Elongated image errors (5:1, random directions): the full 2x2 covariance per observation beats the
+    isotropic sigma of the same size and states its errors honestly; an isotropic covariance is the sigma."""
+    rng = np.random.default_rng(9)
+    net = simulate_network(rng, n_targets=200, n_images=12, sigma_px=0.0)
+    q = len(net.obs_image)
+    ang = rng.uniform(0, np.pi, q)
+    d = np.stack([np.cos(ang), np.sin(ang)], axis=1)
+    n = np.stack([-d[:, 1], d[:, 0]], axis=1)
+    C = 0.1**2 * np.einsum("qa,qb->qab", d, d) + 0.02**2 * np.einsum("qa,qb->qab", n, n)
+    uv = net.obs_uv + rng.normal(size=(q, 1)) * 0.1 * d + rng.normal(size=(q, 1)) * 0.02 * n
+    poses0 = np.array([exp_se3(rng.normal(0, 0.002, 6)) @ T for T in net.cam_from_part])
+    x0 = net.points + rng.normal(0.0, 5e-4, net.points.shape)
+    opts = BundleOptions(sigma_px=0.05, snooping=False)
+    iso = np.sqrt(np.trace(C, axis1=1, axis2=2) / 2)
+    full = bundle_adjust(net.obs_image, net.obs_target, uv, net.intrinsics, poses0, x0, opts, obs_sigma_px=C)
+    flat = bundle_adjust(net.obs_image, net.obs_target, uv, net.intrinsics, poses0, x0, opts, obs_sigma_px=iso)
+    same = bundle_adjust(net.obs_image, net.obs_target, uv, net.intrinsics, poses0, x0, opts,
+                         obs_sigma_px=iso[:, None, None] ** 2 * np.eye(2))
+    np.testing.assert_allclose(same.points, flat.points, atol=1e-10)
+    np.testing.assert_allclose(same.cov, flat.cov, rtol=1e-6, atol=1e-18)
+    assert same.sigma0_px == pytest.approx(flat.sigma0_px, rel=1e-9)
+    e_full, m2 = _errors(full, net.points)
+    e_flat, _ = _errors(flat, net.points)
+    assert np.sqrt(np.mean(np.sum(e_full**2, axis=1))) < 0.8 * np.sqrt(np.mean(np.sum(e_flat**2, axis=1)))
+    assert 0.7 <= np.mean(m2) / 3.0 <= 1.4
+    assert full.sigma0_px == pytest.approx(np.sqrt(np.mean(iso**2)), rel=0.1)
+    with pytest.raises(CalibrationError, match="symmetric positive definite"):
+        bundle_adjust(net.obs_image, net.obs_target, uv, net.intrinsics, poses0, x0, opts,
+                      obs_sigma_px=C * np.array([[1.0, 1.0], [1.0, -1.0]]))

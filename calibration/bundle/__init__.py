@@ -2,6 +2,10 @@
 
 Stages (``bundle_adjust``):
 
+0. Gauss-Newton on our own normal equations (stage 2's iterations, from the start, the datum and weights
+   included) solves first; when it does not converge (cost rising, no convergence within
+   ``BundleOptions.gn_iterations``) stage 1 solves from the same start (:mod:`calibration.bundle.solve`,
+   docs/decisions/0024-bundlefast-gauss-newton-first-solve.md). ``BundleOptions(solver="pycolmap")``: stage 1 always.
 1. A ``pycolmap.Reconstruction`` is built from our data (one camera: PINHOLE,
    SIMPLE_RADIAL, RADIAL or OPENCV; one image per station with ``cam_from_world`` =
    our ``cam_from_part``; one 3-D point per target; the 2-D observations). COLMAP's pixel
@@ -40,7 +44,7 @@ optimum by Gauss-Newton on the full normal equations (every datum). Everything d
 (sigma0, covariance, redundancy numbers, test statistics) works on the whitened observations.
 
 Modules (docs/decisions/0012-split-bundle-planner.md): ``config`` (options, config, result),
-``adjust`` (the loop above), ``colmap`` (stage 1), ``normal`` (linearised problem), ``datum``
+``adjust`` (the loop above), ``solve`` (stage 0 and the hand-over), ``colmap`` (stage 1), ``normal`` (linearised problem), ``datum``
 (stage 2), ``covariance`` (stage 3, the result), ``snooping`` (stage 4's statistics), ``vce``
 (variance components), ``projection``, ``synthetic`` (simulated networks).
 """

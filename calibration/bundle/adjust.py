@@ -4,18 +4,19 @@ from __future__ import annotations
 import time
 
 import numpy as np
-from scipy.stats import chi2
+from scipy.special import chdtri  # chi2.isf without importing scipy.stats (~1 s of a job's start)
 
 try:  # BLAS threads fight with Ceres' threads on small machines: small dense algebra runs faster on one
     from threadpoolctl import threadpool_limits
 except ImportError:  # pragma: no cover - optional
     threadpool_limits = None
 
-from calibration.bundle.colmap import _pycolmap_solve
+from calibration.bundle.colmap import _to_colmap_params
 from calibration.bundle.config import COLMAP_MODELS, BundleConfig, BundleOptions, BundleResult
 from calibration.bundle.covariance import _result
 from calibration.bundle.datum import _datum_stage
 from calibration.bundle.normal import _Layout, _linearise, _State
+from calibration.bundle.solve import _solve
 from calibration.bundle.snooping import (
     _statistics,
     local_followers,
@@ -26,7 +27,7 @@ from calibration.bundle.snooping import (
 from calibration.bundle.vce import _variance_step
 from calibration.camera import Intrinsics
 from calibration.errors import CalibrationError
-from calibration.weights import check_groups, check_sigmas
+from calibration.weights import check_groups, check_sigmas, mean_variance
 
 
 def _validate(obs_image, obs_target, obs_uv, m, n):
@@ -67,7 +68,8 @@ def bundle_adjust(
         points: (n, 3) initial targets (e.g. the CAD nominals); the free-network datum keeps their
             centroid, orientation and scale.
         options: solver settings; config: what is refined and the datum.
-        obs_sigma_px: (q,) a priori sigma of each observation's coordinates (pixels); None: all
+        obs_sigma_px: (q,) a priori sigma of each observation's coordinates (pixels), or (q, 2, 2) the
+            covariance of each observation (px^2: the residuals are whitened with it); None: all
             ``options.sigma_px``.
         obs_group: (q,) int group of each observation: estimate one variance component per group
             (:mod:`calibration.weights`), starting from ``obs_sigma_px``; None: the sigmas stay as given.
@@ -97,8 +99,11 @@ def _bundle_adjust(obs_image, obs_target, obs_uv, intrinsics, cam_from_part, poi
     # models whose distortion pycolmap cannot refine (COLMAP_MODELS) take the full Gauss-Newton iterations too
     full_gn = weighted or (config.camera_model in COLMAP_MODELS and config.refine_distortion)
     group = None if obs_group is None else check_groups(obs_group, len(obs_image))
+    if group is not None and sig0.ndim == 3:
+        raise CalibrationError("bundle: variance components (obs_group) take sigmas (q,), not covariances (q, 2, 2)")
     vc = None
     names = config.refined_names()
+    _to_colmap_params(intrinsics, config.camera_model)  # the model must hold the intrinsics (whichever solver runs)
     linked = np.zeros(n, dtype=bool)
     for bar in config.scale_bars:
         linked[[bar.target_a, bar.target_b]] = True
@@ -107,8 +112,8 @@ def _bundle_adjust(obs_image, obs_target, obs_uv, intrinsics, cam_from_part, poi
     rejected = np.zeros(q, dtype=bool)
     reinstated = np.zeros(q, dtype=bool)  # put back once: never rejected again by the batch rounds' mistakes
     state = _State(intrinsics, poses0, x0.copy())
-    timings = {"pycolmap_solve": 0.0, "datum": 0.0, "covariance": 0.0, "snooping": 0.0}
-    thr = chi2.isf(options.alpha / q, 2)
+    timings = {"solve": 0.0, "datum": 0.0, "covariance": 0.0, "snooping": 0.0}
+    thr = chdtri(2, options.alpha / q)  # chi2.isf(alpha / q, 2)
     snoop = {"rounds": 0, "threshold": float(thr), "reinstated": 0, "untestable_rejected": 0,
              "batch": bool(options.snooping_batch)}
     while True:
@@ -124,14 +129,18 @@ def _bundle_adjust(obs_image, obs_target, obs_uv, intrinsics, cam_from_part, poi
         # after a batch of rejections the network is already near its optimum: Gauss-Newton on our own normal
         # equations (the datum stage's iterations, which the statistics need anyway) finishes it
         warm = options.snooping_batch and snoop["rounds"] > 1
+        on_datum = False
         if not warm:
             t0 = time.perf_counter()
-            state, usable, report = _pycolmap_solve(state, *args, active_pts, config, options)
-            timings["pycolmap_solve"] += time.perf_counter() - t0
+            state, usable, report, on_datum = _solve(state, x0, lay, config, args, sig[act_obs], active_pts, options)
+            timings["solve"] += time.perf_counter() - t0
         for it in range(1, max(options.vce_iterations, 1) + 1 if group is not None else 2):
             t1 = time.perf_counter()
-            state, dconv = _datum_stage(state, x0, lay, config, args, sig[act_obs], options.datum_iterations,
-                                        full_gn or warm)
+            if it == 1 and on_datum:  # the solve ended at the optimum for these sigmas, in the datum
+                dconv = True
+            else:
+                state, dconv = _datum_stage(state, x0, lay, config, args, sig[act_obs], options.datum_iterations,
+                                            full_gn or warm)
             t2 = time.perf_counter()
             lin = _linearise(state, *args, lay, config, sig[act_obs], defect)
             stats = _statistics(lin, lay, n_obs=int(act_obs.sum()))
@@ -187,7 +196,7 @@ def _bundle_adjust(obs_image, obs_target, obs_uv, intrinsics, cam_from_part, poi
     res.obs_sigma_px, res.variance_components, res.snooping = sig, vc, snoop
     _say_snooping(snoop, config, options, rejected, obs_target)
     if weighted:  # sigma0 in pixels: of an observation of the rms a priori sigma (equal weights: options.sigma_px)
-        res.sigma0_px = float(np.sqrt(stats["s02"] * np.mean(sig[act_obs] ** 2)))
+        res.sigma0_px = float(np.sqrt(stats["s02"] * mean_variance(sig[act_obs])))
     return res
 
 

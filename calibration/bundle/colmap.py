@@ -8,7 +8,6 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
-import pycolmap
 
 from calibration.bundle.config import CAMERA_MODELS, COLMAP_MODELS, BundleConfig, BundleOptions
 from calibration.bundle.normal import _State
@@ -46,6 +45,8 @@ def _from_colmap_params(params: np.ndarray, model: str, base: Intrinsics) -> Int
 
 def _pycolmap_solve(state: _State, obs_image, obs_target, obs_uv, active_pts, config: BundleConfig,
                     options: BundleOptions) -> tuple[_State, bool, str]:
+    import pycolmap  # here, not at the top: the Gauss-Newton path never needs it (~0.15 s of a job's start)
+
     m = len(state.poses)
     rec = pycolmap.Reconstruction()
     cam = pycolmap.Camera.create_from_model_name(1, COLMAP_MODELS.get(config.camera_model, (config.camera_model, 0))[0],

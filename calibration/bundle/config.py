@@ -73,6 +73,10 @@ class BundleOptions:
             while the adjustment's ``s0^2`` exceeds it by more than this factor (blunders mask each other
             through ``s0^2``); 0: always the adjustment's ``s0^2``.
         datum_iterations: Gauss-Newton iterations for scale bars and control targets.
+        solver: the first adjustment of each data-snooping round: "gauss_newton" (our own normal equations, with
+            pycolmap's Levenberg-Marquardt when they do not converge; :mod:`calibration.bundle.solve`) or
+            "pycolmap" (always Ceres).
+        gn_iterations: at most this many Gauss-Newton iterations before pycolmap takes over.
         blas_threads: BLAS threads for the covariance algebra (None: leave as is). One is the fastest
             for networks of up to a few thousand targets on a 2-core machine (needs threadpoolctl).
         vce_iterations: at most this many re-adjustments of the variance component estimation
@@ -92,6 +96,8 @@ class BundleOptions:
     snooping_batch: bool = True
     snooping_contamination: float = 2.0
     datum_iterations: int = 10
+    solver: str = "gauss_newton"
+    gn_iterations: int = 12
     blas_threads: int | None = 1
     vce_iterations: int = 15
     vce_min_redundancy: float = 50.0

@@ -5,7 +5,24 @@ import numpy as np
 
 from calibration.alignment import PointCovariance, helmert_basis
 from calibration.bundle.config import BundleResult
-from calibration.bundle.projection import project_observations
+from calibration.bundle.projection import project_pixels
+
+
+def _datum_blocks(Q: np.ndarray, D: np.ndarray, U: np.ndarray, C: np.ndarray, P: np.ndarray) -> np.ndarray:
+    """Per-point blocks of ``S Q S^T`` with ``S = I - P P^T`` (``P: (n, 3, d)`` orthonormal columns) for
+    ``Q = blockdiag(D) + U C U^T`` whose own blocks are ``Q: (n, 3, 3)``; (n, 3, 3).
+
+    ``(S Q S^T)_ii = Q_ii - P_i X_i^T - X_i P_i^T + P_i (P^T Q P) P_i^T`` with ``X = Q P`` (n, 3, d): batched
+    3 x d products, no ``(3n, r) x (r, r)`` product of the low-rank form.
+    """
+    n, _, d = P.shape
+    r = U.shape[2]
+    W = U.reshape(3 * n, r).T @ P.reshape(3 * n, d)  # U^T P (r, d)
+    X = np.matmul(D, P) + (U.reshape(3 * n, r) @ (C @ W)).reshape(n, 3, d)
+    M = P.reshape(3 * n, d).T @ X.reshape(3 * n, d)  # P^T Q P (d, d)
+    PXt = np.matmul(P, np.swapaxes(X, 1, 2))
+    out = Q - PXt - np.swapaxes(PXt, 1, 2) + np.matmul(np.matmul(P, M), np.swapaxes(P, 1, 2))
+    return 0.5 * (out + np.swapaxes(out, 1, 2))
 
 
 def _result(state, lin, stats, lay, T, rejected, act_obs, obs_image, obs_target, obs_uv, options, config,
@@ -24,11 +41,19 @@ def _result(state, lin, stats, lay, T, rejected, act_obs, obs_image, obs_target,
         A[lay.linked[:, None], np.arange(3)[None, :], cols] = 1.0
     act = np.concatenate([lay.unlinked, lay.linked])
     pc = PointCovariance(D[act], A[act], lin.Sigma)
+    # the points' own blocks before the datum: the unlinked ones are the statistics' Qpp, the linked ones Sigma's
+    Qii = np.empty((len(act), 3, 3))
+    Qii[: len(lay.unlinked)] = stats["Qpp"]
+    if len(lay.linked):
+        Qii[len(lay.unlinked) :] = lin.Sigma[cols[:, :, None], cols[:, None, :]]
     if lin.defect:
         G = helmert_basis(state.points[act], with_scale=lin.defect == 7)
         Qg, _ = np.linalg.qr(G.reshape(-1, lin.defect))
         Qg = Qg.reshape(len(act), 3, lin.defect)
+        blocks = _datum_blocks(Qii, pc.D, pc.U, pc.C, Qg)
         pc = pc.s_transform(Qg, Qg)
+    else:
+        blocks = 0.5 * (Qii + np.swapaxes(Qii, 1, 2))
     pc = pc.scaled(factor)
     # back to all n targets (inactive: nan)
     Dn = np.full((n, 3, 3), np.nan)
@@ -36,7 +61,7 @@ def _result(state, lin, stats, lay, T, rejected, act_obs, obs_image, obs_target,
     Dn[act], Un[act] = pc.D, pc.U
     full = PointCovariance(Dn, Un, pc.C)
     cov = np.full((n, 3, 3), np.nan)
-    cov[act] = pc.blocks()
+    cov[act] = blocks * factor
     points = np.full((n, 3), np.nan)
     points[act] = state.points[act]
     k = lay.k
@@ -46,7 +71,7 @@ def _result(state, lin, stats, lay, T, rejected, act_obs, obs_image, obs_target,
     ok = np.isin(obs_target, act)
     R = state.poses[obs_image[ok], :3, :3]
     tt = state.poses[obs_image[ok], :3, 3]
-    uv, *_ = project_observations(state.intr, R, tt, state.points[obs_target[ok]])
+    uv = project_pixels(state.intr, R, tt, state.points[obs_target[ok]])
     res[ok] = obs_uv[ok] - uv
     red = np.full(len(obs_image), np.nan)
     red[act_obs] = stats["redundancy"]

@@ -24,8 +24,13 @@ def _apply_similarity(state: _State, s: float, R: np.ndarray, t: np.ndarray) -> 
 
 
 def _datum_stage(state: _State, x0: np.ndarray, lay: _Layout, config: BundleConfig, args, sigma_px,
-                 iterations: int, weighted: bool = False) -> tuple[_State, bool]:
-    """Datum and the observations pycolmap cannot take; ``weighted``: also iterate to the weighted optimum."""
+                 iterations: int, weighted: bool = False, trace: dict | None = None) -> tuple[_State, bool]:
+    """Datum and the observations pycolmap cannot take; ``weighted``: also iterate to the weighted optimum.
+
+    ``trace``: the iterations solve the network from a start that may be far (:mod:`calibration.bundle.solve`):
+    they stop unconverged as soon as the cost rises, converge only when the poses' step is negligible too, and
+    record ``iterations``, ``initial_cost``, ``final_cost`` and ``diverged`` in the dict.
+    """
     datum = config.datum
     act = np.concatenate([lay.unlinked, lay.linked])
     if datum == "free":
@@ -60,13 +65,27 @@ def _datum_stage(state: _State, x0: np.ndarray, lay: _Layout, config: BundleConf
         state = _apply_similarity(state, s, np.eye(3), np.zeros(3))
         defect = 6
     converged = False
-    for _ in range(iterations):
+    prev = np.inf
+    for it in range(iterations):
         lin = _linearise(state, *args, lay, config, sigma_px, defect)
+        if trace is not None:
+            cost = float(np.sum(lin.r_img**2) + np.sum(lin.r_extra**2))
+            trace.setdefault("initial_cost", cost)
+            trace["iterations"] = it + 1
+            if not np.isfinite(cost) or cost > trace.get("final_cost", np.inf) * (1.0 + 1e-6) + 1e-12:
+                trace["diverged"] = True
+                return state, False
+            trace["final_cost"] = cost
         state = _apply_step(state, lin, lay)
         step = max(np.max(np.abs(lin.dp), initial=0.0), np.max(np.abs(lin.dc[6 * lay.m + lay.k:]), initial=0.0))
-        if step < 1e-10:
+        if trace is not None:  # rad and m
+            step = max(step, np.max(np.abs(lin.dc[: 6 * lay.m]), initial=0.0))
+        # converged: a step below 1e-10, or one below 1e-8 that shrank a thousandfold (Gauss-Newton's quadratic
+        # convergence: the next would be ~1e-14, not worth a linearisation to find out)
+        if step < 1e-10 or (step < 1e-8 and step < 1e-3 * prev):
             converged = True
             break
+        prev = step
     if datum != "control":  # back onto the initial coordinates (gauge moves of the free iterations, too)
         s, R, t = similarity_fit(state.points[act], x0[act], with_scale=datum == "free")
         state = _apply_similarity(state, s, R, t)

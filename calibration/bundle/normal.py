@@ -8,12 +8,14 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from calibration.alignment import helmert_basis
 from calibration.bundle.config import BundleConfig, ControlPoints
 from calibration.bundle.projection import project_observations
-from calibration.camera import Intrinsics, exp_se3, skew
+from calibration.camera import Intrinsics, skew
 from calibration.errors import CalibrationError
+from calibration.weights import whitening
 
 
 def _update_intrinsics(intr: Intrinsics, names: tuple[str, ...], delta: np.ndarray) -> Intrinsics:
@@ -28,6 +30,16 @@ def _update_intrinsics(intr: Intrinsics, names: tuple[str, ...], delta: np.ndarr
         else:
             d[name] += dv
     return replace(intr, **d)
+
+
+def _outer_sum(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """``A^T B`` of stacked 2-row matrices ``A: (q, 2, a)``, ``B: (q, 2, b)``, (q, a, b) (no tiny-matrix einsum)."""
+    return A[:, 0, :, None] * B[:, 0, None, :] + A[:, 1, :, None] * B[:, 1, None, :]
+
+
+def _rows_dot(A: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """``A^T r`` of ``A: (q, 2, a)``, ``r: (q, 2)``, (q, a)."""
+    return A[:, 0, :] * r[:, 0, None] + A[:, 1, :] * r[:, 1, None]
 
 
 def _segment_sum(values: np.ndarray, ids: np.ndarray, size: int) -> np.ndarray:
@@ -77,6 +89,30 @@ class _Layout:
         self.uslot = np.full(n, -1)
         self.uslot[self.unlinked] = np.arange(len(self.unlinked))
         self.p = 6 * m + self.k + 3 * len(self.linked)
+        self._structures: list[tuple[np.ndarray, ...]] = []
+
+    def structure(self, obs_image: np.ndarray, obs_target: np.ndarray) -> tuple[np.ndarray, ...]:
+        """What depends only on which observations are used, not on the state: ``cidx (q, 6 + k + 3)`` (the
+        compact camera-side columns), the unlinked point ``slot (q,)``, ``is_linked (q,)`` and the observations
+        grouped by image (``order``, ``starts``). Computed once per set of observations (the arrays themselves,
+        held here, are the key: the Gauss-Newton iterations of a round linearise the same arrays many times)."""
+        for entry in self._structures:
+            if entry[0] is obs_image and entry[1] is obs_target:
+                return entry[2:]
+        m, k = self.m, self.k
+        is_linked = self.lslot[obs_target] >= 0
+        cidx = np.zeros((len(obs_image), 6 + k + 3), dtype=int)
+        cidx[:, :6] = 6 * obs_image[:, None] + np.arange(6)
+        cidx[:, 6 : 6 + k] = 6 * m + np.arange(k)
+        if np.any(is_linked):
+            cidx[is_linked, 6 + k :] = self.link_cols(obs_target[is_linked])
+        slot = np.where(is_linked, 0, self.uslot[obs_target])
+        order = np.argsort(obs_image, kind="stable")
+        starts = np.searchsorted(obs_image[order], np.arange(m + 1))
+        for a in (cidx, slot, is_linked, order, starts):
+            a.flags.writeable = False  # shared by every linearisation of these observations
+        self._structures = [(obs_image, obs_target, cidx, slot, is_linked, order, starts)] + self._structures[:3]
+        return cidx, slot, is_linked, order, starts
 
     def link_cols(self, targets: np.ndarray) -> np.ndarray:
         """(len, 3) camera-side columns of linked targets."""
@@ -95,12 +131,11 @@ def _null_space(state: _State, lay: _Layout, d: int) -> tuple[np.ndarray, np.nda
     Gc = np.zeros((lay.p, 7))
     R = state.poses[:, :3, :3]
     tt = state.poses[:, :3, 3] + np.einsum("mab,b->ma", R, c0)  # translation w.r.t. the centred frame
-    for j in range(lay.m):
-        Rj, tj = R[j], tt[j]
-        Gc[6 * j : 6 * j + 3, 3:6] = -Rj
-        Gc[6 * j + 3 : 6 * j + 6, 0:3] = -Rj
-        Gc[6 * j + 3 : 6 * j + 6, 3:6] = -skew(tj) @ Rj
-        Gc[6 * j + 3 : 6 * j + 6, 6] = tj
+    G = Gc[: 6 * lay.m].reshape(lay.m, 6, 7)  # a view: every image's 6 x 7 block at once
+    G[:, 0:3, 3:6] = -R
+    G[:, 3:6, 0:3] = -R
+    G[:, 3:6, 3:6] = -np.matmul(skew(tt), R)
+    G[:, 3:6, 6] = tt
     if len(lay.linked):
         cols = lay.link_cols(lay.linked)
         Gc[cols.ravel(), :] = Gp[lay.linked].reshape(-1, 7)
@@ -110,6 +145,8 @@ def _null_space(state: _State, lay: _Layout, d: int) -> tuple[np.ndarray, np.nda
 def _jacobians(state: _State, obs_image: np.ndarray, obs_target: np.ndarray, obs_uv: np.ndarray, lay: _Layout,
                sigma_px: float | np.ndarray):
     """Whitened residuals and Jacobians of observations (of active targets) at ``state``.
+
+    ``sigma_px``: one sigma, ``(q,)`` sigmas or ``(q, 2, 2)`` covariances (px^2) of the observations.
 
     Returns ``r (q, 2)``, ``Jp (q, 2, 3)`` (zero for linked targets), the compact camera-side
     ``Jc (q, 2, 6 + k + 3)`` with its columns ``cidx (q, 6 + k + 3)``, the unlinked point ``slot (q,)``
@@ -121,24 +158,25 @@ def _jacobians(state: _State, obs_image: np.ndarray, obs_target: np.ndarray, obs
     uv, Jp, Jpose, Jin = project_observations(state.intr, R, t, state.points[obs_target], lay.names)
     if np.any(~np.isfinite(uv)) or np.any(np.einsum("qb,qb->q", R[:, 2], state.points[obs_target]) + t[:, 2] <= 0):
         raise CalibrationError("bundle: a target is behind a camera that observes it; check identification")
-    w = 1.0 / np.broadcast_to(np.asarray(sigma_px, dtype=float), (len(uv),))  # (q,) weights^(1/2)
-    r = (obs_uv - uv) * w[:, None]
-    Jp, Jpose, Jin = Jp * w[:, None, None], Jpose * w[:, None, None], Jin * w[:, None, None]
-    is_linked = lay.lslot[obs_target] >= 0
+    sig = np.asarray(sigma_px, dtype=float)
+    if sig.ndim == 3:  # a 2x2 covariance per observation: whiten with the inverse of its Cholesky factor
+        Wh = whitening(sig)
+        r = np.matmul(Wh, (obs_uv - uv)[:, :, None])[:, :, 0]
+        Jp, Jpose, Jin = (np.matmul(Wh, J) for J in (Jp, Jpose, Jin))
+    else:
+        w = 1.0 / np.broadcast_to(sig, (len(uv),))  # (q,) weights^(1/2)
+        r = (obs_uv - uv) * w[:, None]
+        Jp, Jpose, Jin = Jp * w[:, None, None], Jpose * w[:, None, None], Jin * w[:, None, None]
+    cidx, slot, is_linked, _, _ = lay.structure(obs_image, obs_target)
     # compact camera-side Jacobian: pose (6) | interior (k) | linked point (3)
     W = 6 + k + 3
     Jc = np.zeros((len(r), 2, W))
     Jc[:, :, :6] = Jpose
     Jc[:, :, 6 : 6 + k] = Jin
-    cidx = np.zeros((len(r), W), dtype=int)
-    cidx[:, :6] = 6 * obs_image[:, None] + np.arange(6)
-    cidx[:, 6 : 6 + k] = 6 * m + np.arange(k)
     if np.any(is_linked):
         Jc[is_linked, :, 6 + k :] = Jp[is_linked]
-        cidx[is_linked, 6 + k :] = lay.link_cols(obs_target[is_linked])
         Jp = Jp.copy()
         Jp[is_linked] = 0.0
-    slot = np.where(is_linked, 0, lay.uslot[obs_target])
     return r, Jp, Jc, cidx, slot, is_linked
 
 
@@ -152,8 +190,7 @@ def _linearise(
     # camera side: pose and interior blocks by image, linked points by scatter
     Ncc = np.zeros((p, p))
     # per image, one product of its stacked rows (no per-observation (W, W) blocks: 1.7 GB at 2.5 M observations)
-    order = np.argsort(obs_image, kind="stable")
-    starts = np.searchsorted(obs_image[order], np.arange(m + 1))
+    *_, order, starts = lay.structure(obs_image, obs_target)
     II = np.zeros((k, k))
     for j in range(m):
         A = Jc[order[starts[j] : starts[j + 1]], :, : 6 + k].reshape(-1, 6 + k)
@@ -170,15 +207,15 @@ def _linearise(
         lmask[6 + k :, :] = True
         lmask[:, 6 + k :] = True
         cl = cidx[is_linked]
-        HH = np.einsum("qia,qib->qab", Jc[is_linked], Jc[is_linked])
+        HH = _outer_sum(Jc[is_linked], Jc[is_linked])
         np.add.at(Ncc, (cl[:, :, None], cl[:, None, :]), HH * lmask)
-    bc = np.bincount(cidx.ravel(), weights=np.einsum("qia,qi->qa", Jc, r).ravel(), minlength=p)
+    bc = np.bincount(cidx.ravel(), weights=_rows_dot(Jc, r).ravel(), minlength=p)
     # point side (unlinked points)
     nu = len(lay.unlinked)
     un = ~is_linked
-    Npp = _segment_sum(np.einsum("qia,qib->qab", Jp, Jp), slot, max(nu, 1))[:nu]
-    bp = _segment_sum(np.einsum("qia,qi->qa", Jp, r), slot, max(nu, 1))[:nu]
-    E = np.einsum("qia,qib->qab", Jp[un], Jc[un, :, : 6 + k])  # (qu, 3, 6 + k)
+    Npp = _segment_sum(_outer_sum(Jp, Jp), slot, max(nu, 1))[:nu]
+    bp = _segment_sum(_rows_dot(Jp, r), slot, max(nu, 1))[:nu]
+    E = _outer_sum(Jp[un], Jc[un, :, : 6 + k])  # (qu, 3, 6 + k)
     Npc = np.zeros((nu, 3, p))
     # one observation per (target, image): the pose blocks are assigned, not summed
     Npc[slot[un][:, None, None], np.arange(3)[None, :, None], cidx[un][:, None, :6]] = E[:, :, :6]
@@ -237,7 +274,7 @@ def _linearise(
     Dinv = np.linalg.inv(Npp)
     if len(fu):
         Dinv[fu] = 0.0
-    V = np.einsum("nab,nbp->nap", Dinv, Npc)
+    V = np.matmul(Dinv, Npc)
     V2 = V.reshape(-1, p)
     S = Ncc - Npc.reshape(-1, p).T @ V2
     bred = bc - V2.T @ bp.reshape(-1)
@@ -254,7 +291,7 @@ def _linearise(
             "(too few targets per image, or a datum that does not fix the network)"
         ) from exc
     dc = Sigma @ bred
-    dp = np.einsum("nab,nb->na", Dinv, bp) - V @ dc
+    dp = np.matmul(Dinv, bp[:, :, None])[:, :, 0] - V @ dc
     r_extra = np.concatenate(extra) if extra else np.zeros(0)
     return _Linear(r, r_extra, Dinv, V, Sigma, dc, dp, Jp, Jc, cidx, slot, defect)
 
@@ -277,9 +314,12 @@ def _control_sigma(control: ControlPoints) -> np.ndarray:
 
 def _apply_step(state: _State, lin: _Linear, lay: _Layout) -> _State:
     m, k = lay.m, lay.k
-    poses = state.poses.copy()
-    for j in range(m):
-        poses[j] = exp_se3(lin.dc[6 * j : 6 * j + 6]) @ poses[j]
+    xi = lin.dc[: 6 * m].reshape(m, 6)
+    E = np.zeros((m, 4, 4))  # exp_se3 of every image's step at once
+    E[:, :3, :3] = Rotation.from_rotvec(xi[:, :3]).as_matrix()
+    E[:, :3, 3] = xi[:, 3:]
+    E[:, 3, 3] = 1.0
+    poses = np.matmul(E, state.poses)
     intr = _update_intrinsics(state.intr, lay.names, lin.dc[6 * m : 6 * m + k]) if k else state.intr
     pts = state.points.copy()
     pts[lay.unlinked] += lin.dp

@@ -33,42 +33,45 @@ def _cofactor_blocks(lin: _Linear, lay: _Layout) -> tuple[np.ndarray, np.ndarray
     """``Qpp (nu, 3, 3)`` (points' cofactor blocks) and ``VS = V Sigma (nu, 3, p)``."""
     nu, p = lin.V.shape[0], lin.Sigma.shape[0]
     VS = (lin.V.reshape(-1, p) @ lin.Sigma).reshape(nu, 3, p)
-    Qpp = lin.Dinv + np.einsum("nar,nbr->nab", VS, lin.V)
+    Qpp = lin.Dinv + np.matmul(VS, np.swapaxes(lin.V, 1, 2))
     return Qpp, VS
+
+
+_CHUNK = 1 << 14  # observations per batch of the projected cofactors (bounds the (chunk, w, w) camera gathers)
 
 
 def _projected_cofactor(lin: _Linear, lay: _Layout, Qpp, VS, Jp, Jc, cidx, slot) -> np.ndarray:
     """``J Q_xx J^T`` of observations with Jacobians ``Jp, Jc`` (compact) at columns ``cidx``; (q, 2, 2).
 
-    Image by image: the camera blocks of an image are shared by its observations (no per-observation
-    copies of them).
+    ``Jp Q_pp Jp^T + 2 Jp Q_pc Jc^T + Jc Q_cc Jc^T`` as batched small products over chunks of observations: the
+    camera blocks ``Q_cc`` are gathered once per image, ``Q_pc = -V Sigma`` on the observation's own columns.
     """
     m, k = lay.m, lay.k
     w = 6 + k
+    q = len(slot)
     img = cidx[:, 0] // 6
-    A = np.empty((len(slot), 2, 2))
-    Sig = lin.Sigma
-    order = np.argsort(img, kind="stable")
-    starts = np.searchsorted(img[order], np.arange(m + 1))
-    for j in range(m):
-        o = order[starts[j] : starts[j + 1]]
-        if len(o) == 0:
-            continue
-        cols = np.r_[6 * j : 6 * j + 6, 6 * m : 6 * m + k] if k else np.arange(6 * j, 6 * j + 6)
-        sl = slot[o]
-        Jpo, Jco = Jp[o], Jc[o, :, :w]
-        Qpc = -VS[sl[:, None, None], np.arange(3)[None, :, None], cols[None, None, :]]  # (qj, 3, w)
-        Qcc = Sig[np.ix_(cols, cols)]  # (w, w), shared by the image
-        JpQ = np.einsum("qia,qab->qib", Jpo, Qpp[sl])
-        A[o] = (np.einsum("qib,qjb->qij", JpQ, Jpo)
-                + 2 * np.einsum("qib,qjb->qij", np.einsum("qia,qab->qib", Jpo, Qpc), Jco)
-                + np.einsum("qib,qjb->qij", Jco @ Qcc, Jco))
-    linked = np.any(cidx[:, w:] != 0, axis=1) | np.any(Jc[:, :, w:] != 0, axis=(1, 2))
-    if np.any(linked):  # observations of scale-bar targets: the general (slow) gather, on few rows
-        cl = cidx[linked]
-        Jl = Jc[linked]
-        Ql = Sig[cl[:, :, None], cl[:, None, :]]
-        A[linked] = np.einsum("qib,qjb->qij", np.einsum("qia,qab->qib", Jl, Ql), Jl)
+    cols = np.empty((m, w), dtype=int)
+    cols[:, :6] = 6 * np.arange(m)[:, None] + np.arange(6)
+    cols[:, 6:] = 6 * m + np.arange(k)
+    Qcc_img = lin.Sigma[cols[:, :, None], cols[:, None, :]]  # (m, w, w)
+    A = np.empty((q, 2, 2))
+    three = np.arange(3)[None, :, None]
+    for s in range(0, q, _CHUNK):
+        sl = slice(s, s + _CHUNK)
+        oi, os_ = img[sl], slot[sl]
+        Jpo, Jco = Jp[sl], Jc[sl, :, :w]
+        Jct = np.swapaxes(Jco, 1, 2)
+        Qpc = -VS[os_[:, None, None], three, cols[oi][:, None, :]]  # (c, 3, w)
+        A[sl] = (np.matmul(np.matmul(Jpo, Qpp[os_]), np.swapaxes(Jpo, 1, 2))
+                 + 2 * np.matmul(np.matmul(Jpo, Qpc), Jct)
+                 + np.matmul(np.matmul(Jco, Qcc_img[oi]), Jct))
+    if len(lay.linked):
+        linked = np.any(cidx[:, w:] != 0, axis=1) | np.any(Jc[:, :, w:] != 0, axis=(1, 2))
+        if np.any(linked):  # observations of scale-bar targets: the general (slow) gather, on few rows
+            cl = cidx[linked]
+            Jl = Jc[linked]
+            Ql = lin.Sigma[cl[:, :, None], cl[:, None, :]]
+            A[linked] = np.matmul(np.matmul(Jl, Ql), np.swapaxes(Jl, 1, 2))
     return 0.5 * (A + np.swapaxes(A, 1, 2))
 
 
@@ -146,8 +149,9 @@ def predicted_test(state, lin: _Linear, lay: _Layout, stats: dict, obs_image, ob
     ok = (lay.uslot[obs_target] >= 0) | (lay.lslot[obs_target] >= 0)
     if not ok.any():
         return out
-    r, Jp, Jc, cidx, slot, _ = _jacobians(state, obs_image[ok], obs_target[ok], obs_uv[ok], lay,
-                                          np.broadcast_to(np.asarray(sigma_px, dtype=float), (len(ok),))[ok])
+    sig = np.asarray(sigma_px, dtype=float)
+    sig = sig[ok] if sig.ndim == 3 else np.broadcast_to(sig, (len(ok),))[ok]
+    r, Jp, Jc, cidx, slot, _ = _jacobians(state, obs_image[ok], obs_target[ok], obs_uv[ok], lay, sig)
     A = _projected_cofactor(lin, lay, stats["Qpp"], stats["VS"], Jp, Jc, cidx, slot)
     out[ok] = _quadratic(np.eye(2) + A, r)
     return out

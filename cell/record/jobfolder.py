@@ -14,6 +14,7 @@ import contextlib
 import contextvars
 import hashlib
 import json
+import math
 import os
 import time
 from dataclasses import dataclass
@@ -88,11 +89,13 @@ def to_jsonable(o: Any) -> Any:
     if isinstance(o, (list, tuple)):
         return [to_jsonable(v) for v in o]
     if isinstance(o, np.ndarray):
+        if o.dtype.kind in "iub" or (o.dtype.kind == "f" and np.isfinite(o).all()):
+            return o.tolist()  # already Python ints, bools and finite floats: no walk element by element
         return to_jsonable(o.tolist())
     if isinstance(o, (np.floating,)):
         o = float(o)
     if isinstance(o, float):
-        return o if np.isfinite(o) else None
+        return o if math.isfinite(o) else None
     if isinstance(o, (np.integer,)):
         return int(o)
     if isinstance(o, (np.bool_,)):

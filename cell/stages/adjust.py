@@ -9,10 +9,10 @@ import numpy as np
 
 from calibration.bundle import BundleConfig, BundleOptions, ScaleBar, bundle_adjust
 from calibration.camera import Intrinsics
-from calibration.detector_model import load_model, observation_sigmas
+from calibration.detector_model import load_model, observation_covariances, observation_sigmas
 from calibration.errors import CalibrationError
 from calibration.plausibility import check_adjustment
-from calibration.weights import INCIDENCE_EDGES_DEG, group_labels, incidence_angles, incidence_groups
+from calibration.weights import INCIDENCE_EDGES_DEG, group_labels, incidence_angles, incidence_groups, mean_variance
 from cell.record.jobfolder import atomic_write_bytes, atomic_write_json
 
 
@@ -25,6 +25,14 @@ def observation_arrays(job, obs_doc: dict) -> tuple[np.ndarray, np.ndarray, np.n
             tgt.append(index[tid])
             uv.append(p)
     return np.asarray(img, dtype=int), np.asarray(tgt, dtype=int), np.asarray(uv, dtype=float).reshape(-1, 2)
+
+
+def background_bounds(obs_doc: dict) -> np.ndarray | None:
+    """The detector's bound on each observation's error from a background that is not a plane, ``(q, 2, 2)``
+    px^2 in the order of :func:`observation_arrays`; None when observations.json has none (measured before)."""
+    if not obs_doc["images"] or any(o.get("bg_cov_px2") is None for o in obs_doc["images"]):
+        return None
+    return np.concatenate([np.asarray(o["bg_cov_px2"], dtype=float).reshape(-1, 2, 2) for o in obs_doc["images"]])
 
 
 def initial_intrinsics(job, cal_doc: dict) -> Intrinsics:
@@ -73,7 +81,7 @@ def run_bundle(ctx) -> dict:
     options = BundleOptions(sigma_px=job.spec.camera.sigma_px, max_rejections=max_rejections(len(obs_uv)))
     targets = job.part.targets
     groups = None
-    obs_sigma = None
+    obs_sigma = model_sigma = None
     weights = job.spec.camera.observation_weights
     if weights == "incidence":  # from the Faugeras-Toscani poses: degrees suffice
         angles = incidence_angles(targets.xyz, targets.normals, poses0, obs_image, obs_target)
@@ -85,10 +93,21 @@ def run_bundle(ctx) -> dict:
                                        job.part.target_diameter_m,
                                        noise_scale=job.spec.sim.noise if ctx.backend == "sim" else 1.0)
         obs_sigma = np.maximum(obs_sigma, 1e-4)
+        # a dot next to an edge or a step of the shading: the detector's background bound, its measured share
+        # (docs/decisions/0023); the covariance is then 2x2 per observation
+        bg = background_bounds(obs)
+        if bg is not None and np.any(bg):
+            model_sigma, obs_sigma = obs_sigma, observation_covariances(obs_sigma, bg)
     t0 = time.perf_counter()
     res = bundle_adjust(obs_image, obs_target, obs_uv, intr0, poses0, targets.xyz, options, config,
                         obs_sigma_px=obs_sigma, obs_group=groups)
     dt = time.perf_counter() - t0
+    if model_sigma is not None:
+        # sigma0 of an observation of the model's rms sigma: a few dots with large background bounds (near zero
+        # weight) would otherwise dominate the rms a priori sigma the bundle refers sigma0 to
+        used = ~res.rejected
+        factor = res.sigma0_px**2 / mean_variance(res.obs_sigma_px[used])
+        res.sigma0_px = float(np.sqrt(factor * np.mean(model_sigma[used] ** 2)))
     if not res.converged:
         raise CalibrationError(f"bundle adjustment did not converge: {res.summary}")
     check_adjustment(res.sigma0_px, res.intrinsics, job.intrinsics)  # a converged nonsense is a failure
@@ -104,7 +123,7 @@ def run_bundle(ctx) -> dict:
     return {
         "datum": res.datum,
         "sigma0_px": res.sigma0_px,
-        "observation_weights": _weights_doc(job, res, groups),
+        "observation_weights": _weights_doc(job, res, groups, model_sigma),
         "dof": res.dof,
         "converged": res.converged,
         "summary": res.summary,
@@ -128,12 +147,21 @@ def run_bundle(ctx) -> dict:
     }
 
 
-def _weights_doc(job, res, groups) -> dict:
-    """The a priori image sigmas the adjustment used: one per incidence class (estimated) or one for all."""
+def _weights_doc(job, res, groups, model_sigma=None) -> dict:
+    """The a priori image sigmas the adjustment used: one per incidence class (estimated) or one for all.
+
+    ``model_sigma: (q,)`` the detector model's sigmas when the bundle took 2x2 covariances (model plus the
+    detector's background bounds): the figures and the variance factor refer to them."""
     vc = res.variance_components
     if job.spec.camera.observation_weights == "model":
-        used = res.obs_sigma_px[~res.rejected] if res.obs_sigma_px is not None else np.array([np.nan])
+        s = res.obs_sigma_px if model_sigma is None else model_sigma
+        used = s[~res.rejected] if s is not None else np.array([np.nan])
+        n_bg = 0
+        if model_sigma is not None:
+            C = res.obs_sigma_px
+            n_bg = int(np.count_nonzero(np.abs(C - model_sigma[:, None, None] ** 2 * np.eye(2)).max(axis=(1, 2)) > 0))
         return {"method": "model", "detector_model": load_model().to_dict(),
+                "observations_with_background_bound": n_bg,
                 "a_priori_sigma_px": {"median": float(np.median(used)), "p90": float(np.quantile(used, 0.9)),
                                       "max": float(np.max(used))},
                 "variance_factor": float((res.sigma0_px / np.sqrt(np.mean(used**2))) ** 2)}
@@ -169,7 +197,8 @@ def run(ctx) -> None:
     if doc["observation_weights"]["method"] == "model":
         w = doc["observation_weights"]
         ctx.say(f"  image sigma from the detector model: median {w['a_priori_sigma_px']['median']:.4f} px, "
-                f"max {w['a_priori_sigma_px']['max']:.3f} px; variance factor {w['variance_factor']:.2f}")
+                f"max {w['a_priori_sigma_px']['max']:.3f} px; variance factor {w['variance_factor']:.2f}; "
+                f"{w['observations_with_background_bound']} observation(s) next to an edge (background bound)")
     if doc["observation_weights"]["method"] == "incidence":
         ctx.say("  image sigma by incidence (variance components): " + ", ".join(
             f"{g['name']} {g['sigma_px']:.3f} px" + ("" if g["estimated"] else " (common)")

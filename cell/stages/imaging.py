@@ -69,6 +69,8 @@ class DotMeasurement:
         n_partly_hidden: identified dots dropped because an edge of the part clips them.
         cov: (k, 2, 2) each centre's covariance from the detector (px^2, ``Detections.cov``), or None
             when the caller gave none.
+        bg_cov: (k, 2, 2) the detector's bound on each centre's error from a background that is not a
+            plane (px^2, ``Detections.background_cov``), or None.
     """
 
     target: np.ndarray
@@ -77,15 +79,16 @@ class DotMeasurement:
     n_unidentified: int = 0
     n_partly_hidden: int = 0
     cov: np.ndarray | None = None
+    bg_cov: np.ndarray | None = None
 
 
 def name_dots(det_uv: np.ndarray, part, intr: Intrinsics, cam_from_part: np.ndarray, occluder: Occluder, *,
               max_dist_px: float = 25.0, incidence_max_rad: float = float(np.deg2rad(85.0)),
               coded_ids: np.ndarray | None = None, coded_uv: np.ndarray | None = None,
-              det_cov: np.ndarray | None = None) -> DotMeasurement:
+              det_cov: np.ndarray | None = None, det_bg_cov: np.ndarray | None = None) -> DotMeasurement:
     """Identify detected dot centres ``det_uv: (k, 2)`` with an approximate pose and measure them.
 
-    ``det_cov: (k, 2, 2)`` (px^2) travels with the centres it belongs to.
+    ``det_cov, det_bg_cov: (k, 2, 2)`` (px^2) travel with the centres they belong to.
 
     Only dots in view from the pose at no more than ``incidence_max_rad`` are offered to the matcher;
     coded detections (``coded_ids``, ``coded_uv``) refine the pose first (PnP) when there are enough.
@@ -108,7 +111,8 @@ def name_dots(det_uv: np.ndarray, part, intr: Intrinsics, cam_from_part: np.ndar
     bias = eccentricity_bias(intr, cam_from_part, t.xyz[tid], t.normals[tid], radius)
     return DotMeasurement(tid, det_uv[dots] - bias, np.asarray(cam_from_part, dtype=float),
                           int((match < 0).sum()), int((~clear).sum()),
-                          None if det_cov is None else np.asarray(det_cov)[dots])
+                          None if det_cov is None else np.asarray(det_cov)[dots],
+                          None if det_bg_cov is None else np.asarray(det_bg_cov)[dots])
 
 
 def detection_options(camera) -> DetectionOptions:
@@ -145,5 +149,5 @@ def measure_image(image: np.ndarray, part, intr: Intrinsics, cam_from_part_appro
         keep = ~inside_any(det.uv, corners[known], grow=MARKER_GROW)
     m = name_dots(det.uv[keep], part, intr, cam_from_part_approx, occluder, max_dist_px=max_dist_px,
                   incidence_max_rad=incidence_max_rad, coded_ids=codes[known], coded_uv=centres[known],
-                  det_cov=det.cov[keep])
+                  det_cov=det.cov[keep], det_bg_cov=None if det.background_cov is None else det.background_cov[keep])
     return m, {"n_dots": int(keep.sum()), "n_coded": int(known.sum())}

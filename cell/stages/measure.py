@@ -1,7 +1,9 @@
 """MEASURE: sub-pixel target detection and identification in every image; observations.json.
 
 observations.json: ``images``: list of {``station``, ``image``, ``ids``, ``uv`` (k, 2 px), ``cov_px2`` (k, 2, 2:
-each centre's covariance from the detector, px^2, ``calibration.dots.Detections.cov``), counts}.
+each centre's covariance from the detector, px^2, ``calibration.dots.Detections.cov``), ``bg_cov_px2`` (k, 2, 2:
+the detector's bound on each centre's error from a background that is not a plane, px^2,
+``Detections.background_cov``; ADJUST adds its share to the image precision), counts}.
 """
 from __future__ import annotations
 
@@ -38,7 +40,9 @@ def run(ctx, keep: bool = False) -> None:
             out.append(before[im["image"]])
             continue
         ctx.progress("measure", k / len(acq["images"]))
-        img = cv2.imread(str(ctx.folder.file(im["image"])), cv2.IMREAD_UNCHANGED)
+        kept = ctx.cache.get("frames", {}).get(im["image"])  # this session's ACQUIRE: the same pixels, decoded
+        img = kept[1] if kept is not None and kept[0] == im["sha256"] else \
+            cv2.imread(str(ctx.folder.file(im["image"])), cv2.IMREAD_UNCHANGED)
         if img is None:
             raise CalibrationError(f"{im['image']}: cannot read the image")
         cam_from_part = invert(invert(bfp) @ np.asarray(im["base_from_flange"], dtype=float) @ ffc)
@@ -46,6 +50,7 @@ def run(ctx, keep: bool = False) -> None:
                                   coded_family=job.spec.job.coded_family)
         names = [ids_all[int(i)] for i in m.target]
         out.append({"station": im["station"], "image": im["image"], "ids": names, "uv": m.uv, "cov_px2": m.cov,
+                    "bg_cov_px2": m.bg_cov,
                     "n_unidentified": m.n_unidentified, "n_partly_hidden": m.n_partly_hidden} | counts)
         ctx.log.detections(im["station"], names, m.uv)
     ctx.progress("measure", 1.0)

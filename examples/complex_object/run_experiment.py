@@ -215,7 +215,7 @@ def run(out: Path, quick: bool = False, seed: int = 0, write_docs: bool = True) 
     t_ba = time.perf_counter() - t0
     cal = intr
     print(f"bundle adjustment of the {n_planned} planned images with covariance: {t_ba:.2f} s "
-          f"(pycolmap solve {res_p.timings['pycolmap_solve']:.2f} s, covariance {res_p.timings['covariance']:.2f} s); "
+          f"(solve {res_p.timings['solve']:.2f} s, covariance {res_p.timings['covariance']:.2f} s); "
           f"sigma0 {res_p.sigma0_px:.4f} px; Faugeras-Toscani median alpha_u {intr_ft.fx_px:.1f}, alpha_v "
           f"{intr_ft.fy_px:.1f} px (true {intr.fx_px:.1f}, {intr.fy_px:.1f}); {n_pnp} image(s) oriented by PnP")
     # all networks compared with the calibration fixed and the a priori sigma: geometry only
