@@ -18,7 +18,7 @@ Every pose ray-cast is kept in a cache while it can come again: a round whose st
 variants of the stations that did not move once more, and they are not cast again; a look-at-offset variant keeps
 its station's camera centre, so its occlusion answers are its station's (only its geometric tests and information
 are new). The exchange descent works on a view of the cache (no copies). The same poses, answers and choices as
-casting every variant afresh (docs/decisions/0023-planspeed-numba.md).
+casting every variant afresh (docs/decisions/0026-planspeed-numba.md).
 
 Deterministic: no randomness, fixed step pattern.
 """
