@@ -7,7 +7,7 @@ Each kernel does exactly the floating-point operations of the NumPy code it repl
 bit for bit; the tests compare them with the NumPy reference. What they save is the work NumPy cannot skip:
 the zeros of the dense ``(candidates, targets, 6)`` array, the temporaries of the closed-form 3x3 inverse, and
 candidates whose score already exceeds the best exchange found (an exact early exit).
-docs/decisions/0023-planspeed-numba.md says what each bought.
+docs/decisions/0026-planspeed-numba.md says what each bought.
 
 * :func:`population_fitness`: the evolutionary search's fitness of whole populations (limiting error
   propagation, :func:`planning.uncertainty.evaluate_networks` + criterion + violation) with no
