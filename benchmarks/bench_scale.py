@@ -23,6 +23,7 @@ good observations were rejected.
     .venv/bin/python -m benchmarks.bench_scale --quick          # 1k x 16/29, 5k x 29 (minutes)
     .venv/bin/python -m benchmarks.bench_scale --targets 1000 5000 --stations 29 64
     .venv/bin/python -m benchmarks.bench_scale --one 1000 29     # one configuration, JSON line
+    .venv/bin/python -m benchmarks.bench_scale --one 1000 29 --no-adjust --bound  # and plan / bound
 """
 from __future__ import annotations
 
@@ -97,7 +98,8 @@ def run_adjust(intr, T, xyz, visible, scale_bar, rng, blunders, batch=True, max_
             "sigma0_px": res.sigma0_px, "timings": {k: round(v, 3) for k, v in res.timings.items()}}
 
 
-def one(n_targets: int, n_stations: int, seed: int, blunders: float, baseline: bool, skip_adjust: bool) -> dict:
+def one(n_targets: int, n_stations: int, seed: int, blunders: float, baseline: bool, skip_adjust: bool,
+        bound: bool = False) -> dict:
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     from cell.loadedjob import load
     from cell.setup import collision_world, planner_options, robot_model
@@ -129,7 +131,7 @@ def one(n_targets: int, n_stations: int, seed: int, blunders: float, baseline: b
         reach = ReachabilityDB.load_or_build(robot, bfp, ffc, db.part_from_cam, world, cache_dir=cache)
         out["reach_s"] = time.perf_counter() - t0
         t0 = time.perf_counter()
-        plan = plan_network(part, job.intrinsics, replace(opts, allow_unmeasurable=True),
+        plan = plan_network(part, job.intrinsics, replace(opts, allow_unmeasurable=True, lower_bound=bound),
                             np.random.default_rng(job.spec.job.seed), reachable=reach.reachable, cache_dir=cache,
                             seed=job.spec.job.seed, db=db,
                             reachable_fn=lambda T: reachability_mask(robot, bfp, ffc, T, world,
@@ -139,6 +141,13 @@ def one(n_targets: int, n_stations: int, seed: int, blunders: float, baseline: b
     out.update(information_s=tm.get("information_s"), search_s=tm.get("search_s", 0) - tm.get("polish_s", 0),
                polish_s=tm.get("polish_s"), final_s=tm.get("final_s"))
     out["worst_um"] = plan.predicted_sigma_max_m * 1e6
+    out["genes_sha"] = __import__("hashlib").sha256(np.ascontiguousarray(plan.genes).tobytes()).hexdigest()[:16]
+    if bound and "lower_bound_sigma_m" in plan.search:
+        # the bound covers networks of the database's candidates: the search's network (on the database) is one,
+        # the polished plan has left the database (continuous poses, look-at offsets) and can be below it
+        out.update(bound_um=plan.search["lower_bound_sigma_m"] * 1e6, bound_s=tm.get("bound_s"),
+                   search_over_bound=plan.search["search_fitness"] / plan.search["lower_bound_sigma_m"],
+                   plan_over_bound=plan.search["plan_over_lower_bound"], bound_stopped=plan.search["lower_bound_stopped"])
     out["unmeasurable"] = len(plan.unmeasurable_target_ids)
     out["polish"] = {k: plan.search.get(k) for k in ("polish_swaps", "polish_from", "polish_to")}
     c = job.spec.cell
@@ -199,13 +208,15 @@ def main() -> None:
     ap.add_argument("--baseline", type=int, default=1000,
                     help="also run the old one-at-a-time snooping up to this many targets (0: never)")
     ap.add_argument("--no-adjust", action="store_true")
+    ap.add_argument("--bound", action="store_true",
+                    help="--one: also the lower bound on the worst sigma (planning.bound) and plan / bound")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--timeout", type=float, default=1800.0)
     ap.add_argument("--json", type=Path)
     ap.add_argument("--one", type=int, nargs=2, metavar=("TARGETS", "STATIONS"))
     a = ap.parse_args()
     if a.one:
-        r = one(a.one[0], a.one[1], a.seed, a.blunders, a.one[0] <= a.baseline, a.no_adjust)
+        r = one(a.one[0], a.one[1], a.seed, a.blunders, a.one[0] <= a.baseline, a.no_adjust, a.bound)
         print(json.dumps(r, default=float))
         return
     configs = [(1000, 16), (1000, 29), (5000, 29)] if a.quick else [(n, k) for n in a.targets for k in a.stations]

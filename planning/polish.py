@@ -14,6 +14,12 @@ Only the stations that see the hardest targets (sigma within ``focus`` of the wo
 are nudged: an exchange lowers the worst only if the new station sees every critical
 target, and stations that see none of the hard targets cannot change the worst.
 
+Every pose ray-cast is kept in a cache while it can come again: a round whose steps did not change meets the
+variants of the stations that did not move once more, and they are not cast again; a look-at-offset variant keeps
+its station's camera centre, so its occlusion answers are its station's (only its geometric tests and information
+are new). The exchange descent works on a view of the cache (no copies). The same poses, answers and choices as
+casting every variant afresh (docs/decisions/0026-planspeed-numba.md).
+
 Deterministic: no randomness, fixed step pattern.
 """
 from __future__ import annotations
@@ -25,9 +31,9 @@ import numpy as np
 from calibration.camera import Intrinsics
 from planning.refine import network_sigma, swap_descent
 from planning.stations import ViewingSphere
-from planning.sparse_info import DENSE_LIMIT_BYTES, SparseInfo
+from planning.sparse_info import SparseInfo
 from planning.uncertainty import target_information
-from planning.visibility import VisibilityOptions, compute_visibility
+from planning.visibility import Occluder, VisibilityOptions, compute_visibility
 
 __all__ = ["PolishResult", "local_variants", "polish", "polish_network"]
 
@@ -114,14 +120,36 @@ def polish_network(
     xyz = np.asarray(part.targets.xyz, dtype=float)[cols]
     cur = np.array(genes, dtype=float)
     k = len(cur)
+    sub = _TargetSubset(part, cols)
+    occluder = Occluder(part.mesh, backend=backend) if vis_opts.check_occlusion else None
+    cache = _VariantCache(len(cols))
 
-    def evaluate(g: np.ndarray, sparse: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    def visibility(g: np.ndarray, parent_rows: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Poses, visibility and geometric tests of ``g``; a pose with the camera centre of its parent (cache
+        rows ``parent_rows``, -1: none) reuses the parent's occlusion answers."""
         T = sphere.poses(g)
-        vis = compute_visibility(part, intr, T, vis_opts, backend=backend)[:, cols]
-        return target_information(intr, T, xyz, vis, sigma_px, dtype=np.float64, sparse=sparse), vis
+        geo = np.empty((len(g), len(cols)), dtype=bool)
+        known = free = None
+        if parent_rows is not None and np.any(parent_rows >= 0):
+            known = np.zeros_like(geo)
+            free = np.zeros_like(geo)
+            same = np.flatnonzero(parent_rows >= 0)
+            known[same], free[same] = cache.geo[parent_rows[same]], cache.vis[parent_rows[same]]
+        vis = compute_visibility(sub, intr, T, vis_opts, backend=backend, occluder=occluder, rays_known=known,
+                                 rays_free=free, geometric_out=geo)
+        return T, vis, geo
 
-    info_cur, vis_cur = evaluate(cur)
-    sig = network_sigma(info_cur, vis_cur, np.arange(k), min_rays)
+    def information(T: np.ndarray, vis: np.ndarray, used: np.ndarray) -> SparseInfo:
+        """The information of the poses ``used`` (the others get empty rows: they never enter a pool)."""
+        info = target_information(intr, T[used], xyz, vis[used], sigma_px, dtype=np.float64, sparse=True)
+        lens = np.zeros(len(T), dtype=np.int64)
+        lens[used] = np.diff(info.indptr)
+        return SparseInfo(np.concatenate([[0], np.cumsum(lens)]), info.indices, info.data, len(cols))
+
+    T0, vis0, geo0 = visibility(cur)
+    all_k = np.ones(k, dtype=bool)
+    cur_rows = cache.add(information(T0, vis0, all_k), vis0, geo0, all_k)
+    sig = network_sigma(cache.info(cur_rows), vis0, np.arange(k), min_rays)
     start = worst = float(sig.max())
     n_rounds = n_swaps = 0
     n_poses = k
@@ -130,32 +158,155 @@ def polish_network(
     for _ in range(rounds):
         n_rounds += 1
         hard = sig >= focus * worst
-        movers = np.flatnonzero(vis_cur[:, hard].any(axis=1))
+        movers = np.flatnonzero(cache.vis[cur_rows][:, hard].any(axis=1))
         var = local_variants(cur[movers], sphere, step_rad, step_m, offset_m).reshape(-1, cur.shape[1])
-        # the variants' information only on their visible pairs when dense would be large (same values)
-        sparse = (k + len(var)) * len(cols) * 6 * 8 > DENSE_LIMIT_BYTES // 4
-        info_v, vis_v = evaluate(var, sparse)
-        n_poses += len(var)
-        keep = vis_v.any(axis=1)
-        if reachable_fn is not None and keep.any():
-            idx = np.flatnonzero(keep)
-            keep[idx[~np.asarray(reachable_fn(sphere.poses(var[idx])), dtype=bool)]] = False
-        if sparse:
-            info = SparseInfo.vstack([SparseInfo.from_dense(info_cur, vis_cur),
-                                      info_v.select(np.flatnonzero(keep))])
-        else:
-            info = np.concatenate([info_cur, info_v[keep]])
-        vis = np.concatenate([vis_cur, vis_v[keep]])
+        # a variant met in an earlier round (its station did not move, the steps did not change) is not
+        # ray-cast again: its rows are the same
+        new = cache.missing(var)
+        if len(new):
+            parents = np.repeat(cur[movers], 10, axis=0)[new]
+            # a look-at offset keeps the camera centre: the occlusion segments are the parent's
+            same_eye = np.all(var[new][:, :3] == parents[:, :3], axis=1)
+            parent_rows = np.where(same_eye, np.repeat(cur_rows[movers], 10)[new], -1)
+            T_n, vis_n, geo_n = visibility(var[new], parent_rows)
+            n_poses += len(new)
+            ok = vis_n.any(axis=1)
+            if reachable_fn is not None and ok.any():
+                idx = np.flatnonzero(ok)
+                ok[idx[~np.asarray(reachable_fn(sphere.poses(var[new][idx])), dtype=bool)]] = False
+            # information only for the usable variants (seeing something, reachable)
+            cache.add(information(T_n, vis_n, ok), vis_n, geo_n, ok, var[new], parents=parents)
+        rows, keep = cache.lookup(var)
+        pool_rows = np.concatenate([cur_rows, rows[keep]])
         pool_genes = np.concatenate([cur, var[keep]])
-        r = swap_descent(info, vis, np.arange(len(info)), np.arange(k), min_rays)
+        r = swap_descent(cache.info(pool_rows), cache.vis[pool_rows], np.arange(len(pool_rows)), np.arange(k),
+                         min_rays)
         if r.worst < worst:
             n_swaps += r.n_swaps
-            cur, info_cur, vis_cur = pool_genes[r.stations], info[r.stations], vis[r.stations]
-            sig = network_sigma(info_cur, vis_cur, np.arange(k), min_rays)
+            cur, cur_rows = pool_genes[r.stations], pool_rows[r.stations]
+            sig = network_sigma(cache.info(cur_rows), cache.vis[cur_rows], np.arange(k), min_rays)
             worst = float(sig.max())
+            # with the same steps, the variants of stations still in the network come again, and this round's
+            # may (a station moved and back)
+            cur_rows = cache.keep(np.concatenate([cur_rows, rows]), {g.tobytes() for g in cur})[:k]
         else:
             step_rad, step_m, offset_m = 0.5 * step_rad, 0.5 * step_m, 0.5 * offset_m
+            cur_rows = cache.keep(cur_rows, set())  # new steps: no variant comes again
     return PolishResult(cur, worst, start, n_rounds, n_swaps, n_poses)
+
+
+class _TargetSubset:
+    """The part with only the targets ``cols`` (what compute_visibility needs: mesh, targets, diameter)."""
+
+    def __init__(self, part, cols: np.ndarray):
+        self.name = getattr(part, "name", "?")
+        self.mesh = part.mesh
+        self.target_diameter_m = part.target_diameter_m
+        self.targets = _Targets(np.asarray(part.targets.xyz, dtype=float)[cols],
+                                np.asarray(part.targets.normals, dtype=float)[cols])
+
+
+@dataclass
+class _Targets:
+    xyz: np.ndarray
+    normals: np.ndarray
+
+
+class _VariantCache:
+    """Ray-cast poses: information rows (float64, in buffers that double when full, so appending costs the
+    new rows only), visibility, usable; variants are found again by their exact genes."""
+
+    def __init__(self, n: int):
+        self.n = n
+        self.index: dict[bytes, int] = {}
+        self.m = self.nnz = 0
+        self.starts = np.zeros(64, dtype=np.int64)
+        self.ends = np.zeros(64, dtype=np.int64)
+        self.ok = np.zeros(64, dtype=bool)
+        self.vis = np.zeros((64, n), dtype=bool)
+        self.geo = np.zeros((64, n), dtype=bool)  # the pairs whose occlusion was tested (geometric tests passed)
+        self.indices = np.zeros(1 << 16, dtype=np.int32)
+        self.data = np.zeros((1 << 16, 6))
+        self.keys: list[bytes | None] = []
+        self.parents: list[bytes | None] = []
+
+    def missing(self, var: np.ndarray) -> np.ndarray:
+        """Indices of the rows of ``var`` not cached (first occurrences only)."""
+        seen, out = set(), []
+        for i, g in enumerate(var):
+            key = g.tobytes()
+            if key not in self.index and key not in seen:
+                seen.add(key)
+                out.append(i)
+        return np.array(out, dtype=np.intp)
+
+    @staticmethod
+    def _fit(a: np.ndarray, size: int) -> np.ndarray:
+        if size <= len(a):
+            return a
+        out = np.empty((max(size, 2 * len(a)),) + a.shape[1:], dtype=a.dtype)
+        out[:len(a)] = a
+        return out
+
+    def add(self, info: SparseInfo, vis: np.ndarray, geo: np.ndarray, ok: np.ndarray, var: np.ndarray | None = None,
+            parents: np.ndarray | None = None) -> np.ndarray:
+        """Store rows (``var``: the genes they are found by, ``parents``: the stations they vary; None: not
+        found by genes); their cache rows."""
+        r, m0, e0, nnz = len(vis), self.m, self.nnz, len(info.indices)
+        self.starts, self.ends = self._fit(self.starts, m0 + r), self._fit(self.ends, m0 + r)
+        self.ok, self.vis = self._fit(self.ok, m0 + r), self._fit(self.vis, m0 + r)
+        self.geo = self._fit(self.geo, m0 + r)
+        self.indices, self.data = self._fit(self.indices, e0 + nnz), self._fit(self.data, e0 + nnz)
+        self.starts[m0:m0 + r], self.ends[m0:m0 + r] = e0 + info.indptr[:-1], e0 + info.indptr[1:]
+        self.ok[m0:m0 + r], self.vis[m0:m0 + r], self.geo[m0:m0 + r] = ok, vis, geo
+        self.indices[e0:e0 + nnz], self.data[e0:e0 + nnz] = info.indices, info.data
+        keys = [None] * r if var is None else [g.tobytes() for g in var]
+        for i, key in enumerate(keys):
+            if key is not None:
+                self.index[key] = m0 + i
+        self.keys += keys
+        self.parents += [None] * r if parents is None else [g.tobytes() for g in parents]
+        self.m, self.nnz = m0 + r, e0 + nnz
+        return np.arange(m0, m0 + r)
+
+    def keep(self, rows: np.ndarray, parents: set) -> np.ndarray:
+        """Drop every row but ``rows`` (the network) and the variants of the stations ``parents`` (gene bytes;
+        the variants that may come again): the cache holds what can still be used, not every pose the polish
+        cast. Returns the new row numbers of ``rows``."""
+        again = [i for i, p in enumerate(self.parents) if p is not None and p in parents]
+        order = np.unique(np.concatenate([rows, np.array(again, dtype=np.intp)]).astype(np.intp))
+        live = np.zeros(self.m, dtype=bool)
+        live[order] = True
+        lens = self.ends[:self.m] - self.starts[:self.m]
+        if lens[~live].sum() <= lens[live].sum():  # few dead rows: forget them, move nothing
+            for i in np.flatnonzero(~live):
+                if self.keys[i] is not None:
+                    self.index.pop(self.keys[i], None)
+                self.keys[i] = self.parents[i] = None
+            return rows
+        new_of = np.full(self.m, -1, dtype=np.intp)
+        new_of[order] = np.arange(len(order))
+        lens = self.ends[order] - self.starts[order]
+        offs = np.concatenate([[0], np.cumsum(lens)])
+        e = np.repeat(self.starts[order] - offs[:-1], lens) + np.arange(int(offs[-1]))
+        self.indices[:len(e)], self.data[:len(e)] = self.indices[e], self.data[e]
+        self.starts[:len(order)], self.ends[:len(order)] = offs[:-1], offs[1:]
+        for a in (self.ok, self.vis, self.geo):
+            a[:len(order)] = a[order]
+        self.keys = [self.keys[i] for i in order]
+        self.parents = [self.parents[i] for i in order]
+        self.index = {key: i for i, key in enumerate(self.keys) if key is not None}
+        self.m, self.nnz = len(order), int(offs[-1])
+        return new_of[rows]
+
+    def lookup(self, var: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Cache row of each variant, and whether it is usable (sees a target, reachable)."""
+        rows = np.array([self.index[g.tobytes()] for g in var], dtype=np.intp)
+        return rows, self.ok[rows]
+
+    def info(self, rows: np.ndarray) -> SparseInfo:
+        """The information of cache rows ``rows``, in that order (a view: no copy)."""
+        return SparseInfo.view(self.starts[rows], self.ends[rows], self.indices, self.data, self.n)
 
 
 def polish(part, intr: Intrinsics, sphere: ViewingSphere, vis_opts: VisibilityOptions, db, genes: np.ndarray,

@@ -22,7 +22,11 @@ example part, 29 stations x 1000 targets, they cost 2-3x the time for about 1 % 
 less than the same time spent on perturb-and-descend restarts, :func:`refine_network`.)
 
 Pure functions of arrays, no randomness: the result is a deterministic function of the
-starting network.
+starting network.  The information may be dense ``(m, n, 6)`` or a :class:`planning.sparse_info.SparseInfo`;
+the descent works on its visible pairs only, with compiled kernels (:mod:`planning.kernels`:
+the removal sigmas on each station's own targets, candidates dropped as soon as a critical target
+reaches the best exchange found, ``N`` and the sigmas updated only on the targets the exchanged
+stations see), which make the same choices as the dense NumPy formulation, bit for bit.
 """
 from __future__ import annotations
 
@@ -31,6 +35,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from planning import kernels
+from planning.sparse_info import SparseInfo
 from planning.uncertainty import _DET_MIN
 
 __all__ = ["SwapResult", "network_sigma", "swap_descent"]
@@ -56,11 +62,22 @@ def _sigma6(N: np.ndarray, n_rays: np.ndarray, min_rays: int) -> np.ndarray:
 def network_sigma(info: np.ndarray, visible: np.ndarray, stations: np.ndarray, min_rays: int) -> np.ndarray:
     """Per-target sigma (m) of one network on the database; (n,) float64, inf where insufficient.
 
-    ``info: (m, n, 6)``, ``visible: (m, n)`` bool, ``stations: (k,)`` distinct int.
+    ``info: (m, n, 6)`` (or SparseInfo), ``visible: (m, n)`` bool, ``stations: (k,)`` distinct int.
     """
+    if isinstance(info, SparseInfo):
+        N, cnt = kernels.network_normal(info.starts, info.ends, info.indices, info.data,
+                                        np.asarray(stations, dtype=np.intp), info.shape[1])
+        return kernels.sigma6_rows(N, cnt, min_rays)
     N = info[stations].sum(axis=0, dtype=np.float64)
     cnt = visible[stations].sum(axis=0)
     return _sigma6(N, cnt, min_rays)
+
+
+def as_csr(info, visible: np.ndarray) -> SparseInfo:
+    """``info`` as a SparseInfo whose entries are exactly the ``visible`` pairs (the kernels' layout)."""
+    if isinstance(info, SparseInfo):
+        return info
+    return SparseInfo.from_dense(np.asarray(info), visible)
 
 
 def soft_max(sigma: np.ndarray, scale: float, p: float) -> np.ndarray:
@@ -90,34 +107,23 @@ class SwapResult:
     history: list[dict] = field(default_factory=list)
 
 
-def _strict_step(info, vis8, visible, S, N, cnt, worst, pool, min_rays, rel_tol):
-    """Best exchange lowering the worst: (new_worst, slot, candidate) or None."""
-    target = worst * (1.0 - rel_tol)
-    sig_rm = _sigma6(N[None] - info[S], cnt[None] - vis8[S], min_rays)  # (k, n) without each station
-    crit = sig_rm >= target
-    rest = np.max(np.where(crit, 0.0, sig_rm), axis=1)
-    # the current worst target is critical for every station: only candidates seeing it can help
-    pool = pool[visible[pool, int(np.argmax(np.min(sig_rm, axis=0)))]]
-    best = None
-    for i in np.argsort(rest, kind="stable"):
-        bound = best[0] if best else target
-        if rest[i] >= bound:
-            break  # sorted: no later station can do better
-        cj = np.flatnonzero(crit[i])
-        cand = pool[np.all(visible[np.ix_(pool, cj)], axis=1)]
-        if cand.size == 0:
-            continue
-        Ni = N[cj] - info[S[i], cj]
-        ci = cnt[cj] - vis8[S[i], cj]
-        sc = _sigma6(Ni[None] + info[np.ix_(cand, cj)], ci[None] + vis8[np.ix_(cand, cj)], min_rays)
-        w = np.maximum(sc.max(axis=1), rest[i])
-        j = int(np.argmin(w))
-        if w[j] < bound:
-            best = (float(w[j]), int(i), int(cand[j]))
-    return best
+def _strict_step(sp: SparseInfo, visible, S, N, cnt, sig, worst, pool, min_rays, rel_tol):
+    """Best exchange lowering the worst: (new_worst, slot, candidate) or None (planning.kernels.strict_step;
+    the removal sigmas on two threads, each a half of the network's entries)."""
+    sp_args = (sp.starts, sp.ends, sp.indices, sp.data)
+    off = np.concatenate([[0], np.cumsum(sp.ends[S] - sp.starts[S])])
+    srm = np.empty(int(off[-1]))
+    half = int(np.searchsorted(off, off[-1] / 2))
+    parts = [(0, half), (half, len(S))]
+    if off[-1] > 200_000 and 0 < half < len(S):
+        kernels.in_two(2, lambda a, b: kernels.removal_sigmas(*sp_args, S, N, cnt, min_rays, off, *parts[a], srm))
+    else:
+        kernels.removal_sigmas(*sp_args, S, N, cnt, min_rays, off, 0, len(S), srm)
+    w, i, c = kernels.strict_step(*sp_args, visible, S, N, cnt, sig, worst * (1.0 - rel_tol), pool, min_rays, off, srm)
+    return None if i < 0 else (float(w), int(i), int(c))
 
 
-def _cover_step(info, vis8, S, N, cnt, pool, min_rays):
+def _cover_step(vis8, S, N, cnt, pool, min_rays):
     """Infeasible network: the exchange that leaves the fewest short targets (ties: the smaller
     total shortfall); (n_short, slot, candidate) or None if none reduces the shortfall."""
     short_now = np.maximum(min_rays - cnt, 0)
@@ -166,14 +172,15 @@ def swap_descent(
     S = np.array(stations, dtype=np.intp)
     allowed = np.unique(np.asarray(allowed, dtype=np.intp))
     t0 = time.perf_counter()
-    vis8 = visible.astype(np.uint8)
-    N = info[S].sum(axis=0, dtype=np.float64)
-    cnt = vis8[S].sum(axis=0, dtype=np.int32)
-    sig = _sigma6(N, cnt, min_rays)
+    visible = np.ascontiguousarray(visible, dtype=bool)
+    sp = as_csr(info, visible)
+    N, cnt = kernels.network_normal(sp.starts, sp.ends, sp.indices, sp.data, S, sp.shape[1])
+    sig = kernels.sigma6_rows(N, cnt, min_rays)
     worst = start = float(sig.max())
     history: list[dict] = []
     stopped = "local optimum"
     in_net = np.zeros(visible.shape[0], dtype=bool)
+    vis8 = None
     while True:
         if len(history) >= max_swaps:
             stopped = "max_swaps"
@@ -188,16 +195,15 @@ def swap_descent(
             break
         kind, move = "strict", None
         if not np.isfinite(worst):
-            kind, move = "cover", _cover_step(info, vis8, S, N, cnt, pool, min_rays)
+            vis8 = visible.view(np.uint8) if vis8 is None else vis8
+            kind, move = "cover", _cover_step(vis8, S, N, cnt, pool, min_rays)
         else:
-            move = _strict_step(info, vis8, visible, S, N, cnt, worst, pool, min_rays, rel_tol)
+            move = _strict_step(sp, visible, S, N, cnt, sig, worst, pool, min_rays, rel_tol)
         if move is None:
             break
         _, i, c = move
-        N += info[c].astype(np.float64) - info[S[i]]
-        cnt += vis8[c].astype(np.int32) - vis8[S[i]]
+        kernels.exchange(sp.starts, sp.ends, sp.indices, sp.data, N, cnt, sig, S[i], c, min_rays)
         S[i] = c
-        sig = _sigma6(N, cnt, min_rays)
         worst = float(sig.max())
         history.append({"swap": len(history) + 1, "kind": kind, "worst": worst,
                         "soft": float(soft_max(sig, worst, p)) if np.isfinite(worst) else float("inf"),
@@ -254,6 +260,8 @@ def refine_network(
     starts = np.atleast_2d(np.asarray(starts, dtype=np.intp))
     allowed = np.unique(np.asarray(allowed, dtype=np.intp))
     kw = dict(max_swaps=max_swaps, p=p)
+    visible = np.ascontiguousarray(visible, dtype=bool)
+    info = as_csr(info, visible)  # once for every descent
 
     def key(r: SwapResult) -> tuple[float, float]:
         if not np.isfinite(r.worst):

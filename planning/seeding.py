@@ -36,14 +36,21 @@ def greedy_cover(visible: np.ndarray, candidates: np.ndarray, k: int, min_rays: 
         (k,) int candidate indices (repeats only if fewer than ``k`` candidates exist).
     """
     V = visible[candidates].astype(np.float32)
-    rarity = 1.0 / np.maximum(V.sum(axis=0), 1.0)
+    draws = rng.random((k, len(candidates)))  # the draws one per step would give (the same stream)
+    return _greedy_cover(V, 1.0 / np.maximum(V.sum(axis=0), 1.0), candidates, k, min_rays, draws, noise)
+
+
+def _greedy_cover(V: np.ndarray, rarity: np.ndarray, candidates: np.ndarray, k: int, min_rays: int,
+                  draws: np.ndarray, noise: float = 0.3) -> np.ndarray:
+    """:func:`greedy_cover` on ``V = visible[candidates]`` as float32 and its ``rarity`` (computed once for many),
+    with the uniform draws ``(k, len(candidates))`` of its steps given."""
     count = np.zeros(V.shape[1], dtype=np.float32)
     chosen: list[int] = []
     free = np.ones(len(candidates), dtype=bool)
-    for _ in range(k):
+    for step in range(k):
         short = np.maximum(min_rays - count, 0.0)
         w = short * rarity if short.any() else 1.0 / (1.0 + count)
-        gain = (V @ w) * (1.0 + noise * rng.random(len(candidates)))
+        gain = (V @ w) * (1.0 + noise * draws[step])
         gain[~free] = -1.0
         c = int(np.argmax(gain))
         chosen.append(c)
@@ -129,8 +136,22 @@ def initial_population(valid_idx: np.ndarray, visible: np.ndarray, candidate_gen
         short = bits.sum(axis=1) < min_rays
         bits[short, :min_rays] = True
     n_greedy = int(round(greedy_fraction * P))
+    if n_greedy:
+        V = visible[v].astype(np.float32)
+        rarity = 1.0 / np.maximum(V.sum(axis=0), 1.0)
+    if mode == "fixed" and n_greedy > 1:
+        # the covers' draws come one after the other from rng (the same stream as drawn step by step), so the
+        # covers are independent: two at a time on two threads (the products release the GIL)
+        draws = rng.random((n_greedy, k, len(v)))
+        from concurrent.futures import ThreadPoolExecutor
+
+        with ThreadPoolExecutor(2) as ex:
+            covers = list(ex.map(lambda i: _greedy_cover(V, rarity, v, k, min_rays, draws[i]), range(n_greedy)))
+        pick[:n_greedy] = np.array(covers)
+        bits[:n_greedy] = True
+        n_greedy = 0
     for i in range(n_greedy):
         size = k if mode == "fixed" else int(rng.integers(min_rays, k + 1))
-        pick[i, :size] = greedy_cover(visible, v, size, min_rays, rng)
+        pick[i, :size] = _greedy_cover(V, rarity, v, size, min_rays, rng.random((size, len(v))))
         bits[i] = np.arange(k) < size
     return candidate_genes[pick].copy(), bits

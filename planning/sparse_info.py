@@ -2,12 +2,13 @@
 
 The planner's information array is ``(m, n, 6)`` float32 and zero wherever candidate ``i`` does not
 see target ``t``: 3,000 candidates x 50,000 targets take 3.6 GB dense. :class:`SparseInfo` keeps the
-visible pairs only, by candidate (CSR: ``indptr (m+1)``, ``indices (nnz,)`` target, ``data (nnz, 6)``).
-It answers the row selections the planner makes (``info[i]``, ``info[rows]``, ``info[rows, cols]``,
-``info[np.ix_(rows, cols)]``, ``info[:, cols, k]``) with the same dense float32 values the dense array
-would give, so every sum and every result stays bit-identical; only the selected rows are ever
-materialised. :func:`add_rows` adds one candidate per network row into a population accumulator
-(the evolutionary search's inner step) without a dense gather.
+visible pairs only, by candidate: row ``i``'s entries are ``indices[starts[i]:ends[i]]`` (targets, increasing)
+and ``data[starts[i]:ends[i]]`` (``(., 6)``). Built compact (CSR: ``starts = indptr[:-1]``, ``ends = indptr[1:]``),
+or as a :meth:`SparseInfo.view` whose rows point anywhere into shared buffers (the polish's pool of
+ray-cast variants: no copy). It answers the row selections the planner makes (``info[i]``, ``info[rows]``,
+``info[rows, cols]``, ``info[np.ix_(rows, cols)]``, ``info[:, cols, k]``) with the same dense values the
+dense array would give, so every sum and every result stays bit-identical; only the selected rows are ever
+materialised. The compiled kernels of :mod:`planning.kernels` work on ``starts, ends, indices, data``.
 """
 
 from __future__ import annotations
@@ -16,12 +17,12 @@ import numpy as np
 
 __all__ = ["SparseInfo", "add_rows", "DENSE_LIMIT_BYTES"]
 
-# Above this size (m * n * 6 * 4 bytes) the planner keeps the information sparse.
+# Above this size (m * n * 6 * 4 bytes) a dense information array is not made (CLOSE_LOOP, tests).
 DENSE_LIMIT_BYTES = 1 << 30
 
 
 class SparseInfo:
-    """``(m, n, 6)`` information, non-zero only on visible pairs; CSR by candidate."""
+    """``(m, n, 6)`` information, non-zero only on visible pairs; rows ``[starts[i], ends[i])``."""
 
     ndim = 3
 
@@ -32,16 +33,39 @@ class SparseInfo:
         if self.data.ndim != 2 or self.data.shape[1] != 6 or len(self.data) != len(self.indices) \
                 or self.indptr[-1] != len(self.indices):
             raise ValueError("SparseInfo: indptr, indices and data (nnz, 6) disagree")
+        self.starts, self.ends = self.indptr[:-1], self.indptr[1:]
         self.shape = (len(self.indptr) - 1, int(n), 6)
         self.dtype = self.data.dtype
         self._row = None
+
+    @classmethod
+    def view(cls, starts: np.ndarray, ends: np.ndarray, indices: np.ndarray, data: np.ndarray, n: int) -> "SparseInfo":
+        """Rows ``[starts[i], ends[i])`` of the buffers ``indices``, ``data`` (shared, not copied)."""
+        self = cls.__new__(cls)
+        self.indptr = None
+        self.starts, self.ends = np.asarray(starts, dtype=np.int64), np.asarray(ends, dtype=np.int64)
+        self.indices, self.data = indices, data
+        if self.starts.shape != self.ends.shape or (len(self.ends) and self.ends.max() > len(indices)):
+            raise ValueError("SparseInfo.view: rows outside the buffers")
+        self.shape = (len(self.starts), int(n), 6)
+        self.dtype = data.dtype
+        self._row = None
+        return self
 
     def __len__(self) -> int:
         return self.shape[0]
 
     @property
+    def nnz(self) -> int:
+        return int(np.sum(self.ends - self.starts))
+
+    @property
     def nbytes(self) -> int:
-        return self.indptr.nbytes + self.indices.nbytes + self.data.nbytes
+        return self.starts.nbytes + self.ends.nbytes + self.indices.nbytes + self.data.nbytes
+
+    def compact(self) -> "SparseInfo":
+        """This information in CSR form (itself when it is already)."""
+        return self if self.indptr is not None else self.select(np.arange(self.shape[0]))
 
     @classmethod
     def from_dense(cls, info: np.ndarray, visible: np.ndarray) -> "SparseInfo":
@@ -51,23 +75,24 @@ class SparseInfo:
         return cls(indptr, ti, info[ci, ti], info.shape[1])
 
     def toarray(self) -> np.ndarray:
-        out = np.zeros(self.shape, dtype=self.dtype)
-        out[self.row_of_entry(), self.indices] = self.data
-        return out
+        return self.take(np.arange(self.shape[0]))
 
     def row_of_entry(self) -> np.ndarray:
-        if self._row is None:
-            self._row = np.repeat(np.arange(self.shape[0], dtype=np.int32), np.diff(self.indptr))
-        return self._row
+        """(nnz,) the row of each entry (CSR form)."""
+        c = self.compact()
+        if c._row is None:
+            c._row = np.repeat(np.arange(c.shape[0], dtype=np.int32), np.diff(c.indptr))
+        return c._row
 
     def scale_targets(self, w: np.ndarray) -> "SparseInfo":
         """The information with target ``t`` multiplied by ``w[t]`` (``info * w[None, :, None]``)."""
+        c = self.compact()
         w = np.asarray(w, dtype=self.dtype)
-        return SparseInfo(self.indptr, self.indices, self.data * w[self.indices][:, None], self.shape[1])
+        return SparseInfo(c.indptr, c.indices, c.data * w[c.indices][:, None], self.shape[1])
 
     def _entries(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(position in ``rows``, entry index) of every stored entry of the given rows."""
-        lo, hi = self.indptr[rows], self.indptr[rows + 1]
+        lo, hi = self.starts[rows], self.ends[rows]
         ln = hi - lo
         which = np.repeat(np.arange(len(rows)), ln)
         start = np.repeat(lo - np.concatenate([[0], np.cumsum(ln)[:-1]]), ln)
@@ -75,28 +100,21 @@ class SparseInfo:
 
     def take(self, rows, cols=None) -> np.ndarray:
         """Dense ``(len(rows), len(cols) or n, 6)``, equal to ``dense[rows][:, cols]``."""
+        from planning import kernels
+
         rows = np.arange(self.shape[0])[rows].reshape(-1) if not isinstance(rows, np.ndarray) \
             else np.asarray(rows).reshape(-1)
-        rows = np.where(rows < 0, rows + self.shape[0], rows)
-        which, e = self._entries(rows)
-        t = self.indices[e]
+        if rows.dtype == bool:
+            rows = np.flatnonzero(rows)
+        rows = np.where(rows < 0, rows + self.shape[0], rows).astype(np.intp)
         if cols is None:
-            out = np.zeros((len(rows), self.shape[1], 6), dtype=self.dtype)
-            out[which, t] = self.data[e]
-            return out
+            return kernels.rows_dense(self.starts, self.ends, self.indices, self.data, rows, self.shape[1])
         cols = np.arange(self.shape[1])[cols].reshape(-1) if not isinstance(cols, np.ndarray) \
             else np.asarray(cols).reshape(-1)
         if cols.dtype == bool:
             cols = np.flatnonzero(cols)
-        out = np.zeros((len(rows), len(cols), 6), dtype=self.dtype)
-        pos = np.full(self.shape[1], -1, dtype=np.int64)
-        pos[cols] = np.arange(len(cols))
-        if np.count_nonzero(pos >= 0) != len(np.unique(cols)) or len(np.unique(cols)) != len(cols):
-            return self.take(rows)[:, cols]  # repeated columns: gather whole rows
-        p = pos[t]
-        keep = p >= 0
-        out[which[keep], p[keep]] = self.data[e[keep]]
-        return out
+        cols = np.where(cols < 0, cols + self.shape[1], cols).astype(np.intp)
+        return kernels.gather(self.starts, self.ends, self.indices, self.data, rows, cols)
 
     def __getitem__(self, key):
         if not isinstance(key, tuple):
@@ -118,16 +136,22 @@ class SparseInfo:
             raise TypeError("SparseInfo: paired fancy indexing is not supported")
         return self.take(r, c)
 
+    def rows(self, rows: np.ndarray) -> "SparseInfo":
+        """The candidates ``rows`` (int array) as a view sharing this information's buffers."""
+        rows = np.asarray(rows, dtype=np.int64)
+        return SparseInfo.view(self.starts[rows], self.ends[rows], self.indices, self.data, self.shape[1])
+
     def select(self, rows: np.ndarray) -> "SparseInfo":
-        """The candidates ``rows`` (int array), still sparse."""
+        """The candidates ``rows`` (int array), still sparse (compact copy)."""
         rows = np.asarray(rows, dtype=np.int64)
         _, e = self._entries(rows)
-        indptr = np.concatenate([[0], np.cumsum(self.indptr[rows + 1] - self.indptr[rows])])
+        indptr = np.concatenate([[0], np.cumsum(self.ends[rows] - self.starts[rows])])
         return SparseInfo(indptr, self.indices[e], self.data[e], self.shape[1])
 
     @staticmethod
     def vstack(parts: list) -> "SparseInfo":
         """The candidates of ``parts`` (SparseInfo, same n) one after the other."""
+        parts = [p.compact() for p in parts]
         offs = np.cumsum([0] + [len(p.indices) for p in parts])
         indptr = np.concatenate([[0]] + [p.indptr[1:] + o for p, o in zip(parts, offs)])
         return SparseInfo(indptr, np.concatenate([p.indices for p in parts]),
@@ -148,6 +172,8 @@ def add_rows(info, acc: np.ndarray, rows: np.ndarray | None, cand: np.ndarray) -
         else:
             acc[rows] += info[cand]
         return
-    which, e = info._entries(np.asarray(cand))
-    r = which if rows is None else np.asarray(rows)[which]
-    acc[r, info.indices[e]] += info.data[e]
+    from planning import kernels
+
+    cand = np.asarray(cand, dtype=np.intp)
+    rows = np.arange(len(cand)) if rows is None else np.asarray(rows, dtype=np.intp)
+    kernels.add_rows(info.starts, info.ends, info.indices, info.data, acc, rows, cand)

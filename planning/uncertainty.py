@@ -25,6 +25,7 @@ import numpy as np
 
 from calibration.camera import Intrinsics, invert
 from calibration.errors import PlanningError
+from planning import kernels
 from planning.sparse_info import SparseInfo, add_rows
 
 __all__ = [
@@ -123,49 +124,29 @@ def target_information(
     if not np.all(np.isfinite(sig)) or np.any(sig <= 0):
         raise PlanningError(f"target_information: sigma_px must be positive and finite, got {sigma_px!r}")
     w = 1.0 / sig**2
-    cam_from_part = invert(T)
-    rows = np.cumsum(visible.sum(axis=1))
-    if sparse:
-        out = np.empty((int(rows[-1]) if m else 0, 6), dtype=dtype)
-        indices = np.empty(len(out), dtype=np.int32)
-    else:
-        out = np.zeros((m, n, 6), dtype=dtype)
-    s0 = 0
-    while s0 < m:  # all visible (station, target) pairs at once, in chunks of about _PAIRS_PER_CHUNK
-        s1 = max(s0 + 1, int(np.searchsorted(rows, (rows[s0 - 1] if s0 else 0) + _PAIRS_PER_CHUNK, side="right")))
-        ci, ti = np.nonzero(visible[s0:s1])
-        if len(ci):
-            ci += s0
-            val = (point_information(intr, cam_from_part[ci], xyz[ti]) * w[ti, None]).astype(dtype)
-            if sparse:  # np.nonzero is row-major: the pairs come in CSR order
-                e0 = int(rows[s0 - 1]) if s0 else 0
-                out[e0:e0 + len(ci)], indices[e0:e0 + len(ci)] = val, ti
-            else:
-                out[ci, ti] = val
-        s0 = s1
-    if sparse:
-        return SparseInfo(np.concatenate([[0], rows]), indices, out, n)
-    return out
-
-
-_PAIRS_PER_CHUNK = 200_000
+    cam_from_part = np.ascontiguousarray(invert(T))
+    indptr = np.zeros(m + 1, dtype=np.int64)
+    np.cumsum(visible.sum(axis=1), out=indptr[1:])
+    indices = np.empty(int(indptr[-1]), dtype=np.int32)
+    data = np.empty((int(indptr[-1]), 6), dtype=dtype)
+    # every visible pair, pose by pose, compiled (planning.kernels: the values of point_information)
+    xyz, visible, w, cam = np.ascontiguousarray(xyz), np.ascontiguousarray(visible), np.ascontiguousarray(w), \
+        kernels.camera_vector(intr)
+    kernels.in_two(m, lambda a, b: kernels.information_rows(cam_from_part[a:b], xyz, visible[a:b], w, cam,
+                                                            indptr[a:b + 1], indices, data),
+                   min_size=max(2, 400_000 // max(1, n)))
+    sp = SparseInfo(indptr, indices, data, n)
+    return sp if sparse else sp.toarray()
 
 
 def point_information(intr: Intrinsics, cam_from_part: np.ndarray, X: np.ndarray) -> np.ndarray:
     """Upper triangle (6) of ``J^T J`` of each pair of pose ``cam_from_part: (q, 4, 4)`` and point
     ``X: (q, 3)`` (part frame), ``J = d(uv)/d(X)`` with the lens distortion; (q, 6) in px^2/m^2."""
-    R = cam_from_part[:, :3, :3]
-    Xc = np.einsum("qab,qb->qa", R, X) + cam_from_part[:, :3, 3]
-    iz = 1.0 / Xc[:, 2]
-    xn, yn = Xc[:, 0] * iz, Xc[:, 1] * iz
-    D = intr.distortion_jacobian(np.stack([xn, yn], axis=1))  # (q, 2, 2)
-    # d(uv)/d(Xc) = F D d(xy)/d(Xc), d(xy)/d(Xc) = iz [[1, 0, -xn], [0, 1, -yn]]
-    M = np.empty((len(iz), 2, 3))
-    for r, f in ((0, intr.fx_px), (1, intr.fy_px)):
-        a, b = D[:, r, 0] * f * iz, D[:, r, 1] * f * iz
-        M[:, r, 0], M[:, r, 1], M[:, r, 2] = a, b, -(a * xn + b * yn)
-    J = M @ R  # (q, 2, 3)
-    return np.stack([J[:, 0, i] * J[:, 0, j] + J[:, 1, i] * J[:, 1, j] for i, j in zip(*_IU)], axis=1)
+    cfp = np.ascontiguousarray(cam_from_part, dtype=np.float64).reshape(-1, 4, 4)
+    X = np.ascontiguousarray(X, dtype=np.float64).reshape(-1, 3)
+    out = np.empty((len(X), 6))
+    kernels.pair_information(cfp, X, kernels.camera_vector(intr), out)
+    return out
 
 
 def _information_by_model(intr, part_from_cam, xyz, visible, precision: ImagePrecision, dtype, sparse=False):

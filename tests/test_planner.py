@@ -426,18 +426,3 @@ def test_lower_bound_lies_below_the_searched_network_and_proves_station_counts(s
         assert c["fewer_stations_lower_bound_ratio"] > 1.0
         assert not any(r["n_stations"] == c["fewer_stations"] and r["sigma_ratio_max"] <= 1.0
                        for r in cheap.pareto_front)
-
-
-def test_sparse_information_plans_the_same_network(scene, fixed_plan, monkeypatch):
-    """Issue 21: above planning.sparse_info.DENSE_LIMIT_BYTES the planner keeps the information
-    sparse (visible pairs only); forced here on the small scene, the plan is the dense one."""
-    import planning.planner.setup as setup_mod
-    import planning.polish as polish_mod
-
-    part, intr = scene
-    plan, cache, _ = fixed_plan
-    monkeypatch.setattr(setup_mod, "DENSE_LIMIT_BYTES", 0)
-    monkeypatch.setattr(polish_mod, "DENSE_LIMIT_BYTES", 0)
-    sparse = plan_network(part, intr, _options(), np.random.default_rng(3), cache_dir=cache, seed=3)
-    assert np.array_equal(sparse.part_from_cam, plan.part_from_cam)
-    assert sparse.predicted_sigma_max_m == plan.predicted_sigma_max_m

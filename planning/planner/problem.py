@@ -1,14 +1,18 @@
 """The search's fitness on the visibility database, and the exact evaluation of one network."""
 from __future__ import annotations
 
+import os
+
 import numpy as np
 from scipy.spatial import cKDTree
 
 from calibration.camera import Intrinsics
+from planning import kernels
 from planning.evolution import Evaluation
 from planning.planner.options import PlannerOptions
 from planning.stations import ViewingSphere
-from planning.uncertainty import NetworkEval, covariance_for_network, criterion, evaluate_networks
+from planning.sparse_info import SparseInfo
+from planning.uncertainty import NetworkEval, _dedupe, covariance_for_network, criterion, evaluate_networks
 from planning.visibility import VisibilityDB, VisibilityOptions, compute_visibility
 
 _IU = (np.array([0, 0, 0, 1, 1, 2]), np.array([0, 1, 2, 1, 2, 2]))
@@ -40,6 +44,13 @@ class _Problem:
         idx, corrected = self.snap(genes)
         genes[corrected] = self.db.genes[idx[corrected]]
         stations = np.where(bits, idx, -1)
+        if isinstance(self.info, SparseInfo) and (self.objective != "criterion" or self.opt.criterion == "worst"):
+            value, violation = self._fitness(stations)
+            if self.objective == "criterion" or self.objective == "ratio":
+                objectives = value[:, None]
+            else:
+                objectives = np.column_stack([bits.sum(axis=1).astype(float), value])
+            return Evaluation(objectives, violation, genes, bits)
         ev = evaluate_networks(self.info, stations, self.opt.min_rays, visible=self.vis)
         violation = _violation(ev)
         if self.objective == "criterion":
@@ -51,6 +62,25 @@ class _Problem:
             else:
                 objectives = np.column_stack([bits.sum(axis=1).astype(float), ratio])
         return Evaluation(objectives, violation, genes, bits)
+
+
+    def _fitness(self, stations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(p,) worst sigma (or max sigma / required) and violation of networks ``stations: (p, k)``, straight
+        from the sparse information (planning.kernels.population_fitness: the values of evaluate_networks +
+        criterion + _violation, bit for bit, with no population x targets array)."""
+        st = _dedupe(stations)
+        info, n = self.info, self.info.shape[1]
+        kind = 0 if self.objective == "criterion" else 2
+        req = np.ones(1) if kind == 0 else np.asarray(self.required, dtype=float)
+        p = len(st)
+        value, violation, short = np.empty(p), np.empty(p), np.empty(p, dtype=np.int64)
+
+        def run(lo: int, hi: int) -> None:
+            kernels.population_fitness(info.starts, info.ends, info.indices, info.data, st[lo:hi], n,
+                                       self.opt.min_rays, kind, req, value[lo:hi], violation[lo:hi], short[lo:hi])
+
+        kernels.in_two(p, run, min_size=2 if (os.cpu_count() or 1) > 1 else p + 1)
+        return value, violation
 
 
 def _violation(ev: NetworkEval) -> np.ndarray:

@@ -12,7 +12,6 @@ from calibration.errors import InputError, PlanningError
 from planning.planner.options import PlannerOptions, Progress
 from planning.planner.problem import _Problem
 from planning.stations import ViewingSphere
-from planning.sparse_info import DENSE_LIMIT_BYTES
 from planning.uncertainty import target_information
 from planning.visibility import VisibilityDB, VisibilityOptions
 
@@ -126,9 +125,8 @@ def _set_up(part, intr: Intrinsics, options: PlannerOptions, reachable: np.ndarr
         raise PlanningError("no target can be measured by min_rays valid stations")
     xyz = np.asarray(part.targets.xyz, dtype=float)
     vis = db.visible[:, cols]
-    # dense while it is small (fastest), else only the visible pairs (same values; issue 21: 50k targets)
-    sparse = vis.shape[0] * vis.shape[1] * 6 * 4 > DENSE_LIMIT_BYTES
-    info = target_information(intr, db.part_from_cam, xyz[cols], vis, options.image_sigma(cols), sparse=sparse)
+    # only the visible pairs (CSR, the layout of planning.kernels; the same values as the dense array)
+    info = target_information(intr, db.part_from_cam, xyz[cols], vis, options.image_sigma(cols), sparse=True)
     report("information", 1.0)
     required = required_sigma(part, options) if options.mode == "cheapest" else None
     problem = _Problem(db, info, vis, valid, options, None if required is None else required[cols])
