@@ -40,7 +40,7 @@ class _Quiet:
 HAMPERED = {
     "fixture": 'fixture = [ { name = "clamp", size = [20.0, 120.0, 20.0], pose = { xyz = [-40.0, 0.0, 110.0] } } ]\n',
     "glare55": "dot_max_incidence_deg = 55.0\n",
-    "glare52": "dot_max_incidence_deg = 52.0\n",  # splits the network: no station ties every face in (decision 0026)
+    "glare52": "dot_max_incidence_deg = 52.0\n",  # splits the network: no station ties every face in (decision 0027)
     "station_removed": 'unreachable_stations = ["S003", "S007"]\n',
 }
 

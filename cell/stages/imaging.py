@@ -30,7 +30,7 @@ MARKER_GROW = 1.33
 #: in the other's metric). Blur only grows a dot, so below SHAPE_MIN it was clipped (an edge or a fixture the
 #: CAD does not have, glare eating one side); above SHAPE_MAX, after BLUR_PX of blur is allowed for, it is
 #: two blobs merged or a glint. On the example's renders whole dots lie in 0.99..1.41 (1,224 dots), the
-#: clipped ones that biased centres by 1-24 px mostly below 0.85 or above 1.9 (decision 0026, hamper).
+#: clipped ones that biased centres by 1-24 px mostly below 0.85 or above 1.9 (decision 0027, hamper).
 SHAPE_MIN = 0.85
 SHAPE_MAX = 1.5
 BLUR_PX = 1.0
