@@ -49,6 +49,10 @@ class MotionError(DriverError):
     """A motion was refused, failed, or timed out."""
 
 
+class MoveRefusedError(MotionError):
+    """The controller refused a move before the arm moved (the target cannot be reached from here)."""
+
+
 class ProtectiveStopError(MotionError):
     """The robot controller entered a protective or emergency stop."""
 

@@ -197,3 +197,52 @@ def eccentricity_bias(
     centre = -np.linalg.solve(A, b[..., None])[..., 0]
     proj = H[:, :2, 2] / H[:, 2:3, 2]
     return centre - proj
+
+
+def ellipse_moments(
+    intr: Intrinsics, cam_from_part: np.ndarray, xyz: np.ndarray, normals: np.ndarray, radius_m: float
+) -> np.ndarray:
+    """Second-moment matrix of the ellipse each circular target images as, (n, 2, 2) px^2.
+
+    The image conic of :func:`eccentricity_bias`, ``(x - c)^T A (x - c) = s``, is the ellipse of shape
+    ``S = s A^-1``; a uniformly bright ellipse has second moments ``S / 4`` (a disc of radius r: r^2/4 I),
+    what :func:`calibration.dots.detect_dots` reports as ``Detections.axes``. Distortion is ignored.
+    """
+    xyz = np.asarray(xyz, dtype=float).reshape(-1, 3)
+    nrm = np.asarray(normals, dtype=float).reshape(-1, 3)
+    if len(xyz) == 0:
+        return np.zeros((0, 2, 2))
+    T = np.asarray(cam_from_part, dtype=float)
+    R, t = T[:3, :3], T[:3, 3]
+    a = np.where(np.abs(nrm[:, :1]) < 0.9, np.array([[1.0, 0.0, 0.0]]), np.array([[0.0, 1.0, 0.0]]))
+    e1 = np.cross(nrm, a)
+    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+    e2 = np.cross(nrm, e1)
+    H = intr.K @ np.stack([radius_m * e1 @ R.T, radius_m * e2 @ R.T, xyz @ R.T + t], axis=2)
+    Hinv = np.linalg.inv(H)
+    C = np.einsum("nji,jk,nkl->nil", Hinv, np.diag([1.0, 1.0, -1.0]), Hinv)
+    A = C[:, :2, :2]
+    b = C[:, :2, 2]
+    s = np.einsum("ni,ni->n", b, np.linalg.solve(A, b[..., None])[..., 0]) - C[:, 2, 2]
+    return s[:, None, None] * np.linalg.inv(A) / 4.0
+
+
+def shape_ratios(measured: np.ndarray, predicted: np.ndarray, blur_px: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """How a dot's second moments ``measured: (k, 2, 2)`` compare with its ellipse's ``predicted: (k, 2, 2)``.
+
+    Returns ``(lo, hi)``, (k,) each: the smallest eigenvalue of the measured moments in the metric of the
+    predicted ones (1 for a whole dot; a clipped dot shrinks along the cut), and the largest after removing
+    ``blur_px`` of isotropic blur (a merged pair or a glint grows it). A predicted matrix that is not
+    positive definite (a target seen edge-on) gives ``lo = hi = nan``.
+    """
+    measured = np.asarray(measured, dtype=float).reshape(-1, 2, 2)
+    predicted = np.asarray(predicted, dtype=float).reshape(-1, 2, 2)
+    lo = np.full(len(measured), np.nan)
+    hi = np.full(len(measured), np.nan)
+    det = predicted[:, 0, 0] * predicted[:, 1, 1] - predicted[:, 0, 1] ** 2
+    ok = (predicted[:, 0, 0] > 0) & (det > 0) & np.all(np.isfinite(measured), axis=(1, 2))
+    if ok.any():
+        L = np.linalg.cholesky(np.linalg.inv(predicted[ok]))
+        lo[ok] = np.linalg.eigvalsh(np.swapaxes(L, 1, 2) @ measured[ok] @ L)[:, 0]
+        hi[ok] = np.linalg.eigvalsh(np.swapaxes(L, 1, 2) @ (measured[ok] - blur_px**2 * np.eye(2)) @ L)[:, 1]
+    return lo, hi

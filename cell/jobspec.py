@@ -298,6 +298,9 @@ class SimSection(_Strict):
                                                 "incidence are washed out in the simulated images (the plan does not know)")
     fixture: list[Obstacle] = Field(default=[], description="boxes in the part frame (job units) that hide dots in the "
                                     "simulated images but are not in the part's CAD (the plan does not know them)")
+    unreachable_stations: list[str] = Field(default=[], description="planned station ids whose move the simulated "
+                                            "controller refuses at run time (the plan does not know): ACQUIRE "
+                                            "skips them, the closed loop makes up for them")
 
 
 class JobSpec(_Strict):

@@ -35,7 +35,7 @@ from typing import Any
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
-from calibration.errors import LimitError, MotionError, NotConnectedError, ProtectiveStopError
+from calibration.errors import LimitError, MotionError, MoveRefusedError, NotConnectedError, ProtectiveStopError
 from drivers.protocols import RobotState, SafetyStatus
 from sim_backend.world import World
 
@@ -142,6 +142,7 @@ class SimRobot:
         self._t0 = time.monotonic()
         self._sim_offset_s = 0.0
         self.last_duration_s = 0.0  # simulated duration of the last move
+        self._unreachable = np.zeros((0, 6))  # joint targets the controller refuses (injected)
 
     # --- connection ------------------------------------------------------------
     def connect(self) -> None:
@@ -157,6 +158,12 @@ class SimRobot:
             self._connected = False
 
     # --- fault injection ----------------------------------------------------------
+    def inject_unreachable(self, joints_rad: np.ndarray) -> None:
+        """Refuse moves to these joint targets ``(k, 6)`` rad: the move raises ``MotionError`` before the arm
+        moves (a station something in the real cell keeps the robot from, which the plan did not know)."""
+        with self._lock:
+            self._unreachable = np.asarray(joints_rad, dtype=float).reshape(-1, 6)
+
     def inject_protective_stop(self, after_s: float = 0.0) -> None:
         """Protective stop after ``after_s`` seconds of (simulated) motion; 0: at the next move."""
         self._ps_budget = float(after_s)
@@ -212,6 +219,9 @@ class SimRobot:
         self._check_rate("joint speed", speed_rad_s, vmax, "rad/s")
         self._check_rate("joint acceleration", accel_rad_s2, self.limits.max_joint_accel_rad_s2, "rad/s^2")
         self._check_joint_limits(q1[None], "target")
+        if len(self._unreachable) and np.any(np.max(np.abs(self._unreachable - q1), axis=1) < 1e-6):
+            raise MoveRefusedError("sim robot: move refused, the target is not reachable (injected: [sim] "
+                              "unreachable_stations); the arm did not move")
         q0 = self._q.copy()
         lead = float(np.max(np.abs(q1 - q0)))
         n = max(2, min(self.limits.max_path_samples, int(math.ceil(lead / 0.02)) + 1))

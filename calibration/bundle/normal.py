@@ -156,8 +156,11 @@ def _jacobians(state: _State, obs_image: np.ndarray, obs_target: np.ndarray, obs
     R = state.poses[obs_image, :3, :3]
     t = state.poses[obs_image, :3, 3]
     uv, Jp, Jpose, Jin = project_observations(state.intr, R, t, state.points[obs_target], lay.names)
-    if np.any(~np.isfinite(uv)) or np.any(np.einsum("qb,qb->q", R[:, 2], state.points[obs_target]) + t[:, 2] <= 0):
-        raise CalibrationError("bundle: a target is behind a camera that observes it; check identification")
+    behind = ~np.isfinite(uv).all(axis=1) | (np.einsum("qb,qb->q", R[:, 2], state.points[obs_target]) + t[:, 2] <= 0)
+    if np.any(behind):
+        exc = CalibrationError("bundle: a target is behind a camera that observes it; check identification")
+        exc.targets = np.unique(obs_target[behind])  # which ones: a caller may drop them and adjust again
+        raise exc
     sig = np.asarray(sigma_px, dtype=float)
     if sig.ndim == 3:  # a 2x2 covariance per observation: whiten with the inverse of its Cholesky factor
         Wh = whitening(sig)

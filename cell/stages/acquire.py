@@ -7,7 +7,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from calibration.errors import DriverError
+from calibration.errors import DriverError, MoveRefusedError
 from cell.record.integrity import acquired
 from cell.record.jobfolder import atomic_write_bytes, atomic_write_json, sha256_file
 from cell.stages.exposure import ExposureTaker, FrameFault, wait_settled
@@ -42,10 +42,15 @@ def run(ctx) -> None:
 
     plan_doc = ctx.folder.read_json("plan.json")
     stations = _stations_in_order(plan_doc)
-    done = set(acquired(list(ctx.folder.records())))  # stations whose image stands (verified on resume)
+    recs0 = list(ctx.folder.records())
+    done = set(acquired(recs0))  # stations whose image stands (verified on resume)
     if ctx.devices is None:
         ctx.devices = open_devices(ctx.job, ctx.backend)
     dev = ctx.devices
+    unreachable = ctx.job.spec.sim.unreachable_stations if ctx.backend == "sim" else []
+    if unreachable and hasattr(dev.robot, "inject_unreachable"):  # the sim's knob: a station the robot is kept from
+        dev.robot.inject_unreachable([s["joints"] for s in stations if s["id"] in set(unreachable)])
+    skipped = {r["station"]: r["reason"] for r in recs0 if r["event"] == "station_skipped"}
     c = ctx.job.spec.cell
     (ctx.folder.path / "images").mkdir(exist_ok=True)
     cam = ctx.job.spec.camera
@@ -56,12 +61,14 @@ def run(ctx) -> None:
     hold_s = c.settle_s if ctx.backend != "sim" else min(c.settle_s, SIM_HOLD_S)
     for k, s in enumerate(stations):
         sid = s["id"]
-        if sid in done:
+        if sid in done or sid in skipped:  # a station the robot could not reach is not tried again in this job
             continue
         ctx.progress("acquire", k / len(stations))
         q = np.asarray(s["joints"], dtype=float)
         ctx.folder.append("station_start", station=sid)
-        dev.robot.move_joints(q, c.max_joint_speed_rad_s, c.max_joint_accel_rad_s2)
+        if not _move_or_skip(ctx, dev.robot, sid, q, skipped, stations[k + 1]["joints"] if k + 1 < len(stations)
+                             else None):
+            continue
         for attempt in range(1, c.retakes + 2):
             state, state_host_s, peak = wait_settled(dev.robot, speed_tol_rad_s=c.settle_speed_rad_s, hold_s=hold_s,
                                                      timeout_s=c.settle_timeout_s, station=sid)
@@ -98,5 +105,44 @@ def run(ctx) -> None:
     recs = acquired(list(ctx.folder.records()))
     images = [{"station": s["id"], "order": s["order"], "image": recs[s["id"]]["image"],
                "sha256": recs[s["id"]]["sha256"], "joints": recs[s["id"]]["joints"],
-               "base_from_flange": recs[s["id"]]["base_from_flange"]} for s in stations]
-    atomic_write_json(ctx.folder.file("acquisition.json"), {"images": images})
+               "base_from_flange": recs[s["id"]]["base_from_flange"]} for s in stations if s["id"] in recs]
+    missed = [{"station": s["id"], "reason": skipped.get(s["id"], "not taken")} for s in stations
+              if s["id"] not in recs]
+    if len(images) < 2:
+        raise DriverError(f"{len(images)} of {len(stations)} stations taken; nothing to measure")
+    atomic_write_json(ctx.folder.file("acquisition.json"), {"images": images, "skipped": missed})
+
+
+def _move_or_skip(ctx, robot, sid: str, q: np.ndarray, skipped: dict, q_next) -> bool:
+    """Move to a station; a move the controller refuses before the arm moves (``MoveRefusedError``) skips the
+    station (journal ``station_skipped``, log, console) when the move from here to the next station is
+    collision-free too. Anything else (a protective stop, the cell's own limits, an abort, an arm that moved
+    and stopped) faults the job as before."""
+    c = ctx.job.spec.cell
+    q_from = np.asarray(robot.state().joints_rad, dtype=float)
+    try:
+        robot.move_joints(q, c.max_joint_speed_rad_s, c.max_joint_accel_rad_s2)
+        return True
+    except MoveRefusedError as exc:  # only a refusal before any motion: a stop, a limit, an abort still fault
+        if float(np.max(np.abs(np.asarray(robot.state().joints_rad, dtype=float) - q_from))) > 1e-4:
+            raise
+        if q_next is not None:
+            _check_detour(ctx, sid, q_from, np.asarray(q_next, dtype=float))
+        reason = f"the robot cannot reach it: {exc}"
+        skipped[sid] = reason
+        ctx.folder.append("station_skipped", station=sid, reason=reason)
+        ctx.log.log("warning", f"station {sid} skipped: {reason}")
+        ctx.say(f"  WARNING station {sid} skipped: {reason}")
+        return False
+
+
+def _check_detour(ctx, sid: str, qa: np.ndarray, qb: np.ndarray) -> None:
+    """The move past a skipped station was not in the validated plan: check it for collisions before it is made."""
+    from cell.setup import collision_world, robot_model
+    from planning.execution import check_move, lever_arms
+
+    robot = robot_model(ctx.job)
+    chk = check_move(robot, collision_world(ctx.job), qa, qb, lever_arms(robot), 0.02, ("here", "next"), 0.0)
+    if not chk.free:
+        raise DriverError(f"station {sid} cannot be reached and the move past it collides ({chk.pair}); "
+                          "the job stops here")

@@ -14,6 +14,7 @@ from calibration.errors import CalibrationError
 from calibration.plausibility import check_adjustment
 from calibration.weights import INCIDENCE_EDGES_DEG, group_labels, incidence_angles, incidence_groups, mean_variance
 from cell.record.jobfolder import atomic_write_bytes, atomic_write_json
+from cell.stages.screen import Screening, resect, screen_network
 
 
 def observation_arrays(job, obs_doc: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -52,10 +53,12 @@ def initial_intrinsics(job, cal_doc: dict) -> Intrinsics:
                       pixel_size_m=nominal.pixel_size_m)
 
 
-def bundle_config(job) -> BundleConfig:
-    """What the job's adjustment estimates (self-calibration) and its datum (scale bar, else free)."""
+def bundle_config(job, scale: bool = True) -> BundleConfig:
+    """What the job's adjustment estimates (self-calibration) and its datum (scale bar, else free).
+
+    ``scale=False``: the scale bar cannot be used (an end not seen twice): a free network, scale not established."""
     scale_bars = ()
-    if job.scale_bar is not None:
+    if job.scale_bar is not None and scale:
         a, b, length, sigma = job.scale_bar
         scale_bars = (ScaleBar(a, b, length, max(sigma, 1e-7)),)
     sc = job.spec.camera.self_calibrate
@@ -70,51 +73,128 @@ def max_rejections(n_obs: int) -> int:
     return max(20, n_obs // 10)
 
 
-def run_bundle(ctx) -> dict:
+#: a target whose sigma is this many times the median target's is not determined (two nearly parallel rays):
+#: its near-singular block spoils the whole covariance (one 1 m-deep target gave every target a 9 mm axis)
+WILD_SIGMA_FACTOR = 100.0
+#: adjustments after dropping what the previous one could not use (targets behind a camera, wild targets)
+MAX_RETRIES = 4
+
+
+def _adjust(ctx, scr: Screening, obs: dict, obs_image, obs_target, obs_uv, poses_all, intr0):
+    """One bundle adjustment of what the screening kept; returns the result and the subset it used."""
     job = ctx.job
-    obs = json.loads(ctx.folder.file("observations.json").read_text())
-    cal = json.loads(ctx.folder.file("calibration.json").read_text())
-    obs_image, obs_target, obs_uv = observation_arrays(job, obs)
-    poses0 = np.array([r["cam_from_part"] for r in cal["images"]], dtype=float)
-    intr0 = initial_intrinsics(job, cal)
-    config = bundle_config(job)
-    options = BundleOptions(sigma_px=job.spec.camera.sigma_px, max_rejections=max_rejections(len(obs_uv)))
+    kept_images = np.flatnonzero(scr.keep_images)
+    new_index = np.full(len(poses_all), -1)
+    new_index[kept_images] = np.arange(len(kept_images))
+    sel = scr.keep_obs & scr.keep_images[obs_image]
+    img, tgt, uv = new_index[obs_image[sel]], obs_target[sel], obs_uv[sel]
+    poses0 = poses_all[kept_images]
+    config = bundle_config(job, scale=scr.scale_ok)
+    options = BundleOptions(sigma_px=job.spec.camera.sigma_px, max_rejections=max_rejections(len(uv)))
     targets = job.part.targets
     groups = None
     obs_sigma = model_sigma = None
     weights = job.spec.camera.observation_weights
     if weights == "incidence":  # from the Faugeras-Toscani poses: degrees suffice
-        angles = incidence_angles(targets.xyz, targets.normals, poses0, obs_image, obs_target)
+        angles = incidence_angles(targets.xyz, targets.normals, poses0, img, tgt)
         groups = incidence_groups(angles, INCIDENCE_EDGES_DEG)
     if weights == "model":  # the detector's precision by incidence and dot size; the variance factor scales it
         # (no per-class variance components on top: with issue 21's batch snooping they ran away on generated parts,
         # a face-on class estimated at 0.11 px and 280 rejections; the model alone: 10 rejections, honest sigma)
-        obs_sigma = observation_sigmas(targets.xyz, targets.normals, poses0, obs_image, obs_target, intr0.fx_px,
+        obs_sigma = observation_sigmas(targets.xyz, targets.normals, poses0, img, tgt, intr0.fx_px,
                                        job.part.target_diameter_m,
                                        noise_scale=job.spec.sim.noise if ctx.backend == "sim" else 1.0)
         obs_sigma = np.maximum(obs_sigma, 1e-4)
         # a dot next to an edge or a step of the shading: the detector's background bound, its measured share
-        # (docs/decisions/0023); the covariance is then 2x2 per observation
+        # (docs/decisions/0023, truth); the covariance is then 2x2 per observation
         bg = background_bounds(obs)
-        if bg is not None and np.any(bg):
-            model_sigma, obs_sigma = obs_sigma, observation_covariances(obs_sigma, bg)
-    t0 = time.perf_counter()
-    res = bundle_adjust(obs_image, obs_target, obs_uv, intr0, poses0, targets.xyz, options, config,
-                        obs_sigma_px=obs_sigma, obs_group=groups)
-    dt = time.perf_counter() - t0
+        if bg is not None and np.any(bg[sel]):
+            model_sigma, obs_sigma = obs_sigma, observation_covariances(obs_sigma, bg[sel])
+    res = bundle_adjust(img, tgt, uv, intr0, poses0, targets.xyz, options, config, obs_sigma_px=obs_sigma,
+                        obs_group=groups)
     if model_sigma is not None:
         # sigma0 of an observation of the model's rms sigma: a few dots with large background bounds (near zero
         # weight) would otherwise dominate the rms a priori sigma the bundle refers sigma0 to
         used = ~res.rejected
         factor = res.sigma0_px**2 / mean_variance(res.obs_sigma_px[used])
         res.sigma0_px = float(np.sqrt(factor * np.mean(model_sigma[used] ** 2)))
+    return res, (kept_images, sel, img, tgt, uv, groups, model_sigma)
+
+
+def _wild_targets(res) -> tuple[np.ndarray, np.ndarray, float]:
+    """Targets whose sigma exceeds :data:`WILD_SIGMA_FACTOR` times the median target's: (indices, sigmas, median)."""
+    tr = np.trace(res.cov, axis1=1, axis2=2)
+    sig = np.sqrt(np.where(tr > 0, tr, np.nan))
+    fin = np.isfinite(sig)
+    if fin.sum() < 3:
+        return np.zeros(0, dtype=int), sig, float("nan")
+    med = float(np.median(sig[fin]))
+    return np.flatnonzero(fin & (sig > WILD_SIGMA_FACTOR * med)), sig, med
+
+
+def _weakest(sig: np.ndarray, med: float) -> np.ndarray:
+    """When the adjustment did not settle: the targets beyond 10x the median sigma (none: nothing to drop)."""
+    return np.flatnonzero(np.isfinite(sig) & (sig > 10.0 * med)) if np.isfinite(med) else np.zeros(0, dtype=int)
+
+
+def run_bundle(ctx) -> dict:
+    """Screen the network (:mod:`cell.stages.screen`), adjust what it kept, and drop what the adjustment shows
+    it cannot use (a target that ends behind a camera, one that is not determined), each with its reason."""
+    job = ctx.job
+    obs = json.loads(ctx.folder.file("observations.json").read_text())
+    cal = json.loads(ctx.folder.file("calibration.json").read_text())
+    obs_image, obs_target, obs_uv = observation_arrays(job, obs)
+    poses_all = np.array([r["cam_from_part"] for r in cal["images"]], dtype=float)
+    intr0 = initial_intrinsics(job, cal)
+    ids = list(job.part.targets.ids)
+    # poses that go with the common interior orientation: the screening's rays and the adjustment start from them
+    # (Faugeras-Toscani's per-image poses, paired with the common interior orientation, are pixels off: on a thin
+    # network with glare the adjustment started from them diverged, 100 targets behind a camera)
+    poses_screen = resect(intr0, poses_all, obs_image, job.part.targets.xyz[obs_target], obs_uv)
+    scale_pair = tuple(job.scale_bar[:2]) if job.scale_bar is not None else None
+    drop_t: dict[int, str] = {}
+    t0 = time.perf_counter()
+    for attempt in range(MAX_RETRIES + 1):
+        scr = screen_network(obs_image, obs_target, obs_uv, intr0, poses_screen, len(ids), scale_pair=scale_pair,
+                             drop_targets=drop_t, ids=ids)
+        if scr.keep_images.sum() < 2:
+            raise CalibrationError(f"bundle: {int(scr.keep_images.sum())} of {len(poses_all)} images usable "
+                                   "(see the screening reasons in the log); nothing to adjust")
+        try:
+            res, sub = _adjust(ctx, scr, obs, obs_image, obs_target, obs_uv, poses_screen, intr0)
+        except CalibrationError as exc:
+            bad = getattr(exc, "targets", None)
+            if bad is None or attempt == MAX_RETRIES:
+                raise
+            for t in bad:
+                drop_t[int(t)] = ("ended behind a camera that observes it during the adjustment "
+                                  "(misnamed, or its rays nearly parallel)")
+            ctx.log.log("warning", f"adjustment: {len(bad)} target(s) ended behind a camera "
+                                   f"({', '.join(ids[int(t)] for t in bad[:8])}); dropped, adjusting again")
+            continue
+        wild, sig, med = _wild_targets(res)
+        if not res.converged and not wild.size:  # the weakest targets are what keeps an adjustment from settling
+            wild = _weakest(sig, med)
+        if wild.size and attempt < MAX_RETRIES:
+            for t in wild:
+                drop_t[int(t)] = (f"sigma {sig[t] * 1e3:.3g} mm, {sig[t] / med:.0f}x the median target's: "
+                                  "not determined (rays nearly parallel)")
+            ctx.log.log("warning", f"adjustment: {len(wild)} target(s) not determined "
+                                   f"({', '.join(ids[int(t)] for t in wild[:8])}); dropped, adjusting again")
+            continue
+        break
     if not res.converged:
         raise CalibrationError(f"bundle adjustment did not converge: {res.summary}")
     check_adjustment(res.sigma0_px, res.intrinsics, job.intrinsics)  # a converged nonsense is a failure
-    ids = job.part.targets.ids
-    n_img = np.bincount(obs_target[~res.rejected], minlength=len(ids))
-    rejected = [{"image": obs["images"][int(i)]["image"], "target": ids[int(t)], "residual_px": r}
-                for i, t, r, bad in zip(obs_image, obs_target, res.residuals, res.rejected) if bad]
+    var = np.diagonal(res.cov, axis1=1, axis2=2)
+    if np.any(np.isfinite(var).all(axis=1) & (var <= 0).any(axis=1)):  # a singular network, not a measurement
+        raise CalibrationError("bundle: the network is not determined (a target's variance is not positive): its "
+                               "images are too weakly linked; see the screening in the log")
+    dt = time.perf_counter() - t0
+    kept_images, sel, img, tgt, uv, groups, model_sigma = sub
+    n_img = np.bincount(tgt[~res.rejected], minlength=len(ids))
+    rejected = [{"image": obs["images"][int(kept_images[i])]["image"], "target": ids[int(t)], "residual_px": r}
+                for i, t, r, bad in zip(img, tgt, res.residuals, res.rejected) if bad]
     axes, dirs = res.error_ellipsoids()
     # keep the full covariance for the report's alignment (exact propagation)
     buf = io.BytesIO()
@@ -129,9 +209,10 @@ def run_bundle(ctx) -> dict:
         "summary": res.summary,
         "time_s": dt,
         "timings": res.timings,
-        "n_observations": int(len(obs_uv)),
+        "n_observations": int(len(uv)),
         "n_rejected": int(res.rejected.sum()),
         "rejected": rejected,
+        "screening": screening_doc(scr, obs, obs_image, obs_target, ids, attempt),
         "snooping": res.snooping | {"suspect_targets": [ids[int(t)] for t in res.snooping["suspect_targets"]],
                                     "protected": [p.replace(f"scale bar {a}-{b} ", f"scale bar {ids[a]}-{ids[b]} ")
                                                   for p in res.snooping["protected"]
@@ -139,11 +220,27 @@ def run_bundle(ctx) -> dict:
         "intrinsics": res.intrinsics.to_dict(),
         "intrinsics_refined": list(res.intrinsics_names),
         "intrinsics_sigma": np.sqrt(np.diag(res.intrinsics_cov)).tolist() if len(res.intrinsics_names) else [],
-        "images": [{"image": o["image"], "station": o["station"], "cam_from_part": T}
-                   for o, T in zip(obs["images"], res.cam_from_part)],
+        "images": [{"image": obs["images"][int(k)]["image"], "station": obs["images"][int(k)]["station"],
+                    "cam_from_part": T} for k, T in zip(kept_images, res.cam_from_part)],
         "residuals_px": res.residuals,
         "targets": [{"id": tid, "xyz": p, "cov": c, "n_images": int(k), "ellipsoid_axes_m": ax,
                      "ellipsoid_dirs": d} for tid, p, c, k, ax, d in zip(ids, res.points, res.cov, n_img, axes, dirs)],
+    }
+
+
+def screening_doc(scr: Screening, obs: dict, obs_image, obs_target, ids: list[str], retries: int) -> dict:
+    """bundle.json's ``screening``: every observation, target and image the adjustment did not use, and why;
+    whether the scale was established."""
+    ims = obs["images"]
+    return {
+        "dropped_observations": [{"image": ims[int(obs_image[q])]["image"], "target": ids[int(obs_target[q])],
+                                  "reason": why} for q, why in sorted(scr.obs.items())],
+        "dropped_targets": [{"id": ids[t], "reason": why} for t, why in sorted(scr.targets.items())],
+        "dropped_images": [{"image": ims[i]["image"], "station": ims[i]["station"], "reason": why}
+                           for i, why in sorted(scr.images.items())],
+        "scale_established": scr.scale_ok,
+        "scale": scr.scale_reason,
+        "retries": retries,
     }
 
 
@@ -188,6 +285,7 @@ def run(ctx) -> None:
     atomic_write_json(ctx.folder.file("bundle.json"), doc)
     ctx.say(f"  sigma0 {doc['sigma0_px']:.3f} px, {doc['n_rejected']} observation(s) rejected, "
             f"datum {doc['datum']}, {doc['time_s']:.2f} s")
+    say_screening(ctx, doc["screening"])
     sn = doc["snooping"]
     if not sn["complete"]:
         ctx.log.log("warning", f"data snooping stopped early: {sn['stopped']}")
@@ -203,3 +301,29 @@ def run(ctx) -> None:
         ctx.say("  image sigma by incidence (variance components): " + ", ".join(
             f"{g['name']} {g['sigma_px']:.3f} px" + ("" if g["estimated"] else " (common)")
             for g in doc["observation_weights"]["groups"] if g["n_observations"]))
+
+
+def say_screening(ctx, sc: dict) -> None:
+    """The console and the journal: what the adjustment did not use, and a scale not established."""
+    ctx.folder.append("adjustment_screening", dropped_observations=len(sc["dropped_observations"]),
+                      dropped_targets=sc["dropped_targets"], dropped_images=sc["dropped_images"],
+                      scale_established=sc["scale_established"], scale=sc["scale"])
+    parts = []
+    if sc["dropped_observations"]:
+        parts.append(f"{len(sc['dropped_observations'])} gross observation(s)")
+    if sc["dropped_targets"]:
+        parts.append(f"{len(sc['dropped_targets'])} target(s) ("
+                     + ", ".join(f"{d['id']}: {d['reason']}" for d in sc["dropped_targets"][:3])
+                     + (" ..." if len(sc["dropped_targets"]) > 3 else "") + ")")
+    if sc["dropped_images"]:
+        parts.append(f"{len(sc['dropped_images'])} image(s) ("
+                     + ", ".join(f"{d['image']}: {d['reason']}" for d in sc["dropped_images"][:3])
+                     + (" ..." if len(sc["dropped_images"]) > 3 else "") + ")")
+    if parts:
+        msg = "adjustment left out " + "; ".join(parts) + " (bundle.json screening)"
+        ctx.log.log("warning", msg)
+        ctx.say(f"  {msg}")
+    if not sc["scale_established"]:
+        msg = f"scale not established: {sc['scale']}; the network keeps the CAD's scale until it is"
+        ctx.log.log("warning", msg)
+        ctx.say(f"  WARNING {msg}")

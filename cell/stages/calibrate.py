@@ -18,6 +18,8 @@ def run(ctx) -> None:
     orientation far from the robot's is refused here. Such an image is oriented by PnP with the nominal
     camera instead, started from the robot pose, and says so (calibration.json, journal, console). When
     no image passes, the adjustment starts from the nominal lens (said too); never from a refused estimate.
+    An image that cannot be oriented at all (fewer than 4 named dots: glare, a fixture) keeps the robot's pose
+    and says so; the adjustment's screening leaves it out when its observations are too few.
     """
     job = ctx.job
     obs = ctx.folder.read_json("observations.json")
@@ -39,15 +41,16 @@ def run(ctx) -> None:
                     "u0": ft.intrinsics.cx_px, "v0": ft.intrinsics.cy_px, "cam_from_part": ft.cam_from_part,
                     "M": ft.M, "rms_px": ft.rms_px}
         except CalibrationError as exc:
-            if len(uv) < 4:
-                raise CalibrationError(f"image {o['image']} (station {o['station']}): only {len(uv)} targets "
-                                       "identified; cannot orient it") from None
+            reason = str(exc) if str(exc).startswith("Faugeras-Toscani") else f"Faugeras-Toscani: {exc}"
             try:
+                if len(uv) < 4:
+                    raise CalibrationError(f"only {len(uv)} targets identified")
                 T, rms, method = orient_without_ft(xyz, uv, job.intrinsics, guess=robot_pose)
             except CalibrationError as exc2:
-                raise CalibrationError(f"image {o['image']} (station {o['station']}): Faugeras-Toscani refused "
-                                       f"({exc}) and {exc2}") from None
-            reason = str(exc) if str(exc).startswith("Faugeras-Toscani") else f"Faugeras-Toscani: {exc}"
+                # a weak image (glare, a fixture) does not fault the job: it keeps the robot's pose, and ADJUST's
+                # screening leaves it out unless its observations support it
+                T, rms, method = robot_pose, None, "robot pose (not oriented)"
+                reason = f"{reason}; and {exc2}: not oriented"
             rec |= {"method": method, "fallback_reason": reason, "cam_from_part": T, "rms_px": rms}
             ctx.log.log("warning", f"{o['image']}: {reason}; oriented by {method}")
             ctx.folder.append("orientation_fallback", image=o["image"], station=o["station"], method=method,

@@ -29,6 +29,7 @@ from cell.stages.acquire import run as acquire_run
 from cell.stages.adjust import run as adjust_run
 from cell.stages.calibrate import run as calibrate_run
 from cell.stages.measure import run as measure_run
+from cell.stages.screen import LINK_TARGETS
 
 NAME = "closed_loop.json"
 
@@ -110,6 +111,58 @@ def _blocked(ctx, db, opts, cols: np.ndarray) -> np.ndarray:
     return out
 
 
+#: a closed-loop station must see this many targets the adjustment measured (the screening's link)
+LINK_STATION = LINK_TARGETS
+#: a learned incidence limit needs this share of the dots expected beyond it to have been lost
+LOST_SHARE = 0.8
+
+
+def learned_incidence_limit(ctx, opts) -> tuple[float | None, dict]:
+    """The incidence (rad) beyond which the taken images lost their dots (glare, a dot type the detector loses
+    when tilted), or None when they did not: the planner's limit stands.
+
+    For every image taken, the targets the CAD says it sees within the plan's limits and whether they were
+    named. ``a`` is the 98th percentile of the incidences of the named ones; when at least
+    :data:`LOST_SHARE` of the expected dots beyond ``a`` (and 20 or more of them) were lost, ``a`` is the limit.
+    Returns ``(limit or None, facts)``.
+    """
+    from planning.visibility import compute_visibility
+
+    job = ctx.job
+    obs = ctx.folder.read_json("observations.json")["images"]
+    pfc = {s["id"]: np.asarray(s["part_from_cam"], dtype=float) for s in ctx.folder.read_json("plan.json")["stations"]}
+    obs = [o for o in obs if o["station"] in pfc]
+    if not obs:
+        return None, {}
+    T = np.array([pfc[o["station"]] for o in obs])
+    t = job.part.targets
+    expected = compute_visibility(job.part, job.intrinsics, T, opts.visibility_options(), backend=opts.backend)
+    where = {tid: k for k, tid in enumerate(t.ids)}
+    seen = np.zeros_like(expected)
+    for k, o in enumerate(obs):
+        seen[k, [where[i] for i in o["ids"] if i in where]] = True
+    to_cam = T[:, None, :3, 3] - t.xyz[None]
+    inc = np.arccos(np.clip(np.einsum("mnk,nk->mn", to_cam, t.normals) / np.linalg.norm(to_cam, axis=2), -1, 1))
+    judged = (t.code < 0)[None]
+    named = inc[expected & seen & judged]
+    if len(named) < 20:
+        return None, {}
+    a = float(np.quantile(named, 0.98))
+    beyond = expected & judged & (inc > a)
+    lost = float(np.mean(~seen[beyond])) if beyond.any() else 0.0
+    facts = {"incidence_named_p98_deg": float(np.degrees(a)), "expected_beyond": int(beyond.sum()),
+             "lost_share_beyond": lost}
+    if beyond.sum() >= 20 and lost >= LOST_SHARE:
+        return a, facts
+    return None, facts
+
+
+def _incidence(db, xyz: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """(m, k) incidence (rad) of targets ``xyz: (k, 3)`` from the candidates of ``db``."""
+    d = db.part_from_cam[:, None, :3, 3] - xyz[None]
+    return np.arccos(np.clip(np.einsum("mkc,kc->mk", d, normals) / np.linalg.norm(d, axis=2), -1, 1))
+
+
 def _plan_round(ctx, rnd: int, bundle: dict, required: np.ndarray, exclude: set[int]) -> tuple[list[dict], dict]:
     """Choose and validate this round's extra stations; returns their plan.json entries and the round's facts."""
     from cell.setup import collision_world, planner_options
@@ -131,7 +184,19 @@ def _plan_round(ctx, rnd: int, bundle: dict, required: np.ndarray, exclude: set[
     sigma_px = max(sigma_px, 1e-3)
     cols = np.flatnonzero(short)
     visible = db.visible[:, cols] & ~_blocked(ctx, db, opts, cols)
+    limit, inc_facts = learned_incidence_limit(ctx, opts)
+    if limit is not None:  # the images lost their dots beyond it: candidates must see the targets within it
+        visible &= _incidence(db, job.part.targets.xyz[cols], job.part.targets.normals[cols]) <= limit
     valid = reach.reachable & visible.any(axis=1)
+    # a new image must tie into the measured network (the adjustment leaves out images not linked to its main
+    # block): candidates that see fewer than LINK_STATION measured targets within the limits are no use
+    measured_all = np.isfinite(sigma) & (rays >= 2)
+    if measured_all.any():
+        seen_all = db.visible[:, measured_all]
+        if limit is not None:
+            t = job.part.targets
+            seen_all &= _incidence(db, t.xyz[measured_all], t.normals[measured_all]) <= limit
+        valid &= seen_all.sum(axis=1) >= LINK_STATION
     for i in exclude:
         valid[i] = False
     N6, measured = information_from_covariance(cov[cols])
@@ -150,7 +215,13 @@ def _plan_round(ctx, rnd: int, bundle: dict, required: np.ndarray, exclude: set[
              "bound_sigma_m": {ids[int(cols[j])]: (float(aug.bound_sigma[j]) if np.isfinite(aug.bound_sigma[j])
                                                   else None) for j in np.flatnonzero(aug.unreachable)},
              "predicted_fixed": [ids[int(cols[j])] for j in np.flatnonzero(aug.met_after & aug.short)],
-             "image_sigma_px": sigma_px, "candidates_valid": int(valid.sum())}
+             "image_sigma_px": sigma_px, "candidates_valid": int(valid.sum()),
+             "candidate_rule": (f"reachable without collision, seeing it within the plan's limits"
+                                + ("" if limit is None else f" and within the {np.degrees(limit):.1f} deg incidence "
+                                   "beyond which the images lost their dots")
+                                + f", and seeing {LINK_STATION} measured targets to tie into the network"),
+             "incidence_limit_learned_deg": None if limit is None else float(np.degrees(limit)),
+             "incidence_evidence": inc_facts}
     if aug.added.size == 0:
         return [], facts
     # validate the new stations for the robot: IK branch, collision-free moves, order (from the last station)
@@ -259,17 +330,20 @@ def run(ctx) -> None:
     _, sigma, rays = _achieved(bundle, n)
     short = _short(sigma, rays, required, p.min_rays, _judged(job))
     proofs: dict[str, float | None] = {}
+    rule: dict[str, str] = {}
     for r in doc["rounds"]:
         proofs.update(r.get("bound_sigma_m", {}))
+        rule.update({tid: r.get("candidate_rule", "reachable") for tid in r.get("bound_sigma_m", {})})
     unmet = []
     for t in np.flatnonzero(short):
         tid = ids[int(t)]
         s_um = "not measured" if not np.isfinite(sigma[t]) else f"sigma {sigma[t] * 1e6:.1f} um"
         if tid in proofs:
             b = proofs[tid]
-            reason = ("no reachable station can measure it" if b is None else
+            reason = ((f"no candidate station can measure it ({s_um}; candidates: {rule[tid]})") if b is None else
                       f"no reachable station can: with every reachable candidate added the best possible sigma is "
-                      f"{b * 1e6:.1f} um > required {required[t] * 1e6:.1f} um ({s_um} achieved)")
+                      f"{b * 1e6:.1f} um > required {required[t] * 1e6:.1f} um ("
+                      + (s_um if not np.isfinite(sigma[t]) else f"{s_um} achieved") + f"; candidates: {rule[tid]})")
         elif rays[t] < p.min_rays:
             reason = f"{rays[t]} ray(s) of the {p.min_rays} required after {len(doc['rounds'])} round(s)"
         else:

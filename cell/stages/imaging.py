@@ -3,24 +3,44 @@ experiments) uses, in one place.
 
 detect -> drop blobs inside coded markers -> offer the matcher only the targets in view from the
 approximate pose (a hidden dot would steal a visible neighbour's detection) -> identify -> drop dots
-whose rim an edge of the part clips -> remove the eccentricity of each dot's ellipse. Coded targets
-identify the image and refine its pose; they are not measured (docs/decisions/0004).
+whose rim an edge of the part clips -> check each named dot against the ellipse its target must image
+as (a dot clipped by something the CAD does not have, washed out on one side, or merged with a glint is
+left unnamed, with the reason) -> check the image's naming as a whole (a resection on the named dots:
+a naming the pose does not explain is dropped) -> remove the eccentricity of each dot's ellipse. Coded
+targets identify the image and refine its pose; they are not measured (docs/decisions/0004).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
 
-from calibration.camera import Intrinsics, invert
+from calibration.camera import Intrinsics, invert, project
 from calibration.ringcodes import RING_FAMILIES, decode_ring_codes
+from calibration.errors import CalibrationError
 from calibration.targets import (DetectionOptions, detect_coded_targets, detect_dots, eccentricity_bias,
-                                 identify_targets)
+                                 ellipse_moments, identify_targets, refine_pose_pnp, shape_ratios)
 from planning.visibility import Occluder, VisibilityOptions, compute_visibility
 
 #: a coded marker's square, grown by a third, covers its quiet zone: blobs there are the marker's
 MARKER_GROW = 1.33
+
+#: a named dot's second moments against those of the ellipse its target images as (eigenvalues of the one
+#: in the other's metric). Blur only grows a dot, so below SHAPE_MIN it was clipped (an edge or a fixture the
+#: CAD does not have, glare eating one side); above SHAPE_MAX, after BLUR_PX of blur is allowed for, it is
+#: two blobs merged or a glint. On the example's renders whole dots lie in 0.99..1.41 (1,224 dots), the
+#: clipped ones that biased centres by 1-24 px mostly below 0.85 or above 1.9 (decision 0027, hamper).
+SHAPE_MIN = 0.85
+SHAPE_MAX = 1.5
+BLUR_PX = 1.0
+#: an image whose named dots a resection (pose only, the nominal interior orientation) leaves with a median
+#: residual above this is named inconsistently: its naming is not trusted at all. Real deviations of a few
+#: targets do not move a median; a naming that is wrong dot by dot does. A third of the matching window, so
+#: that an uncorrected lens (a real camera's distortion before ADJUST estimates it) is not taken for one.
+RESECTION_MEDIAN_PX = 8.0
+#: fewest named dots for the resection check (below it the image's naming is kept unchecked and said so)
+RESECTION_MIN_DOTS = 8
 
 
 def rim_clear(occluder: Occluder, xyz: np.ndarray, normals: np.ndarray, radius_m: float, eye: np.ndarray,
@@ -71,6 +91,9 @@ class DotMeasurement:
             when the caller gave none.
         bg_cov: (k, 2, 2) the detector's bound on each centre's error from a background that is not a
             plane (px^2, ``Detections.background_cov``), or None.
+        dropped: (target index, reason) of every dot that was named and then left unnamed (partly hidden,
+            shape unlike its target's ellipse, the image's naming inconsistent); never silent.
+        resection_median_px: median residual of the resection on the named dots (None: too few to check).
     """
 
     target: np.ndarray
@@ -80,18 +103,30 @@ class DotMeasurement:
     n_partly_hidden: int = 0
     cov: np.ndarray | None = None
     bg_cov: np.ndarray | None = None
+    dropped: list = field(default_factory=list)
+    resection_median_px: float | None = None
+
+    @property
+    def n_shape(self) -> int:
+        """Named dots dropped because their shape is not their target's ellipse."""
+        return sum(1 for _, why in self.dropped if why.startswith("shape"))
 
 
 def name_dots(det_uv: np.ndarray, part, intr: Intrinsics, cam_from_part: np.ndarray, occluder: Occluder, *,
               max_dist_px: float = 25.0, incidence_max_rad: float = float(np.deg2rad(85.0)),
               coded_ids: np.ndarray | None = None, coded_uv: np.ndarray | None = None,
-              det_cov: np.ndarray | None = None, det_bg_cov: np.ndarray | None = None) -> DotMeasurement:
+              det_cov: np.ndarray | None = None, det_bg_cov: np.ndarray | None = None,
+              det_axes: np.ndarray | None = None) -> DotMeasurement:
     """Identify detected dot centres ``det_uv: (k, 2)`` with an approximate pose and measure them.
 
-    ``det_cov, det_bg_cov: (k, 2, 2)`` (px^2) travel with the centres they belong to.
+    ``det_cov, det_bg_cov: (k, 2, 2)`` (px^2) travel with the centres they belong to. ``det_axes: (k, 2, 2)``
+    (px^2, ``Detections.axes``): each named dot's shape is checked against its target's ellipse
+    (:data:`SHAPE_MIN`, :data:`SHAPE_MAX`) and dropped with the reason when it is not that ellipse; None: no
+    shape check.
 
     Only dots in view from the pose at no more than ``incidence_max_rad`` are offered to the matcher;
     coded detections (``coded_ids``, ``coded_uv``) refine the pose first (PnP) when there are enough.
+    The naming is then checked as a whole by a resection (:data:`RESECTION_MEDIAN_PX`).
     """
     t = part.targets
     det_uv = np.asarray(det_uv, dtype=float).reshape(-1, 2)
@@ -106,13 +141,34 @@ def name_dots(det_uv: np.ndarray, part, intr: Intrinsics, cam_from_part: np.ndar
     radius = part.target_diameter_m / 2
     eye = invert(cam_from_part)[:3, 3]
     clear = rim_clear(occluder, t.xyz[match[dots]], t.normals[match[dots]], radius, eye)
+    dropped = [(int(i), "partly hidden by an edge of the part (CAD)") for i in match[dots[~clear]]]
     dots = dots[clear]
+    if det_axes is not None and len(dots):
+        tid = match[dots]
+        pred = ellipse_moments(intr, cam_from_part, t.xyz[tid], t.normals[tid], radius)
+        lo, hi = shape_ratios(np.asarray(det_axes, dtype=float)[dots], pred, BLUR_PX)
+        ok = (lo >= SHAPE_MIN) & (hi <= SHAPE_MAX)
+        dropped += [(int(i), f"shape {a:.2f}..{b:.2f} of its ellipse's (clipped, washed out or merged; "
+                             f"{SHAPE_MIN}..{SHAPE_MAX} accepted)") for i, a, b in zip(tid[~ok], lo[~ok], hi[~ok])]
+        dots = dots[ok]
     tid = match[dots]
     bias = eccentricity_bias(intr, cam_from_part, t.xyz[tid], t.normals[tid], radius)
-    return DotMeasurement(tid, det_uv[dots] - bias, np.asarray(cam_from_part, dtype=float),
+    uv = det_uv[dots] - bias
+    med = None
+    if len(dots) >= RESECTION_MIN_DOTS:
+        try:
+            pose = refine_pose_pnp(intr, cam_from_part, t.xyz[tid], uv)
+            med = float(np.median(np.linalg.norm(uv - project(intr, pose, t.xyz[tid]), axis=1)))
+        except CalibrationError:
+            med = float("inf")
+        if not med <= RESECTION_MEDIAN_PX:
+            dropped += [(int(i), f"the image's naming is inconsistent: resection median residual {med:.1f} px > "
+                                 f"{RESECTION_MEDIAN_PX} px") for i in tid]
+            dots, tid, uv = dots[:0], tid[:0], uv[:0]
+    return DotMeasurement(tid, uv, np.asarray(cam_from_part, dtype=float),
                           int((match < 0).sum()), int((~clear).sum()),
                           None if det_cov is None else np.asarray(det_cov)[dots],
-                          None if det_bg_cov is None else np.asarray(det_bg_cov)[dots])
+                          None if det_bg_cov is None else np.asarray(det_bg_cov)[dots], dropped, med)
 
 
 def detection_options(camera) -> DetectionOptions:
@@ -126,12 +182,13 @@ def detection_options(camera) -> DetectionOptions:
 def measure_image(image: np.ndarray, part, intr: Intrinsics, cam_from_part_approx: np.ndarray, occluder: Occluder, *,
                   detection: DetectionOptions | None = None, max_dist_px: float = 25.0,
                   incidence_max_rad: float = float(np.deg2rad(85.0)),
-                  coded_family: str = "aruco") -> tuple[DotMeasurement, dict]:
+                  coded_family: str = "aruco", shape_check: bool = True) -> tuple[DotMeasurement, dict]:
     """Detect, identify and measure the dots of one image from its approximate pose.
 
     ``coded_family``: "aruco" (markers found by OpenCV) or a ring-code family (``calibration.ringcodes``:
     the code rings around detected dots are read, the rings' pieces dropped). Either way the coded targets
     name the image and refine its pose; they are not measured (decision 0004).
+    ``shape_check``: drop named dots whose shape is not their target's ellipse (:func:`name_dots`).
     Returns the measurement and counts for the record (dots, coded markers seen).
     """
     t = part.targets
@@ -149,5 +206,6 @@ def measure_image(image: np.ndarray, part, intr: Intrinsics, cam_from_part_appro
         keep = ~inside_any(det.uv, corners[known], grow=MARKER_GROW)
     m = name_dots(det.uv[keep], part, intr, cam_from_part_approx, occluder, max_dist_px=max_dist_px,
                   incidence_max_rad=incidence_max_rad, coded_ids=codes[known], coded_uv=centres[known],
-                  det_cov=det.cov[keep], det_bg_cov=None if det.background_cov is None else det.background_cov[keep])
+                  det_cov=det.cov[keep], det_bg_cov=None if det.background_cov is None else det.background_cov[keep],
+                  det_axes=det.axes[keep] if shape_check else None)
     return m, {"n_dots": int(keep.sum()), "n_coded": int(known.sum())}

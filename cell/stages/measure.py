@@ -3,7 +3,10 @@
 observations.json: ``images``: list of {``station``, ``image``, ``ids``, ``uv`` (k, 2 px), ``cov_px2`` (k, 2, 2:
 each centre's covariance from the detector, px^2, ``calibration.dots.Detections.cov``), ``bg_cov_px2`` (k, 2, 2:
 the detector's bound on each centre's error from a background that is not a plane, px^2,
-``Detections.background_cov``; ADJUST adds its share to the image precision), counts}.
+``Detections.background_cov``; ADJUST adds its share to the image precision), counts,
+``dropped``: list of {``id``, ``reason``} (dots that were named and then left unnamed: partly hidden,
+shape unlike the target's ellipse, the image's naming inconsistent), ``resection_median_px``};
+``n_dropped`` (all images) and ``dropped_by_reason`` at the top level.
 """
 from __future__ import annotations
 
@@ -49,13 +52,37 @@ def run(ctx, keep: bool = False) -> None:
         m, counts = measure_image(img, job.part, job.intrinsics, cam_from_part, occluder, detection=detection,
                                   coded_family=job.spec.job.coded_family)
         names = [ids_all[int(i)] for i in m.target]
+        dropped = [{"id": ids_all[i], "reason": why} for i, why in m.dropped]
         out.append({"station": im["station"], "image": im["image"], "ids": names, "uv": m.uv, "cov_px2": m.cov,
                     "bg_cov_px2": m.bg_cov,
-                    "n_unidentified": m.n_unidentified, "n_partly_hidden": m.n_partly_hidden} | counts)
+                    "n_unidentified": m.n_unidentified, "n_partly_hidden": m.n_partly_hidden,
+                    "n_shape_rejected": m.n_shape, "dropped": dropped,
+                    "resection_median_px": m.resection_median_px} | counts)
+        if m.n_shape or len(m.dropped) > m.n_partly_hidden:
+            ctx.log.log("info", f"{im['image']}: {len(m.dropped)} named dot(s) left unnamed: " + "; ".join(
+                f"{d['id']} {d['reason']}" for d in dropped[:6]) + (" ..." if len(dropped) > 6 else ""))
         ctx.log.detections(im["station"], names, m.uv)
     ctx.progress("measure", 1.0)
-    atomic_write_json(ctx.folder.file("observations.json"), {"images": out})
+    by_reason = dropped_by_reason(out)
+    atomic_write_json(ctx.folder.file("observations.json"), {"images": out, "n_dropped": sum(by_reason.values()),
+                                                             "dropped_by_reason": by_reason})
     n = [len(o["ids"]) for o in out]
+    ctx.folder.append("identification_dropped", total=sum(by_reason.values()), by_reason=by_reason)
     ctx.say(f"  {sum(n)} observations in {len(out)} images ({min(n)}..{max(n)} per image); "
             f"{sum(o['n_partly_hidden'] for o in out)} partly hidden dots dropped, "
             f"{sum(o['n_unidentified'] for o in out)} other blobs (marker pieces, edges) ignored")
+    other = {k: v for k, v in by_reason.items() if k != "partly hidden (CAD)"}
+    if other:
+        ctx.say("  named dots left unnamed rather than misnamed: " + ", ".join(f"{v} {k}" for k, v in other.items()))
+
+
+def dropped_by_reason(images: list[dict]) -> dict[str, int]:
+    """How many named dots each check left unnamed, over ``images`` (observations.json's records)."""
+    kinds = {"partly hidden": "partly hidden (CAD)", "shape": "shape unlike the target's ellipse",
+             "the image's naming": "in images whose naming is inconsistent"}
+    out: dict[str, int] = {}
+    for o in images:
+        for d in o.get("dropped", []):
+            k = next((v for p, v in kinds.items() if d["reason"].startswith(p)), "other")
+            out[k] = out.get(k, 0) + 1
+    return out

@@ -151,7 +151,8 @@ def _closed_loop(f) -> dict | None:
         return None
     rounds = [{"round": r["round"], "status": r["status"], "stations_added": r.get("stations_added", []),
                "targets_short": r.get("targets_short", []), "targets_fixed": r.get("targets_fixed", []),
-               "time_s": r.get("time_s")} for r in cl["rounds"]]
+               "time_s": r.get("time_s"), "incidence_limit_learned_deg": r.get("incidence_limit_learned_deg")}
+              for r in cl["rounds"]]
     return {"required_sigma_m": cl.get("required_sigma_m"), "rounds": rounds,
             "unmet": [{"id": u["id"], "reason": u["reason"]} for u in cl.get("unmet", [])]}
 
@@ -160,6 +161,10 @@ def write_report(ctx) -> str:
     job = ctx.job
     f = ctx.folder
     bundle = json.loads(f.file("bundle.json").read_text())
+    sc = bundle.get("screening") or {}
+    if sc.get("scale_established") is False:  # the job declares a scale bar: no report in the CAD's scale
+        raise CalibrationError(f"scale not established: {sc.get('scale')}; add stations that see both ends "
+                               "([planning] closed_loop = true plans them) or check the scale bar's targets")
     plan = json.loads(f.file("plan.json").read_text())
     ids = job.part.targets.ids
     nominal = job.part.targets.xyz
@@ -240,6 +245,8 @@ def write_report(ctx) -> str:
         "inconclusive": [ids[j] for j in np.flatnonzero(judged) if decision[j] == "inconclusive"],
         "coded_targets": [ids[j] for j in np.flatnonzero(coded)],
         "rejected_observations": bundle.get("rejected", []),
+        "left_out": {"observations": len(sc.get("dropped_observations", [])),
+                     "targets": sc.get("dropped_targets", []), "images": sc.get("dropped_images", [])},
     }
     loop = _closed_loop(f)
     if loop is not None:
