@@ -167,6 +167,25 @@ def identify_targets(
     return match
 
 
+def _disc_conics(
+    intr: Intrinsics, cam_from_part: np.ndarray, xyz: np.ndarray, normals: np.ndarray, radius_m: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """``H = K [r R e1, r R e2, R c + t]`` (n, 3, 3) of circles of ``radius_m`` at ``xyz`` with ``normals``, and
+    their image conics ``C = H^-T diag(1, 1, -1) H^-1`` (n, 3, 3)."""
+    xyz = np.asarray(xyz, dtype=float).reshape(-1, 3)
+    nrm = np.asarray(normals, dtype=float).reshape(-1, 3)
+    T = np.asarray(cam_from_part, dtype=float)
+    R, t = T[:3, :3], T[:3, 3]
+    a = np.where(np.abs(nrm[:, :1]) < 0.9, np.array([[1.0, 0.0, 0.0]]), np.array([[0.0, 1.0, 0.0]]))
+    e1 = np.cross(nrm, a)
+    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+    e2 = np.cross(nrm, e1)
+    H = intr.K @ np.stack([radius_m * e1 @ R.T, radius_m * e2 @ R.T, xyz @ R.T + t], axis=2)  # camera frame
+    Hinv = np.linalg.inv(H)
+    C = np.einsum("nji,jk,nkl->nil", Hinv, np.diag([1.0, 1.0, -1.0]), Hinv)
+    return H, C
+
+
 def eccentricity_bias(
     intr: Intrinsics, cam_from_part: np.ndarray, xyz: np.ndarray, normals: np.ndarray, radius_m: float
 ) -> np.ndarray:
@@ -179,19 +198,7 @@ def eccentricity_bias(
     target's size and its tilt). Subtract it from measured centres. Distortion is ignored: its
     effect on this small offset is of second order.
     """
-    xyz = np.asarray(xyz, dtype=float).reshape(-1, 3)
-    nrm = np.asarray(normals, dtype=float).reshape(-1, 3)
-    T = np.asarray(cam_from_part, dtype=float)
-    R, t = T[:3, :3], T[:3, 3]
-    a = np.where(np.abs(nrm[:, :1]) < 0.9, np.array([[1.0, 0.0, 0.0]]), np.array([[0.0, 1.0, 0.0]]))
-    e1 = np.cross(nrm, a)
-    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
-    e2 = np.cross(nrm, e1)
-    K = intr.K
-    H = np.stack([radius_m * e1 @ R.T, radius_m * e2 @ R.T, xyz @ R.T + t], axis=2)  # (n, 3, 3) camera frame
-    H = K @ H
-    Hinv = np.linalg.inv(H)
-    C = np.einsum("nji,jk,nkl->nil", Hinv, np.diag([1.0, 1.0, -1.0]), Hinv)
+    H, C = _disc_conics(intr, cam_from_part, xyz, normals, radius_m)
     A = C[:, :2, :2]
     b = C[:, :2, 2]
     centre = -np.linalg.solve(A, b[..., None])[..., 0]
@@ -208,19 +215,9 @@ def ellipse_moments(
     ``S = s A^-1``; a uniformly bright ellipse has second moments ``S / 4`` (a disc of radius r: r^2/4 I),
     what :func:`calibration.dots.detect_dots` reports as ``Detections.axes``. Distortion is ignored.
     """
-    xyz = np.asarray(xyz, dtype=float).reshape(-1, 3)
-    nrm = np.asarray(normals, dtype=float).reshape(-1, 3)
-    if len(xyz) == 0:
+    if len(np.asarray(xyz).reshape(-1, 3)) == 0:
         return np.zeros((0, 2, 2))
-    T = np.asarray(cam_from_part, dtype=float)
-    R, t = T[:3, :3], T[:3, 3]
-    a = np.where(np.abs(nrm[:, :1]) < 0.9, np.array([[1.0, 0.0, 0.0]]), np.array([[0.0, 1.0, 0.0]]))
-    e1 = np.cross(nrm, a)
-    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
-    e2 = np.cross(nrm, e1)
-    H = intr.K @ np.stack([radius_m * e1 @ R.T, radius_m * e2 @ R.T, xyz @ R.T + t], axis=2)
-    Hinv = np.linalg.inv(H)
-    C = np.einsum("nji,jk,nkl->nil", Hinv, np.diag([1.0, 1.0, -1.0]), Hinv)
+    _, C = _disc_conics(intr, cam_from_part, xyz, normals, radius_m)
     A = C[:, :2, :2]
     b = C[:, :2, 2]
     s = np.einsum("ni,ni->n", b, np.linalg.solve(A, b[..., None])[..., 0]) - C[:, 2, 2]
