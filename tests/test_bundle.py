@@ -348,3 +348,27 @@ def test_a_wrong_control_point_is_named_suspect():
                options=BundleOptions(sigma_px=net.sigma_px, max_rejections=200))
     assert int(idx[0]) in res.snooping["suspect_targets"]
     assert any("control" in p for p in res.snooping["protected"])
+
+
+def test_a_target_left_with_two_rays_after_a_rejection_is_suspect():
+    """A target that lost one of three rays keeps a pair whose error could be neither located nor told from the
+    rejected ray's: it is named suspect (reported inconclusive); untouched three-ray targets are not."""
+    rng = np.random.default_rng(29)
+    net = simulate_network(rng, n_targets=120, n_images=10)
+    keep = np.ones(len(net.obs_image), bool)
+    three = []
+    for t in range(0, 40, 4):  # ten targets cut down to three rays each
+        obs = np.flatnonzero(net.obs_target == t)
+        if len(obs) > 3:
+            keep[obs[3:]] = False
+            three.append(t)
+    sub = replace(net, obs_image=net.obs_image[keep], obs_target=net.obs_target[keep], obs_uv=net.obs_uv[keep])
+    uv = sub.obs_uv.copy()
+    target = three[0]
+    bad = np.flatnonzero(sub.obs_target == target)[1]
+    uv[bad] += [6.0, -6.0]  # one blunder of 8.5 px on a three-ray target
+    res = _run(sub, *_start(rng, sub), uv=uv, options=BundleOptions(sigma_px=sub.sigma_px))
+    assert res.rejected[np.flatnonzero(sub.obs_target == target)].sum() >= 1
+    assert target in res.snooping["suspect_targets"]
+    clean = [t for t in three[1:] if not res.rejected[sub.obs_target == t].any()]
+    assert clean and not set(clean) & set(res.snooping["suspect_targets"])

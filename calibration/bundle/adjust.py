@@ -217,7 +217,9 @@ def _reinstate(options, rejected, reinstated, act_obs, state, lin, lay, stats, s
 def _say_snooping(snoop: dict, config, options, rejected: np.ndarray, obs_target: np.ndarray) -> None:
     """Add to ``snoop`` what an operator must read: ``complete`` (False: stopped before the end), ``stopped``
     (why, with how many still fail at the cap), ``n_rejected``, ``suspect_targets`` (targets that lost half of
-    their observations or more: the target itself, e.g. its control coordinates or its name, is suspect) and
+    their observations or more: the target itself, e.g. its control coordinates or its name, is suspect; or that
+    lost any and kept two rays or fewer: a pair of rays has one redundancy, an error in it can be neither located
+    nor told from the rejected ray's, so the choice snooping made between them cannot be verified) and
     ``protected`` (observations snooping never tests: scale-bar lengths, control coordinates)."""
     why = snoop.get("stopped_because", "")
     snoop["complete"] = why in ("off", "nothing testable", "no observation fails")
@@ -226,7 +228,8 @@ def _say_snooping(snoop: dict, config, options, rejected: np.ndarray, obs_target
     snoop["n_rejected"] = int(rejected.sum())
     n_obs = np.bincount(obs_target, minlength=int(obs_target.max()) + 1 if len(obs_target) else 0)
     n_rej = np.bincount(obs_target[rejected], minlength=len(n_obs))
-    snoop["suspect_targets"] = [int(t) for t in np.flatnonzero((n_rej > 0) & (2 * n_rej >= n_obs))]
+    unverified = (2 * n_rej >= n_obs) | (n_obs - n_rej <= 2)
+    snoop["suspect_targets"] = [int(t) for t in np.flatnonzero((n_rej > 0) & unverified)]
     protected = [f"scale bar {b.target_a}-{b.target_b} length (not tested: it defines the scale)"
                  for b in config.scale_bars]
     if config.control is not None and len(config.control.index):

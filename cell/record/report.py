@@ -175,7 +175,9 @@ def _status(t: dict) -> str:
     if t["measured"][0] is None:
         return "NOT MEASURED"
     status = "PASS" if t["pass"] else "FAIL"
-    if t.get("decision") == "inconclusive":
+    if t.get("suspect"):
+        status += " (inconclusive: suspect, its observations could not be verified)"
+    elif t.get("decision") == "inconclusive":
         status += " (inconclusive: within U of the tolerance)"
     return status
 
@@ -198,7 +200,7 @@ def _alerts(doc: dict) -> str:
         out.append(f'<div class="alert" id="snooping-alert">Blunder test stopped before the end: '
                    f'{html.escape(str(sn.get("stopped")))}</div>')
     if sn.get("suspect_targets"):
-        out.append(f'<div class="warn">Targets that lost half of their observations as blunders (suspect): '
+        out.append(f'<div class="warn">Targets whose observations the blunder test could not verify (lost half of their rays, or kept two or fewer after a rejection; inconclusive): '
                    f'{html.escape(", ".join(sn["suspect_targets"]))}</div>')
     fb = doc.get("orientation_fallbacks") or []
     if fb:

@@ -291,7 +291,10 @@ def run(ctx) -> None:
         ctx.log.log("warning", f"data snooping stopped early: {sn['stopped']}")
         ctx.say(f"  WARNING data snooping stopped early: {sn['stopped']}")
     if sn["suspect_targets"]:
-        ctx.say(f"  WARNING targets that lost half of their observations (suspect): {', '.join(sn['suspect_targets'])}")
+        msg = ("targets whose observations data snooping could not verify (lost half of their rays, or kept two or "
+               f"fewer after a rejection; reported inconclusive): {', '.join(sn['suspect_targets'])}")
+        ctx.log.log("warning", msg)
+        ctx.say(f"  WARNING {msg}")
     if doc["observation_weights"]["method"] == "model":
         w = doc["observation_weights"]
         ctx.say(f"  image sigma from the detector model: median {w['a_priori_sigma_px']['median']:.4f} px, "

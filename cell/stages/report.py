@@ -86,7 +86,8 @@ def _calibration_status(ctx) -> dict:
 
 #: How each target's conformance is decided, stated in the report.
 DECISION_RULE = ("ISO 14253-1: conforming if |d| + U <= tolerance, nonconforming if |d| - U > tolerance, "
-                 "else inconclusive; U = 2 sigma of the deviation along its direction (k = 2). 'pass' is |d| <= tolerance.")
+                 "else inconclusive; U = 2 sigma of the deviation along its direction (k = 2). 'pass' is |d| <= tolerance. "
+                 "A suspect target (its observations could not be verified by data snooping) is inconclusive.")
 
 
 def conformance(deviation: np.ndarray, deviation_cov: np.ndarray, tol: np.ndarray, ok: np.ndarray,
@@ -190,6 +191,10 @@ def write_report(ctx) -> str:
     coded = job.part.targets.kind == "coded"  # identification aids: not measured, not judged
     passed = ok & (dev_norm <= tol)
     U, decision = conformance(al.deviation, al.deviation_cov, tol, ok)
+    # a target whose observations snooping could not verify (bundle.json snooping.suspect_targets: it lost half of
+    # its rays as blunders, or lost any and kept two or fewer) cannot be decided on: its measurement may be wrong
+    suspect = set((bundle.get("snooping") or {}).get("suspect_targets") or [])
+    decision = ["inconclusive" if d is not None and tid in suspect else d for d, tid in zip(decision, ids)]
     n_img = [t["n_images"] for t in bundle["targets"]]
     targets = []
     for j, tid in enumerate(ids):
@@ -200,7 +205,7 @@ def write_report(ctx) -> str:
             "cov": al.deviation_cov[j], "measured_cov": cov[j], "deviation": al.deviation[j],
             "deviation_norm_m": dev_norm[j], "tolerance_m": tol[j], "pass": bool(passed[j]),
             "significance_sigma": level[j], "significant": bool(level[j] > k),
-            "uncertainty_U_m": U[j], "decision": decision[j],
+            "uncertainty_U_m": U[j], "decision": decision[j], "suspect": tid in suspect,
             "predicted_sigma_m": predicted.get(tid, np.nan), "achieved_sigma_m": achieved[j], "n_images": n_img[j],
         })
     recs = list(f.records())
