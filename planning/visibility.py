@@ -153,13 +153,18 @@ class Occluder:
             )
             out[sl] = (np.asarray(hit) != -1) & (length > 0)
 
+        self._each_chunk(run, slices)
+        return out
+
+    def _each_chunk(self, run, slices: list[slice]) -> None:
+        """``run(sl)`` for every slice: on ``self.workers`` threads when there is more than one (Embree releases
+        the GIL), else in turn."""
         if self.workers > 1 and len(slices) > 1:
             with ThreadPoolExecutor(self.workers) as pool:
                 list(pool.map(run, slices))
         else:
             for sl in slices:
                 run(sl)
-        return out
 
     def occluded_pairs(self, cast: np.ndarray, starts_all: np.ndarray, eyes: np.ndarray,
                        chunk: int = 1 << 18) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -179,13 +184,7 @@ class Occluder:
             hit = self._scene.run(o[sl], d[sl], query="OCCLUDED", dists=length[sl])
             out[sl] = (np.asarray(hit) != -1) & (length[sl] > 0)
 
-        slices = [slice(i, min(i + chunk, r)) for i in range(0, r, chunk)]
-        if self.workers > 1 and len(slices) > 1:
-            with ThreadPoolExecutor(self.workers) as pool:
-                list(pool.map(run, slices))
-        else:
-            for sl in slices:
-                run(sl)
+        self._each_chunk(run, [slice(i, min(i + chunk, r)) for i in range(0, r, chunk)])
         return ci, ti, out
 
     def _occluded_numpy(self, starts: np.ndarray, ends: np.ndarray) -> np.ndarray:

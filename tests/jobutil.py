@@ -22,6 +22,19 @@ REPO = Path(__file__).resolve().parents[1]
 EXAMPLE = REPO / "examples" / "bracket"
 
 
+def start_loopback_controller(subnet: str, **kwargs):
+    """A loopback UR controller (``sim_backend.ur_controller``) started on the first free address
+    ``<subnet>.10`` .. ``<subnet>.49`` (the ports are fixed: another controller, another test, may hold one)."""
+    from sim_backend.ur_controller import LoopbackURController
+
+    for k in range(40):
+        try:
+            return LoopbackURController(f"{subnet}.{10 + k}", **kwargs).start()
+        except OSError:
+            continue
+    raise RuntimeError(f"no free loopback address in {subnet}.x for a UR controller")
+
+
 def cell_command() -> list[str]:
     """The ``cell`` console script of this interpreter's environment (or ``python -m cell.cli``)."""
     script = Path(sys.executable).parent / "cell"

@@ -15,25 +15,14 @@ import numpy as np
 import pytest
 
 from cell.record.runlog import read_messages
-from jobutil import cell_command, child_env, job_variant, records, run_cell, truth_xyz_m
+from jobutil import cell_command, child_env, job_variant, records, run_cell, start_loopback_controller, truth_xyz_m
 
 STOP_AT_STATION = 3  # the protective stop comes during the move to the third station
 
 
-def _start_controller():
-    from sim_backend.ur_controller import LoopbackURController
-
-    for k in range(40):  # the ports are fixed: another controller (another test) may hold an address
-        try:
-            return LoopbackURController(f"127.0.9.{10 + k}", robot="ur10e", time_scale=8.0).start()
-        except OSError:
-            continue
-    raise RuntimeError("no free loopback address for a UR controller")
-
-
 @pytest.fixture
 def controller():
-    ctrl = _start_controller()
+    ctrl = start_loopback_controller("127.0.9", robot="ur10e", time_scale=8.0)
     yield ctrl
     ctrl.close()
 

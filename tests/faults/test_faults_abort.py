@@ -21,27 +21,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from jobutil import RecordingOutput, cell_command, child_env, job_variant, records
+from jobutil import RecordingOutput, cell_command, child_env, job_variant, records, start_loopback_controller
 
 STOP_DECEL = 4.0  # rad/s^2: URRobot's default stop deceleration
 LATENCY_S = 0.25  # signal -> parent -> client process -> RTDE -> controller tick, on a loaded 2-core machine
 MIN_SPEED = 0.4  # rad/s: abort only once the arm is well under way
 
 
-def _start_controller():
-    from sim_backend.ur_controller import LoopbackURController
-
-    for k in range(40):
-        try:
-            return LoopbackURController(f"127.0.8.{10 + k}", robot="ur10e", time_scale=1.0).start()
-        except OSError:
-            continue
-    raise RuntimeError("no free loopback address for a UR controller")
-
-
 @pytest.fixture
 def controller():
-    ctrl = _start_controller()
+    ctrl = start_loopback_controller("127.0.8", robot="ur10e", time_scale=1.0)
     yield ctrl
     ctrl.close()
 
