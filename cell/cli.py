@@ -359,5 +359,7 @@ def entry() -> None:
     os._exit(code)
 
 
-if __name__ == "__main__":
-    entry()
+if __name__ == "__main__":  # python -m cell.cli: run the importable module's entry (commands import cell.cli and
+    from cell.cli import entry as _entry  # read its ONE_SHOT, not this __main__ copy's)
+
+    _entry()

@@ -340,8 +340,8 @@ class JobRunner:
             return status, reason
         # a bug: still one terminal record with the cause
         status, reason = State.FAULTED, f"{self.state.value}: internal error {type(exc).__name__}: {exc}"
+        self._stop_robot(ctx)  # first: a journal write may fail too (disk full)
         self.folder.append("traceback", text=traceback.format_exc())
-        self._stop_robot(ctx)
         self._go(ctx, State.FAULTED, reason)
         return status, reason
 

@@ -263,6 +263,7 @@ class URRobot:
         thread waits for a move; this call then waits (bounded) until the arm is at rest. Never
         raises: for a robot already stopped, or gone, it returns what it can (None when gone).
         """
+        self.last_rest = None  # a stop that returns early says nothing about when the arm came to rest
         worker = self._worker
         if worker is None:
             return None

@@ -78,7 +78,10 @@ class Worker:
         self._stop_done = False  # the signalled stop was carried out (last_rest says when the arm came to rest)
 
     def _on_stop_signal(self, signum, frame) -> None:
-        self.stop_requested, self._stop_done = True, False
+        # one abort may signal more than once (handler, runner, stop()): a repeat while the stop is pending must not
+        # send a second stopj to an arm at rest, nor replace the rest time the first one measured
+        if not self.stop_requested:
+            self.stop_requested, self._stop_done = True, False
 
     # ------------------------------------------------------------ main loop
     def run(self) -> None:

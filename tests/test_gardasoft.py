@@ -98,7 +98,7 @@ def test_no_reply_is_a_timeout_naming_the_device(kind):
         start = time.monotonic()
         with pytest.raises(NoReplyError, match="no reply to 'TR1' within 0.20 s"):
             light.trigger()
-        assert 0.15 < time.monotonic() - start < 1.0
+        assert 0.15 < time.monotonic() - start < 5.0  # upper bound loose: a loaded machine
         assert isinstance(NoReplyError("x"), NotConnectedError)
         em.fault = None
         time.sleep(0.05)

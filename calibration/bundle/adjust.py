@@ -114,6 +114,7 @@ def _bundle_adjust(obs_image, obs_target, obs_uv, intrinsics, cam_from_part, poi
     state = _State(intrinsics, poses0, x0.copy())
     timings = {"solve": 0.0, "datum": 0.0, "covariance": 0.0, "snooping": 0.0}
     thr = chdtri(2, options.alpha / q)  # chi2.isf(alpha / q, 2)
+    solver_fallback = None
     snoop = {"rounds": 0, "threshold": float(thr), "reinstated": 0, "untestable_rejected": 0,
              "batch": bool(options.snooping_batch)}
     while True:
@@ -134,6 +135,8 @@ def _bundle_adjust(obs_image, obs_target, obs_uv, intrinsics, cam_from_part, poi
             t0 = time.perf_counter()
             state, usable, report, on_datum = _solve(state, x0, lay, config, args, sig[act_obs], active_pts, options)
             timings["solve"] += time.perf_counter() - t0
+            if options.solver == "gauss_newton" and not on_datum:  # pycolmap took over: said by the caller
+                solver_fallback = report
         for it in range(1, max(options.vce_iterations, 1) + 1 if group is not None else 2):
             t1 = time.perf_counter()
             if it == 1 and on_datum:  # the solve ended at the optimum for these sigmas, in the datum
@@ -194,6 +197,7 @@ def _bundle_adjust(obs_image, obs_target, obs_uv, intrinsics, cam_from_part, poi
                   usable and (dconv or (config.datum == "free" and not full_gn and not warm)), report, timings,
                   time.perf_counter() - t_start)
     res.obs_sigma_px, res.variance_components, res.snooping = sig, vc, snoop
+    res.solver_fallback = solver_fallback
     _say_snooping(snoop, config, options, rejected, obs_target)
     if weighted:  # sigma0 in pixels: of an observation of the rms a priori sigma (equal weights: options.sigma_px)
         res.sigma0_px = float(np.sqrt(stats["s02"] * mean_variance(sig[act_obs])))

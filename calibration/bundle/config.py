@@ -173,6 +173,8 @@ class BundleResult:
             it stopped), ``reinstated`` (observations put back), ``untestable_rejected`` (rejected
             observations whose target left the network, so they could not be re-tested),
             ``variance_factor`` ("adjustment" | "robust": what the last round's tests divided by).
+        solver_fallback: None when the chosen solver ran to the end; else why Gauss-Newton handed the first
+            solve over to pycolmap's Levenberg-Marquardt (the result is pycolmap's, then checked as any other).
     """
 
     points: np.ndarray
@@ -195,6 +197,7 @@ class BundleResult:
     obs_sigma_px: np.ndarray | None = None
     variance_components: VarianceComponents | None = None
     snooping: dict = field(default_factory=dict)
+    solver_fallback: str | None = None
 
     def error_ellipsoids(self, k: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
         """Semi-axes ``(n, 3)`` (metres, ascending, times ``k``) and axis directions ``(n, 3, 3)`` (columns)."""

@@ -202,17 +202,20 @@ def _alerts(doc: dict) -> str:
     if sn.get("suspect_targets"):
         out.append(f'<div class="warn">Targets whose observations the blunder test could not verify (lost half of their rays, or kept two or fewer after a rejection; inconclusive): '
                    f'{html.escape(", ".join(sn["suspect_targets"]))}</div>')
+    if doc.get("solver_fallback"):
+        out.append('<div class="warn" id="solver-fallback">Gauss-Newton handed the adjustment to pycolmap: '
+                   f'{html.escape(str(doc["solver_fallback"]))}</div>')
     fb = doc.get("orientation_fallbacks") or []
     if fb:
-        out.append(f'<div class="warn">{len(fb)} image(s) not calibrated by Faugeras-Toscani, oriented by PnP: '
-                   + html.escape("; ".join(f"{x['image']}: {x['reason']}" for x in fb[:6]))
+        out.append(f'<div class="warn">{len(fb)} image(s) not calibrated by Faugeras-Toscani: '
+                   + html.escape("; ".join(f"{x['image']}: {x.get('method', '')} ({x['reason']})" for x in fb[:6]))
                    + ("; ..." if len(fb) > 6 else "") + "</div>")
     lo = doc.get("left_out") or {}
     if lo.get("images") or lo.get("targets") or lo.get("observations"):
         what = [f"{lo.get('observations', 0)} gross observation(s)"] if lo.get("observations") else []
         what += [f"{d['id']}: {d['reason']}" for d in (lo.get("targets") or [])[:6]]
         what += [f"{d['image']} ({d['station']}): {d['reason']}" for d in (lo.get("images") or [])[:6]]
-        more = len(lo.get("targets") or []) + len(lo.get("images") or []) > 12
+        more = len(lo.get("targets") or []) > 6 or len(lo.get("images") or []) > 6
         out.append('<div class="warn" id="left-out">Left out of the adjustment (bundle.json screening): '
                    + html.escape("; ".join(what)) + ("; ..." if more else "") + "</div>")
     for n in al.get("notes", []):

@@ -66,8 +66,8 @@ def run(ctx) -> None:
         ctx.progress("acquire", k / len(stations))
         q = np.asarray(s["joints"], dtype=float)
         ctx.folder.append("station_start", station=sid)
-        if not _move_or_skip(ctx, dev.robot, sid, q, skipped, stations[k + 1]["joints"] if k + 1 < len(stations)
-                             else None):
+        after = next((t for t in stations[k + 1:] if t["id"] not in done and t["id"] not in skipped), None)
+        if not _move_or_skip(ctx, dev.robot, sid, q, skipped, None if after is None else after["joints"]):
             continue
         for attempt in range(1, c.retakes + 2):
             state, state_host_s, peak = wait_settled(dev.robot, speed_tol_rad_s=c.settle_speed_rad_s, hold_s=hold_s,
@@ -139,10 +139,11 @@ def _move_or_skip(ctx, robot, sid: str, q: np.ndarray, skipped: dict, q_next) ->
 def _check_detour(ctx, sid: str, qa: np.ndarray, qb: np.ndarray) -> None:
     """The move past a skipped station was not in the validated plan: check it for collisions before it is made."""
     from cell.setup import collision_world, robot_model
-    from planning.execution import check_move, lever_arms
+    from planning.execution import MotionLimits, check_move, lever_arms
 
     robot = robot_model(ctx.job)
-    chk = check_move(robot, collision_world(ctx.job), qa, qb, lever_arms(robot), 0.02, ("here", "next"), 0.0)
+    chk = check_move(robot, collision_world(ctx.job), qa, qb, lever_arms(robot), MotionLimits().check_resolution_rad,
+                     ("here", "next"), 0.0)
     if not chk.free:
         raise DriverError(f"station {sid} cannot be reached and the move past it collides ({chk.pair}); "
                           "the job stops here")

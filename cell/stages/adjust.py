@@ -185,6 +185,9 @@ def run_bundle(ctx) -> dict:
         break
     if not res.converged:
         raise CalibrationError(f"bundle adjustment did not converge: {res.summary}")
+    if wild.size:  # still undetermined after the last retry: their covariance would spoil every other target's
+        raise CalibrationError(f"bundle: {len(wild)} target(s) still not determined after {MAX_RETRIES} retries "
+                               f"({', '.join(ids[int(t)] for t in wild[:8])}): their rays are nearly parallel")
     check_adjustment(res.sigma0_px, res.intrinsics, job.intrinsics)  # a converged nonsense is a failure
     var = np.diagonal(res.cov, axis1=1, axis2=2)
     if np.any(np.isfinite(var).all(axis=1) & (var <= 0).any(axis=1)):  # a singular network, not a measurement
@@ -207,6 +210,7 @@ def run_bundle(ctx) -> dict:
         "dof": res.dof,
         "converged": res.converged,
         "summary": res.summary,
+        "solver_fallback": res.solver_fallback,
         "time_s": dt,
         "timings": res.timings,
         "n_observations": int(len(uv)),
@@ -286,6 +290,10 @@ def run(ctx) -> None:
     ctx.say(f"  sigma0 {doc['sigma0_px']:.3f} px, {doc['n_rejected']} observation(s) rejected, "
             f"datum {doc['datum']}, {doc['time_s']:.2f} s")
     say_screening(ctx, doc["screening"])
+    if doc.get("solver_fallback"):
+        msg = f"Gauss-Newton handed the adjustment to pycolmap's Levenberg-Marquardt: {doc['solver_fallback']}"
+        ctx.log.log("warning", msg)
+        ctx.say(f"  WARNING {msg}")
     sn = doc["snooping"]
     if not sn["complete"]:
         ctx.log.log("warning", f"data snooping stopped early: {sn['stopped']}")

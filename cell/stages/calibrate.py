@@ -65,9 +65,17 @@ def run(ctx) -> None:
     if not ft_ok:
         ctx.log.log("warning", "Faugeras-Toscani refused every image; interior orientation starts from the nominal lens")
         ctx.say(f"  WARNING Faugeras-Toscani refused all {len(res)} images (e.g. {res[0]['fallback_reason']}); "
-                "every image oriented by PnP from the robot pose, interior orientation from the nominal lens")
+                f"oriented instead by {_methods(res)}; interior orientation from the nominal lens")
         return
     fx = np.array([r["alpha_u"] for r in ft_ok])
     ctx.say(f"  alpha_u {fx.mean():.1f} +- {fx.std():.1f} px over {len(ft_ok)} images "
             f"(nominal {job.intrinsics.fx_px:.1f}); rms {np.median([r['rms_px'] for r in ft_ok]):.3f} px"
-            + (f"; {len(res) - len(ft_ok)} image(s) oriented by PnP" if len(ft_ok) < len(res) else ""))
+            + (f"; WARNING the others oriented instead by {_methods([r for r in res if r not in ft_ok])}"
+               if len(ft_ok) < len(res) else ""))
+
+
+def _methods(recs: list[dict]) -> str:
+    """How images Faugeras-Toscani refused were oriented, counted: "3 x PnP from the robot pose, 1 x robot pose"."""
+    from collections import Counter
+
+    return ", ".join(f"{n} x {m}" for m, n in Counter(r["method"] for r in recs).items())

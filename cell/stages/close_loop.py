@@ -224,9 +224,13 @@ def _plan_round(ctx, rnd: int, bundle: dict, required: np.ndarray, exclude: set[
              "incidence_evidence": inc_facts}
     if aug.added.size == 0:
         return [], facts
-    # validate the new stations for the robot: IK branch, collision-free moves, order (from the last station)
-    plan_doc = ctx.folder.read_json("plan.json")
-    last = max(plan_doc["stations"], key=lambda s: s["order"])
+    # validate the new stations for the robot: IK branch, collision-free moves, order, from where the arm is now
+    # (not the last planned station: it may have been skipped, or a resumed session may have stopped elsewhere)
+    if ctx.devices is None:
+        from cell.devices import open_devices
+
+        ctx.devices = open_devices(ctx.job, ctx.backend)
+    here_q = np.asarray(ctx.devices.robot.state().joints_rad, dtype=float)
     new_ids = [f"L{rnd}-{k + 1:02d}" for k in range(len(aug.added))]
     c = job.spec.cell
     limits = MotionLimits(joint_speed_rad_s=c.max_joint_speed_rad_s, joint_accel_rad_s2=c.max_joint_accel_rad_s2,
@@ -234,13 +238,13 @@ def _plan_round(ctx, rnd: int, bundle: dict, required: np.ndarray, exclude: set[
     pfc = db.part_from_cam[aug.added]
     try:
         ep = validate_plan(robot, pfc, job.spec.base_from_part(), job.spec.flange_from_cam(), collision_world(job),
-                           limits, start_q=np.asarray(last["joints"], dtype=float), ids=new_ids)
+                           limits, start_q=here_q, ids=new_ids)
     except ReachabilityError as exc:
         facts["validation_failed"] = str(exc)
         facts["excluded"] = [int(i) for i in aug.added]
         return [], facts
     sub = apply_to_plan({"stations": [{"id": sid, "part_from_cam": T.tolist()} for sid, T in zip(new_ids, pfc)]}, ep)
-    base = max(int(s["order"]) for s in plan_doc["stations"]) + 1
+    base = max(int(s["order"]) for s in ctx.folder.read_json("plan.json")["stations"]) + 1
     stations = [dict(s, order=base + int(s["order"]), round=rnd, candidate=int(i))
                 for s, i in zip(sub["stations"], aug.added)]
     facts["stations_added"] = new_ids

@@ -59,7 +59,7 @@ def run(ctx, keep: bool = False) -> None:
                     "n_shape_rejected": m.n_shape, "dropped": dropped,
                     "resection_median_px": m.resection_median_px} | counts)
         if m.n_shape or len(m.dropped) > m.n_partly_hidden:
-            ctx.log.log("info", f"{im['image']}: {len(m.dropped)} named dot(s) left unnamed: " + "; ".join(
+            ctx.log.log("warning", f"{im['image']}: {len(m.dropped)} named dot(s) left unnamed: " + "; ".join(
                 f"{d['id']} {d['reason']}" for d in dropped[:6]) + (" ..." if len(dropped) > 6 else ""))
         ctx.log.detections(im["station"], names, m.uv)
     ctx.progress("measure", 1.0)

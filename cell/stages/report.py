@@ -25,8 +25,12 @@ def _versions() -> dict:
     return out
 
 
-def align_measurement(job, measured: np.ndarray, pc: PointCovariance, ok: np.ndarray, datum: str) -> AlignmentOutcome:
-    """The job's alignment (``[alignment]``): robust best fit (default), RPS / 3-2-1, or the bundle's frame."""
+def align_measurement(job, measured: np.ndarray, pc: PointCovariance, ok: np.ndarray, datum: str,
+                      suspect: np.ndarray | None = None) -> AlignmentOutcome:
+    """The job's alignment (``[alignment]``): robust best fit (default), RPS / 3-2-1, or the bundle's frame.
+
+    ``suspect: (n,)`` bool: targets whose observations data snooping could not verify; a best fit never takes
+    them as candidates for the frame."""
     spec = job.spec.alignment
     nominal = job.part.targets.xyz
     tol = job.tolerance_m
@@ -39,7 +43,7 @@ def align_measurement(job, measured: np.ndarray, pc: PointCovariance, ok: np.nda
         return frame_alignment(measured, pc, nominal, fixtured=datum == "control",
                                why=f"the bundle's datum is '{datum}' (inner constraints on the CAD nominals), not a "
                                    "fixture's control points: use best_fit or rps")
-    cand = measurable
+    cand = measurable if suspect is None else measurable & ~np.asarray(suspect, dtype=bool)
     if spec.targets is not None:
         index = job.part.targets.index()
         chosen = np.zeros(len(ok), dtype=bool)
@@ -176,7 +180,8 @@ def write_report(ctx) -> str:
     ok = np.isfinite(measured).all(axis=1)
     tol = job.tolerance_m
     k = job.spec.report.sigma_factor
-    outcome = align_measurement(job, measured, pc, ok, bundle["datum"])
+    suspect = set((bundle.get("snooping") or {}).get("suspect_targets") or [])
+    outcome = align_measurement(job, measured, pc, ok, bundle["datum"], np.array([t in suspect for t in ids]))
     al = outcome.alignment
     if not outcome.trusted and job.spec.alignment.on_untrusted == "fault":
         raise CalibrationError("alignment not trusted: " + "; ".join(outcome.reasons))
@@ -193,7 +198,6 @@ def write_report(ctx) -> str:
     U, decision = conformance(al.deviation, al.deviation_cov, tol, ok)
     # a target whose observations snooping could not verify (bundle.json snooping.suspect_targets: it lost half of
     # its rays as blunders, or lost any and kept two or fewer) cannot be decided on: its measurement may be wrong
-    suspect = set((bundle.get("snooping") or {}).get("suspect_targets") or [])
     decision = ["inconclusive" if d is not None and tid in suspect else d for d, tid in zip(decision, ids)]
     n_img = [t["n_images"] for t in bundle["targets"]]
     targets = []
@@ -237,6 +241,7 @@ def write_report(ctx) -> str:
         "n_observations": bundle["n_observations"],
         "n_rejected": bundle["n_rejected"],
         "snooping": bundle.get("snooping"),
+        "solver_fallback": bundle.get("solver_fallback"),
         "orientation_fallbacks": [{"image": r["image"], "method": r["method"], "reason": r["fallback_reason"]}
                                   for r in f.read_json("calibration.json")["images"] if "fallback_reason" in r],
         "predicted_sigma_max_m": plan["predicted_sigma_max_m"],

@@ -169,26 +169,26 @@ def test_ur_client_ignores_ctrl_c_and_stops_the_arm_on_sigterm(capfd):
     from calibration.errors import MotionError
     from drivers.ur import CellLimits, URRobot
     from planning.kinematics import load_robot
-    from sim_backend.ur_controller import LoopbackURController
 
     model = load_robot("ur5e")
     q0 = np.array([0.0, -1.3, 1.6, -1.87, -1.57, 0.0])
-    ctrl = None
-    for k in range(40):
-        try:
-            ctrl = LoopbackURController(f"127.0.7.{10 + k}", model=model, joints_rad=q0, time_scale=2.0).start()
-            break
-        except OSError:
-            continue
-    assert ctrl is not None
+    ctrl = start_loopback_controller("127.0.7", model=model, joints_rad=q0, time_scale=2.0)
+
+    def kill_once_moving(pid: int, sig: int) -> None:  # the signal must come during the move, whatever the load
+        def go():
+            ctrl.wait_for(lambda: ctrl.moving, timeout_s=10.0)
+            os.kill(pid, sig)
+
+        threading.Thread(target=go, daemon=True).start()
+
     try:
         with URRobot(ctrl.host, CellLimits(), deadline_s=3.0, model=model) as arm:
             pid = arm._worker.process.pid
             assert os.getpgid(pid) != os.getpgid(0)  # a session of its own: a terminal's Ctrl-C does not reach it
-            threading.Timer(0.2, os.kill, (pid, signal.SIGINT)).start()
+            kill_once_moving(pid, signal.SIGINT)
             np.testing.assert_allclose(arm.move_joints(q0 + 0.4, 0.8, 1.5).joints_rad, q0 + 0.4, atol=1e-6)
             assert arm.connected
-            threading.Timer(0.2, os.kill, (pid, signal.SIGTERM)).start()
+            kill_once_moving(pid, signal.SIGTERM)
             with pytest.raises(MotionError, match="stopped on request"):
                 arm.move_joints(q0, 0.8, 1.5)
             assert not ctrl.moving and np.max(np.abs(ctrl.joints - q0)) > 0.05
