@@ -59,7 +59,7 @@ def collect(n_views: int, repeats: int, seed: int = 0, job_path: Path = JOB) -> 
     centre = xyz.mean(axis=0)
     index = {t: i for i, t in enumerate(job.part.targets.ids)}
     rng = np.random.default_rng(seed)
-    rows = []  # view, target, incidence deg, diameter px, eu, ev, repeat, background bound b00, b01, b11
+    rows = []  # view, target, incidence deg, diameter px, eu, ev, repeat, background bound b00, b01, b11, saturated px
     for k in range(n_views):
         az = 2 * np.pi * k / n_views + rng.uniform(-0.2, 0.2)
         el = np.deg2rad(rng.uniform(8, 85))
@@ -87,8 +87,9 @@ def collect(n_views: int, repeats: int, seed: int = 0, job_path: Path = JOB) -> 
                                                -1, 1)))
             dpx = intr.fx_px * 2 * radius / Xc[:, 2]
             B = det.background_cov[j[ok]]
-            for t_, a_, s_, (eu, ev), b in zip(tid[ok], inc, dpx, e, B):
-                rows.append((k, int(t_), float(a_), float(s_), float(eu), float(ev), r, b[0, 0], b[0, 1], b[1, 1]))
+            sat = det.saturated[j[ok]]
+            for t_, a_, s_, (eu, ev), b, ns in zip(tid[ok], inc, dpx, e, B, sat):
+                rows.append((k, int(t_), float(a_), float(s_), float(eu), float(ev), r, b[0, 0], b[0, 1], b[1, 1], ns))
     return {"rows": np.array(rows, dtype=float), "fx_px": intr.fx_px, "diameter_m": 2 * radius}
 
 
