@@ -3,7 +3,7 @@ controller: this tree and a baseline commit, alternately, in fresh processes (bo
 ``drivers``, so not in one process). Decision 0028 added a safety-limit check before each move; this shows
 what it costs.
 
-    .venv/bin/python -m benchmarks.bench_ur_moves                  # baseline 9a190b3 (main before urfix)
+    .venv/bin/python -m benchmarks.bench_ur_moves                  # baseline: baseline_code.default_baseline()
     .venv/bin/python -m benchmarks.bench_ur_moves --moves 40 --repeat 3 --baseline HEAD~3
 
 Each run starts a loopback controller (time_scale 8, 8 ms ticks), connects, and times ``--moves`` joint moves of
@@ -17,12 +17,10 @@ import json
 import os
 import subprocess
 import sys
-import tarfile
 import tempfile
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-BASELINE = "9a190b3"
 
 CHILD = r"""
 import json, sys, time
@@ -59,24 +57,21 @@ def run(tree: Path, moves: int) -> dict:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--baseline", default=BASELINE)
+    ap.add_argument("--baseline", default=None, help="commit to compare with (default: where HEAD meets main, "
+                    "or the code before the last merge)")
     ap.add_argument("--moves", type=int, default=20)
     ap.add_argument("--repeat", type=int, default=2)
     a = ap.parse_args(argv)
+    from benchmarks.baseline_code import default_baseline, export_tree
+
+    a.baseline = a.baseline or default_baseline()
     with tempfile.TemporaryDirectory(prefix="bench_ur_moves_") as tmp:
-        p = subprocess.run(["git", "-C", str(ROOT), "archive", "--format=tar", a.baseline], capture_output=True)
-        if p.returncode != 0:
-            print(f"bench_ur_moves: cannot export baseline {a.baseline!r}: {p.stderr.decode().strip()}",
-                  file=sys.stderr)
-            return 2
-        (Path(tmp) / "t.tar").write_bytes(p.stdout)
-        with tarfile.open(Path(tmp) / "t.tar") as t:
-            t.extractall(Path(tmp) / "tree", filter="data")
+        tree = export_tree(a.baseline, Path(tmp))
         rows = {"now": [], "baseline": []}
         load0 = os.getloadavg()[0]
         for _ in range(a.repeat):
             rows["now"].append(run(ROOT, a.moves))
-            rows["baseline"].append(run(Path(tmp) / "tree", a.moves))
+            rows["baseline"].append(run(tree, a.moves))
         load1 = os.getloadavg()[0]
     best = {k: (min(r["median_ms"] for r in v), min(r["best_ms"] for r in v)) for k, v in rows.items()}
     print(f"{a.moves} moves of 0.01 rad, best of {a.repeat} runs (load average {load0:.1f} before, {load1:.1f} after)")
