@@ -243,7 +243,7 @@ class JobFolder:
                 fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
             except BlockingIOError:
                 # :meth:`lock` writes its pid just after taking the lock: wait (bounded) for it to be there
-                end = time.monotonic() + 1.0
+                end = time.monotonic() + 0.2
                 while True:
                     text = os.pread(fd, 32, 0).decode("ascii", "replace").strip()
                     if text.isdigit() or time.monotonic() > end:
