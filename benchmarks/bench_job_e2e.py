@@ -89,10 +89,10 @@ def main() -> None:
         variants = {"ours": None} | ({"baseline": src} if src else {})
         if label:
             print(f"baseline: {label}", flush=True)
-        _bench(a, variants, Path(tmp))
+        _bench(a, variants, Path(tmp), label)
 
 
-def _bench(a, variants: dict, tmp: Path) -> None:
+def _bench(a, variants: dict, tmp: Path, label: str | None) -> None:
     runs: dict[str, list[dict]] = {k: [] for k in variants}
     loads = []
     for name, src in variants.items():  # warm the planning caches (and the OS file cache) for each version
@@ -113,6 +113,10 @@ def _bench(a, variants: dict, tmp: Path) -> None:
         if len(variants) == 2 and vals["baseline"][0] > 0:
             row += f"   {vals['ours'][0] / vals['baseline'][0]:.2f}, {vals['ours'][1] / vals['baseline'][1]:.2f}"
         print(row)
+    if len(variants) == 2:
+        ours, base = _summary(runs["ours"], "wall")[0], _summary(runs["baseline"], "wall")[0]
+        print("BENCHMARK " + json.dumps({"what": f"cell run {a.job}, wall (best)", "figure": f"{ours:.2f} s",
+                                         "baseline": f"{label}: {base:.2f} s", "ratio": round(ours / base, 2)}))
     other = {n: [r["wall"] - sum(r.get(s, 0.0) for s in STAGES) for r in runs[n]] for n in variants}
     print("outside the stages (start-up, imports, closing): " + ", ".join(
         f"{n} best {min(v):.2f} s median {np.median(v):.2f} s" for n, v in other.items()))
