@@ -26,7 +26,8 @@ inside them, and any joint target injected with :meth:`refuse_targets` (a safety
 restriction the plan does not know, ``[sim] unreachable_stations``; also reachable from
 another process through the emulator-only dashboard command ``sim refuse targets
 [[q1..q6], ...]``, see :func:`refuse_targets_at`). A ``movej`` / ``movel`` to such a target
-is a runtime error, as on a real controller: the program stops before the arm moves.
+is a runtime error: the program stops before the arm moves (what ur-rtde's sources expect of
+a real controller when, e.g., inverse kinematics fails; decision 0028).
 
 Only loopback addresses are accepted; several controllers run side by side on
 127.0.0.2, 127.0.0.3, ... because the ports are fixed.
