@@ -19,15 +19,13 @@ Faults to inject: :meth:`protective_stop`, :meth:`emergency_stop`,
 :meth:`drop_connections`, :meth:`stop_script`. The RTDE input watchdog that the
 script arms (``rtde_set_watchdog``) stops the program if the host stops writing.
 
-Targets the controller refuses: ``is_within_safety_limits`` (ur-rtde's
-``isJointsWithinSafetyLimits`` / ``isPoseWithinSafetyLimits``, commands 37 / 36) answers
-false for joints outside the arm's limits, a pose with no inverse-kinematics branch
-inside them, and any joint target injected with :meth:`refuse_targets` (a safety
-restriction the plan does not know, ``[sim] unreachable_stations``; also reachable from
-another process through the emulator-only dashboard command ``sim refuse targets
-[[q1..q6], ...]``, see :func:`refuse_targets_at`). A ``movej`` / ``movel`` to such a target
-is a runtime error: the program stops before the arm moves (what ur-rtde's sources expect of
-a real controller when, e.g., inverse kinematics fails; decision 0028).
+Targets refused: ``is_within_safety_limits`` (ur-rtde's ``isJointsWithinSafetyLimits`` /
+``isPoseWithinSafetyLimits``, commands 37 / 36) is false for joints outside the arm's limits, a pose
+without an IK branch inside them, and joint targets given to :meth:`refuse_targets` (a safety
+restriction the plan does not know: ``[sim] unreachable_stations``, also from another process by
+the emulator-only dashboard command ``sim refuse targets``, :func:`refuse_targets_at`). A ``movej`` /
+``movel`` to such a target is a runtime error: the program stops before the arm moves (what ur-rtde's
+sources expect of a real controller when, e.g., inverse kinematics fails; decision 0028).
 
 Only loopback addresses are accepted; several controllers run side by side on
 127.0.0.2, 127.0.0.3, ... because the ports are fixed.
