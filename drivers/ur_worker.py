@@ -193,7 +193,7 @@ class Worker:
         first = float(self.rcv.getTimestamp())
         while float(self.rcv.getTimestamp()) == first:
             if time.monotonic() > end:
-                raise _Fail("NotConnectedError", f"no RTDE data within {timeout_s:.1f} s of connecting")
+                raise _Fail("NotConnectedError", f"no new RTDE data within {timeout_s:.1f} s (connection lost?)")
             time.sleep(0.002)
         return self._state()
 
@@ -284,7 +284,8 @@ class Worker:
         sent = (self.ctrl.moveJ(target, speed, accel, True) if joint_space
                 else self.ctrl.moveL(target, speed, accel, True))
         if not sent:
-            state = self._state()
+            # the receive interface's stream may be a packet behind the control interface's, which saw the failure
+            state = self._wait_fresh(0.5)
             self._check_safe(state, "when the move was sent")
             raise _Fail("MotionError", "the controller did not accept the move (ur-rtde returned False)")
         while True:
@@ -319,7 +320,7 @@ class Worker:
               else self.ctrl.isPoseWithinSafetyLimits(target))
         if ok:
             return
-        state = self._state()
+        state = self._wait_fresh(0.5)  # a packet newer than the one the answer came with (another RTDE stream)
         self._check_safe(state, "when the controller checked the target")
         if not self.ctrl.isJointsWithinSafetyLimits(state["q"]):
             self._check_safe(self._state(), "when the controller checked the target")
