@@ -146,13 +146,13 @@ def _bundle_adjust(obs_image, obs_target, obs_uv, intrinsics, cam_from_part, poi
             warm_state, pre_conv = _warm_round(state, x0, lay, config, args, sig[act_obs], active_pts, options, snoop)
             timings["solve"] += time.perf_counter() - t0
             if warm_state is None:  # diverged, and pycolmap did not save it: the last round that settled is kept
-                state, lin, stats, act_obs, T, dconv = (good[k] for k in ("state", "lin", "stats", "act_obs", "T",
-                                                                         "dconv"))
+                state, lin, stats, act_obs, T, dconv, lay = (good[k] for k in ("state", "lin", "stats", "act_obs",
+                                                                              "T", "dconv", "lay"))
                 back = rejected & ~good["rejected"]
                 rejected[:] = good["rejected"]
                 snoop["still_failing"] = good["still_failing"]
-                snoop["stopped_because"] = (f"round {snoop['rounds']} diverged ({snoop['diverged'][-1]}) and pycolmap "
-                                            f"did not settle it either: round {snoop['rounds'] - 1}'s adjustment is "
+                snoop["stopped_because"] = (f"{snoop['diverged'][-1]}, and pycolmap did not settle that round "
+                                            f"either: round {snoop['rounds'] - 1}'s adjustment is "
                                             f"kept; the {int(back.sum())} observation(s) it would have rejected next "
                                             f"are not, and {good['still_failing']} observation(s) still fail the test")
                 break
@@ -186,7 +186,7 @@ def _bundle_adjust(obs_image, obs_target, obs_uv, intrinsics, cam_from_part, poi
         snoop["still_failing"] = int(fails.sum())
         # this round settled: what a later round that diverges falls back to
         good = {"state": state, "lin": lin, "stats": stats, "act_obs": act_obs.copy(), "T": T.copy(), "dconv": dconv,
-                "rejected": rejected.copy(), "still_failing": snoop["still_failing"]}
+                "lay": lay, "rejected": rejected.copy(), "still_failing": snoop["still_failing"]}
         stop = None
         if not options.snooping:
             stop = "off"
