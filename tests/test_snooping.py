@@ -120,8 +120,8 @@ def test_two_blunders_of_one_target_go_in_one_round():
 
 def test_a_warm_round_that_diverges_is_stopped_said_and_settled_by_pycolmap():
     """A warm round (Gauss-Newton from the previous round's optimum) is watched: here started far from its optimum
-    (cameras turned ~40 deg), its step grows; the round is stopped, said, and pycolmap's Levenberg-Marquardt from
-    the round's start settles it at the optimum an adjustment from the truth reaches."""
+    (every camera turned at random by 0.7 rad per axis), its step grows; the round is stopped, said, and pycolmap's
+    Levenberg-Marquardt from the round's start settles it at the optimum an adjustment from the truth reaches."""
     from calibration.bundle.adjust import _warm_round
 
     rng = np.random.default_rng(32)
