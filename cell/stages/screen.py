@@ -150,9 +150,10 @@ def resect(intr: Intrinsics, poses: np.ndarray, obs_image: np.ndarray, xyz: np.n
                                  f"{r0:.2f} px): start pose kept")
             continue
         moved, turned, depth = pose_change(start, T, xyz[q])
-        if moved > RESECTION_JUMP_FRACTION * depth or turned > RESECTION_JUMP_DEG:
-            what = (f"its resection moved the camera {moved * 1e3:.0f} mm ({moved / depth:.0%} of its distance) and "
-                    f"turned it {turned:.1f} deg from its start")
+        if depth <= 0 or moved > RESECTION_JUMP_FRACTION * depth or turned > RESECTION_JUMP_DEG:
+            share = f"{moved / depth:.0%} of its distance" if depth > 0 else "its start has the targets behind it"
+            what = (f"its resection moved the camera {moved * 1e3:.0f} mm ({share}) and turned it {turned:.1f} deg "
+                    "from its start")
             if r0 <= GROSS_PX:
                 out.kept_start[i] = (f"{what}, while the start explains its dots (median residual {r0:.2f} px): "
                                      "another minimum; start pose kept")
