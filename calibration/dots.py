@@ -456,7 +456,8 @@ def _detect(image: np.ndarray, o: DetectionOptions) -> Detections:
         mask &= cv2.compare(tophat.astype(np.float32), local, cv2.CMP_GT)  # 0/255: keeps mask's 0/1
     n_lab, labels, stats = _components(mask)
     empty = Detections(np.zeros((0, 2)), np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0), noise,
-                       np.zeros((0, 2, 2)), o.polarity, np.zeros((0, 2, 2)), np.zeros((0, 2, 2)), np.zeros(0, dtype=int))
+                       np.zeros((0, 2, 2)), o.polarity, np.zeros((0, 2, 2)), np.zeros((0, 2, 2)),
+                       np.zeros(0, dtype=int))
     if n_lab <= 1:
         return empty
     w_box = stats[1:, cv2.CC_STAT_WIDTH].astype(float)

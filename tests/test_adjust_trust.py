@@ -89,7 +89,8 @@ def _ctx(tmp_path: Path, job, poses, obs, bg: dict | None = None):
     start = [exp_se3(rng.normal(0, 1e-4, 6)) @ T for T in poses]
     atomic_write_json(tmp_path / "calibration.json", {"images": [{"cam_from_part": T.tolist()} for T in start]})
     said = []
-    folder = SimpleNamespace(file=lambda name: tmp_path / name, read_json=lambda name: json.loads((tmp_path / name).read_text()))
+    folder = SimpleNamespace(file=lambda name: tmp_path / name,
+                             read_json=lambda name: json.loads((tmp_path / name).read_text()))
     log = SimpleNamespace(log=lambda level, msg: said.append((level, msg)))
     return SimpleNamespace(job=job, folder=folder, log=log, backend="sim", say=said.append), said
 
@@ -124,7 +125,8 @@ def test_a_scale_bar_end_snooping_takes_below_two_rays_is_scale_not_established_
         config = args[-1]  # intrinsics, poses, points, options, config
         if config.scale_bars:
             q = np.flatnonzero(tgt == a)
-            raise ScaleNotEstablishedError("bundle: scale not established (injected)", {int(a): len(q) - 1}, [int(q[-1])])
+            raise ScaleNotEstablishedError("bundle: scale not established (injected)", {int(a): len(q) - 1},
+                                           [int(q[-1])])
         return real(img, tgt, uv, *args, **kw)
 
     monkeypatch.setattr(A, "bundle_adjust", snooping_takes_the_end)

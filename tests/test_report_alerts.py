@@ -67,7 +67,8 @@ def test_a_part_with_suspect_or_undecided_targets_is_not_a_plain_pass():
         and why[1].endswith(": T0")
     # beyond tolerance still fails, and an untrusted frame still says so first
     passed = np.array([False, True, True, True, True])
-    assert part_verdict(True, ok, passed, judged, ["nonconforming"] + conforming[1:], np.zeros(5, bool), ids)[0] == "FAIL"
+    fails = ["nonconforming"] + conforming[1:]
+    assert part_verdict(True, ok, passed, judged, fails, np.zeros(5, bool), ids)[0] == "FAIL"
     assert part_verdict(False, ok, ok, judged, conforming, np.zeros(5, bool), ids)[0] == "UNTRUSTED"
     # a coded (not judged) target decides nothing
     assert part_verdict(True, ok, ok, judged & ~np.eye(5, dtype=bool)[4], dec[:4] + ["inconclusive"],
@@ -77,7 +78,8 @@ def test_a_part_with_suspect_or_undecided_targets_is_not_a_plain_pass():
 def test_the_banner_counts_suspect_targets_apart_from_those_within_u_of_the_tolerance():
     t = _targets(["conforming", "inconclusive", "inconclusive", "inconclusive"], [False, True, False, False])
     doc = _doc(verdict="INCOMPLETE", targets=t, inconclusive=["T1", "T2", "T3"], suspect=["T1"],
-               verdict_reasons=["1 target(s) suspect (...): T1", "2 target(s) within U of their tolerance (...): T2, T3"])
+               verdict_reasons=["1 target(s) suspect (...): T1",
+                                "2 target(s) within U of their tolerance (...): T2, T3"])
     html = render_html(doc, {})
     assert ("INCOMPLETE: 4 of 4 targets within tolerance; 1 suspect (observations not verified by the blunder test); "
             "2 too close to their tolerance") in html
@@ -93,7 +95,8 @@ def test_measure_drops_are_in_report_json_by_reason_and_image_and_in_the_html():
             {"id": "T0003", "reason": "partly hidden by an edge of the part (CAD)"},
             {"id": "T0009", "reason": "shape 0.61..1.02 of its ellipse's (clipped, washed out or merged; 0.85..1.5)"}]},
         {"image": "images/0002.png", "station": "S003", "dropped": [
-            {"id": "T0009", "reason": "the image's naming is inconsistent: resection median residual 9.1 px > 8.0 px"}]}]}
+            {"id": "T0009",
+             "reason": "the image's naming is inconsistent: resection median residual 9.1 px > 8.0 px"}]}]}
     dr = identification_drops(obs)
     assert dr["n_dropped"] == 3 and dr["by_reason"] == {"partly hidden (CAD)": 1,
                                                           "shape unlike the target's ellipse": 1,

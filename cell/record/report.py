@@ -216,8 +216,9 @@ def _alerts(doc: dict) -> str:
         out.append(f'<div class="alert" id="snooping-alert">Blunder test stopped before the end: '
                    f'{html.escape(str(sn.get("stopped")))}</div>')
     if sn.get("diverged"):
-        out.append('<div class="warn" id="snooping-diverged">Data-snooping rounds whose Gauss-Newton diverged (stopped, '
-                   "handed to pycolmap): " + html.escape("; ".join(sn["diverged"] + sn.get("handed_over", []))) + "</div>")
+        said = "; ".join(sn["diverged"] + sn.get("handed_over", []))
+        out.append('<div class="warn" id="snooping-diverged">Data-snooping rounds whose Gauss-Newton diverged '
+                   f"(stopped, handed to pycolmap): {html.escape(said)}</div>")
     if sn.get("suspect_targets"):
         out.append(f'<div class="warn">Targets whose observations the blunder test could not verify (lost half of their rays, or kept two or fewer after a rejection; inconclusive): '
                    f'{html.escape(", ".join(sn["suspect_targets"]))}</div>')
@@ -245,9 +246,9 @@ def _alerts(doc: dict) -> str:
                    + " (by image below)</div>")
     kept = lo.get("start_pose_kept") or []
     if kept:
+        listed = "; ".join(f"{d['image']}: {d['reason']}" for d in kept[:6]) + ("; ..." if len(kept) > 6 else "")
         out.append('<div class="warn" id="start-pose-kept">Images adjusted from their start pose, not from their '
-                   "resection with the common interior orientation: " + html.escape("; ".join(
-                       f"{d['image']}: {d['reason']}" for d in kept[:6])) + ("; ..." if len(kept) > 6 else "") + "</div>")
+                   f"resection with the common interior orientation: {html.escape(listed)}</div>")
     for n in al.get("notes", []):
         out.append(f'<div class="warn">Alignment: {html.escape(n)}</div>')
     return "".join(out)
@@ -298,12 +299,12 @@ def _dropped_table(doc: dict) -> str:
         return ""
     kinds = list(dr.get("by_reason") or {})
     head = "".join(f"<th>{html.escape(k)}</th>" for k in kinds)
-    rows = "".join(f"<tr><td class=l>{html.escape(str(r['image']))}</td><td class=l>{html.escape(str(r.get('station')))}"
-                   f"</td><td>{r['n_dropped']}</td>" + "".join(f"<td>{r['by_reason'].get(k, 0)}</td>" for k in kinds)
-                   + "</tr>" for r in ims)
+    rows = "".join(f"<tr><td class=l>{html.escape(str(r['image']))}</td>"
+                   f"<td class=l>{html.escape(str(r.get('station')))}</td><td>{r['n_dropped']}</td>"
+                   + "".join(f"<td>{r['by_reason'].get(k, 0)}</td>" for k in kinds) + "</tr>" for r in ims)
     total = "".join(f"<td><b>{dr['by_reason'][k]}</b></td>" for k in kinds)
-    return (f"<h3>Named dots left unnamed by MEASURE ({dr.get('n_dropped', 0)})</h3><table id=dropped><tr><th>image</th>"
-            f"<th>station</th><th>dropped</th>{head}</tr>{rows}<tr><td class=l><b>all</b></td><td></td>"
+    return (f"<h3>Named dots left unnamed by MEASURE ({dr.get('n_dropped', 0)})</h3><table id=dropped><tr>"
+            f"<th>image</th><th>station</th><th>dropped</th>{head}</tr>{rows}<tr><td class=l><b>all</b></td><td></td>"
             f"<td><b>{dr.get('n_dropped', 0)}</b></td>{total}</tr></table>")
 
 

@@ -157,8 +157,9 @@ def name_dots(det_uv: np.ndarray, part, intr: Intrinsics, cam_from_part: np.ndar
     if det_ring_px is not None and len(dots):
         n_ring = np.asarray(det_ring_px)[dots]
         ok = n_ring >= MIN_RING_PX
-        dropped += [(int(i), f"background not measurable: its ring has {int(n)} px (< {MIN_RING_PX}), so its centre's "
-                             "error from the background cannot be bounded") for i, n in zip(match[dots[~ok]], n_ring[~ok])]
+        dropped += [(int(i), f"background not measurable: its ring has {int(n)} px (< {MIN_RING_PX}), so its "
+                             "centre's error from the background cannot be bounded")
+                    for i, n in zip(match[dots[~ok]], n_ring[~ok])]
         dots = dots[ok]
     tid = match[dots]
     bias = eccentricity_bias(intr, cam_from_part, t.xyz[tid], t.normals[tid], radius)
