@@ -1,4 +1,4 @@
-"""ADJUST never turns what it cannot trust into a quiet number (issue 15, decision 0028): each resection is checked
+"""ADJUST never turns what it cannot trust into a quiet number (issue 15, decision 0030): each resection is checked
 against its start pose, a scale-bar end that data snooping takes below two rays is "scale not established" with the
 bar named, and the detector's background bounds are kept image by image. Synthetic networks of the example part
 with a known truth (exact projections + 0.01 px noise), adjusted by the stage's own ``run_bundle``."""

@@ -135,7 +135,7 @@ def test_naming_no_pose_explains_is_dropped_whole_and_a_few_deviating_dots_are_n
 
 def test_a_named_dot_whose_background_ring_is_too_small_to_bound_is_dropped_with_the_reason():
     """Below MIN_RING_PX ring pixels the detector fits no plane and tests no misfit: its zero bound would mean "not
-    looked at", so MEASURE leaves the dot unnamed, and observations.json counts it by its reason (decision 0028)."""
+    looked at", so MEASURE leaves the dot unnamed, and observations.json counts it by its reason (decision 0030)."""
     from calibration.camera import project
     from calibration.dots import MIN_RING_PX
     from cell.stages.imaging import name_dots

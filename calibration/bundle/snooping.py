@@ -94,7 +94,7 @@ def _test_statistic(Q: np.ndarray, v: np.ndarray) -> np.ndarray:
     residual lies along ``e``, so ``T = (e . v)^2 / lambda = v^T Q v / trace(Q)^2`` (one degree of freedom; the two
     rays have the same statistic, so a failure says the pair disagrees, not which ray is wrong). It used to be left
     untested (nan): a blunder on such a pair was never found and spread into its images' other observations
-    (decision 0028)."""
+    (decision 0030)."""
     T = _quadratic(Q, v)
     tr = Q[:, 0, 0] + Q[:, 1, 1]
     rank1 = ~np.isfinite(T) & (tr > MIN_TRACE_QVV)

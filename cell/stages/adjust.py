@@ -8,7 +8,7 @@ import time
 import numpy as np
 
 from calibration.bundle import BundleConfig, BundleOptions, ScaleBar, bundle_adjust
-from calibration.bundle.coherent import coherent_background_cov
+from calibration.bundle.coherent import coherent_background_cov, scale_bar_gains
 from calibration.camera import Intrinsics
 from calibration.detector_model import load_model, observation_covariances, observation_sigmas
 from calibration.errors import CalibrationError, ScaleNotEstablishedError
@@ -35,7 +35,7 @@ def background_bounds(obs_doc: dict) -> tuple[np.ndarray, np.ndarray]:
 
     Image by image: an image measured before the detector gave bounds (no ``bg_cov_px2``: a job folder of an
     older version, or a closed loop that kept such images) has none; its observations keep the detector model's
-    plain sigma (said by the caller), the others keep their bounds (decision 0028: one old image used to switch
+    plain sigma (said by the caller), the others keep their bounds (decision 0030: one old image used to switch
     the bounds off for every observation)."""
     B, has = [], []
     for o in obs_doc["images"]:
@@ -238,6 +238,8 @@ def run_bundle(ctx) -> dict:
         raise CalibrationError("bundle: the network is not determined (a target's variance is not positive): its "
                                "images are too weakly linked; see the screening in the log")
     kept_images, sel, img, tgt, uv, groups, model_sigma, bg_missing = sub
+    bars = bundle_config(job, scale=scr.scale_ok).scale_bars
+    K, K_sigma = scale_bar_gains(res.covariance, res.points, bars) if bars else (np.zeros((len(ids), 3, 0)), np.zeros(0))
     coherent = _add_coherent_background(res, obs, sel, img, tgt, ids) if model_sigma is not None else None
     dt = time.perf_counter() - t0
     n_img = np.bincount(tgt[~res.rejected], minlength=len(ids))
@@ -246,7 +248,7 @@ def run_bundle(ctx) -> dict:
     axes, dirs = res.error_ellipsoids()
     # keep the full covariance for the report's alignment (exact propagation)
     buf = io.BytesIO()
-    np.savez_compressed(buf, D=res.covariance.D, U=res.covariance.U, C=res.covariance.C)
+    np.savez_compressed(buf, D=res.covariance.D, U=res.covariance.U, C=res.covariance.C, K=K, K_sigma=K_sigma)
     atomic_write_bytes(ctx.folder.file("bundle_covariance.npz"), buf.getvalue())
     return {
         "datum": res.datum,

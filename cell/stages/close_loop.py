@@ -63,7 +63,7 @@ def _short(sigma: np.ndarray, rays: np.ndarray, required: np.ndarray, min_rays: 
 def _scale_ends(job, bundle: dict) -> np.ndarray:
     """(n,) bool: the scale bar's two ends while the last adjustment could not establish the scale (bundle.json
     ``screening.scale_established`` false: an end without two usable rays, or data snooping took them below two).
-    They are short whatever their sigma: the round plans fresh rays for them (decision 0028)."""
+    They are short whatever their sigma: the round plans fresh rays for them (decision 0030)."""
     out = np.zeros(len(job.part.targets.ids), dtype=bool)
     if job.scale_bar is not None and (bundle.get("screening") or {}).get("scale_established") is False:
         out[list(job.scale_bar[:2])] = True

@@ -125,7 +125,7 @@ def name_dots(det_uv: np.ndarray, part, intr: Intrinsics, cam_from_part: np.ndar
     (:data:`SHAPE_MIN`, :data:`SHAPE_MAX`) and dropped with the reason when it is not that ellipse; None: no
     shape check. ``det_ring_px: (k,)`` (``Detections.ring_px``): a named dot whose background ring had fewer than
     :data:`calibration.dots.MIN_RING_PX` pixels is dropped with the reason: its centre's error from the background
-    cannot be bounded (its zero bound would say "a plane" without having looked; decision 0028).
+    cannot be bounded (its zero bound would say "a plane" without having looked; decision 0030).
 
     Only dots in view from the pose at no more than ``incidence_max_rad`` are offered to the matcher;
     coded detections (``coded_ids``, ``coded_uv``) refine the pose first (PnP) when there are enough.
