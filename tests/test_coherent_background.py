@@ -99,3 +99,18 @@ def test_scale_bar_gains_are_how_the_adjusted_points_move_with_the_certified_len
     assert sig[0] == sigma
     np.testing.assert_allclose(K[:, :, 0], moved, atol=0.02 * np.abs(moved).max())
     assert np.abs(moved).max() > 0.1  # the far targets move a good share of the bar's change
+
+
+def test_the_report_states_the_uncertainty_budget():
+    """report.html's facts say how much of the variance is the scale bar's certificate, and what is stated beyond
+    the detector model (report.json ``uncertainty_budget``)."""
+    from cell.record.report import _budget_facts
+
+    doc = {"uncertainty_budget": {"scale_bar_share_median": 0.095, "scale_bar_share_max": 0.376,
+                                  "shared_misfit_targets": 17, "observations_clipped": 311,
+                                  "scale_bar_ends": [{"bar": ["T0047", "T0172"], "length_sigma_m": 3.98e-6}]}}
+    facts = _budget_facts(doc)
+    assert facts["Scale bar certificate in the variance"] == "10 % median, 38 % at most"
+    line = facts["Stated beyond the detector model"]
+    assert "17 target(s)" in line and "311 observation(s)" in line and "T0047-T0172" in line and "4.0 um" in line
+    assert _budget_facts({}) == {}

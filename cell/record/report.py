@@ -279,6 +279,26 @@ def _measure_facts(doc: dict) -> dict:
         f"{v} {k}" for k, v in dr["by_reason"].items()) if dr.get("by_reason") else "")}
 
 
+def _budget_facts(doc: dict) -> dict:
+    """The uncertainty budget (report.json ``uncertainty_budget``) in a line or two."""
+    b = doc.get("uncertainty_budget")
+    if not b:
+        return {}
+    out = {}
+    if b.get("scale_bar_share_median") is not None:
+        out["Scale bar certificate in the variance"] = (f"{100 * b['scale_bar_share_median']:.0f} % median, "
+                                                         f"{100 * b['scale_bar_share_max']:.0f} % at most")
+    extra = [f"{b['shared_misfit_targets']} target(s) with a background misfit shared by their views"] \
+        if b.get("shared_misfit_targets") else []
+    if b.get("observations_clipped"):
+        extra.append(f"{b['observations_clipped']} observation(s) of clipped (overexposed) dots")
+    extra += [f"scale bar {'-'.join(e['bar'])} ends next to an edge: length {1e6 * e['length_sigma_m']:.1f} um (1 sigma)"
+              for e in b.get("scale_bar_ends") or []]
+    if extra:
+        out["Stated beyond the detector model"] = "; ".join(extra)
+    return out
+
+
 def _rejected_table(doc: dict) -> str:
     rej = doc.get("rejected_observations") or []
     if not rej:
@@ -369,7 +389,7 @@ def render_html(doc: dict, figures: dict[str, str], interactive: str = "") -> st
         "Seed": j["seed"], "Started": j["started"],
         "Finished": j["finished"], "Images": doc["images"], "sigma0 [px]": f"{doc['sigma0_px']:.3f}",
         "Datum": doc.get("datum", ""), "Cell calibration": doc.get("cell_calibration", {}).get("status", "unknown"),
-        **_alignment_facts(doc), **_measure_facts(doc),
+        **_alignment_facts(doc), **_measure_facts(doc), **_budget_facts(doc),
         "Versions": ", ".join(f"{k} {v}" for k, v in j["versions"].items()),
     }
     kv = "".join(f"<tr><td><b>{html.escape(k)}</b></td><td>{html.escape(str(v))}</td></tr>" for k, v in facts.items())

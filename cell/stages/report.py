@@ -205,6 +205,23 @@ def identification_drops(obs: dict) -> dict:
     return {"n_dropped": sum(by_reason.values()), "by_reason": by_reason, "images": images}
 
 
+def _budget(cov_scale, dev_cov, use, bundle: dict) -> dict:
+    """report.json ``uncertainty_budget``: the scale bar certificate's share of the targets' variance (median, max),
+    and what else the statement carries beyond the detector model (decision 0029)."""
+    out: dict = {"scale_bar_share_median": None, "scale_bar_share_max": None}
+    if cov_scale is not None and np.any(use):
+        share = np.trace(cov_scale[use], axis1=1, axis2=2) / np.trace(dev_cov[use], axis1=1, axis2=2)
+        share = share[np.isfinite(share)]
+        if len(share):
+            out.update(scale_bar_share_median=float(np.median(share)), scale_bar_share_max=float(np.max(share)))
+    cb = bundle.get("coherent_background") or {}
+    w = bundle.get("observation_weights") or {}
+    out.update(shared_misfit_targets=cb.get("n_targets", 0), scale_bar_ends=cb.get("scale_bar_ends", []),
+               observations_with_background_bound=w.get("observations_with_background_bound"),
+               observations_clipped=w.get("observations_clipped"))
+    return out
+
+
 def _closed_loop(f) -> dict | None:
     """report.json's ``closed_loop`` (when the stage ran with it on): each round and what still misses."""
     if not f.file("closed_loop.json").exists():
@@ -323,6 +340,7 @@ def write_report(ctx) -> tuple[str, list[str]]:
         "coded_targets": [ids[j] for j in np.flatnonzero(coded)],
         "rejected_observations": bundle.get("rejected", []),
         "identification_dropped": identification_drops(f.read_json("observations.json")),
+        "uncertainty_budget": _budget(cov_scale if nb else None, al.deviation_cov, judged & ok, bundle),
         "left_out": {"observations": len(sc.get("dropped_observations", [])),
                      "targets": sc.get("dropped_targets", []), "images": sc.get("dropped_images", []),
                      "start_pose_kept": (sc.get("resection") or {}).get("start_kept", [])},
