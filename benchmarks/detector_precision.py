@@ -31,6 +31,7 @@ import json
 import sys
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -106,6 +107,14 @@ def class_table(rows: np.ndarray) -> list[dict]:
     return out
 
 
+def measured_ranges(rows: np.ndarray, table: list[dict]) -> dict:
+    """Where the model was measured (planning does not extrapolate beyond it): incidence from 0 to the upper edge
+    of the most oblique populated class, dot diameters from the 1st to the 99th percentile."""
+    inc = max(c["incidence_deg"][1] for c in table)
+    d0, d1 = np.percentile(rows[:, 3], [1, 99])
+    return {"incidence_range_deg": (0.0, float(inc)), "diameter_range_px": (round(float(d0), 1), round(float(d1), 1))}
+
+
 def measure_background(n_views: int, repeats: int, seed: int, plates: int, write: bool) -> int:
     """``c_background`` by maximum likelihood on the example and ``plates`` generated plates."""
     from tests.partgen import make_part_job
@@ -157,6 +166,7 @@ def main(argv: list[str] | None = None) -> int:
     rows = data["rows"]
     table = class_table(rows)
     model = fit_model(rows[:, 2], rows[:, 3], rows[:, 4:6])
+    model = replace(model, **measured_ranges(rows, table))
     pred = model.sigma_px(np.radians(rows[:, 2]), rows[:, 3])
     z = rows[:, 4:6] / pred[:, None]
     print(f"{len(rows)} dot images from {a.views} views x {a.repeats} ({time.perf_counter() - t0:.0f} s)")

@@ -7,6 +7,8 @@ m^2 / 3) of the deviations against the truth (1 = honest), the share of untouche
 ellipsoid, false "significant" flags, deviations beyond tolerance that failed, predicted / achieved sigma,
 and whether the alignment was trusted.
 
+Also per run: what was left out (dots left unnamed, screened, rejected observations, suspect targets).
+
     .venv/bin/python -m benchmarks.truth_partgen [--runs 6] [--first-seed 100] [--misplaced] [--json out.json]
 """
 from __future__ import annotations
@@ -38,11 +40,25 @@ def one(work: Path, seed: int, misplaced: bool) -> dict:
     run = run_cell("run", str(part.job), "--archive", str(work / "archive"), timeout=1800)
     if run.code != 0:
         return {"seed": seed, "kind": part.kind, "error": run.stderr.strip().splitlines()[-1]}
-    report = json.loads((Path(run.doc["folder"]) / "report.json").read_text())
+    folder = Path(run.doc["folder"])
+    report = json.loads((folder / "report.json").read_text())
     fig = truth_figures(report, part)
     return {"seed": seed, "kind": part.kind, "targets": part.n_targets, "deviating": len(part.deviations),
             "trusted": report["alignment"]["trusted"], "pred_over_ach": report["predicted_over_achieved"]["median"],
-            "seconds": time.perf_counter() - t0} | fig
+            "seconds": time.perf_counter() - t0} | fig | losses(folder)
+
+
+def losses(folder: Path) -> dict:
+    """What the job left out on the way: dots MEASURE left unnamed (by reason), observations, targets and images
+    ADJUST's screening dropped, observations data snooping rejected, suspect targets, and the planned stations."""
+    obs = json.loads((folder / "observations.json").read_text())
+    bundle = json.loads((folder / "bundle.json").read_text())
+    plan = json.loads((folder / "plan.json").read_text())
+    scr = bundle.get("screening", {})
+    return {"stations": len(plan["stations"]), "observations": bundle["n_observations"],
+            "unnamed": obs.get("dropped_by_reason", {}),
+            "screened": {k: len(scr.get(k, [])) for k in ("dropped_observations", "dropped_targets", "dropped_images")},
+            "rejected": bundle["n_rejected"], "suspect": len(bundle.get("snooping", {}).get("suspect_targets", []))}
 
 
 def main(argv=None) -> int:

@@ -36,9 +36,9 @@ def planner_options(job: LoadedJob) -> PlannerOptions:
         incidence_max_rad=float(np.deg2rad(p.incidence_max_deg)),
         criterion=p.criterion,
         sigma_px=c.sigma_px,
-        # the search ranks networks with one image sigma: with the detector model (image_precision(job)) it chose
-        # low grazing stations on the example whose dots MEASURE misnamed (FT rms 7.5 px, bundle diverged);
-        # plan.json's predicted covariance is computed with the model on the measured rays (stages.plan)
+        # the search ranks networks with the detector model's sigma of each ray when the bundle weights by it
+        # (docs/decisions/0028); plan.json's predicted covariance is the pre-analysis on the measured rays
+        image_precision=image_precision(job),
         mode=p.mode,
         required_sigma_m=None if p.required_sigma is None else p.required_sigma * k,
         default_tolerance_m=s.report.tolerance * k,

@@ -14,7 +14,9 @@ docs/decisions/0026-planspeed-numba.md says what each bought.
   ``population x targets`` array;
 * :func:`strict_step`: one best-improvement exchange of :mod:`planning.refine`;
 * :func:`gather`: ``dense[rows][:, cols]`` of a CSR information for few columns (binary search per pair);
-* :func:`pair_information`: ``J^T J`` of (pose, point) pairs (:func:`planning.uncertainty.point_information`).
+* :func:`pair_information`: ``J^T J`` of (pose, point) pairs (:func:`planning.uncertainty.point_information`);
+* :func:`information_rows`, :func:`information_rows_model`: the candidate x target information, CSR, each ray
+  weighted by one sigma per target or by the detector model's sigma of that ray.
 """
 from __future__ import annotations
 
@@ -475,6 +477,43 @@ def information_rows(cam_from_part, xyz, visible, w, cam, indptr, indices, data)
                 _pair_info(R, xyz[t, 0], xyz[t, 1], xyz[t, 2], fx, fy, k1, k2, k3, p1, p2, distorted, v)
                 for u in range(6):
                     data[e, u] = v[u] * w[t]
+                indices[e] = t
+                e += 1
+
+
+@njit(cache=True, nogil=True)
+def information_rows_model(cam_from_part, xyz, normals, visible, model, cam, indptr, indices, data):
+    """:func:`information_rows` with each pair's weight ``1 / sigma^2`` from the detector model
+    (:meth:`calibration.detector_model.DetectorModel.sigma_px_measured`: incidence between the target's unit
+    normal ``normals[t]`` and its line of sight, dot diameter ``fx D / depth`` px, both held inside the measured
+    range). ``model``: a^2, (noise_scale b)^2, p, q, d_ref px, fx D (px m), smallest and largest diameter px,
+    cos of the largest incidence."""
+    fx, fy, k1, k2, k3, p1, p2 = cam[0], cam[1], cam[4], cam[5], cam[6], cam[7], cam[8]
+    distorted = cam[9] != 0.0
+    a2, b2, pp, qq, dref, fxd, d0, d1, cmin = (model[0], model[1], model[2], model[3], model[4], model[5], model[6],
+                                               model[7], model[8])
+    v = np.empty(6)
+    m, n = visible.shape
+    for i in range(m):
+        e = indptr[i]
+        R = cam_from_part[i]
+        # the camera centre in the part frame: -R^T t
+        c0 = -(R[0, 0] * R[0, 3] + R[1, 0] * R[1, 3] + R[2, 0] * R[2, 3])
+        c1 = -(R[0, 1] * R[0, 3] + R[1, 1] * R[1, 3] + R[2, 1] * R[2, 3])
+        c2 = -(R[0, 2] * R[0, 3] + R[1, 2] * R[1, 3] + R[2, 2] * R[2, 3])
+        for t in range(n):
+            if visible[i, t]:
+                x0, x1, x2 = xyz[t, 0], xyz[t, 1], xyz[t, 2]
+                _pair_info(R, x0, x1, x2, fx, fy, k1, k2, k3, p1, p2, distorted, v)
+                s0, s1, s2 = c0 - x0, c1 - x1, c2 - x2
+                cos_t = (s0 * normals[t, 0] + s1 * normals[t, 1] + s2 * normals[t, 2]) / math.sqrt(
+                    s0 * s0 + s1 * s1 + s2 * s2)
+                cos_t = min(max(cos_t, cmin), 1.0)
+                z = R[2, 0] * x0 + R[2, 1] * x1 + R[2, 2] * x2 + R[2, 3]
+                d = min(max(fxd / max(z, 1e-9), d0), d1)
+                w = 1.0 / (a2 + b2 * (d / dref) ** (-2.0 * pp) * cos_t ** (-2.0 * qq))
+                for u in range(6):
+                    data[e, u] = v[u] * w
                 indices[e] = t
                 e += 1
 
