@@ -36,9 +36,9 @@ def planner_options(job: LoadedJob) -> PlannerOptions:
         incidence_max_rad=float(np.deg2rad(p.incidence_max_deg)),
         criterion=p.criterion,
         sigma_px=c.sigma_px,
-        # the search ranks networks with the detector model's sigma of each ray when the bundle weights by it
-        # (docs/decisions/0028); plan.json's predicted covariance is the pre-analysis on the measured rays
-        image_precision=image_precision(job),
+        # [planning] search_weights = "model": the search ranks networks with the detector model's sigma of each ray
+        # (off by default: docs/decisions/0028); plan.json's predicted covariance is the pre-analysis either way
+        image_precision=image_precision(job) if p.search_weights == "model" else None,
         mode=p.mode,
         required_sigma_m=None if p.required_sigma is None else p.required_sigma * k,
         default_tolerance_m=s.report.tolerance * k,

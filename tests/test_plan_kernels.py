@@ -13,10 +13,12 @@ from planning.uncertainty import _IU, _dedupe, criterion, evaluate_networks
 
 
 def _database(m, n, seed, p):
-    """Random per-candidate information ``J^T J`` (2x3 Jacobians, scales spread over 1e4) and visibility."""
+    """Random per-candidate information ``J^T J`` (2x3 Jacobians, scales spread over 1e4 by candidate) and
+    visibility; each ray weighted on its own besides (1 / sigma^2 over 1e2, as the detector model weighs rays by
+    their incidence and dot size: planning.kernels.information_rows_model)."""
     rng = np.random.default_rng(seed)
     vis = rng.random((m, n)) < p
-    J = rng.normal(size=(m, n, 2, 3)) * rng.uniform(1.0, 100.0, (m, 1, 1, 1))
+    J = rng.normal(size=(m, n, 2, 3)) * rng.uniform(1.0, 100.0, (m, 1, 1, 1)) * rng.uniform(1.0, 10.0, (m, n, 1, 1))
     info = np.einsum("mnri,mnrj->mnij", J, J)[:, :, _IU[0], _IU[1]] * vis[..., None]
     return info.astype(np.float32), vis
 
