@@ -221,10 +221,11 @@ class PlanningSection(_Strict):
     generations: int = Field(default=150, ge=1, le=100_000)
     margin_px: float = Field(default=30.0, ge=0, le=10_000)
     lower_bound: bool = Field(default=False, description="also bound how good any network could be (planning.bound)")
-    search_weights: Literal["sigma", "model"] = Field(
-        default="sigma", description="how the network search weighs each ray: sigma: [camera] sigma_px for every ray; "
-                                     "model: the detector model's sigma of that ray (incidence, dot size; needs "
-                                     "[camera] observation_weights = 'model'). Off by default: docs/decisions/0028")
+    search_weights: Literal["sigma", "model"] | None = Field(
+        default=None, description="how the network search weighs each ray: sigma: [camera] sigma_px for every ray; "
+                                  "model: the detector model's sigma of that ray (incidence, dot size; needs "
+                                  "[camera] observation_weights = 'model'); default: as the bundle weighs them "
+                                  "(docs/decisions/0028)")
     closed_loop: bool | None = Field(default=None, description="after ADJUST, add stations for targets that miss their "
                                      "required sigma (default: on when a requirement is set: required_sigma or "
                                      "mode = 'cheapest')")

@@ -36,9 +36,9 @@ def planner_options(job: LoadedJob) -> PlannerOptions:
         incidence_max_rad=float(np.deg2rad(p.incidence_max_deg)),
         criterion=p.criterion,
         sigma_px=c.sigma_px,
-        # [planning] search_weights = "model": the search ranks networks with the detector model's sigma of each ray
-        # (off by default: docs/decisions/0028); plan.json's predicted covariance is the pre-analysis either way
-        image_precision=image_precision(job) if p.search_weights == "model" else None,
+        # the search ranks networks with the detector model's sigma of each ray when the bundle weighs rays by it
+        # ([planning] search_weights, docs/decisions/0028); plan.json's predicted covariance is the pre-analysis
+        image_precision=image_precision(job) if search_weights(job) == "model" else None,
         mode=p.mode,
         required_sigma_m=None if p.required_sigma is None else p.required_sigma * k,
         default_tolerance_m=s.report.tolerance * k,
@@ -49,6 +49,13 @@ def planner_options(job: LoadedJob) -> PlannerOptions:
         n_candidates=p.n_candidates,
         lower_bound=p.lower_bound,
     )
+
+
+def search_weights(job: LoadedJob) -> str:
+    """How the search weighs each ray: ``[planning] search_weights``, default as the bundle does ("model" when
+    ``[camera] observation_weights = "model"``, else one sigma)."""
+    w = job.spec.planning.search_weights
+    return w if w is not None else ("model" if job.spec.camera.observation_weights == "model" else "sigma")
 
 
 def robot_model(job: LoadedJob) -> RobotModel:

@@ -15,6 +15,8 @@ docs/decisions/0026-planspeed-numba.md says what each bought.
 * :func:`strict_step`: one best-improvement exchange of :mod:`planning.refine`;
 * :func:`gather`: ``dense[rows][:, cols]`` of a CSR information for few columns (binary search per pair);
 * :func:`pair_information`: ``J^T J`` of (pose, point) pairs (:func:`planning.uncertainty.point_information`);
+* :func:`unlinked_stations`: the stations of each network outside its largest block of images linked by common
+  targets (what ADJUST's screening would drop);
 * :func:`information_rows`, :func:`information_rows_model`: the candidate x target information, CSR, each ray
   weighted by one sigma per target or by the detector model's sigma of that ray.
 """
@@ -121,6 +123,101 @@ def population_fitness(starts, ends, indices, data, stations, n, min_rays, kind,
         out_value[q] = best if n_ok > 0 else 0.0
         out_violation[q] = short + singular
         out_short[q] = n - n_ok
+
+
+@njit(cache=True, nogil=True)
+def _root(parent, a):
+    while parent[a] != a:
+        parent[a] = parent[parent[a]]
+        a = parent[a]
+    return a
+
+
+@njit(cache=True, nogil=True)
+def unlinked_stations(starts, ends, indices, stations, n, link, sole_links, out):
+    """Stations of each network ``stations: (p, k)`` (-1 = off, no repeats) outside its largest linked block;
+    ``out (p,)``. Two stations are linked when they see ``link`` or more common targets (the rows' indices);
+    blocks are the connected components (ADJUST's screening drops the images of every block but the main one:
+    cell/stages/screen.py ``LINK_TARGETS``). 0 when the network is one block; then, with ``sole_links``, the
+    number of stations that are the only link of some part of the block to the rest (articulation points)."""
+    p, k = stations.shape
+    cnt = np.zeros(n, dtype=np.int32)
+    lst = np.empty((n, k), dtype=np.int32)
+    common = np.zeros((k, k), dtype=np.int32)
+    parent = np.empty(k, dtype=np.int64)
+    size = np.empty(k, dtype=np.int64)
+    for q in range(p):
+        active = 0
+        for j in range(k):
+            c = stations[q, j]
+            if c < 0:
+                continue
+            active += 1
+            for e in range(starts[c], ends[c]):
+                t = indices[e]
+                lst[t, cnt[t]] = j
+                cnt[t] += 1
+        common[:, :] = 0
+        for j in range(k):  # the targets each station sees, once: their other stations (listed in station order)
+            c = stations[q, j]
+            if c < 0:
+                continue
+            for e in range(starts[c], ends[c]):
+                t = indices[e]
+                r = cnt[t]
+                if r < 2 or lst[t, 0] != j:  # each target counted from its first station only
+                    continue
+                for x in range(r):
+                    for y in range(x + 1, r):
+                        common[lst[t, x], lst[t, y]] += 1
+        for j in range(k):
+            c = stations[q, j]
+            if c < 0:
+                continue
+            for e in range(starts[c], ends[c]):
+                cnt[indices[e]] = 0
+        for j in range(k):
+            parent[j] = j
+        for a in range(k):
+            if stations[q, a] < 0:
+                continue
+            for b in range(a + 1, k):
+                if stations[q, b] >= 0 and common[a, b] >= link:
+                    ra, rb = _root(parent, a), _root(parent, b)
+                    if ra != rb:
+                        parent[rb] = ra
+        size[:] = 0
+        best = 0
+        for j in range(k):
+            if stations[q, j] >= 0:
+                r = _root(parent, j)
+                size[r] += 1
+                if size[r] > best:
+                    best = size[r]
+        out[q] = active - best
+        if out[q] > 0 or not sole_links:
+            continue
+        # one block: a station whose image is the only link of a part of the network to the rest (removing it
+        # splits the block) counts too
+        for x in range(k):
+            if stations[q, x] < 0:
+                continue
+            for j in range(k):
+                parent[j] = j
+            for a in range(k):
+                if a == x or stations[q, a] < 0:
+                    continue
+                for b in range(a + 1, k):
+                    if b != x and stations[q, b] >= 0 and common[a, b] >= link:
+                        ra, rb = _root(parent, a), _root(parent, b)
+                        if ra != rb:
+                            parent[rb] = ra
+            roots = 0
+            for j in range(k):
+                if j != x and stations[q, j] >= 0 and _root(parent, j) == j:
+                    roots += 1
+            if roots > 1:
+                out[q] += 1
 
 
 @njit(cache=True, nogil=True)

@@ -60,8 +60,11 @@ def test_bad_job_file_is_one_line_naming_the_key(job_dir, old, new, message):
 
 
 def test_model_search_weights_need_the_bundle_to_weigh_rays_by_the_model_too(job_dir):
+    from cell.setup import search_weights
+
+    assert search_weights(load(job_dir / "job.toml")) == "model"  # the default follows the bundle's weights
     _edit(job_dir, "min_rays = 3", 'min_rays = 3\nsearch_weights = "model"')
-    assert load(job_dir / "job.toml").spec.planning.search_weights == "model"
+    assert search_weights(load(job_dir / "job.toml")) == "model"
     p = _edit(job_dir, "sigma_px = 0.05", 'sigma_px = 0.05\nobservation_weights = "equal"')
     with pytest.raises(JobSpecError, match="planning.search_weights = 'model' needs camera.observation_weights"):
         load_job(p)

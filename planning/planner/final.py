@@ -21,7 +21,8 @@ def _exact_variants(part, intr, options: PlannerOptions, s: _SetUp, genes: np.nd
     if options.mode == "cheapest":
         for v, _ in variants.values():
             v["score"] = float(np.max(v["sigma"] / s.required[s.cols]))
-    name = min(variants, key=lambda n_: (variants[n_][0]["violation"], variants[n_][0]["score"]))
+    name = min(variants, key=lambda n_: (variants[n_][0]["violation"] + variants[n_][0]["unlinked"],
+                                         variants[n_][0]["score"]))
     return name, *variants[name]
 
 
@@ -39,7 +40,13 @@ def _exact_check(part, intr, options: PlannerOptions, s: _SetUp, found: _Found) 
                 f"no network of {k} stations found measures every target with {options.min_rays} rays "
                 f"(the best leaves {short} target(s) short): raise [planning] n_stations or lower [planning] min_rays"
             )
-        if options.mode == "fixed" or (final["violation"] == 0 and final["score"] <= 1.0):
+        if options.mode == "fixed" and final["unlinked"] > 0:
+            raise PlanningError(
+                f"no network of {k} stations found is one block: {int(final['unlinked'])} station(s) share fewer than "
+                f"{options.link_targets} targets with the rest, and ADJUST would drop their images: raise [planning] "
+                "n_stations or incidence_max_deg"
+            )
+        if options.mode == "fixed" or (final["violation"] == 0 and final["unlinked"] == 0 and final["score"] <= 1.0):
             break
     else:
         raise PlanningError(

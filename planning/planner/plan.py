@@ -133,6 +133,7 @@ def plan_network(
             "search_fitness": search_fitness,
             "exact_fitness": final["score"],
             "exact_violation": final["violation"],
+            "exact_unlinked": final["unlinked"],
             **bound_facts,
         },
     )

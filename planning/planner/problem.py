@@ -11,7 +11,7 @@ from planning import kernels
 from planning.evolution import Evaluation
 from planning.planner.options import PlannerOptions
 from planning.stations import ViewingSphere
-from planning.sparse_info import SparseInfo
+from planning.sparse_info import SparseInfo, pattern, unlinked_count
 from planning.uncertainty import NetworkEval, _dedupe, covariance_for_network, criterion, evaluate_networks
 from planning.visibility import VisibilityDB, VisibilityOptions, compute_visibility
 
@@ -46,13 +46,14 @@ class _Problem:
         stations = np.where(bits, idx, -1)
         if isinstance(self.info, SparseInfo) and (self.objective != "criterion" or self.opt.criterion == "worst"):
             value, violation = self._fitness(stations)
+            violation += self.unlinked(stations)
             if self.objective == "criterion" or self.objective == "ratio":
                 objectives = value[:, None]
             else:
                 objectives = np.column_stack([bits.sum(axis=1).astype(float), value])
             return Evaluation(objectives, violation, genes, bits)
         ev = evaluate_networks(self.info, stations, self.opt.min_rays, visible=self.vis)
-        violation = _violation(ev)
+        violation = _violation(ev) + self.unlinked(stations)
         if self.objective == "criterion":
             objectives = criterion(ev, self.opt.criterion, penalty=0.0)[:, None]
         else:
@@ -63,6 +64,14 @@ class _Problem:
                 objectives = np.column_stack([bits.sum(axis=1).astype(float), ratio])
         return Evaluation(objectives, violation, genes, bits)
 
+
+    def unlinked(self, stations: np.ndarray) -> np.ndarray:
+        """(p,) float stations of each network ``stations: (p, k)`` outside its largest block linked by
+        ``link_targets`` common targets (0 when the option is off)."""
+        if self.opt.link_targets <= 0:
+            return np.zeros(len(stations))
+        info = self.info if isinstance(self.info, SparseInfo) else pattern(self.vis)
+        return unlinked_count(info, _dedupe(stations), self.opt.link_targets)
 
     def _fitness(self, stations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(p,) worst sigma (or max sigma / required) and violation of networks ``stations: (p, k)``, straight
@@ -103,5 +112,10 @@ def _exact(part, intr: Intrinsics, options: PlannerOptions, vis_opts: Visibility
     ok = np.isfinite(sig)
     ev = NetworkEval(cov6=c6, sigma=np.where(ok, sig, np.inf), n_rays=n_rays[cols][None], sufficient=ok,
                      min_rays=options.min_rays)
+    unlinked = 0.0
+    if options.link_targets > 0:
+        v = visible[:, cols]
+        unlinked = float(unlinked_count(pattern(v), np.arange(len(v))[None], options.link_targets)[0])
     return {"T": T, "visible": visible, "cov": cov, "n_rays": n_rays, "violation": float(_violation(ev)[0]),
-            "score": float(criterion(ev, options.criterion, penalty=0.0)[0]), "sigma": np.where(ok, sig, np.inf)[0]}
+            "unlinked": unlinked, "score": float(criterion(ev, options.criterion, penalty=0.0)[0]),
+            "sigma": np.where(ok, sig, np.inf)[0]}
