@@ -49,13 +49,16 @@ def one(work: Path, seed: int, misplaced: bool) -> dict:
 
 
 def losses(folder: Path) -> dict:
-    """What the job left out on the way: dots MEASURE left unnamed (by reason), observations, targets and images
-    ADJUST's screening dropped, observations data snooping rejected, suspect targets, and the planned stations."""
+    """The planned stations, predicted and achieved worst sigma, and what the job left out on the way: dots MEASURE
+    left unnamed (by reason), observations, targets and images ADJUST's screening dropped, observations data snooping
+    rejected, suspect targets."""
     obs = json.loads((folder / "observations.json").read_text())
     bundle = json.loads((folder / "bundle.json").read_text())
     plan = json.loads((folder / "plan.json").read_text())
     scr = bundle.get("screening", {})
+    report = json.loads((folder / "report.json").read_text())
     return {"stations": len(plan["stations"]), "observations": bundle["n_observations"],
+            "predicted_max_um": 1e6 * report["predicted_sigma_max_m"], "achieved_max_um": 1e6 * report["achieved_sigma_max_m"],
             "unnamed": obs.get("dropped_by_reason", {}),
             "screened": {k: len(scr.get(k, [])) for k in ("dropped_observations", "dropped_targets", "dropped_images")},
             "rejected": bundle["n_rejected"], "suspect": len(bundle.get("snooping", {}).get("suspect_targets", []))}
