@@ -175,3 +175,37 @@ def test_in_two_covers_the_range_once_and_raises_the_threads_error():
 
     with pytest.raises(ValueError, match="second half"):
         kernels.in_two(8, fail)
+
+
+def test_unlinked_stations_are_those_outside_the_main_block_or_sole_links_as_scipy_finds_them():
+    """The search's linking rule (planning.kernels.unlinked_stations) against connected components of the
+    stations' common-target graph (scipy): stations outside the largest block of images sharing >= 8 targets;
+    for a network that is one block, the stations whose removal splits it."""
+    from scipy.sparse import csr_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    from planning.sparse_info import pattern, unlinked_count
+
+    rng = np.random.default_rng(0)
+    vis = np.zeros((60, 300), bool)  # two groups of candidates on two halves of the targets, a few bridging
+    vis[:30, :150] = rng.random((30, 150)) < 0.3
+    vis[30:, 150:] = rng.random((30, 150)) < 0.3
+    vis[55:, 140:160] = rng.random((5, 20)) < 0.6
+    st = _dedupe(rng.integers(-1, 60, (300, 8)))
+
+    def blocks(S):
+        common = vis[S].astype(int) @ vis[S].T.astype(int)
+        nb, label = connected_components(csr_matrix(common >= 8), directed=False)
+        return len(S) - np.bincount(label).max(), nb
+
+    ref = []
+    for row in st:
+        S = row[row >= 0]
+        outside, _ = blocks(S)
+        ref.append(outside if outside else sum(blocks(np.delete(S, j))[1] > 1 for j in range(len(S))))
+    ref = np.array(ref, dtype=float)
+    np.testing.assert_array_equal(unlinked_count(pattern(vis), st, 8), ref)
+    assert (ref == 0).any() and (ref > 0).any() and set(np.unique(ref)) >= {0, 1, 2}
+    # without the sole-link rule: only the stations outside the main block
+    split = np.array([blocks(row[row >= 0])[0] for row in st], dtype=float)
+    np.testing.assert_array_equal(unlinked_count(pattern(vis), st, 8, sole_links=False), split)
