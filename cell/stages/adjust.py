@@ -8,6 +8,7 @@ import time
 import numpy as np
 
 from calibration.bundle import BundleConfig, BundleOptions, ScaleBar, bundle_adjust
+from calibration.bundle.coherent import coherent_background_cov
 from calibration.camera import Intrinsics
 from calibration.detector_model import load_model, observation_covariances, observation_sigmas
 from calibration.errors import CalibrationError
@@ -121,6 +122,24 @@ def _adjust(ctx, scr: Screening, obs: dict, obs_image, obs_target, obs_uv, poses
     return res, (kept_images, sel, img, tgt, uv, groups, model_sigma)
 
 
+def _add_coherent_background(res, obs: dict, sel, img, tgt, ids: list[str]) -> dict:
+    """Add to each target's covariance the background misfit its views share (decision 0029); what was added."""
+    used = ~res.rejected
+    bg = background_bounds(obs)[sel]
+    c = load_model().c_background
+    extra = coherent_background_cov(res.intrinsics, res.cam_from_part, res.points, img[used], tgt[used],
+                                    res.obs_sigma_px[used], bg[used], c)
+    hit = np.flatnonzero(np.trace(extra, axis1=1, axis2=2) > 0)
+    res.cov[hit] += extra[hit]
+    res.covariance.D[hit] += extra[hit]
+    grow = np.sqrt(np.trace(res.cov[hit], axis1=1, axis2=2) / np.maximum(np.trace(res.cov[hit] - extra[hit], axis1=1, axis2=2), 1e-300))
+    worst = np.argsort(-grow)[:5]
+    return {"share": 1.0, "c_background": c, "n_targets": int(len(hit)),
+            "sigma_growth_median": float(np.median(grow)) if len(hit) else 1.0,
+            "largest": [{"target": ids[int(hit[k])], "sigma_growth": float(grow[k]),
+                         "added_sigma_m": float(np.sqrt(np.trace(extra[hit[k]]) / 3))} for k in worst]}
+
+
 def _wild_targets(res) -> tuple[np.ndarray, np.ndarray, float]:
     """Targets whose sigma exceeds :data:`WILD_SIGMA_FACTOR` times the median target's: (indices, sigmas, median)."""
     tr = np.trace(res.cov, axis1=1, axis2=2)
@@ -193,8 +212,9 @@ def run_bundle(ctx) -> dict:
     if np.any(np.isfinite(var).all(axis=1) & (var <= 0).any(axis=1)):  # a singular network, not a measurement
         raise CalibrationError("bundle: the network is not determined (a target's variance is not positive): its "
                                "images are too weakly linked; see the screening in the log")
-    dt = time.perf_counter() - t0
     kept_images, sel, img, tgt, uv, groups, model_sigma = sub
+    coherent = _add_coherent_background(res, obs, sel, img, tgt, ids) if model_sigma is not None else None
+    dt = time.perf_counter() - t0
     n_img = np.bincount(tgt[~res.rejected], minlength=len(ids))
     rejected = [{"image": obs["images"][int(kept_images[i])]["image"], "target": ids[int(t)], "residual_px": r}
                 for i, t, r, bad in zip(img, tgt, res.residuals, res.rejected) if bad]
@@ -217,6 +237,7 @@ def run_bundle(ctx) -> dict:
         "n_rejected": int(res.rejected.sum()),
         "rejected": rejected,
         "screening": screening_doc(scr, obs, obs_image, obs_target, ids, attempt),
+        "coherent_background": coherent,
         "snooping": res.snooping | {"suspect_targets": [ids[int(t)] for t in res.snooping["suspect_targets"]],
                                     "protected": [p.replace(f"scale bar {a}-{b} ", f"scale bar {ids[a]}-{ids[b]} ")
                                                   for p in res.snooping["protected"]
@@ -308,6 +329,11 @@ def run(ctx) -> None:
         ctx.say(f"  image sigma from the detector model: median {w['a_priori_sigma_px']['median']:.4f} px, "
                 f"max {w['a_priori_sigma_px']['max']:.3f} px; variance factor {w['variance_factor']:.2f}; "
                 f"{w['observations_with_background_bound']} observation(s) next to an edge (background bound)")
+    cb = doc.get("coherent_background")
+    if cb and cb["n_targets"]:
+        big = ", ".join(f"{x['target']} x{x['sigma_growth']:.1f}" for x in cb["largest"][:3])
+        ctx.say(f"  {cb['n_targets']} target(s) next to an edge in several views: the background misfit their views "
+                f"share added to their covariance (sigma x{cb['sigma_growth_median']:.2f} median; largest {big})")
     if doc["observation_weights"]["method"] == "incidence":
         ctx.say("  image sigma by incidence (variance components): " + ", ".join(
             f"{g['name']} {g['sigma_px']:.3f} px" + ("" if g["estimated"] else " (common)")

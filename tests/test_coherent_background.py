@@ -1,0 +1,76 @@
+"""The background misfit a target's views share (calibration.bundle.coherent, decision 0029): against a Monte
+Carlo of the error it models, the stated covariance is honest with it and optimistic without it."""
+from __future__ import annotations
+
+import numpy as np
+from scipy.stats import chi2
+
+from calibration.bundle.coherent import coherent_background_cov
+from calibration.camera import Intrinsics, invert, look_at, project
+
+INTR = Intrinsics(2320.0, 2320.0, 1224.0, 1024.0, 2448, 2048)
+
+
+def _views(rng, n_views=10, spread_deg=20.0):
+    """Poses (cam_from_part) of views within ``spread_deg`` of one direction, 0.5 m from a point at the origin."""
+    poses = []
+    for _ in range(n_views):
+        d = np.array([0.0, 0.0, 1.0]) + np.tan(np.deg2rad(spread_deg)) * rng.uniform(-1, 1, 3) * [1, 1, 0]
+        eye = 0.5 * d / np.linalg.norm(d)
+        poses.append(invert(look_at(eye, rng.normal(0, 0.02, 3))))
+    return np.array(poses)
+
+
+def _jacobian(T, X, h=1e-7):
+    return np.column_stack([(project(INTR, T, (X + h * e)[None])[0] - project(INTR, T, (X - h * e)[None])[0]) / (2 * h)
+                            for e in np.eye(3)])
+
+
+def test_a_misfit_shared_by_the_views_is_stated_and_a_view_without_one_adds_nothing():
+    rng = np.random.default_rng(4)
+    poses = _views(rng)
+    X = np.zeros((1, 3))
+    m = len(poses)
+    img, tgt = np.arange(m), np.zeros(m, dtype=int)
+    sigma = np.full(m, 0.006)
+    B = np.zeros((m, 2, 2))
+    none = coherent_background_cov(INTR, poses, X, img, tgt, sigma, B, 0.26)
+    assert np.all(none == 0)
+    B[:] = np.diag([0.2, 0.1]) ** 2
+    B[0] = 0.0  # one view without a misfit: the others still share theirs
+    E = coherent_background_cov(INTR, poses, X, img, tgt, sigma, B, 0.26)[0]
+    assert np.trace(E) > 0 and np.all(np.linalg.eigvalsh(E) >= -1e-12 * np.trace(E))
+    # one view with a bound is nothing shared
+    B1 = np.zeros((m, 2, 2))
+    B1[3] = np.diag([0.2, 0.1]) ** 2
+    assert np.all(coherent_background_cov(INTR, poses, X, img, tgt, sigma, B1, 0.26) == 0)
+
+
+def test_the_stated_covariance_covers_a_misfit_common_to_the_views_monte_carlo():
+    """Errors d_i = S_i Jh_i z (one z per trial: the surroundings are the same in every view) plus independent
+    noise; the weighted intersection's error against (independent + shared) covariance: m^2 ~ chi^2(3)."""
+    rng = np.random.default_rng(7)
+    poses = _views(rng, 12)
+    X = np.array([[0.001, -0.002, 0.0]])
+    m = len(poses)
+    c = 0.26
+    B = np.array([np.diag(rng.uniform(0.05, 0.25, 2) ** 2) for _ in range(m)])
+    sig = rng.uniform(0.005, 0.01, m)
+    C = sig[:, None, None] ** 2 * np.eye(2) + c * c * B
+    W = np.linalg.inv(C)
+    J = np.array([_jacobian(T, X[0]) for T in poses])
+    N = np.einsum("qba,qbc,qcd->ad", J, W, J)
+    indep = np.linalg.inv(N)
+    E = coherent_background_cov(INTR, poses, X, np.arange(m), np.zeros(m, dtype=int), C, B, c)[0]
+    Xc = np.einsum("qab,b->qa", poses[:, :3, :3], X[0]) + poses[:, :3, 3]
+    Jh = J * (Xc[:, 2] / INTR.fx_px)[:, None, None]
+    S = np.array([np.sqrt(c * c * b) for b in B])  # diagonal bounds: the square root is elementwise
+    trials = 3000
+    z = rng.normal(size=(trials, 3))
+    d = np.einsum("qab,qbc,tc->tqa", S, Jh, z) + rng.normal(size=(trials, m, 2)) * sig[None, :, None]
+    err = np.einsum("ab,qcb,qcd,tqd->ta", indep, J, W, d)  # the weighted least-squares point's error
+    m2_with = np.einsum("ta,ab,tb->t", err, np.linalg.inv(indep + E), err)
+    m2_without = np.einsum("ta,ab,tb->t", err, N, err)
+    assert 0.85 <= np.sqrt(m2_with.mean() / 3) <= 1.15, m2_with.mean()
+    assert np.mean(m2_with <= chi2.ppf(0.99, 3)) >= 0.97
+    assert np.sqrt(m2_without.mean() / 3) > 1.5  # independent weights alone: optimistic
