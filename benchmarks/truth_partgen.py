@@ -58,7 +58,8 @@ def losses(folder: Path) -> dict:
     scr = bundle.get("screening", {})
     report = json.loads((folder / "report.json").read_text())
     return {"stations": len(plan["stations"]), "observations": bundle["n_observations"],
-            "predicted_max_um": 1e6 * report["predicted_sigma_max_m"], "achieved_max_um": 1e6 * report["achieved_sigma_max_m"],
+            "predicted_max_um": 1e6 * report["predicted_sigma_max_m"],
+            "achieved_max_um": 1e6 * report["achieved_sigma_max_m"],
             "unnamed": obs.get("dropped_by_reason", {}),
             "screened": {k: len(scr.get(k, [])) for k in ("dropped_observations", "dropped_targets", "dropped_images")},
             "rejected": bundle["n_rejected"], "suspect": len(bundle.get("snooping", {}).get("suspect_targets", []))}

@@ -133,56 +133,52 @@ def _root(parent, a):
     return a
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _popcount(x):
+    x = x - ((x >> np.uint64(1)) & np.uint64(0x5555555555555555))
+    x = (x & np.uint64(0x3333333333333333)) + ((x >> np.uint64(2)) & np.uint64(0x3333333333333333))
+    x = (x + (x >> np.uint64(4))) & np.uint64(0x0F0F0F0F0F0F0F0F)
+    return (x * np.uint64(0x0101010101010101)) >> np.uint64(56)
+
+
 @njit(cache=True, nogil=True)
-def unlinked_stations(starts, ends, indices, stations, n, link, sole_links, out):
+def unlinked_stations(bits, stations, link, sole_links, out):
     """Stations of each network ``stations: (p, k)`` (-1 = off, no repeats) outside its largest linked block;
-    ``out (p,)``. Two stations are linked when they see ``link`` or more common targets (the rows' indices);
-    blocks are the connected components (ADJUST's screening drops the images of every block but the main one:
-    cell/stages/screen.py ``LINK_TARGETS``). 0 when the network is one block; then, with ``sole_links``, the
-    number of stations that are the only link of some part of the block to the rest (articulation points)."""
+    ``out (p,)``. ``bits: (m, w)`` uint64, the targets each candidate sees as a bitset (:func:`pack_rows`). Two
+    stations are linked when they see ``link`` or more common targets; blocks are the connected components (ADJUST's
+    screening drops the images of every block but the main one: cell/stages/screen.py ``LINK_TARGETS``). 0 when
+    the network is one block; then, with ``sole_links``, the number of stations that are the only link of some
+    part of the block to the rest (articulation points of the link graph)."""
     p, k = stations.shape
-    cnt = np.zeros(n, dtype=np.int32)
-    lst = np.empty((n, k), dtype=np.int32)
-    common = np.zeros((k, k), dtype=np.int32)
+    w = bits.shape[1]
+    linked = np.zeros((k, k), dtype=np.bool_)
     parent = np.empty(k, dtype=np.int64)
     size = np.empty(k, dtype=np.int64)
     for q in range(p):
         active = 0
-        for j in range(k):
-            c = stations[q, j]
-            if c < 0:
+        for a in range(k):
+            ca = stations[q, a]
+            if ca < 0:
                 continue
             active += 1
-            for e in range(starts[c], ends[c]):
-                t = indices[e]
-                lst[t, cnt[t]] = j
-                cnt[t] += 1
-        common[:, :] = 0
-        for j in range(k):  # the targets each station sees, once: their other stations (listed in station order)
-            c = stations[q, j]
-            if c < 0:
-                continue
-            for e in range(starts[c], ends[c]):
-                t = indices[e]
-                r = cnt[t]
-                if r < 2 or lst[t, 0] != j:  # each target counted from its first station only
+            for b in range(a + 1, k):
+                cb = stations[q, b]
+                linked[a, b] = False
+                if cb < 0:
                     continue
-                for x in range(r):
-                    for y in range(x + 1, r):
-                        common[lst[t, x], lst[t, y]] += 1
-        for j in range(k):
-            c = stations[q, j]
-            if c < 0:
-                continue
-            for e in range(starts[c], ends[c]):
-                cnt[indices[e]] = 0
+                c = np.uint64(0)
+                for u in range(w):  # common targets, counted until the link is certain
+                    c += _popcount(bits[ca, u] & bits[cb, u])
+                    if c >= link:
+                        linked[a, b] = True
+                        break
         for j in range(k):
             parent[j] = j
         for a in range(k):
             if stations[q, a] < 0:
                 continue
             for b in range(a + 1, k):
-                if stations[q, b] >= 0 and common[a, b] >= link:
+                if stations[q, b] >= 0 and linked[a, b]:
                     ra, rb = _root(parent, a), _root(parent, b)
                     if ra != rb:
                         parent[rb] = ra
@@ -208,7 +204,7 @@ def unlinked_stations(starts, ends, indices, stations, n, link, sole_links, out)
                 if a == x or stations[q, a] < 0:
                     continue
                 for b in range(a + 1, k):
-                    if b != x and stations[q, b] >= 0 and common[a, b] >= link:
+                    if b != x and stations[q, b] >= 0 and linked[a, b]:
                         ra, rb = _root(parent, a), _root(parent, b)
                         if ra != rb:
                             parent[rb] = ra
@@ -218,6 +214,28 @@ def unlinked_stations(starts, ends, indices, stations, n, link, sole_links, out)
                     roots += 1
             if roots > 1:
                 out[q] += 1
+
+
+def count_unlinked(bits: np.ndarray, stations: np.ndarray, link: int, sole_links: bool = True) -> np.ndarray:
+    """(p,) float :func:`unlinked_stations` of networks ``stations: (p, k)`` (sorted, -1 off, no repeats) of the
+    candidates whose visibility ``bits`` holds (:func:`pack_rows`), on two threads."""
+    import os
+
+    st = np.ascontiguousarray(stations, dtype=np.int64).reshape(len(stations), -1)
+    out = np.zeros(len(st), dtype=np.int64)
+    in_two(len(st), lambda lo, hi: unlinked_stations(bits, st[lo:hi], int(link), bool(sole_links), out[lo:hi]),
+           min_size=2 if (os.cpu_count() or 1) > 1 else len(st) + 1)
+    return out.astype(float)
+
+
+def pack_rows(visible: np.ndarray) -> np.ndarray:
+    """Each row of ``visible: (m, n)`` bool as a bitset, ``(m, ceil(n / 64))`` uint64 (:func:`unlinked_stations`)."""
+    v = np.asarray(visible, dtype=bool)
+    packed = np.packbits(v, axis=1, bitorder="little")
+    pad = (-packed.shape[1]) % 8
+    if pad or packed.shape[1] == 0:
+        packed = np.concatenate([packed, np.zeros((len(v), pad or 8), dtype=np.uint8)], axis=1)
+    return np.ascontiguousarray(packed).view(np.uint64)
 
 
 @njit(cache=True, nogil=True)

@@ -31,7 +31,8 @@ import numpy as np
 from calibration.camera import Intrinsics
 from planning.refine import network_sigma, swap_descent
 from planning.stations import ViewingSphere
-from planning.sparse_info import SparseInfo, pattern, unlinked_count
+from planning import kernels
+from planning.sparse_info import SparseInfo
 from planning.uncertainty import target_information
 from planning.visibility import Occluder, VisibilityOptions, compute_visibility
 
@@ -155,7 +156,8 @@ def polish_network(
     cur_rows = cache.add(information(T0, vis0, all_k), vis0, geo0, all_k)
     sig = network_sigma(cache.info(cur_rows), vis0, np.arange(k), min_rays)
     start = worst = float(sig.max())
-    unlinked = unlinked_count(pattern(vis0), np.arange(k)[None], link_targets)[0] if link_targets > 0 else 0.0
+    unlinked = kernels.count_unlinked(kernels.pack_rows(vis0), np.arange(k)[None], link_targets)[0] \
+        if link_targets > 0 else 0.0
     n_rounds = n_swaps = 0
     n_poses = k
     if not np.isfinite(worst):
@@ -186,8 +188,8 @@ def polish_network(
         pool_genes = np.concatenate([cur, var[keep]])
         r = swap_descent(cache.info(pool_rows), cache.vis[pool_rows], np.arange(len(pool_rows)), np.arange(k),
                          min_rays)
-        if r.worst < worst and link_targets > 0 and unlinked_count(
-                pattern(cache.vis[pool_rows[r.stations]]), np.arange(k)[None], link_targets)[0] > unlinked:
+        if r.worst < worst and link_targets > 0 and kernels.count_unlinked(
+                kernels.pack_rows(cache.vis[pool_rows[r.stations]]), np.arange(k)[None], link_targets)[0] > unlinked:
             r.worst = worst  # splits the network into blocks ADJUST would not link: not taken
         if r.worst < worst:
             n_swaps += r.n_swaps

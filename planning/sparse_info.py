@@ -13,11 +13,9 @@ materialised. The compiled kernels of :mod:`planning.kernels` work on ``starts, 
 
 from __future__ import annotations
 
-import os
-
 import numpy as np
 
-__all__ = ["SparseInfo", "add_rows", "pattern", "unlinked_count", "DENSE_LIMIT_BYTES"]
+__all__ = ["SparseInfo", "add_rows", "DENSE_LIMIT_BYTES"]
 
 # Above this size (m * n * 6 * 4 bytes) a dense information array is not made (CLOSE_LOOP, tests).
 DENSE_LIMIT_BYTES = 1 << 30
@@ -179,26 +177,3 @@ def add_rows(info, acc: np.ndarray, rows: np.ndarray | None, cand: np.ndarray) -
     cand = np.asarray(cand, dtype=np.intp)
     rows = np.arange(len(cand)) if rows is None else np.asarray(rows, dtype=np.intp)
     kernels.add_rows(info.starts, info.ends, info.indices, info.data, acc, rows, cand)
-
-
-def pattern(visible: np.ndarray) -> SparseInfo:
-    """The visible pairs of ``visible: (m, n)`` bool as a CSR (its information zero: the pattern is what counts)."""
-    ci, ti = np.nonzero(np.asarray(visible, dtype=bool))
-    indptr = np.zeros(len(visible) + 1, dtype=np.int64)
-    np.cumsum(np.bincount(ci, minlength=len(visible)), out=indptr[1:])
-    return SparseInfo(indptr, ti, np.zeros((len(ti), 6), dtype=np.float32), visible.shape[1])
-
-
-def unlinked_count(info: SparseInfo, stations: np.ndarray, link: int, sole_links: bool = True) -> np.ndarray:
-    """(p,) float: :func:`planning.kernels.unlinked_stations` of networks ``stations: (p, k)`` (sorted, -1 off, no
-    repeats) on the visibility pattern of ``info``: stations outside the largest linked block, else stations that
-    alone link a part of the network to the rest (``sole_links``)."""
-    from planning import kernels
-
-    st = np.ascontiguousarray(stations, dtype=np.int64).reshape(len(stations), -1)
-    out = np.zeros(len(st), dtype=np.int64)
-    n = info.shape[1]
-    kernels.in_two(len(st), lambda lo, hi: kernels.unlinked_stations(info.starts, info.ends, info.indices, st[lo:hi],
-                                                                      n, int(link), bool(sole_links), out[lo:hi]),
-                   min_size=2 if (os.cpu_count() or 1) > 1 else len(st) + 1)
-    return out.astype(float)

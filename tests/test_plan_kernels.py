@@ -184,8 +184,6 @@ def test_unlinked_stations_are_those_outside_the_main_block_or_sole_links_as_sci
     from scipy.sparse import csr_matrix
     from scipy.sparse.csgraph import connected_components
 
-    from planning.sparse_info import pattern, unlinked_count
-
     rng = np.random.default_rng(0)
     vis = np.zeros((60, 300), bool)  # two groups of candidates on two halves of the targets, a few bridging
     vis[:30, :150] = rng.random((30, 150)) < 0.3
@@ -204,8 +202,8 @@ def test_unlinked_stations_are_those_outside_the_main_block_or_sole_links_as_sci
         outside, _ = blocks(S)
         ref.append(outside if outside else sum(blocks(np.delete(S, j))[1] > 1 for j in range(len(S))))
     ref = np.array(ref, dtype=float)
-    np.testing.assert_array_equal(unlinked_count(pattern(vis), st, 8), ref)
+    np.testing.assert_array_equal(kernels.count_unlinked(kernels.pack_rows(vis), st, 8), ref)
     assert (ref == 0).any() and (ref > 0).any() and set(np.unique(ref)) >= {0, 1, 2}
     # without the sole-link rule: only the stations outside the main block
     split = np.array([blocks(row[row >= 0])[0] for row in st], dtype=float)
-    np.testing.assert_array_equal(unlinked_count(pattern(vis), st, 8, sole_links=False), split)
+    np.testing.assert_array_equal(kernels.count_unlinked(kernels.pack_rows(vis), st, 8, sole_links=False), split)

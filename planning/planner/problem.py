@@ -11,7 +11,7 @@ from planning import kernels
 from planning.evolution import Evaluation
 from planning.planner.options import PlannerOptions
 from planning.stations import ViewingSphere
-from planning.sparse_info import SparseInfo, pattern, unlinked_count
+from planning.sparse_info import SparseInfo
 from planning.uncertainty import NetworkEval, _dedupe, covariance_for_network, criterion, evaluate_networks
 from planning.visibility import VisibilityDB, VisibilityOptions, compute_visibility
 
@@ -32,6 +32,7 @@ class _Problem:
         tree = cKDTree(db.eyes[valid])
         _, nearest_valid = tree.query(db.eyes)
         self.repair = np.where(valid, np.arange(len(valid)), self.valid_idx[nearest_valid])
+        self._bits = None  # the candidates' visibility as bitsets (the linking rule), made when first needed
 
     def snap(self, genes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Candidate index of each station after correction, and whether it was corrected."""
@@ -70,8 +71,9 @@ class _Problem:
         ``link_targets`` common targets (0 when the option is off)."""
         if self.opt.link_targets <= 0:
             return np.zeros(len(stations))
-        info = self.info if isinstance(self.info, SparseInfo) else pattern(self.vis)
-        return unlinked_count(info, _dedupe(stations), self.opt.link_targets)
+        if self._bits is None:
+            self._bits = kernels.pack_rows(self.vis)
+        return kernels.count_unlinked(self._bits, _dedupe(stations), self.opt.link_targets)
 
     def _fitness(self, stations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(p,) worst sigma (or max sigma / required) and violation of networks ``stations: (p, k)``, straight
@@ -115,7 +117,7 @@ def _exact(part, intr: Intrinsics, options: PlannerOptions, vis_opts: Visibility
     unlinked = 0.0
     if options.link_targets > 0:
         v = visible[:, cols]
-        unlinked = float(unlinked_count(pattern(v), np.arange(len(v))[None], options.link_targets)[0])
+        unlinked = float(kernels.count_unlinked(kernels.pack_rows(v), np.arange(len(v))[None], options.link_targets)[0])
     return {"T": T, "visible": visible, "cov": cov, "n_rays": n_rays, "violation": float(_violation(ev)[0]),
             "unlinked": unlinked, "score": float(criterion(ev, options.criterion, penalty=0.0)[0]),
             "sigma": np.where(ok, sig, np.inf)[0]}
