@@ -426,3 +426,19 @@ def test_lower_bound_lies_below_the_searched_network_and_proves_station_counts(s
         assert c["fewer_stations_lower_bound_ratio"] > 1.0
         assert not any(r["n_stations"] == c["fewer_stations"] and r["sigma_ratio_max"] <= 1.0
                        for r in cheap.pareto_front)
+
+
+def test_plan_counts_its_weakly_linked_stations_as_adjust_would_see_them(scene, fixed_plan):
+    """search.exact_unlinked: stations outside the main block of images sharing link_targets targets, or alone
+    linking a part of it (planning.kernels.unlinked_stations), recounted here from the plan's own rays
+    (docs/decisions/0028)."""
+    from planning import kernels
+
+    plan = fixed_plan[0]
+    vis = np.array([[sid in seen for seen in plan.seen_by] for sid in plan.station_ids])
+    k = len(plan.station_ids)
+    assert plan.search["link_targets"] == 8
+    assert plan.search["exact_unlinked"] == kernels.count_unlinked(kernels.pack_rows(vis), np.arange(k)[None], 8)[0]
+    # 60 targets on a stepped block: 8 stations can be one block with no sole link
+    assert plan.search["exact_unlinked"] == 0
+    assert kernels.count_unlinked(kernels.pack_rows(vis), np.arange(k)[None], 10**6, sole_links=False)[0] == k - 1

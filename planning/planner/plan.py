@@ -134,6 +134,7 @@ def plan_network(
             "exact_fitness": final["score"],
             "exact_violation": final["violation"],
             "exact_unlinked": final["unlinked"],
+            "link_targets": options.link_targets,
             **bound_facts,
         },
     )
