@@ -107,6 +107,7 @@ def polish_network(
     backend: str = "embree",
     reachable_fn=None,
     link_targets: int = 0,
+    sole_links: bool = True,
 ) -> PolishResult:
     """Exchange descent over exactly ray-cast local variants of the network (module docstring).
 
@@ -118,7 +119,8 @@ def polish_network(
         reachable_fn: ``part_from_cam (m, 4, 4) -> (m,) bool``, the robot's reachability of the
             variants (IK and collisions, :func:`planning.reachability.reachability_mask`); None: all.
         link_targets: a round's exchanges are taken only if they leave no more stations outside the network's
-            largest block linked by this many common targets than before (0: not checked).
+            largest block linked by this many common targets (or, ``sole_links``, stations that alone link a part of
+            it) than before (0: not checked).
     Returns:
         :class:`PolishResult`; its worst is never above the start's.
     """
@@ -156,7 +158,7 @@ def polish_network(
     cur_rows = cache.add(information(T0, vis0, all_k), vis0, geo0, all_k)
     sig = network_sigma(cache.info(cur_rows), vis0, np.arange(k), min_rays)
     start = worst = float(sig.max())
-    unlinked = kernels.count_unlinked(kernels.pack_rows(vis0), np.arange(k)[None], link_targets)[0] \
+    unlinked = kernels.count_unlinked(kernels.pack_rows(vis0), np.arange(k)[None], link_targets, sole_links)[0] \
         if link_targets > 0 else 0.0
     n_rounds = n_swaps = 0
     n_poses = k
@@ -189,7 +191,8 @@ def polish_network(
         r = swap_descent(cache.info(pool_rows), cache.vis[pool_rows], np.arange(len(pool_rows)), np.arange(k),
                          min_rays)
         if r.worst < worst and link_targets > 0 and kernels.count_unlinked(
-                kernels.pack_rows(cache.vis[pool_rows[r.stations]]), np.arange(k)[None], link_targets)[0] > unlinked:
+                kernels.pack_rows(cache.vis[pool_rows[r.stations]]), np.arange(k)[None], link_targets,
+                sole_links)[0] > unlinked:
             r.worst = worst  # splits the network into blocks ADJUST would not link: not taken
         if r.worst < worst:
             n_swaps += r.n_swaps
@@ -335,4 +338,4 @@ def polish(part, intr: Intrinsics, sphere: ViewingSphere, vis_opts: VisibilityOp
     return polish_network(part, intr, sphere, vis_opts, genes, cols, options.min_rays, options.image_sigma(cols),
                           step_rad=step_rad, step_m=step_m, offset_m=0.1 * float(part.radius),
                           rounds=options.polish_rounds, backend=options.backend, reachable_fn=reachable_fn,
-                          link_targets=options.link_targets)
+                          link_targets=options.link_targets, sole_links=options.sole_links)

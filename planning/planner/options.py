@@ -74,6 +74,8 @@ class PlannerOptions:
             fall into blocks not linked to each other is infeasible (one violation per station outside the largest
             block): ADJUST's screening would drop those images (cell/stages/screen.py LINK_TARGETS, the same 8).
             Limiting error propagation holds the orientations fixed and cannot see it (docs/decisions/0028); 0: off.
+        sole_links: with ``link_targets``, a station that alone links a part of the network to the rest (removing it
+            splits the network) counts as a violation too (the model-ranked search's failure, decision 0028).
         lower_bound: also compute (planning.bound) how good any network could be on the
             database: "fixed" with the "worst" criterion: a lower bound on the worst target's
             sigma for ``n_stations`` (``search["lower_bound_sigma_m"]``); "cheapest": whether
@@ -119,6 +121,7 @@ class PlannerOptions:
     ladder_base: int = 32
     lower_bound: bool = False
     link_targets: int = 8
+    sole_links: bool = True
 
     def check(self) -> None:
         """Raise InputError naming the first bad option."""

@@ -135,6 +135,7 @@ def plan_network(
             "exact_violation": final["violation"],
             "exact_unlinked": final["unlinked"],
             "link_targets": options.link_targets,
+            "sole_links": options.sole_links,
             **bound_facts,
         },
     )

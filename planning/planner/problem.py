@@ -73,7 +73,7 @@ class _Problem:
             return np.zeros(len(stations))
         if self._bits is None:
             self._bits = kernels.pack_rows(self.vis)
-        return kernels.count_unlinked(self._bits, _dedupe(stations), self.opt.link_targets)
+        return kernels.count_unlinked(self._bits, _dedupe(stations), self.opt.link_targets, self.opt.sole_links)
 
     def _fitness(self, stations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(p,) worst sigma (or max sigma / required) and violation of networks ``stations: (p, k)``, straight
@@ -117,7 +117,8 @@ def _exact(part, intr: Intrinsics, options: PlannerOptions, vis_opts: Visibility
     unlinked = 0.0
     if options.link_targets > 0:
         v = visible[:, cols]
-        unlinked = float(kernels.count_unlinked(kernels.pack_rows(v), np.arange(len(v))[None], options.link_targets)[0])
+        unlinked = float(kernels.count_unlinked(kernels.pack_rows(v), np.arange(len(v))[None], options.link_targets,
+                                                options.sole_links)[0])
     return {"T": T, "visible": visible, "cov": cov, "n_rays": n_rays, "violation": float(_violation(ev)[0]),
             "unlinked": unlinked, "score": float(criterion(ev, options.criterion, penalty=0.0)[0]),
             "sigma": np.where(ok, sig, np.inf)[0]}
