@@ -2,9 +2,14 @@
 
 Run from the repository root::
 
-    .venv/bin/python -m benchmarks.bench_job_e2e --repeat 3
-    git archive main | tar -x -C /tmp/cell_main          # a baseline: another version of the code
-    .venv/bin/python -m benchmarks.bench_job_e2e --repeat 3 --baseline-src /tmp/cell_main
+    .venv/bin/python -m benchmarks.bench_job_e2e --repeat 3                    # baseline: the last merge (below)
+    .venv/bin/python -m benchmarks.bench_job_e2e --repeat 3 --baseline 9a190b3
+    .venv/bin/python -m benchmarks.bench_job_e2e --repeat 3 --baseline-src /tmp/cell_main   # a checkout of your own
+    .venv/bin/python -m benchmarks.bench_job_e2e --repeat 3 --no-baseline
+
+The default baseline is ``benchmarks.baseline_code.default_baseline()``: HEAD's first parent when HEAD is a merge
+(main right after merging a branch: the code before that branch), else the latest merge on HEAD's first-parent
+line; it is exported with ``git archive`` into a temporary folder (removed at the end) and named in the output.
 
 Each run is ``cell run JOB --yes`` in a fresh process (imports included, as an operator meets it) into a
 temporary archive; the planning caches are warmed by one untimed run first. The baseline runs the same command
@@ -67,22 +72,38 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--job", default="examples/bracket/job.toml")
     ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--baseline", default=None, help="commit to compare with (default: the last merge, see above)")
     ap.add_argument("--baseline-src", type=Path, default=None,
-                    help="a directory holding another version of the packages (e.g. git archive main)")
+                    help="a directory holding another version of the packages (instead of --baseline)")
+    ap.add_argument("--no-baseline", action="store_true")
     a = ap.parse_args()
-    variants = {"ours": None} | ({"baseline": a.baseline_src.resolve()} if a.baseline_src else {})
+    with tempfile.TemporaryDirectory(prefix="bench_job_") as tmp:
+        src, label = None, None
+        if a.baseline_src:
+            src, label = a.baseline_src.resolve(), str(a.baseline_src)
+        elif not a.no_baseline:
+            from benchmarks.baseline_code import default_baseline, export_tree
+
+            label = a.baseline or default_baseline()
+            src = export_tree(label, Path(tmp) / "baseline_src")
+        variants = {"ours": None} | ({"baseline": src} if src else {})
+        if label:
+            print(f"baseline: {label}", flush=True)
+        _bench(a, variants, Path(tmp), label)
+
+
+def _bench(a, variants: dict, tmp: Path, label: str | None) -> None:
     runs: dict[str, list[dict]] = {k: [] for k in variants}
     loads = []
-    with tempfile.TemporaryDirectory(prefix="bench_job_") as tmp:
-        for name, src in variants.items():  # warm the planning caches (and the OS file cache) for each version
-            _run(a.job, src, Path(tmp) / name)
-        for _ in range(a.repeat):
-            for name, src in variants.items():
-                loads.append(os.getloadavg()[0])
-                runs[name].append(_run(a.job, src, Path(tmp) / name))
+    for name, src in variants.items():  # warm the planning caches (and the OS file cache) for each version
+        _run(a.job, src, tmp / name)
+    for _ in range(a.repeat):
+        for name, src in variants.items():
+            loads.append(os.getloadavg()[0])
+            runs[name].append(_run(a.job, src, tmp / name))
     print(f"{a.job}: {a.repeat} runs each, load average {min(loads):.2f}..{max(loads):.2f}")
     head = f"{'':10s}" + "".join(f"{n + ' best':>17s}{n + ' median':>17s}" for n in variants)
-    print(head + ("   ratio (best, median)" if len(variants) == 2 else ""))
+    print(head + ("   ratio ours / baseline (best, median)" if len(variants) == 2 else ""))
     for key in ("wall", "cpu") + STAGES:
         row = f"{key:10s}"
         vals = {}
@@ -92,6 +113,10 @@ def main() -> None:
         if len(variants) == 2 and vals["baseline"][0] > 0:
             row += f"   {vals['ours'][0] / vals['baseline'][0]:.2f}, {vals['ours'][1] / vals['baseline'][1]:.2f}"
         print(row)
+    if len(variants) == 2:
+        ours, base = _summary(runs["ours"], "wall")[0], _summary(runs["baseline"], "wall")[0]
+        print("BENCHMARK " + json.dumps({"what": f"cell run {a.job}, wall (best)", "figure": f"{ours:.2f} s",
+                                         "baseline": f"{label}: {base:.2f} s", "ratio": round(ours / base, 2)}))
     other = {n: [r["wall"] - sum(r.get(s, 0.0) for s in STAGES) for r in runs[n]] for n in variants}
     print("outside the stages (start-up, imports, closing): " + ", ".join(
         f"{n} best {min(v):.2f} s median {np.median(v):.2f} s" for n, v in other.items()))

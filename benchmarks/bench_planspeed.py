@@ -16,10 +16,13 @@ absolute seconds).
     .venv/bin/python -m benchmarks.bench_planspeed --kernels 5000x64     # the parts, old and new in one process
 
 ``--kernels NxK`` times the planner's parts in this process, today's modules beside the baseline's
-(``benchmarks.baseline_code.load_at``: planning/visibility.py, uncertainty.py, refine.py, polish.py as they were,
-the old polish wired to the old refine, visibility and information) on the same job: the visibility database,
-its information, the exchange descent from greedy starts, and the polish of a greedy network of K stations;
-the ratio old / new and whether the answers are the same.
+(``benchmarks.baseline_code.load_package_at``: the whole ``planning`` package as it was at ``--baseline``, its
+modules importing each other, so the old polish runs the old refine, visibility, information and sparse
+storage; ``calibration`` and the job builder are today's, and the same job, candidates, greedy starts and
+information array go to both) on the same job: the visibility database, its information, the exchange descent
+from greedy starts, and the polish of a greedy network of K stations; the ratio old / new and whether the answers
+are the same. ``--no-warm`` skips the unmeasured first run of this tree (the kernels then compile in the first
+measured run).
 """
 from __future__ import annotations
 
@@ -28,7 +31,6 @@ import json
 import os
 import subprocess
 import sys
-import tarfile
 import tempfile
 import time
 from pathlib import Path
@@ -40,17 +42,12 @@ PHASES = ("visibility_s", "reach_s", "information_s", "search_s", "polish_s", "f
 
 def export_tree(rev: str, dest: Path) -> Path:
     """The files of ``rev`` under ``dest`` (git archive); exits 2 with one line when ``rev`` is unknown."""
-    p = subprocess.run(["git", "-C", str(ROOT), "archive", "--format=tar", rev], capture_output=True)
-    if p.returncode != 0:
-        print(f"bench_planspeed: cannot export baseline {rev!r}: {p.stderr.decode().strip()}", file=sys.stderr)
-        raise SystemExit(2)
-    tar = dest / "tree.tar"
-    tar.write_bytes(p.stdout)
-    with tarfile.open(tar) as t:
-        t.extractall(dest / "tree", filter="data")
+    from benchmarks.baseline_code import export_tree as export
+
+    tree = export(rev, dest)
     # the same job builder and report for both trees (today's bench_scale: it also prints the plan's digest)
-    (dest / "tree" / "benchmarks" / "bench_scale.py").write_text((ROOT / "benchmarks" / "bench_scale.py").read_text())
-    return dest / "tree"
+    (tree / "benchmarks" / "bench_scale.py").write_text((ROOT / "benchmarks" / "bench_scale.py").read_text())
+    return tree
 
 
 def run_one(tree: Path, n: int, k: int, seed: int, timeout: float, search_weights: str | None = None) -> dict:
@@ -88,7 +85,7 @@ def kernels_same_process(n: int, k: int, rev: str, seed: int) -> None:
     import numpy as np
 
     sys.path.insert(0, str(ROOT))
-    from benchmarks.baseline_code import load_at
+    from benchmarks.baseline_code import load_package_at, submodule
     from benchmarks.bench_scale import JOB, synthetic_targets
     from cell.loadedjob import load
     from cell.setup import planner_options
@@ -99,12 +96,9 @@ def kernels_same_process(n: int, k: int, rev: str, seed: int) -> None:
     from planning.part import Part
     from planning.seeding import greedy_cover
 
-    old_vis = load_at("planning/visibility.py", rev)
-    old_unc = load_at("planning/uncertainty.py", rev)
-    old_refine = load_at("planning/refine.py", rev)
-    old_polish = load_at("planning/polish.py", rev)
-    old_polish.swap_descent, old_polish.network_sigma = old_refine.swap_descent, old_refine.network_sigma
-    old_polish.compute_visibility, old_polish.target_information = old_vis.compute_visibility, old_unc.target_information
+    old = load_package_at("planning", rev)  # self-contained: old modules import old modules
+    old_vis, old_unc = submodule(old, "visibility"), submodule(old, "uncertainty")
+    old_refine, old_polish = submodule(old, "refine"), submodule(old, "polish")
 
     job = load(JOB)
     targets = synthetic_targets(job.part.mesh, n, np.random.default_rng(seed))
@@ -140,7 +134,7 @@ def kernels_same_process(n: int, k: int, rev: str, seed: int) -> None:
     valid = np.flatnonzero(V.any(axis=1))
     starts = np.stack([greedy_cover(V, valid, k, opts.min_rays, np.random.default_rng(seed + i)) for i in range(2)])
     args = (V, valid, starts, opts.min_rays)
-    r_new, t_new = timed(new_refine.refine_network, info_old, *args, np.random.default_rng(1), n_kicks=2)
+    r_new, t_new = timed(new_refine.refine_network, info_new, *args, np.random.default_rng(1), n_kicks=2)
     r_old, t_old = timed(old_refine.refine_network, info_old, *args, np.random.default_rng(1), n_kicks=2)
     print(f"  exchange descent      old {t_old:7.2f} s  new {t_new:7.2f} s  {t_old / t_new:5.1f}x  "
           f"same network: {np.array_equal(r_new.stations, r_old.stations)}, worst {r_old.worst * 1e6:.4f} / "
@@ -162,12 +156,12 @@ def main(argv=None) -> int:
     ap.add_argument("--no-baseline", action="store_true")
     ap.add_argument("--search-weights", choices=("sigma", "model"), default=None,
                     help="this tree's search weighs each ray by sigma_px or by the detector model (default: as the "
-                         "job, i.e. the model; decision 0028)")
+                         "job: one sigma; decision 0030)")
     ap.add_argument("--repeat", type=int, default=2)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--timeout", type=float, default=3600.0)
-    ap.add_argument("--warm", action="store_true", default=True,
-                    help="one unmeasured run of this tree first (compiles and caches the kernels)")
+    ap.add_argument("--warm", action=argparse.BooleanOptionalAction, default=True,
+                    help="one unmeasured run of this tree first (compiles and caches the kernels); --no-warm: none")
     ap.add_argument("--kernels", metavar="NxK", help="time the parts old and new in this process (no plans)")
     a = ap.parse_args(argv)
     if a.kernels:

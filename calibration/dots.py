@@ -116,6 +116,8 @@ class Detections:
             ellipse is ``x^T axes^-1 x = 4`` about the centre (for a uniform disc of radius r, r^2/4 I).
         background_cov: (k, 2, 2) bound of the centre's error from a local background that is not a
             plane (px^2; zero where the ring shows no significant misfit), or None.
+        saturated: (k,) pixels of each dot at the sensor's ceiling (clipped: the dot's profile is cut flat and
+            its centre errs by what no noise model states; decision 0029), or None.
     """
 
     uv: np.ndarray
@@ -128,6 +130,7 @@ class Detections:
     polarity: str = "bright"
     axes: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 2)))
     background_cov: np.ndarray | None = None
+    saturated: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.uv)
@@ -136,7 +139,8 @@ class Detections:
         """These detections restricted to ``keep`` (bool mask or indices)."""
         return replace(self, uv=self.uv[keep], area_px=self.area_px[keep], peak=self.peak[keep], flux=self.flux[keep],
                        background=self.background[keep], cov=self.cov[keep], axes=self.axes[keep],
-                       background_cov=None if self.background_cov is None else self.background_cov[keep])
+                       background_cov=None if self.background_cov is None else self.background_cov[keep],
+                       saturated=None if self.saturated is None else self.saturated[keep])
 
 
 def to_grey(image: np.ndarray) -> np.ndarray:
@@ -155,6 +159,18 @@ def to_grey(image: np.ndarray) -> np.ndarray:
 
 def _invert(image: np.ndarray) -> np.ndarray:
     return cv2.bitwise_not(image)
+
+
+def _ceiling(image: np.ndarray) -> float:
+    """The grey level at which ``image``'s sensor clips: 255 for 8 bits; for 16-bit containers the all-ones code of
+    the bit depth the image reaches (10, 12, 14 or 16 bits), so a 12-bit image clips at 4095."""
+    if image.dtype == np.uint8:
+        return 255.0
+    top = int(image.max())
+    for bits in (10, 12, 14, 16):
+        if top <= (1 << bits) - 1:
+            return float((1 << bits) - 1)
+    return 65535.0
 
 
 def _noise(image: np.ndarray, stride: int) -> float:
@@ -446,7 +462,7 @@ def _detect(image: np.ndarray, o: DetectionOptions) -> Detections:
         mask &= cv2.compare(tophat.astype(np.float32), local, cv2.CMP_GT)  # 0/255: keeps mask's 0/1
     n_lab, labels, stats = _components(mask)
     empty = Detections(np.zeros((0, 2)), np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0), noise,
-                       np.zeros((0, 2, 2)), o.polarity, np.zeros((0, 2, 2)), np.zeros((0, 2, 2)))
+                       np.zeros((0, 2, 2)), o.polarity, np.zeros((0, 2, 2)), np.zeros((0, 2, 2)), np.zeros(0, dtype=int))
     if n_lab <= 1:
         return empty
     w_box = stats[1:, cv2.CC_STAT_WIDTH].astype(float)
@@ -494,6 +510,7 @@ def _detect(image: np.ndarray, o: DetectionOptions) -> Detections:
     bgp = coef[li - 1, 0] + coef[li - 1, 1] * (xi - xc[li - 1]) + coef[li - 1, 2] * (yi - yc[li - 1])
     top = np.zeros(k + 1)
     np.maximum.at(top, li, vi)
+    n_sat = np.bincount(li, weights=(vi >= _ceiling(image)).astype(float), minlength=k + 1)[1:]
     peak = top[1:] - bg_local
     # the dot hides the surface behind it: a pixel's value is bg (1 - a) + L a for a dot of level L
     # covering the fraction a, so its share of the dot is (value - bg) / (L - bg), with L ~ the peak
@@ -537,4 +554,4 @@ def _detect(image: np.ndarray, o: DetectionOptions) -> Detections:
     good = (sw > 0) & (peak >= o.min_peak_snr * noise)
     flux = sw * np.maximum(peak, 0.0)
     return Detections(uv[good], area[keep][good], peak[good], flux[good], bg_local[good], noise, cov[good],
-                      o.polarity, axes[good], bcov[good])
+                      o.polarity, axes[good], bcov[good], n_sat[good].astype(int))

@@ -151,6 +151,26 @@ def open_devices(job: LoadedJob, backend: str, *, seed_offset: int = 0) -> Devic
     return d
 
 
+def inject_unreachable(devices: Devices, job: LoadedJob, backend: str, joints_rad) -> None:
+    """``[sim] unreachable_stations``: the controller refuses the moves to these joint targets ``(n, 6)``.
+
+    The simulated robot takes them directly; with ``backend = "ur"`` they go to the loopback UR controller
+    (``sim_backend.ur_controller``), which then refuses them as a real one refuses a target outside its
+    safety limits. A real controller cannot be told: ``InputError``.
+    """
+    if backend == "sim":
+        devices.robot.inject_unreachable(joints_rad)
+        return
+    from sim_backend.ur_controller import refuse_targets_at
+
+    host = job.spec.cell.host
+    try:
+        refuse_targets_at(host, joints_rad)
+    except (OSError, ValueError) as exc:
+        raise InputError(f"[sim] unreachable_stations works with the simulated cell or the loopback UR controller "
+                         f"only; the controller at {host} did not take it ({exc})") from None
+
+
 FRAME_FAULTS_ENV = "CELL_SIM_FRAME_FAULTS"
 
 

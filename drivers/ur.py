@@ -12,6 +12,12 @@ What this driver adds to ur-rtde:
   ``ProtectiveStopError`` (protective or emergency stop), ``MotionError`` (script
   not running, deadline, stopped on request), ``NotConnectedError`` (stale RTDE
   data, dead client);
+* before each move the controller is asked whether it takes the target
+  (``is_within_safety_limits``: its joint limits, safety planes, tool orientation limits and
+  reach); its "no", with the arm still where the move started (checked on both sides of the
+  pipe), is ``MoveRefusedError`` and nothing is sent. Anything else stays a fault, also a
+  program that stops before the arm moved (a runtime error and a stop from the pendant look
+  the same over RTDE; decision 0028);
 * the cell's own limits (joint speed and acceleration, TCP speed and acceleration,
   a workspace box in the base frame for the flange) are checked before anything
   is sent (``LimitError``);
@@ -44,8 +50,9 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from calibration import errors
-from calibration.errors import DriverError, LimitError, MotionError, NotConnectedError
+from calibration.errors import DriverError, LimitError, MotionError, MoveRefusedError, NotConnectedError
 from drivers.protocols import RobotState, SafetyStatus
+from drivers.ur_worker import MOVED_RAD
 
 # safety_status_bits (RTDE guide)
 BIT_PROTECTIVE_STOP, BIT_ROBOT_ESTOP, BIT_ESTOP, BIT_VIOLATION, BIT_FAULT = 2, 6, 7, 8, 9
@@ -233,7 +240,7 @@ class URRobot:
         self.limits.check_box(flange, "move_joints")
         expected = profile_duration(float(np.max(np.abs(q - start.joints_rad))), speed_rad_s, accel_rad_s2)
         return self._move({"op": "move_joints", "target": q.tolist(), "speed": speed_rad_s,
-                           "accel": accel_rad_s2}, expected)
+                           "accel": accel_rad_s2}, expected, start)
 
     def move_pose(self, base_from_flange, speed_m_s: float, accel_m_s2: float) -> RobotState:
         target = np.asarray(base_from_flange, dtype=float)
@@ -254,7 +261,7 @@ class URRobot:
                                      .as_rotvec()))
         expected = profile_duration(max(length, 0.1 * angle), speed_m_s, accel_m_s2)
         return self._move({"op": "move_pose", "target": matrix_to_pose(target).tolist(), "speed": speed_m_s,
-                           "accel": accel_m_s2}, expected)
+                           "accel": accel_m_s2}, expected, start)
 
     def stop(self) -> RobotState | None:
         """Decelerate and stop now, whatever the client is doing; returns the state once the arm is at rest.
@@ -297,12 +304,20 @@ class URRobot:
             pass
 
     # ------------------------------------------------------------ internals
-    def _move(self, request: dict, expected_s: float) -> RobotState:
+    def _move(self, request: dict, expected_s: float, start: RobotState) -> RobotState:
         deadline = 1.5 * expected_s + self.deadline_s
         request["deadline_s"] = deadline
         # backstop on this side of the pipe: the child's deadline, then its bounded stop, then a margin
         stop_allowance = 2.5 + self.limits.max_joint_speed_rad_s / self._options["stop_decel"]
-        reply = self._request(request, deadline + stop_allowance + self.deadline_s)
+        try:
+            reply = self._request(request, deadline + stop_allowance + self.deadline_s)
+        except MoveRefusedError:
+            # a refusal only if the arm is still where this move started (the child checked from its own reading)
+            moved = float(np.max(np.abs(self.state().joints_rad - start.joints_rad)))
+            if moved > MOVED_RAD:
+                raise MotionError(f"UR at {self.host}: the controller refused the move, but the arm is {moved:.4f} "
+                                  "rad from where the move started: the job stops") from None
+            raise
         state = self._to_state(reply)
         if not state.safety.normal:  # the child checked already; a second look costs nothing
             raise MotionError(f"UR at {self.host}: move ended with safety status '{state.safety.detail}'")

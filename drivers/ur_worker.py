@@ -32,8 +32,9 @@ BIT_PROTECTIVE_STOP, BIT_ROBOT_ESTOP, BIT_ESTOP = 2, 6, 7
 RUNTIME_PLAYING = 2
 RECEIVE_VARIABLES = ["timestamp", "actual_q", "actual_qd", "actual_TCP_pose", "safety_status_bits",
                      "runtime_state", "robot_mode", "safety_mode"]
+#: joints further than this (rad) from where they were mean the arm moved
+MOVED_RAD = 1e-4
 RUNTIME_NAMES = {0: "stopping", 1: "stopped", 2: "playing", 3: "pausing", 4: "paused", 5: "resuming"}
-
 
 
 #: ur-rtde error texts that mean the socket to the controller is gone (not a refused command).
@@ -192,7 +193,7 @@ class Worker:
         first = float(self.rcv.getTimestamp())
         while float(self.rcv.getTimestamp()) == first:
             if time.monotonic() > end:
-                raise _Fail("NotConnectedError", f"no RTDE data within {timeout_s:.1f} s of connecting")
+                raise _Fail("NotConnectedError", f"no new RTDE data within {timeout_s:.1f} s (connection lost?)")
             time.sleep(0.002)
         return self._state()
 
@@ -277,10 +278,14 @@ class Worker:
             raise _Fail("MotionError", "move refused: a stop was requested and not yet acknowledged")
         state = self._state()
         self._check_safe(state, "before the move")
+        self._check_target(target, joint_space, state)
+        if self.stop_requested:
+            raise _Fail("MotionError", "move refused: a stop was requested and not yet acknowledged")
         sent = (self.ctrl.moveJ(target, speed, accel, True) if joint_space
                 else self.ctrl.moveL(target, speed, accel, True))
         if not sent:
-            state = self._state()
+            # the receive interface's stream may be a packet behind the control interface's, which saw the failure
+            state = self._wait_fresh(0.5)
             self._check_safe(state, "when the move was sent")
             raise _Fail("MotionError", "the controller did not accept the move (ur-rtde returned False)")
         while True:
@@ -302,6 +307,33 @@ class Worker:
                 raise _Fail("MotionError", f"move did not reach its target within its deadline of "
                             f"{msg['deadline_s']:.2f} s; the arm was stopped")
             time.sleep(0.004)
+
+    def _check_target(self, target: list, joint_space: bool, before: dict) -> None:
+        """Ask the controller whether it will take the target (``is_within_safety_limits``: joint limits, safety
+        planes, tool orientation limits, reach); ``MoveRefusedError`` only for its own "no" with the arm where it was.
+
+        ur-rtde answers False also when the command could not run (a stop, the program not running, no answer):
+        those are faults, told apart by the state after the answer and by asking the same about the arm's own
+        joints, which a working check must accept.
+        """
+        ok = (self.ctrl.isJointsWithinSafetyLimits(target) if joint_space
+              else self.ctrl.isPoseWithinSafetyLimits(target))
+        if ok:
+            return
+        state = self._wait_fresh(0.5)  # a packet newer than the one the answer came with (another RTDE stream)
+        self._check_safe(state, "when the controller checked the target")
+        if not self.ctrl.isJointsWithinSafetyLimits(state["q"]):
+            self._check_safe(self._state(), "when the controller checked the target")
+            raise _Fail("MotionError", "the controller's safety-limit check refuses even the arm's own joints: it "
+                        "does not answer as it should; nothing was sent, check the pendant log")
+        moved = max(abs(a - b) for a, b in zip(state["q"], before["q"]))
+        if moved > MOVED_RAD:
+            raise _Fail("MotionError", f"the arm moved {moved:.4f} rad while the controller checked the target "
+                        "(nothing was sent): the job stops")
+        kind = "joints" if joint_space else "pose"
+        raise _Fail("MoveRefusedError", f"the controller refused the move: target {kind} "
+                    f"{[round(v, 4) for v in target]} is outside its safety limits or reach "
+                    "(is_within_safety_limits: false); nothing was sent and the arm did not move")
 
     def _arrived(self, state: dict, target: list, joint_space: bool) -> bool:
         tol = float(self.opts["position_tol"])

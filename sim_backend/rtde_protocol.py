@@ -283,6 +283,11 @@ PLAYED_COMMANDS: dict[int, tuple[str, tuple[str, ...]]] = {
     34: ("stopj", ("exec_stopl_stopj(cmd",)),
     35: ("set_watchdog", ("watchdog_min_frequency = read_input_float_reg(0)",
                           'rtde_set_watchdog("input_int_register_0", watchdog_min_frequency, "stop")')),
+    36: ("is_pose_within_safety_limits", ("pose = pose_from_input_float_registers(0)",
+                                          "safe_pose = is_within_safety_limits(pose)", "write_output_integer_reg(1, 1)",
+                                          "write_output_integer_reg(1, 0)")),
+    37: ("is_joints_within_safety_limits", ("q = q_from_input_float_registers(0)", "safe_q = is_within_safety_limits(q)",
+                                            "write_output_integer_reg(1, 1)", "write_output_integer_reg(1, 0)")),
     255: ("stop_script", ("Received stop script",)),
 }
 # Fragments outside the command blocks that the handshake relies on.

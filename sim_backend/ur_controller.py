@@ -19,6 +19,14 @@ Faults to inject: :meth:`protective_stop`, :meth:`emergency_stop`,
 :meth:`drop_connections`, :meth:`stop_script`. The RTDE input watchdog that the
 script arms (``rtde_set_watchdog``) stops the program if the host stops writing.
 
+Targets refused: ``is_within_safety_limits`` (ur-rtde's ``isJointsWithinSafetyLimits`` /
+``isPoseWithinSafetyLimits``, commands 37 / 36) is false for joints outside the arm's limits, a pose
+without an IK branch inside them, and joint targets given to :meth:`refuse_targets` (a safety
+restriction the plan does not know: ``[sim] unreachable_stations``, also from another process by
+the emulator-only dashboard command ``sim refuse targets``, :func:`refuse_targets_at`). A ``movej`` /
+``movel`` to such a target is a runtime error: the program stops before the arm moves (what ur-rtde's
+sources expect of a real controller when, e.g., inverse kinematics fails; decision 0028).
+
 Only loopback addresses are accepted; several controllers run side by side on
 127.0.0.2, 127.0.0.3, ... because the ports are fixed.
 """
@@ -26,7 +34,9 @@ from __future__ import annotations
 
 import collections
 import ipaddress
+import json
 import re
+import socket
 import struct
 import threading
 import time
@@ -231,6 +241,10 @@ class LoopbackURController:
         self.input_recipes: list[tuple[str, ...]] = []
         self.messages: list[str] = []
         self.trace: collections.deque = collections.deque(maxlen=50_000)
+        self._refused = np.zeros((0, 6))  # joint targets outside the (injected) safety limits
+        #: called with each :class:`ScriptCommand` once the controller has executed it (under its lock): tests
+        #: inject a fault at an exact point of the handshake (e.g. a safety restriction switched on after a check)
+        self.after_command = None
         self._stop = threading.Event()
         self._services: list[rp.TcpService] = []
         self._thread: threading.Thread | None = None
@@ -300,6 +314,11 @@ class LoopbackURController:
         with self._lock:
             return self._qd.copy()
 
+    def trace_copy(self) -> list[tuple[float, np.ndarray]]:
+        """The recent ``(controller time s, joints (6,))`` of every tick, copied (the loop keeps appending)."""
+        with self._lock:
+            return list(self.trace)
+
     def rest_time_after(self, t0_s: float, tol_rad: float = 1e-9) -> float | None:
         """From the trace: the controller time (after ``t0_s``) from which the arm no longer moved.
 
@@ -368,6 +387,27 @@ class LoopbackURController:
         with self._lock:
             self._halt()
             self._end_program(reason)
+
+    # ------------------------------------------------------------ safety limits
+    def refuse_targets(self, joints_rad) -> None:
+        """Joint targets ``(n, 6)`` outside the controller's safety limits from now on (replaces the last set)."""
+        with self._lock:
+            self._refused = np.asarray(joints_rad, dtype=float).reshape(-1, 6).copy()
+
+    def within_safety_limits(self, q) -> bool:
+        """URScript ``is_within_safety_limits(q)``: inside the joint limits and not a refused target."""
+        q = np.asarray(q, dtype=float)
+        if q.shape != (6,) or not np.all(np.isfinite(q)) or not bool(self.model.within_limits(q)):
+            return False
+        return not (len(self._refused) and np.any(np.max(np.abs(self._refused - q), axis=1) < 1e-6))
+
+    def _pose_target_joints(self, pose) -> np.ndarray | None:
+        """The joints a ``movel`` to TCP ``pose`` ends at (IK branch nearest the current joints), None if none."""
+        base_from_flange = pose_to_matrix(pose) @ np.linalg.inv(self._flange_from_tcp)
+        branches = np.asarray(self.model.ik(base_from_flange, self._q)).reshape(-1, 6)
+        if branches.size == 0:
+            return None
+        return branches[int(np.argmin(np.max(np.abs(branches - self._q), axis=1)))]
 
     # ------------------------------------------------------------ control loop
     def _loop(self) -> None:
@@ -494,6 +534,8 @@ class LoopbackURController:
         name = PLAYED_COMMANDS.get(cmd, ("unknown", ()))[0]
         if cmd in (1, 3):
             args = {"target": d[:6].copy(), "speed": d[6], "acceleration": d[7], "async": is_async}
+        elif cmd in (36, 37):
+            args = {"target": d[:6].copy()}
         elif cmd in (33, 34):
             args = {"deceleration": d[0], "async": is_async}
         elif cmd == 35:
@@ -506,8 +548,17 @@ class LoopbackURController:
         sc = self._script
         if cmd in (1, 3, 33, 34) and self._motion is not None and self._motion.is_async:
             self._write_async_progress(-1)  # stop_async_move(): the running async move is killed
+        if cmd in (1, 3):  # a target outside the safety limits: a runtime error, the program stops, the arm stays
+            q_end = d[:6] if cmd == 1 else self._pose_target_joints(d[:6])
+            if q_end is None or not self.within_safety_limits(q_end):
+                self._end_program(f"runtime error: {name}: target {np.round(d[:6], 4).tolist()} is outside the "
+                                  "safety limits or out of reach")
+                return
         if cmd == 1:
             self._start_motion(_JointMotion(self._q.copy(), d[:6].copy(), d[6], d[7], is_async), is_async)
+        elif cmd in (36, 37):
+            q_end = d[:6] if cmd == 37 else self._pose_target_joints(d[:6])
+            self._out_int[sc.reg_offset + 1] = int(q_end is not None and self.within_safety_limits(q_end))
         elif cmd == 3:
             base_from_tcp0 = np.asarray(self.model.fk(self._q)) @ self._flange_from_tcp
             motion = _LinearMotion(base_from_tcp0, pose_to_matrix(d[:6]), self._q.copy(), d[6], d[7],
@@ -527,6 +578,8 @@ class LoopbackURController:
             self._end_program("stop script command")
         else:
             self._end_program(f"command {cmd} is not played by the loopback controller")
+        if self.after_command is not None:
+            self.after_command(self.commands[-1])
 
     def _start_motion(self, motion, is_async: bool) -> None:
         self._motion, self._motion_t0 = motion, self._t
@@ -680,6 +733,13 @@ class LoopbackURController:
             return "Stopped"
         if cmd == "unlock protective stop":
             return "Protective stop releasing" if self.unlock_protective_stop() else "Cannot unlock protective stop"
+        if cmd.startswith("sim refuse targets "):  # the emulator's own injection channel (not a UR command)
+            try:
+                q = np.asarray(json.loads(line[len("sim refuse targets "):]), dtype=float).reshape(-1, 6)
+            except (ValueError, TypeError):
+                return "sim refuse targets: expected a JSON list of 6-joint lists"
+            self.refuse_targets(q)
+            return f"Refusing {len(q)} targets"
         if cmd == "close safety popup":
             return "closing safety popup"
         if cmd == "quit":
@@ -704,6 +764,25 @@ class LoopbackURController:
                     if self._script is not None:
                         self._end_program("replaced by a new program")
                     self._pending_program = program
+
+
+def refuse_targets_at(host: str, joints_rad, timeout_s: float = 5.0) -> None:
+    """Tell the loopback controller at ``host`` (another process) to refuse the joint targets ``(n, 6)``.
+
+    Uses the emulator-only dashboard command ``sim refuse targets``; ``OSError`` / ``ValueError`` when
+    ``host`` is not a loopback address or the controller there does not understand it (a real one does not).
+    """
+    if not ipaddress.ip_address(host).is_loopback:
+        raise ValueError(f"{host} is not a loopback address: only the loopback UR controller takes injected targets")
+    q = np.asarray(joints_rad, dtype=float).reshape(-1, 6)
+    with socket.create_connection((host, DASHBOARD_PORT), timeout=timeout_s) as conn:
+        f = conn.makefile("rwb")
+        f.readline()  # the greeting
+        f.write(b"sim refuse targets " + json.dumps(q.tolist()).encode() + b"\n")
+        f.flush()
+        reply = f.readline().decode("ascii", "replace").strip()
+    if reply != f"Refusing {len(q)} targets":
+        raise ValueError(f"the controller at {host} did not take the refused targets: {reply!r}")
 
 
 class _RtdeSession:

@@ -74,3 +74,28 @@ def test_the_stated_covariance_covers_a_misfit_common_to_the_views_monte_carlo()
     assert 0.85 <= np.sqrt(m2_with.mean() / 3) <= 1.15, m2_with.mean()
     assert np.mean(m2_with <= chi2.ppf(0.99, 3)) >= 0.97
     assert np.sqrt(m2_without.mean() / 3) > 1.5  # independent weights alone: optimistic
+
+
+def test_scale_bar_gains_are_how_the_adjusted_points_move_with_the_certified_length():
+    """K from the covariance against two adjustments whose bar lengths differ by 20 um."""
+    from calibration.bundle import BundleConfig, BundleOptions, ScaleBar, bundle_adjust, simulate_network
+    from calibration.bundle.coherent import scale_bar_gains
+    from calibration.camera import exp_se3
+
+    rng = np.random.default_rng(3)
+    net = simulate_network(rng, n_targets=120, n_images=10, sigma_px=0.05)
+    poses0 = np.array([exp_se3(rng.normal(0, 0.002, 6)) @ T for T in net.cam_from_part])
+    x0 = net.points + rng.normal(0.0, 5e-4, net.points.shape)
+    a, b = int(np.argmin(net.points[:, 0])), int(np.argmax(net.points[:, 0]))
+    length = float(np.linalg.norm(net.points[a] - net.points[b]))
+    sigma, delta = 2e-6, 20e-6
+    runs = []
+    for L in (length, length + delta):
+        cfg = BundleConfig(scale_bars=(ScaleBar(a, b, L, sigma),))
+        runs.append(bundle_adjust(net.obs_image, net.obs_target, net.obs_uv, net.intrinsics, poses0, x0,
+                                  BundleOptions(sigma_px=0.05, max_rejections=0), cfg))
+    K, sig = scale_bar_gains(runs[0].covariance, runs[0].points, (ScaleBar(a, b, length, sigma),))
+    moved = (runs[1].points - runs[0].points) / delta
+    assert sig[0] == sigma
+    np.testing.assert_allclose(K[:, :, 0], moved, atol=0.02 * np.abs(moved).max())
+    assert np.abs(moved).max() > 0.1  # the far targets move a good share of the bar's change

@@ -143,14 +143,20 @@ def test_sigkill_during_acquisition_resumes_without_losing_or_duplicating_images
             # a random moment of a station's cycle (move, capture, encode, write, log, journal): once this session
             # has started its first station (a long move: every session starts at home) or its second, within
             # ~0.8 station cycles (as measured so far); sometimes while it opens its devices. Near the end only
-            # then, so that acquisition is still going on at every one of the kills
+            # then, so that acquisition is still going on at every one of the kills. The delay counts from the
+            # station's journalled start, not from when this process saw it (under load that can be a station
+            # later), and the second station is waited for only while stations are to spare for the kills to
+            # come: the kills land mid-station however busy the machine is
+            kills_left = N_KILLS - len(kills)
             if remaining > 3 and rng.random() < 0.85:
-                m = int(rng.random() < 0.4)
+                m = int(rng.random() < 0.4 and remaining - 4 > kills_left // 2)
                 _wait_for_records(proc, folder, "station_start", n_start + 1 + m)
                 delay = rng.uniform(0.0, 0.8 * _station_cycle_s(folder))
+                started = [r for r in records(folder) if r["event"] == "station_start"][n_start + m]
+                time.sleep(max(0.0, datetime.fromisoformat(started["t"]).timestamp() + delay - time.time()))
             else:
                 delay = rng.uniform(0.0, 0.3)
-            time.sleep(delay)
+                time.sleep(delay)
             assert proc.poll() is None, f"the cell exited ({proc.returncode}) before kill {len(kills) + 1}"
             proc.send_signal(signal.SIGKILL)
         finally:

@@ -10,7 +10,7 @@ import time
 import numpy as np
 import pytest
 
-from calibration.errors import LimitError, MotionError, NotConnectedError, ProtectiveStopError
+from calibration.errors import LimitError, MotionError, MoveRefusedError, NotConnectedError, ProtectiveStopError
 from drivers.protocols import Robot
 from drivers.ur import CellLimits, URRobot
 from planning.kinematics import load_robot
@@ -55,6 +55,17 @@ def _later(delay_s: float, action) -> threading.Thread:
     return thread
 
 
+def _once_moving(controller, delay_s: float, action) -> threading.Thread:
+    """``action()`` ``delay_s`` (wall) after the arm starts moving: a fault during the move whatever the load."""
+    def run():
+        if controller.wait_for(lambda: controller.moving, 10.0):
+            time.sleep(delay_s)
+        action()
+    thread = threading.Thread(target=run)
+    thread.start()
+    return thread
+
+
 def test_connect_then_move_joints_and_move_pose_reach_their_targets(controller, robot):
     assert isinstance(robot, Robot)
     start = robot.state()
@@ -86,7 +97,7 @@ def test_connect_then_move_joints_and_move_pose_reach_their_targets(controller, 
 
 
 def test_protective_stop_during_move_raises_and_the_arm_stays_halted(controller, robot):
-    _later(0.08, controller.protective_stop).join(0)
+    _once_moving(controller, 0.04, controller.protective_stop).join(0)
     with pytest.raises(ProtectiveStopError, match="protective stop during the move"):
         robot.move_joints(Q0 + 0.6, 0.5, 1.0)
     halted = controller.joints
@@ -108,7 +119,7 @@ def test_protective_stop_during_move_raises_and_the_arm_stays_halted(controller,
 
 
 def test_emergency_stop_during_move_raises_protective_stop_error(controller, robot):
-    _later(0.05, controller.emergency_stop).join(0)
+    _once_moving(controller, 0.02, controller.emergency_stop).join(0)
     with pytest.raises(ProtectiveStopError, match="emergency stop"):
         robot.move_joints(Q0 - 0.5, 0.5, 1.0)
     state = robot.state()
@@ -117,7 +128,8 @@ def test_emergency_stop_during_move_raises_protective_stop_error(controller, rob
 
 def test_connection_drop_raises_not_connected_within_a_second(controller, robot):
     dropped = []
-    _later(0.1, lambda: (dropped.append(time.monotonic()), controller.drop_connections(down_s=3.0))).join(0)
+    _once_moving(controller, 0.05, lambda: (dropped.append(time.monotonic()),
+                                               controller.drop_connections(down_s=3.0))).join(0)
     with pytest.raises(NotConnectedError):
         robot.move_joints(Q0 + 0.8, 0.3, 1.0)  # about 1 s of motion at time_scale 4
     assert time.monotonic() - dropped[0] < 1.0
@@ -138,7 +150,7 @@ def test_script_stopped_gives_a_clear_error_and_no_further_motion(controller, ro
 
 
 def test_script_stopped_during_a_move_halts_and_raises(controller, robot):
-    _later(0.06, controller.stop_script).join(0)
+    _once_moving(controller, 0.02, controller.stop_script).join(0)
     with pytest.raises(MotionError, match="not running on the controller during the move"):
         robot.move_joints(Q0 + 0.5, 0.5, 1.0)
     halted = controller.joints
@@ -178,7 +190,7 @@ def test_targets_outside_the_workspace_box_are_refused_before_sending(controller
 
 
 def test_stop_from_another_thread_halts_a_move(controller, robot):
-    _later(0.1, robot.stop).join(0)
+    _once_moving(controller, 0.05, robot.stop).join(0)
     with pytest.raises(MotionError, match="stopped on request"):
         robot.move_joints(Q0 + 0.8, 0.4, 1.0)
     assert not controller.moving
@@ -200,7 +212,7 @@ def test_move_past_the_driver_deadline_is_stopped(controller):
 
 def test_dead_client_process_is_not_connected_then_watchdog_stops_program_and_reconnect_works(controller, robot):
     pid = robot._worker.process.pid
-    _later(0.1, lambda: os.kill(pid, signal.SIGKILL)).join(0)
+    _once_moving(controller, 0.05, lambda: os.kill(pid, signal.SIGKILL)).join(0)
     with pytest.raises(NotConnectedError, match="client process died"):
         robot.move_joints(Q0 + 0.8, 0.3, 1.0)
     # nobody kicks the watchdog any more: the controller stops the program and the arm
@@ -215,3 +227,41 @@ def test_idle_driver_keeps_the_watchdog_fed(controller, robot):
     time.sleep(1.0)  # five watchdog periods at 5 Hz without any request
     assert controller.runtime_state == PLAYING
     assert robot.state().safety.normal
+
+
+def test_a_target_the_controller_refuses_is_move_refused_nothing_is_sent_and_the_next_move_goes(controller, robot):
+    q_bad = Q0 + np.array([0.2, -0.1, 0.1, 0.0, 0.1, 0.0])
+    controller.refuse_targets([q_bad])
+    with pytest.raises(MoveRefusedError, match="refused the move: target joints .* did not move"):
+        robot.move_joints(q_bad, 0.5, 1.0)
+    with pytest.raises(MoveRefusedError, match="target pose"):  # the same joints asked for as a flange pose
+        robot.move_pose(MODEL.fk(q_bad), 0.1, 0.5)
+    assert _motion_names(controller) == []  # nothing was sent: the controller answered the check
+    assert [c.name for c in controller.commands].count("is_joints_within_safety_limits") >= 1
+    np.testing.assert_array_equal(controller.joints, Q0)
+    assert controller.runtime_state == PLAYING
+    q_ok = Q0 + np.array([0.2, -0.1, 0.1, 0.0, 0.1, 0.05])
+    np.testing.assert_allclose(robot.move_joints(q_ok, 0.8, 1.5).joints_rad, q_ok, atol=1e-9)
+
+
+def test_a_check_that_refuses_the_arms_own_joints_is_a_fault_not_a_refusal(controller, robot):
+    q_bad = Q0 + 0.1
+    controller.refuse_targets([q_bad, Q0])  # the controller refuses where the arm stands: it is not answering right
+    with pytest.raises(MotionError, match="refuses even the arm's own joints") as info:
+        robot.move_joints(q_bad, 0.5, 1.0)
+    assert not isinstance(info.value, MoveRefusedError)
+    assert _motion_names(controller) == []
+
+
+def test_a_move_the_program_dies_on_before_the_arm_moves_is_a_fault_not_a_refusal(controller, robot):
+    # the check said yes, then the target became forbidden (a safety restriction switched on): the movej is a
+    # runtime error, the program stops before the arm moves. Over RTDE this looks like a stop from the pendant:
+    # the job must stop, not skip the station
+    q = Q0 + np.array([0.0, 0.1, -0.1, 0.0, 0.0, 0.2])
+    controller.after_command = lambda c: c.name == "is_joints_within_safety_limits" and controller.refuse_targets([q])
+    with pytest.raises(MotionError, match="control script is not running") as info:
+        robot.move_joints(q, 0.5, 1.0)
+    assert not isinstance(info.value, MoveRefusedError)
+    assert any("runtime error: movej" in m for m in controller.messages)
+    assert controller.runtime_state == STOPPED
+    np.testing.assert_array_equal(controller.joints, Q0)

@@ -106,11 +106,13 @@ def test_a_job_started_in_a_terminal_blocks_the_console_and_its_abort_reaches_it
     proc = subprocess.Popen([*cell_command(), "run", str(job), "--archive", str(archive), "--serial", "T-1"],
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=child_env())
     try:
+        # until the terminal's job holds its lock (not merely until its .lock file exists)
+        held = lambda: any(JobFolder(p.parent).running_pid() == proc.pid  # noqa: E731
+                           for p in [*(archive / ".incoming").glob("*/.lock"), *archive.glob("*/.lock")])
         deadline = time.monotonic() + 60
-        while time.monotonic() < deadline and not list((archive / ".incoming").glob("*/.lock")) \
-                and not list(archive.glob("*/.lock")):
-            time.sleep(0.1)
-        time.sleep(0.5)
+        while time.monotonic() < deadline and proc.poll() is None and not held():
+            time.sleep(0.05)
+        assert held(), "the terminal's job did not take its lock"
         app = create_app(Config(archive=archive, programs=programs))
         with TestClient(app) as c:
             tok = c.post("/api/token", json={"username": "olga", "password": "olga-pw-1234"}).json()["token"]
@@ -140,3 +142,24 @@ def test_a_damaged_journal_is_reported_not_a_crash_of_the_live_view(tmp_path):
     (folder / "journal.jsonl").write_text("".join(lines))
     d = live_state(folder)
     assert d["state"] == "CREATED" and d["record_damage"] and "journal" in d["record_damage"]
+
+
+def test_a_job_moving_from_incoming_into_the_archive_is_still_seen_running(tmp_path):
+    # ACQUIRE renames the folder out of .incoming and records the job in the index after: in between, the job is
+    # in neither list, and the console must still refuse to start a second one
+    from cell.record.archive import Archive
+    from cell.web.runner import CellRunner
+
+    archive = tmp_path / "archive"
+    folder = JobFolder(archive / "20260101T000000-bracket-0001")
+    folder.path.mkdir(parents=True)
+    Archive(archive).close()
+    folder.append("created", name="bracket")
+    fd = folder.lock()  # held by this process, as the terminal's job holds it
+    try:
+        assert CellRunner(archive).external_running() == folder.job_id
+    finally:
+        import os
+
+        os.close(fd)
+    assert CellRunner(archive).external_running() is None

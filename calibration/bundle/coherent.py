@@ -25,7 +25,7 @@ import numpy as np
 
 from calibration.camera import Intrinsics
 
-__all__ = ["coherent_background_cov"]
+__all__ = ["coherent_background_cov", "scale_bar_gains"]
 
 
 def _sqrt_psd(B: np.ndarray) -> np.ndarray:
@@ -85,3 +85,36 @@ def coherent_background_cov(intr: Intrinsics, cam_from_part: np.ndarray, points:
     w, V = np.linalg.eigh(0.5 * (E + np.swapaxes(E, 1, 2)))
     out[idx] = np.einsum("kab,kb,kcb->kac", V, np.maximum(w, 0.0), V)
     return out
+
+
+def scale_bar_gains(cov, points: np.ndarray, bars) -> tuple[np.ndarray, np.ndarray]:
+    """How each target moves per metre of error in each scale bar's certified length, and the bars' sigmas.
+
+    The length of a bar is an observation of weight ``1 / sigma^2`` in the adjustment, so the adjusted points
+    move by ``k = Q A^T / sigma^2`` per unit of its error (``Q`` the points' covariance in the datum, ``A`` the
+    length's derivative: ``+u`` at one end, ``-u`` at the other; a datum without a scale leaves ``A`` unchanged,
+    as a rigid motion keeps every length). The certificate's own error, which every target shares, is then
+    ``sigma^2 k k^T`` of their covariance: the reference's share of the uncertainty budget.
+
+    Args:
+        cov: the bundle's :class:`calibration.alignment.PointCovariance` (in its datum).
+        points: (n, 3) adjusted coordinates; ``bars``: :class:`calibration.bundle.config.ScaleBar` sequence.
+    Returns:
+        ``K: (n, 3, b)`` gains (m per m; NaN for targets not adjusted) and ``sigma: (b,)`` metres.
+    """
+    n = len(points)
+    K = np.full((n, 3, len(bars)), np.nan)
+    sig = np.array([b.sigma_m for b in bars], dtype=float)
+    D = np.nan_to_num(cov.D)
+    U = np.nan_to_num(cov.U)
+    for j, bar in enumerate(bars):
+        a, b = bar.target_a, bar.target_b
+        u = np.asarray(points[a] - points[b], dtype=float)
+        u = u / np.linalg.norm(u)
+        # Q A^T: column blocks of the low-rank part at a and b, plus the diagonal blocks at a and b
+        col = U @ (cov.C @ (U[a].T @ u - U[b].T @ u))  # (n, 3)
+        col[a] += D[a] @ u
+        col[b] -= D[b] @ u
+        K[:, :, j] = col / bar.sigma_m**2
+    K[~np.all(np.isfinite(points), axis=1)] = np.nan
+    return K, sig

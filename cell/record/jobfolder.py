@@ -242,8 +242,13 @@ class JobFolder:
             try:
                 fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
             except BlockingIOError:
-                text = os.pread(fd, 32, 0).decode("ascii", "replace").strip()
-                return int(text) if text.isdigit() else None
+                # :meth:`lock` writes its pid just after taking the lock: wait (bounded) for it to be there
+                end = time.monotonic() + 0.2
+                while True:
+                    text = os.pread(fd, 32, 0).decode("ascii", "replace").strip()
+                    if text.isdigit() or time.monotonic() > end:
+                        return int(text) if text.isdigit() else None
+                    time.sleep(0.002)
             fcntl.flock(fd, fcntl.LOCK_UN)
             return None
         finally:

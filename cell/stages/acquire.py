@@ -38,7 +38,7 @@ def keep_frame(ctx, name: str, sha256: str, image: np.ndarray) -> None:
 
 def run(ctx) -> None:
     """Move to each station, strobe, capture; a station is done when its image is on disk and journalled."""
-    from cell.devices import open_devices
+    from cell.devices import inject_unreachable, open_devices
 
     plan_doc = ctx.folder.read_json("plan.json")
     stations = _stations_in_order(plan_doc)
@@ -47,9 +47,9 @@ def run(ctx) -> None:
     if ctx.devices is None:
         ctx.devices = open_devices(ctx.job, ctx.backend)
     dev = ctx.devices
-    unreachable = ctx.job.spec.sim.unreachable_stations if ctx.backend == "sim" else []
-    if unreachable and hasattr(dev.robot, "inject_unreachable"):  # the sim's knob: a station the robot is kept from
-        dev.robot.inject_unreachable([s["joints"] for s in stations if s["id"] in set(unreachable)])
+    unreachable = set(ctx.job.spec.sim.unreachable_stations)
+    if unreachable:  # the sim's knob: stations whose move the (simulated or loopback) controller refuses
+        inject_unreachable(dev, ctx.job, ctx.backend, [s["joints"] for s in stations if s["id"] in unreachable])
     skipped = {r["station"]: r["reason"] for r in recs0 if r["event"] == "station_skipped"}
     c = ctx.job.spec.cell
     (ctx.folder.path / "images").mkdir(exist_ok=True)

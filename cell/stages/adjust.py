@@ -8,7 +8,7 @@ import time
 import numpy as np
 
 from calibration.bundle import BundleConfig, BundleOptions, ScaleBar, bundle_adjust
-from calibration.bundle.coherent import coherent_background_cov
+from calibration.bundle.coherent import coherent_background_cov, scale_bar_gains
 from calibration.camera import Intrinsics
 from calibration.detector_model import load_model, observation_covariances, observation_sigmas
 from calibration.errors import CalibrationError
@@ -213,6 +213,8 @@ def run_bundle(ctx) -> dict:
         raise CalibrationError("bundle: the network is not determined (a target's variance is not positive): its "
                                "images are too weakly linked; see the screening in the log")
     kept_images, sel, img, tgt, uv, groups, model_sigma = sub
+    bars = bundle_config(job, scale=scr.scale_ok).scale_bars
+    K, K_sigma = scale_bar_gains(res.covariance, res.points, bars) if bars else (np.zeros((len(ids), 3, 0)), np.zeros(0))
     coherent = _add_coherent_background(res, obs, sel, img, tgt, ids) if model_sigma is not None else None
     dt = time.perf_counter() - t0
     n_img = np.bincount(tgt[~res.rejected], minlength=len(ids))
@@ -221,7 +223,7 @@ def run_bundle(ctx) -> dict:
     axes, dirs = res.error_ellipsoids()
     # keep the full covariance for the report's alignment (exact propagation)
     buf = io.BytesIO()
-    np.savez_compressed(buf, D=res.covariance.D, U=res.covariance.U, C=res.covariance.C)
+    np.savez_compressed(buf, D=res.covariance.D, U=res.covariance.U, C=res.covariance.C, K=K, K_sigma=K_sigma)
     atomic_write_bytes(ctx.folder.file("bundle_covariance.npz"), buf.getvalue())
     return {
         "datum": res.datum,

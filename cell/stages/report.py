@@ -177,6 +177,16 @@ def write_report(ctx) -> str:
     cov = np.array([t["cov"] if t["cov"] is not None else np.full((3, 3), np.nan) for t in bundle["targets"]], dtype=float)
     with np.load(f.file("bundle_covariance.npz")) as z:
         pc = PointCovariance(z["D"], z["U"], z["C"])
+        K, K_sigma = (z["K"], z["K_sigma"]) if "K" in z.files else (np.zeros((len(ids), 3, 0)), np.zeros(0))
+    # the scale bars' certificates in the budget: their gains ride along the alignment as extra columns of the
+    # covariance's low-rank factor with zero weight (the alignment and every covariance stay as they are), and come
+    # out transformed like the deviations (decision 0029)
+    nb = len(K_sigma)
+    if nb:
+        r = pc.U.shape[2]
+        C = np.zeros((r + nb, r + nb))
+        C[:r, :r] = pc.C
+        pc = PointCovariance(pc.D, np.concatenate([pc.U, K], axis=2), C)
     ok = np.isfinite(measured).all(axis=1)
     tol = job.tolerance_m
     k = job.spec.report.sigma_factor
@@ -189,6 +199,8 @@ def write_report(ctx) -> str:
         ctx.log.log("warning", "alignment not trusted: " + "; ".join(outcome.reasons))
         ctx.say("  WARNING alignment not trusted: " + "; ".join(outcome.reasons))
     dev_norm = np.linalg.norm(al.deviation, axis=1)
+    Kd = al.deviation_covariance.U[:, :, al.deviation_covariance.U.shape[2] - nb:] if nb else np.zeros((len(ids), 3, 0))
+    cov_scale = np.einsum("nar,r,nbr->nab", Kd, K_sigma**2, Kd)
     level = al.sigma_level()
     predicted = {t["id"]: (np.sqrt(np.trace(t["predicted_cov"])) if t["predicted_cov"] is not None else np.nan)
                  for t in plan["targets"]}
@@ -206,7 +218,8 @@ def write_report(ctx) -> str:
             continue
         targets.append({
             "id": tid, "kind": str(job.part.targets.kind[j]), "nominal": nominal[j], "measured": al.aligned[j],
-            "cov": al.deviation_cov[j], "measured_cov": cov[j], "deviation": al.deviation[j],
+            "cov": al.deviation_cov[j], "measured_cov": cov[j], "cov_scale_bar": cov_scale[j] if nb else None,
+            "deviation": al.deviation[j],
             "deviation_norm_m": dev_norm[j], "tolerance_m": tol[j], "pass": bool(passed[j]),
             "significance_sigma": level[j], "significant": bool(level[j] > k),
             "uncertainty_U_m": U[j], "decision": decision[j], "suspect": tid in suspect,

@@ -81,21 +81,32 @@ class CellRunner:
                        "wait for it to end or abort it")
 
     def external_running(self) -> str | None:
-        """A job of this archive that another process runs now (its ``.lock`` held), e.g. ``cell run``."""
+        """A job of this archive that another process runs now (its ``.lock`` held), e.g. ``cell run``.
+
+        A job leaves ``.incoming`` for the archive (at ACQUIRE) by a rename and records itself in the index
+        after it: for that moment it is in neither list. So the index is read first, ``.incoming`` listed
+        next and the archive's folders the index does not know yet last, and each candidate's lock is looked
+        for in both places: a job promoted between any two of these steps is still found.
+        """
         from cell.record.archive import Archive
+        from cell.record.archive.ids import INCOMING
 
         a = Archive(self.root, self.archive_url)
         mine = self.current.job_id if self.current is not None and self.current.alive() else None
-        candidates = [f for f in a.staged()]
         try:
-            for row in a.list():
-                if row.get("status") not in ("DONE", "FAULTED", "ABORTED") and row.get("origin") == a.origin:
-                    candidates.append(JobFolder(self.root / row["id"]))
+            rows = a.list()
+            ids = [r["id"] for r in rows
+                   if r.get("status") not in ("DONE", "FAULTED", "ABORTED") and r.get("origin") == a.origin]
+            ids += [f.job_id for f in a.staged()]
+            ids += [f.job_id for f in a.folders_not_in({r["id"] for r in rows})]
         finally:
             a.close()
-        for f in candidates:
-            if f.job_id != mine and f.path.is_dir() and f.running_pid() is not None:
-                return f.job_id
+        for job_id in dict.fromkeys(ids):
+            if job_id == mine:
+                continue
+            for path in (self.root / INCOMING / job_id, self.root / job_id):
+                if path.is_dir() and not path.is_symlink() and JobFolder(path).running_pid() is not None:
+                    return job_id
         return None
 
     def _spawn(self, args: list[str], user: str, kind: str) -> Session:

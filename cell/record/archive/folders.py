@@ -194,6 +194,10 @@ class Archive:
             n += 1
         return n
 
+    def folders_not_in(self, known: set[str]) -> list[JobFolder]:
+        """The archive's job folders whose ids are not in ``known`` (a directory listing, no index query)."""
+        return [JobFolder(d) for d in self._job_dirs() if d.name not in known]
+
     def catch_up(self) -> list[str]:
         """Drain the outbox and index the job folders the index does not hold yet (a listing's first step:
         a directory listing and one query, not a read of every folder); returns the ids indexed."""
