@@ -30,9 +30,11 @@ from tests.partgen import make_part_job  # noqa: E402
 from tests.test_truth_partgen import truth_figures  # noqa: E402
 
 
-def one(work: Path, seed: int, misplaced: bool) -> dict:
+def one(work: Path, seed: int, misplaced: bool, search_weights: str | None = None) -> dict:
     part = make_part_job(work / f"job{seed}", np.random.default_rng(seed),
                          misplacement=(10.0, 5.0) if misplaced else None)
+    if search_weights is not None:  # [planning] search_weights (docs/decisions/0030)
+        set_search_weights(part.job, search_weights)
     t0 = time.perf_counter()
     if misplaced:
         loc = run_cell("locate", str(part.job), "--write", timeout=900)
@@ -47,6 +49,15 @@ def one(work: Path, seed: int, misplaced: bool) -> dict:
     return {"seed": seed, "kind": part.kind, "targets": part.n_targets, "deviating": len(part.deviations),
             "trusted": report["alignment"]["trusted"], "pred_over_ach": report["predicted_over_achieved"]["median"],
             "seconds": time.perf_counter() - t0} | fig | losses(folder)
+
+
+def set_search_weights(job: Path, weights: str) -> None:
+    """Write ``[planning] search_weights = weights`` into a generated job file."""
+    text = job.read_text()
+    line = f'search_weights = "{weights}"\n'
+    text = text.replace("[planning]\n", "[planning]\n" + line, 1) if "[planning]\n" in text \
+        else text + "\n[planning]\n" + line
+    job.write_text(text)
 
 
 def losses(folder: Path) -> dict:
@@ -72,11 +83,13 @@ def main(argv=None) -> int:
     ap.add_argument("--first-seed", type=int, default=100)
     ap.add_argument("--misplaced", action="store_true")
     ap.add_argument("--json", type=Path)
+    ap.add_argument("--search-weights", choices=("sigma", "model"), help="[planning] search_weights of the jobs "
+                    "(default: the job file's default)")
     a = ap.parse_args(argv)
     rows = []
     with tempfile.TemporaryDirectory(prefix="truth-partgen-") as tmp:
         for k in range(a.runs):
-            r = one(Path(tmp), a.first_seed + k, a.misplaced)
+            r = one(Path(tmp), a.first_seed + k, a.misplaced, a.search_weights)
             rows.append(r)
             print(json.dumps(r), flush=True)
     ok = [r for r in rows if "error" not in r]
