@@ -428,13 +428,14 @@ def test_lower_bound_lies_below_the_searched_network_and_proves_station_counts(s
                        for r in cheap.pareto_front)
 
 
-def test_plan_counts_its_weakly_linked_stations_as_adjust_would_see_them(scene, fixed_plan):
+def test_plan_counts_its_weakly_linked_stations_as_adjust_would_see_them(scene, tmp_path):
     """search.exact_unlinked: stations outside the main block of images sharing link_targets targets, or alone
     linking a part of it (planning.kernels.unlinked_stations), recounted here from the plan's own rays
     (docs/decisions/0030)."""
     from planning import kernels
 
-    plan = fixed_plan[0]
+    part, intr = scene
+    plan = plan_network(part, intr, _options(link_targets=8), cache_dir=tmp_path, seed=3)
     vis = np.array([[sid in seen for seen in plan.seen_by] for sid in plan.station_ids])
     k = len(plan.station_ids)
     assert plan.search["link_targets"] == 8
