@@ -67,8 +67,9 @@ class _Problem:
 
 
     def unlinked(self, stations: np.ndarray) -> np.ndarray:
-        """(p,) float stations of each network ``stations: (p, k)`` outside its largest block linked by
-        ``link_targets`` common targets (0 when the option is off)."""
+        """(p,) float weakly linked stations of each network ``stations: (p, k)``: outside its largest block linked
+        by ``link_targets`` common targets, or (``sole_links``) alone linking a part of it; 0 when the option is off
+        (planning.kernels.unlinked_stations)."""
         if self.opt.link_targets <= 0:
             return np.zeros(len(stations))
         if self._bits is None:
