@@ -40,7 +40,8 @@ from scipy.spatial import cKDTree
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from calibration.camera import invert, look_at, project  # noqa: E402
-from calibration.detector_model import DATA_PATH, DetectorModel, fit_background, fit_model, load_model  # noqa: E402
+from calibration.detector_model import (DATA_PATH, DetectorModel, fit_background, fit_model, fit_saturation,  # noqa: E402
+                                         load_model)
 from calibration.targets import DetectionOptions, detect_retro_targets, eccentricity_bias  # noqa: E402
 from cell.devices import make_job_sim_cell  # noqa: E402
 from cell.loadedjob import load  # noqa: E402
@@ -60,7 +61,7 @@ def collect(n_views: int, repeats: int, seed: int = 0, job_path: Path = JOB) -> 
     centre = xyz.mean(axis=0)
     index = {t: i for i, t in enumerate(job.part.targets.ids)}
     rng = np.random.default_rng(seed)
-    rows = []  # view, target, incidence deg, diameter px, eu, ev, repeat, background bound b00, b01, b11, saturated px
+    rows = []  # view, target, incidence deg, diameter px, eu, ev, repeat, background bound b00, b01, b11, saturated px, area px
     for k in range(n_views):
         az = 2 * np.pi * k / n_views + rng.uniform(-0.2, 0.2)
         el = np.deg2rad(rng.uniform(8, 85))
@@ -88,9 +89,9 @@ def collect(n_views: int, repeats: int, seed: int = 0, job_path: Path = JOB) -> 
                                                -1, 1)))
             dpx = intr.fx_px * 2 * radius / Xc[:, 2]
             B = det.background_cov[j[ok]]
-            sat = det.saturated[j[ok]]
-            for t_, a_, s_, (eu, ev), b, ns in zip(tid[ok], inc, dpx, e, B, sat):
-                rows.append((k, int(t_), float(a_), float(s_), float(eu), float(ev), r, b[0, 0], b[0, 1], b[1, 1], ns))
+            sat, area = det.saturated[j[ok]], det.area_px[j[ok]]
+            for t_, a_, s_, (eu, ev), b, ns, ar in zip(tid[ok], inc, dpx, e, B, sat, area):
+                rows.append((k, int(t_), float(a_), float(s_), float(eu), float(ev), r, b[0, 0], b[0, 1], b[1, 1], ns, ar))
     return {"rows": np.array(rows, dtype=float), "fx_px": intr.fx_px, "diameter_m": 2 * radius}
 
 
@@ -180,21 +181,33 @@ def main(argv: list[str] | None = None) -> int:
     # example's edge dots and stated 15-20 % too much on the flat faces of generated plates)
     B = rows[:, [7, 8, 8, 9]].reshape(-1, 2, 2)
     flagged = np.any(B != 0, axis=(1, 2))
-    clean = rows[~flagged]
+    rho = rows[:, 10] / np.maximum(rows[:, 11], 1.0)  # the clipped share of each dot's pixels
+    clipped = rho > 0
+    clean = rows[~flagged & ~clipped]
     table = class_table(clean)
-    model = fit_model(clean[:, 2], clean[:, 3], clean[:, 4:6], version="2")
+    model = fit_model(clean[:, 2], clean[:, 3], clean[:, 4:6], version="3")
     c_bg = fit_background(model, rows[flagged, 2], rows[flagged, 3], rows[flagged, 4:6], B[flagged]) if flagged.any() else 0.0
-    model = DetectorModel(model.a_px, model.b_px, model.p, model.q, model.version, c_bg)
+    cs = ~flagged & clipped
+    c_s, k_s = fit_saturation(model, rows[cs, 2], rows[cs, 3], rows[cs, 4:6], rho[cs]) if cs.sum() >= 50 else (0.0, 1.0)
+    model = DetectorModel(model.a_px, model.b_px, model.p, model.q, model.version, c_bg, c_s, k_s)
     model = replace(model, **measured_ranges(clean, table))  # where it was measured (the planner holds it there)
     pred = model.sigma_px(np.radians(clean[:, 2]), clean[:, 3])
     z = clean[:, 4:6] / pred[:, None]
-    var = model.sigma_px(np.radians(rows[:, 2]), rows[:, 3])[:, None] ** 2 + c_bg**2 * np.stack([B[:, 0, 0], B[:, 1, 1]], axis=1)
+    var = (model.sigma_px(np.radians(rows[:, 2]), rows[:, 3]) ** 2 + model.saturation_var(rho))[:, None] \
+        + c_bg**2 * np.stack([B[:, 0, 0], B[:, 1, 1]], axis=1)
     zf = rows[flagged, 4:6] / np.sqrt(var[flagged])
+    zs = rows[cs, 4:6] / np.sqrt(var[cs])
     print(f"{len(rows)} dot images from {len(parts)} part(s) x {a.views} views x {a.repeats} "
-          f"({time.perf_counter() - t0:.0f} s); {flagged.sum()} with a background misfit")
+          f"({time.perf_counter() - t0:.0f} s); {flagged.sum()} with a background misfit, {clipped.sum()} clipped")
     print(f"model: {model.describe()}")
-    print(f"normalised error rms (1 = the model fits): dots on a plane {np.sqrt(np.mean(z**2)):.3f}, "
-          f"dots with a misfit {np.sqrt(np.mean(zf**2)) if flagged.any() else float('nan'):.3f}")
+    print(f"normalised error rms (1 = the model fits): dots on a plane {np.sqrt(np.mean(z**2)):.3f} ({len(clean)}), "
+          f"with a misfit {np.sqrt(np.mean(zf**2)) if flagged.any() else float('nan'):.3f} ({flagged.sum()}), "
+          f"clipped {np.sqrt(np.mean(zs**2)) if cs.any() else float('nan'):.3f} ({cs.sum()})")
+    for lo, hi in ((0.0, 0.6), (0.6, 0.7), (0.7, 0.8), (0.8, 1.01)):
+        m = cs & (rho > lo) & (rho <= hi)
+        if m.sum() >= 20:
+            print(f"  clipped share {lo:.1f}-{hi:.1f}: {m.sum():6d} dots, rms {np.sqrt(np.mean(rows[m, 4:6] ** 2)):.4f} px, "
+                  f"stated {np.sqrt(np.mean(var[m])):.4f} px")
     rows = clean
     print(f"{'incidence':>10s} {'d px':>8s} {'n':>6s} {'rms px':>8s} {'model':>8s} {'ratio':>6s}")
     for c in table:
@@ -210,11 +223,12 @@ def main(argv: list[str] | None = None) -> int:
                            f"--seed {a.seed} --plates {plates} --skins {a.skins} --write",
             "conditions": "examples/bracket job's simulated camera: 8 mm lens, 2448 x 2048, 3.45 um pixels, 5 mm dots, "
                           "sensor noise scale 1 (photons, read noise, 0.7 px blur, 8 bits), no image jitter; parts: "
-                          + ", ".join(parts) + "; the geometry terms on dots without a background misfit, "
-                          "c_background on those with one (geometry held)",
+                          + ", ".join(parts) + "; the geometry terms on dots neither clipped nor next to a background misfit, "
+                          "c_background on those with a misfit, the saturation term on clipped ones (geometry held)",
             "n_dot_images": int(len(rows)), "normalised_rms": float(np.sqrt(np.mean(z**2))), "classes": table,
             "c_background_dots": {"n": int(flagged.sum()), "normalised_rms": float(np.sqrt(np.mean(zf**2)))
-                                  if flagged.any() else None}}
+                                  if flagged.any() else None},
+            "saturation_dots": {"n": int(cs.sum()), "normalised_rms": float(np.sqrt(np.mean(zs**2))) if cs.any() else None}}
         DATA_PATH.write_text(json.dumps(doc, indent=1) + "\n")
         print(f"written {DATA_PATH}")
     return 0

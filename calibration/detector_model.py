@@ -19,6 +19,13 @@ shading next to it) carries a further error the geometry cannot predict; the det
 bound to the model's variance (:func:`observation_covariances`); ``c`` (``c_background``), the share of the
 bound that such errors reach on average, is measured by ``benchmarks/detector_precision.py --fit-background``
 against the simulated truth (docs/decisions/0023).
+
+A dot the sensor clips (its pixels at the ceiling: an exposure too bright for a near station) is centred with
+an error of pixel phase that grows with how far it is overexposed (decision 0029: 0.0046 px rms with 60-70 % of
+its pixels clipped, 0.0104 px with 80-90 %, against 0.005 px unclipped). The detector counts the clipped pixels
+(``Detections.saturated``; observations.json ``saturated_px`` with ``area_px``) and the bundle adds
+``c_s^2 rho^k_s`` (``rho`` the clipped share of the dot's pixels) to the model's variance; the geometry terms are
+fitted on dots that are neither clipped nor next to an edge.
 """
 from __future__ import annotations
 
@@ -31,7 +38,7 @@ import numpy as np
 
 from calibration.errors import CalibrationError
 
-__all__ = ["DetectorModel", "fit_model", "fit_background", "load_model", "observation_sigmas",
+__all__ = ["DetectorModel", "fit_model", "fit_background", "fit_saturation", "load_model", "observation_sigmas",
            "observation_covariances", "DATA_PATH"]
 
 DATA_PATH = Path(__file__).resolve().parent / "data" / "detector_precision.json"
@@ -50,10 +57,17 @@ class DetectorModel:
     q: float
     version: str = "1"
     c_background: float = 0.0
+    c_saturation: float = 0.0
+    k_saturation: float = 1.0
     #: where the model was measured: incidence (deg) and dot diameter (px) ranges of the dots it was fitted to
     #: (None: not recorded); :meth:`sigma_px_measured` does not extrapolate beyond them
     incidence_range_deg: tuple[float, float] | None = None
     diameter_range_px: tuple[float, float] | None = None
+
+    def saturation_var(self, clipped_share) -> np.ndarray:
+        """Variance (px^2) a clipped dot adds to each coordinate, for the clipped share of its pixels ``(k,)``."""
+        rho = np.clip(np.asarray(clipped_share, dtype=float), 0.0, 1.0)
+        return np.where(rho > 0, self.c_saturation**2 * rho**self.k_saturation, 0.0)
 
     def sigma_px(self, incidence_rad, diameter_px, noise_scale: float = 1.0) -> np.ndarray:
         """Standard deviation of one coordinate, ``(k,)`` pixels, for incidence ``(k,)`` rad and dot size ``(k,)`` px.
@@ -83,12 +97,14 @@ class DetectorModel:
 
     def describe(self) -> str:
         return (f"sigma^2 = {self.a_px:.4f}^2 + {self.b_px:.4f}^2 (d/{D_REF_PX:g} px)^-{2 * self.p:.2f} "
-                f"cos(theta)^-{2 * self.q:.2f} px^2, + {self.c_background:.3f}^2 x the detector's background bound "
-                f"(version {self.version})")
+                f"cos(theta)^-{2 * self.q:.2f} px^2, + {self.c_background:.3f}^2 x the detector's background bound, "
+                f"+ {self.c_saturation:.4f}^2 rho^{self.k_saturation:.1f} for a dot with a share rho of its pixels "
+                f"clipped (version {self.version})")
 
     def to_dict(self) -> dict:
         return {"model": "sigma_px^2 = a^2 + b^2 (d / d_ref)^(-2p) cos(theta)^(-2q)", "d_ref_px": D_REF_PX,
                 "a_px": self.a_px, "b_px": self.b_px, "p": self.p, "q": self.q, "c_background": self.c_background,
+                "c_saturation_px": self.c_saturation, "k_saturation": self.k_saturation,
                 "version": self.version,
                 **({"incidence_range_deg": list(self.incidence_range_deg)} if self.incidence_range_deg else {}),
                 **({"diameter_range_px": list(self.diameter_range_px)} if self.diameter_range_px else {})}
@@ -140,6 +156,26 @@ def fit_background(model: DetectorModel, incidence_deg: np.ndarray, diameter_px:
     return float(np.exp(r.x))
 
 
+def fit_saturation(model: DetectorModel, incidence_deg: np.ndarray, diameter_px: np.ndarray, errors_px: np.ndarray,
+                   clipped_share: np.ndarray) -> tuple[float, float]:
+    """Maximum-likelihood ``(c_s, k_s)`` of ``e ~ N(0, (sigma_px^2 + c_s^2 rho^k_s) I)`` for the centre errors
+    ``errors_px: (k, 2)`` of clipped dots (``clipped_share: (k,)`` > 0), the geometry model held as it is."""
+    from scipy.optimize import minimize
+
+    s2 = model.sigma_px(np.radians(np.asarray(incidence_deg, dtype=float)), np.asarray(diameter_px, dtype=float)) ** 2
+    e2 = np.sum(np.asarray(errors_px, dtype=float) ** 2, axis=1)
+    rho = np.clip(np.asarray(clipped_share, dtype=float), 1e-6, 1.0)
+    if len(e2) < 50:
+        raise CalibrationError(f"detector model: {len(e2)} clipped dots; at least 50 are needed for the saturation term")
+
+    def nll(x):
+        v = s2 + np.exp(2 * x[0]) * rho ** np.exp(x[1])
+        return float(np.sum(2 * np.log(v) + e2 / v))
+
+    r = minimize(nll, np.array([np.log(0.005), 0.0]), method="Nelder-Mead", options={"xatol": 1e-6, "fatol": 1e-6})
+    return float(np.exp(r.x[0])), float(np.exp(r.x[1]))
+
+
 @lru_cache(maxsize=4)
 def load_model(path: str | None = None) -> DetectorModel:
     """The model in the repository (``calibration/data/detector_precision.json``) or at ``path``."""
@@ -151,7 +187,9 @@ def load_model(path: str | None = None) -> DetectorModel:
         if any(r is not None and not (len(r) == 2 and 0 <= r[0] < r[1]) for r in ranges):
             raise ValueError("incidence_range_deg and diameter_range_px must be [low, high], 0 <= low < high")
         return DetectorModel(float(doc["a_px"]), float(doc["b_px"]), float(doc["p"]), float(doc["q"]),
-                             str(doc.get("version", "1")), float(doc.get("c_background", 0.0)), *ranges)
+                             str(doc.get("version", "1")), float(doc.get("c_background", 0.0)),
+                             float(doc.get("c_saturation_px", 0.0)), float(doc.get("k_saturation", 1.0)),
+                             *ranges)
     except (OSError, KeyError, ValueError, TypeError) as exc:
         raise CalibrationError(f"{p}: cannot read the detector precision model ({exc})") from None
 
@@ -176,13 +214,16 @@ def observation_sigmas(points: np.ndarray, normals: np.ndarray, cam_from_part: n
 
 
 def observation_covariances(sigma_px: np.ndarray, background_cov: np.ndarray | None,
-                            model: DetectorModel | None = None) -> np.ndarray:
+                            model: DetectorModel | None = None, clipped_share: np.ndarray | None = None) -> np.ndarray:
     """A priori covariance of each observation ``(q, 2, 2)`` px^2: the model's ``sigma_px: (q,)`` on both
     coordinates plus ``c_background^2`` times the detector's background bound ``background_cov: (q, 2, 2)``
-    (None: no bound, e.g. a job measured before the detector gave one)."""
+    (None: no bound, e.g. a job measured before the detector gave one), plus the saturation term for the clipped
+    share of each dot's pixels ``clipped_share: (q,)`` (None: not known)."""
     model = model or load_model()
     s = np.asarray(sigma_px, dtype=float)
     C = s[:, None, None] ** 2 * np.eye(2)
+    if clipped_share is not None:
+        C = C + model.saturation_var(clipped_share)[:, None, None] * np.eye(2)
     if background_cov is not None:
         B = np.asarray(background_cov, dtype=float)
         if B.shape != C.shape or not np.all(np.isfinite(B)):

@@ -25,12 +25,17 @@ pytestmark = pytest.mark.slow
 def truth_figures(report: dict, part) -> dict:
     """Deviations in report.json against the injected truth (``part.deviations``, mm).
 
-    ``ratio`` and ``untouched_in_99`` use each target's stated covariance (``cov``); the ``_given_bar`` ones the
+    Targets the report calls suspect (decision "inconclusive": their rays could not be verified) are counted, not
+    compared. ``ratio`` and ``untouched_in_99`` use each target's stated covariance (``cov``); the ``_given_bar`` ones the
     same less the scale bar certificate's share (``cov_scale_bar``): the simulated bar is exactly its certified
     length, so that share of the statement is never realised in a run (decision 0029)."""
-    m2, m2b, untouched, significant, beyond_failed = [], [], [], [], []
+    m2, m2b, untouched, significant, beyond_failed, suspect, quiet = [], [], [], [], [], 0, 0
     for t in report["targets"]:
         if t["measured"][0] is None:
+            continue
+        if t.get("suspect"):  # reported inconclusive, with a warning: loud, not a quiet number (decision 0021)
+            suspect += 1
+            quiet += t.get("decision") != "inconclusive"
             continue
         d = np.asarray(part.deviations.get(t["id"], np.zeros(3))) * 1e-3
         e = np.asarray(t["deviation"]) - d
@@ -48,7 +53,8 @@ def truth_figures(report: dict, part) -> dict:
             "untouched_in_99": float(np.mean(m2[untouched] <= q99)),
             "untouched_in_99_given_bar": float(np.mean(m2b[untouched] <= q99)),
             "false_significant": float(np.mean(significant[untouched])),
-            "beyond_tolerance": len(beyond_failed), "beyond_tolerance_failed": int(sum(beyond_failed))}
+            "beyond_tolerance": len(beyond_failed), "beyond_tolerance_failed": int(sum(beyond_failed)),
+            "suspect": suspect, "suspect_not_inconclusive": quiet}
 
 
 def _check(fig: dict, report: dict) -> None:
@@ -57,6 +63,7 @@ def _check(fig: dict, report: dict) -> None:
     assert fig["untouched_in_99"] >= 0.97, fig
     assert fig["ratio_given_bar"] >= fig["ratio"], fig  # the certificate's share is part of the statement
     assert fig["false_significant"] <= 0.02, fig
+    assert fig["suspect_not_inconclusive"] == 0, fig
     assert fig["beyond_tolerance"] > 0 and fig["beyond_tolerance_failed"] == fig["beyond_tolerance"], fig
 
 

@@ -37,6 +37,14 @@ def background_bounds(obs_doc: dict) -> np.ndarray | None:
     return np.concatenate([np.asarray(o["bg_cov_px2"], dtype=float).reshape(-1, 2, 2) for o in obs_doc["images"]])
 
 
+def clipped_shares(obs_doc: dict) -> np.ndarray | None:
+    """The share of each observed dot's pixels the sensor clipped, ``(q,)`` in the order of
+    :func:`observation_arrays`; None when observations.json has none (measured before the detector counted them)."""
+    if not obs_doc["images"] or any(o.get("clipped_share") is None for o in obs_doc["images"]):
+        return None
+    return np.concatenate([np.asarray(o["clipped_share"], dtype=float).reshape(-1) for o in obs_doc["images"]])
+
+
 def initial_intrinsics(job, cal_doc: dict) -> Intrinsics:
     """Median of the per-image Faugeras-Toscani interior orientations (robust to a weak image)."""
     nominal = job.intrinsics
@@ -109,8 +117,11 @@ def _adjust(ctx, scr: Screening, obs: dict, obs_image, obs_target, obs_uv, poses
         # a dot next to an edge or a step of the shading: the detector's background bound, its measured share
         # (docs/decisions/0023, truth); the covariance is then 2x2 per observation
         bg = background_bounds(obs)
-        if bg is not None and np.any(bg[sel]):
-            model_sigma, obs_sigma = obs_sigma, observation_covariances(obs_sigma, bg[sel])
+        # a dot the sensor clipped: the model's saturation term for the clipped share of its pixels (decision 0029)
+        clip = clipped_shares(obs)
+        if (bg is not None and np.any(bg[sel])) or (clip is not None and np.any(clip[sel] > 0)):
+            model_sigma, obs_sigma = obs_sigma, observation_covariances(
+                obs_sigma, None if bg is None else bg[sel], clipped_share=None if clip is None else clip[sel])
     res = bundle_adjust(img, tgt, uv, intr0, poses0, targets.xyz, options, config, obs_sigma_px=obs_sigma,
                         obs_group=groups)
     if model_sigma is not None:
@@ -122,19 +133,39 @@ def _adjust(ctx, scr: Screening, obs: dict, obs_image, obs_target, obs_uv, poses
     return res, (kept_images, sel, img, tgt, uv, groups, model_sigma)
 
 
-def _add_coherent_background(res, obs: dict, sel, img, tgt, ids: list[str]) -> dict:
-    """Add to each target's covariance the background misfit its views share (decision 0029); what was added."""
+def _add_coherent_background(res, obs: dict, sel, img, tgt, ids: list[str], bars=(), K=None) -> dict:
+    """Add to each target's covariance the background misfit its views share (decision 0029), and what the scale
+    bars' ends' shares do to every target through the scale (``K``: :func:`scale_bar_gains`); what was added."""
+    bar_terms: list[dict] = []
     used = ~res.rejected
-    bg = background_bounds(obs)[sel]
+    bg = background_bounds(obs)
+    if bg is None:
+        return {"share": 1.0, "c_background": None, "n_targets": 0, "sigma_growth_median": 1.0, "largest": []}
+    bg = bg[sel]
     c = load_model().c_background
     extra = coherent_background_cov(res.intrinsics, res.cam_from_part, res.points, img[used], tgt[used],
                                     res.obs_sigma_px[used], bg[used], c)
     hit = np.flatnonzero(np.trace(extra, axis1=1, axis2=2) > 0)
     res.cov[hit] += extra[hit]
     res.covariance.D[hit] += extra[hit]
+    # a scale bar's end with a shared misfit errs the bar's measured length, and every target follows the scale:
+    # the ends' extra along the bar, through the gains (rank one per bar, into the covariance's low-rank part)
+    for j, bar in enumerate(bars):
+        u = res.points[bar.target_a] - res.points[bar.target_b]
+        u = u / np.linalg.norm(u)
+        v = float(u @ (extra[bar.target_a] + extra[bar.target_b]) @ u)
+        if v > 0 and np.all(np.isfinite(K[:, :, j][np.isfinite(res.points).all(axis=1)])):
+            k = np.nan_to_num(K[:, :, j])
+            res.cov += v * np.einsum("na,nb->nab", k, k)
+            cv = res.covariance
+            r = cv.U.shape[2]
+            C = np.zeros((r + 1, r + 1))
+            C[:r, :r], C[r, r] = cv.C, v
+            res.covariance = type(cv)(cv.D, np.concatenate([cv.U, np.where(np.isnan(cv.D[:, :, :1]), np.nan, k[:, :, None])], axis=2), C)
+            bar_terms.append({"bar": [ids[bar.target_a], ids[bar.target_b]], "length_sigma_m": float(np.sqrt(v))})
     grow = np.sqrt(np.trace(res.cov[hit], axis1=1, axis2=2) / np.maximum(np.trace(res.cov[hit] - extra[hit], axis1=1, axis2=2), 1e-300))
     worst = np.argsort(-grow)[:5]
-    return {"share": 1.0, "c_background": c, "n_targets": int(len(hit)),
+    return {"share": 1.0, "c_background": c, "n_targets": int(len(hit)), "scale_bar_ends": bar_terms,
             "sigma_growth_median": float(np.median(grow)) if len(hit) else 1.0,
             "largest": [{"target": ids[int(hit[k])], "sigma_growth": float(grow[k]),
                          "added_sigma_m": float(np.sqrt(np.trace(extra[hit[k]]) / 3))} for k in worst]}
@@ -215,7 +246,8 @@ def run_bundle(ctx) -> dict:
     kept_images, sel, img, tgt, uv, groups, model_sigma = sub
     bars = bundle_config(job, scale=scr.scale_ok).scale_bars
     K, K_sigma = scale_bar_gains(res.covariance, res.points, bars) if bars else (np.zeros((len(ids), 3, 0)), np.zeros(0))
-    coherent = _add_coherent_background(res, obs, sel, img, tgt, ids) if model_sigma is not None else None
+    coherent = _add_coherent_background(res, obs, sel, img, tgt, ids, bars, K) if model_sigma is not None else None
+    suspect = _screened_suspects(scr, obs_target, tgt[~res.rejected], len(ids))
     dt = time.perf_counter() - t0
     n_img = np.bincount(tgt[~res.rejected], minlength=len(ids))
     rejected = [{"image": obs["images"][int(kept_images[i])]["image"], "target": ids[int(t)], "residual_px": r}
@@ -228,7 +260,7 @@ def run_bundle(ctx) -> dict:
     return {
         "datum": res.datum,
         "sigma0_px": res.sigma0_px,
-        "observation_weights": _weights_doc(job, res, groups, model_sigma),
+        "observation_weights": _weights_doc(job, res, groups, model_sigma) | _flag_counts(obs, sel, res.rejected),
         "dof": res.dof,
         "converged": res.converged,
         "summary": res.summary,
@@ -240,7 +272,8 @@ def run_bundle(ctx) -> dict:
         "rejected": rejected,
         "screening": screening_doc(scr, obs, obs_image, obs_target, ids, attempt),
         "coherent_background": coherent,
-        "snooping": res.snooping | {"suspect_targets": [ids[int(t)] for t in res.snooping["suspect_targets"]],
+        "snooping": res.snooping | {"suspect_targets": [ids[int(t)] for t in sorted(set(
+                                        int(t) for t in res.snooping["suspect_targets"]) | suspect)],
                                     "protected": [p.replace(f"scale bar {a}-{b} ", f"scale bar {ids[a]}-{ids[b]} ")
                                                   for p in res.snooping["protected"]
                                                   for a, b in [job.scale_bar[:2] if job.scale_bar else (-1, -1)]]},
@@ -253,6 +286,15 @@ def run_bundle(ctx) -> dict:
         "targets": [{"id": tid, "xyz": p, "cov": c, "n_images": int(k), "ellipsoid_axes_m": ax,
                      "ellipsoid_dirs": d} for tid, p, c, k, ax, d in zip(ids, res.points, res.cov, n_img, axes, dirs)],
     }
+
+
+def _screened_suspects(scr: Screening, obs_target, used_target, n: int) -> set[int]:
+    """Targets the screening took a ray from that kept two or fewer: the pair left cannot be checked against a
+    third (the same rule as data snooping's suspects, decision 0021; generated plate seed 107: T0049 kept two
+    rays after one was dropped as 2.1 px off, and came out 328 um from the truth)."""
+    lost = np.bincount([int(obs_target[q]) for q in scr.obs], minlength=n) if scr.obs else np.zeros(n, dtype=int)
+    kept = np.bincount(np.asarray(used_target, dtype=int), minlength=n)
+    return {int(t) for t in np.flatnonzero((lost > 0) & (kept <= 2) & (kept > 0))}
 
 
 def screening_doc(scr: Screening, obs: dict, obs_image, obs_target, ids: list[str], retries: int) -> dict:
@@ -269,6 +311,17 @@ def screening_doc(scr: Screening, obs: dict, obs_image, obs_target, ids: list[st
         "scale": scr.scale_reason,
         "retries": retries,
     }
+
+
+def _flag_counts(obs: dict, sel, rejected) -> dict:
+    """Observations the adjustment used that carry a background bound, and clipped ones (decisions 0023, 0029)."""
+    used = ~np.asarray(rejected, dtype=bool)
+    bg, clip = background_bounds(obs), clipped_shares(obs)
+    out = {}
+    if bg is not None:
+        out["observations_with_background_bound"] = int(np.count_nonzero(np.abs(bg[sel][used]).max(axis=(1, 2)) > 0))
+    out["observations_clipped"] = None if clip is None else int(np.count_nonzero(clip[sel][used] > 0))
+    return out
 
 
 def _weights_doc(job, res, groups, model_sigma=None) -> dict:
@@ -323,15 +376,30 @@ def run(ctx) -> None:
         ctx.say(f"  WARNING data snooping stopped early: {sn['stopped']}")
     if sn["suspect_targets"]:
         msg = ("targets whose observations data snooping could not verify (lost half of their rays, or kept two or "
-               f"fewer after a rejection; reported inconclusive): {', '.join(sn['suspect_targets'])}")
+               f"fewer after a rejection or a screening drop; reported inconclusive): {', '.join(sn['suspect_targets'])}")
         ctx.log.log("warning", msg)
         ctx.say(f"  WARNING {msg}")
     if doc["observation_weights"]["method"] == "model":
         w = doc["observation_weights"]
         ctx.say(f"  image sigma from the detector model: median {w['a_priori_sigma_px']['median']:.4f} px, "
                 f"max {w['a_priori_sigma_px']['max']:.3f} px; variance factor {w['variance_factor']:.2f}; "
-                f"{w['observations_with_background_bound']} observation(s) next to an edge (background bound)")
+                f"{w['observations_with_background_bound']} observation(s) next to an edge (background bound)"
+                + (f", {w['observations_clipped']} of clipped dots (saturation term)" if w.get("observations_clipped")
+                   else ""))
+    w = doc["observation_weights"]
+    if w.get("observations_clipped") and w["observations_clipped"] > 0.2 * (doc["n_observations"] - doc["n_rejected"]):
+        msg = (f"{w['observations_clipped']} of {doc['n_observations'] - doc['n_rejected']} observations are of dots the "
+               "sensor clipped (overexposed: lower the flash or the exposure for near stations); their sigma carries "
+               "the detector model's saturation term")
+        ctx.log.log("warning", msg)
+        ctx.say(f"  WARNING {msg}")
     cb = doc.get("coherent_background")
+    for e in (cb or {}).get("scale_bar_ends", []):
+        msg = (f"scale bar {e['bar'][0]}-{e['bar'][1]}: its ends sit next to an edge in their views; their shared misfit "
+               f"errs the bar's measured length by {e['length_sigma_m'] * 1e6:.1f} um (1 sigma), which every target's "
+               "covariance now carries through the scale: a bar with clear surroundings measures better")
+        ctx.log.log("warning", msg)
+        ctx.say(f"  WARNING {msg}")
     if cb and cb["n_targets"]:
         big = ", ".join(f"{x['target']} x{x['sigma_growth']:.1f}" for x in cb["largest"][:3])
         ctx.say(f"  {cb['n_targets']} target(s) next to an edge in several views: the background misfit their views "

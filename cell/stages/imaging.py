@@ -91,6 +91,8 @@ class DotMeasurement:
             when the caller gave none.
         bg_cov: (k, 2, 2) the detector's bound on each centre's error from a background that is not a
             plane (px^2, ``Detections.background_cov``), or None.
+        clipped_share: (k,) the share of each dot's pixels the sensor clipped (``Detections.saturated`` over its
+            area; the bundle adds the detector model's saturation term), or None.
         dropped: (target index, reason) of every dot that was named and then left unnamed (partly hidden,
             shape unlike its target's ellipse, the image's naming inconsistent); never silent.
         resection_median_px: median residual of the resection on the named dots (None: too few to check).
@@ -103,6 +105,7 @@ class DotMeasurement:
     n_partly_hidden: int = 0
     cov: np.ndarray | None = None
     bg_cov: np.ndarray | None = None
+    clipped_share: np.ndarray | None = None
     dropped: list = field(default_factory=list)
     resection_median_px: float | None = None
 
@@ -116,7 +119,7 @@ def name_dots(det_uv: np.ndarray, part, intr: Intrinsics, cam_from_part: np.ndar
               max_dist_px: float = 25.0, incidence_max_rad: float = float(np.deg2rad(85.0)),
               coded_ids: np.ndarray | None = None, coded_uv: np.ndarray | None = None,
               det_cov: np.ndarray | None = None, det_bg_cov: np.ndarray | None = None,
-              det_axes: np.ndarray | None = None) -> DotMeasurement:
+              det_axes: np.ndarray | None = None, det_clipped: np.ndarray | None = None) -> DotMeasurement:
     """Identify detected dot centres ``det_uv: (k, 2)`` with an approximate pose and measure them.
 
     ``det_cov, det_bg_cov: (k, 2, 2)`` (px^2) travel with the centres they belong to. ``det_axes: (k, 2, 2)``
@@ -168,7 +171,8 @@ def name_dots(det_uv: np.ndarray, part, intr: Intrinsics, cam_from_part: np.ndar
     return DotMeasurement(tid, uv, np.asarray(cam_from_part, dtype=float),
                           int((match < 0).sum()), int((~clear).sum()),
                           None if det_cov is None else np.asarray(det_cov)[dots],
-                          None if det_bg_cov is None else np.asarray(det_bg_cov)[dots], dropped, med)
+                          None if det_bg_cov is None else np.asarray(det_bg_cov)[dots],
+                          None if det_clipped is None else np.asarray(det_clipped, dtype=float)[dots], dropped, med)
 
 
 def detection_options(camera) -> DetectionOptions:
@@ -207,5 +211,6 @@ def measure_image(image: np.ndarray, part, intr: Intrinsics, cam_from_part_appro
     m = name_dots(det.uv[keep], part, intr, cam_from_part_approx, occluder, max_dist_px=max_dist_px,
                   incidence_max_rad=incidence_max_rad, coded_ids=codes[known], coded_uv=centres[known],
                   det_cov=det.cov[keep], det_bg_cov=None if det.background_cov is None else det.background_cov[keep],
-                  det_axes=det.axes[keep] if shape_check else None)
+                  det_axes=det.axes[keep] if shape_check else None,
+                  det_clipped=None if det.saturated is None else (det.saturated / np.maximum(det.area_px, 1.0))[keep])
     return m, {"n_dots": int(keep.sum()), "n_coded": int(known.sum())}

@@ -54,7 +54,7 @@ def run(ctx, keep: bool = False) -> None:
         names = [ids_all[int(i)] for i in m.target]
         dropped = [{"id": ids_all[i], "reason": why} for i, why in m.dropped]
         out.append({"station": im["station"], "image": im["image"], "ids": names, "uv": m.uv, "cov_px2": m.cov,
-                    "bg_cov_px2": m.bg_cov,
+                    "bg_cov_px2": m.bg_cov, "clipped_share": m.clipped_share,
                     "n_unidentified": m.n_unidentified, "n_partly_hidden": m.n_partly_hidden,
                     "n_shape_rejected": m.n_shape, "dropped": dropped,
                     "resection_median_px": m.resection_median_px} | counts)
