@@ -24,6 +24,8 @@ gives the typical dot size that the background kernel then adapts to.
    the plane have a smooth part (the misfit, significant at 3 standard errors of the pixel noise) and
    a misfit ``e`` of one sign over each half of the dot moves the centroid by ``e sum|(x_i - u) . a|
    / (span_i sum w)`` along a direction ``a``: that bound along the dot's two principal axes, px^2.
+   ``ring_px`` says how many ring pixels carried the plane and the test: below :data:`MIN_RING_PX`
+   there is neither, and a zero bound means "not measured", not "a plane" (decision 0030).
 
 Pixel convention: origin at the centre of the top-left pixel (OpenCV's too).
 """
@@ -118,6 +120,8 @@ class Detections:
             plane (px^2; zero where the ring shows no significant misfit), or None.
         saturated: (k,) pixels of each dot at the sensor's ceiling (clipped: the dot's profile is cut flat and
             its centre errs by what no noise model states; decision 0029), or None.
+        ring_px: (k,) int ring pixels the background plane and the misfit test used; below
+            :data:`MIN_RING_PX` the bound could not be measured (it is zero then, not known), or None.
     """
 
     uv: np.ndarray
@@ -131,6 +135,7 @@ class Detections:
     axes: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 2)))
     background_cov: np.ndarray | None = None
     saturated: np.ndarray | None = None
+    ring_px: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.uv)
@@ -140,7 +145,8 @@ class Detections:
         return replace(self, uv=self.uv[keep], area_px=self.area_px[keep], peak=self.peak[keep], flux=self.flux[keep],
                        background=self.background[keep], cov=self.cov[keep], axes=self.axes[keep],
                        background_cov=None if self.background_cov is None else self.background_cov[keep],
-                       saturated=None if self.saturated is None else self.saturated[keep])
+                       saturated=None if self.saturated is None else self.saturated[keep],
+                       ring_px=None if self.ring_px is None else self.ring_px[keep])
 
 
 def to_grey(image: np.ndarray) -> np.ndarray:
@@ -252,6 +258,10 @@ def _tophat(image: np.ndarray, kernel: int) -> np.ndarray:
     return cv2.subtract(image, cv2.resize(opened, (image.shape[1], image.shape[0]), interpolation=cv2.INTER_LINEAR))
 
 
+#: ring pixels needed for a background plane and its misfit test (fewer: no slope, and no bound can be measured)
+MIN_RING_PX = 8
+
+
 def _ring_planes(lab: np.ndarray, dx: np.ndarray, dy: np.ndarray, val: np.ndarray, k: int, fallback: float) -> np.ndarray:
     """Least-squares plane ``b0 + gx dx + gy dy`` through the ring pixels of each of ``k`` blobs.
 
@@ -273,7 +283,7 @@ def _ring_planes(lab: np.ndarray, dx: np.ndarray, dy: np.ndarray, val: np.ndarra
     b = np.stack([s(val), s(val * dx), s(val * dy)], axis=1)
     coef = np.zeros((k, 3))
     coef[:, 0] = np.where(n > 0, b[:, 0] / np.maximum(n, 1), fallback)
-    ok = n >= 8
+    ok = n >= MIN_RING_PX
     if np.any(ok):
         det = np.linalg.det(A[ok])
         good = np.flatnonzero(ok)[np.abs(det) > 1e-9 * np.maximum(n[ok], 1) ** 3]
@@ -300,7 +310,7 @@ def _ring_misfit(lab: np.ndarray, dx: np.ndarray, dy: np.ndarray, r: np.ndarray,
     noise2 /= np.maximum(n_d, 1)
     n = np.bincount(lab, minlength=k + 1)[1:]
     excess = np.bincount(lab, weights=r * r, minlength=k + 1)[1:] / np.maximum(n, 1) - noise2
-    significant = (n >= 8) & (excess > z * noise2 / np.sqrt(np.maximum(n, 1)))
+    significant = (n >= MIN_RING_PX) & (excess > z * noise2 / np.sqrt(np.maximum(n, 1)))
     return np.where(significant, np.sqrt(np.maximum(excess, 0.0)), 0.0)
 
 
@@ -462,7 +472,8 @@ def _detect(image: np.ndarray, o: DetectionOptions) -> Detections:
         mask &= cv2.compare(tophat.astype(np.float32), local, cv2.CMP_GT)  # 0/255: keeps mask's 0/1
     n_lab, labels, stats = _components(mask)
     empty = Detections(np.zeros((0, 2)), np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0), noise,
-                       np.zeros((0, 2, 2)), o.polarity, np.zeros((0, 2, 2)), np.zeros((0, 2, 2)), np.zeros(0, dtype=int))
+                       np.zeros((0, 2, 2)), o.polarity, np.zeros((0, 2, 2)), np.zeros((0, 2, 2)),
+                       np.zeros(0, dtype=int), np.zeros(0, dtype=int))
     if n_lab <= 1:
         return empty
     w_box = stats[1:, cv2.CC_STAT_WIDTH].astype(float)
@@ -553,5 +564,6 @@ def _detect(image: np.ndarray, o: DetectionOptions) -> Detections:
                                          + a2[:, None, None] ** 2 * np.einsum("ka,kb->kab", vec[:, :, 1], vec[:, :, 1]))
     good = (sw > 0) & (peak >= o.min_peak_snr * noise)
     flux = sw * np.maximum(peak, 0.0)
+    ring_px = np.bincount(lf, minlength=k + 1)[1:]
     return Detections(uv[good], area[keep][good], peak[good], flux[good], bg_local[good], noise, cov[good],
-                      o.polarity, axes[good], bcov[good], n_sat[good].astype(int))
+                      o.polarity, axes[good], bcov[good], n_sat[good].astype(int), ring_px[good])

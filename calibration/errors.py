@@ -68,6 +68,17 @@ class CalibrationError(CellError):
     """Camera calibration, measurement, or bundle adjustment failed."""
 
 
+class ScaleNotEstablishedError(CalibrationError):
+    """No scale bar keeps both ends observed in two images or more (e.g. data snooping rejected an end's rays):
+    the network has no scale of its own. ``ends`` {target index: usable rays}, ``rejected`` (observation
+    indices data snooping had rejected of those ends); a caller may adjust a free network and say so."""
+
+    def __init__(self, message: str, ends: dict | None = None, rejected: list | None = None):
+        super().__init__(message)
+        self.ends = dict(ends or {})
+        self.rejected = list(rejected or [])
+
+
 class RecordError(CellError):
     """A job's record (journal, stored files, manifest) is damaged or cannot be written.
 

@@ -133,6 +133,28 @@ def test_naming_no_pose_explains_is_dropped_whole_and_a_few_deviating_dots_are_n
     assert len(m.dropped) >= 40 and all("naming is inconsistent" in why for _, why in m.dropped)
 
 
+def test_a_named_dot_whose_background_ring_is_too_small_to_bound_is_dropped_with_the_reason():
+    """Below MIN_RING_PX ring pixels the detector fits no plane and tests no misfit: its zero bound would mean "not
+    looked at", so MEASURE leaves the dot unnamed, and observations.json counts it by its reason (decision 0030)."""
+    from calibration.camera import project
+    from calibration.dots import MIN_RING_PX
+    from cell.stages.imaging import name_dots
+    from cell.stages.measure import dropped_by_reason
+    from planning.visibility import Occluder
+
+    part, P = _plate()
+    intr = Intrinsics.from_focal_length(0.008, 3.45e-6, 2448, 2048)
+    cam_from_part = invert(look_at(np.array([0.03, -0.05, 0.5]), np.zeros(3), up=(0, 1, 0)))
+    uv = project(intr, cam_from_part, P)
+    ring = np.full(len(P), 120)
+    ring[[3, 11]] = [0, MIN_RING_PX - 1]
+    m = name_dots(uv, part, intr, cam_from_part, Occluder(part.mesh), det_ring_px=ring)
+    assert sorted(i for i, _ in m.dropped) == [3, 11] and len(m.target) == len(P) - 2
+    assert all("background not measurable" in why for _, why in m.dropped)
+    doc = [{"dropped": [{"id": str(i), "reason": why} for i, why in m.dropped]}]
+    assert dropped_by_reason(doc) == {"background not measurable (ring < 8 px)": 2}
+
+
 # --- whole jobs -------------------------------------------------------------------------------------------
 def _run(tmp_path: Path, sim: dict, planning: dict | None = None):
     job = job_variant(tmp_path / "job", {"planning": {"required_sigma": REQUIRED_MM, "closed_loop_rounds": 3}

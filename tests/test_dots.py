@@ -5,7 +5,7 @@ import cv2
 import numpy as np
 import pytest
 
-from calibration.dots import DetectionOptions, detect_dots
+from calibration.dots import MIN_RING_PX, DetectionOptions, detect_dots
 from calibration.errors import CalibrationError
 from tests.test_targets import grid_uv, render_dots
 
@@ -150,6 +150,7 @@ def test_a_step_of_the_background_next_to_a_dot_is_bounded_in_its_background_cov
     assert np.all(bound[far] == 0) and np.all(err[far] < 4 * noise[far])
     assert np.all(err[~far] > 5 * noise[~far]) and np.all(bound[~far] > 0)
     assert np.all(err[~far] <= bound[~far])
+    assert np.all(det.ring_px >= MIN_RING_PX)  # every bound here was measured (decision 0030: below, it is unknown)
 
 
 def _random_blobs(rng, h, w, n):

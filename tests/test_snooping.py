@@ -116,3 +116,53 @@ def test_two_blunders_of_one_target_go_in_one_round():
     # finds nothing failing and puts the good ones back, the last confirms: one round per blunder of a target
     # would need a fourth
     assert res.snooping["rounds"] <= 3
+
+
+def test_a_warm_round_that_diverges_is_stopped_said_and_settled_by_pycolmap():
+    """A warm round (Gauss-Newton from the previous round's optimum) is watched: here started far from its optimum
+    (every camera turned at random by 0.7 rad per axis), its step grows; the round is stopped, said, and pycolmap's
+    Levenberg-Marquardt from the round's start settles it at the optimum an adjustment from the truth reaches."""
+    from calibration.bundle.adjust import _warm_round
+
+    rng = np.random.default_rng(32)
+    net = simulate_network(rng, n_targets=120, n_images=10, sigma_px=0.05)
+    n, m = len(net.points), len(net.cam_from_part)
+    config = BundleConfig()
+    lay = _Layout(m, n, config.refined_names(), np.ones(n, bool), np.zeros(n, bool))
+    args = (net.obs_image, net.obs_target, net.obs_uv)
+    poses = np.array([exp_se3(np.r_[rng.normal(0, 0.7, 3), rng.normal(0, 0.175, 3)]) @ T for T in net.cam_from_part])
+    state = _State(net.intrinsics, poses, net.points + rng.normal(0, 0.02, net.points.shape))
+    snoop = {"rounds": 2}
+    new, conv = _warm_round(state, net.points, lay, config, args, np.full(len(args[0]), 0.05), np.ones(n, bool),
+                            BundleOptions(sigma_px=0.05), snoop)
+    assert snoop["diverged"][0].startswith("round 2: Gauss-Newton step grew at iteration")
+    assert snoop["handed_over"][0].startswith("round 2: pycolmap settled it")
+    ref = bundle_adjust(*args, net.intrinsics, net.cam_from_part, net.points, BundleOptions(sigma_px=0.05,
+                        snooping=False), config)
+    assert conv and np.max(np.abs(new.points - ref.points)) < 1e-9
+
+
+def test_a_diverged_round_pycolmap_cannot_settle_keeps_the_last_settled_round_and_says_so(monkeypatch):
+    """When neither the warm Gauss-Newton nor pycolmap settles a round (injected: the two solvers are tested above),
+    the adjustment is the previous round's, converged, and data snooping is said to have stopped early: not "did not
+    converge", and no observation rejected that the kept adjustment did not test."""
+    import calibration.bundle.adjust as A
+
+    def diverges(state, x0, lay, config, args, sigma, active_pts, options, snoop):
+        snoop.setdefault("diverged", []).append(f"round {snoop['rounds']}: Gauss-Newton cost rose (injected)")
+        return None, None
+
+    rng = np.random.default_rng(22)
+    net, uv, bad, poses0, x0 = _blundered(rng, n_targets=150, n_images=8)
+    monkeypatch.setattr(A, "_warm_round", diverges)
+    res = bundle_adjust(net.obs_image, net.obs_target, uv, net.intrinsics, poses0, x0,
+                        BundleOptions(sigma_px=0.05, max_rejections=len(uv)), BundleConfig())
+    monkeypatch.undo()
+    ref = bundle_adjust(net.obs_image, net.obs_target, uv, net.intrinsics, poses0, x0,
+                        BundleOptions(sigma_px=0.05, snooping=False), BundleConfig())
+    assert res.converged and not res.rejected.any()
+    assert np.max(np.abs(res.points - ref.points)) < 1e-9
+    sn = res.snooping
+    assert not sn["complete"] and sn["still_failing"] >= bad.sum() // 2
+    assert sn["stopped"].startswith("round 2: Gauss-Newton cost rose (injected), and pycolmap did not settle that "
+                                    "round either: round 1's adjustment is kept")

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 
 import numpy as np
 from scipy.special import chdtri  # chi2.isf without importing scipy.stats (~1 s of a job's start)
@@ -26,7 +27,7 @@ from calibration.bundle.snooping import (
 )
 from calibration.bundle.vce import _variance_step
 from calibration.camera import Intrinsics
-from calibration.errors import CalibrationError
+from calibration.errors import CalibrationError, ScaleNotEstablishedError
 from calibration.weights import check_groups, check_sigmas, mean_variance
 
 
@@ -123,6 +124,7 @@ def _bundle_adjust(obs_image, obs_target, obs_uv, intrinsics, cam_from_part, poi
         counts = np.bincount(obs_target[act_obs], minlength=n)
         active_pts = counts >= 2
         act_obs &= active_pts[obs_target]
+        _check_scale(config, active_pts, counts, rejected, obs_target, snoop["rounds"])
         if np.any(np.bincount(obs_image[act_obs], minlength=m) < 3):
             raise CalibrationError("bundle: an image has fewer than 3 observed targets; drop it or identify more targets")
         lay = _Layout(m, n, names, active_pts, linked)
@@ -131,16 +133,34 @@ def _bundle_adjust(obs_image, obs_target, obs_uv, intrinsics, cam_from_part, poi
         # equations (the datum stage's iterations, which the statistics need anyway) finishes it
         warm = options.snooping_batch and snoop["rounds"] > 1
         on_datum = False
+        pre_conv = None  # the first datum stage already ran (converged or not)
         if not warm:
             t0 = time.perf_counter()
             state, usable, report, on_datum = _solve(state, x0, lay, config, args, sig[act_obs], active_pts, options)
             timings["solve"] += time.perf_counter() - t0
             if options.solver == "gauss_newton" and not on_datum:  # pycolmap took over: said by the caller
                 solver_fallback = report
+            pre_conv = True if on_datum else None
+        else:
+            t0 = time.perf_counter()
+            warm_state, pre_conv = _warm_round(state, x0, lay, config, args, sig[act_obs], active_pts, options, snoop)
+            timings["solve"] += time.perf_counter() - t0
+            if warm_state is None:  # diverged, and pycolmap did not save it: the last round that settled is kept
+                state, lin, stats, act_obs, T, dconv, lay = (good[k] for k in ("state", "lin", "stats", "act_obs",
+                                                                              "T", "dconv", "lay"))
+                back = rejected & ~good["rejected"]
+                rejected[:] = good["rejected"]
+                snoop["still_failing"] = good["still_failing"]
+                snoop["stopped_because"] = (f"{snoop['diverged'][-1]}, and pycolmap did not settle that round "
+                                            f"either: round {snoop['rounds'] - 1}'s adjustment is "
+                                            f"kept; the {int(back.sum())} observation(s) it would have rejected next "
+                                            f"are not, and {good['still_failing']} observation(s) still fail the test")
+                break
+            state = warm_state
         for it in range(1, max(options.vce_iterations, 1) + 1 if group is not None else 2):
             t1 = time.perf_counter()
-            if it == 1 and on_datum:  # the solve ended at the optimum for these sigmas, in the datum
-                dconv = True
+            if it == 1 and pre_conv is not None:  # the solve ended at the optimum for these sigmas, in the datum
+                dconv = pre_conv
             else:
                 state, dconv = _datum_stage(state, x0, lay, config, args, sig[act_obs], options.datum_iterations,
                                             full_gn or warm)
@@ -164,6 +184,9 @@ def _bundle_adjust(obs_image, obs_target, obs_uv, intrinsics, cam_from_part, poi
         testable = np.isfinite(T)
         fails = testable & (T > thr)
         snoop["still_failing"] = int(fails.sum())
+        # this round settled: what a later round that diverges falls back to
+        good = {"state": state, "lin": lin, "stats": stats, "act_obs": act_obs.copy(), "T": T.copy(), "dconv": dconv,
+                "lay": lay, "rejected": rejected.copy(), "still_failing": snoop["still_failing"]}
         stop = None
         if not options.snooping:
             stop = "off"
@@ -202,6 +225,47 @@ def _bundle_adjust(obs_image, obs_target, obs_uv, intrinsics, cam_from_part, poi
     if weighted:  # sigma0 in pixels: of an observation of the rms a priori sigma (equal weights: options.sigma_px)
         res.sigma0_px = float(np.sqrt(stats["s02"] * mean_variance(sig[act_obs])))
     return res
+
+
+def _warm_round(state, x0, lay, config, args, sigma, active_pts, options, snoop) -> tuple[object, bool | None]:
+    """A data-snooping round after the first, from the previous round's optimum: Gauss-Newton on our own normal
+    equations, watched. A round whose cost (sigma0) rises or whose step grows is stopped and said
+    (``snoop["diverged"]``) and handed to pycolmap's Levenberg-Marquardt from the round's start (then the datum
+    stage); ``snoop["handed_over"]`` lists those it settled. Returns ``(state, converged)``, or ``(None, None)``
+    when pycolmap did not settle it either (the caller keeps the last round that did)."""
+    trace: dict = {"watch_step": True}
+    try:
+        new, conv = _datum_stage(state, x0, lay, config, args, sigma, options.datum_iterations, True, trace=trace)
+    except (CalibrationError, np.linalg.LinAlgError) as exc:  # a step put a target behind a camera, or singular
+        trace.update(diverged=True, why=f"stopped: {exc}")
+    if not trace.get("diverged"):
+        return new, conv
+    rnd = snoop["rounds"]
+    snoop.setdefault("diverged", []).append(f"round {rnd}: Gauss-Newton {trace['why']}")
+    new, usable, report, _ = _solve(state, x0, lay, config, args, sigma, active_pts,
+                                    replace(options, solver="pycolmap"))
+    if usable:
+        new, conv = _datum_stage(new, x0, lay, config, args, sigma, options.datum_iterations, True)
+        if conv:
+            snoop.setdefault("handed_over", []).append(f"round {rnd}: pycolmap settled it ({report})")
+            return new, conv
+    return None, None
+
+
+def _check_scale(config, active_pts: np.ndarray, counts: np.ndarray, rejected: np.ndarray, obs_target: np.ndarray,
+                 round_: int) -> None:
+    """Raise :class:`ScaleNotEstablishedError` when no scale bar keeps both ends with two usable rays (before the
+    first round: the input; later: data snooping took an end's rays), instead of the datum stage's generic error."""
+    if not config.scale_bars or config.datum != "scale_bar":
+        return
+    if any(active_pts[b.target_a] and active_pts[b.target_b] for b in config.scale_bars):
+        return
+    ends = {int(t): int(counts[t]) for b in config.scale_bars for t in (b.target_a, b.target_b) if not active_pts[t]}
+    rej = [int(q) for q in np.flatnonzero(rejected & np.isin(obs_target, list(ends)))]
+    how = (f" after data snooping rejected {len(rej)} of their observation(s) (round {round_})" if rej else "")
+    raise ScaleNotEstablishedError(
+        "bundle: scale not established: " + ", ".join(f"scale bar end {t} keeps {k} usable ray(s)"
+                                                        for t, k in ends.items()) + f" (2 needed){how}", ends, rej)
 
 
 def _reinstate(options, rejected, reinstated, act_obs, state, lin, lay, stats, s_test, thr, obs_image, obs_target,

@@ -29,7 +29,8 @@ def _datum_stage(state: _State, x0: np.ndarray, lay: _Layout, config: BundleConf
 
     ``trace``: the iterations solve the network from a start that may be far (:mod:`calibration.bundle.solve`):
     they stop unconverged as soon as the cost rises, converge only when the poses' step is negligible too, and
-    record ``iterations``, ``initial_cost``, ``final_cost`` and ``diverged`` in the dict.
+    record ``iterations``, ``initial_cost``, ``final_cost`` and ``diverged`` (with ``why``) in the dict; with
+    ``trace["watch_step"]`` a growing step is a divergence too (a start near the optimum: a warm data-snooping round).
     """
     datum = config.datum
     act = np.concatenate([lay.unlinked, lay.linked])
@@ -74,17 +75,25 @@ def _datum_stage(state: _State, x0: np.ndarray, lay: _Layout, config: BundleConf
             trace["iterations"] = it + 1
             if not np.isfinite(cost) or cost > trace.get("final_cost", np.inf) * (1.0 + 1e-6) + 1e-12:
                 trace["diverged"] = True
+                trace["why"] = (f"cost rose at iteration {it + 1} ({trace.get('final_cost', np.nan):.6e} -> "
+                                f"{cost:.6e})")
                 return state, False
             trace["final_cost"] = cost
         state = _apply_step(state, lin, lay)
         step = max(np.max(np.abs(lin.dp), initial=0.0), np.max(np.abs(lin.dc[6 * lay.m + lay.k:]), initial=0.0))
-        if trace is not None:  # rad and m
+        if trace is not None and not trace.get("watch_step"):  # rad and m (a warm round keeps the points' rule)
             step = max(step, np.max(np.abs(lin.dc[: 6 * lay.m]), initial=0.0))
         # converged: a step below 1e-10, or one below 1e-8 that shrank a thousandfold (Gauss-Newton's quadratic
         # convergence: the next would be ~1e-14, not worth a linearisation to find out)
         if step < 1e-10 or (step < 1e-8 and step < 1e-3 * prev):
             converged = True
             break
+        if trace is not None and trace.get("watch_step") and step > prev and step > 1e-8:
+            # from an optimum's neighbourhood (a warm data-snooping round) Gauss-Newton's steps shrink: one that
+            # grows is leaving it
+            trace["diverged"] = True
+            trace["why"] = f"step grew at iteration {it + 1} ({prev:.3e} -> {step:.3e})"
+            return state, False
         prev = step
     if datum != "control":  # back onto the initial coordinates (gauge moves of the free iterations, too)
         s, R, t = similarity_fit(state.points[act], x0[act], with_scale=datum == "free")

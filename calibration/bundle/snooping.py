@@ -82,6 +82,29 @@ def _quadratic(Q: np.ndarray, v: np.ndarray) -> np.ndarray:
     return (Q[:, 1, 1] * v[:, 0] ** 2 - 2 * Q[:, 0, 1] * v[:, 0] * v[:, 1] + Q[:, 0, 0] * v[:, 1] ** 2) / det
 
 
+#: a ray whose cofactor block Q_vv has a trace below this has (almost) no redundancy: it cannot be tested
+MIN_TRACE_QVV = 1e-3
+
+
+def _test_statistic(Q: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """``v^T Q_vv^+ v`` of each observation: the inverse where its 2x2 block is regular, the pseudo-inverse where the
+    block is of rank one, nan where it has no redundancy (trace < :data:`MIN_TRACE_QVV`).
+
+    A target seen by two rays has one redundancy for its four coordinates: each ray's block is ``lambda e e^T`` and its
+    residual lies along ``e``, so ``T = (e . v)^2 / lambda = v^T Q v / trace(Q)^2`` (one degree of freedom; the two
+    rays have the same statistic, so a failure says the pair disagrees, not which ray is wrong). It used to be left
+    untested (nan): a blunder on such a pair was never found and spread into its images' other observations
+    (decision 0030)."""
+    T = _quadratic(Q, v)
+    tr = Q[:, 0, 0] + Q[:, 1, 1]
+    rank1 = ~np.isfinite(T) & (tr > MIN_TRACE_QVV)
+    if np.any(rank1):
+        Qr, vr = Q[rank1], v[rank1]
+        vQv = np.einsum("qi,qij,qj->q", vr, Qr, vr)
+        T[rank1] = vQv / tr[rank1] ** 2
+    return T
+
+
 def _statistics(lin: _Linear, lay: _Layout, n_obs: int) -> dict:
     """Variance factor, redundancy numbers and the data-snooping statistic of each active observation."""
     r2 = float(np.sum(lin.r_img**2) + np.sum(lin.r_extra**2))
@@ -94,7 +117,7 @@ def _statistics(lin: _Linear, lay: _Layout, n_obs: int) -> dict:
     A = _projected_cofactor(lin, lay, Qpp, VS, lin.Jp, lin.Jc, lin.cidx, lin.slot)
     Qvv = np.eye(2) - A
     red = 0.5 * np.trace(Qvv, axis1=1, axis2=2)
-    T = _quadratic(Qvv, lin.r_img)  # observations without redundancy cannot be tested: nan
+    T = _test_statistic(Qvv, lin.r_img)  # observations without redundancy cannot be tested: nan
     return {"s02": s02, "dof": dof, "T": T, "redundancy": red, "Qpp": Qpp, "VS": VS}
 
 

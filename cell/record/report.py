@@ -183,8 +183,24 @@ def _status(t: dict) -> str:
 
 
 def _inconclusive(doc: dict) -> str:
-    n = len(doc.get("inconclusive", []))
-    return f"; {n} too close to their tolerance for this measurement to decide (ISO 14253-1)" if n else ""
+    """The verdict line's undecided targets: suspect ones (unverified observations) apart from those within U of
+    their tolerance (ISO 14253-1); a report written before ``suspect`` existed counts them from the targets."""
+    suspect = set(doc["suspect"]) if "suspect" in doc else {t["id"] for t in doc["targets"] if t.get("suspect")}
+    near = [t for t in doc.get("inconclusive", []) if t not in suspect]
+    out = ""
+    if suspect:
+        out += f"; {len(suspect)} suspect (observations not verified by the blunder test)"
+    if near:
+        out += f"; {len(near)} too close to their tolerance for this measurement to decide (ISO 14253-1)"
+    return out
+
+
+def _verdict_reasons(doc: dict) -> str:
+    """Why the verdict is not PASS (report.json ``verdict_reasons``), under the verdict."""
+    reasons = doc.get("verdict_reasons") or []
+    if doc.get("verdict") == "PASS" or not reasons:
+        return ""
+    return ('<ul id="verdict-reasons">' + "".join(f"<li>{html.escape(r)}</li>" for r in reasons) + "</ul>")
 
 
 def _alerts(doc: dict) -> str:
@@ -199,6 +215,10 @@ def _alerts(doc: dict) -> str:
     if sn and not sn.get("complete", True):
         out.append(f'<div class="alert" id="snooping-alert">Blunder test stopped before the end: '
                    f'{html.escape(str(sn.get("stopped")))}</div>')
+    if sn.get("diverged"):
+        said = "; ".join(sn["diverged"] + sn.get("handed_over", []))
+        out.append('<div class="warn" id="snooping-diverged">Data-snooping rounds whose Gauss-Newton diverged '
+                   f"(stopped, handed to pycolmap): {html.escape(said)}</div>")
     if sn.get("suspect_targets"):
         out.append(f'<div class="warn">Targets whose observations the blunder test could not verify (lost half of their rays, or kept two or fewer after a rejection; inconclusive): '
                    f'{html.escape(", ".join(sn["suspect_targets"]))}</div>')
@@ -218,6 +238,17 @@ def _alerts(doc: dict) -> str:
         more = len(lo.get("targets") or []) > 6 or len(lo.get("images") or []) > 6
         out.append('<div class="warn" id="left-out">Left out of the adjustment (bundle.json screening): '
                    + html.escape("; ".join(what)) + ("; ..." if more else "") + "</div>")
+    dr = doc.get("identification_dropped") or {}
+    unusual = {k: v for k, v in (dr.get("by_reason") or {}).items() if k != "partly hidden (CAD)"}
+    if unusual:
+        out.append('<div class="warn" id="identification-dropped">Named dots left unnamed by MEASURE rather than '
+                   "misnamed: " + html.escape(", ".join(f"{v} {k}" for k, v in unusual.items()))
+                   + " (by image below)</div>")
+    kept = lo.get("start_pose_kept") or []
+    if kept:
+        listed = "; ".join(f"{d['image']}: {d['reason']}" for d in kept[:6]) + ("; ..." if len(kept) > 6 else "")
+        out.append('<div class="warn" id="start-pose-kept">Images adjusted from their start pose, not from their '
+                   f"resection with the common interior orientation: {html.escape(listed)}</div>")
     for n in al.get("notes", []):
         out.append(f'<div class="warn">Alignment: {html.escape(n)}</div>')
     return "".join(out)
@@ -240,6 +271,14 @@ def _alignment_facts(doc: dict) -> dict:
     return out
 
 
+def _measure_facts(doc: dict) -> dict:
+    dr = doc.get("identification_dropped")
+    if dr is None:
+        return {}
+    return {"Named dots left unnamed (MEASURE)": f"{dr.get('n_dropped', 0)}" + (": " + ", ".join(
+        f"{v} {k}" for k, v in dr["by_reason"].items()) if dr.get("by_reason") else "")}
+
+
 def _rejected_table(doc: dict) -> str:
     rej = doc.get("rejected_observations") or []
     if not rej:
@@ -249,6 +288,24 @@ def _rejected_table(doc: dict) -> str:
                    f"<td>{_num((r.get('residual_px') or [None, None])[1], 1, 2)}</td></tr>" for r in rej)
     return (f"<h3>Observations rejected by the bundle adjustment ({len(rej)})</h3><table id=rejected><tr><th>image</th>"
             f"<th>target</th><th>residual u [px]</th><th>residual v [px]</th></tr>{rows}</table>")
+
+
+def _dropped_table(doc: dict) -> str:
+    """MEASURE's drops per image (report.json ``identification_dropped``): how many named dots each check left
+    unnamed in each image."""
+    dr = doc.get("identification_dropped") or {}
+    ims = dr.get("images") or []
+    if not ims:
+        return ""
+    kinds = list(dr.get("by_reason") or {})
+    head = "".join(f"<th>{html.escape(k)}</th>" for k in kinds)
+    rows = "".join(f"<tr><td class=l>{html.escape(str(r['image']))}</td>"
+                   f"<td class=l>{html.escape(str(r.get('station')))}</td><td>{r['n_dropped']}</td>"
+                   + "".join(f"<td>{r['by_reason'].get(k, 0)}</td>" for k in kinds) + "</tr>" for r in ims)
+    total = "".join(f"<td><b>{dr['by_reason'][k]}</b></td>" for k in kinds)
+    return (f"<h3>Named dots left unnamed by MEASURE ({dr.get('n_dropped', 0)})</h3><table id=dropped><tr>"
+            f"<th>image</th><th>station</th><th>dropped</th>{head}</tr>{rows}<tr><td class=l><b>all</b></td><td></td>"
+            f"<td><b>{dr.get('n_dropped', 0)}</b></td>{total}</tr></table>")
 
 
 def _closed_loop_html(doc: dict) -> str:
@@ -312,7 +369,7 @@ def render_html(doc: dict, figures: dict[str, str], interactive: str = "") -> st
         "Seed": j["seed"], "Started": j["started"],
         "Finished": j["finished"], "Images": doc["images"], "sigma0 [px]": f"{doc['sigma0_px']:.3f}",
         "Datum": doc.get("datum", ""), "Cell calibration": doc.get("cell_calibration", {}).get("status", "unknown"),
-        **_alignment_facts(doc),
+        **_alignment_facts(doc), **_measure_facts(doc),
         "Versions": ", ".join(f"{k} {v}" for k, v in j["versions"].items()),
     }
     kv = "".join(f"<tr><td><b>{html.escape(k)}</b></td><td>{html.escape(str(v))}</td></tr>" for k, v in facts.items())
@@ -321,10 +378,10 @@ def render_html(doc: dict, figures: dict[str, str], interactive: str = "") -> st
 <style>{_CSS}</style></head><body>
 <h1>Inspection report: {html.escape(j['name'])}</h1>
 <div class="verdict {verdict}" id="verdict">{verdict}: {len(doc['targets']) - n_fail} of {len(doc['targets'])} targets within tolerance{_inconclusive(doc)}</div>
-{_alerts(doc)}
+{_verdict_reasons(doc)}{_alerts(doc)}
 <h2>Job</h2><table class="kv">{kv}</table>
 <h2>Figures</h2><div class="figs">{figs}</div>
-{_rejected_table(doc)}
+{_rejected_table(doc)}{_dropped_table(doc)}
 <h2>Targets</h2>
 <table id="targets"><tr><th>id</th><th>x [mm]</th><th>y [mm]</th><th>z [mm]</th><th>dx [um]</th><th>dy [um]</th>
 <th>dz [um]</th><th>|d| [um]</th><th>tol [um]</th><th>U (k=2) [um]</th><th>sigma [um]</th><th>predicted [um]</th><th>images</th><th></th></tr>

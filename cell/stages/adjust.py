@@ -11,11 +11,11 @@ from calibration.bundle import BundleConfig, BundleOptions, ScaleBar, bundle_adj
 from calibration.bundle.coherent import coherent_background_cov, scale_bar_gains
 from calibration.camera import Intrinsics
 from calibration.detector_model import load_model, observation_covariances, observation_sigmas
-from calibration.errors import CalibrationError
+from calibration.errors import CalibrationError, ScaleNotEstablishedError
 from calibration.plausibility import check_adjustment
 from calibration.weights import INCIDENCE_EDGES_DEG, group_labels, incidence_angles, incidence_groups, mean_variance
 from cell.record.jobfolder import atomic_write_bytes, atomic_write_json
-from cell.stages.screen import Screening, resect, screen_network
+from cell.stages.screen import Resection, Screening, resect, screen_network
 
 
 def observation_arrays(job, obs_doc: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -29,20 +29,33 @@ def observation_arrays(job, obs_doc: dict) -> tuple[np.ndarray, np.ndarray, np.n
     return np.asarray(img, dtype=int), np.asarray(tgt, dtype=int), np.asarray(uv, dtype=float).reshape(-1, 2)
 
 
-def background_bounds(obs_doc: dict) -> np.ndarray | None:
+def background_bounds(obs_doc: dict) -> tuple[np.ndarray, np.ndarray]:
     """The detector's bound on each observation's error from a background that is not a plane, ``(q, 2, 2)``
-    px^2 in the order of :func:`observation_arrays`; None when observations.json has none (measured before)."""
-    if not obs_doc["images"] or any(o.get("bg_cov_px2") is None for o in obs_doc["images"]):
-        return None
-    return np.concatenate([np.asarray(o["bg_cov_px2"], dtype=float).reshape(-1, 2, 2) for o in obs_doc["images"]])
+    px^2 in the order of :func:`observation_arrays`, and ``(q,)`` bool whether it has one.
+
+    Image by image: an image measured before the detector gave bounds (no ``bg_cov_px2``: a job folder of an
+    older version, or a closed loop that kept such images) has none; its observations keep the detector model's
+    plain sigma (said by the caller), the others keep their bounds (decision 0030: one old image used to switch
+    the bounds off for every observation)."""
+    B, has = [], []
+    for o in obs_doc["images"]:
+        k = len(o["ids"])
+        b = o.get("bg_cov_px2")
+        arr = np.asarray(b, dtype=float).reshape(-1, 2, 2) if b is not None else None
+        ok = arr is not None and len(arr) == k and bool(np.all(np.isfinite(arr)))
+        B.append(arr if ok else np.zeros((k, 2, 2)))
+        has.append(np.full(k, ok))
+    if not B:
+        return np.zeros((0, 2, 2)), np.zeros(0, dtype=bool)
+    return np.concatenate(B), np.concatenate(has)
 
 
-def clipped_shares(obs_doc: dict) -> np.ndarray | None:
+def clipped_shares(obs_doc: dict) -> np.ndarray:
     """The share of each observed dot's pixels the sensor clipped, ``(q,)`` in the order of
-    :func:`observation_arrays`; None when observations.json has none (measured before the detector counted them)."""
-    if not obs_doc["images"] or any(o.get("clipped_share") is None for o in obs_doc["images"]):
-        return None
-    return np.concatenate([np.asarray(o["clipped_share"], dtype=float).reshape(-1) for o in obs_doc["images"]])
+    :func:`observation_arrays`; zero for the dots of an image measured before the detector counted them."""
+    return np.concatenate([np.zeros(len(o["ids"])) if o.get("clipped_share") is None else
+                           np.asarray(o["clipped_share"], dtype=float).reshape(-1) for o in obs_doc["images"]]
+                          + [np.zeros(0)])
 
 
 def initial_intrinsics(job, cal_doc: dict) -> Intrinsics:
@@ -103,6 +116,7 @@ def _adjust(ctx, scr: Screening, obs: dict, obs_image, obs_target, obs_uv, poses
     targets = job.part.targets
     groups = None
     obs_sigma = model_sigma = None
+    bg_missing: list[str] = []
     weights = job.spec.camera.observation_weights
     if weights == "incidence":  # from the Faugeras-Toscani poses: degrees suffice
         angles = incidence_angles(targets.xyz, targets.normals, poses0, img, tgt)
@@ -116,12 +130,12 @@ def _adjust(ctx, scr: Screening, obs: dict, obs_image, obs_target, obs_uv, poses
         obs_sigma = np.maximum(obs_sigma, 1e-4)
         # a dot next to an edge or a step of the shading: the detector's background bound, its measured share
         # (docs/decisions/0023, truth); the covariance is then 2x2 per observation
-        bg = background_bounds(obs)
+        bg, has_bg = background_bounds(obs)
         # a dot the sensor clipped: the model's saturation term for the clipped share of its pixels (decision 0029)
         clip = clipped_shares(obs)
-        if (bg is not None and np.any(bg[sel])) or (clip is not None and np.any(clip[sel] > 0)):
-            model_sigma, obs_sigma = obs_sigma, observation_covariances(
-                obs_sigma, None if bg is None else bg[sel], clipped_share=None if clip is None else clip[sel])
+        if np.any(bg[sel]) or np.any(clip[sel] > 0):
+            model_sigma, obs_sigma = obs_sigma, observation_covariances(obs_sigma, bg[sel], clipped_share=clip[sel])
+        bg_missing = sorted({obs["images"][int(i)]["image"] for i in obs_image[sel & ~has_bg]})
     res = bundle_adjust(img, tgt, uv, intr0, poses0, targets.xyz, options, config, obs_sigma_px=obs_sigma,
                         obs_group=groups)
     if model_sigma is not None:
@@ -130,7 +144,7 @@ def _adjust(ctx, scr: Screening, obs: dict, obs_image, obs_target, obs_uv, poses
         used = ~res.rejected
         factor = res.sigma0_px**2 / mean_variance(res.obs_sigma_px[used])
         res.sigma0_px = float(np.sqrt(factor * np.mean(model_sigma[used] ** 2)))
-    return res, (kept_images, sel, img, tgt, uv, groups, model_sigma)
+    return res, (kept_images, sel, img, tgt, uv, groups, model_sigma, bg_missing)
 
 
 def _add_coherent_background(res, obs: dict, sel, img, tgt, ids: list[str], bars=(), K=None) -> dict:
@@ -138,10 +152,7 @@ def _add_coherent_background(res, obs: dict, sel, img, tgt, ids: list[str], bars
     bars' ends' shares do to every target through the scale (``K``: :func:`scale_bar_gains`); what was added."""
     bar_terms: list[dict] = []
     used = ~res.rejected
-    bg = background_bounds(obs)
-    if bg is None:
-        return {"share": 1.0, "c_background": None, "n_targets": 0, "sigma_growth_median": 1.0, "largest": []}
-    bg = bg[sel]
+    bg = background_bounds(obs)[0][sel]  # zero where an image has none: nothing shared to add there
     c = load_model().c_background
     extra = coherent_background_cov(res.intrinsics, res.cam_from_part, res.points, img[used], tgt[used],
                                     res.obs_sigma_px[used], bg[used], c)
@@ -200,18 +211,28 @@ def run_bundle(ctx) -> dict:
     # poses that go with the common interior orientation: the screening's rays and the adjustment start from them
     # (Faugeras-Toscani's per-image poses, paired with the common interior orientation, are pixels off: on a thin
     # network with glare the adjustment started from them diverged, 100 targets behind a camera)
-    poses_screen = resect(intr0, poses_all, obs_image, job.part.targets.xyz[obs_target], obs_uv)
+    rs = resect(intr0, poses_all, obs_image, job.part.targets.xyz[obs_target], obs_uv)
+    poses_screen = rs.poses
     scale_pair = tuple(job.scale_bar[:2]) if job.scale_bar is not None else None
     drop_t: dict[int, str] = {}
+    scale_lost: str | None = None  # data snooping took a scale-bar end below two rays: a free network from then on
     t0 = time.perf_counter()
     for attempt in range(MAX_RETRIES + 1):
         scr = screen_network(obs_image, obs_target, obs_uv, intr0, poses_screen, len(ids), scale_pair=scale_pair,
-                             drop_targets=drop_t, ids=ids)
+                             drop_targets=drop_t, drop_images=rs.left_out, ids=ids)
+        if scale_lost is not None and scr.scale_ok:
+            scr.scale_ok, scr.scale_reason = False, scale_lost
         if scr.keep_images.sum() < 2:
             raise CalibrationError(f"bundle: {int(scr.keep_images.sum())} of {len(poses_all)} images usable "
                                    "(see the screening reasons in the log); nothing to adjust")
         try:
             res, sub = _adjust(ctx, scr, obs, obs_image, obs_target, obs_uv, poses_screen, intr0)
+        except ScaleNotEstablishedError as exc:
+            if attempt == MAX_RETRIES:
+                raise
+            scale_lost = _scale_lost_reason(exc, scr, obs, obs_image, ids, scale_pair)
+            ctx.log.log("warning", f"adjustment: scale not established: {scale_lost}; adjusting a free network")
+            continue
         except CalibrationError as exc:
             bad = getattr(exc, "targets", None)
             if bad is None or attempt == MAX_RETRIES:
@@ -243,7 +264,7 @@ def run_bundle(ctx) -> dict:
     if np.any(np.isfinite(var).all(axis=1) & (var <= 0).any(axis=1)):  # a singular network, not a measurement
         raise CalibrationError("bundle: the network is not determined (a target's variance is not positive): its "
                                "images are too weakly linked; see the screening in the log")
-    kept_images, sel, img, tgt, uv, groups, model_sigma = sub
+    kept_images, sel, img, tgt, uv, groups, model_sigma, bg_missing = sub
     bars = bundle_config(job, scale=scr.scale_ok).scale_bars
     K, K_sigma = scale_bar_gains(res.covariance, res.points, bars) if bars else (np.zeros((len(ids), 3, 0)), np.zeros(0))
     coherent = _add_coherent_background(res, obs, sel, img, tgt, ids, bars, K) if model_sigma is not None else None
@@ -260,7 +281,7 @@ def run_bundle(ctx) -> dict:
     return {
         "datum": res.datum,
         "sigma0_px": res.sigma0_px,
-        "observation_weights": _weights_doc(job, res, groups, model_sigma) | _flag_counts(obs, sel, res.rejected),
+        "observation_weights": _weights_doc(job, res, groups, model_sigma, bg_missing) | _flag_counts(obs, sel, res.rejected),
         "dof": res.dof,
         "converged": res.converged,
         "summary": res.summary,
@@ -270,7 +291,7 @@ def run_bundle(ctx) -> dict:
         "n_observations": int(len(uv)),
         "n_rejected": int(res.rejected.sum()),
         "rejected": rejected,
-        "screening": screening_doc(scr, obs, obs_image, obs_target, ids, attempt),
+        "screening": screening_doc(scr, obs, obs_image, obs_target, ids, attempt, rs),
         "coherent_background": coherent,
         "snooping": res.snooping | {"suspect_targets": [ids[int(t)] for t in sorted(set(
                                         int(t) for t in res.snooping["suspect_targets"]) | suspect)],
@@ -297,11 +318,30 @@ def _screened_suspects(scr: Screening, obs_target, used_target, n: int) -> set[i
     return {int(t) for t in np.flatnonzero((lost > 0) & (kept <= 2) & (kept > 0))}
 
 
-def screening_doc(scr: Screening, obs: dict, obs_image, obs_target, ids: list[str], retries: int) -> dict:
-    """bundle.json's ``screening``: every observation, target and image the adjustment did not use, and why;
-    whether the scale was established."""
+def _scale_lost_reason(exc, scr: Screening, obs: dict, obs_image, ids: list[str], scale_pair) -> str:
+    """``screening.scale`` when data snooping took a scale-bar end below two rays: the bar, each end and the images
+    whose observations of it were rejected (``exc``: :class:`ScaleNotEstablishedError` of the adjusted subset)."""
+    sel = np.flatnonzero(scr.keep_obs & scr.keep_images[obs_image])
     ims = obs["images"]
+    bar = "-".join(ids[int(t)] for t in scale_pair) if scale_pair is not None else "?"
+    rej = [ims[int(obs_image[sel[q]])]["image"] for q in exc.rejected if q < len(sel)]
+    return (f"scale bar {bar}: " + ", ".join(f"{ids[int(t)]} usable in {k} image(s)" for t, k in exc.ends.items())
+            + " (2 needed)" + (f" after data snooping rejected its observation(s) in {', '.join(rej)}" if rej else ""))
+
+
+def screening_doc(scr: Screening, obs: dict, obs_image, obs_target, ids: list[str], retries: int,
+                  rs: Resection | None = None) -> dict:
+    """bundle.json's ``screening``: every observation, target and image the adjustment did not use, and why;
+    whether the scale was established; ``resection``: how many images took their resection with the common
+    interior orientation and which kept their start pose, and why (an image a resection left out is in
+    ``dropped_images``)."""
+    ims = obs["images"]
+    res_doc = None if rs is None else {
+        "resected": rs.resected,
+        "start_kept": [{"image": ims[i]["image"], "station": ims[i]["station"], "reason": why}
+                       for i, why in sorted(rs.kept_start.items())]}
     return {
+        "resection": res_doc,
         "dropped_observations": [{"image": ims[int(obs_image[q])]["image"], "target": ids[int(obs_target[q])],
                                   "reason": why} for q, why in sorted(scr.obs.items())],
         "dropped_targets": [{"id": ids[t], "reason": why} for t, why in sorted(scr.targets.items())],
@@ -314,21 +354,17 @@ def screening_doc(scr: Screening, obs: dict, obs_image, obs_target, ids: list[st
 
 
 def _flag_counts(obs: dict, sel, rejected) -> dict:
-    """Observations the adjustment used that carry a background bound, and clipped ones (decisions 0023, 0029)."""
+    """Observations the adjustment used that are of clipped dots (decision 0029)."""
     used = ~np.asarray(rejected, dtype=bool)
-    bg, clip = background_bounds(obs), clipped_shares(obs)
-    out = {}
-    if bg is not None:
-        out["observations_with_background_bound"] = int(np.count_nonzero(np.abs(bg[sel][used]).max(axis=(1, 2)) > 0))
-    out["observations_clipped"] = None if clip is None else int(np.count_nonzero(clip[sel][used] > 0))
-    return out
+    return {"observations_clipped": int(np.count_nonzero(clipped_shares(obs)[sel][used] > 0))}
 
 
-def _weights_doc(job, res, groups, model_sigma=None) -> dict:
+def _weights_doc(job, res, groups, model_sigma=None, bg_missing=()) -> dict:
     """The a priori image sigmas the adjustment used: one per incidence class (estimated) or one for all.
 
     ``model_sigma: (q,)`` the detector model's sigmas when the bundle took 2x2 covariances (model plus the
-    detector's background bounds): the figures and the variance factor refer to them."""
+    detector's background bounds): the figures and the variance factor refer to them; ``bg_missing``: the images
+    whose observations had no bound (measured before the detector gave them): plain model sigmas."""
     vc = res.variance_components
     if job.spec.camera.observation_weights == "model":
         s = res.obs_sigma_px if model_sigma is None else model_sigma
@@ -339,6 +375,7 @@ def _weights_doc(job, res, groups, model_sigma=None) -> dict:
             n_bg = int(np.count_nonzero(np.abs(C - model_sigma[:, None, None] ** 2 * np.eye(2)).max(axis=(1, 2)) > 0))
         return {"method": "model", "detector_model": load_model().to_dict(),
                 "observations_with_background_bound": n_bg,
+                "images_without_background_bound": list(bg_missing),
                 "a_priori_sigma_px": {"median": float(np.median(used)), "p90": float(np.quantile(used, 0.9)),
                                       "max": float(np.max(used))},
                 "variance_factor": float((res.sigma0_px / np.sqrt(np.mean(used**2))) ** 2)}
@@ -371,6 +408,11 @@ def run(ctx) -> None:
         ctx.log.log("warning", msg)
         ctx.say(f"  WARNING {msg}")
     sn = doc["snooping"]
+    for d in sn.get("diverged", []):  # a data-snooping round whose Gauss-Newton left the optimum: stopped, said
+        settled = next((h for h in sn.get("handed_over", []) if h.split(":")[0] == d.split(":")[0]), None)
+        msg = f"data snooping {d}; " + (settled.split(": ", 1)[1] if settled else "not settled (see below)")
+        ctx.log.log("warning", msg)
+        ctx.say(f"  WARNING {msg}")
     if not sn["complete"]:
         ctx.log.log("warning", f"data snooping stopped early: {sn['stopped']}")
         ctx.say(f"  WARNING data snooping stopped early: {sn['stopped']}")
@@ -386,6 +428,13 @@ def run(ctx) -> None:
                 f"{w['observations_with_background_bound']} observation(s) next to an edge (background bound)"
                 + (f", {w['observations_clipped']} of clipped dots (saturation term)" if w.get("observations_clipped")
                    else ""))
+        if w.get("images_without_background_bound"):
+            miss = w["images_without_background_bound"]
+            msg = (f"{len(miss)} image(s) measured without the detector's background bounds ("
+                   + ", ".join(miss[:6]) + (" ..." if len(miss) > 6 else "") + "): their observations keep the "
+                   "detector model's plain sigma (a dot next to an edge there is not down-weighted)")
+            ctx.log.log("warning", msg)
+            ctx.say(f"  WARNING {msg}")
     w = doc["observation_weights"]
     if w.get("observations_clipped") and w["observations_clipped"] > 0.2 * (doc["n_observations"] - doc["n_rejected"]):
         msg = (f"{w['observations_clipped']} of {doc['n_observations'] - doc['n_rejected']} observations are of dots the "
@@ -415,6 +464,13 @@ def say_screening(ctx, sc: dict) -> None:
     ctx.folder.append("adjustment_screening", dropped_observations=len(sc["dropped_observations"]),
                       dropped_targets=sc["dropped_targets"], dropped_images=sc["dropped_images"],
                       scale_established=sc["scale_established"], scale=sc["scale"])
+    kept = (sc.get("resection") or {}).get("start_kept") or []
+    if kept:
+        msg = (f"{len(kept)} image(s) keep their start pose, not their resection with the common interior "
+               "orientation (" + ", ".join(f"{d['image']}: {d['reason']}" for d in kept[:3])
+               + (" ..." if len(kept) > 3 else "") + "; bundle.json screening.resection)")
+        ctx.log.log("warning", msg)
+        ctx.say(f"  {msg}")
     parts = []
     if sc["dropped_observations"]:
         parts.append(f"{len(sc['dropped_observations'])} gross observation(s)")

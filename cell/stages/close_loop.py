@@ -60,6 +60,16 @@ def _short(sigma: np.ndarray, rays: np.ndarray, required: np.ndarray, min_rays: 
     return judged & ~((sigma <= required) & (rays >= min_rays))
 
 
+def _scale_ends(job, bundle: dict) -> np.ndarray:
+    """(n,) bool: the scale bar's two ends while the last adjustment could not establish the scale (bundle.json
+    ``screening.scale_established`` false: an end without two usable rays, or data snooping took them below two).
+    They are short whatever their sigma: the round plans fresh rays for them (decision 0030)."""
+    out = np.zeros(len(job.part.targets.ids), dtype=bool)
+    if job.scale_bar is not None and (bundle.get("screening") or {}).get("scale_established") is False:
+        out[list(job.scale_bar[:2])] = True
+    return out
+
+
 def _judged(job) -> np.ndarray:
     return np.asarray(job.part.targets.kind) != "coded"
 
@@ -177,7 +187,9 @@ def _plan_round(ctx, rnd: int, bundle: dict, required: np.ndarray, exclude: set[
     opts = planner_options(job)
     n = len(job.part.targets.ids)
     cov, sigma, rays = _achieved(bundle, n)
-    short = _short(sigma, rays, required, p.min_rays, _judged(job))
+    ends = _scale_ends(job, bundle)
+    short = _short(sigma, rays, required, p.min_rays, _judged(job)) | ends
+    rays = np.where(ends, 0, rays)  # the scale bar's ends get min_rays fresh rays, as if unmeasured
     db, reach, robot = load_databases(job, opts, default_cache_dir(), lambda s, f: None)
     intr = Intrinsics.from_dict(bundle["intrinsics"]) if bundle.get("intrinsics") else job.intrinsics
     sigma_px = float(bundle.get("sigma0_px") or job.spec.camera.sigma_px)
@@ -200,6 +212,7 @@ def _plan_round(ctx, rnd: int, bundle: dict, required: np.ndarray, exclude: set[
     for i in exclude:
         valid[i] = False
     N6, measured = information_from_covariance(cov[cols])
+    measured &= ~ends[cols]
     info = np.zeros((len(valid), len(cols), 6), dtype=np.float32)
     vi = np.flatnonzero(valid)
     if vi.size:
@@ -277,7 +290,7 @@ def run(ctx) -> None:
             done_rounds = sum(1 for r in doc["rounds"] if r.get("status") == "done")
             bundle = ctx.folder.read_json("bundle.json")
             _, sigma, rays = _achieved(bundle, n)
-            short = _short(sigma, rays, required, p.min_rays, _judged(job))
+            short = _short(sigma, rays, required, p.min_rays, _judged(job)) | _scale_ends(job, bundle)
             if not short.any() or done_rounds >= p.closed_loop_rounds:
                 break
             t0 = time.perf_counter()
@@ -321,7 +334,7 @@ def run(ctx) -> None:
         adjust_run(ctx)
         bundle = ctx.folder.read_json("bundle.json")
         _, sigma, rays = _achieved(bundle, n)
-        now_short = _short(sigma, rays, required, p.min_rays, _judged(job))
+        now_short = _short(sigma, rays, required, p.min_rays, _judged(job)) | _scale_ends(job, bundle)
         where = {tid: k for k, tid in enumerate(ids)}
         fixed = [t for t in pending["targets_short"] if not now_short[where[t]]]
         pending.update(status="done", targets_fixed=fixed,
@@ -332,7 +345,8 @@ def run(ctx) -> None:
     # what still misses, and why
     bundle = ctx.folder.read_json("bundle.json")
     _, sigma, rays = _achieved(bundle, n)
-    short = _short(sigma, rays, required, p.min_rays, _judged(job))
+    ends = _scale_ends(job, bundle)
+    short = _short(sigma, rays, required, p.min_rays, _judged(job)) | ends
     proofs: dict[str, float | None] = {}
     rule: dict[str, str] = {}
     for r in doc["rounds"]:
@@ -342,7 +356,9 @@ def run(ctx) -> None:
     for t in np.flatnonzero(short):
         tid = ids[int(t)]
         s_um = "not measured" if not np.isfinite(sigma[t]) else f"sigma {sigma[t] * 1e6:.1f} um"
-        if tid in proofs:
+        if ends[t] and not _short(sigma[t:t + 1], rays[t:t + 1], required[t:t + 1], p.min_rays, np.ones(1, bool))[0]:
+            reason = f"scale not established: {bundle['screening'].get('scale')}"
+        elif tid in proofs:
             b = proofs[tid]
             reason = ((f"no candidate station can measure it ({s_um}; candidates: {rule[tid]})") if b is None else
                       f"no reachable station can: with every reachable candidate added the best possible sigma is "

@@ -17,6 +17,7 @@ import cv2
 import numpy as np
 
 from calibration.camera import Intrinsics, invert, project
+from calibration.dots import MIN_RING_PX
 from calibration.ringcodes import RING_FAMILIES, decode_ring_codes
 from calibration.errors import CalibrationError
 from calibration.targets import (DetectionOptions, detect_coded_targets, detect_dots, eccentricity_bias,
@@ -119,13 +120,16 @@ def name_dots(det_uv: np.ndarray, part, intr: Intrinsics, cam_from_part: np.ndar
               max_dist_px: float = 25.0, incidence_max_rad: float = float(np.deg2rad(85.0)),
               coded_ids: np.ndarray | None = None, coded_uv: np.ndarray | None = None,
               det_cov: np.ndarray | None = None, det_bg_cov: np.ndarray | None = None,
-              det_axes: np.ndarray | None = None, det_clipped: np.ndarray | None = None) -> DotMeasurement:
+              det_axes: np.ndarray | None = None, det_ring_px: np.ndarray | None = None,
+              det_clipped: np.ndarray | None = None) -> DotMeasurement:
     """Identify detected dot centres ``det_uv: (k, 2)`` with an approximate pose and measure them.
 
     ``det_cov, det_bg_cov: (k, 2, 2)`` (px^2) travel with the centres they belong to. ``det_axes: (k, 2, 2)``
     (px^2, ``Detections.axes``): each named dot's shape is checked against its target's ellipse
     (:data:`SHAPE_MIN`, :data:`SHAPE_MAX`) and dropped with the reason when it is not that ellipse; None: no
-    shape check.
+    shape check. ``det_ring_px: (k,)`` (``Detections.ring_px``): a named dot whose background ring had fewer than
+    :data:`calibration.dots.MIN_RING_PX` pixels is dropped with the reason: its centre's error from the background
+    cannot be bounded (its zero bound would say "a plane" without having looked; decision 0030).
 
     Only dots in view from the pose at no more than ``incidence_max_rad`` are offered to the matcher;
     coded detections (``coded_ids``, ``coded_uv``) refine the pose first (PnP) when there are enough.
@@ -153,6 +157,13 @@ def name_dots(det_uv: np.ndarray, part, intr: Intrinsics, cam_from_part: np.ndar
         ok = (lo >= SHAPE_MIN) & (hi <= SHAPE_MAX)
         dropped += [(int(i), f"shape {a:.2f}..{b:.2f} of its ellipse's (clipped, washed out or merged; "
                              f"{SHAPE_MIN}..{SHAPE_MAX} accepted)") for i, a, b in zip(tid[~ok], lo[~ok], hi[~ok])]
+        dots = dots[ok]
+    if det_ring_px is not None and len(dots):
+        n_ring = np.asarray(det_ring_px)[dots]
+        ok = n_ring >= MIN_RING_PX
+        dropped += [(int(i), f"background not measurable: its ring has {int(n)} px (< {MIN_RING_PX}), so its "
+                             "centre's error from the background cannot be bounded")
+                    for i, n in zip(match[dots[~ok]], n_ring[~ok])]
         dots = dots[ok]
     tid = match[dots]
     bias = eccentricity_bias(intr, cam_from_part, t.xyz[tid], t.normals[tid], radius)
@@ -212,5 +223,6 @@ def measure_image(image: np.ndarray, part, intr: Intrinsics, cam_from_part_appro
                   incidence_max_rad=incidence_max_rad, coded_ids=codes[known], coded_uv=centres[known],
                   det_cov=det.cov[keep], det_bg_cov=None if det.background_cov is None else det.background_cov[keep],
                   det_axes=det.axes[keep] if shape_check else None,
+                  det_ring_px=None if det.ring_px is None else det.ring_px[keep],
                   det_clipped=None if det.saturated is None else (det.saturated / np.maximum(det.area_px, 1.0))[keep])
     return m, {"n_dots": int(keep.sum()), "n_coded": int(known.sum())}

@@ -5,7 +5,8 @@ each centre's covariance from the detector, px^2, ``calibration.dots.Detections.
 the detector's bound on each centre's error from a background that is not a plane, px^2,
 ``Detections.background_cov``; ADJUST adds its share to the image precision), counts,
 ``dropped``: list of {``id``, ``reason``} (dots that were named and then left unnamed: partly hidden,
-shape unlike the target's ellipse, the image's naming inconsistent), ``resection_median_px``};
+shape unlike the target's ellipse, the image's naming inconsistent, a background ring too small to bound the
+centre's error), ``resection_median_px``};
 ``n_dropped`` (all images) and ``dropped_by_reason`` at the top level.
 """
 from __future__ import annotations
@@ -79,7 +80,8 @@ def run(ctx, keep: bool = False) -> None:
 def dropped_by_reason(images: list[dict]) -> dict[str, int]:
     """How many named dots each check left unnamed, over ``images`` (observations.json's records)."""
     kinds = {"partly hidden": "partly hidden (CAD)", "shape": "shape unlike the target's ellipse",
-             "the image's naming": "in images whose naming is inconsistent"}
+             "the image's naming": "in images whose naming is inconsistent",
+             "background not measurable": "background not measurable (ring < 8 px)"}
     out: dict[str, int] = {}
     for o in images:
         for d in o.get("dropped", []):

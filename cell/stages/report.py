@@ -116,6 +116,48 @@ def conformance(deviation: np.ndarray, deviation_cov: np.ndarray, tol: np.ndarra
     return U, [str(x) if m else None for x, m in zip(decision, ok)]
 
 
+def part_verdict(trusted: bool, ok: np.ndarray, passed: np.ndarray, judged: np.ndarray, decision: list,
+                 suspect: np.ndarray, ids) -> tuple[str, list[str]]:
+    """The part's verdict and why, from each target's measurement (``ok``), ``passed`` (|d| <= tolerance),
+    ``decision`` (ISO 14253-1, per target) and ``suspect`` (observations data snooping could not verify).
+
+    UNTRUSTED (the frame), else FAIL (a target beyond its tolerance), else INCOMPLETE (a target not measured,
+    suspect, or within U of its tolerance: the measurement does not show that the part conforms), else PASS.
+    The verdict set is the one the archive, the console and QIF read (decision 0030): a part with undecided
+    targets is not a new kind of verdict, it is an inspection that did not decide every target.
+    """
+    ok, passed, judged = (np.asarray(a, dtype=bool) for a in (ok, passed, judged))
+    suspect = np.asarray(suspect, dtype=bool) & judged & ok
+    fail = judged & ok & ~passed
+    missing = judged & ~ok
+    near = judged & ok & ~suspect & np.array([d == "inconclusive" for d in decision], dtype=bool)
+
+    def some(mask, what):
+        idx = np.flatnonzero(mask)
+        names = ", ".join(ids[j] for j in idx[:8]) + (" ..." if len(idx) > 8 else "")
+        return f"{len(idx)} target(s) {what}: {names}"
+
+    reasons = []
+    if not trusted:
+        reasons.append("the alignment to CAD is not trusted")
+    if fail.any():
+        reasons.append(some(fail, "beyond tolerance") + (f" ({int((fail & suspect).sum())} of them suspect)"
+                                                          if (fail & suspect).any() else ""))
+    if missing.any():
+        reasons.append(some(missing, "not measured"))
+    if (suspect & ~fail).any():
+        reasons.append(some(suspect & ~fail, "suspect (their observations could not be verified by data snooping)"))
+    if (near & passed).any():
+        reasons.append(some(near & passed, "within U of their tolerance (ISO 14253-1 cannot decide)"))
+    if not trusted:
+        return "UNTRUSTED", reasons
+    if fail.any():
+        return "FAIL", reasons
+    if missing.any() or (suspect | near).any():
+        return "INCOMPLETE", reasons
+    return "PASS", reasons
+
+
 def _predicted_over_achieved(targets: list[dict]) -> dict:
     """Predicted / achieved sigma over the measured targets: median, and the 10 / 90 % quantiles."""
     r = np.array([t["predicted_sigma_m"] / t["achieved_sigma_m"] for t in targets
@@ -147,6 +189,22 @@ def rejected_mask(bundle: dict) -> np.ndarray:
     return mask
 
 
+def identification_drops(obs: dict) -> dict:
+    """report.json's ``identification_dropped``: the named dots MEASURE left unnamed (observations.json
+    ``dropped``): ``n_dropped``, ``by_reason`` and, per image with any, ``image``, ``station``, ``n_dropped``,
+    ``by_reason`` (the reasons' kinds of :func:`cell.stages.measure.dropped_by_reason`)."""
+    from cell.stages.measure import dropped_by_reason
+
+    images = []
+    for o in obs.get("images", []):
+        if o.get("dropped"):
+            by = dropped_by_reason([o])
+            images.append({"image": o["image"], "station": o.get("station"), "n_dropped": sum(by.values()),
+                           "by_reason": by})
+    by_reason = dropped_by_reason(obs.get("images", []))
+    return {"n_dropped": sum(by_reason.values()), "by_reason": by_reason, "images": images}
+
+
 def _closed_loop(f) -> dict | None:
     """report.json's ``closed_loop`` (when the stage ran with it on): each round and what still misses."""
     if not f.file("closed_loop.json").exists():
@@ -162,7 +220,7 @@ def _closed_loop(f) -> dict | None:
             "unmet": [{"id": u["id"], "reason": u["reason"]} for u in cl.get("unmet", [])]}
 
 
-def write_report(ctx) -> str:
+def write_report(ctx) -> tuple[str, list[str]]:
     job = ctx.job
     f = ctx.folder
     bundle = json.loads(f.file("bundle.json").read_text())
@@ -232,19 +290,14 @@ def write_report(ctx) -> str:
         if r["event"] == "stage_done":
             times[r["stage"]] = times.get(r["stage"], 0.0) + r["duration_s"]
     judged = ~coded
-    if not outcome.trusted:
-        verdict = "UNTRUSTED"
-    elif not passed[judged & ok].all():
-        verdict = "FAIL"
-    elif not ok[judged].all():
-        verdict = "INCOMPLETE"
-    else:
-        verdict = "PASS"
+    verdict, verdict_reasons = part_verdict(outcome.trusted, ok, passed, judged, decision,
+                                            np.array([t in suspect for t in ids]), ids)
     doc = {
         "job": {"id": f.job_id, "name": job.spec.job.name, "part": job.part.name, "seed": job.spec.job.seed,
                 "sim_seed": job.spec.sim.seed if ctx.backend == "sim" else None, "backend": ctx.backend,
                 "status": "DONE", "started": started, "finished": utc_now(), "versions": _versions()},
         "verdict": verdict,
+        "verdict_reasons": verdict_reasons,
         **_run_info(f.path),
         "images": len(bundle["images"]),
         "sigma0_px": bundle["sigma0_px"],
@@ -266,10 +319,13 @@ def write_report(ctx) -> str:
         "not_measured": [ids[j] for j in np.flatnonzero(~ok & judged)],
         "decision_rule": DECISION_RULE,
         "inconclusive": [ids[j] for j in np.flatnonzero(judged) if decision[j] == "inconclusive"],
+        "suspect": [ids[j] for j in np.flatnonzero(judged & ok) if ids[j] in suspect],
         "coded_targets": [ids[j] for j in np.flatnonzero(coded)],
         "rejected_observations": bundle.get("rejected", []),
+        "identification_dropped": identification_drops(f.read_json("observations.json")),
         "left_out": {"observations": len(sc.get("dropped_observations", [])),
-                     "targets": sc.get("dropped_targets", []), "images": sc.get("dropped_images", [])},
+                     "targets": sc.get("dropped_targets", []), "images": sc.get("dropped_images", []),
+                     "start_pose_kept": (sc.get("resection") or {}).get("start_kept", [])},
     }
     loop = _closed_loop(f)
     if loop is not None:
@@ -296,10 +352,15 @@ def write_report(ctx) -> str:
     from cell.record.jobfolder import to_jsonable
 
     atomic_write_bytes(f.file("report.html"), R.render_html(to_jsonable(doc), figs, interactive).encode())
-    return verdict
+    return verdict, verdict_reasons
 
 
 def run(ctx) -> None:
     """REPORT: alignment to CAD, deviations, decisions; report.json and report.html."""
-    verdict = write_report(ctx)
+    verdict, reasons = write_report(ctx)
+    if verdict != "PASS" and reasons:
+        msg = f"verdict {verdict}: " + "; ".join(reasons)
+        if verdict in ("INCOMPLETE", "UNTRUSTED"):
+            ctx.log.log("warning", msg)
+        ctx.say(f"  {msg}")
     ctx.say(f"  verdict {verdict}: report {ctx.folder.file('report.html')}")

@@ -5,7 +5,9 @@ A job whose first network was hampered (a fixture the plan did not know, glare, 
 did not take) brings the adjustment images with few trustworthy dots and targets with one ray or two
 nearly parallel ones. Each of those used to fault ADJUST ("a target is behind a camera", "an image has
 fewer than 3 observed targets", a covariance blown up by one 1 m-deep target). Here, from the initial
-orientation (CALIBRATE: Faugeras-Toscani or PnP per image):
+orientation (CALIBRATE: Faugeras-Toscani or PnP per image), re-resected with the common interior orientation
+and each resection checked against its start (:func:`resect`: worse or jumped -> the start kept, or the image
+left out):
 
 - an observation far from the intersection of its target's other rays is a gross error (a misnamed or
   clipped dot MEASURE did not catch): dropped (:data:`GROSS_PX`; leave-one-out, so a real deviation of
@@ -36,6 +38,13 @@ MIN_INTERSECTION_DEG = 2.0
 LINK_TARGETS = 8
 #: an image needs this many usable observations to stay in the adjustment (its pose has 6 parameters)
 MIN_IMAGE_OBS = 5
+#: a resection whose median residual exceeds its start's by this factor (+ 0.01 px) fits worse: the start is kept
+RESECTION_WORSE = 1.05
+#: a resection that moves the camera by more than this share of its distance to the targets, or turns it by more
+#: than this many degrees, has jumped (a focal length 10 % off the common one moves it ~10 %; a principal point
+#: 100 px off turns it ~2.5 deg; the mirror minimum of a flat field turns it by twice its tilt)
+RESECTION_JUMP_FRACTION = 0.25
+RESECTION_JUMP_DEG = 10.0
 
 
 @dataclass
@@ -67,31 +76,93 @@ def _rays(intr: Intrinsics, poses: np.ndarray, obs_image: np.ndarray, uv: np.nda
     return centres, d / np.linalg.norm(d, axis=1, keepdims=True)
 
 
-def resect(intr: Intrinsics, poses: np.ndarray, obs_image: np.ndarray, xyz: np.ndarray, uv: np.ndarray) -> np.ndarray:
+@dataclass
+class Resection:
+    """The poses the screening and the adjustment start from (:func:`resect`), and what was not resected:
+    ``poses: (m, 4, 4)``; ``kept_start`` {image index: reason} (the start pose kept: the resection failed, fits
+    worse, or jumped to another minimum while the start explains the dots); ``left_out`` {image index: reason}
+    (the resection jumped from a start that does not explain the dots: neither pose, nor the naming, is
+    trusted); ``resected``: how many images took their resection."""
+
+    poses: np.ndarray
+    kept_start: dict = field(default_factory=dict)
+    left_out: dict = field(default_factory=dict)
+    resected: int = 0
+
+
+def _median_residual(intr: Intrinsics, T: np.ndarray, xyz: np.ndarray, uv: np.ndarray) -> float:
+    """Median image residual (px) of ``uv: (k, 2)`` against ``xyz: (k, 3)`` seen from ``T``; inf if any is behind."""
+    Xc = xyz @ T[:3, :3].T + T[:3, 3]
+    if np.any(Xc[:, 2] <= 0):
+        return float("inf")
+    r = np.linalg.norm(uv - project(intr, T, xyz), axis=1)
+    return float(np.median(r)) if np.all(np.isfinite(r)) else float("inf")
+
+
+def pose_change(T0: np.ndarray, T1: np.ndarray, xyz: np.ndarray) -> tuple[float, float, float]:
+    """How far ``T1`` is from ``T0`` (both cam_from_part): the camera centre's move (m), the rotation (deg),
+    and the start camera's median depth to ``xyz: (k, 3)`` (m)."""
+    c0 = -T0[:3, :3].T @ T0[:3, 3]
+    c1 = -T1[:3, :3].T @ T1[:3, 3]
+    R = T1[:3, :3] @ T0[:3, :3].T
+    turned = float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0))))
+    depth = float(np.median(xyz @ T0[2, :3] + T0[2, 3]))
+    return float(np.linalg.norm(c1 - c0)), turned, depth
+
+
+def resect(intr: Intrinsics, poses: np.ndarray, obs_image: np.ndarray, xyz: np.ndarray, uv: np.ndarray) -> Resection:
     """Each image's pose with the common interior orientation ``intr``, from its own start ``poses: (m, 4, 4)``.
 
     Faugeras-Toscani orients each image with its own interior orientation: its pose, paired with the common
     one, is off by pixels. A resection (PnP) on the image's named targets ``xyz: (q, 3)`` at ``uv: (q, 2)``,
     twice, the second time without the observations beyond 3 robust sigma (1 px at least) of the first.
-    An image with fewer than 4 observations keeps its start.
+    An image with fewer than 4 observations keeps its start (the screening leaves it out: too few to orient).
+
+    Each resection is checked against its start (median residual of all the image's observations, pose change):
+    one that fits worse (:data:`RESECTION_WORSE`) keeps the start; one that moves the camera by more than
+    :data:`RESECTION_JUMP_FRACTION` of its distance or turns it by more than :data:`RESECTION_JUMP_DEG` keeps the
+    start when the start explains the dots (median <= :data:`GROSS_PX`: the resection fell into another minimum,
+    e.g. the mirror pose of a flat field), and leaves the image out otherwise (its dots were named from a pose
+    near the start; a pose that far from it puts the naming itself in doubt).
     """
     from calibration.targets import refine_pose_pnp
     from calibration.errors import CalibrationError
 
-    out = np.array(poses, dtype=float, copy=True)
+    out = Resection(np.array(poses, dtype=float, copy=True))
     for i in range(len(poses)):
         q = np.flatnonzero(obs_image == i)
         if len(q) < 4:
             continue
+        start = out.poses[i]
+        r0 = _median_residual(intr, start, xyz[q], uv[q])
         try:
-            T = refine_pose_pnp(intr, out[i], xyz[q], uv[q])
+            T = refine_pose_pnp(intr, start, xyz[q], uv[q])
             r = np.linalg.norm(uv[q] - project(intr, T, xyz[q]), axis=1)
             good = r <= max(1.0, 3.0 * 1.4826 * np.median(r))
             if good.sum() >= 6:
                 T = refine_pose_pnp(intr, T, xyz[q[good]], uv[q[good]])
-            out[i] = T
-        except CalibrationError:
+        except CalibrationError as exc:
+            out.kept_start[i] = f"resection failed ({exc}); start pose kept (median residual {r0:.2f} px)"
             continue
+        r1 = _median_residual(intr, T, xyz[q], uv[q])
+        if not r1 <= RESECTION_WORSE * r0 + 0.01:
+            out.kept_start[i] = (f"its resection fits worse than its start (median residual {r1:.2f} px against "
+                                 f"{r0:.2f} px): start pose kept")
+            continue
+        moved, turned, depth = pose_change(start, T, xyz[q])
+        if depth <= 0 or moved > RESECTION_JUMP_FRACTION * depth or turned > RESECTION_JUMP_DEG:
+            share = f"{moved / depth:.0%} of its distance" if depth > 0 else "its start has the targets behind it"
+            what = (f"its resection moved the camera {moved * 1e3:.0f} mm ({share}) and turned it {turned:.1f} deg "
+                    "from its start")
+            if r0 <= GROSS_PX:
+                out.kept_start[i] = (f"{what}, while the start explains its dots (median residual {r0:.2f} px): "
+                                     "another minimum; start pose kept")
+            else:
+                out.left_out[i] = (f"{what} (median residual {r0:.2f} -> {r1:.2f} px): neither the start nor the "
+                                   "resection, nor the naming done from near the start, can be trusted")
+            continue
+        out.poses[i] = T
+        out.resected += 1
     return out
 
 

@@ -23,7 +23,7 @@ Reading (the web console and ``cell archive``), with ``ix = open_index(url)``:
   limit=50, offset=0, newest_first=True) -> list[dict]``: one page of job rows, filters ANDed (equality),
   ``since <= started < until`` (ISO 8601 strings or datetimes). A row: ``id``, ``name``, ``part`` (the
   part's name), ``part_number``, ``serial``, ``cell_id``, ``operator``,
-  ``status`` (the state machine's), ``verdict`` (PASS|FAIL|INCOMPLETE|None), ``started``,
+  ``status`` (the state machine's), ``verdict`` (PASS|FAIL|INCOMPLETE|UNTRUSTED|None), ``started``,
   ``finished`` (ISO 8601 UTC strings), ``targets`` (judged targets), ``failed``, ``sigma0_px``,
   ``origin`` (host:folder root of the cell), ``folder`` (the job folder on that cell),
   ``manifest_sha256``, ``problem`` (what of the folder could not be read, or None), ``indexed_at``.
