@@ -156,7 +156,7 @@ def main(argv=None) -> int:
     ap.add_argument("--no-baseline", action="store_true")
     ap.add_argument("--search-weights", choices=("sigma", "model"), default=None,
                     help="this tree's search weighs each ray by sigma_px or by the detector model (default: as the "
-                         "job: one sigma; decision 0030)")
+                         "job: one sigma; decision 0031)")
     ap.add_argument("--repeat", type=int, default=2)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--timeout", type=float, default=3600.0)

@@ -118,7 +118,7 @@ def one(n_targets: int, n_stations: int, seed: int, blunders: float, baseline: b
     part = Part(job.part.name, job.part.mesh, targets, target_diameter_m=job.part.target_diameter_m)
     job = replace(job, part=part)
     opts = replace(planner_options(job), n_stations=n_stations)
-    if search_weights is not None:  # how the search weighs each ray (default: the job's; docs/decisions/0030)
+    if search_weights is not None:  # how the search weighs each ray (default: the job's; docs/decisions/0031)
         from cell.setup import image_precision
 
         opts = replace(opts, image_precision=image_precision(job) if search_weights == "model" else None)

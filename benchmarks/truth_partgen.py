@@ -33,7 +33,7 @@ from tests.test_truth_partgen import truth_figures  # noqa: E402
 def one(work: Path, seed: int, misplaced: bool, search_weights: str | None = None) -> dict:
     part = make_part_job(work / f"job{seed}", np.random.default_rng(seed),
                          misplacement=(10.0, 5.0) if misplaced else None)
-    if search_weights is not None:  # [planning] search_weights (docs/decisions/0030)
+    if search_weights is not None:  # [planning] search_weights (docs/decisions/0031)
         set_search_weights(part.job, search_weights)
     t0 = time.perf_counter()
     if misplaced:

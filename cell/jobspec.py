@@ -224,7 +224,7 @@ class PlanningSection(_Strict):
     search_weights: Literal["sigma", "model"] | None = Field(
         default=None, description="how the network search weighs each ray: sigma: [camera] sigma_px for every ray; "
                                   "model: the detector model's sigma of that ray (incidence, dot size; needs "
-                                  "[camera] observation_weights = 'model'); default: sigma (docs/decisions/0030 "
+                                  "[camera] observation_weights = 'model'); default: sigma (docs/decisions/0031 "
                                   "says why)")
     closed_loop: bool | None = Field(default=None, description="after ADJUST, add stations for targets that miss their "
                                      "required sigma (default: on when a requirement is set: required_sigma or "

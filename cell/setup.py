@@ -37,7 +37,7 @@ def planner_options(job: LoadedJob) -> PlannerOptions:
         criterion=p.criterion,
         sigma_px=c.sigma_px,
         # [planning] search_weights = "model": the search ranks networks with the detector model's sigma of each ray,
-        # and they must be one block of linked images, no station alone linking a part (docs/decisions/0030: not yet
+        # and they must be one block of linked images, no station alone linking a part (docs/decisions/0031: not yet
         # the default; on the planner's rays the rule also changes one-sigma plans that ADJUST links well); plan.json's
         # predicted covariance is the pre-analysis either way
         image_precision=image_precision(job) if search_weights(job) == "model" else None,
@@ -56,7 +56,7 @@ def planner_options(job: LoadedJob) -> PlannerOptions:
 
 def search_weights(job: LoadedJob) -> str:
     """How the search weighs each ray: ``[planning] search_weights`` (default one sigma, ``[camera] sigma_px``:
-    docs/decisions/0030 says why the model is not yet the default)."""
+    docs/decisions/0031 says why the model is not yet the default)."""
     return job.spec.planning.search_weights or "sigma"
 
 

@@ -431,7 +431,7 @@ def test_lower_bound_lies_below_the_searched_network_and_proves_station_counts(s
 def test_plan_counts_its_weakly_linked_stations_as_adjust_would_see_them(scene, tmp_path):
     """search.exact_unlinked: stations outside the main block of images sharing link_targets targets, or alone
     linking a part of it (planning.kernels.unlinked_stations), recounted here from the plan's own rays
-    (docs/decisions/0030)."""
+    (docs/decisions/0031)."""
     from planning import kernels
 
     part, intr = scene

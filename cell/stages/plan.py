@@ -194,7 +194,7 @@ def run(ctx) -> None:
     ctx.say(f"  {len(p.station_ids)} stations; predicted sigma max {p.predicted_sigma_max_m * 1e6:.1f} um, "
             f"mean {p.predicted_sigma_mean_m * 1e6:.1f} um")
     weak = int(p.search.get("exact_unlinked") or 0)
-    if weak:  # docs/decisions/0030: ADJUST may drop their images, or their block may hang on one image
+    if weak:  # docs/decisions/0031: ADJUST may drop their images, or their block may hang on one image
         msg = (f"plan: {weak} station(s) share fewer than {p.search.get('link_targets')} targets with the rest of the "
                "network, or alone link a "
                "part of it: ADJUST may leave their images out; more stations ([planning] n_stations) or a larger "

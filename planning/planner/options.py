@@ -73,10 +73,10 @@ class PlannerOptions:
         link_targets: two stations are linked when they see this many common targets; a network whose stations
             fall into blocks not linked to each other is infeasible (one violation per station outside the largest
             block): ADJUST's screening would drop those images (cell/stages/screen.py LINK_TARGETS, the same 8).
-            Limiting error propagation holds the orientations fixed and cannot see it (docs/decisions/0030); 0: off
+            Limiting error propagation holds the orientations fixed and cannot see it (docs/decisions/0031); 0: off
             (the default; a job's search weighted by the detector model sets 8, cell.setup.planner_options).
         sole_links: with ``link_targets``, a station that alone links a part of the network to the rest (removing it
-            splits the network) counts as a violation too (the model-ranked search's failure, decision 0030).
+            splits the network) counts as a violation too (the model-ranked search's failure, decision 0031).
         lower_bound: also compute (planning.bound) how good any network could be on the
             database: "fixed" with the "worst" criterion: a lower bound on the worst target's
             sigma for ``n_stations`` (``search["lower_bound_sigma_m"]``); "cheapest": whether
