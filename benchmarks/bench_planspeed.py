@@ -50,9 +50,11 @@ def export_tree(rev: str, dest: Path) -> Path:
     return tree
 
 
-def run_one(tree: Path, n: int, k: int, seed: int, timeout: float) -> dict:
+def run_one(tree: Path, n: int, k: int, seed: int, timeout: float, search_weights: str | None = None) -> dict:
     env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH=str(tree))
     cmd = [sys.executable, "-m", "benchmarks.bench_scale", "--one", str(n), str(k), "--no-adjust", "--seed", str(seed)]
+    if search_weights is not None:
+        cmd += ["--search-weights", search_weights]
     t0 = time.perf_counter()
     try:
         p = subprocess.run(cmd, cwd=tree, env=env, capture_output=True, text=True, timeout=timeout)
@@ -152,6 +154,9 @@ def main(argv=None) -> int:
     ap.add_argument("--configs", nargs="+", default=["1000x29", "5000x64"], help="TARGETSxSTATIONS")
     ap.add_argument("--baseline", default=BASELINE, help="commit to compare with")
     ap.add_argument("--no-baseline", action="store_true")
+    ap.add_argument("--search-weights", choices=("sigma", "model"), default=None,
+                    help="this tree's search weighs each ray by sigma_px or by the detector model (default: as the "
+                         "job: one sigma; decision 0031)")
     ap.add_argument("--repeat", type=int, default=2)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--timeout", type=float, default=3600.0)
@@ -180,7 +185,7 @@ def main(argv=None) -> int:
             load0 = os.getloadavg()
             now, old = [], []
             for _ in range(a.repeat):
-                now.append(run_one(ROOT, n, k, a.seed, a.timeout))
+                now.append(run_one(ROOT, n, k, a.seed, a.timeout, a.search_weights))
                 if base is not None:
                     old.append(run_one(base, n, k, a.seed, a.timeout))
             load1 = os.getloadavg()

@@ -99,7 +99,7 @@ def run_adjust(intr, T, xyz, visible, scale_bar, rng, blunders, batch=True, max_
 
 
 def one(n_targets: int, n_stations: int, seed: int, blunders: float, baseline: bool, skip_adjust: bool,
-        bound: bool = False) -> dict:
+        bound: bool = False, search_weights: str | None = None) -> dict:
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     from cell.loadedjob import load
     from cell.setup import collision_world, planner_options, robot_model
@@ -118,6 +118,11 @@ def one(n_targets: int, n_stations: int, seed: int, blunders: float, baseline: b
     part = Part(job.part.name, job.part.mesh, targets, target_diameter_m=job.part.target_diameter_m)
     job = replace(job, part=part)
     opts = replace(planner_options(job), n_stations=n_stations)
+    if search_weights is not None:  # how the search weighs each ray (default: the job's; docs/decisions/0031)
+        from cell.setup import image_precision
+
+        opts = replace(opts, image_precision=image_precision(job) if search_weights == "model" else None)
+    out["search_weights"] = "sigma" if opts.image_precision is None else "model"
     vis_opts = opts.visibility_options()
     sphere = replace(opts.sphere, max_roll_rad=0.0, max_offset_m=0.0)
     with tempfile.TemporaryDirectory() as cache:
@@ -213,10 +218,13 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--timeout", type=float, default=1800.0)
     ap.add_argument("--json", type=Path)
+    ap.add_argument("--search-weights", choices=("sigma", "model"), default=None,
+                    help="--one: the search weighs each ray by sigma_px or by the detector model (default: as the job)")
     ap.add_argument("--one", type=int, nargs=2, metavar=("TARGETS", "STATIONS"))
     a = ap.parse_args()
     if a.one:
-        r = one(a.one[0], a.one[1], a.seed, a.blunders, a.one[0] <= a.baseline, a.no_adjust, a.bound)
+        r = one(a.one[0], a.one[1], a.seed, a.blunders, a.one[0] <= a.baseline, a.no_adjust, a.bound,
+                a.search_weights)
         print(json.dumps(r, default=float))
         return
     configs = [(1000, 16), (1000, 29), (5000, 29)] if a.quick else [(n, k) for n in a.targets for k in a.stations]

@@ -31,6 +31,7 @@ import json
 import sys
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -123,6 +124,14 @@ def collect_parts(n_views: int, repeats: int, seed: int, plates: int, skins: int
     return rows, [name for name, _ in parts]
 
 
+def measured_ranges(rows: np.ndarray, table: list[dict]) -> dict:
+    """Where the model was measured (planning does not extrapolate beyond it): incidence from 0 to the upper edge
+    of the most oblique populated class, dot diameters from the 1st to the 99th percentile."""
+    inc = max(c["incidence_deg"][1] for c in table)
+    d0, d1 = np.percentile(rows[:, 3], [1, 99])
+    return {"incidence_range_deg": (0.0, float(inc)), "diameter_range_px": (round(float(d0), 1), round(float(d1), 1))}
+
+
 def measure_background(n_views: int, repeats: int, seed: int, plates: int, write: bool) -> int:
     """``c_background`` by maximum likelihood on the example and ``plates`` generated plates."""
     t0 = time.perf_counter()
@@ -181,6 +190,7 @@ def main(argv: list[str] | None = None) -> int:
     cs = ~flagged & clipped
     c_s, k_s = fit_saturation(model, rows[cs, 2], rows[cs, 3], rows[cs, 4:6], rho[cs]) if cs.sum() >= 50 else (0.0, 1.0)
     model = DetectorModel(model.a_px, model.b_px, model.p, model.q, model.version, c_bg, c_s, k_s)
+    model = replace(model, **measured_ranges(clean, table))  # where it was measured (the planner holds it there)
     pred = model.sigma_px(np.radians(clean[:, 2]), clean[:, 3])
     z = clean[:, 4:6] / pred[:, None]
     var = (model.sigma_px(np.radians(rows[:, 2]), rows[:, 3]) ** 2 + model.saturation_var(rho))[:, None] \

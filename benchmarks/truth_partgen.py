@@ -8,6 +8,8 @@ ellipsoid (both also given the scale bar: the simulated bar is exact, its certif
 is never realised; decision 0029), false "significant" flags, deviations beyond tolerance that failed, predicted / achieved sigma,
 and whether the alignment was trusted.
 
+Also per run: what was left out (dots left unnamed, screened, rejected observations, suspect targets).
+
     .venv/bin/python -m benchmarks.truth_partgen [--runs 6] [--first-seed 100] [--misplaced] [--json out.json]
 """
 from __future__ import annotations
@@ -28,9 +30,11 @@ from tests.partgen import make_part_job  # noqa: E402
 from tests.test_truth_partgen import truth_figures  # noqa: E402
 
 
-def one(work: Path, seed: int, misplaced: bool) -> dict:
+def one(work: Path, seed: int, misplaced: bool, search_weights: str | None = None) -> dict:
     part = make_part_job(work / f"job{seed}", np.random.default_rng(seed),
                          misplacement=(10.0, 5.0) if misplaced else None)
+    if search_weights is not None:  # [planning] search_weights (docs/decisions/0031)
+        set_search_weights(part.job, search_weights)
     t0 = time.perf_counter()
     if misplaced:
         loc = run_cell("locate", str(part.job), "--write", timeout=900)
@@ -39,11 +43,38 @@ def one(work: Path, seed: int, misplaced: bool) -> dict:
     run = run_cell("run", str(part.job), "--archive", str(work / "archive"), timeout=1800)
     if run.code != 0:
         return {"seed": seed, "kind": part.kind, "error": run.stderr.strip().splitlines()[-1]}
-    report = json.loads((Path(run.doc["folder"]) / "report.json").read_text())
+    folder = Path(run.doc["folder"])
+    report = json.loads((folder / "report.json").read_text())
     fig = truth_figures(report, part)
     return {"seed": seed, "kind": part.kind, "targets": part.n_targets, "deviating": len(part.deviations),
             "trusted": report["alignment"]["trusted"], "pred_over_ach": report["predicted_over_achieved"]["median"],
-            "seconds": time.perf_counter() - t0} | fig
+            "seconds": time.perf_counter() - t0} | fig | losses(folder)
+
+
+def set_search_weights(job: Path, weights: str) -> None:
+    """Write ``[planning] search_weights = weights`` into a generated job file."""
+    text = job.read_text()
+    line = f'search_weights = "{weights}"\n'
+    text = text.replace("[planning]\n", "[planning]\n" + line, 1) if "[planning]\n" in text \
+        else text + "\n[planning]\n" + line
+    job.write_text(text)
+
+
+def losses(folder: Path) -> dict:
+    """The planned stations, predicted and achieved worst sigma, and what the job left out on the way: dots MEASURE
+    left unnamed (by reason), observations, targets and images ADJUST's screening dropped, observations data snooping
+    rejected, suspect targets."""
+    obs = json.loads((folder / "observations.json").read_text())
+    bundle = json.loads((folder / "bundle.json").read_text())
+    plan = json.loads((folder / "plan.json").read_text())
+    scr = bundle.get("screening", {})
+    report = json.loads((folder / "report.json").read_text())
+    return {"stations": len(plan["stations"]), "observations": bundle["n_observations"],
+            "predicted_max_um": 1e6 * report["predicted_sigma_max_m"],
+            "achieved_max_um": 1e6 * report["achieved_sigma_max_m"],
+            "unnamed": obs.get("dropped_by_reason", {}),
+            "screened": {k: len(scr.get(k, [])) for k in ("dropped_observations", "dropped_targets", "dropped_images")},
+            "rejected": bundle["n_rejected"], "suspect": len(bundle.get("snooping", {}).get("suspect_targets", []))}
 
 
 def main(argv=None) -> int:
@@ -52,11 +83,13 @@ def main(argv=None) -> int:
     ap.add_argument("--first-seed", type=int, default=100)
     ap.add_argument("--misplaced", action="store_true")
     ap.add_argument("--json", type=Path)
+    ap.add_argument("--search-weights", choices=("sigma", "model"), help="[planning] search_weights of the jobs "
+                    "(default: the job file's default)")
     a = ap.parse_args(argv)
     rows = []
     with tempfile.TemporaryDirectory(prefix="truth-partgen-") as tmp:
         for k in range(a.runs):
-            r = one(Path(tmp), a.first_seed + k, a.misplaced)
+            r = one(Path(tmp), a.first_seed + k, a.misplaced, a.search_weights)
             rows.append(r)
             print(json.dumps(r), flush=True)
     ok = [r for r in rows if "error" not in r]

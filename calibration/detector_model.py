@@ -59,6 +59,10 @@ class DetectorModel:
     c_background: float = 0.0
     c_saturation: float = 0.0
     k_saturation: float = 1.0
+    #: where the model was measured: incidence (deg) and dot diameter (px) ranges of the dots it was fitted to
+    #: (None: not recorded); :meth:`sigma_px_measured` does not extrapolate beyond them
+    incidence_range_deg: tuple[float, float] | None = None
+    diameter_range_px: tuple[float, float] | None = None
 
     def saturation_var(self, clipped_share) -> np.ndarray:
         """Variance (px^2) a clipped dot adds to each coordinate, for the clipped share of its pixels ``(k,)``."""
@@ -75,6 +79,22 @@ class DetectorModel:
         c = np.maximum(np.cos(th), np.cos(np.radians(MAX_INCIDENCE_DEG)))
         return np.sqrt(self.a_px**2 + (noise_scale * self.b_px) ** 2 * (d / D_REF_PX) ** (-2 * self.p) * c ** (-2 * self.q))
 
+    def measured_box(self) -> tuple[float, float, float]:
+        """``(largest incidence rad, smallest, largest dot diameter px)`` the model was measured over (the
+        detector's own incidence limit and no size bound where the data file does not record them)."""
+        inc = np.radians(self.incidence_range_deg[1]) if self.incidence_range_deg else np.radians(MAX_INCIDENCE_DEG)
+        d0, d1 = self.diameter_range_px if self.diameter_range_px else (1.0, np.inf)
+        return float(min(inc, np.radians(MAX_INCIDENCE_DEG))), float(max(d0, 1.0)), float(d1)
+
+    def sigma_px_measured(self, incidence_rad, diameter_px, noise_scale: float = 1.0) -> np.ndarray:
+        """:meth:`sigma_px` with the geometry held inside where the model was measured (:meth:`measured_box`): a
+        dot seen more obliquely, or larger or smaller in the image, than any the fit saw counts as the nearest
+        measured one. For planning: the search must not chase an extrapolated gain (a larger dot than measured
+        is not credited with a smaller error). The bundle's weights keep :meth:`sigma_px`."""
+        inc, d0, d1 = self.measured_box()
+        th = np.minimum(np.asarray(incidence_rad, dtype=float), inc)
+        return self.sigma_px(th, np.clip(np.asarray(diameter_px, dtype=float), d0, d1), noise_scale)
+
     def describe(self) -> str:
         return (f"sigma^2 = {self.a_px:.4f}^2 + {self.b_px:.4f}^2 (d/{D_REF_PX:g} px)^-{2 * self.p:.2f} "
                 f"cos(theta)^-{2 * self.q:.2f} px^2, + {self.c_background:.3f}^2 x the detector's background bound, "
@@ -85,7 +105,9 @@ class DetectorModel:
         return {"model": "sigma_px^2 = a^2 + b^2 (d / d_ref)^(-2p) cos(theta)^(-2q)", "d_ref_px": D_REF_PX,
                 "a_px": self.a_px, "b_px": self.b_px, "p": self.p, "q": self.q, "c_background": self.c_background,
                 "c_saturation_px": self.c_saturation, "k_saturation": self.k_saturation,
-                "version": self.version}
+                "version": self.version,
+                **({"incidence_range_deg": list(self.incidence_range_deg)} if self.incidence_range_deg else {}),
+                **({"diameter_range_px": list(self.diameter_range_px)} if self.diameter_range_px else {})}
 
 
 def fit_model(incidence_deg: np.ndarray, diameter_px: np.ndarray, errors_px: np.ndarray,
@@ -160,10 +182,15 @@ def load_model(path: str | None = None) -> DetectorModel:
     p = Path(path) if path else DATA_PATH
     try:
         doc = json.loads(p.read_text())
+        ranges = [tuple(float(v) for v in doc[k]) if doc.get(k) is not None else None
+                  for k in ("incidence_range_deg", "diameter_range_px")]
+        if any(r is not None and not (len(r) == 2 and 0 <= r[0] < r[1]) for r in ranges):
+            raise ValueError("incidence_range_deg and diameter_range_px must be [low, high], 0 <= low < high")
         return DetectorModel(float(doc["a_px"]), float(doc["b_px"]), float(doc["p"]), float(doc["q"]),
                              str(doc.get("version", "1")), float(doc.get("c_background", 0.0)),
-                             float(doc.get("c_saturation_px", 0.0)), float(doc.get("k_saturation", 1.0)))
-    except (OSError, KeyError, ValueError) as exc:
+                             float(doc.get("c_saturation_px", 0.0)), float(doc.get("k_saturation", 1.0)),
+                             *ranges)
+    except (OSError, KeyError, ValueError, TypeError) as exc:
         raise CalibrationError(f"{p}: cannot read the detector precision model ({exc})") from None
 
 

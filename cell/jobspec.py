@@ -221,6 +221,11 @@ class PlanningSection(_Strict):
     generations: int = Field(default=150, ge=1, le=100_000)
     margin_px: float = Field(default=30.0, ge=0, le=10_000)
     lower_bound: bool = Field(default=False, description="also bound how good any network could be (planning.bound)")
+    search_weights: Literal["sigma", "model"] | None = Field(
+        default=None, description="how the network search weighs each ray: sigma: [camera] sigma_px for every ray; "
+                                  "model: the detector model's sigma of that ray (incidence, dot size; needs "
+                                  "[camera] observation_weights = 'model'); default: sigma (docs/decisions/0031 "
+                                  "says why)")
     closed_loop: bool | None = Field(default=None, description="after ADJUST, add stations for targets that miss their "
                                      "required sigma (default: on when a requirement is set: required_sigma or "
                                      "mode = 'cheapest')")
@@ -313,6 +318,13 @@ class JobSpec(_Strict):
     report: ReportSection
     alignment: AlignmentSection = AlignmentSection()
     sim: SimSection = SimSection()
+
+    @model_validator(mode="after")
+    def _same_weights(self):
+        if self.planning.search_weights == "model" and self.camera.observation_weights != "model":
+            raise ValueError("planning.search_weights = 'model' needs camera.observation_weights = 'model' (the search "
+                             f"must weigh rays as the bundle does; it is {self.camera.observation_weights!r})")
+        return self
 
     @model_validator(mode="after")
     def _plausible_lengths(self):

@@ -36,9 +36,12 @@ def planner_options(job: LoadedJob) -> PlannerOptions:
         incidence_max_rad=float(np.deg2rad(p.incidence_max_deg)),
         criterion=p.criterion,
         sigma_px=c.sigma_px,
-        # the search ranks networks with one image sigma: with the detector model (image_precision(job)) it chose
-        # low grazing stations on the example whose dots MEASURE misnamed (FT rms 7.5 px, bundle diverged);
-        # plan.json's predicted covariance is computed with the model on the measured rays (stages.plan)
+        # [planning] search_weights = "model": the search ranks networks with the detector model's sigma of each ray,
+        # and they must be one block of linked images, no station alone linking a part (docs/decisions/0031: not yet
+        # the default; on the planner's rays the rule also changes one-sigma plans that ADJUST links well); plan.json's
+        # predicted covariance is the pre-analysis either way
+        image_precision=image_precision(job) if search_weights(job) == "model" else None,
+        link_targets=8 if search_weights(job) == "model" else 0,
         mode=p.mode,
         required_sigma_m=None if p.required_sigma is None else p.required_sigma * k,
         default_tolerance_m=s.report.tolerance * k,
@@ -49,6 +52,12 @@ def planner_options(job: LoadedJob) -> PlannerOptions:
         n_candidates=p.n_candidates,
         lower_bound=p.lower_bound,
     )
+
+
+def search_weights(job: LoadedJob) -> str:
+    """How the search weighs each ray: ``[planning] search_weights`` (default one sigma, ``[camera] sigma_px``:
+    docs/decisions/0031 says why the model is not yet the default)."""
+    return job.spec.planning.search_weights or "sigma"
 
 
 def robot_model(job: LoadedJob) -> RobotModel:

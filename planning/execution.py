@@ -152,6 +152,12 @@ def move_time(dq: np.ndarray, speed: np.ndarray, accel: np.ndarray) -> np.ndarra
     return np.max(t, axis=-1)
 
 
+#: tours tried again, each with one more pair of nodes kept apart, when a move collides on every branch pair
+MAX_RETOURS = 3
+#: the cost (s) of a move the tour must not make
+BANNED_MOVE_S = 1e6
+
+
 def _two_opt(cost: np.ndarray, tour: list[int], closed: bool) -> list[int]:
     """Improve a tour over nodes 1..n starting at node 0 by 2-opt moves (cost: (n+1, n+1))."""
     path = [0] + tour + ([0] if closed else [])
@@ -422,7 +428,8 @@ def validate_plan(
     levers = lever_arms(robot)
     proofs: dict[bytes, tuple] = {}  # move (joints at both ends) -> batched proof; exact: -> check_move
     exact: dict[bytes, MoveCheck] = {}
-    for _attempt in range(max_repairs + 1):
+    retours = tries = 0  # tours made again; repairs of this tour
+    for _attempt in range((MAX_RETOURS + 1) * (max_repairs + 1)):
         path = [start]
         for s, c in zip(seq, choice):
             path.append(robot.nearest_equivalent(cand[s][c], path[-1]))
@@ -463,12 +470,26 @@ def validate_plan(
         key = (bad, ca, cb)
         n_options = (len(cand[seq[bad - 1]]) if bad > 0 else 1) * (len(cand[seq[bad]]) if bad < len(seq) else 1)
         forbidden.add(key)
-        if len([f for f in forbidden if f[0] == bad]) >= n_options or _attempt == max_repairs:
+        stuck = len([f for f in forbidden if f[0] == bad]) >= n_options or tries == max_repairs
+        if stuck and retours < MAX_RETOURS:
+            # no branch pair tried moves between these two nodes: tour again with them apart (the joint-linear move
+            # is the same both ways, so the other direction cannot make it free)
+            a = 0 if bad == 0 else seq[bad - 1] + 1
+            b = 0 if bad == len(seq) else seq[bad] + 1
+            cost[a, b] = cost[b, a] = BANNED_MOVE_S
+            seq = [s_ - 1 for s_ in _tour(cost, lim.return_to_start)]
+            forbidden = set()
+            retours, tries = retours + 1, 0
+            choice, _ = _viterbi([cand[s_] for s_ in seq], start, lim.return_to_start, speed, accel, forbidden,
+                                 wrap=True)
+            continue
+        if stuck:
             mc = moves[-1]
             raise ReachabilityError(
                 f"move {mc.start} -> {mc.end} collides ({mc.pair[0]} vs {mc.pair[1]} at {mc.at_fraction:.0%} of the move) "
                 f"with every IK branch pair tried: add a via station, move the part, or remove the obstacle"
             )
+        tries += 1
         choice, total = _viterbi([cand[s] for s in seq], start, lim.return_to_start, speed, accel, forbidden, wrap=True)
         if not np.isfinite(total):
             mc = moves[-1]

@@ -14,7 +14,11 @@ docs/decisions/0026-planspeed-numba.md says what each bought.
   ``population x targets`` array;
 * :func:`strict_step`: one best-improvement exchange of :mod:`planning.refine`;
 * :func:`gather`: ``dense[rows][:, cols]`` of a CSR information for few columns (binary search per pair);
-* :func:`pair_information`: ``J^T J`` of (pose, point) pairs (:func:`planning.uncertainty.point_information`).
+* :func:`pair_information`: ``J^T J`` of (pose, point) pairs (:func:`planning.uncertainty.point_information`);
+* :func:`unlinked_stations`: the stations of each network outside its largest block of images linked by common
+  targets (what ADJUST's screening would drop);
+* :func:`information_rows`, :func:`information_rows_model`: the candidate x target information, CSR, each ray
+  weighted by one sigma per target or by the detector model's sigma of that ray.
 """
 from __future__ import annotations
 
@@ -119,6 +123,119 @@ def population_fitness(starts, ends, indices, data, stations, n, min_rays, kind,
         out_value[q] = best if n_ok > 0 else 0.0
         out_violation[q] = short + singular
         out_short[q] = n - n_ok
+
+
+@njit(cache=True, nogil=True)
+def _root(parent, a):
+    while parent[a] != a:
+        parent[a] = parent[parent[a]]
+        a = parent[a]
+    return a
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _popcount(x):
+    x = x - ((x >> np.uint64(1)) & np.uint64(0x5555555555555555))
+    x = (x & np.uint64(0x3333333333333333)) + ((x >> np.uint64(2)) & np.uint64(0x3333333333333333))
+    x = (x + (x >> np.uint64(4))) & np.uint64(0x0F0F0F0F0F0F0F0F)
+    return (x * np.uint64(0x0101010101010101)) >> np.uint64(56)
+
+
+@njit(cache=True, nogil=True)
+def unlinked_stations(bits, stations, link, sole_links, out):
+    """Stations of each network ``stations: (p, k)`` (-1 = off, no repeats) outside its largest linked block;
+    ``out (p,)``. ``bits: (m, w)`` uint64, the targets each candidate sees as a bitset (:func:`pack_rows`). Two
+    stations are linked when they see ``link`` or more common targets; blocks are the connected components (ADJUST's
+    screening drops the images of every block but the main one: cell/stages/screen.py ``LINK_TARGETS``). 0 when
+    the network is one block; then, with ``sole_links``, the number of stations that are the only link of some
+    part of the block to the rest (articulation points of the link graph)."""
+    p, k = stations.shape
+    w = bits.shape[1]
+    linked = np.zeros((k, k), dtype=np.bool_)
+    parent = np.empty(k, dtype=np.int64)
+    size = np.empty(k, dtype=np.int64)
+    for q in range(p):
+        active = 0
+        for a in range(k):
+            ca = stations[q, a]
+            if ca < 0:
+                continue
+            active += 1
+            for b in range(a + 1, k):
+                cb = stations[q, b]
+                linked[a, b] = False
+                if cb < 0:
+                    continue
+                c = np.uint64(0)
+                for u in range(w):  # common targets, counted until the link is certain
+                    c += _popcount(bits[ca, u] & bits[cb, u])
+                    if c >= link:
+                        linked[a, b] = True
+                        break
+        for j in range(k):
+            parent[j] = j
+        for a in range(k):
+            if stations[q, a] < 0:
+                continue
+            for b in range(a + 1, k):
+                if stations[q, b] >= 0 and linked[a, b]:
+                    ra, rb = _root(parent, a), _root(parent, b)
+                    if ra != rb:
+                        parent[rb] = ra
+        size[:] = 0
+        best = 0
+        for j in range(k):
+            if stations[q, j] >= 0:
+                r = _root(parent, j)
+                size[r] += 1
+                if size[r] > best:
+                    best = size[r]
+        out[q] = active - best
+        if out[q] > 0 or not sole_links:
+            continue
+        # one block: a station whose image is the only link of a part of the network to the rest (removing it
+        # splits the block) counts too
+        for x in range(k):
+            if stations[q, x] < 0:
+                continue
+            for j in range(k):
+                parent[j] = j
+            for a in range(k):
+                if a == x or stations[q, a] < 0:
+                    continue
+                for b in range(a + 1, k):
+                    if b != x and stations[q, b] >= 0 and linked[a, b]:
+                        ra, rb = _root(parent, a), _root(parent, b)
+                        if ra != rb:
+                            parent[rb] = ra
+            roots = 0
+            for j in range(k):
+                if j != x and stations[q, j] >= 0 and _root(parent, j) == j:
+                    roots += 1
+            if roots > 1:
+                out[q] += 1
+
+
+def count_unlinked(bits: np.ndarray, stations: np.ndarray, link: int, sole_links: bool = True) -> np.ndarray:
+    """(p,) float :func:`unlinked_stations` of networks ``stations: (p, k)`` (sorted, -1 off, no repeats) of the
+    candidates whose visibility ``bits`` holds (:func:`pack_rows`), on two threads."""
+    import os
+
+    st = np.ascontiguousarray(stations, dtype=np.int64).reshape(len(stations), -1)
+    out = np.zeros(len(st), dtype=np.int64)
+    in_two(len(st), lambda lo, hi: unlinked_stations(bits, st[lo:hi], int(link), bool(sole_links), out[lo:hi]),
+           min_size=2 if (os.cpu_count() or 1) > 1 else len(st) + 1)
+    return out.astype(float)
+
+
+def pack_rows(visible: np.ndarray) -> np.ndarray:
+    """Each row of ``visible: (m, n)`` bool as a bitset, ``(m, ceil(n / 64))`` uint64 (:func:`unlinked_stations`)."""
+    v = np.asarray(visible, dtype=bool)
+    packed = np.packbits(v, axis=1, bitorder="little")
+    pad = (-packed.shape[1]) % 8
+    if pad or packed.shape[1] == 0:
+        packed = np.concatenate([packed, np.zeros((len(v), pad or 8), dtype=np.uint8)], axis=1)
+    return np.ascontiguousarray(packed).view(np.uint64)
 
 
 @njit(cache=True, nogil=True)
@@ -475,6 +592,43 @@ def information_rows(cam_from_part, xyz, visible, w, cam, indptr, indices, data)
                 _pair_info(R, xyz[t, 0], xyz[t, 1], xyz[t, 2], fx, fy, k1, k2, k3, p1, p2, distorted, v)
                 for u in range(6):
                     data[e, u] = v[u] * w[t]
+                indices[e] = t
+                e += 1
+
+
+@njit(cache=True, nogil=True)
+def information_rows_model(cam_from_part, xyz, normals, visible, model, cam, indptr, indices, data):
+    """:func:`information_rows` with each pair's weight ``1 / sigma^2`` from the detector model
+    (:meth:`calibration.detector_model.DetectorModel.sigma_px_measured`: incidence between the target's unit
+    normal ``normals[t]`` and its line of sight, dot diameter ``fx D / depth`` px, both held inside the measured
+    range). ``model``: a^2, (noise_scale b)^2, p, q, d_ref px, fx D (px m), smallest and largest diameter px,
+    cos of the largest incidence."""
+    fx, fy, k1, k2, k3, p1, p2 = cam[0], cam[1], cam[4], cam[5], cam[6], cam[7], cam[8]
+    distorted = cam[9] != 0.0
+    a2, b2, pp, qq, dref, fxd, d0, d1, cmin = (model[0], model[1], model[2], model[3], model[4], model[5], model[6],
+                                               model[7], model[8])
+    v = np.empty(6)
+    m, n = visible.shape
+    for i in range(m):
+        e = indptr[i]
+        R = cam_from_part[i]
+        # the camera centre in the part frame: -R^T t
+        c0 = -(R[0, 0] * R[0, 3] + R[1, 0] * R[1, 3] + R[2, 0] * R[2, 3])
+        c1 = -(R[0, 1] * R[0, 3] + R[1, 1] * R[1, 3] + R[2, 1] * R[2, 3])
+        c2 = -(R[0, 2] * R[0, 3] + R[1, 2] * R[1, 3] + R[2, 2] * R[2, 3])
+        for t in range(n):
+            if visible[i, t]:
+                x0, x1, x2 = xyz[t, 0], xyz[t, 1], xyz[t, 2]
+                _pair_info(R, x0, x1, x2, fx, fy, k1, k2, k3, p1, p2, distorted, v)
+                s0, s1, s2 = c0 - x0, c1 - x1, c2 - x2
+                cos_t = (s0 * normals[t, 0] + s1 * normals[t, 1] + s2 * normals[t, 2]) / math.sqrt(
+                    s0 * s0 + s1 * s1 + s2 * s2)
+                cos_t = min(max(cos_t, cmin), 1.0)
+                z = R[2, 0] * x0 + R[2, 1] * x1 + R[2, 2] * x2 + R[2, 3]
+                d = min(max(fxd / max(z, 1e-9), d0), d1)
+                w = 1.0 / (a2 + b2 * (d / dref) ** (-2.0 * pp) * cos_t ** (-2.0 * qq))
+                for u in range(6):
+                    data[e, u] = v[u] * w
                 indices[e] = t
                 e += 1
 

@@ -31,9 +31,11 @@ import numpy as np
 from calibration.camera import Intrinsics
 from planning.refine import network_sigma, swap_descent
 from planning.stations import ViewingSphere
+from planning import kernels
 from planning.sparse_info import SparseInfo
 from planning.uncertainty import target_information
 from planning.visibility import Occluder, VisibilityOptions, compute_visibility
+
 
 __all__ = ["PolishResult", "local_variants", "polish", "polish_network"]
 
@@ -104,6 +106,8 @@ def polish_network(
     focus: float = 0.9,
     backend: str = "embree",
     reachable_fn=None,
+    link_targets: int = 0,
+    sole_links: bool = True,
 ) -> PolishResult:
     """Exchange descent over exactly ray-cast local variants of the network (module docstring).
 
@@ -114,6 +118,9 @@ def polish_network(
             sigma >= ``focus`` x worst are nudged.
         reachable_fn: ``part_from_cam (m, 4, 4) -> (m,) bool``, the robot's reachability of the
             variants (IK and collisions, :func:`planning.reachability.reachability_mask`); None: all.
+        link_targets: a round's exchanges are taken only if they leave no more stations outside the network's
+            largest block linked by this many common targets (or, ``sole_links``, stations that alone link a part of
+            it) than before (0: not checked).
     Returns:
         :class:`PolishResult`; its worst is never above the start's.
     """
@@ -151,6 +158,8 @@ def polish_network(
     cur_rows = cache.add(information(T0, vis0, all_k), vis0, geo0, all_k)
     sig = network_sigma(cache.info(cur_rows), vis0, np.arange(k), min_rays)
     start = worst = float(sig.max())
+    unlinked = kernels.count_unlinked(kernels.pack_rows(vis0), np.arange(k)[None], link_targets, sole_links)[0] \
+        if link_targets > 0 else 0.0
     n_rounds = n_swaps = 0
     n_poses = k
     if not np.isfinite(worst):
@@ -181,6 +190,10 @@ def polish_network(
         pool_genes = np.concatenate([cur, var[keep]])
         r = swap_descent(cache.info(pool_rows), cache.vis[pool_rows], np.arange(len(pool_rows)), np.arange(k),
                          min_rays)
+        if r.worst < worst and link_targets > 0 and kernels.count_unlinked(
+                kernels.pack_rows(cache.vis[pool_rows[r.stations]]), np.arange(k)[None], link_targets,
+                sole_links)[0] > unlinked:
+            r.worst = worst  # splits the network into blocks ADJUST would not link: not taken
         if r.worst < worst:
             n_swaps += r.n_swaps
             cur, cur_rows = pool_genes[r.stations], pool_rows[r.stations]
@@ -324,4 +337,5 @@ def polish(part, intr: Intrinsics, sphere: ViewingSphere, vis_opts: VisibilityOp
     step_m = 0.04 * (sphere.distance_max_m - sphere.distance_min_m)
     return polish_network(part, intr, sphere, vis_opts, genes, cols, options.min_rays, options.image_sigma(cols),
                           step_rad=step_rad, step_m=step_m, offset_m=0.1 * float(part.radius),
-                          rounds=options.polish_rounds, backend=options.backend, reachable_fn=reachable_fn)
+                          rounds=options.polish_rounds, backend=options.backend, reachable_fn=reachable_fn,
+                          link_targets=options.link_targets, sole_links=options.sole_links)

@@ -59,7 +59,8 @@ def sym_from_6(s6: np.ndarray) -> np.ndarray:
 @dataclass(frozen=True)
 class ImagePrecision:
     """The image precision of a dot by its geometry, for planning: the detector model
-    (:mod:`calibration.detector_model`: incidence angle, dot diameter in pixels, sensor noise).
+    (:mod:`calibration.detector_model`: incidence angle, dot diameter in pixels, sensor noise), held inside
+    the incidences and dot sizes it was measured over (``DetectorModel.sigma_px_measured``).
 
     Attributes:
         normals: (n, 3) unit outward normals of the targets the information is computed for.
@@ -77,11 +78,23 @@ class ImagePrecision:
         """The same precision for a subset of the targets."""
         return ImagePrecision(np.asarray(self.normals)[cols], self.diameter_m, self.model, self.noise_scale)
 
-    def sigma_px(self, intr: Intrinsics, cam_from_part: np.ndarray, xyz: np.ndarray, cols: np.ndarray) -> np.ndarray:
-        """Sigma of one image coordinate ``(k,)`` pixels of targets ``cols`` seen from one station."""
+    def detector_model(self):
         from calibration.detector_model import load_model
 
-        model = self.model or load_model()
+        return self.model or load_model()
+
+    def model_vector(self, intr: Intrinsics) -> np.ndarray:
+        """The model as :func:`planning.kernels.information_rows_model` takes it."""
+        from calibration.detector_model import D_REF_PX
+
+        m = self.detector_model()
+        inc, d0, d1 = m.measured_box()
+        return np.array([m.a_px**2, (self.noise_scale * m.b_px) ** 2, m.p, m.q, D_REF_PX,
+                         intr.fx_px * self.diameter_m, d0, min(d1, 1e30), np.cos(inc)], dtype=np.float64)
+
+    def sigma_px(self, intr: Intrinsics, cam_from_part: np.ndarray, xyz: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        """Sigma of one image coordinate ``(k,)`` pixels of targets ``cols`` seen from one station."""
+        model = self.detector_model()
         Xc = xyz[cols] @ cam_from_part[:3, :3].T + cam_from_part[:3, 3]
         centre = -cam_from_part[:3, :3].T @ cam_from_part[:3, 3]
         sight = centre - xyz[cols]
@@ -89,7 +102,7 @@ class ImagePrecision:
         nrm = np.asarray(self.normals, dtype=float)[cols]
         theta = np.arccos(np.clip(np.einsum("ka,ka->k", sight, nrm), -1.0, 1.0))
         d_px = intr.fx_px * self.diameter_m / np.maximum(Xc[:, 2], 1e-9)
-        return model.sigma_px(theta, d_px, self.noise_scale)
+        return model.sigma_px_measured(theta, d_px, self.noise_scale)
 
 
 def target_information(
@@ -150,28 +163,29 @@ def point_information(intr: Intrinsics, cam_from_part: np.ndarray, X: np.ndarray
 
 
 def _information_by_model(intr, part_from_cam, xyz, visible, precision: ImagePrecision, dtype, sparse=False):
+    """The information of every visible pair, each ray weighted by the detector model's sigma for it (compiled,
+    planning.kernels.information_rows_model; the same CSR layout as the one-sigma path)."""
     T = np.asarray(part_from_cam, dtype=float).reshape(-1, 4, 4)
     xyz = np.asarray(xyz, dtype=float)
     visible = np.asarray(visible, dtype=bool)
     m, n = len(T), len(xyz)
-    if visible.shape != (m, n) or np.asarray(precision.normals).shape != (n, 3):
+    normals = np.asarray(precision.normals, dtype=float)
+    if visible.shape != (m, n) or normals.shape != (n, 3):
         raise PlanningError(f"target_information: visible {visible.shape} and normals "
-                            f"{np.asarray(precision.normals).shape} must match ({m}, {n}) and ({n}, 3)")
-    cam_from_part = invert(T)
-    rows = np.concatenate([[0], np.cumsum(visible.sum(axis=1))])
-    out = np.empty((int(rows[-1]), 6), dtype=dtype) if sparse else np.zeros((m, n, 6), dtype=dtype)
-    indices = np.empty(len(out) if sparse else 0, dtype=np.int32)
-    for i in range(m):
-        cols = np.flatnonzero(visible[i])
-        if len(cols) == 0:
-            continue
-        w = 1.0 / precision.sigma_px(intr, cam_from_part[i], xyz, cols) ** 2
-        info = point_information(intr, np.repeat(cam_from_part[i][None], len(cols), axis=0), xyz[cols])
-        if sparse:
-            out[rows[i]:rows[i + 1]], indices[rows[i]:rows[i + 1]] = (info * w[:, None]).astype(dtype), cols
-        else:
-            out[i, cols] = (info * w[:, None]).astype(dtype)
-    return SparseInfo(rows, indices, out, n) if sparse else out
+                            f"{normals.shape} must match ({m}, {n}) and ({n}, 3)")
+    normals = np.ascontiguousarray(normals / np.linalg.norm(normals, axis=1, keepdims=True))
+    cam_from_part = np.ascontiguousarray(invert(T))
+    indptr = np.zeros(m + 1, dtype=np.int64)
+    np.cumsum(visible.sum(axis=1), out=indptr[1:])
+    indices = np.empty(int(indptr[-1]), dtype=np.int32)
+    data = np.empty((int(indptr[-1]), 6), dtype=dtype)
+    xyz, visible, cam = np.ascontiguousarray(xyz), np.ascontiguousarray(visible), kernels.camera_vector(intr)
+    model = precision.model_vector(intr)
+    kernels.in_two(m, lambda a, b: kernels.information_rows_model(cam_from_part[a:b], xyz, normals, visible[a:b],
+                                                                  model, cam, indptr[a:b + 1], indices, data),
+                   min_size=max(2, 400_000 // max(1, n)))
+    sp = SparseInfo(indptr, indices, data, n)
+    return sp if sparse else sp.toarray()
 
 
 def _invert6(N: np.ndarray, n_rays: np.ndarray, min_rays: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

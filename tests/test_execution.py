@@ -167,3 +167,26 @@ def test_batched_certification_proves_only_moves_that_keep_their_clearance():
         else:  # not proven: some sample came within clearance + the finest delta
             assert d < world.clearance_m + 0.005 + 0.002
     assert certify_moves(robot, CollisionWorld(table_z=0.0), path[:-1], path[1:], levers)[0][0]
+
+
+@pytest.mark.slow
+def test_a_move_that_collides_on_every_branch_pair_is_toured_around(tmp_path):
+    """Stations planned for a generated skin (tests.partgen seed 103, stored): the direct move between S011 and the
+    start collides on every IK branch pair (it failed VALIDATE before); the tour is made again with S011 kept
+    away from the start, and every move of the cycle is collision-free."""
+    import json
+    from pathlib import Path
+
+    from cell.loadedjob import load
+    from cell.setup import collision_world, robot_model
+    from tests.partgen import make_part_job
+
+    job = load(make_part_job(tmp_path / "job", np.random.default_rng(103)).job)
+    doc = json.loads((Path(__file__).parent / "data" / "validate_retour_partgen103.json").read_text())
+    T = np.array([s["part_from_cam"] for s in doc["stations"]])
+    ids = [s["id"] for s in doc["stations"]]
+    ep = validate_plan(robot_model(job), T, job.spec.base_from_part(), job.spec.flange_from_cam(), collision_world(job),
+                       ids=ids)
+    order = [ep.ids[i] for i in ep.order]
+    assert sorted(order) == sorted(ids) and all(m.free for m in ep.moves)
+    assert order[0] != "S011" and order[-1] != "S011"  # never next to the start: that move collides

@@ -59,6 +59,17 @@ def test_bad_job_file_is_one_line_naming_the_key(job_dir, old, new, message):
     assert message in str(e.value) and str(p) in str(e.value) and "\n" not in str(e.value)
 
 
+def test_model_search_weights_need_the_bundle_to_weigh_rays_by_the_model_too(job_dir):
+    from cell.setup import search_weights
+
+    assert search_weights(load(job_dir / "job.toml")) == "sigma"  # the default (decision 0031)
+    _edit(job_dir, "min_rays = 3", 'min_rays = 3\nsearch_weights = "model"')
+    assert search_weights(load(job_dir / "job.toml")) == "model"
+    p = _edit(job_dir, "sigma_px = 0.05", 'sigma_px = 0.05\nobservation_weights = "equal"')
+    with pytest.raises(JobSpecError, match="planning.search_weights = 'model' needs camera.observation_weights"):
+        load_job(p)
+
+
 def test_not_toml(job_dir):
     p = job_dir / "job.toml"
     p.write_text("[job\nname=")

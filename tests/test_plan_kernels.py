@@ -13,10 +13,12 @@ from planning.uncertainty import _IU, _dedupe, criterion, evaluate_networks
 
 
 def _database(m, n, seed, p):
-    """Random per-candidate information ``J^T J`` (2x3 Jacobians, scales spread over 1e4) and visibility."""
+    """Random per-candidate information ``J^T J`` (2x3 Jacobians, scales spread over 1e4 by candidate) and
+    visibility; each ray weighted on its own besides (1 / sigma^2 over 1e2, as the detector model weighs rays by
+    their incidence and dot size: planning.kernels.information_rows_model)."""
     rng = np.random.default_rng(seed)
     vis = rng.random((m, n)) < p
-    J = rng.normal(size=(m, n, 2, 3)) * rng.uniform(1.0, 100.0, (m, 1, 1, 1))
+    J = rng.normal(size=(m, n, 2, 3)) * rng.uniform(1.0, 100.0, (m, 1, 1, 1)) * rng.uniform(1.0, 10.0, (m, n, 1, 1))
     info = np.einsum("mnri,mnrj->mnij", J, J)[:, :, _IU[0], _IU[1]] * vis[..., None]
     return info.astype(np.float32), vis
 
@@ -173,3 +175,35 @@ def test_in_two_covers_the_range_once_and_raises_the_threads_error():
 
     with pytest.raises(ValueError, match="second half"):
         kernels.in_two(8, fail)
+
+
+def test_unlinked_stations_are_those_outside_the_main_block_or_sole_links_as_scipy_finds_them():
+    """The search's linking rule (planning.kernels.unlinked_stations) against connected components of the
+    stations' common-target graph (scipy): stations outside the largest block of images sharing >= 8 targets;
+    for a network that is one block, the stations whose removal splits it."""
+    from scipy.sparse import csr_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    rng = np.random.default_rng(0)
+    vis = np.zeros((60, 300), bool)  # two groups of candidates on two halves of the targets, a few bridging
+    vis[:30, :150] = rng.random((30, 150)) < 0.3
+    vis[30:, 150:] = rng.random((30, 150)) < 0.3
+    vis[55:, 140:160] = rng.random((5, 20)) < 0.6
+    st = _dedupe(rng.integers(-1, 60, (300, 8)))
+
+    def blocks(S):
+        common = vis[S].astype(int) @ vis[S].T.astype(int)
+        nb, label = connected_components(csr_matrix(common >= 8), directed=False)
+        return len(S) - np.bincount(label).max(), nb
+
+    ref = []
+    for row in st:
+        S = row[row >= 0]
+        outside, _ = blocks(S)
+        ref.append(outside if outside else sum(blocks(np.delete(S, j))[1] > 1 for j in range(len(S))))
+    ref = np.array(ref, dtype=float)
+    np.testing.assert_array_equal(kernels.count_unlinked(kernels.pack_rows(vis), st, 8), ref)
+    assert (ref == 0).any() and (ref > 0).any() and set(np.unique(ref)) >= {0, 1, 2}
+    # without the sole-link rule: only the stations outside the main block
+    split = np.array([blocks(row[row >= 0])[0] for row in st], dtype=float)
+    np.testing.assert_array_equal(kernels.count_unlinked(kernels.pack_rows(vis), st, 8, sole_links=False), split)

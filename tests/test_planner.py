@@ -426,3 +426,37 @@ def test_lower_bound_lies_below_the_searched_network_and_proves_station_counts(s
         assert c["fewer_stations_lower_bound_ratio"] > 1.0
         assert not any(r["n_stations"] == c["fewer_stations"] and r["sigma_ratio_max"] <= 1.0
                        for r in cheap.pareto_front)
+
+
+def test_plan_counts_its_weakly_linked_stations_as_adjust_would_see_them(scene, tmp_path):
+    """search.exact_unlinked: stations outside the main block of images sharing link_targets targets, or alone
+    linking a part of it (planning.kernels.unlinked_stations), recounted here from the plan's own rays
+    (docs/decisions/0031)."""
+    from planning import kernels
+
+    part, intr = scene
+    plan = plan_network(part, intr, _options(link_targets=8), cache_dir=tmp_path, seed=3)
+    vis = np.array([[sid in seen for seen in plan.seen_by] for sid in plan.station_ids])
+    k = len(plan.station_ids)
+    assert plan.search["link_targets"] == 8
+    assert plan.search["exact_unlinked"] == kernels.count_unlinked(kernels.pack_rows(vis), np.arange(k)[None], 8)[0]
+    # 60 targets on a stepped block: 8 stations can be one block with no sole link
+    assert plan.search["exact_unlinked"] == 0
+    assert kernels.count_unlinked(kernels.pack_rows(vis), np.arange(k)[None], 10**6, sole_links=False)[0] == k - 1
+
+
+def test_a_plan_ranked_by_the_detector_model_reports_its_covariance_with_the_model(scene, tmp_path):
+    """image_precision: the search and the exact check weigh each ray by the detector model; plan.cov is the
+    model-weighted limiting error propagation of the plan's own rays, and the plan says how it was ranked."""
+    from planning.uncertainty import ImagePrecision
+
+    part, intr = scene
+    prec = ImagePrecision(np.asarray(part.targets.normals), 0.005)
+    plan = plan_network(part, intr, _options(image_precision=prec), cache_dir=tmp_path, seed=4)
+    assert plan.search["image_precision"].startswith("detector model version")
+    vis = np.array([[sid in seen for seen in plan.seen_by] for sid in plan.station_ids])
+    cov, n_rays = covariance_for_network(intr, plan.part_from_cam, part.targets.xyz, vis, prec, min_rays=3)
+    np.testing.assert_allclose(plan.cov, cov, rtol=1e-9)
+    one_sigma, _ = covariance_for_network(intr, plan.part_from_cam, part.targets.xyz, vis, 0.1, min_rays=3)
+    r = np.trace(plan.cov, axis1=1, axis2=2) / np.trace(one_sigma, axis1=1, axis2=2)
+    assert r.max() / r.min() > 1.2  # each ray weighed on its own, not one sigma rescaled

@@ -296,3 +296,43 @@ def test_image_precision_by_the_detector_model_weights_each_ray_by_its_geometry(
     assert s_graz > 3 * s_steep and s_steep == pytest.approx(load_model().sigma_px(np.radians(5.0), 0.005 * INTR.fx_px / 0.6),
                                                             rel=0.05)
     assert i_graz[0, 0, [0, 3, 5]].sum() < i_steep[0, 0, [0, 3, 5]].sum()
+
+
+def test_per_ray_model_information_is_the_numpy_model_held_inside_its_measured_range():
+    """The compiled per-ray weights (planning.kernels.information_rows_model) against J^T J / sigma^2 with the
+    model's sigma computed in NumPy; rays beyond the measured incidence or dot size count as the nearest measured."""
+    from calibration.detector_model import load_model
+    from planning.uncertainty import ImagePrecision, point_information
+
+    model = load_model()
+    inc_max, d_min, d_max = model.measured_box()
+    assert np.degrees(inc_max) == pytest.approx(80.0) and (d_min, d_max) == (15.4, 38.9)
+    rng = np.random.default_rng(5)
+    xyz = rng.uniform(-0.05, 0.05, (30, 3))
+    normals = rng.normal(size=(30, 3)) + [0.0, 0.0, 3.0]
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    # close (dots of 40-60 px at f = 3500 px), far (dots of ~14 px) and low (grazing beyond 80 deg) stations
+    T = np.concatenate([ring(4, 0.35, 60.0), ring(3, 1.2, 45.0), ring(3, 0.5, 3.0)])
+    vis = rng.random((10, 30)) < 0.8
+    prec = ImagePrecision(normals, 0.005, noise_scale=1.7)
+    got = target_information(INTR, T, xyz, vis, prec, dtype=np.float64, sparse=True)
+    cfp = invert(T)
+    d_seen, inc_seen = [], []
+    for i in range(len(T)):
+        cols = np.flatnonzero(vis[i])
+        s = prec.sigma_px(INTR, cfp[i], xyz, cols)
+        ref = point_information(INTR, np.repeat(cfp[i][None], len(cols), axis=0), xyz[cols]) / s[:, None] ** 2
+        np.testing.assert_allclose(got.data[got.indptr[i]:got.indptr[i + 1]], ref, rtol=1e-12)
+        np.testing.assert_array_equal(got.indices[got.indptr[i]:got.indptr[i + 1]], cols)
+        z = xyz[cols] @ cfp[i, 2, :3] + cfp[i, 2, 3]
+        sight = T[i, :3, 3] - xyz[cols]
+        inc = np.arccos(np.einsum("ka,ka->k", sight / np.linalg.norm(sight, axis=1, keepdims=True), normals[cols]))
+        d = INTR.fx_px * 0.005 / z
+        d_seen.append(d), inc_seen.append(inc)
+        # no extrapolation: the sigma is the model's at the geometry clipped into the measured box
+        np.testing.assert_allclose(s, model.sigma_px(np.minimum(inc, inc_max), np.clip(d, d_min, d_max), 1.7),
+                                   rtol=1e-12)
+    d_seen, inc_seen = np.concatenate(d_seen), np.concatenate(inc_seen)
+    assert (d_seen > d_max).any() and (d_seen < d_min).any() and (inc_seen > inc_max).any()  # the clip was exercised
+    # a larger dot than any measured gets no smaller sigma than the largest measured one
+    assert model.sigma_px_measured(0.3, 80.0) == model.sigma_px_measured(0.3, d_max) > model.sigma_px(0.3, 80.0)

@@ -193,3 +193,11 @@ def run(ctx) -> None:
         pass
     ctx.say(f"  {len(p.station_ids)} stations; predicted sigma max {p.predicted_sigma_max_m * 1e6:.1f} um, "
             f"mean {p.predicted_sigma_mean_m * 1e6:.1f} um")
+    weak = int(p.search.get("exact_unlinked") or 0)
+    if weak:  # docs/decisions/0031: ADJUST may drop their images, or their block may hang on one image
+        msg = (f"plan: {weak} station(s) share fewer than {p.search.get('link_targets')} targets with the rest of the "
+               "network, or alone link a "
+               "part of it: ADJUST may leave their images out; more stations ([planning] n_stations) or a larger "
+               "[planning] incidence_max_deg tie them in")
+        ctx.log.log("warning", msg)
+        ctx.say(f"  WARNING {msg}")

@@ -21,7 +21,8 @@ def _exact_variants(part, intr, options: PlannerOptions, s: _SetUp, genes: np.nd
     if options.mode == "cheapest":
         for v, _ in variants.values():
             v["score"] = float(np.max(v["sigma"] / s.required[s.cols]))
-    name = min(variants, key=lambda n_: (variants[n_][0]["violation"], variants[n_][0]["score"]))
+    name = min(variants, key=lambda n_: (variants[n_][0]["violation"] + variants[n_][0]["unlinked"],
+                                         variants[n_][0]["score"]))
     return name, *variants[name]
 
 
@@ -39,7 +40,9 @@ def _exact_check(part, intr, options: PlannerOptions, s: _SetUp, found: _Found) 
                 f"no network of {k} stations found measures every target with {options.min_rays} rays "
                 f"(the best leaves {short} target(s) short): raise [planning] n_stations or lower [planning] min_rays"
             )
-        if options.mode == "fixed" or (final["violation"] == 0 and final["score"] <= 1.0):
+        # stations left weakly linked (a part with few targets per face may allow no better): the plan says so
+        # (search.exact_unlinked; PLAN warns), the search having preferred every network with fewer
+        if options.mode == "fixed" or (final["violation"] == 0 and final["unlinked"] == 0 and final["score"] <= 1.0):
             break
     else:
         raise PlanningError(

@@ -86,7 +86,7 @@ def search_ladder(search: _Search, part, intr, reachable, reachable_fn) -> _Foun
     for size in sizes[1:]:
         T = s.sphere.poses(genes)
         vis_cur = compute_visibility(part, intr, T, s.vis_opts, backend=options.backend)[:, s.cols]
-        info_cur = target_information(intr, T, xyz, vis_cur, options.sigma_px, dtype=np.float64)
+        info_cur = target_information(intr, T, xyz, vis_cur, options.image_sigma(s.cols), dtype=np.float64)
         taken = np.zeros(len(s.db.genes), dtype=bool)
         taken[s.db.nearest(genes)] = True
         pool = s.problem.valid_idx[~taken[s.problem.valid_idx]]

@@ -70,6 +70,13 @@ class PlannerOptions:
             size adds stations greedily to the polished plan of the size below and polishes the result
             (planning.planner.ladder), so a plan of more stations is never worse than the plans of the ladder's
             sizes below it; 0: every size searched on its own.
+        link_targets: two stations are linked when they see this many common targets; a network whose stations
+            fall into blocks not linked to each other is infeasible (one violation per station outside the largest
+            block): ADJUST's screening would drop those images (cell/stages/screen.py LINK_TARGETS, the same 8).
+            Limiting error propagation holds the orientations fixed and cannot see it (docs/decisions/0031); 0: off
+            (the default; a job's search weighted by the detector model sets 8, cell.setup.planner_options).
+        sole_links: with ``link_targets``, a station that alone links a part of the network to the rest (removing it
+            splits the network) counts as a violation too (the model-ranked search's failure, decision 0031).
         lower_bound: also compute (planning.bound) how good any network could be on the
             database: "fixed" with the "worst" criterion: a lower bound on the worst target's
             sigma for ``n_stations`` (``search["lower_bound_sigma_m"]``); "cheapest": whether
@@ -114,6 +121,8 @@ class PlannerOptions:
     polish_rounds: int = 12
     ladder_base: int = 32
     lower_bound: bool = False
+    link_targets: int = 0
+    sole_links: bool = True
 
     def check(self) -> None:
         """Raise InputError naming the first bad option."""

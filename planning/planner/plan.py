@@ -123,6 +123,7 @@ def plan_network(
             **({"exchange_swaps": sum(x["swaps"] for x in refine_stats),
                 "exchange_from": refine_stats[0]["from"], "exchange_to": refine_stats[0]["to"]} if refine_stats else {}),
             **found.polish_stats,
+            "image_precision": _precision_name(options),
             "n_evaluations": search.n_evaluations,
             "n_candidates": int(m),
             "n_valid_candidates": int(s.valid.sum()),
@@ -132,6 +133,9 @@ def plan_network(
             "search_fitness": search_fitness,
             "exact_fitness": final["score"],
             "exact_violation": final["violation"],
+            "exact_unlinked": final["unlinked"],
+            "link_targets": options.link_targets,
+            "sole_links": options.sole_links,
             **bound_facts,
         },
     )
@@ -149,3 +153,12 @@ def cheapest_network(
 ) -> NetworkPlan:
     """The fewest stations (at most ``options.n_stations``) meeting the required precision."""
     return plan_network(part, intr, replace(options, mode="cheapest"), rng, reachable, cache_dir, progress, **kwargs)
+
+
+def _precision_name(options: PlannerOptions) -> str:
+    """What the search weighted each ray by (plan.json ``search.image_precision``)."""
+    if options.image_precision is None:
+        return f"one image sigma, {options.sigma_px:g} px"
+    m = options.image_precision.detector_model()
+    return (f"detector model version {m.version} per ray (incidence, dot size; held inside the measured range), "
+            f"noise scale {options.image_precision.noise_scale:g}")

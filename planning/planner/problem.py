@@ -32,6 +32,7 @@ class _Problem:
         tree = cKDTree(db.eyes[valid])
         _, nearest_valid = tree.query(db.eyes)
         self.repair = np.where(valid, np.arange(len(valid)), self.valid_idx[nearest_valid])
+        self._bits = None  # the candidates' visibility as bitsets (the linking rule), made when first needed
 
     def snap(self, genes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Candidate index of each station after correction, and whether it was corrected."""
@@ -46,13 +47,14 @@ class _Problem:
         stations = np.where(bits, idx, -1)
         if isinstance(self.info, SparseInfo) and (self.objective != "criterion" or self.opt.criterion == "worst"):
             value, violation = self._fitness(stations)
+            violation += self.unlinked(stations)
             if self.objective == "criterion" or self.objective == "ratio":
                 objectives = value[:, None]
             else:
                 objectives = np.column_stack([bits.sum(axis=1).astype(float), value])
             return Evaluation(objectives, violation, genes, bits)
         ev = evaluate_networks(self.info, stations, self.opt.min_rays, visible=self.vis)
-        violation = _violation(ev)
+        violation = _violation(ev) + self.unlinked(stations)
         if self.objective == "criterion":
             objectives = criterion(ev, self.opt.criterion, penalty=0.0)[:, None]
         else:
@@ -63,6 +65,16 @@ class _Problem:
                 objectives = np.column_stack([bits.sum(axis=1).astype(float), ratio])
         return Evaluation(objectives, violation, genes, bits)
 
+
+    def unlinked(self, stations: np.ndarray) -> np.ndarray:
+        """(p,) float weakly linked stations of each network ``stations: (p, k)``: outside its largest block linked
+        by ``link_targets`` common targets, or (``sole_links``) alone linking a part of it; 0 when the option is off
+        (planning.kernels.unlinked_stations)."""
+        if self.opt.link_targets <= 0:
+            return np.zeros(len(stations))
+        if self._bits is None:
+            self._bits = kernels.pack_rows(self.vis)
+        return kernels.count_unlinked(self._bits, _dedupe(stations), self.opt.link_targets, self.opt.sole_links)
 
     def _fitness(self, stations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(p,) worst sigma (or max sigma / required) and violation of networks ``stations: (p, k)``, straight
@@ -103,5 +115,11 @@ def _exact(part, intr: Intrinsics, options: PlannerOptions, vis_opts: Visibility
     ok = np.isfinite(sig)
     ev = NetworkEval(cov6=c6, sigma=np.where(ok, sig, np.inf), n_rays=n_rays[cols][None], sufficient=ok,
                      min_rays=options.min_rays)
+    unlinked = 0.0
+    if options.link_targets > 0:
+        v = visible[:, cols]
+        unlinked = float(kernels.count_unlinked(kernels.pack_rows(v), np.arange(len(v))[None], options.link_targets,
+                                                options.sole_links)[0])
     return {"T": T, "visible": visible, "cov": cov, "n_rays": n_rays, "violation": float(_violation(ev)[0]),
-            "score": float(criterion(ev, options.criterion, penalty=0.0)[0]), "sigma": np.where(ok, sig, np.inf)[0]}
+            "unlinked": unlinked, "score": float(criterion(ev, options.criterion, penalty=0.0)[0]),
+            "sigma": np.where(ok, sig, np.inf)[0]}

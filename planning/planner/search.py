@@ -125,6 +125,12 @@ def _refine(problem: _Problem, r: EvolutionResult, objective: str,
     res = refine_network(info, problem.vis, problem.valid_idx, np.array(starts), opt.min_rays, rng,
                          n_kicks=opt.refine_kicks)
     stats = {"swaps": res.n_swaps, "from": before, "to": min(before, res.worst)}
+    if problem.opt.link_targets > 0 and problem.unlinked(res.stations[None])[0] > \
+            problem.unlinked(np.where(r.bits[:1], idx[:1], -1))[0]:
+        # the exchange descent ranks by the worst target only: a network with more weakly linked stations than the
+        # search's best (ADJUST would drop their images, or a block would hang on one image) is not taken
+        stats.update(to=before, unlinked=True)
+        return r, stats
     if not res.worst < before:
         return r, stats
     genes, bits = r.genes.copy(), r.bits.copy()
