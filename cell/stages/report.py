@@ -274,8 +274,12 @@ def write_report(ctx) -> tuple[str, list[str]]:
         ctx.log.log("warning", "alignment not trusted: " + "; ".join(outcome.reasons))
         ctx.say("  WARNING alignment not trusted: " + "; ".join(outcome.reasons))
     dev_norm = np.linalg.norm(al.deviation, axis=1)
+    if nb and al.deviation_covariance.U.shape[2] < nb:  # an alignment that dropped the low-rank part: no share known
+        ctx.log.log("warning", "uncertainty budget: the alignment did not carry the scale bar's gains; "
+                               "cov_scale_bar not reported")
+        nb = 0
     Kd = al.deviation_covariance.U[:, :, al.deviation_covariance.U.shape[2] - nb:] if nb else np.zeros((len(ids), 3, 0))
-    cov_scale = np.einsum("nar,r,nbr->nab", Kd, K_sigma**2, Kd)
+    cov_scale = np.einsum("nar,r,nbr->nab", Kd, K_sigma[:nb] ** 2, Kd)
     level = al.sigma_level()
     predicted = {t["id"]: (np.sqrt(np.trace(t["predicted_cov"])) if t["predicted_cov"] is not None else np.nan)
                  for t in plan["targets"]}
