@@ -5,7 +5,7 @@ and 5 sigma on 0-50 % of the dots) is measured by ``cell run`` (``--misplaced``:
 off its nominal placement and ``cell locate --write`` finds it first). Printed per run and over all: sqrt(mean
 m^2 / 3) of the deviations against the truth (1 = honest), the share of untouched targets inside their 99 %
 ellipsoid (both also given the scale bar: the simulated bar is exact, its certificate's share of the covariance
-is never realised; decision 0029), false "significant" flags, deviations beyond tolerance that failed, predicted / achieved sigma,
+is never realised; decision 0029), the realised scale error against the stated one (z), false "significant" flags, deviations beyond tolerance that failed, predicted / achieved sigma,
 and whether the alignment was trusted.
 
 Also per run: what was left out (dots left unnamed, screened, rejected observations, suspect targets).
@@ -104,6 +104,7 @@ def main(argv=None) -> int:
             "false_significant_max": max(r["false_significant"] for r in ok),
             "beyond_tolerance_missed": sum(r["beyond_tolerance"] - r["beyond_tolerance_failed"] for r in ok),
             "untrusted": sum(not r["trusted"] for r in ok),
+            "scale_z_max_abs": max((abs(r["scale_z"]) for r in ok if r.get("scale_z") is not None), default=None),
             "pred_over_ach_min": min(r["pred_over_ach"] for r in ok),
             "pred_over_ach_max": max(r["pred_over_ach"] for r in ok),
         }

@@ -3,6 +3,7 @@ Carlo of the error it models, the stated covariance is honest with it and optimi
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from scipy.stats import chi2
 
 from calibration.bundle.coherent import coherent_background_cov
@@ -114,3 +115,28 @@ def test_the_report_states_the_uncertainty_budget():
     line = facts["Stated beyond the detector model"]
     assert "17 target(s)" in line and "311 observation(s)" in line and "T0047-T0172" in line and "4.0 um" in line
     assert _budget_facts({}) == {}
+    doc["uncertainty_budget"].update(scale_sigma_ppm=14.23, scale_sigma_certificate_ppm=6.21)
+    assert _budget_facts(doc)["Scale uncertainty (1 sigma)"] == "14.2 ppm, of which the scale bar certificate 6.2 ppm"
+
+
+def test_the_stated_scale_uncertainty_is_what_a_similarity_fit_finds_over_noise_draws():
+    """scale_sigma's g^T Q g against the scale of similarity fits to points drawn from Q (block-diagonal part and a
+    shared low-rank scale mode)."""
+    from calibration.alignment import PointCovariance, similarity_fit
+    from cell.stages.report import scale_sigma
+
+    rng = np.random.default_rng(11)
+    n = 60
+    X = rng.uniform(-0.15, 0.15, (n, 3))
+    D = np.array([np.diag(rng.uniform(0.5, 2.0, 3) * 1e-6) ** 2 for _ in range(n)])
+    k = (X - X.mean(axis=0))[:, :, None]  # a scale mode: every point moves with its distance from the centre
+    pc = PointCovariance(D, k, np.array([[(10e-6) ** 2]]))  # 10 ppm
+    use = np.ones(n, dtype=bool)
+    sig, cert = scale_sigma(X, pc, use, k, np.array([5e-6]))
+    draws = []
+    for _ in range(3000):
+        e = rng.normal(size=(n, 3)) * np.sqrt(np.diagonal(D, axis1=1, axis2=2)) + k[:, :, 0] * rng.normal() * 10e-6
+        s, _, _ = similarity_fit(X + e, X, with_scale=True)
+        draws.append(1.0 / s - 1.0)
+    assert sig == pytest.approx(np.std(draws), rel=0.06)
+    assert cert == pytest.approx(5e-6, rel=1e-9)

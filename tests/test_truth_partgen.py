@@ -49,12 +49,23 @@ def truth_figures(report: dict, part) -> dict:
             beyond_failed.append(not t["pass"])
     m2, m2b, untouched, significant = np.array(m2), np.array(m2b), np.array(untouched), np.array(significant)
     q99 = chi2.ppf(0.99, 3)
+    # the realised scale error of the measurement (a similarity fit of the untouched targets to the truth, first
+    # order) against the stated one (report.json uncertainty_budget.scale_sigma_ppm): one draw of one shared variable
+    pts = [(np.asarray(t["measured"]), np.asarray(t["nominal"])) for t in report["targets"]
+           if t["measured"][0] is not None and not t.get("suspect") and t["id"] not in part.deviations]
+    scale_ppm = scale_z = None
+    if len(pts) >= 3:
+        X, T = (np.array(a) for a in zip(*pts))
+        x = T - T.mean(axis=0)
+        scale_ppm = float(np.sum(x * (X - X.mean(axis=0) - x)) / np.sum(x * x) * 1e6)
+        sig = (report.get("uncertainty_budget") or {}).get("scale_sigma_ppm")
+        scale_z = scale_ppm / sig if sig else None
     return {"ratio": float(np.sqrt(m2.mean() / 3)), "ratio_given_bar": float(np.sqrt(m2b.mean() / 3)), "n": int(len(m2)),
             "untouched_in_99": float(np.mean(m2[untouched] <= q99)),
             "untouched_in_99_given_bar": float(np.mean(m2b[untouched] <= q99)),
             "false_significant": float(np.mean(significant[untouched])),
             "beyond_tolerance": len(beyond_failed), "beyond_tolerance_failed": int(sum(beyond_failed)),
-            "suspect": suspect, "suspect_not_inconclusive": quiet}
+            "suspect": suspect, "suspect_not_inconclusive": quiet, "scale_ppm": scale_ppm, "scale_z": scale_z}
 
 
 def _check(fig: dict, report: dict) -> None:

@@ -285,6 +285,9 @@ def _budget_facts(doc: dict) -> dict:
     if not b:
         return {}
     out = {}
+    if b.get("scale_sigma_ppm") is not None:
+        out["Scale uncertainty (1 sigma)"] = (f"{b['scale_sigma_ppm']:.1f} ppm, of which the scale bar certificate "
+                                              f"{b['scale_sigma_certificate_ppm']:.1f} ppm")
     if b.get("scale_bar_share_median") is not None:
         out["Scale bar certificate in the variance"] = (f"{100 * b['scale_bar_share_median']:.0f} % median, "
                                                          f"{100 * b['scale_bar_share_max']:.0f} % at most")

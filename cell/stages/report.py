@@ -205,9 +205,28 @@ def identification_drops(obs: dict) -> dict:
     return {"n_dropped": sum(by_reason.values()), "by_reason": by_reason, "images": images}
 
 
-def _budget(cov_scale, dev_cov, use, bundle: dict) -> dict:
+def scale_sigma(measured: np.ndarray, pc: PointCovariance, use: np.ndarray, K: np.ndarray, K_sigma: np.ndarray):
+    """The stated uncertainty of the measurement's scale, and the bars' certificates' part of it (relative, 1 sigma).
+
+    The scale of a similarity fit over the targets ``use`` is, to first order, ``s = sum g_i . x_i`` with
+    ``g_i = (x_i - c) / sum |x_j - c|^2``; its variance is ``g^T Q g`` from the full covariance (its block-diagonal
+    and low-rank parts), the certificates' part ``sum_b sigma_b^2 (g . k_b)^2``. None without three targets."""
+    idx = np.flatnonzero(use & np.all(np.isfinite(measured), axis=1))
+    if len(idx) < 3:
+        return None
+    x = measured[idx] - measured[idx].mean(axis=0)
+    g = x / np.sum(x * x)
+    D, U = np.nan_to_num(pc.D[idx]), np.nan_to_num(pc.U[idx])
+    Ug = np.einsum("nar,na->r", U, g)
+    var = float(np.einsum("na,nab,nb->", g, D, g) + Ug @ pc.C @ Ug)
+    kg = np.einsum("nab,na->b", np.nan_to_num(K[idx]), g) if K.shape[2] else np.zeros(0)
+    return float(np.sqrt(max(var, 0.0))), float(np.sqrt(np.sum((np.asarray(K_sigma) * kg) ** 2)))
+
+
+def _budget(cov_scale, dev_cov, use, bundle: dict, scale=None) -> dict:
     """report.json ``uncertainty_budget``: the scale bar certificate's share of the targets' variance (median, max),
-    and what else the statement carries beyond the detector model (decision 0029)."""
+    the measurement's scale uncertainty (``scale``: :func:`scale_sigma`), and what else the statement carries
+    beyond the detector model (decision 0029)."""
     out: dict = {"scale_bar_share_median": None, "scale_bar_share_max": None}
     if cov_scale is not None and np.any(use):
         share = np.trace(cov_scale[use], axis1=1, axis2=2) / np.trace(dev_cov[use], axis1=1, axis2=2)
@@ -216,6 +235,9 @@ def _budget(cov_scale, dev_cov, use, bundle: dict) -> dict:
             out.update(scale_bar_share_median=float(np.median(share)), scale_bar_share_max=float(np.max(share)))
     cb = bundle.get("coherent_background") or {}
     w = bundle.get("observation_weights") or {}
+    out.update(scale_sigma_ppm=None, scale_sigma_certificate_ppm=None)
+    if scale is not None:
+        out.update(scale_sigma_ppm=scale[0] * 1e6, scale_sigma_certificate_ppm=scale[1] * 1e6)
     out.update(shared_misfit_targets=cb.get("n_targets", 0), scale_bar_ends=cb.get("scale_bar_ends", []),
                observations_with_background_bound=w.get("observations_with_background_bound"),
                observations_clipped=w.get("observations_clipped"))
@@ -344,7 +366,9 @@ def write_report(ctx) -> tuple[str, list[str]]:
         "coded_targets": [ids[j] for j in np.flatnonzero(coded)],
         "rejected_observations": bundle.get("rejected", []),
         "identification_dropped": identification_drops(f.read_json("observations.json")),
-        "uncertainty_budget": _budget(cov_scale if nb else None, al.deviation_cov, judged & ok, bundle),
+        "uncertainty_budget": _budget(cov_scale if nb else None, al.deviation_cov, judged & ok, bundle,
+                                      scale_sigma(measured, pc, judged & ok & ~np.isin(ids, list(suspect)), K, K_sigma)
+                                      if nb else None),
         "left_out": {"observations": len(sc.get("dropped_observations", [])),
                      "targets": sc.get("dropped_targets", []), "images": sc.get("dropped_images", []),
                      "start_pose_kept": (sc.get("resection") or {}).get("start_kept", [])},
