@@ -169,7 +169,9 @@ def _invert(image: np.ndarray) -> np.ndarray:
 
 def _ceiling(image: np.ndarray) -> float:
     """The grey level at which ``image``'s sensor clips: 255 for 8 bits; for 16-bit containers the all-ones code of
-    the bit depth the image reaches (10, 12, 14 or 16 bits), so a 12-bit image clips at 4095."""
+    the bit depth the image reaches (10, 12, 14 or 16 bits), so a 12-bit image clips at 4095. A camera that puts
+    its 12 bits in the high bits of the word (clipping at 65520) is not recognised: its clipped pixels are not counted
+    (GenICam's Mono12 / Mono16 are low-aligned)."""
     if image.dtype == np.uint8:
         return 255.0
     top = int(image.max())

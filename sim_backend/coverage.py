@@ -165,6 +165,16 @@ def _half_diagonal(c00: np.ndarray, c01: np.ndarray, c10: np.ndarray, c11: np.nd
     return 0.5 * np.maximum(_norm2(c00 - c11), _norm2(c01 - c10)) * 1.02
 
 
+def _window_corners(lattice, u0, v0, h, w, shift_px, centre_c, e1_c, e2_c, normal_c, unit=1.0, offset=0.0):
+    """The target-plane coordinates of every pixel corner of k windows, ``(st + offset) / unit`` (k, h+1, w+1, 2),
+    each pixel's centre (the mean of its four corners, (k, h, w, 2)) and the half diagonal of its footprint."""
+    st = _plane_coords(_pixel_lattice(lattice, u0, v0, h, w, shift_px), centre_c, e1_c, e2_c, normal_c)
+    if offset != 0.0 or unit != 1.0:
+        st = (st + offset) / unit
+    c00, c01, c10, c11 = st[:, :-1, :-1], st[:, :-1, 1:], st[:, 1:, :-1], st[:, 1:, 1:]
+    return st, 0.25 * (c00 + c01 + c10 + c11), _half_diagonal(c00, c01, c10, c11)
+
+
 def _corner_blocks(st: np.ndarray, idx: tuple[np.ndarray, ...]) -> np.ndarray:
     """Plane coords of the 4 corners of the pixels ``idx = (k, i, j)``, (b, 4, 2)."""
     k, i, j = idx
@@ -202,10 +212,7 @@ def disc_coverage(
     Returns:
         (k, h, w) float coverage in [0, 1].
     """
-    st = _plane_coords(_pixel_lattice(lattice, u0, v0, h, w, shift_px), centre_c, e1_c, e2_c, normal_c)
-    c00, c01, c10, c11 = st[:, :-1, :-1], st[:, :-1, 1:], st[:, 1:, :-1], st[:, 1:, 1:]
-    centre = 0.25 * (c00 + c01 + c10 + c11)
-    half_diag = _half_diagonal(c00, c01, c10, c11)
+    st, centre, half_diag = _window_corners(lattice, u0, v0, h, w, shift_px, centre_c, e1_c, e2_c, normal_c)
     rho = _norm2(centre)
     cov = (rho < radius_m).astype(float)
     boundary = np.abs(rho - radius_m) <= half_diag if adaptive else np.ones_like(rho, dtype=bool)
@@ -261,11 +268,8 @@ def marker_coverage(
     G = textures.shape[1]
     cell = side_m / _MARKER_CELLS
     half = 0.5 * G * cell
-    st = _plane_coords(_pixel_lattice(lattice, u0, v0, h, w, shift_px), centre_c, e1_c, e2_c, normal_c)
-    ab = (st + half) / cell  # cell coordinates, patch spans [0, G)
-    c00, c01, c10, c11 = ab[:, :-1, :-1], ab[:, :-1, 1:], ab[:, 1:, :-1], ab[:, 1:, 1:]
-    centre = 0.25 * (c00 + c01 + c10 + c11)
-    hd = _half_diagonal(c00, c01, c10, c11)
+    # cell coordinates, the patch spans [0, G)
+    ab, centre, hd = _window_corners(lattice, u0, v0, h, w, shift_px, centre_c, e1_c, e2_c, normal_c, cell, half)
     a, b = centre[..., 0], centre[..., 1]
     outside = (a < -hd) | (a > G + hd) | (b < -hd) | (b > G + hd)
     uniform = (np.abs(a - np.round(a)) > hd) & (np.abs(b - np.round(b)) > hd)
@@ -334,10 +338,7 @@ def ring_coverage(
         alpha: (k, h, w) fraction of each pixel covered by the patch; white: by the dot and the set sectors.
     """
     n, inner, outer, quiet = bits.shape[1], family.inner, family.outer, family.quiet
-    st = _plane_coords(_pixel_lattice(lattice, u0, v0, h, w, shift_px), centre_c, e1_c, e2_c, normal_c) / radius_m
-    c00, c01, c10, c11 = st[:, :-1, :-1], st[:, :-1, 1:], st[:, 1:, :-1], st[:, 1:, 1:]
-    centre = 0.25 * (c00 + c01 + c10 + c11)
-    hd = _half_diagonal(c00, c01, c10, c11)
+    st, centre, hd = _window_corners(lattice, u0, v0, h, w, shift_px, centre_c, e1_c, e2_c, normal_c, radius_m)
     kk = np.broadcast_to(np.arange(len(u0))[:, None, None], hd.shape)
 
     def shade(s, t, kidx):

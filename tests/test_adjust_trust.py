@@ -178,6 +178,8 @@ def test_background_bounds_are_kept_image_by_image_and_an_image_without_them_is_
     w = doc["observation_weights"]
     assert w["images_without_background_bound"] == ["images/0013.png"]
     assert w["observations_with_background_bound"] == 3  # before: 0, the one old image switched every bound off
+    # these images carry no count of clipped pixels: every one of them is named (no saturation term there)
+    assert len(w["images_without_clipped_share"]) == len(obs) and w["observations_clipped"] == 0
     # and the adjustment is right: the truth within the stated covariance (free of the scale: scale bar datum)
     xyz = np.array([t["xyz"] for t in doc["targets"]], dtype=float)
     cov = np.array([t["cov"] if t["cov"] is not None else np.full((3, 3), np.nan) for t in doc["targets"]])

@@ -29,7 +29,7 @@ def truth_figures(report: dict, part) -> dict:
     compared. ``ratio`` and ``untouched_in_99`` use each target's stated covariance (``cov``); the ``_given_bar`` ones the
     same less the scale bar certificate's share (``cov_scale_bar``): the simulated bar is exactly its certified
     length, so that share of the statement is never realised in a run (decision 0029)."""
-    m2, m2b, untouched, significant, beyond_failed, suspect, quiet = [], [], [], [], [], 0, 0
+    m2, m2b, untouched, significant, beyond_failed, suspect, quiet, no_share = [], [], [], [], [], 0, 0, 0
     for t in report["targets"]:
         if t["measured"][0] is None:
             continue
@@ -41,6 +41,7 @@ def truth_figures(report: dict, part) -> dict:
         e = np.asarray(t["deviation"]) - d
         C = np.asarray(t["cov"])
         m2.append(float(e @ np.linalg.solve(C, e)))
+        no_share += t.get("cov_scale_bar") is None
         Cb = C - np.asarray(t["cov_scale_bar"]) if t.get("cov_scale_bar") is not None else C
         m2b.append(float(e @ np.linalg.solve(Cb, e)))
         untouched.append(t["id"] not in part.deviations)
@@ -65,13 +66,14 @@ def truth_figures(report: dict, part) -> dict:
             "untouched_in_99_given_bar": float(np.mean(m2b[untouched] <= q99)),
             "false_significant": float(np.mean(significant[untouched])),
             "beyond_tolerance": len(beyond_failed), "beyond_tolerance_failed": int(sum(beyond_failed)),
-            "suspect": suspect, "suspect_not_inconclusive": quiet, "scale_ppm": scale_ppm, "scale_z": scale_z}
+            "suspect": suspect, "suspect_not_inconclusive": quiet, "without_scale_bar_share": no_share, "scale_ppm": scale_ppm, "scale_z": scale_z}
 
 
 def _check(fig: dict, report: dict) -> None:
     assert report["alignment"]["trusted"], report["alignment"]["reasons"]
     assert 0.85 <= fig["ratio"] <= 1.15, fig
     assert fig["untouched_in_99"] >= 0.97, fig
+    assert fig["without_scale_bar_share"] == 0, fig  # the generated jobs have a scale bar: every target states its share
     assert fig["ratio_given_bar"] >= fig["ratio"], fig  # the certificate's share is part of the statement
     assert fig["false_significant"] <= 0.02, fig
     assert fig["suspect_not_inconclusive"] == 0, fig

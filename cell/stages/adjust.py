@@ -50,12 +50,21 @@ def background_bounds(obs_doc: dict) -> tuple[np.ndarray, np.ndarray]:
     return np.concatenate(B), np.concatenate(has)
 
 
-def clipped_shares(obs_doc: dict) -> np.ndarray:
+def clipped_shares(obs_doc: dict) -> tuple[np.ndarray, np.ndarray]:
     """The share of each observed dot's pixels the sensor clipped, ``(q,)`` in the order of
-    :func:`observation_arrays`; zero for the dots of an image measured before the detector counted them."""
-    return np.concatenate([np.zeros(len(o["ids"])) if o.get("clipped_share") is None else
-                           np.asarray(o["clipped_share"], dtype=float).reshape(-1) for o in obs_doc["images"]]
-                          + [np.zeros(0)])
+    :func:`observation_arrays`, and ``(q,)`` bool whether its image has them: an image measured before the detector
+    counted clipped pixels has zeros (no saturation term; said by the caller)."""
+    S, has = [], []
+    for o in obs_doc["images"]:
+        k = len(o["ids"])
+        c = o.get("clipped_share")
+        arr = np.asarray(c, dtype=float).reshape(-1) if c is not None else None
+        ok = arr is not None and len(arr) == k and bool(np.all(np.isfinite(arr)))
+        S.append(arr if ok else np.zeros(k))
+        has.append(np.full(k, ok))
+    if not S:
+        return np.zeros(0), np.zeros(0, dtype=bool)
+    return np.concatenate(S), np.concatenate(has)
 
 
 def initial_intrinsics(job, cal_doc: dict) -> Intrinsics:
@@ -116,7 +125,7 @@ def _adjust(ctx, scr: Screening, obs: dict, obs_image, obs_target, obs_uv, poses
     targets = job.part.targets
     groups = None
     obs_sigma = model_sigma = None
-    bg_missing: list[str] = []
+    flags = {"bg": None, "clip": None, "bg_missing": [], "clip_missing": []}
     weights = job.spec.camera.observation_weights
     if weights == "incidence":  # from the Faugeras-Toscani poses: degrees suffice
         angles = incidence_angles(targets.xyz, targets.normals, poses0, img, tgt)
@@ -132,10 +141,12 @@ def _adjust(ctx, scr: Screening, obs: dict, obs_image, obs_target, obs_uv, poses
         # (docs/decisions/0023, truth); the covariance is then 2x2 per observation
         bg, has_bg = background_bounds(obs)
         # a dot the sensor clipped: the model's saturation term for the clipped share of its pixels (decision 0029)
-        clip = clipped_shares(obs)
+        clip, has_clip = clipped_shares(obs)
         if np.any(bg[sel]) or np.any(clip[sel] > 0):
             model_sigma, obs_sigma = obs_sigma, observation_covariances(obs_sigma, bg[sel], clipped_share=clip[sel])
-        bg_missing = sorted({obs["images"][int(i)]["image"] for i in obs_image[sel & ~has_bg]})
+        flags = {"bg": bg[sel], "clip": clip[sel],
+                 "bg_missing": sorted({obs["images"][int(i)]["image"] for i in obs_image[sel & ~has_bg]}),
+                 "clip_missing": sorted({obs["images"][int(i)]["image"] for i in obs_image[sel & ~has_clip]})}
     res = bundle_adjust(img, tgt, uv, intr0, poses0, targets.xyz, options, config, obs_sigma_px=obs_sigma,
                         obs_group=groups)
     if model_sigma is not None:
@@ -144,15 +155,14 @@ def _adjust(ctx, scr: Screening, obs: dict, obs_image, obs_target, obs_uv, poses
         used = ~res.rejected
         factor = res.sigma0_px**2 / mean_variance(res.obs_sigma_px[used])
         res.sigma0_px = float(np.sqrt(factor * np.mean(model_sigma[used] ** 2)))
-    return res, (kept_images, sel, img, tgt, uv, groups, model_sigma, bg_missing)
+    return res, (kept_images, sel, img, tgt, uv, groups, model_sigma, flags)
 
 
-def _add_coherent_background(res, obs: dict, sel, img, tgt, ids: list[str], bars=(), K=None) -> dict:
+def _add_coherent_background(res, bg: np.ndarray, img, tgt, ids: list[str], bars=(), K=None) -> dict:
     """Add to each target's covariance the background misfit its views share (decision 0029), and what the scale
     bars' ends' shares do to every target through the scale (``K``: :func:`scale_bar_gains`); what was added."""
     bar_terms: list[dict] = []
     used = ~res.rejected
-    bg = background_bounds(obs)[0][sel]  # zero where an image has none: nothing shared to add there
     c = load_model().c_background
     extra = coherent_background_cov(res.intrinsics, res.cam_from_part, res.points, img[used], tgt[used],
                                     res.obs_sigma_px[used], bg[used], c)
@@ -165,8 +175,8 @@ def _add_coherent_background(res, obs: dict, sel, img, tgt, ids: list[str], bars
         u = res.points[bar.target_a] - res.points[bar.target_b]
         u = u / np.linalg.norm(u)
         v = float(u @ (extra[bar.target_a] + extra[bar.target_b]) @ u)
-        if v > 0 and np.all(np.isfinite(K[:, :, j][np.isfinite(res.points).all(axis=1)])):
-            k = np.nan_to_num(K[:, :, j])
+        if v > 0:
+            k = np.nan_to_num(K[:, :, j])  # NaN only for targets the adjustment did not determine
             res.cov += v * np.einsum("na,nb->nab", k, k)
             cv = res.covariance
             r = cv.U.shape[2]
@@ -264,10 +274,10 @@ def run_bundle(ctx) -> dict:
     if np.any(np.isfinite(var).all(axis=1) & (var <= 0).any(axis=1)):  # a singular network, not a measurement
         raise CalibrationError("bundle: the network is not determined (a target's variance is not positive): its "
                                "images are too weakly linked; see the screening in the log")
-    kept_images, sel, img, tgt, uv, groups, model_sigma, bg_missing = sub
+    kept_images, sel, img, tgt, uv, groups, model_sigma, flags = sub
     bars = bundle_config(job, scale=scr.scale_ok).scale_bars
     K, K_sigma = scale_bar_gains(res.covariance, res.points, bars) if bars else (np.zeros((len(ids), 3, 0)), np.zeros(0))
-    coherent = _add_coherent_background(res, obs, sel, img, tgt, ids, bars, K) if model_sigma is not None else None
+    coherent = _add_coherent_background(res, flags["bg"], img, tgt, ids, bars, K) if model_sigma is not None else None
     suspect = _screened_suspects(scr, obs_target, tgt[~res.rejected], len(ids))
     dt = time.perf_counter() - t0
     n_img = np.bincount(tgt[~res.rejected], minlength=len(ids))
@@ -281,7 +291,7 @@ def run_bundle(ctx) -> dict:
     return {
         "datum": res.datum,
         "sigma0_px": res.sigma0_px,
-        "observation_weights": _weights_doc(job, res, groups, model_sigma, bg_missing) | _flag_counts(obs, sel, res.rejected),
+        "observation_weights": _weights_doc(job, res, groups, model_sigma, flags["bg_missing"]) | _flag_counts(flags, res.rejected),
         "dof": res.dof,
         "converged": res.converged,
         "summary": res.summary,
@@ -353,10 +363,14 @@ def screening_doc(scr: Screening, obs: dict, obs_image, obs_target, ids: list[st
     }
 
 
-def _flag_counts(obs: dict, sel, rejected) -> dict:
-    """Observations the adjustment used that are of clipped dots (decision 0029)."""
+def _flag_counts(flags: dict, rejected) -> dict:
+    """Observations the adjustment used that are of clipped dots, and the images without clipped shares (measured
+    before the detector counted them: no saturation term there; decision 0029)."""
+    if flags["clip"] is None:
+        return {"observations_clipped": None, "images_without_clipped_share": []}
     used = ~np.asarray(rejected, dtype=bool)
-    return {"observations_clipped": int(np.count_nonzero(clipped_shares(obs)[sel][used] > 0))}
+    return {"observations_clipped": int(np.count_nonzero(flags["clip"][used] > 0)),
+            "images_without_clipped_share": list(flags["clip_missing"])}
 
 
 def _weights_doc(job, res, groups, model_sigma=None, bg_missing=()) -> dict:
@@ -428,14 +442,18 @@ def run(ctx) -> None:
                 f"{w['observations_with_background_bound']} observation(s) next to an edge (background bound)"
                 + (f", {w['observations_clipped']} of clipped dots (saturation term)" if w.get("observations_clipped")
                    else ""))
-        if w.get("images_without_background_bound"):
-            miss = w["images_without_background_bound"]
-            msg = (f"{len(miss)} image(s) measured without the detector's background bounds ("
-                   + ", ".join(miss[:6]) + (" ..." if len(miss) > 6 else "") + "): their observations keep the "
-                   "detector model's plain sigma (a dot next to an edge there is not down-weighted)")
+    w = doc["observation_weights"]
+    for key, what, then in (("images_without_background_bound", "background bounds",
+                             "their observations keep the detector model's plain sigma (a dot next to an edge there is "
+                             "not down-weighted)"),
+                            ("images_without_clipped_share", "count of clipped pixels",
+                             "a clipped dot there keeps the detector model's plain sigma (no saturation term)")):
+        miss = w.get(key) or []
+        if miss:
+            msg = (f"{len(miss)} image(s) measured without the detector's {what} (" + ", ".join(miss[:6])
+                   + (" ..." if len(miss) > 6 else "") + f"): {then}")
             ctx.log.log("warning", msg)
             ctx.say(f"  WARNING {msg}")
-    w = doc["observation_weights"]
     if w.get("observations_clipped") and w["observations_clipped"] > 0.2 * (doc["n_observations"] - doc["n_rejected"]):
         msg = (f"{w['observations_clipped']} of {doc['n_observations'] - doc['n_rejected']} observations are of dots the "
                "sensor clipped (overexposed: lower the flash or the exposure for near stations); their sigma carries "
