@@ -1,0 +1,144 @@
+"""Measure how much of a dot's background misfit its views share: the detector model's ``rho_background``.
+
+A dot next to an edge of the part or a step of its shading is centred off its true centre; the detector bounds
+that error per image (``Detections.background_cov``, ``B``) and the model scales the bound by ``c_background``
+(``c``). ADJUST adds to each target's covariance the cross terms between its views of that misfit
+(calibration/bundle/coherent.py, decision 0029), modelled as a common displacement seen by each view through its
+own bound: ``e_i = sqrt(rho) S_i Jh_i z + independent``, ``S_i = sqrt(c^2 B_i)``, ``Jh_i`` the view's unit-scale
+projection, so that for two views ``i != j`` of one target
+
+    E[e_i e_j^T] = rho S_i Jh_i Jh_j^T S_j^T.
+
+Views of the example and of generated plates and skins are rendered as ``benchmarks.detector_precision`` does
+(sensor noise, true poses; every uncoded dot's detected centre against the true projection plus the ellipse's
+eccentricity), ``--repeats`` times each with fresh noise. For every pair of observations of one target with a
+bound in both, ``e_i^T M_ij e_j`` and ``||M_ij||_F^2`` (``M_ij`` the model's matrix) are collected; ``rho`` is
+their least-squares ratio over the pairs of distinct views (method of moments), with a bootstrap over targets
+for its standard error. Also printed: the same on pairs of repeats of one view (the share of the bound the
+view's geometry fixes; the ceiling of what distinct views can share), ``rho`` by the angle between the two
+views' lines of sight (a common displacement seen through ``Jh`` gives one ``rho`` at every angle), and per
+part. ``--write`` stores ``rho_background`` (clipped to [0, 1]) with its figures and this command in
+``calibration/data/detector_precision.json`` (version 4).
+
+    .venv/bin/python -m benchmarks.background_share [--views 40] [--repeats 2] [--plates 3] [--skins 3] [--write]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from benchmarks.detector_precision import collect_each  # noqa: E402
+from calibration.bundle.coherent import fit_share, share_pairs, unit_projection  # noqa: E402
+from calibration.detector_model import DATA_PATH, load_model  # noqa: E402
+
+ANGLE_EDGES_DEG = (0, 10, 20, 30, 45, 60, 90, 180)
+
+
+def part_pairs(doc: dict, c: float) -> dict:
+    """:func:`share_pairs` of one part's collected rows (``benchmarks.detector_precision.collect``)."""
+    rows = doc["rows"]
+    k, t = rows[:, 0].astype(int), rows[:, 1].astype(int)
+    T, X = doc["cam_from_part"][k], doc["xyz"][t]
+    Jh, _ = unit_projection(T, X)
+    centre = -np.einsum("qba,qb->qa", T[:, :3, :3], T[:, :3, 3])
+    sight = centre - X
+    sight /= np.linalg.norm(sight, axis=1, keepdims=True)
+    B = rows[:, [7, 8, 8, 9]].reshape(-1, 2, 2)
+    return share_pairs(rows[:, 4:6], c * c * B, Jh, t, k, sight)
+
+
+def _fmt(num, den, tgt, min_targets=20) -> tuple[str, float | None, float | None]:
+    try:
+        r, s = fit_share(num, den, tgt, min_targets=min_targets)
+    except ValueError:
+        return "   (too few targets)", None, None
+    return f"{r:6.3f} +- {s:5.3f}", r, s
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--views", type=int, default=40)
+    ap.add_argument("--repeats", type=int, default=2)
+    ap.add_argument("--seed", type=int, default=100, help="first view seed (the model fit used 0-6)")
+    ap.add_argument("--plates", type=int, default=3)
+    ap.add_argument("--skins", type=int, default=3)
+    ap.add_argument("--write", action="store_true", help=f"store rho_background in {DATA_PATH}")
+    ap.add_argument("--rows", help="an .npz to keep the rendered rows in (or to read them from when it exists: "
+                                   "the views' arguments are then those of the run that wrote it)")
+    a = ap.parse_args(argv)
+    t0 = time.perf_counter()
+    model = load_model()
+    c = model.c_background
+    if c <= 0:
+        print(f"{DATA_PATH}: c_background is {c}: nothing to share", file=sys.stderr)
+        return 2
+    if a.rows and Path(a.rows).exists():  # the rendered rows of an earlier run (--rows), analysed again
+        with np.load(a.rows, allow_pickle=False) as z:
+            each = [(str(z[f"name{p}"]), {"rows": z[f"rows{p}"], "cam_from_part": z[f"poses{p}"], "xyz": z[f"xyz{p}"]})
+                    for p in range(int(z["n"]))]
+    else:
+        each = collect_each(a.views, a.repeats, a.seed, a.plates, a.skins)
+        if a.rows:
+            np.savez_compressed(a.rows, n=len(each), **{f"{k}{p}": v for p, (name, doc) in enumerate(each) for k, v in
+                                                        (("name", name), ("rows", doc["rows"]),
+                                                         ("poses", doc["cam_from_part"]), ("xyz", doc["xyz"]))})
+    parts = []
+    for p, (name, doc) in enumerate(each):
+        pr = part_pairs(doc, c)
+        pr["target"] = pr["target"].astype(np.int64) + p * 1_000_000  # a target of one part
+        parts.append(pr)
+    pairs = {key: np.concatenate([pr[key] for pr in parts]) for key in parts[0]}
+    n_rows = sum(len(doc["rows"]) for _, doc in each)
+    n_bound = sum(int(np.any(doc["rows"][:, 7:10] != 0, axis=1).sum()) for _, doc in each)
+    d = ~pairs["same_view"].astype(bool)
+    print(f"{n_rows} dot images from {len(each)} parts x {a.views} views x {a.repeats} "
+          f"({time.perf_counter() - t0:.0f} s); {n_bound} with a background bound; c_background {c:.3f}")
+    print(f"pairs of distinct views: {d.sum()} over {len(np.unique(pairs['target'][d]))} targets")
+    rho, sig = fit_share(pairs["num"][d], pairs["den"][d], pairs["target"][d])
+    print(f"rho_background = {rho:.3f} +- {sig:.3f} (bootstrap over targets)")
+    same = None
+    if (~d).any():
+        txt, r, s = _fmt(pairs["num"][~d], pairs["den"][~d], pairs["target"][~d])
+        same = None if r is None else {"rho": r, "sigma": s, "n_pairs": int((~d).sum())}
+        print(f"  repeats of one view (the share the view's geometry fixes): {txt} ({(~d).sum()} pairs)")
+    print("  by the angle between the two lines of sight:")
+    by_angle = []
+    for lo, hi in zip(ANGLE_EDGES_DEG[:-1], ANGLE_EDGES_DEG[1:]):
+        m = d & (pairs["angle_deg"] >= lo) & (pairs["angle_deg"] < hi)
+        if not m.any():
+            continue
+        txt, r, s = _fmt(pairs["num"][m], pairs["den"][m], pairs["target"][m], min_targets=10)
+        nt = len(np.unique(pairs["target"][m]))
+        print(f"    {lo:3d}-{hi:<3d} deg: {txt}  ({m.sum()} pairs, {nt} targets)")
+        by_angle.append({"angle_deg": [lo, hi], "rho": r, "sigma": s, "n_pairs": int(m.sum()), "n_targets": nt})
+    print("  per part:")
+    per_part = []
+    for (name, _), pr in zip(each, parts):
+        m = ~pr["same_view"].astype(bool)
+        txt, r, s = _fmt(pr["num"][m], pr["den"][m], pr["target"][m], min_targets=5)
+        print(f"    {name:32s}: {txt}  ({len(np.unique(pr['target'][m]))} targets)")
+        per_part.append({"part": name, "rho": r, "sigma": s, "n_targets": int(len(np.unique(pr["target"][m])))})
+    if rho < 0 or rho > 1:
+        print(f"  note: {rho:.3f} is outside [0, 1]; stored clipped")
+    if a.write:
+        doc = json.loads(DATA_PATH.read_text())
+        doc |= {"version": "4", "rho_background": float(np.clip(rho, 0.0, 1.0)), "rho_background_sigma": sig,
+                "rho_background_measured_by": f"python -m benchmarks.background_share --views {a.views} --repeats "
+                                              f"{a.repeats} --seed {a.seed} --plates {a.plates} --skins {a.skins} --write",
+                "rho_background_detail": {"raw": rho, "c_background": c, "n_pairs": int(d.sum()),
+                                          "n_targets": int(len(np.unique(pairs["target"][d]))),
+                                          "repeats_of_one_view": same, "by_angle": by_angle, "per_part": per_part}}
+        DATA_PATH.write_text(json.dumps(doc, indent=1) + "\n")
+        print(f"written {DATA_PATH}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
