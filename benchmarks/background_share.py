@@ -36,13 +36,15 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.detector_precision import collect_each  # noqa: E402
 from calibration.bundle.coherent import fit_share, share_pairs, unit_projection  # noqa: E402
-from calibration.detector_model import DATA_PATH, load_model  # noqa: E402
+from calibration.detector_model import DATA_PATH, load_model, observation_covariances  # noqa: E402
 
 ANGLE_EDGES_DEG = (0, 10, 20, 30, 45, 60, 90, 180)
 
 
-def part_pairs(doc: dict, c: float) -> dict:
-    """:func:`share_pairs` of one part's collected rows (``benchmarks.detector_precision.collect``)."""
+def part_pairs(doc: dict, model, whiten: bool = True) -> dict:
+    """:func:`share_pairs` of one part's collected rows (``benchmarks.detector_precision.collect``), whitened by
+    the covariance the bundle would weight each observation with (``whiten``; the detector model's sigma for the
+    dot's incidence and size, its saturation term, ``c^2 B``)."""
     rows = doc["rows"]
     k, t = rows[:, 0].astype(int), rows[:, 1].astype(int)
     T, X = doc["cam_from_part"][k], doc["xyz"][t]
@@ -51,7 +53,11 @@ def part_pairs(doc: dict, c: float) -> dict:
     sight = centre - X
     sight /= np.linalg.norm(sight, axis=1, keepdims=True)
     B = rows[:, [7, 8, 8, 9]].reshape(-1, 2, 2)
-    return share_pairs(rows[:, 4:6], c * c * B, Jh, t, k, sight)
+    C = None
+    if whiten:
+        sigma = model.sigma_px(np.radians(rows[:, 2]), rows[:, 3])
+        C = observation_covariances(sigma, B, model, clipped_share=rows[:, 10] / np.maximum(rows[:, 11], 1.0))
+    return share_pairs(rows[:, 4:6], model.c_background**2 * B, Jh, t, k, sight, C)
 
 
 def _fmt(num, den, tgt, min_targets=20) -> tuple[str, float | None, float | None]:
@@ -83,18 +89,22 @@ def main(argv: list[str] | None = None) -> int:
         with np.load(a.rows, allow_pickle=False) as z:
             each = [(str(z[f"name{p}"]), {"rows": z[f"rows{p}"], "cam_from_part": z[f"poses{p}"], "xyz": z[f"xyz{p}"]})
                     for p in range(int(z["n"]))]
+            a.views, a.repeats, a.seed, a.plates, a.skins = (int(v) for v in z["args"])
     else:
         each = collect_each(a.views, a.repeats, a.seed, a.plates, a.skins)
         if a.rows:
-            np.savez_compressed(a.rows, n=len(each), **{f"{k}{p}": v for p, (name, doc) in enumerate(each) for k, v in
+            np.savez_compressed(a.rows, n=len(each), args=[a.views, a.repeats, a.seed, a.plates, a.skins],
+                                **{f"{k}{p}": v for p, (name, doc) in enumerate(each) for k, v in
                                                         (("name", name), ("rows", doc["rows"]),
                                                          ("poses", doc["cam_from_part"]), ("xyz", doc["xyz"]))})
-    parts = []
+    parts, plain = [], []
     for p, (name, doc) in enumerate(each):
-        pr = part_pairs(doc, c)
-        pr["target"] = pr["target"].astype(np.int64) + p * 1_000_000  # a target of one part
-        parts.append(pr)
+        for whiten, out in ((True, parts), (False, plain)):
+            pr = part_pairs(doc, model, whiten)
+            pr["target"] = pr["target"].astype(np.int64) + p * 1_000_000  # a target of one part
+            out.append(pr)
     pairs = {key: np.concatenate([pr[key] for pr in parts]) for key in parts[0]}
+    unw = {key: np.concatenate([pr[key] for pr in plain]) for key in plain[0]}
     n_rows = sum(len(doc["rows"]) for _, doc in each)
     n_bound = sum(int(np.any(doc["rows"][:, 7:10] != 0, axis=1).sum()) for _, doc in each)
     d = ~pairs["same_view"].astype(bool)
@@ -102,7 +112,21 @@ def main(argv: list[str] | None = None) -> int:
           f"({time.perf_counter() - t0:.0f} s); {n_bound} with a background bound; c_background {c:.3f}")
     print(f"pairs of distinct views: {d.sum()} over {len(np.unique(pairs['target'][d]))} targets")
     rho, sig = fit_share(pairs["num"][d], pairs["den"][d], pairs["target"][d])
-    print(f"rho_background = {rho:.3f} +- {sig:.3f} (bootstrap over targets)")
+    print(f"rho_background = {rho:.3f} +- {sig:.3f} (moments whitened by the bundle's weights; bootstrap over targets)")
+    rho_u, sig_u = fit_share(unw["num"][d], unw["den"][d], unw["target"][d])
+    print(f"  unwhitened least squares: {rho_u:.3f} +- {sig_u:.3f} (weighted with the 4th power of the bounds)")
+    bmax = np.sqrt(unw["den"] ** 0.5 / 2)  # ~ c sqrt(B / 2) of the pair (px): ||M||_F ~ |S_i| |S_j|
+    by_bound = []
+    print("  by the pair's bound (sqrt of ||M_ij||_F / 2, px): whitened | unwhitened")
+    for lo, hi in ((0, 0.02), (0.02, 0.05), (0.05, 0.1), (0.1, 0.2), (0.2, np.inf)):
+        m = d & (bmax >= lo) & (bmax < hi)
+        if m.sum() < 10:
+            continue
+        txt, r, s = _fmt(pairs["num"][m], pairs["den"][m], pairs["target"][m], min_targets=10)
+        txt_u, r_u, _ = _fmt(unw["num"][m], unw["den"][m], unw["target"][m], min_targets=10)
+        print(f"    {lo:4.2f}-{hi:<4.2f}: {txt} | {txt_u}  ({m.sum()} pairs)")
+        by_bound.append({"bound_px": [lo, hi if np.isfinite(hi) else None], "rho": r, "sigma": s, "rho_unwhitened": r_u,
+                         "n_pairs": int(m.sum())})
     same = None
     if (~d).any():
         txt, r, s = _fmt(pairs["num"][~d], pairs["den"][~d], pairs["target"][~d])
@@ -133,6 +157,7 @@ def main(argv: list[str] | None = None) -> int:
                 "rho_background_measured_by": f"python -m benchmarks.background_share --views {a.views} --repeats "
                                               f"{a.repeats} --seed {a.seed} --plates {a.plates} --skins {a.skins} --write",
                 "rho_background_detail": {"raw": rho, "c_background": c, "n_pairs": int(d.sum()),
+                                          "unwhitened": {"rho": rho_u, "sigma": sig_u}, "by_bound": by_bound,
                                           "n_targets": int(len(np.unique(pairs["target"][d]))),
                                           "repeats_of_one_view": same, "by_angle": by_angle, "per_part": per_part}}
         DATA_PATH.write_text(json.dumps(doc, indent=1) + "\n")

@@ -147,7 +147,7 @@ def _drawn_errors(rng, rho, n_targets=200, n_views=6, c=0.27):
     for ``n_targets`` targets seen in ``n_views`` views each (some without a bound); the rows share_pairs takes."""
     from calibration.bundle.coherent import unit_projection
 
-    rows = {"e": [], "bound": [], "Jh": [], "target": [], "view": []}
+    rows = {"e": [], "bound": [], "Jh": [], "target": [], "view": [], "cov": []}
     for t in range(n_targets):
         poses = _views(rng, n_views, spread_deg=35.0)
         X = np.zeros((n_views, 3))
@@ -160,7 +160,7 @@ def _drawn_errors(rng, rho, n_targets=200, n_views=6, c=0.27):
              + np.sqrt(1 - rho) * np.einsum("qab,qb->qa", S, rng.normal(size=(n_views, 2)))
              + rng.normal(0, 0.006, (n_views, 2)))
         for key, v in (("e", e), ("bound", c * c * B), ("Jh", Jh), ("target", np.full(n_views, t)),
-                       ("view", np.arange(n_views))):
+                       ("view", np.arange(n_views)), ("cov", 0.006**2 * np.eye(2) + c * c * B)):
             rows[key].append(v)
     return {k: np.concatenate(v) for k, v in rows.items()}
 
@@ -172,11 +172,12 @@ def test_the_shared_share_is_recovered_from_errors_drawn_from_the_model(rho):
     from calibration.bundle.coherent import fit_share, share_pairs
 
     r = _drawn_errors(np.random.default_rng(int(rho * 10)), rho, n_targets=300)
-    p = share_pairs(r["e"], r["bound"], r["Jh"], r["target"], r["view"])
-    assert not np.any(p["same_view"]) and len(p["num"]) > 1000
-    est, sig = fit_share(p["num"], p["den"], p["target"])
-    assert 0.02 < sig < 0.15, sig  # a measurement, not an exact echo
-    assert abs(est - rho) < 3 * sig, (est, sig)
+    for cov in (None, r["cov"]):  # plain least squares, and whitened by the bundle's weights (the benchmark's)
+        p = share_pairs(r["e"], r["bound"], r["Jh"], r["target"], r["view"], obs_cov=cov)
+        assert not np.any(p["same_view"]) and len(p["num"]) > 1000
+        est, sig = fit_share(p["num"], p["den"], p["target"])
+        assert 0.02 < sig < 0.15, sig  # a measurement, not an exact echo
+        assert abs(est - rho) < 3 * sig, (est, sig)
     with pytest.raises(ValueError, match="at least 20"):  # too few targets is said, not estimated
         fit_share(p["num"][:30], p["den"][:30], p["target"][:30])
 

@@ -16,8 +16,11 @@ keeps the variance the detector stated). The adjusted point moves by ``N^-1 sum_
 sum J_i^T W_i J_i``, ``W_i`` the inverse covariance the bundle weighted the observation with). Its covariance is
 ``N^-1 G G^T N^-T`` with ``G = sum_i J_i^T W_i S_i Jh_i``; the bundle already states the independent part
 ``N^-1 sum_i g_i g_i^T N^-T`` (``g_i`` the terms of ``G``); the difference, the cross terms between views,
-is what is added (its positive part only: the statement never shrinks). The share of the misfit that is common
-is taken as one (the surroundings do not change between views; the conservative limit).
+is what is added (its positive part only: the statement never shrinks), scaled by the share ``rho`` of the
+misfit that the views have in common: ``E[e_i e_j^T] = rho S_i Jh_i Jh_j^T S_j^T`` for views ``i != j``. Decision
+0029 took ``rho = 1`` (the surroundings do not change between views: the conservative limit); decision 0032
+measures it against the rendered truth (:func:`share_pairs`, :func:`fit_share`, ``benchmarks/background_share.py``)
+and the detector model carries it (``rho_background``; one for a model file without it).
 """
 from __future__ import annotations
 
@@ -131,10 +134,16 @@ def scale_bar_gains(cov, points: np.ndarray, bars) -> tuple[np.ndarray, np.ndarr
 
 
 def share_pairs(errors_px: np.ndarray, bound_px2: np.ndarray, Jh: np.ndarray, target: np.ndarray, view: np.ndarray,
-                sight: np.ndarray | None = None) -> dict:
+                sight: np.ndarray | None = None, obs_cov: np.ndarray | None = None) -> dict:
     """The moments behind the shared share: for every pair of observations of one target, both with a background
     bound, the observed cross product ``e_i^T M_ij e_j`` and the model's ``||M_ij||_F^2``, ``M_ij = S_i Jh_i Jh_j^T
     S_j`` (``E[e_i e_j^T] = rho M_ij`` for distinct views; ``S`` the square root of the bound ``c^2 B``).
+
+    With ``obs_cov`` (``(q, 2, 2)`` px^2, the covariance the bundle weights each observation with) the moments are
+    whitened by it (``e -> C^-1/2 e``, ``M_ij -> C_i^-1/2 M_ij C_j^-1/2``): each pair then counts as much as the
+    weighted intersection lets it move the point, not with the fourth power of its bound. Unwhitened, a few dots
+    with bounds far above their error (c sqrt(B) of 0.2 px and more against 0.1 px realised) take nearly all the
+    weight (decision 0032).
 
     Args:
         errors_px: (q, 2) centres against the true projection (eccentricity removed); ``bound_px2: (q, 2, 2)`` the
@@ -142,14 +151,20 @@ def share_pairs(errors_px: np.ndarray, bound_px2: np.ndarray, Jh: np.ndarray, ta
         Jh: (q, 2, 3) unit-scale projections (:func:`unit_projection`); ``target, view: (q,)`` integer labels (the
             same view rendered again with fresh noise keeps its label: such pairs are marked ``same_view``).
         sight: (q, 3) unit lines of sight (optional): the pairs' angle between them, degrees.
+        obs_cov: (q, 2, 2) px^2 the observations' a priori covariance (optional): whiten the moments by it.
     Returns:
         dict of ``(p,)`` arrays ``target, num, den, same_view`` (and ``angle_deg``).
     """
     e = np.asarray(errors_px, dtype=float)
     S = _sqrt_psd(np.asarray(bound_px2, dtype=float).reshape(-1, 2, 2))
     has = np.trace(S, axis1=1, axis2=2) > 0
-    a = np.einsum("qba,qbc,qc->qa", Jh, S, e)  # Jh^T S e (3,)
-    A = np.einsum("qba,qbc,qcd->qad", Jh, S @ S, Jh)  # Jh^T S^2 Jh (3, 3)
+    if obs_cov is None:
+        a = np.einsum("qba,qbc,qc->qa", Jh, S, e)  # Jh^T S e (3,)
+        A = np.einsum("qba,qbc,qcd->qad", Jh, S @ S, Jh)  # Jh^T S^2 Jh (3, 3)
+    else:  # F = C^-1/2 S Jh: a = F^T C^-1/2 e = Jh^T S C^-1 e, A = F^T F = Jh^T S C^-1 S Jh
+        Ci = np.linalg.inv(np.asarray(obs_cov, dtype=float).reshape(-1, 2, 2))
+        a = np.einsum("qba,qbc,qcd,qd->qa", Jh, S, Ci, e)
+        A = np.einsum("qba,qbc,qcd->qad", Jh, S @ Ci @ S, Jh)
     target, view = np.asarray(target), np.asarray(view)
     out: dict[str, list] = {"target": [], "num": [], "den": [], "same_view": [], "angle_deg": []}
     idx = np.flatnonzero(has)
