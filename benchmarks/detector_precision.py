@@ -237,6 +237,15 @@ def main(argv: list[str] | None = None) -> int:
             "c_background_dots": {"n": int(flagged.sum()), "normalised_rms": float(np.sqrt(np.mean(zf**2)))
                                   if flagged.any() else None},
             "saturation_dots": {"n": int(cs.sum()), "normalised_rms": float(np.sqrt(np.mean(zs**2))) if cs.any() else None}}
+        # the share of the misfit the views have in common is measured by benchmarks/background_share.py with the
+        # stored c_background: kept, and to be measured again when c changed (decision 0032)
+        old = json.loads(DATA_PATH.read_text())
+        kept = {k: v for k, v in old.items() if k.startswith("rho_background")}
+        if kept:
+            doc |= kept | {"version": "4"}
+            print(f"rho_background {kept['rho_background']:.3f} kept from {DATA_PATH.name} (measured with c_background "
+                  f"{old.get('c_background', float('nan')):.3f}; now {c_bg:.3f}): measure it again with "
+                  "python -m benchmarks.background_share --write when c changed")
         DATA_PATH.write_text(json.dumps(doc, indent=1) + "\n")
         print(f"written {DATA_PATH}")
     return 0
