@@ -29,16 +29,18 @@ import json
 import sys
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.detector_precision import collect_each  # noqa: E402
-from calibration.bundle.coherent import fit_share, share_pairs, unit_projection  # noqa: E402
+from calibration.bundle.coherent import coherent_background_cov, fit_share, share_pairs, unit_projection  # noqa: E402
 from calibration.detector_model import DATA_PATH, load_model, observation_covariances  # noqa: E402
 
 ANGLE_EDGES_DEG = (0, 10, 20, 30, 45, 60, 90, 180)
+CHI2_99_3 = 11.344866730144373  # the 99 % quantile of chi^2 with 3 degrees of freedom
 
 
 def part_pairs(doc: dict, model, whiten: bool = True) -> dict:
@@ -58,6 +60,42 @@ def part_pairs(doc: dict, model, whiten: bool = True) -> dict:
         sigma = model.sigma_px(np.radians(rows[:, 2]), rows[:, 3])
         C = observation_covariances(sigma, B, model, clipped_share=rows[:, 10] / np.maximum(rows[:, 11], 1.0))
     return share_pairs(rows[:, 4:6], model.c_background**2 * B, Jh, t, k, sight, C)
+
+
+def point_check(doc: dict, model, shares) -> tuple[np.ndarray, int]:
+    """What the share does to a target's statement, as the truth figures judge it: each target with a bound in two
+    views or more (first rendering of each view only) is intersected from all its views by weighted least squares
+    with the true poses; its error against the truth is compared with the covariance ADJUST states (the independent
+    ``N^-1`` plus :func:`coherent_background_cov` with each share). ``(len(shares), k)`` m^2 per share and target;
+    the number of targets."""
+    rows = doc["rows"][doc["rows"][:, 6] == 0]
+    k, t = rows[:, 0].astype(int), rows[:, 1].astype(int)
+    B = rows[:, [7, 8, 8, 9]].reshape(-1, 2, 2)
+    flagged = np.any(B != 0, axis=(1, 2))
+    todo = np.bincount(t[flagged], minlength=len(doc["xyz"])) >= 2
+    sel = todo[t]
+    k, t, B, rows = k[sel], t[sel], B[sel], rows[sel]
+    if not len(rows):
+        return np.zeros((len(shares), 0)), 0
+    sigma = model.sigma_px(np.radians(rows[:, 2]), rows[:, 3])
+    C = observation_covariances(sigma, B, model, clipped_share=rows[:, 10] / np.maximum(rows[:, 11], 1.0))
+    W = np.linalg.inv(C)
+    T, X = doc["cam_from_part"][k], doc["xyz"][t]
+    Jh, depth = unit_projection(T, X)
+    J = Jh * (np.array([doc["fx_px"], doc["fy_px"]])[None, :, None] / depth[:, None, None])
+    n = len(doc["xyz"])
+    N, b = np.zeros((n, 3, 3)), np.zeros((n, 3))
+    np.add.at(N, t, np.einsum("qba,qbc,qcd->qad", J, W, J))
+    np.add.at(b, t, np.einsum("qba,qbc,qc->qa", J, W, rows[:, 4:6]))
+    idx = np.flatnonzero(todo)
+    Ni = np.linalg.inv(N[idx])
+    delta = np.einsum("kab,kb->ka", Ni, b[idx])
+    intr = SimpleNamespace(fx_px=doc["fx_px"], fy_px=doc["fy_px"])
+    out = []
+    for share in shares:
+        E = coherent_background_cov(intr, doc["cam_from_part"], doc["xyz"], k, t, C, B, model.c_background, share)
+        out.append(np.einsum("ka,kab,kb->k", delta, np.linalg.inv(Ni + E[idx]), delta))
+    return np.array(out), len(idx)
 
 
 def _fmt(num, den, tgt, min_targets=20) -> tuple[str, float | None, float | None]:
@@ -87,7 +125,8 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     if a.rows and Path(a.rows).exists():  # the rendered rows of an earlier run (--rows), analysed again
         with np.load(a.rows, allow_pickle=False) as z:
-            each = [(str(z[f"name{p}"]), {"rows": z[f"rows{p}"], "cam_from_part": z[f"poses{p}"], "xyz": z[f"xyz{p}"]})
+            each = [(str(z[f"name{p}"]), {"rows": z[f"rows{p}"], "cam_from_part": z[f"poses{p}"], "xyz": z[f"xyz{p}"],
+                                          "fx_px": float(z[f"f{p}"][0]), "fy_px": float(z[f"f{p}"][1])})
                     for p in range(int(z["n"]))]
             a.views, a.repeats, a.seed, a.plates, a.skins = (int(v) for v in z["args"])
     else:
@@ -96,6 +135,7 @@ def main(argv: list[str] | None = None) -> int:
             np.savez_compressed(a.rows, n=len(each), args=[a.views, a.repeats, a.seed, a.plates, a.skins],
                                 **{f"{k}{p}": v for p, (name, doc) in enumerate(each) for k, v in
                                                         (("name", name), ("rows", doc["rows"]),
+                                                         ("f", [doc["fx_px"], doc["fy_px"]]),
                                                          ("poses", doc["cam_from_part"]), ("xyz", doc["xyz"]))})
     parts, plain = [], []
     for p, (name, doc) in enumerate(each):
@@ -149,6 +189,14 @@ def main(argv: list[str] | None = None) -> int:
         txt, r, s = _fmt(pr["num"][m], pr["den"][m], pr["target"][m], min_targets=5)
         print(f"    {name:32s}: {txt}  ({len(np.unique(pr['target'][m]))} targets)")
         per_part.append({"part": name, "rho": r, "sigma": s, "n_targets": int(len(np.unique(pr["target"][m])))})
+    shares = (0.0, float(np.clip(rho, 0.0, 1.0)), 1.0)
+    m2 = np.concatenate([point_check(doc, model, shares)[0] for _, doc in each], axis=1)
+    check = [{"share": sh, "ratio": float(np.sqrt(np.mean(m) / 3)), "inside_99": float(np.mean(m <= CHI2_99_3))}
+             for sh, m in zip(shares, m2)]
+    print(f"  targets with a bound in two views or more, intersected with the true poses from their views ({m2.shape[1]};"
+          " one rendering of each view): sqrt(mean m^2 / 3) and share inside the 99 % ellipsoid")
+    for ck in check:
+        print(f"    share {ck['share']:.2f}: {ck['ratio']:.3f}, {100 * ck['inside_99']:.1f} %")
     if rho < 0 or rho > 1:
         print(f"  note: {rho:.3f} is outside [0, 1]; stored clipped")
     if a.write:
@@ -158,6 +206,7 @@ def main(argv: list[str] | None = None) -> int:
                                               f"{a.repeats} --seed {a.seed} --plates {a.plates} --skins {a.skins} --write",
                 "rho_background_detail": {"raw": rho, "c_background": c, "n_pairs": int(d.sum()),
                                           "unwhitened": {"rho": rho_u, "sigma": sig_u}, "by_bound": by_bound,
+                                          "intersection_check": check,
                                           "n_targets": int(len(np.unique(pairs["target"][d]))),
                                           "repeats_of_one_view": same, "by_angle": by_angle, "per_part": per_part}}
         DATA_PATH.write_text(json.dumps(doc, indent=1) + "\n")

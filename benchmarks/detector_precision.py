@@ -94,7 +94,8 @@ def collect(n_views: int, repeats: int, seed: int = 0, job_path: Path = JOB) -> 
             sat, area = det.saturated[j[ok]], det.area_px[j[ok]]
             for t_, a_, s_, (eu, ev), b, ns, ar in zip(tid[ok], inc, dpx, e, B, sat, area):
                 rows.append((k, int(t_), float(a_), float(s_), float(eu), float(ev), r, b[0, 0], b[0, 1], b[1, 1], ns, ar))
-    return {"rows": np.array(rows, dtype=float).reshape(-1, 12), "fx_px": intr.fx_px, "diameter_m": 2 * radius,
+    return {"rows": np.array(rows, dtype=float).reshape(-1, 12), "fx_px": intr.fx_px, "fy_px": intr.fy_px,
+            "diameter_m": 2 * radius,
             "cam_from_part": poses, "xyz": xyz}
 
 
