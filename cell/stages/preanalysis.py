@@ -184,12 +184,9 @@ def adjust_prediction(job, part_from_cam: np.ndarray, rays: PredictedRays) -> tu
 
     Returns the predicted covariance ``(n, 3, 3)`` (m^2, a priori variance) and what the shared misfit added.
     Raises CalibrationError when the network cannot be adjusted (e.g. an image with fewer than 3 targets)."""
-    from calibration.bundle import BundleOptions, bundle_adjust
-    from calibration.bundle.coherent import scale_bar_gains
-    from calibration.detector_model import observation_covariances, observation_sigmas
-    from cell.stages.adjust import _add_coherent_background, bundle_config
+    from cell.stages.adjust import WILD_SIGMA_FACTOR
+    from cell.stages.screen import screen_network
 
-    s = job.spec
     poses = np.array([invert(T) for T in part_from_cam])
     xyz = job.part.targets.xyz
     order = np.lexsort((rays.obs_target, rays.obs_image))  # image by image, as the bundle groups them
@@ -198,13 +195,51 @@ def adjust_prediction(job, part_from_cam: np.ndarray, rays: PredictedRays) -> tu
     for i in np.unique(img):
         sel = img == i
         uv[sel] = project(job.intrinsics, poses[i], xyz[tgt[sel]])
+    # what ADJUST's screening will drop (a target with one ray or nearly parallel ones, an image with too few dots,
+    # a block not linked to the rest), then a target the adjustment cannot determine, as ADJUST drops it
+    ids = list(job.part.targets.ids)
+    scale_pair = tuple(job.scale_bar[:2]) if job.scale_bar is not None else None
+    drop: dict[int, str] = {}
+    for _ in range(3):
+        scr = screen_network(img, tgt, uv, job.intrinsics, poses, len(xyz), scale_pair=scale_pair, drop_targets=drop,
+                             ids=ids)
+        if scr.keep_images.sum() < 2:
+            raise CalibrationError("pre-analysis: fewer than 2 images usable")
+        cov, added = _adjust_exact(job, poses, img, tgt, uv, scr, rays, order)
+        tr = np.trace(cov, axis1=1, axis2=2)
+        sig = np.sqrt(np.where(np.isfinite(tr) & (tr > 0), tr, np.nan))
+        wild = (np.flatnonzero(sig > WILD_SIGMA_FACTOR * np.nanmedian(sig)) if np.isfinite(sig).sum() >= 3
+                else np.zeros(0, dtype=int))
+        if not wild.size:
+            break
+        drop.update({int(t): f"sigma beyond {WILD_SIGMA_FACTOR:g} x the median" for t in wild})
+    added["screened_targets"] = sorted(ids[t] for t in scr.targets)
+    added["screened_images"] = int((~scr.keep_images).sum())
+    return cov, added
+
+
+def _adjust_exact(job, poses, img, tgt, uv, scr, rays: PredictedRays, order) -> tuple[np.ndarray, dict]:
+    """One adjustment of the exact observations the screening kept (NaN covariance for the targets it dropped)."""
+    from calibration.bundle import BundleOptions, bundle_adjust
+    from calibration.bundle.coherent import scale_bar_gains
+    from calibration.detector_model import observation_covariances, observation_sigmas
+    from cell.stages.adjust import _add_coherent_background, bundle_config
+
+    s = job.spec
+    xyz = job.part.targets.xyz
+    kept = np.flatnonzero(scr.keep_images)
+    new_index = np.full(len(poses), -1)
+    new_index[kept] = np.arange(len(kept))
+    sel = scr.keep_obs & scr.keep_images[img]
+    poses = poses[kept]
+    img, tgt, uv = new_index[img[sel]], tgt[sel], uv[sel]
     sig = observation_sigmas(xyz, job.part.targets.normals, poses, img, tgt, job.intrinsics.fx_px,
                              job.part.target_diameter_m, noise_scale=s.sim.noise if s.cell.backend == "sim" else 1.0)
     sig = np.maximum(sig, 1e-4)
-    bg = None if rays.bg_cov is None else rays.bg_cov[order]
-    clip = None if rays.clipped_share is None else rays.clipped_share[order]
+    bg = None if rays.bg_cov is None else rays.bg_cov[order][sel]
+    clip = None if rays.clipped_share is None else rays.clipped_share[order][sel]
     obs_sigma = sig if bg is None and clip is None else observation_covariances(sig, bg, clipped_share=clip)
-    config = bundle_config(job)
+    config = bundle_config(job, scale=scr.scale_ok)
     res = bundle_adjust(img, tgt, uv, job.intrinsics, poses, xyz,
                         BundleOptions(sigma_px=float(np.sqrt(np.mean(sig**2))), a_posteriori=False, snooping=False),
                         config, obs_sigma_px=obs_sigma)
@@ -247,6 +282,8 @@ def measurement_prediction(job, part_from_cam: np.ndarray, progress=None, cache_
                           if rays.method == "rendered" else "geometric visibility (incidence up to 85 deg)")
     if fallback:
         facts["fallback"] = fallback
+    facts["screened_targets"] = added.pop("screened_targets", [])  # ADJUST's screening will drop them too
+    facts["screened_images"] = added.pop("screened_images", 0)
     if added:
         facts["shared_misfit_targets"] = added.get("n_targets", 0)
         facts["scale_bar_ends"] = added.get("scale_bar_ends", [])
