@@ -19,7 +19,7 @@ shading next to it) carries a further error the geometry cannot predict; the det
 bound to the model's variance (:func:`observation_covariances`); ``c`` (``c_background``), the share of the
 bound that such errors reach on average, is measured by ``benchmarks/detector_precision.py --fit-background``
 against the simulated truth (docs/decisions/0023). The share of that error a target's views have in common
-(``rho_background``; ADJUST adds the cross terms between the views, calibration/bundle/coherent.py) is measured by
+(``rho_background``; ADJUST adds the cross terms between the views, calibration/bundle/coherent.py) comes from
 ``benchmarks/background_share.py`` (decision 0032); a model file without it (before version 4) gives one.
 
 A dot the sensor clips (its pixels at the ceiling: an exposure too bright for a near station) is centred with
@@ -65,9 +65,10 @@ class DetectorModel:
     #: (None: not recorded); :meth:`sigma_px_measured` does not extrapolate beyond them
     incidence_range_deg: tuple[float, float] | None = None
     diameter_range_px: tuple[float, float] | None = None
-    #: the share of a dot's background misfit (``c^2 B``) that its views have in common, measured against the
-    #: rendered truth by ``benchmarks/background_share.py`` (decision 0032); None: not in the model file (a model
-    #: before version 4), :attr:`shared_share` then takes the conservative limit one
+    #: the share of a dot's background misfit (``c^2 B``) that ADJUST takes as common to its views, from the
+    #: rendered truth by ``benchmarks/background_share.py`` (decision 0032: the pairs' moments, and the intersections
+    #: that say whether the statement built with it covers the errors); None: not in the model file (a model before
+    #: version 4), :attr:`shared_share` then takes the conservative limit one
     rho_background: float | None = None
 
     @property
