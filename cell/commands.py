@@ -19,7 +19,10 @@ def _human_check(doc: dict, out) -> None:
     out.say(f"camera {c['width']} x {c['height']} px, f = {c['fx_px']:.1f} px, sigma {c['sigma_px']} px")
     out.say(f"cell   {doc['cell']['robot']} ({doc['cell']['backend']}), {doc['cell']['obstacles']} obstacle(s)")
     r = doc.get("measurability")
-    if r:
+    if r and r["unmeasurable"]:
+        for w in doc.get("warnings", []):
+            out.say(f"reach  WARNING {w}")
+    elif r:
         out.say(f"reach  every target seen by >= {r['min_rays']} of {r['reachable']} reachable candidate stations "
                 f"({r['candidates']} on the viewing sphere)")
     if "plan" in doc:
@@ -40,11 +43,14 @@ def check(args, out) -> int:
     doc["measurability"] = reach
     if reach["unmeasurable"]:
         bad = reach["unmeasurable"]
-        raise JobSpecError(
-            f"{job.path}: {len(bad)} target(s) cannot be seen by [planning] min_rays = {reach['min_rays']} reachable "
-            f"stations (e.g. " + ", ".join(f"{t}: {reach['rays'][t]}" for t in bad[:5]) + "): lower [planning] "
-            "min_rays, raise [planning] incidence_max_deg, widen [planning] elevation_min_deg / elevation_max_deg, "
-            "or move the part ([cell] base_from_part)")
+        what = (f"{len(bad)} target(s) cannot be seen by [planning] min_rays = {reach['min_rays']} reachable "
+                f"stations (e.g. " + ", ".join(f"{t}: {reach['rays'][t]}" for t in bad[:5]) + ")")
+        if job.spec.planning.unmeasurable != "report":
+            raise JobSpecError(
+                f"{job.path}: {what}: lower [planning] min_rays, raise [planning] incidence_max_deg, widen [planning] "
+                "elevation_min_deg / elevation_max_deg, move the part ([cell] base_from_part), or set [planning] "
+                'unmeasurable = "report" to measure the others and report these not measured')
+        doc["warnings"] = [f"{what}: they will be reported not measured ([planning] unmeasurable = \"report\")"]
     if args.plan is not None:
         from cell.stages.validate import validate_plan_file
 

@@ -160,6 +160,13 @@ def run(ctx) -> None:
         pass
     ctx.say(f"  {len(p.station_ids)} stations; predicted sigma max {p.predicted_sigma_max_m * 1e6:.1f} um, "
             f"mean {p.predicted_sigma_mean_m * 1e6:.1f} um")
+    if p.unmeasurable_target_ids:  # [planning] unmeasurable = "report": planned for the others, said
+        bad = p.unmeasurable_target_ids
+        msg = (f"plan: {len(bad)} target(s) cannot be seen by [planning] min_rays = {ctx.job.spec.planning.min_rays} "
+               f"reachable stations ({', '.join(bad[:8])}{' ...' if len(bad) > 8 else ''}); planned for the others, "
+               "they will be reported not measured unless the images happen to measure them")
+        ctx.log.log("warning", msg)
+        ctx.say(f"  WARNING {msg}")
     weak = int(p.search.get("exact_unlinked") or 0)
     if weak:  # docs/decisions/0031: ADJUST may drop their images, or their block may hang on one image
         msg = (f"plan: {weak} station(s) share fewer than {p.search.get('link_targets')} targets with the rest of the "
