@@ -51,8 +51,16 @@ INCIDENCE_EDGES = (0, 20, 35, 50, 60, 65, 70, 75, 80, 86)
 SIZE_EDGES = (0, 14, 18, 22, 30, 100)
 
 
-def collect(n_views: int, repeats: int, seed: int = 0, job_path: Path = JOB) -> dict:
+def collect(n_views: int, repeats: int, seed: int = 0, job_path: Path = JOB, mask: bool = False) -> dict:
+    """Rows of detected-minus-true centres (see the module's doc). ``mask``: each image is also detected with the
+    CAD's surface labels at the true pose (``[camera] background_mask = "cad"``, decision 0035) and each row gets
+    6 more columns: that detection's error (eu, ev) and bound (b00, b01, b11), and whether the dot's surroundings
+    (radius + 7 px) see another surface (1) or not (0); a dot the masked detection lost has NaN there."""
     job = load(job_path)
+    labeller = None
+    if mask:
+        from cell.stages.surface_labels import SurfaceLabeller
+        labeller = SurfaceLabeller(job.part.mesh)
     sim = make_job_sim_cell(job)
     cam, world, intr = sim.camera, sim.world, job.intrinsics
     cam.rng = np.random.default_rng(seed)
@@ -78,6 +86,12 @@ def collect(n_views: int, repeats: int, seed: int = 0, job_path: Path = JOB) -> 
             sel = (kind != "coded") & ~np.isin(ids, truth["partial_ids"])
             if not sel.any() or len(det.uv) == 0:
                 continue
+            if labeller is not None:
+                tid_all = np.array([index[i] for i in ids[sel]], dtype=int)
+                uv_all = project(intr, cam_from_part, xyz[tid_all])
+                half = 0.5 * intr.fx_px * 2 * radius / (xyz[tid_all] @ cam_from_part[2, :3] + cam_from_part[2, 3]) + 7.0
+                labels = labeller.labels(intr, cam_from_part, uv_all, half)
+                det_m = detect_retro_targets(img, DetectionOptions(), labels=labels)
             tid = np.array([index[i] for i in ids[sel]], dtype=int)
             uv = (project(intr, cam_from_part, xyz[tid])
                   + eccentricity_bias(intr, cam_from_part, xyz[tid], nrm[tid], radius)
@@ -92,9 +106,25 @@ def collect(n_views: int, repeats: int, seed: int = 0, job_path: Path = JOB) -> 
             dpx = intr.fx_px * 2 * radius / Xc[:, 2]
             B = det.background_cov[j[ok]]
             sat, area = det.saturated[j[ok]], det.area_px[j[ok]]
-            for t_, a_, s_, (eu, ev), b, ns, ar in zip(tid[ok], inc, dpx, e, B, sat, area):
-                rows.append((k, int(t_), float(a_), float(s_), float(eu), float(ev), r, b[0, 0], b[0, 1], b[1, 1], ns, ar))
-    return {"rows": np.array(rows, dtype=float).reshape(-1, 12), "fx_px": intr.fx_px, "fy_px": intr.fy_px,
+            extra = np.zeros((int(ok.sum()), 0))
+            if labeller is not None:
+                extra = np.full((int(ok.sum()), 6), np.nan)
+                if len(det_m.uv):
+                    dm, jm = cKDTree(det_m.uv).query(uv[ok])
+                    hit = dm < 1.0
+                    extra[hit, :2] = det_m.uv[jm[hit]] - uv[ok][hit]
+                    extra[hit, 2:5] = det_m.background_cov[jm[hit]][:, [0, 0, 1], [0, 1, 1]]
+                c = np.round(uv[ok]).astype(int)
+                rad = np.ceil(0.5 * dpx + 7).astype(int)
+                for q in range(len(c)):
+                    y0, x0 = max(c[q, 1] - rad[q], 0), max(c[q, 0] - rad[q], 0)
+                    win = labels[y0:c[q, 1] + rad[q] + 1, x0:c[q, 0] + rad[q] + 1]
+                    own = labels[min(max(c[q, 1], 0), labels.shape[0] - 1), min(max(c[q, 0], 0), labels.shape[1] - 1)]
+                    extra[q, 5] = float(np.any((win != own) & (win != 0)))
+            for t_, a_, s_, (eu, ev), b, ns, ar, x_ in zip(tid[ok], inc, dpx, e, B, sat, area, extra):
+                rows.append((k, int(t_), float(a_), float(s_), float(eu), float(ev), r, b[0, 0], b[0, 1], b[1, 1], ns, ar,
+                             *x_))
+    return {"rows": np.array(rows, dtype=float).reshape(-1, 18 if mask else 12), "fx_px": intr.fx_px, "fy_px": intr.fy_px,
             "diameter_m": 2 * radius,
             "cam_from_part": poses, "xyz": xyz}
 
@@ -113,7 +143,8 @@ def class_table(rows: np.ndarray) -> list[dict]:
     return out
 
 
-def collect_each(n_views: int, repeats: int, seed: int, plates: int, skins: int = 0) -> list[tuple[str, dict]]:
+def collect_each(n_views: int, repeats: int, seed: int, plates: int, skins: int = 0,
+                 mask: bool = False) -> list[tuple[str, dict]]:
     """:func:`collect` on the example and on ``plates`` generated plates and ``skins`` generated skins
     (tests/partgen.py, seeds from 300 and 400), each part with its own view seed: ``(part name, collected)``."""
     from tests.partgen import make_part_job
@@ -124,7 +155,7 @@ def collect_each(n_views: int, repeats: int, seed: int, plates: int, skins: int 
             for k in range(count):
                 g = make_part_job(Path(tmp) / f"{kind}{k}", np.random.default_rng(first + k), kind)
                 parts.append((f"tests.partgen {kind} seed {first + k}", g.job))
-        return [(name, collect(n_views, repeats, seed + i, path)) for i, (name, path) in enumerate(parts)]
+        return [(name, collect(n_views, repeats, seed + i, path, mask)) for i, (name, path) in enumerate(parts)]
 
 
 def collect_parts(n_views: int, repeats: int, seed: int, plates: int, skins: int = 0) -> tuple[np.ndarray, list[str]]:
@@ -169,6 +200,45 @@ def measure_background(n_views: int, repeats: int, seed: int, plates: int, write
     return 0
 
 
+def compare_mask(n_views: int, repeats: int, seed: int, plates: int, skins: int) -> int:
+    """The same renders detected without and with the CAD's surface labels (decision 0035): per-observation error
+    against the true projection, by whether the dot's surroundings see another surface and whether the unmasked
+    detector bounded its background; normalised by the stored model with its c_background (each detection's own
+    bound), and the masked detector's c_background fitted by maximum likelihood with the geometry held."""
+    t0 = time.perf_counter()
+    model = load_model()
+    each = collect_each(n_views, repeats, seed, plates, skins, mask=True)
+    rows = np.vstack([doc["rows"] for _, doc in each])
+    got = np.isfinite(rows[:, 12])
+    print(f"{len(rows)} dot images from {len(each)} parts x {n_views} views x {repeats} ({time.perf_counter() - t0:.0f} s);"
+          f" {int((~got).sum())} lost by the masked detection")
+    rows = rows[got]
+    inc, d = rows[:, 2], rows[:, 3]
+    s2 = model.sigma_px(np.radians(inc), d) ** 2
+    B0 = rows[:, [7, 8, 8, 9]].reshape(-1, 2, 2)
+    B1 = rows[:, [14, 15, 15, 16]].reshape(-1, 2, 2)
+    c1 = fit_background(model, inc, d, rows[:, 12:14], B1) if np.any(B1 != 0) else 0.0
+    edge = rows[:, 17] > 0
+    f0 = np.any(B0 != 0, axis=(1, 2))
+    f1 = np.any(B1 != 0, axis=(1, 2))
+    print(f"model: {model.describe()}; masked fit c_background = {c1:.3f}")
+    print(f"{'dots':34s} {'n':>6s} {'rms none':>9s} {'rms cad':>9s} {'z none':>7s} {'z cad':>7s} {'z cad c1':>8s} "
+          f"{'bound none':>10s} {'bound cad':>9s}")
+    for name, m in (("all", np.ones(len(rows), bool)), ("near another surface", edge), ("  with a bound (none)", edge & f0),
+                    ("  without a bound (none)", edge & ~f0), ("not near another surface", ~edge),
+                    ("  with a bound (none)", ~edge & f0)):
+        if not m.any():
+            continue
+        z = []
+        for e, B, c in ((rows[m, 4:6], B0[m], model.c_background), (rows[m, 12:14], B1[m], model.c_background),
+                        (rows[m, 12:14], B1[m], c1)):
+            var = s2[m, None] + c**2 * np.stack([B[:, 0, 0], B[:, 1, 1]], axis=1)
+            z.append(np.sqrt(np.mean(e**2 / var)))
+        print(f"{name:34s} {m.sum():6d} {np.sqrt(np.mean(rows[m, 4:6] ** 2)):9.4f} {np.sqrt(np.mean(rows[m, 12:14] ** 2)):9.4f}"
+              f" {z[0]:7.2f} {z[1]:7.2f} {z[2]:8.2f} {f0[m].mean():10.2f} {f1[m].mean():9.2f}")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--views", type=int, default=36)
@@ -179,7 +249,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--plates", type=int, default=3, help="generated plates besides the example (--fit-background; "
                                                            "the model fit: default 0)")
     ap.add_argument("--skins", type=int, default=0, help="generated skins besides the example (the model fit)")
+    ap.add_argument("--compare-mask", action="store_true", help="errors without and with the CAD's surface labels "
+                    "(decision 0035) on the same renders; --plates/--skins as given (default 3 / 0)")
     a = ap.parse_args(argv)
+    if a.compare_mask:
+        return compare_mask(a.views, a.repeats, a.seed, a.plates, a.skins)
     if a.fit_background:
         return measure_background(a.views, a.repeats, a.seed, a.plates, a.write)
     t0 = time.perf_counter()

@@ -423,10 +423,18 @@ def _grown_blobs(labels: np.ndarray, remap: np.ndarray, x0: np.ndarray, y0: np.n
     return ys, xs, blob + 1, lg.astype(np.int64)
 
 
-def detect_dots(image: np.ndarray, options: DetectionOptions | None = None) -> Detections:
-    """Sub-pixel centres and covariances of the dots in ``image`` (grey or colour, uint8/uint16)."""
+def detect_dots(image: np.ndarray, options: DetectionOptions | None = None, labels: np.ndarray | None = None) -> Detections:
+    """Sub-pixel centres and covariances of the dots in ``image`` (grey or colour, uint8/uint16).
+
+    ``labels``: an (h, w) integer image of the surface each pixel sees (``cell.stages.surface_labels``: >= 1 a
+    surface, 0 unknown, < 0 near a change of surface). A dot's surface is the label at its centre pixel; when it
+    is >= 1, ring pixels of any other non-zero label are left out of its background plane and misfit test and
+    margin pixels (grown, below threshold) of another surface get no weight in its centroid (decision 0035).
+    None: the background is fitted to every ring pixel."""
     o = options or DetectionOptions()
     grey = to_grey(image)
+    if labels is not None and np.shape(labels) != grey.shape:
+        raise CalibrationError(f"detect_dots: surface labels of shape {np.shape(labels)} for an image of {grey.shape}")
     polarity, kernel, window = o.polarity, o.background_kernel_px, o.local_window
     if polarity == "auto" or kernel == 0 or (window == 0 and o.local_fraction > 0):
         cand = ("bright", "dark") if polarity == "auto" else (polarity,)
@@ -440,10 +448,11 @@ def detect_dots(image: np.ndarray, options: DetectionOptions | None = None) -> D
             window = 9 if d == 0 else int(2 * round(0.5 * d + 1.5) + 1)
     work = grey if polarity == "bright" else _invert(grey)
     o = replace(o, polarity=polarity, background_kernel_px=kernel, local_window=max(window, 3))
-    return _detect(work, o)
+    return _detect(work, o, labels)
 
 
-def detect_retro_targets(image: np.ndarray, options: DetectionOptions | None = None) -> Detections:
+def detect_retro_targets(image: np.ndarray, options: DetectionOptions | None = None,
+                         labels: np.ndarray | None = None) -> Detections:
     """Sub-pixel centres of bright dots in ``image: (h, w) uint8/uint16`` (the simulated cell's images)."""
     o = options or DetectionOptions()
     image = np.asarray(image)
@@ -451,10 +460,46 @@ def detect_retro_targets(image: np.ndarray, options: DetectionOptions | None = N
         raise CalibrationError(
             f"target detection needs a (h, w) uint8 or uint16 grey image, got {image.shape} {image.dtype}"
         )
-    return detect_dots(image, o)
+    return detect_dots(image, o, labels)
 
 
-def _detect(image: np.ndarray, o: DetectionOptions) -> Detections:
+def _own_surface(surface: np.ndarray, comp: np.ndarray, remap: np.ndarray, ys: np.ndarray, xs: np.ndarray,
+                 lo: np.ndarray, lg: np.ndarray, xc: np.ndarray, yc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Which of the grown blobs' pixels (:func:`_grown_blobs`) see another surface than their dot, by ``surface``.
+
+    A blob's surface is the label at its centre pixel; when it is >= 1, a pixel of another non-zero label (another
+    surface, or :data:`cell.stages.surface_labels.NO_USE` near a change of surface) is foreign, unless it is one of
+    the blob's own pixels above threshold. A blob whose centre label is <= 0 has none.
+    Returns (foreign ring pixels, foreign grown pixels), (p,) bool each.
+    """
+    H, W = surface.shape
+    own = surface[np.clip(np.round(yc), 0, H - 1).astype(np.int64), np.clip(np.round(xc), 0, W - 1).astype(np.int64)]
+    s = surface[ys, xs]
+    ring = lg == 0
+    blob = np.where(ring, lo, lg)
+    mine = own[blob - 1]
+    other = (mine > 0) & (s != mine) & (s != 0)
+    in_blob = remap[comp[ys, xs]] == blob
+    return ring & other, ~ring & other & ~in_blob
+
+
+def _symmetric(li: np.ndarray, xi: np.ndarray, yi: np.ndarray, v: np.ndarray, foreign: np.ndarray, k: int,
+               shape: tuple[int, int]) -> np.ndarray:
+    """Which grown pixels to keep so that each dot's centroid window stays point-symmetric: the foreign ones
+    (another surface's light under the dot's skirt) and their mirror images about the dot's preliminary centre
+    (the centroid of the others, rounded to half a pixel) are left out. Leaving out one side of a skirt alone would
+    move the centroid away from it as surely as the other surface's light moves it towards it (decision 0035)."""
+    H, W = shape
+    w = np.where(foreign, 0.0, np.maximum(v, 0.0))
+    sw = np.maximum(np.bincount(li, weights=w, minlength=k + 1), 1e-12)
+    cx2 = np.round(2 * np.bincount(li, weights=w * xi, minlength=k + 1) / sw).astype(np.int64)
+    cy2 = np.round(2 * np.bincount(li, weights=w * yi, minlength=k + 1) / sw).astype(np.int64)
+    key = (li.astype(np.int64) * (2 * H) + yi + H) * (2 * W) + xi + W
+    mirror = (li.astype(np.int64) * (2 * H) + cy2[li] - yi + H) * (2 * W) + cx2[li] - xi + W
+    return ~(foreign | np.isin(mirror, key[foreign]))
+
+
+def _detect(image: np.ndarray, o: DetectionOptions, surface: np.ndarray | None = None) -> Detections:
     """The detector on a polarised image (dots bright), with every option resolved."""
     if o.background_kernel_px > 0:
         tophat = _tophat(image, o.background_kernel_px)
@@ -502,11 +547,15 @@ def _detect(image: np.ndarray, o: DetectionOptions) -> Detections:
     remap[kept] = np.arange(1, k + 1, dtype=np.float32)
     ys, xs, lo, lg = _grown_blobs(labels, remap, x0[keep], y0[keep], stats[kept, cv2.CC_STAT_WIDTH],
                                   stats[kept, cv2.CC_STAT_HEIGHT], m)
+    xc = (x0 + 0.5 * w_box)[keep]
+    yc = (y0 + 0.5 * h_box)[keep]
+    foreign = None
+    if surface is not None:  # only the pixels of each dot's own surface (decision 0035)
+        off_ring, foreign = _own_surface(surface, labels, remap, ys, xs, lo, lg, xc, yc)
+        ys, xs, lo, lg, foreign = (a[~off_ring] for a in (ys, xs, lo, lg, foreign))
     val = image[ys, xs].astype(np.float64)
     ring = lg == 0
     # local background: a plane fitted to the ring around each blob (decision 0007)
-    xc = (x0 + 0.5 * w_box)[keep]
-    yc = (y0 + 0.5 * h_box)[keep]
     rl, rdx, rdy, rv = lo[ring], xs[ring] - xc[lo[ring] - 1], ys[ring] - yc[lo[ring] - 1], val[ring]
     coef = _ring_planes(rl, rdx, rdy, rv, k, bg)
     # once more without the ring pixels far off the plane (an edge of the part, a neighbour's rim)
@@ -521,6 +570,9 @@ def _detect(image: np.ndarray, o: DetectionOptions) -> Detections:
     inside = ~ring
     li, xi, yi, vi = lg[inside], xs[inside], ys[inside], val[inside]
     bgp = coef[li - 1, 0] + coef[li - 1, 1] * (xi - xc[li - 1]) + coef[li - 1, 2] * (yi - yc[li - 1])
+    if foreign is not None and foreign.any():
+        sym = _symmetric(li, xi, yi, vi - bgp, foreign[inside], k, image.shape)
+        li, xi, yi, vi, bgp = li[sym], xi[sym], yi[sym], vi[sym], bgp[sym]
     top = np.zeros(k + 1)
     np.maximum.at(top, li, vi)
     n_sat = np.bincount(li, weights=(vi >= _ceiling(image)).astype(float), minlength=k + 1)[1:]

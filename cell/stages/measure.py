@@ -17,7 +17,7 @@ import numpy as np
 from calibration.camera import invert
 from calibration.errors import CalibrationError
 from cell.record.jobfolder import atomic_write_json
-from cell.stages.imaging import detection_options, measure_image
+from cell.stages.imaging import detection_options, measure_image, surface_labeller
 from planning.visibility import Occluder
 
 
@@ -35,6 +35,7 @@ def run(ctx, keep: bool = False) -> None:
     bfp, ffc = job.spec.base_from_part(), job.spec.flange_from_cam()
     occluder = Occluder(job.part.mesh)
     detection = detection_options(job.spec.camera)
+    surfaces = surface_labeller(job.spec.camera, job.part)  # [camera] background_mask (decision 0035)
     # images measured before (a closed-loop round adds images to a measured network): kept as they are
     path = ctx.folder.file("observations.json")
     before = {o["image"]: o for o in ctx.folder.read_json("observations.json")["images"]} if keep and path.exists() else {}
@@ -51,7 +52,7 @@ def run(ctx, keep: bool = False) -> None:
             raise CalibrationError(f"{im['image']}: cannot read the image")
         cam_from_part = invert(invert(bfp) @ np.asarray(im["base_from_flange"], dtype=float) @ ffc)
         m, counts = measure_image(img, job.part, job.intrinsics, cam_from_part, occluder, detection=detection,
-                                  coded_family=job.spec.job.coded_family)
+                                  coded_family=job.spec.job.coded_family, surfaces=surfaces)
         names = [ids_all[int(i)] for i in m.target]
         dropped = [{"id": ids_all[i], "reason": why} for i, why in m.dropped]
         out.append({"station": im["station"], "image": im["image"], "ids": names, "uv": m.uv, "cov_px2": m.cov,
