@@ -54,8 +54,9 @@ SIZE_EDGES = (0, 14, 18, 22, 30, 100)
 def collect(n_views: int, repeats: int, seed: int = 0, job_path: Path = JOB, mask: bool = False) -> dict:
     """Rows of detected-minus-true centres (see the module's doc). ``mask``: each image is also detected with the
     CAD's surface labels at the true pose (``[camera] background_mask = "cad"``, decision 0035) and each row gets
-    6 more columns: that detection's error (eu, ev) and bound (b00, b01, b11), and whether the dot's surroundings
-    (radius + 7 px) see another surface (1) or not (0); a dot the masked detection lost has NaN there."""
+    8 more columns: that detection's error (eu, ev) and bound (b00, b01, b11), whether the dot's surroundings
+    (radius + 7 px) see another surface (1) or not (0), the ring pixels of the plain and the masked detection; a dot
+    the masked detection lost has NaN there."""
     job = load(job_path)
     labeller = None
     if mask:
@@ -116,12 +117,14 @@ def collect(n_views: int, repeats: int, seed: int = 0, job_path: Path = JOB, mas
             sat, area = det.saturated[j[ok]], det.area_px[j[ok]]
             extra = np.zeros((int(ok.sum()), 0))
             if labeller is not None:
-                extra = np.full((int(ok.sum()), 6), np.nan)
+                extra = np.full((int(ok.sum()), 8), np.nan)
                 if len(det_m.uv):
                     dm, jm = cKDTree(det_m.uv).query(uv[ok])
                     hit = dm < 1.0
                     extra[hit, :2] = det_m.uv[jm[hit]] - uv[ok][hit]
                     extra[hit, 2:5] = det_m.background_cov[jm[hit]][:, [0, 0, 1], [0, 1, 1]]
+                    extra[hit, 7] = det_m.ring_px[jm[hit]]
+                extra[:, 6] = det.ring_px[j[ok]]
                 c = np.round(uv[ok]).astype(int)
                 rad = np.ceil(0.5 * dpx + 7).astype(int)
                 for q in range(len(c)):
@@ -132,7 +135,7 @@ def collect(n_views: int, repeats: int, seed: int = 0, job_path: Path = JOB, mas
             for t_, a_, s_, (eu, ev), b, ns, ar, x_ in zip(tid[ok], inc, dpx, e, B, sat, area, extra):
                 rows.append((k, int(t_), float(a_), float(s_), float(eu), float(ev), r, b[0, 0], b[0, 1], b[1, 1], ns, ar,
                              *x_))
-    return {"rows": np.array(rows, dtype=float).reshape(-1, 18 if mask else 12), "fx_px": intr.fx_px, "fy_px": intr.fy_px,
+    return {"rows": np.array(rows, dtype=float).reshape(-1, 20 if mask else 12), "fx_px": intr.fx_px, "fy_px": intr.fy_px,
             "diameter_m": 2 * radius,
             "cam_from_part": poses, "xyz": xyz, "times": times}
 
