@@ -294,6 +294,23 @@ def _ring_planes(lab: np.ndarray, dx: np.ndarray, dy: np.ndarray, val: np.ndarra
     return coef
 
 
+def _ring_fit(lab: np.ndarray, xs: np.ndarray, ys: np.ndarray, val: np.ndarray, xc: np.ndarray, yc: np.ndarray, k: int,
+              fallback: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each blob's background plane through its ring pixels ``lab`` (1..k) at ``(xs, ys)`` of grey ``val``, fitted
+    twice (the second time without the pixels far off the first plane: an edge of the part, a neighbour's rim), and
+    its misfit (:func:`_ring_misfit`): ((k, 3) plane, (k,) misfit, the labels of the ring pixels that carried them)."""
+    rdx, rdy = xs - xc[lab - 1], ys - yc[lab - 1]
+    coef = _ring_planes(lab, rdx, rdy, val, k, fallback)
+    r = val - (coef[lab - 1, 0] + coef[lab - 1, 1] * rdx + coef[lab - 1, 2] * rdy)
+    cnt = np.maximum(np.bincount(lab, minlength=k + 1)[1:], 1)
+    rms = np.sqrt(np.bincount(lab, weights=r * r, minlength=k + 1)[1:] / cnt)
+    fit = np.abs(r) <= 2.0 * rms[lab - 1] + 1.0
+    coef = _ring_planes(lab[fit], rdx[fit], rdy[fit], val[fit], k, fallback)
+    lf, dxf, dyf = lab[fit], rdx[fit], rdy[fit]
+    misfit = _ring_misfit(lf, dxf, dyf, val[fit] - (coef[lf - 1, 0] + coef[lf - 1, 1] * dxf + coef[lf - 1, 2] * dyf), k)
+    return coef, misfit, lf
+
+
 def _ring_misfit(lab: np.ndarray, dx: np.ndarray, dy: np.ndarray, r: np.ndarray, k: int, z: float = 3.0) -> np.ndarray:
     """The smooth part of each ring's residuals ``r`` about its background plane, (k,) grey levels.
 
@@ -565,20 +582,18 @@ def _detect(image: np.ndarray, o: DetectionOptions, surface: np.ndarray | None =
     foreign = None
     if surface is not None:  # only the pixels of each dot's own surface (decision 0035)
         off_ring, foreign = _own_surface(surface, labels, remap, ys, xs, lo, lg, xc, yc)
+        if off_ring.any():
+            # the whole ring's misfit still bounds the dot: what the labels do not remove (the other surface's light
+            # blurred into the dot's own pixels, an edge a pixel off the CAD's) scales with it (decision 0035)
+            ring_all = lg == 0
+            _, misfit_all, _ = _ring_fit(lo[ring_all], xs[ring_all], ys[ring_all],
+                                         image[ys[ring_all], xs[ring_all]].astype(np.float64), xc, yc, k, bg)
         ys, xs, lo, lg, foreign = (a[~off_ring] for a in (ys, xs, lo, lg, foreign))
     val = image[ys, xs].astype(np.float64)
     ring = lg == 0
-    # local background: a plane fitted to the ring around each blob (decision 0007)
-    rl, rdx, rdy, rv = lo[ring], xs[ring] - xc[lo[ring] - 1], ys[ring] - yc[lo[ring] - 1], val[ring]
-    coef = _ring_planes(rl, rdx, rdy, rv, k, bg)
-    # once more without the ring pixels far off the plane (an edge of the part, a neighbour's rim)
-    r = rv - (coef[rl - 1, 0] + coef[rl - 1, 1] * rdx + coef[rl - 1, 2] * rdy)
-    cnt = np.maximum(np.bincount(rl, minlength=k + 1)[1:], 1)
-    rms = np.sqrt(np.bincount(rl, weights=r * r, minlength=k + 1)[1:] / cnt)
-    fit = np.abs(r) <= 2.0 * rms[rl - 1] + 1.0
-    coef = _ring_planes(rl[fit], rdx[fit], rdy[fit], rv[fit], k, bg)
-    lf, dxf, dyf = rl[fit], rdx[fit], rdy[fit]
-    misfit = _ring_misfit(lf, dxf, dyf, rv[fit] - (coef[lf - 1, 0] + coef[lf - 1, 1] * dxf + coef[lf - 1, 2] * dyf), k)
+    coef, misfit, lf = _ring_fit(lo[ring], xs[ring], ys[ring], val[ring], xc, yc, k, bg)
+    if surface is not None and off_ring.any():
+        misfit = np.maximum(misfit, misfit_all)
     bg_local = coef[:, 0]
     inside = ~ring
     li, xi, yi, vi = lg[inside], xs[inside], ys[inside], val[inside]
