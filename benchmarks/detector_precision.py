@@ -169,10 +169,16 @@ def collect_each(n_views: int, repeats: int, seed: int, plates: int, skins: int 
         return [(name, collect(n_views, repeats, seed + i, path, mask)) for i, (name, path) in enumerate(parts)]
 
 
-def collect_parts(n_views: int, repeats: int, seed: int, plates: int, skins: int = 0) -> tuple[np.ndarray, list[str]]:
-    """Rows of :func:`collect_each`, stacked; and the parts' names."""
-    each = collect_each(n_views, repeats, seed, plates, skins)
-    return np.vstack([doc["rows"] for _, doc in each]), [name for name, _ in each]
+def collect_parts(n_views: int, repeats: int, seed: int, plates: int, skins: int = 0,
+                  background_mask: str = "none") -> tuple[np.ndarray, list[str]]:
+    """Rows of :func:`collect_each`, stacked; and the parts' names. ``background_mask="cad"``: the rows of the
+    detection with the CAD's surface labels (decision 0035; the dots it lost left out), in the same 12 columns."""
+    each = collect_each(n_views, repeats, seed, plates, skins, mask=background_mask == "cad")
+    rows = np.vstack([doc["rows"] for _, doc in each])
+    if background_mask == "cad":
+        rows = rows[np.isfinite(rows[:, 12])]
+        rows = np.concatenate([rows[:, :4], rows[:, 12:14], rows[:, 6:7], rows[:, 14:17], rows[:, 10:12]], axis=1)
+    return rows, [name for name, _ in each]
 
 
 def measured_ranges(rows: np.ndarray, table: list[dict]) -> dict:
@@ -183,11 +189,12 @@ def measured_ranges(rows: np.ndarray, table: list[dict]) -> dict:
     return {"incidence_range_deg": (0.0, float(inc)), "diameter_range_px": (round(float(d0), 1), round(float(d1), 1))}
 
 
-def measure_background(n_views: int, repeats: int, seed: int, plates: int, write: bool) -> int:
+def measure_background(n_views: int, repeats: int, seed: int, plates: int, write: bool,
+                       background_mask: str = "none") -> int:
     """``c_background`` by maximum likelihood on the example and ``plates`` generated plates."""
     t0 = time.perf_counter()
     model = load_model()
-    rows, parts = collect_parts(n_views, repeats, seed, plates)
+    rows, parts = collect_parts(n_views, repeats, seed, plates, background_mask=background_mask)
     e, B = rows[:, 4:6], rows[:, [7, 8, 8, 9]].reshape(-1, 2, 2)
     c = fit_background(model, rows[:, 2], rows[:, 3], e, B)
     s2 = model.sigma_px(np.radians(rows[:, 2]), rows[:, 3]) ** 2
@@ -204,7 +211,9 @@ def measure_background(n_views: int, repeats: int, seed: int, plates: int, write
         doc = json.loads(DATA_PATH.read_text())
         doc["c_background"] = c
         doc["c_background_measured_by"] = (f"python -m benchmarks.detector_precision --fit-background --views {n_views} "
-                                           f"--repeats {repeats} --seed {seed} --plates {plates} --write")
+                                           f"--repeats {repeats} --seed {seed} --plates {plates} "
+                                           f"--background-mask {background_mask} --write")
+        doc["background_mask"] = background_mask
         doc["c_background_dots"] = {"n": int(len(rows)), "with_misfit": int(flagged.sum())}
         DATA_PATH.write_text(json.dumps(doc, indent=1) + "\n")
         print(f"written {DATA_PATH}")
@@ -270,14 +279,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--skins", type=int, default=0, help="generated skins besides the example (the model fit)")
     ap.add_argument("--compare-mask", action="store_true", help="errors without and with the CAD's surface labels "
                     "(decision 0035) on the same renders; --plates/--skins as given (default 3 / 0)")
+    ap.add_argument("--background-mask", choices=("none", "cad"), default="none",
+                    help="the detector the model describes: [camera] background_mask (decision 0035)")
     a = ap.parse_args(argv)
     if a.compare_mask:
         return compare_mask(a.views, a.repeats, a.seed, a.plates, a.skins)
     if a.fit_background:
-        return measure_background(a.views, a.repeats, a.seed, a.plates, a.write)
+        return measure_background(a.views, a.repeats, a.seed, a.plates, a.write, a.background_mask)
     t0 = time.perf_counter()
     plates = 0 if "--plates" not in (argv if argv is not None else sys.argv) else a.plates
-    rows, parts = collect_parts(a.views, a.repeats, a.seed, plates, a.skins)
+    rows, parts = collect_parts(a.views, a.repeats, a.seed, plates, a.skins, a.background_mask)
     # the geometry model on the dots whose surroundings are a plane; the share of the detector's background bound
     # on the others, with the geometry held (decision 0029: fitted on every dot, the geometry term took in the
     # example's edge dots and stated 15-20 % too much on the flat faces of generated plates)
@@ -322,7 +333,9 @@ def main(argv: list[str] | None = None) -> int:
     if a.write:
         doc = model.to_dict() | {
             "measured_by": f"python -m benchmarks.detector_precision --views {a.views} --repeats {a.repeats} "
-                           f"--seed {a.seed} --plates {plates} --skins {a.skins} --write",
+                           f"--seed {a.seed} --plates {plates} --skins {a.skins} --background-mask {a.background_mask}"
+                           " --write",
+            "background_mask": a.background_mask,
             "conditions": "examples/bracket job's simulated camera: 8 mm lens, 2448 x 2048, 3.45 um pixels, 5 mm dots, "
                           "sensor noise scale 1 (photons, read noise, 0.7 px blur, 8 bits), no image jitter; parts: "
                           + ", ".join(parts) + "; the geometry terms on dots neither clipped nor next to a background misfit, "
