@@ -175,10 +175,14 @@ def collect_parts(n_views: int, repeats: int, seed: int, plates: int, skins: int
     detection with the CAD's surface labels (decision 0035; the dots it lost left out), in the same 12 columns."""
     each = collect_each(n_views, repeats, seed, plates, skins, mask=background_mask == "cad")
     rows = np.vstack([doc["rows"] for _, doc in each])
-    if background_mask == "cad":
-        rows = rows[np.isfinite(rows[:, 12])]
-        rows = np.concatenate([rows[:, :4], rows[:, 12:14], rows[:, 6:7], rows[:, 14:17], rows[:, 10:12]], axis=1)
-    return rows, [name for name, _ in each]
+    return (masked_rows(rows) if background_mask == "cad" else rows), [name for name, _ in each]
+
+
+def masked_rows(rows: np.ndarray) -> np.ndarray:
+    """The 12 columns of :func:`collect` from the masked detection of rows collected with ``mask=True`` (error and
+    bound of the detection with the CAD's surface labels; the dots it lost left out)."""
+    rows = rows[np.isfinite(rows[:, 12])]
+    return np.concatenate([rows[:, :4], rows[:, 12:14], rows[:, 6:7], rows[:, 14:17], rows[:, 10:12]], axis=1)
 
 
 def measured_ranges(rows: np.ndarray, table: list[dict]) -> dict:
