@@ -96,7 +96,8 @@ def unmeasurable_targets(job: LoadedJob, cache_dir: Path | None = None) -> dict:
     """Targets that fewer than ``[planning] min_rays`` reachable candidate stations can measure (before planning).
 
     The same visibility and reachability databases as PLAN (cached), so ``cell check`` says what PLAN would
-    refuse. Returns {``min_rays``, ``candidates``, ``reachable``, ``unmeasurable``: ids, ``rays``: per id the count}.
+    refuse. Returns {``min_rays``, ``candidates``, ``reachable``, ``unmeasurable``: ids, ``rays``: per id the count,
+    and with a scale bar ``scale_bar``: {``ends``, ``candidates``: reachable candidates seeing each, ``rays_min``}}.
     """
     from dataclasses import replace as _replace
 
@@ -114,9 +115,16 @@ def unmeasurable_targets(job: LoadedJob, cache_dir: Path | None = None) -> dict:
     coded = job.part.targets.kind == "coded"
     bad = np.flatnonzero((rays < opts.min_rays) & ~coded)
     ids = job.part.targets.ids
-    return {"min_rays": int(opts.min_rays), "candidates": int(len(reach.reachable)),
-            "reachable": int(reach.reachable.sum()), "unmeasurable": [ids[j] for j in bad],
-            "rays": {ids[j]: int(rays[j]) for j in bad}}
+    out = {"min_rays": int(opts.min_rays), "candidates": int(len(reach.reachable)),
+           "reachable": int(reach.reachable.sum()), "unmeasurable": [ids[j] for j in bad],
+           "rays": {ids[j]: int(rays[j]) for j in bad}}
+    if job.scale_bar is not None:  # the bar's ends need more rays than any target (planning/scalebar.py)
+        from planning.scalebar import RAYS_FACTOR
+
+        a, b = job.scale_bar[:2]
+        out["scale_bar"] = {"ends": [ids[a], ids[b]], "candidates": [int(rays[a]), int(rays[b])],
+                            "rays_min": RAYS_FACTOR * int(opts.min_rays)}
+    return out
 
 
 def measurement_prediction(job: LoadedJob, part_from_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
@@ -193,6 +201,14 @@ def run(ctx) -> None:
         pass
     ctx.say(f"  {len(p.station_ids)} stations; predicted sigma max {p.predicted_sigma_max_m * 1e6:.1f} um, "
             f"mean {p.predicted_sigma_mean_m * 1e6:.1f} um")
+    if p.scale_bar is not None:  # what the plan did for the scale bar's ends (planning/scalebar.py)
+        from planning.scalebar import bar_warnings
+
+        ctx.folder.append("scale_bar_plan", **{k: p.scale_bar.get(k) for k in ("ends", "met", "before", "after")},
+                          stations_added=[st["id"] for st in p.scale_bar["stations_added"]])
+        for level, line in bar_warnings(p.scale_bar):
+            ctx.log.log(level, f"plan: {line}")
+            ctx.say(f"  {'WARNING ' if level == 'warning' else ''}{line}")
     weak = int(p.search.get("exact_unlinked") or 0)
     if weak:  # docs/decisions/0031: ADJUST may drop their images, or their block may hang on one image
         msg = (f"plan: {weak} station(s) share fewer than {p.search.get('link_targets')} targets with the rest of the "
