@@ -1,0 +1,107 @@
+"""PLAN secures the scale bar's ends (planning/scalebar.py): stations added after the search where the ends fall
+short of the requirement, none where they meet it, and one line saying so where no candidate can meet it."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from calibration.camera import Intrinsics
+from planning.planner import build_database, plan_network
+from planning.scalebar import RAYS_FACTOR, azimuth_gap_deg, bar_warnings, covariance_with, secure_scale_bar
+from planning.uncertainty import covariance_for_network
+from tests.test_planner import _box_part, _options
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    part = _box_part()
+    intr = Intrinsics(fx_px=2000.0, fy_px=2000.0, cx_px=639.5, cy_px=511.5, width=1280, height=1024)
+    return part, intr, tmp_path_factory.mktemp("cache")
+
+
+def _far_pair(part, among: np.ndarray) -> tuple[int, int, float]:
+    """The two top-facing targets of ``among`` furthest apart (as tests/partgen.py picks a bar's ends)."""
+    t = part.targets
+    top = np.asarray([k for k in among if t.normals[k, 2] > 0.9])
+    d = np.linalg.norm(t.xyz[top][:, None] - t.xyz[top][None], axis=2)
+    i, j = np.unravel_index(np.argmax(d), d.shape)
+    return int(top[i]), int(top[j]), float(d[i, j])
+
+
+def _length_sigma(cov: np.ndarray, xyz: np.ndarray, a: int, b: int) -> float:
+    u = (xyz[a] - xyz[b]) / np.linalg.norm(xyz[a] - xyz[b])
+    return float(np.sqrt(u @ (cov[a] + cov[b]) @ u))
+
+
+def test_weak_bar_end_gets_stations_and_meets_the_requirement(scene):
+    part, intr, cache = scene
+    a, b, L = _far_pair(part, np.arange(len(part.targets.ids)))
+    plain = plan_network(part, intr, _options(), np.random.default_rng(3), cache_dir=cache, seed=3)
+    assert min(plain.n_rays[[a, b]]) < RAYS_FACTOR * 3  # the search alone leaves an end weak
+    p = plan_network(part, intr, _options(scale_bar=(a, b, L, 2e-6)), np.random.default_rng(3), cache_dir=cache,
+                     seed=3)
+    bar = p.scale_bar
+    k = len(plain.station_ids)
+    added = [s["id"] for s in bar["stations_added"]]
+    # the search's own stations are kept station for station; the added ones come after them
+    assert p.station_ids[:k] == plain.station_ids and np.array_equal(p.part_from_cam[:k], plain.part_from_cam)
+    assert added and p.station_ids[k:] == added and len(p.station_ids) == k + len(added)
+    assert not bar["before"]["met"] and bar["met"] and bar["after"]["met"] and "note" not in bar
+    # the requirement, checked independently on the final network (fresh ray casting, exact covariance)
+    visible, cov, n_rays = covariance_with(intr, _options(), part, p.part_from_cam)
+    req = bar["requirement"]
+    assert min(n_rays[a], n_rays[b]) >= req["rays_min"] == RAYS_FACTOR * 3
+    assert _length_sigma(cov, part.targets.xyz, a, b) <= req["length_sigma_max_m"]
+    assert _length_sigma(cov, part.targets.xyz, a, b) == pytest.approx(bar["after"]["length_sigma_m"], rel=1e-6)
+    for e, g in zip((a, b), req["azimuth_gap_goal_deg"]):
+        assert azimuth_gap_deg(p.part_from_cam[visible[:, e], :3, 3], part.targets.xyz[e], part.targets.normals[e]) <= g
+    # the stations only add information: no target's predicted sigma got worse
+    assert np.all(p.sigma <= plain.sigma * (1 + 1e-9))
+    assert len(p.seen_by[a]) == n_rays[a] and p.to_plan_dict()["scale_bar"]["ends"] == [part.targets.ids[a],
+                                                                                        part.targets.ids[b]]
+    # a network that meets it gets nothing more
+    db = build_database(part, intr, _options(), cache)
+    more, doc = secure_scale_bar(part, intr, _options(), db, db.visible.any(axis=1), p.part_from_cam, visible, cov,
+                                 np.arange(len(cov)), (a, b, L, 2e-6))
+    assert more.size == 0 and doc["met"]
+
+
+def test_plan_already_meeting_the_requirement_is_unchanged_station_for_station(scene):
+    part, intr, cache = scene
+    plain = plan_network(part, intr, _options(n_stations=14), np.random.default_rng(3), cache_dir=cache, seed=3)
+    a, b, L = _far_pair(part, np.flatnonzero(plain.n_rays >= RAYS_FACTOR * 3))
+    p = plan_network(part, intr, _options(n_stations=14, scale_bar=(a, b, L, 2e-6)), np.random.default_rng(3),
+                     cache_dir=cache, seed=3)
+    assert p.scale_bar["before"]["met"] and p.scale_bar["met"] and p.scale_bar["stations_added"] == []
+    assert p.station_ids == plain.station_ids and np.array_equal(p.part_from_cam, plain.part_from_cam)
+    assert np.array_equal(p.cov, plain.cov, equal_nan=True)
+    level, line = bar_warnings(p.scale_bar)[0]
+    assert level == "info" and "0 station(s) added" in line
+
+
+def test_bar_end_no_candidate_can_serve_is_said_in_one_line_and_the_plan_goes_on(scene):
+    part, intr, cache = scene
+    a, b, L = _far_pair(part, np.arange(len(part.targets.ids)))
+    db = build_database(part, intr, _options(), cache)
+    sees_b = np.flatnonzero(db.visible[:, b])
+    # the robot reaches only 5 of the candidates that see end b (5 < 2 x min_rays): no choice can meet the rays
+    reachable = ~db.visible[:, b]
+    reachable[sees_b[np.argsort(-db.visible[sees_b].sum(axis=1))[:5]]] = True
+    p = plan_network(part, intr, _options(scale_bar=(a, b, L, 2e-6)), np.random.default_rng(3), reachable=reachable,
+                     cache_dir=cache, seed=3, db=db)
+    bar = p.scale_bar
+    assert not bar["met"] and bar["best_achievable"]["rays"][1] == 5 and bar["after"]["rays"][1] == 5
+    assert bar["candidates_seeing_end"][1] == 5
+    lines = bar_warnings(bar)
+    assert [lv for lv, _ in lines] == ["warning", "warning"]
+    assert "requirement NOT met" in lines[0][1] and "best achievable" in lines[0][1] and "\n" not in lines[0][1]
+    assert bar["note"] == lines[0][1]
+    assert part.targets.ids[b] in lines[1][1] and f"{part.targets.ids[a]}-{part.targets.ids[b]}" in lines[1][1]
+    # every station added is one of the candidates the robot reaches; the network measures end b 5 times
+    k = len(bar["stations_added"])
+    for T in p.part_from_cam[len(p.station_ids) - k:]:
+        hit = np.flatnonzero(np.all(np.abs(db.part_from_cam - T).reshape(len(db.part_from_cam), -1) < 1e-12, axis=1))
+        assert hit.size and reachable[hit].all()
+    _, n_rays = covariance_for_network(intr, p.part_from_cam, part.targets.xyz,
+                                       covariance_with(intr, _options(), part, p.part_from_cam)[0], 0.1, min_rays=3)
+    assert n_rays[b] == 5 and k > 0 and bar["after"]["length_sigma_m"] < bar["before"]["length_sigma_m"]
