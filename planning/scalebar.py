@@ -14,7 +14,10 @@ image precision (the information the search uses):
 - **length**: the ends' part of the bar's measured length, ``sqrt(u^T (C_a + C_b) u)`` (``u`` the bar's direction,
   ``C`` the ends' predicted covariance), is no larger than :data:`LENGTH_SHARE` times the certificate's sigma: the
   measurement adds no more to the scale than the certificate does;
-- **rays**: each end is seen by at least :data:`RAYS_FACTOR` x ``min_rays`` stations;
+- **rays**: each end is seen by at least :data:`RAYS_FACTOR` x ``min_rays`` stations, counting only the rays the
+  detector is sure to keep: the end's image at least :data:`BAR_MARGIN_FRAC` of the image inside its border and
+  its incidence :data:`BAR_INCIDENCE_MARGIN_DEG` below the plan's limit (the length and the spread are judged on
+  these rays too: a bar end at the image border is the first dot the detector loses);
 - **spread**: the azimuths of each end's lines of sight about its normal leave no gap wider than
   :data:`AZIMUTH_GAP_MAX_DEG` (views from several sides, so a misfit an edge dot shares between views from one
   side does not move the end as a whole along the bar).
@@ -45,6 +48,11 @@ RAYS_FACTOR = 2
 AZIMUTH_GAP_MAX_DEG = 150.0
 #: a line of sight within this angle of the normal has no azimuth worth the name (it counts for no side)
 AZIMUTH_MIN_TILT_DEG = 5.0
+#: a ray of an end counts for the bar only when the end's image lies this share of the image's smaller side inside
+#: the border (dots at the border are the first the detector loses: clipped, stretched by the distortion, merged)
+BAR_MARGIN_FRAC = 0.05
+#: and when its incidence is this much below the plan's limit (the detector's precision falls with incidence)
+BAR_INCIDENCE_MARGIN_DEG = 10.0
 #: the most stations the bar may add to a plan
 MAX_BAR_STATIONS = 8
 #: where the requirement cannot be met, the stations aim at this factor over the best achievable (bound)
@@ -72,6 +80,28 @@ class BarCheck:
         return {"length_sigma_m": fin(self.length_sigma_m), "along_sigma_m": [fin(v) for v in self.along_sigma_m],
                 "rays": [int(r) for r in self.rays], "azimuth_gap_deg": [float(g) for g in self.gap_deg],
                 "met": bool(self.met)}
+
+
+def trusted_views(intr, T: np.ndarray, xyz: np.ndarray, normals: np.ndarray, visible: np.ndarray,
+                  incidence_max_rad: float) -> np.ndarray:
+    """``visible: (k, e)`` restricted to the rays of the ends ``xyz, normals: (e, 3)`` the bar counts on: the end's
+    image :data:`BAR_MARGIN_FRAC` of the image's smaller side inside the border, its incidence
+    :data:`BAR_INCIDENCE_MARGIN_DEG` below ``incidence_max_rad``."""
+    from calibration.camera import invert, project
+
+    out = np.asarray(visible, dtype=bool).copy()
+    T = np.asarray(T, dtype=float)
+    m = BAR_MARGIN_FRAC * min(intr.width, intr.height)
+    cos_lim = np.cos(max(incidence_max_rad - np.deg2rad(BAR_INCIDENCE_MARGIN_DEG), 0.0))
+    for i in np.flatnonzero(out.any(axis=1)):
+        uv = project(intr, invert(T[i]), xyz)
+        d = T[i, :3, 3] - xyz
+        cos_inc = np.einsum("ea,ea->e", d, normals) / np.linalg.norm(d, axis=1)
+        with np.errstate(invalid="ignore"):
+            inside = ((uv[:, 0] >= m - 0.5) & (uv[:, 0] <= intr.width - 0.5 - m) & (uv[:, 1] >= m - 0.5)
+                      & (uv[:, 1] <= intr.height - 0.5 - m))
+        out[i] &= inside & (cos_inc >= cos_lim)
+    return out
 
 
 def _along(N6: np.ndarray, u: np.ndarray) -> float:
@@ -143,7 +173,8 @@ def secure_scale_bar(part, intr, options, db, valid: np.ndarray, T: np.ndarray, 
         part, intr, options: the plan's part, camera and :class:`planning.planner.PlannerOptions`.
         db: the visibility database searched; ``valid: (m,)`` its candidates that see a target and are reachable.
         T: (k, 4, 4) the planned stations (part_from_cam); ``visible: (k, n)`` what they measure; ``cov: (n, 3, 3)``
-            their predicted covariance; ``cols``: the targets planned for.
+            the search's predicted covariance (the network's reference, :func:`reference_along`); ``cols``: the
+            targets planned for.
         bar: ``(index_a, index_b, length_m, sigma_m)``.
     Returns:
         ``(added, doc)``: candidate indices of ``db`` to append to the plan (possibly empty) and the record
@@ -158,10 +189,11 @@ def secure_scale_bar(part, intr, options, db, valid: np.ndarray, T: np.ndarray, 
     min_rays = int(options.min_rays)
     need_rays = RAYS_FACTOR * min_rays
     ref = reference_along(cov, cols, ends, u)
-    end_req = max(LENGTH_SHARE * sigma_cert / np.sqrt(2.0), ref)
+    end_req = float(max(LENGTH_SHARE * sigma_cert / np.sqrt(2.0), ref))
     budget = float(np.sqrt(2.0) * end_req)
     sig = options.image_sigma(ends)
-    vis_plan = np.asarray(visible, dtype=bool)[:, ends]
+    inc_max = float(options.incidence_max_rad)
+    vis_plan = trusted_views(intr, T, xyz, normals, np.asarray(visible, dtype=bool)[:, ends], inc_max)
     N_have = (target_information(intr, T, xyz, vis_plan, sig, dtype=np.float64).sum(axis=0) if len(T)
               else np.zeros((2, 6)))
     rays_have = vis_plan.sum(axis=0)
@@ -171,14 +203,18 @@ def secure_scale_bar(part, intr, options, db, valid: np.ndarray, T: np.ndarray, 
            "requirement": {"length_sigma_max_m": budget, "end_along_sigma_max_m": end_req,
                            "network_best_decile_along_m": ref if np.isfinite(ref) else None,
                            "rays_min": need_rays, "azimuth_gap_max_deg": AZIMUTH_GAP_MAX_DEG,
+                           "rays_counted": f"views with the end at least {BAR_MARGIN_FRAC:.0%} of the image inside "
+                                           f"its border and its incidence {BAR_INCIDENCE_MARGIN_DEG:g} deg below the "
+                                           "plan's limit",
                            "rule": f"each end's predicted sigma along the bar (limiting error propagation, the "
                                    f"search's image precision) <= the larger of {LENGTH_SHARE:g} x the certificate's "
                                    f"sigma / sqrt(2) and the best-measured {REFERENCE_QUANTILE:.0%} of the planned "
                                    f"targets along the bar; >= {RAYS_FACTOR} x min_rays rays per end; azimuth gap of "
                                    f"each end's views <= {AZIMUTH_GAP_MAX_DEG:g} deg"},
            "stations_added": [], "added_reasons": []}
-    db_vis = np.asarray(db.visible, dtype=bool)[:, ends]
     valid = np.asarray(valid, dtype=bool)
+    db_vis = np.asarray(db.visible, dtype=bool)[:, ends] & valid[:, None]
+    db_vis = trusted_views(intr, db.part_from_cam, xyz, normals, db_vis, inc_max)
     # candidates that see an end, reachable, and not one of the planned stations already
     dup = np.zeros(len(db.part_from_cam), dtype=bool)
     for Tp in T:
@@ -213,23 +249,44 @@ def secure_scale_bar(part, intr, options, db, valid: np.ndarray, T: np.ndarray, 
     along = np.stack([u, u])
     rays_goal = np.minimum(need_rays, rays_all)
     req = np.maximum(end_req, np.where(np.isfinite(bound), BOUND_MARGIN * bound, end_req))
-    aug, req_used = _fewest(N_have, rays_have, req, info, db_vis, cand_ok, int(max(rays_goal.min(), min_rays)),
-                            along, MAX_BAR_STATIONS)
-    added = [int(c) for c in aug.added]
-    reasons = {c: "sigma along the bar and rays of the ends (fewest stations, planning.augment)" for c in added}
-    if np.any(req_used > req):
-        doc["relaxed_along_sigma_m"] = [float(v) for v in req_used]
-    N_now = N_have + (info[added].sum(axis=0) if added else 0.0)
-    rays_now = rays_have + (db_vis[added].sum(axis=0) if added else 0)
-    free = lambda k: np.flatnonzero(cand_ok & db_vis[:, k] & ~np.isin(np.arange(len(cand_ok)), added))  # noqa: E731
-    for k in range(2):  # an end short of its own ray goal (the search above took the lower of the two)
-        while rays_now[k] < rays_goal[k] and len(added) < MAX_BAR_STATIONS and free(k).size:
-            pool = free(k)
-            c = int(pool[np.argmin([_along(N_now[k] + info[i, k], u) for i in pool])])
-            added.append(c)
-            reasons[c] = f"rays of {ids[ends[k]]}"
-            N_now += info[c]
-            rays_now += db_vis[c]
+    used = lambda: np.isin(np.arange(len(cand_ok)), added)  # noqa: E731
+    # first the fewest stations for the length and the rays together (planning.augment); where the cap does not
+    # allow both (its pruning then keeps none), the rays first, stations that serve both ends preferred, and then
+    # the fewest for the length with what is left, the requirement relaxed as far as the cap needs
+    aug = plan_extra_stations(N_have, rays_have, req, info, db_vis, cand_ok, min_rays=int(max(rays_goal.min(), min_rays)),
+                              max_new=MAX_BAR_STATIONS, along=along)
+    added: list[int] = []
+    reasons: dict[int, str] = {}
+    N_now, rays_now = N_have.copy(), rays_have.copy()
+
+    def take(c: int, why: str) -> None:
+        nonlocal N_now, rays_now
+        added.append(int(c))
+        reasons[int(c)] = why
+        N_now = N_now + info[c]
+        rays_now = rays_now + db_vis[c]
+
+    if aug.added.size and np.all(aug.met_after | ~aug.short):
+        for c in aug.added:
+            take(c, "sigma along the bar and rays of the ends (fewest stations, planning.augment)")
+    while len(added) < MAX_BAR_STATIONS:  # ends short of their ray goal
+        short = rays_now < rays_goal
+        pool = np.flatnonzero(cand_ok & (db_vis & short[None]).any(axis=1) & ~used())
+        if not short.any() or not pool.size:
+            break
+        serves = (db_vis[pool] & short[None]).sum(axis=1)
+        pool = pool[serves == serves.max()]
+        c = int(pool[np.argmin([sum(_along(N_now[k] + info[i, k], u) for k in range(2)) for i in pool])])
+        take(c, "rays of " + " and ".join(ids[ends[k]] for k in range(2) if short[k] and db_vis[c, k]))
+    along_now = [_along(N_now[k], u) if rays_now[k] >= min_rays else np.inf for k in range(2)]
+    if len(added) < MAX_BAR_STATIONS and any(along_now[k] > req[k] for k in range(2)):
+        aug, req_used = _fewest(N_now, rays_now, req, info, db_vis, cand_ok & ~used(), min_rays, along,
+                                MAX_BAR_STATIONS - len(added))
+        for c in aug.added:
+            take(c, "sigma along the bar (fewest stations, planning.augment)")
+        if np.any(req_used > req):
+            doc["relaxed_along_sigma_m"] = [float(v) for v in req_used]
+    free = lambda k: np.flatnonzero(cand_ok & db_vis[:, k] & ~used())  # noqa: E731
     for k in range(2):  # spread: fill the widest azimuth gap of an end seen from one side, while it helps
         goal = gap_goal[k]
         while len(added) < MAX_BAR_STATIONS and free(k).size:
@@ -244,10 +301,7 @@ def secure_scale_bar(part, intr, options, db, valid: np.ndarray, T: np.ndarray, 
                 break
             best = np.flatnonzero(gaps <= gaps.min() + 1e-9)
             c = int(pool[best[np.argmin([_along(N_now[k] + info[i, k], u) for i in pool[best]])]])
-            added.append(c)
-            reasons[c] = f"azimuth spread of {ids[ends[k]]} (gap {gap:.0f} -> {gaps.min():.0f} deg)"
-            N_now += info[c]
-            rays_now += db_vis[c]
+            take(c, f"azimuth spread of {ids[ends[k]]} (gap {gap:.0f} -> {gaps.min():.0f} deg)")
     doc["added_reasons"] = [reasons[c] for c in added]
     return np.asarray(added, dtype=int), doc
 
@@ -261,7 +315,7 @@ def finish_doc(doc: dict, part, intr, options, T: np.ndarray, visible: np.ndarra
     xyz = np.asarray(part.targets.xyz, dtype=float)[ends]
     normals = np.asarray(part.targets.normals, dtype=float)[ends]
     u = (xyz[0] - xyz[1]) / np.linalg.norm(xyz[0] - xyz[1])
-    vis = np.asarray(visible, dtype=bool)[:, ends]
+    vis = trusted_views(intr, T, xyz, normals, np.asarray(visible, dtype=bool)[:, ends], float(options.incidence_max_rad))
     N = target_information(intr, T, xyz, vis, options.image_sigma(ends),
                            dtype=np.float64).sum(axis=0)
     after = bar_facts(N, vis.sum(axis=0), [T[vis[:, k], :3, 3] for k in range(2)], xyz, normals, u,
