@@ -266,6 +266,9 @@ def secure_scale_bar(part, intr, options, db, valid: np.ndarray, T: np.ndarray, 
         N_now = N_now + info[c]
         rays_now = rays_now + db_vis[c]
 
+    def eyes_of(k: int) -> np.ndarray:
+        return np.concatenate([eyes_plan[k], eyes_db[[c for c in added if db_vis[c, k]]].reshape(-1, 3)])
+
     if aug.added.size and np.all(aug.met_after | ~aug.short):
         for c in aug.added:
             take(c, "sigma along the bar and rays of the ends (fewest stations, planning.augment)")
@@ -276,6 +279,10 @@ def secure_scale_bar(part, intr, options, db, valid: np.ndarray, T: np.ndarray, 
             break
         serves = (db_vis[pool] & short[None]).sum(axis=1)
         pool = pool[serves == serves.max()]
+        # among them the one that widens the ends' views most (the narrowest widest gaps), then the best length
+        gap_sum = np.array([sum(azimuth_gap_deg(np.concatenate([eyes_of(k), eyes_db[i][None]]) if db_vis[i, k]
+                                                else eyes_of(k), xyz[k], normals[k]) for k in range(2)) for i in pool])
+        pool = pool[gap_sum <= gap_sum.min() + 1.0]
         c = int(pool[np.argmin([sum(_along(N_now[k] + info[i, k], u) for k in range(2)) for i in pool])])
         take(c, "rays of " + " and ".join(ids[ends[k]] for k in range(2) if short[k] and db_vis[c, k]))
     along_now = [_along(N_now[k], u) if rays_now[k] >= min_rays else np.inf for k in range(2)]
@@ -290,7 +297,7 @@ def secure_scale_bar(part, intr, options, db, valid: np.ndarray, T: np.ndarray, 
     for k in range(2):  # spread: fill the widest azimuth gap of an end seen from one side, while it helps
         goal = gap_goal[k]
         while len(added) < MAX_BAR_STATIONS and free(k).size:
-            eyes_k = np.concatenate([eyes_plan[k], eyes_db[[c for c in added if db_vis[c, k]]]])
+            eyes_k = eyes_of(k)
             gap = azimuth_gap_deg(eyes_k, xyz[k], normals[k]) if len(eyes_k) else 360.0
             if gap <= goal:
                 break
