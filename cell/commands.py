@@ -19,18 +19,21 @@ def _human_check(doc: dict, out) -> None:
     out.say(f"camera {c['width']} x {c['height']} px, f = {c['fx_px']:.1f} px, sigma {c['sigma_px']} px")
     out.say(f"cell   {doc['cell']['robot']} ({doc['cell']['backend']}), {doc['cell']['obstacles']} obstacle(s)")
     r = doc.get("measurability")
-    if r:
+    if r and r["unmeasurable"]:
+        for w in doc.get("warnings", []):
+            out.say(f"reach  WARNING {w}")
+    elif r:
         out.say(f"reach  every target seen by >= {r['min_rays']} of {r['reachable']} reachable candidate stations "
                 f"({r['candidates']} on the viewing sphere)")
     if r and r.get("scale_bar"):
         b = r["scale_bar"]
         out.say(f"bar    scale bar {'-'.join(b['ends'])}: ends seen by {b['candidates'][0]} / {b['candidates'][1]} "
                 f"reachable candidate stations")
+        if b.get("warning"):
+            out.say(f"bar    WARNING {b['warning']}")
     if "plan" in doc:
         pl = doc["plan"]
         out.say(f"plan   {pl['stations']} stations reachable and collision-free; cycle time {pl['cycle_time_s']:.1f} s")
-    for w in doc.get("warnings", []):
-        out.say(f"WARNING {w}")
     out.say("check  OK")
 
 
@@ -48,17 +51,20 @@ def check(args, out) -> int:
     if reach["unmeasurable"]:
         bad = reach["unmeasurable"]
         on_bar = [t for t in bad if bar and t in bar["ends"]]
-        raise JobSpecError(
-            f"{job.path}: {len(bad)} target(s) cannot be seen by [planning] min_rays = {reach['min_rays']} reachable "
-            f"stations (e.g. " + ", ".join(f"{t}: {reach['rays'][t]}" for t in (on_bar + bad)[:5]) + ")"
-            + (f", among them the end(s) {', '.join(on_bar)} of the scale bar {'-'.join(bar['ends'])}: the scale "
-               "cannot be established" if on_bar else "") + ": lower [planning] "
-            "min_rays, raise [planning] incidence_max_deg, widen [planning] elevation_min_deg / elevation_max_deg, "
-            "or move the part ([cell] base_from_part)")
+        what = (f"{len(bad)} target(s) cannot be seen by [planning] min_rays = {reach['min_rays']} reachable "
+                f"stations (e.g. " + ", ".join(f"{t}: {reach['rays'][t]}" for t in (on_bar + bad)[:5]) + ")"
+                + (f", among them the end(s) {', '.join(on_bar)} of the scale bar {'-'.join(bar['ends'])}: the "
+                   "scale cannot be established" if on_bar else ""))
+        if job.spec.planning.unmeasurable != "report":
+            raise JobSpecError(
+                f"{job.path}: {what}: lower [planning] min_rays, raise [planning] incidence_max_deg, widen [planning] "
+                "elevation_min_deg / elevation_max_deg, move the part ([cell] base_from_part), or set [planning] "
+                'unmeasurable = "report" to measure the others and report these not measured')
+        doc["warnings"] = [f"{what}: they will be reported not measured ([planning] unmeasurable = \"report\")"]
     if bar is not None:
         weak = [f"{t} ({n})" for t, n in zip(bar["ends"], bar["candidates"]) if n < bar["rays_min"]]
         if weak:  # a warning, not an error: PLAN says what it achieves for the bar (planning/scalebar.py)
-            doc.setdefault("warnings", []).append(
+            bar["warning"] = (
                 f"scale bar {'-'.join(bar['ends'])}: end(s) {', '.join(weak)} seen by fewer than "
                 f"{bar['rays_min']} (2 x min_rays) reachable candidate stations: the scale rests on few rays; "
                 "choose ends the robot sees from more directions, or widen [planning] elevation_min_deg / "
@@ -102,8 +108,11 @@ def plan(args, out) -> int:
             r = d["plan_over_lower_bound"]
             how = ("within {:.0%} of it".format(r - 1) if r >= 1 else
                    "below it: the polish moved stations off the database's lattice")
-            out.say(f"bound  no {d['stations']}-station network made of the {facts['candidates']} database candidates "
-                    f"gets its worst target below {d['lower_bound_sigma_m'] * 1e6:.1f} um; the plan is {how}")
+            n_bar = len((d.get("scale_bar") or {}).get("stations_added") or [])
+            out.say(f"bound  no {d['stations'] - n_bar}-station network made of the {facts['candidates']} database "
+                    f"candidates gets its worst target below {d['lower_bound_sigma_m'] * 1e6:.1f} um; the "
+                    f"{'search' + chr(39) + 's ' if n_bar else ''}plan is {how}"
+                    + (f" ({n_bar} station(s) added for the scale bar after it)" if n_bar else ""))
         for level, line in d.get("scale_bar_lines", []):
             out.say(f"{'WARNING ' if level == 'warning' else 'bar    '}{line}")
         if "fewer_stations" in d:

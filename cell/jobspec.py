@@ -226,6 +226,10 @@ class PlanningSection(_Strict):
                                   "model: the detector model's sigma of that ray (incidence, dot size; needs "
                                   "[camera] observation_weights = 'model'); default: sigma (docs/decisions/0031 "
                                   "says why)")
+    unmeasurable: Literal["fault", "report"] = Field(
+        default="fault", description="a target fewer than min_rays reachable stations can see: fault: refuse the job "
+                                     "before planning; report: plan for the others, measure it if the images happen "
+                                     "to, and report it not measured (verdict INCOMPLETE)")
     closed_loop: bool | None = Field(default=None, description="after ADJUST, add stations for targets that miss their "
                                      "required sigma (default: on when a requirement is set: required_sigma or "
                                      "mode = 'cheapest')")

@@ -30,8 +30,10 @@ def truth_figures(report: dict, part) -> dict:
     same less the scale bar certificate's share (``cov_scale_bar``): the simulated bar is exactly its certified
     length, so that share of the statement is never realised in a run (decision 0029)."""
     m2, m2b, untouched, significant, beyond_failed, suspect, quiet, no_share = [], [], [], [], [], 0, 0, 0
+    not_measured = 0
     for t in report["targets"]:
         if t["measured"][0] is None:
+            not_measured += t["kind"] != "coded"
             continue
         if t.get("suspect"):  # reported inconclusive, with a warning: loud, not a quiet number (decision 0021)
             suspect += 1
@@ -66,7 +68,7 @@ def truth_figures(report: dict, part) -> dict:
             "untouched_in_99_given_bar": float(np.mean(m2b[untouched] <= q99)),
             "false_significant": float(np.mean(significant[untouched])),
             "beyond_tolerance": len(beyond_failed), "beyond_tolerance_failed": int(sum(beyond_failed)),
-            "suspect": suspect, "suspect_not_inconclusive": quiet, "without_scale_bar_share": no_share, "scale_ppm": scale_ppm, "scale_z": scale_z}
+            "suspect": suspect, "suspect_not_inconclusive": quiet, "without_scale_bar_share": no_share, "not_measured": not_measured, "scale_ppm": scale_ppm, "scale_z": scale_z}
 
 
 def _check(fig: dict, report: dict) -> None:

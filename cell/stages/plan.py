@@ -6,10 +6,11 @@ from pathlib import Path
 
 import numpy as np
 
-from calibration.errors import CalibrationError, PlanningError, ReachabilityError
+from calibration.errors import PlanningError, ReachabilityError
 from cell.loadedjob import LoadedJob
 from cell.record.jobfolder import atomic_write_json
 from cell.setup import collision_world, planner_options, robot_model
+from cell.stages.preanalysis import measurement_prediction
 from planning.planner import NetworkPlan, cheapest_network, plan_network
 from planning.reachability import ReachabilityDB
 from planning.visibility import VisibilityDB, default_cache_dir
@@ -87,7 +88,7 @@ def make_plan(job: LoadedJob, progress=None, cache_dir: Path | None = None,
                 "out of the robot's reach or collide)"
             ) from None
         raise
-    facts = {"candidates": int(len(reachable)), "reachable": n_ok, "visibility_cached": bool(db.from_cache),
+    facts = {"candidates": len(reachable), "reachable": n_ok, "visibility_cached": bool(db.from_cache),
              "reachability_cached": bool(reach.loaded)}
     return plan, facts
 
@@ -115,7 +116,7 @@ def unmeasurable_targets(job: LoadedJob, cache_dir: Path | None = None) -> dict:
     coded = job.part.targets.kind == "coded"
     bad = np.flatnonzero((rays < opts.min_rays) & ~coded)
     ids = job.part.targets.ids
-    out = {"min_rays": int(opts.min_rays), "candidates": int(len(reach.reachable)),
+    out = {"min_rays": int(opts.min_rays), "candidates": len(reach.reachable),
            "reachable": int(reach.reachable.sum()), "unmeasurable": [ids[j] for j in bad],
            "rays": {ids[j]: int(rays[j]) for j in bad}}
     if job.scale_bar is not None:  # the bar's ends need more rays than any target (planning/scalebar.py)
@@ -127,57 +128,18 @@ def unmeasurable_targets(job: LoadedJob, cache_dir: Path | None = None) -> dict:
     return out
 
 
-def measurement_prediction(job: LoadedJob, part_from_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-    """Predicted covariance ``(n, 3, 3)`` of what ADJUST will report, and the rays per target ``(n,)``.
-
-    A pre-analysis: the job's own bundle adjustment (self-calibration, datum) on exact synthetic observations
-    of the nominal targets from the planned stations, over the rays MEASURE will identify (every dot the
-    detector sees, up to 85 deg incidence, as :func:`cell.stages.imaging.name_dots`), each weighted by the
-    detector model's precision (:mod:`calibration.detector_model`), covariance with the a priori variance.
-    Unlike limiting error propagation it includes the uncertainty of the orientations, the interior
-    orientation and the datum. None when the job does not use the model.
-    """
-    from calibration.bundle import BundleOptions, bundle_adjust
-    from calibration.camera import invert, project
-    from calibration.detector_model import observation_sigmas
-    from cell.stages.adjust import bundle_config
-    from planning.visibility import VisibilityOptions, compute_visibility
-
-    s = job.spec
-    if s.camera.observation_weights != "model":
-        return None
-    c, k = s.camera, s.scale
-    seeable = VisibilityOptions(margin_px=0.0, incidence_max_rad=float(np.deg2rad(85.0)), min_target_px=1.0,
-                                near_m=c.near * k, far_m=c.far * k)
-    visible = compute_visibility(job.part, job.intrinsics, part_from_cam, seeable)
-    visible &= (job.part.targets.kind != "coded")[None, :]
-    obs_image, obs_target = np.nonzero(visible)
-    poses = np.array([invert(T) for T in part_from_cam])
-    xyz = job.part.targets.xyz
-    uv = np.concatenate([project(job.intrinsics, poses[i], xyz[obs_target[obs_image == i]])
-                         for i in range(len(poses))]) if len(obs_image) else np.zeros((0, 2))
-    sig = observation_sigmas(xyz, job.part.targets.normals, poses, obs_image, obs_target, job.intrinsics.fx_px,
-                             job.part.target_diameter_m, noise_scale=s.sim.noise if s.cell.backend == "sim" else 1.0)
-    try:
-        res = bundle_adjust(obs_image, obs_target, uv, job.intrinsics, poses, xyz,
-                            BundleOptions(sigma_px=float(np.sqrt(np.mean(sig**2))), a_posteriori=False,
-                                          snooping=False), bundle_config(job), obs_sigma_px=np.maximum(sig, 1e-4))
-    except CalibrationError:
-        return None  # the plan cannot be pre-analysed (e.g. an image with fewer than 3 targets): keep the planner's
-    return res.cov, visible.sum(axis=0)
-
-
 def run(ctx) -> None:
     """PLAN: the network design; plan.json and figures/plan.png."""
     p, facts = make_plan(ctx.job, progress=ctx.progress)
     doc = p.to_plan_dict() | {"databases": facts}
-    pred = measurement_prediction(ctx.job, np.asarray(p.part_from_cam, dtype=float))
+    pred = measurement_prediction(ctx.job, np.asarray(p.part_from_cam, dtype=float), progress=ctx.progress,
+                                  cache_dir=default_cache_dir())
     if pred is None and ctx.job.spec.camera.observation_weights == "model":
         doc["prediction"] = {"method": "limiting error propagation of the search (the pre-analysis could not run)"}
         ctx.log.log("warning", "plan: pre-analysis failed; predicted covariance is the search's (fixed orientations)")
         ctx.say("  WARNING predicted precision from the search's limiting error propagation (pre-analysis failed)")
     if pred is not None:  # predicted = what the bundle will achieve: its rays, the detector's precision
-        cov, n_rays = pred
+        cov, n_rays, pre_facts = pred
         for t, c_, n_ in zip(doc["targets"], cov, n_rays):
             t["planned_cov"] = t["predicted_cov"]
             t["predicted_cov"] = c_ if np.isfinite(c_).all() else t["predicted_cov"]
@@ -188,8 +150,13 @@ def run(ctx) -> None:
         doc["predicted_sigma_mean_m"] = float(np.nanmean(sig))
         doc["prediction"] = {"method": "pre-analysis: the job's bundle adjustment (self-calibration, datum) on exact "
                                        "observations of the nominal targets from the planned stations",
-                             "rays": "every ray the detector will identify (incidence up to 85 deg, margin 0)",
-                             "image_precision": "detector model (calibration/data/detector_precision.json)"}
+                             "rays": pre_facts["rays_from"],
+                             "image_precision": "detector model (calibration/data/detector_precision.json), with the "
+                                                "background bounds and clipped shares of the renders where rendered",
+                             "facts": pre_facts}
+        if pre_facts.get("fallback"):
+            ctx.log.log("warning", f"plan: pre-analysis: {pre_facts['fallback']}")
+            ctx.say(f"  WARNING pre-analysis: {pre_facts['fallback']}")
         p = replace(p, predicted_sigma_max_m=doc["predicted_sigma_max_m"],
                     predicted_sigma_mean_m=doc["predicted_sigma_mean_m"])
     atomic_write_json(ctx.folder.file("plan.json"), doc)
@@ -201,6 +168,13 @@ def run(ctx) -> None:
         pass
     ctx.say(f"  {len(p.station_ids)} stations; predicted sigma max {p.predicted_sigma_max_m * 1e6:.1f} um, "
             f"mean {p.predicted_sigma_mean_m * 1e6:.1f} um")
+    if p.unmeasurable_target_ids:  # [planning] unmeasurable = "report": planned for the others, said
+        bad = p.unmeasurable_target_ids
+        msg = (f"plan: {len(bad)} target(s) cannot be seen by [planning] min_rays = {ctx.job.spec.planning.min_rays} "
+               f"reachable stations ({', '.join(bad[:8])}{' ...' if len(bad) > 8 else ''}); planned for the others, "
+               "they will be reported not measured unless the images happen to measure them")
+        ctx.log.log("warning", msg)
+        ctx.say(f"  WARNING {msg}")
     if p.scale_bar is not None:  # what the plan did for the scale bar's ends (planning/scalebar.py)
         from planning.scalebar import bar_warnings
 

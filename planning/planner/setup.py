@@ -118,7 +118,8 @@ def _set_up(part, intr: Intrinsics, options: PlannerOptions, reachable: np.ndarr
                 f"{len(bad)} target(s) cannot be measured by {options.min_rays} valid stations "
                 f"(e.g. {', '.join(bad[:5])}): lower [planning] min_rays, raise [planning] incidence_max_deg, widen "
                 "the viewing sphere ([planning] elevation_min_deg, elevation_max_deg, distance_min, distance_max), "
-                "or remove those targets from the targets file"
+                "or remove those targets from the targets file ([planning] unmeasurable = \"report\" plans for the "
+                "others and reports them not measured)"
             )
     cols = np.flatnonzero(measurable)
     if cols.size == 0:

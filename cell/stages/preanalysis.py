@@ -1,0 +1,290 @@
+"""PLAN's pre-analysis: what ADJUST will report for the planned network, from the cell's own images of the CAD part.
+
+Predicted = achieved needs the same rays and the same image precision as the bundle. Both depend on the images:
+which dots the detector will find and name (a dot clipped by an edge is dropped, a dot at grazing incidence is
+unlike its ellipse), which of them sit next to an edge or a shading step (the detector's background bound, whose
+misfit the views of a target partly share: :mod:`calibration.bundle.coherent`), and which of them the sensor clips
+(the detector model's saturation term). A geometric visibility test knows none of that. So the pre-analysis renders
+the nominal part from every planned station with the simulated cell's camera (its photometry, sensor noise, blur and
+quantisation: :mod:`sim_backend.sim_camera`), measures the renders with MEASURE's own function
+(:func:`cell.stages.imaging.measure_image`), and adjusts exact observations of the nominal targets over the rays it
+named, each weighted as ADJUST will weight it (detector model, background bound, clipped share), with the job's
+self-calibration and datum; the shared misfit and the scale bar's ends are then added as ADJUST adds them.
+
+On a real cell the renders are a prediction (the twin's light and sensor are the simulator's defaults). When the
+rendering cannot run, the rays come from the geometric visibility (every dot up to 85 deg incidence) without the
+image terms, and plan.json says so.
+"""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from calibration.camera import invert, project
+from calibration.errors import CalibrationError
+
+#: the twin's noise stream: fixed, so a plan's prediction does not change between runs of the same job
+TWIN_SEED = 20260
+#: incidence up to which MEASURE names dots (cell.stages.imaging.measure_image's default)
+NAMING_INCIDENCE_DEG = 85.0
+
+
+@dataclass
+class PredictedRays:
+    """The rays the pre-analysis adjusts: per observation its image and target, and the image terms."""
+
+    obs_image: np.ndarray
+    obs_target: np.ndarray
+    bg_cov: np.ndarray | None = None  # (q, 2, 2) px^2, the detector's background bound on the render
+    clipped_share: np.ndarray | None = None  # (q,) share of the dot's pixels at the sensor's ceiling
+    method: str = "rendered"
+    facts: dict = field(default_factory=dict)
+
+
+def twin_camera(job):
+    """The simulated cell's camera on the nominal part at its nominal placement (no deviations, no fixture)."""
+    from dataclasses import replace
+
+    from sim_backend.sim_camera import Photometry, Sensor, SimCamera
+    from sim_backend.world import World
+
+    s = job.spec
+    photometry = Photometry()
+    if s.sim.dot_max_incidence_deg is not None:
+        photometry = replace(photometry, max_incidence_rad=float(np.deg2rad(s.sim.dot_max_incidence_deg)))
+    noise = s.sim.noise if s.cell.backend == "sim" else 1.0
+    world = World(job.part, s.base_from_part(), s.flange_from_cam(), job.intrinsics, seed=TWIN_SEED)
+    return SimCamera(world, photometry=photometry, sensor=Sensor().with_noise_scale(noise),
+                     rng=np.random.default_rng(TWIN_SEED), coded_family=s.job.coded_family)
+
+
+#: the code the renders' measurement depends on: a change to any of them makes a cached result stale
+_SOURCES = ("calibration/dots.py", "calibration/targets.py", "sim_backend/sim_camera.py", "sim_backend/world.py",
+            "cell/stages/imaging.py", "cell/stages/preanalysis.py")
+
+
+def _cache_key(job, poses: np.ndarray) -> str:
+    """Everything the rendered rays depend on: the part, the camera, the poses, the twin's settings, the code."""
+    import hashlib
+    from pathlib import Path
+
+    h = hashlib.sha256()
+    part, t = job.part, job.part.targets
+    for a in (part.mesh.vertices, part.mesh.faces, t.xyz, t.normals, np.asarray(t.code), poses,
+              job.spec.base_from_part(), job.spec.flange_from_cam()):
+        h.update(np.ascontiguousarray(a).tobytes())
+    i = job.intrinsics
+    s = job.spec
+    h.update(repr((list(t.ids), list(t.kind), part.target_diameter_m, part.coded_size_m, i.fx_px, i.fy_px, i.cx_px,
+                   i.cy_px, i.width, i.height, i.k1, i.k2, i.k3, i.p1, i.p2, s.sim.noise, s.sim.dot_max_incidence_deg,
+                   s.cell.backend, s.job.coded_family, repr(s.camera))).encode())
+    root = Path(__file__).resolve().parents[2]
+    for f in _SOURCES:
+        h.update((root / f).read_bytes())
+    return h.hexdigest()[:32]
+
+
+def cached_rendered_rays(job, part_from_cam: np.ndarray, cache_dir, progress=None) -> PredictedRays:
+    """:func:`rendered_rays`, kept in ``cache_dir`` (keyed by everything they depend on, the code included)."""
+    import json
+    from pathlib import Path
+
+    poses = np.asarray(part_from_cam, dtype=float)
+    path = Path(cache_dir) / f"preanalysis-{_cache_key(job, poses)}.npz"
+    if path.exists():
+        try:
+            with np.load(path) as z:
+                r = PredictedRays(z["obs_image"], z["obs_target"], z["bg_cov"], z["clipped_share"])
+                r.facts = json.loads(str(z["facts"]))
+            return r
+        except (OSError, ValueError, KeyError):  # a torn or foreign file: measured again, rewritten
+            pass
+    r = rendered_rays(job, poses, progress)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(f".{os.getpid()}.tmp.npz")
+        np.savez(tmp, obs_image=r.obs_image, obs_target=r.obs_target, bg_cov=r.bg_cov,
+                 clipped_share=r.clipped_share, facts=json.dumps(r.facts))
+        os.replace(tmp, path)
+    except OSError:  # a read-only cache: measured every time
+        pass
+    return r
+
+
+def rendered_rays(job, part_from_cam: np.ndarray, progress=None) -> PredictedRays:
+    """Render every planned station's image of the nominal part and name its dots as MEASURE will.
+
+    Two images at a time (rendering and detection release the GIL for most of their work); each image has its
+    own noise stream, so the result does not depend on the order the threads take them in."""
+    import threading
+    from concurrent.futures import ThreadPoolExecutor
+
+    from cell.stages.imaging import detection_options, measure_image
+    from planning.visibility import Occluder
+
+    detection = detection_options(job.spec.camera)
+    local = threading.local()
+    poses = np.asarray(part_from_cam, dtype=float)
+    done = [0]
+    lock = threading.Lock()
+
+    def one(i: int):
+        if not hasattr(local, "cam"):  # per thread: the camera's buffers and the ray caster are not shared
+            local.cam, local.occluder = twin_camera(job), Occluder(job.part.mesh)
+        local.cam.rng = np.random.default_rng([TWIN_SEED, i])
+        image, _ = local.cam.render(poses[i])
+        m, _ = measure_image(image, job.part, job.intrinsics, invert(poses[i]), local.occluder, detection=detection,
+                             coded_family=job.spec.job.coded_family)
+        with lock:
+            done[0] += 1
+            if progress is not None:
+                progress("pre-analysis", done[0] / len(poses))
+        return m
+
+    workers = max(1, min(2, os.cpu_count() or 1, len(poses)))
+    with ThreadPoolExecutor(max_workers=workers) as ex:
+        found = list(ex.map(one, range(len(poses))))
+    img_idx, tgt, bg, clip = [], [], [], []
+    lost: dict[str, int] = {}
+    for i, m in enumerate(found):
+        k = len(m.target)
+        img_idx.append(np.full(k, i))
+        tgt.append(np.asarray(m.target, dtype=int))
+        bg.append(np.zeros((k, 2, 2)) if m.bg_cov is None else np.asarray(m.bg_cov, dtype=float).reshape(k, 2, 2))
+        clip.append(np.zeros(k) if m.clipped_share is None else np.asarray(m.clipped_share, dtype=float).reshape(k))
+        for _, why in m.dropped:
+            key = "shape unlike its ellipse" if why.startswith("shape") else why.split(":")[0].split("(")[0].strip()
+            lost[key] = lost.get(key, 0) + 1
+    r = PredictedRays(np.concatenate(img_idx).astype(int), np.concatenate(tgt).astype(int), np.concatenate(bg),
+                      np.concatenate(clip))
+    r.facts = {"images_rendered": len(poses), "rays": len(r.obs_target),
+               "rays_with_background_bound": int(np.count_nonzero(np.trace(r.bg_cov, axis1=1, axis2=2) > 0)),
+               "rays_clipped": int(np.count_nonzero(r.clipped_share > 0)), "dots_left_unnamed": lost}
+    return r
+
+
+def geometric_rays(job, part_from_cam: np.ndarray) -> PredictedRays:
+    """Every dot the detector could see (incidence up to 85 deg, margin 0): the fallback without renders."""
+    from planning.visibility import VisibilityOptions, compute_visibility
+
+    c, k = job.spec.camera, job.spec.scale
+    seeable = VisibilityOptions(margin_px=0.0, incidence_max_rad=float(np.deg2rad(NAMING_INCIDENCE_DEG)),
+                                min_target_px=1.0, near_m=c.near * k, far_m=c.far * k)
+    visible = compute_visibility(job.part, job.intrinsics, part_from_cam, seeable)
+    visible &= (job.part.targets.kind != "coded")[None, :]
+    obs_image, obs_target = np.nonzero(visible)
+    return PredictedRays(obs_image, obs_target, method="geometric",
+                         facts={"rays": len(obs_target)})
+
+
+def adjust_prediction(job, part_from_cam: np.ndarray, rays: PredictedRays) -> tuple[np.ndarray, dict]:
+    """The job's adjustment on exact observations over ``rays``, weighted as ADJUST weighs them.
+
+    Returns the predicted covariance ``(n, 3, 3)`` (m^2, a priori variance) and what the shared misfit added.
+    Raises CalibrationError when the network cannot be adjusted (e.g. an image with fewer than 3 targets)."""
+    from cell.stages.adjust import WILD_SIGMA_FACTOR
+    from cell.stages.screen import screen_network
+
+    poses = np.array([invert(T) for T in part_from_cam])
+    xyz = job.part.targets.xyz
+    order = np.lexsort((rays.obs_target, rays.obs_image))  # image by image, as the bundle groups them
+    img, tgt = rays.obs_image[order], rays.obs_target[order]
+    uv = np.zeros((len(img), 2))
+    for i in np.unique(img):
+        sel = img == i
+        uv[sel] = project(job.intrinsics, poses[i], xyz[tgt[sel]])
+    # what ADJUST's screening will drop (a target with one ray or nearly parallel ones, an image with too few dots,
+    # a block not linked to the rest), then a target the adjustment cannot determine, as ADJUST drops it
+    ids = list(job.part.targets.ids)
+    scale_pair = tuple(job.scale_bar[:2]) if job.scale_bar is not None else None
+    drop: dict[int, str] = {}
+    for _ in range(3):
+        scr = screen_network(img, tgt, uv, job.intrinsics, poses, len(xyz), scale_pair=scale_pair, drop_targets=drop,
+                             ids=ids)
+        if scr.keep_images.sum() < 2:
+            raise CalibrationError("pre-analysis: fewer than 2 images usable")
+        cov, added = _adjust_exact(job, poses, img, tgt, uv, scr, rays, order)
+        tr = np.trace(cov, axis1=1, axis2=2)
+        sig = np.sqrt(np.where(np.isfinite(tr) & (tr > 0), tr, np.nan))
+        wild = (np.flatnonzero(sig > WILD_SIGMA_FACTOR * np.nanmedian(sig)) if np.isfinite(sig).sum() >= 3
+                else np.zeros(0, dtype=int))
+        if not wild.size:
+            break
+        drop.update({int(t): f"sigma beyond {WILD_SIGMA_FACTOR:g} x the median" for t in wild})
+    added["screened_targets"] = sorted(ids[t] for t in scr.targets)
+    added["screened_images"] = int((~scr.keep_images).sum())
+    return cov, added
+
+
+def _adjust_exact(job, poses, img, tgt, uv, scr, rays: PredictedRays, order) -> tuple[np.ndarray, dict]:
+    """One adjustment of the exact observations the screening kept (NaN covariance for the targets it dropped)."""
+    from calibration.bundle import BundleOptions, bundle_adjust
+    from calibration.bundle.coherent import scale_bar_gains
+    from calibration.detector_model import observation_covariances, observation_sigmas
+    from cell.stages.adjust import _add_coherent_background, bundle_config
+
+    s = job.spec
+    xyz = job.part.targets.xyz
+    kept = np.flatnonzero(scr.keep_images)
+    new_index = np.full(len(poses), -1)
+    new_index[kept] = np.arange(len(kept))
+    sel = scr.keep_obs & scr.keep_images[img]
+    poses = poses[kept]
+    img, tgt, uv = new_index[img[sel]], tgt[sel], uv[sel]
+    sig = observation_sigmas(xyz, job.part.targets.normals, poses, img, tgt, job.intrinsics.fx_px,
+                             job.part.target_diameter_m, noise_scale=s.sim.noise if s.cell.backend == "sim" else 1.0)
+    sig = np.maximum(sig, 1e-4)
+    bg = None if rays.bg_cov is None else rays.bg_cov[order][sel]
+    clip = None if rays.clipped_share is None else rays.clipped_share[order][sel]
+    obs_sigma = sig if bg is None and clip is None else observation_covariances(sig, bg, clipped_share=clip)
+    config = bundle_config(job, scale=scr.scale_ok)
+    res = bundle_adjust(img, tgt, uv, job.intrinsics, poses, xyz,
+                        BundleOptions(sigma_px=float(np.sqrt(np.mean(sig**2))), a_posteriori=False, snooping=False),
+                        config, obs_sigma_px=obs_sigma)
+    added: dict = {}
+    if bg is not None:
+        bars = config.scale_bars
+        K = scale_bar_gains(res.covariance, res.points, bars)[0] if bars else None
+        added = _add_coherent_background(res, bg, img, tgt, list(job.part.targets.ids), bars, K)
+    return res.cov, added
+
+
+def measurement_prediction(job, part_from_cam: np.ndarray, progress=None, cache_dir=None):
+    """Predicted covariance ``(n, 3, 3)``, rays per target ``(n,)`` and the facts for plan.json; None when the job
+    does not weight with the detector model or the network cannot be adjusted."""
+    if job.spec.camera.observation_weights != "model":
+        return None
+    part_from_cam = np.asarray(part_from_cam, dtype=float)
+    fallback = None
+    try:
+        rays = (rendered_rays(job, part_from_cam, progress) if cache_dir is None
+                else cached_rendered_rays(job, part_from_cam, cache_dir, progress))
+    except (CalibrationError, ValueError, MemoryError) as e:  # a render or a measurement that cannot run
+        fallback = f"the renders could not be measured ({e}); rays from the geometric visibility, no image terms"
+        rays = geometric_rays(job, part_from_cam)
+    try:
+        cov, added = adjust_prediction(job, part_from_cam, rays)
+    except CalibrationError:
+        if rays.method != "rendered":
+            return None
+        # the renders lost too much for an image to be adjusted: the geometric rays still give a prediction
+        fallback = "the rendered rays could not be adjusted; rays from the geometric visibility, no image terms"
+        rays = geometric_rays(job, part_from_cam)
+        try:
+            cov, added = adjust_prediction(job, part_from_cam, rays)
+        except CalibrationError:
+            return None
+    n = len(job.part.targets.xyz)
+    facts = dict(rays.facts)
+    facts["rays_from"] = ("renders of the nominal part from the planned stations, measured as MEASURE does"
+                          if rays.method == "rendered" else "geometric visibility (incidence up to 85 deg)")
+    if fallback:
+        facts["fallback"] = fallback
+    facts["screened_targets"] = added.pop("screened_targets", [])  # ADJUST's screening will drop them too
+    facts["screened_images"] = added.pop("screened_images", 0)
+    if added:
+        facts["shared_misfit_targets"] = added.get("n_targets", 0)
+        facts["scale_bar_ends"] = added.get("scale_bar_ends", [])
+    return cov, np.bincount(rays.obs_target, minlength=n), facts

@@ -1,0 +1,89 @@
+"""PLAN's pre-analysis from renders of the nominal part (cell/stages/preanalysis.py): the rays it predicts are the
+rays MEASURE finds, its image terms are the detector's, it is cached safely, and a fallback is said."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+import cell.stages.preanalysis as PA
+from calibration.errors import CalibrationError
+from cell.loadedjob import load
+from jobutil import example_run
+
+
+@pytest.fixture(scope="module")
+def example(tmp_path_factory):
+    job, folder, run = example_run(tmp_path_factory)
+    return job, folder
+
+
+def _observed(folder) -> tuple[dict, int, int]:
+    obs = json.loads((folder / "observations.json").read_text())
+    rays: dict[str, int] = {}
+    clipped = bounded = 0
+    for im in obs["images"]:
+        for tid in im["ids"]:
+            rays[tid] = rays.get(tid, 0) + 1
+        clipped += sum(1 for c in im["clipped_share"] if c > 0)
+        bounded += sum(1 for b in im["bg_cov_px2"] if np.trace(np.array(b)) > 0)
+    return rays, clipped, bounded
+
+
+def test_predicted_rays_are_the_rays_measure_finds(example):
+    job, folder = example
+    plan = json.loads((folder / "plan.json").read_text())
+    facts = plan["prediction"]["facts"]
+    assert facts["rays_from"].startswith("renders") and "fallback" not in facts
+    observed, clipped, bounded = _observed(folder)
+    pred = {t["id"]: t["predicted_rays"] for t in plan["targets"] if t["id"] in observed}
+    diff = np.array([pred[i] - observed[i] for i in pred])
+    # the part lies where the job says and the robot stands where planned: the same dots, one lost or won at most
+    assert np.mean(np.abs(diff) <= 1) >= 0.95, f"rays per target differ: {np.unique(diff, return_counts=True)}"
+    assert abs(facts["rays"] - sum(observed.values())) <= 0.03 * sum(observed.values())
+    # the image terms: as many clipped dots (within noise) as the real images have
+    assert abs(facts["rays_clipped"] - clipped) <= max(5, 0.15 * clipped), (facts["rays_clipped"], clipped)
+    assert abs(facts["rays_with_background_bound"] - bounded) <= max(5, 0.5 * bounded), \
+        (facts["rays_with_background_bound"], bounded)
+
+
+def test_rendered_rays_are_deterministic_and_cached_by_everything_they_depend_on(example, tmp_path):
+    job_path, folder = example
+    job = load(job_path)
+    plan = json.loads((folder / "plan.json").read_text())
+    poses = np.array([s["part_from_cam"] for s in plan["stations"][:3]])
+    a = PA.cached_rendered_rays(job, poses, tmp_path)
+    files = list(tmp_path.glob("preanalysis-*.npz"))
+    assert len(files) == 1
+    b = PA.cached_rendered_rays(job, poses, tmp_path)  # from the cache
+    c = PA.rendered_rays(job, poses)  # measured again: the twin's noise is per image, not per run
+    for r in (b, c):
+        np.testing.assert_array_equal(r.obs_target, a.obs_target)
+        np.testing.assert_array_equal(r.obs_image, a.obs_image)
+        np.testing.assert_allclose(r.bg_cov, a.bg_cov)
+        np.testing.assert_allclose(r.clipped_share, a.clipped_share)
+    assert b.facts == a.facts and len(a.obs_target) > 60
+    moved = poses.copy()
+    moved[0, :3, 3] += 0.01  # another station: another key
+    assert PA._cache_key(job, moved) != PA._cache_key(job, poses)
+    files[0].write_bytes(b"torn")  # a torn cache file is measured again, not trusted
+    d = PA.cached_rendered_rays(job, poses, tmp_path)
+    np.testing.assert_array_equal(d.obs_target, a.obs_target)
+
+
+def test_a_prediction_without_renders_says_so(example, monkeypatch):
+    job_path, folder = example
+    job = load(job_path)
+    plan = json.loads((folder / "plan.json").read_text())
+    poses = np.array([s["part_from_cam"] for s in plan["stations"]])
+
+    def broken(*a, **k):
+        raise CalibrationError("twin camera: cannot render")
+
+    monkeypatch.setattr(PA, "rendered_rays", broken)
+    cov, rays, facts = PA.measurement_prediction(job, poses)
+    assert "cannot render" in facts["fallback"] and facts["rays_from"].startswith("geometric")
+    assert cov.shape == (len(job.part.targets.ids), 3, 3)
+    retro = job.part.targets.kind != "coded"
+    assert np.all(rays[retro] >= 0) and rays.sum() == facts["rays"]
