@@ -28,7 +28,7 @@ def _human_check(doc: dict, out) -> None:
     if r and r.get("scale_bar"):
         b = r["scale_bar"]
         out.say(f"bar    scale bar {'-'.join(b['ends'])}: ends seen by {b['candidates'][0]} / {b['candidates'][1]} "
-                f"reachable candidate stations")
+                f"reachable candidate stations well inside the image, 10 deg below the incidence limit")
         if b.get("warning"):
             out.say(f"bar    WARNING {b['warning']}")
     if "plan" in doc:
@@ -66,7 +66,8 @@ def check(args, out) -> int:
         if weak:  # a warning, not an error: PLAN says what it achieves for the bar (planning/scalebar.py)
             bar["warning"] = (
                 f"scale bar {'-'.join(bar['ends'])}: end(s) {', '.join(weak)} seen by fewer than "
-                f"{bar['rays_min']} (2 x min_rays) reachable candidate stations: the scale rests on few rays; "
+                f"{bar['rays_min']} (2 x min_rays) reachable candidate stations with a sure view (well inside the "
+                "image, 10 deg below the incidence limit): the scale rests on few rays; "
                 "choose ends the robot sees from more directions, or widen [planning] elevation_min_deg / "
                 "elevation_max_deg, incidence_max_deg")
     if args.plan is not None:

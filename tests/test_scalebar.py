@@ -129,3 +129,22 @@ def test_bar_end_no_candidate_can_serve_is_said_in_one_line_and_the_plan_goes_on
     _, n_rays = covariance_for_network(intr, p.part_from_cam, part.targets.xyz,
                                        covariance_with(intr, _options(), part, p.part_from_cam)[0], 0.1, min_rays=3)
     assert n_rays[b] == 5 and k > 0 and bar["after"]["length_sigma_m"] < bar["before"]["length_sigma_m"]
+
+
+def test_cell_check_names_the_bar_when_an_end_has_few_sure_views_or_none(tmp_path):
+    from tests.jobutil import job_variant, run_cell
+
+    # cameras no lower than 40 deg: the bar's ends (on the example's side faces) have few views well inside the
+    # image and 10 deg below the incidence limit; a warning names the bar, the check passes
+    job = job_variant(tmp_path / "low", {"planning": {"elevation_min_deg": 40.0}})
+    r = run_cell("check", str(job), timeout=300)
+    assert r.code == 0, r.stderr[-2000:]
+    bar = r.doc["measurability"]["scale_bar"]
+    assert bar["ends"] == ["T0094", "T0100"] and bar["rays_min"] == 6 and min(bar["candidates"]) < 6
+    assert "scale bar T0094-T0100" in bar["warning"] and "T0100 (" in bar["warning"]
+    # no lower than 45 deg: T0100 cannot be seen by min_rays stations at all: one line naming the bar, exit 2
+    job = job_variant(tmp_path / "high", {"planning": {"elevation_min_deg": 45.0}})
+    r = run_cell("check", str(job), timeout=300)
+    assert r.code == 2 and r.doc["error"] == "JobSpecError" and "\n" not in r.doc["message"].strip()
+    line = r.doc["message"]
+    assert "the end(s) T0100 of the scale bar T0094-T0100" in line and "scale cannot be established" in line

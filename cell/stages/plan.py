@@ -98,7 +98,8 @@ def unmeasurable_targets(job: LoadedJob, cache_dir: Path | None = None) -> dict:
 
     The same visibility and reachability databases as PLAN (cached), so ``cell check`` says what PLAN would
     refuse. Returns {``min_rays``, ``candidates``, ``reachable``, ``unmeasurable``: ids, ``rays``: per id the count,
-    and with a scale bar ``scale_bar``: {``ends``, ``candidates``: reachable candidates seeing each, ``rays_min``}}.
+    and with a scale bar ``scale_bar``: {``ends``, ``candidates``: reachable candidates seeing each with a ray the bar
+    counts on (:func:`planning.scalebar.trusted_views`), ``rays_min``}}.
     """
     from dataclasses import replace as _replace
 
@@ -119,11 +120,14 @@ def unmeasurable_targets(job: LoadedJob, cache_dir: Path | None = None) -> dict:
     out = {"min_rays": int(opts.min_rays), "candidates": len(reach.reachable),
            "reachable": int(reach.reachable.sum()), "unmeasurable": [ids[j] for j in bad],
            "rays": {ids[j]: int(rays[j]) for j in bad}}
-    if job.scale_bar is not None:  # the bar's ends need more rays than any target (planning/scalebar.py)
-        from planning.scalebar import RAYS_FACTOR
+    if job.scale_bar is not None:  # the bar's ends need more rays than any target, and sure ones (planning/scalebar.py)
+        from planning.scalebar import RAYS_FACTOR, trusted_views
 
-        a, b = job.scale_bar[:2]
-        out["scale_bar"] = {"ends": [ids[a], ids[b]], "candidates": [int(rays[a]), int(rays[b])],
+        e = list(job.scale_bar[:2])
+        t = job.part.targets
+        sure = trusted_views(job.intrinsics, db.part_from_cam, t.xyz[e], t.normals[e],
+                             db.visible[:, e] & reach.reachable[:, None], opts.incidence_max_rad).sum(axis=0)
+        out["scale_bar"] = {"ends": [ids[k] for k in e], "candidates": [int(k) for k in sure],
                             "rays_min": RAYS_FACTOR * int(opts.min_rays)}
     return out
 
