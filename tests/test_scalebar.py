@@ -148,3 +148,21 @@ def test_cell_check_names_the_bar_when_an_end_has_few_sure_views_or_none(tmp_pat
     assert r.code == 2 and r.doc["error"] == "JobSpecError" and "\n" not in r.doc["message"].strip()
     line = r.doc["message"]
     assert "the end(s) T0100 of the scale bar T0094-T0100" in line and "scale cannot be established" in line
+
+
+def test_extra_stations_judge_a_target_along_a_direction_when_asked():
+    from planning.augment import plan_extra_stations
+
+    # one target measured with information diag(1, 4, 9) (sigma along x 1, along z 1/3); candidates add along x
+    N_have = np.array([[1.0, 0, 0, 4.0, 0, 9.0]])
+    info = np.array([[[3.0, 0, 0, 0, 0, 0]], [[0, 0, 0, 0, 0, 90.0]]])
+    vis, ok = np.ones((2, 1), bool), np.ones(2, bool)
+    along_x = plan_extra_stations(N_have, np.array([3]), np.array([0.6]), info, vis, ok, min_rays=3, max_new=2,
+                                  along=np.array([[1.0, 0, 0]]))
+    assert along_x.sigma_before[0] == pytest.approx(1.0) and list(along_x.added) == [0]
+    assert along_x.sigma_after[0] == pytest.approx(0.5)
+    along_z = plan_extra_stations(N_have, np.array([3]), np.array([0.6]), info, vis, ok, min_rays=3, max_new=2,
+                                  along=np.array([[0, 0, 1.0]]))
+    assert along_z.sigma_before[0] == pytest.approx(1 / 3) and along_z.added.size == 0
+    trace = plan_extra_stations(N_have, np.array([3]), np.array([0.6]), info, vis, ok, min_rays=3, max_new=2)
+    assert trace.sigma_before[0] == pytest.approx(np.sqrt(1 + 1 / 4 + 1 / 9))
