@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from calibration.camera import Intrinsics
-from planning.planner import build_database, plan_network
+from planning.planner import build_database, cheapest_network, plan_network
 from planning.scalebar import (
     AZIMUTH_GAP_MAX_DEG,
     RAYS_FACTOR,
@@ -166,3 +166,16 @@ def test_extra_stations_judge_a_target_along_a_direction_when_asked():
     assert along_z.sigma_before[0] == pytest.approx(1 / 3) and along_z.added.size == 0
     trace = plan_extra_stations(N_have, np.array([3]), np.array([0.6]), info, vis, ok, min_rays=3, max_new=2)
     assert trace.sigma_before[0] == pytest.approx(np.sqrt(1 + 1 / 4 + 1 / 9))
+
+
+def test_cheapest_mode_gets_the_bar_stations_after_its_search(scene):
+    part, intr, cache = scene
+    a, b, L = _far_pair(part, np.arange(len(part.targets.ids)))
+    kw = dict(n_stations=10, population=40, generations=40, stall_generations=40, required_sigma_m=60e-6)
+    plain = cheapest_network(part, intr, _options(**kw), np.random.default_rng(3), cache_dir=cache, seed=3)
+    p = cheapest_network(part, intr, _options(**kw, scale_bar=(a, b, L, 2e-6)), np.random.default_rng(3),
+                         cache_dir=cache, seed=3)
+    k, added = len(plain.station_ids), p.scale_bar["stations_added"]
+    assert p.mode == "cheapest" and added and len(p.station_ids) == k + len(added)
+    assert np.array_equal(p.part_from_cam[:k], plain.part_from_cam) and p.scale_bar["met"]
+    assert np.all(p.sigma <= np.asarray(p.required_sigma_m) * (1 + 1e-9))  # still meets the search's requirement
