@@ -61,6 +61,7 @@ def collect(n_views: int, repeats: int, seed: int = 0, job_path: Path = JOB) -> 
     centre = xyz.mean(axis=0)
     index = {t: i for i, t in enumerate(job.part.targets.ids)}
     rng = np.random.default_rng(seed)
+    poses = np.full((n_views, 4, 4), np.nan)
     rows = []  # view, target, incidence deg, diameter px, eu, ev, repeat, background bound b00, b01, b11, saturated px, area px
     for k in range(n_views):
         az = 2 * np.pi * k / n_views + rng.uniform(-0.2, 0.2)
@@ -69,6 +70,7 @@ def collect(n_views: int, repeats: int, seed: int = 0, job_path: Path = JOB) -> 
         eye = centre + dist * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
         part_from_cam = look_at(eye, centre + rng.normal(0, 0.02, 3), roll_rad=rng.uniform(-np.pi, np.pi))
         cam_from_part = invert(part_from_cam)
+        poses[k] = cam_from_part
         for r in range(repeats):
             img, truth = cam.render(part_from_cam, noise=True)
             det = detect_retro_targets(img, DetectionOptions())
@@ -92,7 +94,9 @@ def collect(n_views: int, repeats: int, seed: int = 0, job_path: Path = JOB) -> 
             sat, area = det.saturated[j[ok]], det.area_px[j[ok]]
             for t_, a_, s_, (eu, ev), b, ns, ar in zip(tid[ok], inc, dpx, e, B, sat, area):
                 rows.append((k, int(t_), float(a_), float(s_), float(eu), float(ev), r, b[0, 0], b[0, 1], b[1, 1], ns, ar))
-    return {"rows": np.array(rows, dtype=float), "fx_px": intr.fx_px, "diameter_m": 2 * radius}
+    return {"rows": np.array(rows, dtype=float).reshape(-1, 12), "fx_px": intr.fx_px, "fy_px": intr.fy_px,
+            "diameter_m": 2 * radius,
+            "cam_from_part": poses, "xyz": xyz}
 
 
 def class_table(rows: np.ndarray) -> list[dict]:
@@ -109,9 +113,9 @@ def class_table(rows: np.ndarray) -> list[dict]:
     return out
 
 
-def collect_parts(n_views: int, repeats: int, seed: int, plates: int, skins: int = 0) -> tuple[np.ndarray, list[str]]:
-    """Rows of :func:`collect` on the example and on ``plates`` generated plates and ``skins`` generated skins
-    (tests/partgen.py, seeds from 300 and 400), each part with its own view seed; and the parts' names."""
+def collect_each(n_views: int, repeats: int, seed: int, plates: int, skins: int = 0) -> list[tuple[str, dict]]:
+    """:func:`collect` on the example and on ``plates`` generated plates and ``skins`` generated skins
+    (tests/partgen.py, seeds from 300 and 400), each part with its own view seed: ``(part name, collected)``."""
     from tests.partgen import make_part_job
 
     parts = [("examples/bracket", JOB)]
@@ -120,8 +124,13 @@ def collect_parts(n_views: int, repeats: int, seed: int, plates: int, skins: int
             for k in range(count):
                 g = make_part_job(Path(tmp) / f"{kind}{k}", np.random.default_rng(first + k), kind)
                 parts.append((f"tests.partgen {kind} seed {first + k}", g.job))
-        rows = np.vstack([collect(n_views, repeats, seed + i, path)["rows"] for i, (_, path) in enumerate(parts)])
-    return rows, [name for name, _ in parts]
+        return [(name, collect(n_views, repeats, seed + i, path)) for i, (name, path) in enumerate(parts)]
+
+
+def collect_parts(n_views: int, repeats: int, seed: int, plates: int, skins: int = 0) -> tuple[np.ndarray, list[str]]:
+    """Rows of :func:`collect_each`, stacked; and the parts' names."""
+    each = collect_each(n_views, repeats, seed, plates, skins)
+    return np.vstack([doc["rows"] for _, doc in each]), [name for name, _ in each]
 
 
 def measured_ranges(rows: np.ndarray, table: list[dict]) -> dict:
@@ -229,6 +238,15 @@ def main(argv: list[str] | None = None) -> int:
             "c_background_dots": {"n": int(flagged.sum()), "normalised_rms": float(np.sqrt(np.mean(zf**2)))
                                   if flagged.any() else None},
             "saturation_dots": {"n": int(cs.sum()), "normalised_rms": float(np.sqrt(np.mean(zs**2))) if cs.any() else None}}
+        # the share of the misfit the views have in common is measured by benchmarks/background_share.py with the
+        # stored c_background: kept, and to be measured again when c changed (decision 0032)
+        old = json.loads(DATA_PATH.read_text())
+        kept = {k: v for k, v in old.items() if k.startswith("rho_background")}
+        if kept:
+            doc |= kept | {"version": "4"}
+            print(f"rho_background {kept['rho_background']:.3f} kept from {DATA_PATH.name} (measured with c_background "
+                  f"{old.get('c_background', float('nan')):.3f}; now {c_bg:.3f}): measure it again with "
+                  "python -m benchmarks.background_share --write when c changed")
         DATA_PATH.write_text(json.dumps(doc, indent=1) + "\n")
         print(f"written {DATA_PATH}")
     return 0

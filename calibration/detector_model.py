@@ -18,7 +18,9 @@ shading next to it) carries a further error the geometry cannot predict; the det
 (``Detections.background_cov``, observations.json ``bg_cov_px2``) and the bundle adds ``c^2`` times that
 bound to the model's variance (:func:`observation_covariances`); ``c`` (``c_background``), the share of the
 bound that such errors reach on average, is measured by ``benchmarks/detector_precision.py --fit-background``
-against the simulated truth (docs/decisions/0023).
+against the simulated truth (docs/decisions/0023). The share of that error a target's views have in common
+(``rho_background``; ADJUST adds the cross terms between the views, calibration/bundle/coherent.py) comes from
+``benchmarks/background_share.py`` (decision 0032); a model file without it (before version 4) gives one.
 
 A dot the sensor clips (its pixels at the ceiling: an exposure too bright for a near station) is centred with
 an error of pixel phase that grows with how far it is overexposed (decision 0029: 0.0046 px rms with 60-70 % of
@@ -63,6 +65,16 @@ class DetectorModel:
     #: (None: not recorded); :meth:`sigma_px_measured` does not extrapolate beyond them
     incidence_range_deg: tuple[float, float] | None = None
     diameter_range_px: tuple[float, float] | None = None
+    #: the share of a dot's background misfit (``c^2 B``) that ADJUST takes as common to its views, from the
+    #: rendered truth by ``benchmarks/background_share.py`` (decision 0032: the pairs' moments, and the intersections
+    #: that say whether the statement built with it covers the errors); None: not in the model file (a model before
+    #: version 4), :attr:`shared_share` then takes the conservative limit one
+    rho_background: float | None = None
+
+    @property
+    def shared_share(self) -> float:
+        """:attr:`rho_background`, or 1 (the conservative limit) where the model file does not give it."""
+        return 1.0 if self.rho_background is None else self.rho_background
 
     def saturation_var(self, clipped_share) -> np.ndarray:
         """Variance (px^2) a clipped dot adds to each coordinate, for the clipped share of its pixels ``(k,)``."""
@@ -99,7 +111,9 @@ class DetectorModel:
         return (f"sigma^2 = {self.a_px:.4f}^2 + {self.b_px:.4f}^2 (d/{D_REF_PX:g} px)^-{2 * self.p:.2f} "
                 f"cos(theta)^-{2 * self.q:.2f} px^2, + {self.c_background:.3f}^2 x the detector's background bound, "
                 f"+ {self.c_saturation:.4f}^2 rho^{self.k_saturation:.1f} for a dot with a share rho of its pixels "
-                f"clipped (version {self.version})")
+                f"clipped; views share "
+                + (f"{self.rho_background:.2f}" if self.rho_background is not None else "1 (not measured)")
+                + f" of the background misfit (version {self.version})")
 
     def to_dict(self) -> dict:
         return {"model": "sigma_px^2 = a^2 + b^2 (d / d_ref)^(-2p) cos(theta)^(-2q)", "d_ref_px": D_REF_PX,
@@ -107,7 +121,8 @@ class DetectorModel:
                 "c_saturation_px": self.c_saturation, "k_saturation": self.k_saturation,
                 "version": self.version,
                 **({"incidence_range_deg": list(self.incidence_range_deg)} if self.incidence_range_deg else {}),
-                **({"diameter_range_px": list(self.diameter_range_px)} if self.diameter_range_px else {})}
+                **({"diameter_range_px": list(self.diameter_range_px)} if self.diameter_range_px else {}),
+                **({"rho_background": self.rho_background} if self.rho_background is not None else {})}
 
 
 def fit_model(incidence_deg: np.ndarray, diameter_px: np.ndarray, errors_px: np.ndarray,
@@ -186,10 +201,13 @@ def load_model(path: str | None = None) -> DetectorModel:
                   for k in ("incidence_range_deg", "diameter_range_px")]
         if any(r is not None and not (len(r) == 2 and 0 <= r[0] < r[1]) for r in ranges):
             raise ValueError("incidence_range_deg and diameter_range_px must be [low, high], 0 <= low < high")
+        rho = doc.get("rho_background")
+        if rho is not None and not 0.0 <= float(rho) <= 1.0:
+            raise ValueError(f"rho_background must be in [0, 1], got {rho}")
         return DetectorModel(float(doc["a_px"]), float(doc["b_px"]), float(doc["p"]), float(doc["q"]),
                              str(doc.get("version", "1")), float(doc.get("c_background", 0.0)),
                              float(doc.get("c_saturation_px", 0.0)), float(doc.get("k_saturation", 1.0)),
-                             *ranges)
+                             *ranges, None if rho is None else float(rho))
     except (OSError, KeyError, ValueError, TypeError) as exc:
         raise CalibrationError(f"{p}: cannot read the detector precision model ({exc})") from None
 

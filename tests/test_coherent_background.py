@@ -140,3 +140,97 @@ def test_the_stated_scale_uncertainty_is_what_a_similarity_fit_finds_over_noise_
         draws.append(1.0 / s - 1.0)
     assert sig == pytest.approx(np.std(draws), rel=0.06)
     assert cert == pytest.approx(5e-6, rel=1e-9)
+
+
+def _drawn_errors(rng, rho, n_targets=200, n_views=6, c=0.27):
+    """Errors drawn from the shared-misfit model: ``e_i = sqrt(rho) S_i Jh_i z_t + sqrt(1 - rho) S_i w_i + noise``
+    for ``n_targets`` targets seen in ``n_views`` views each (some without a bound); the rows share_pairs takes."""
+    from calibration.bundle.coherent import unit_projection
+
+    rows = {"e": [], "bound": [], "Jh": [], "target": [], "view": [], "cov": []}
+    for t in range(n_targets):
+        poses = _views(rng, n_views, spread_deg=35.0)
+        X = np.zeros((n_views, 3))
+        Jh, _ = unit_projection(poses, X)
+        B = np.array([np.diag(rng.uniform(0.02, 0.25, 2) ** 2) for _ in range(n_views)])
+        B[rng.uniform(size=n_views) < 0.2] = 0.0  # views where the dot's surroundings are a plane
+        S = np.sqrt(c * c * B)  # diagonal bounds
+        z = rng.normal(size=3)
+        e = (np.sqrt(rho) * np.einsum("qab,qbc,c->qa", S, Jh, z)
+             + np.sqrt(1 - rho) * np.einsum("qab,qb->qa", S, rng.normal(size=(n_views, 2)))
+             + rng.normal(0, 0.006, (n_views, 2)))
+        for key, v in (("e", e), ("bound", c * c * B), ("Jh", Jh), ("target", np.full(n_views, t)),
+                       ("view", np.arange(n_views)), ("cov", 0.006**2 * np.eye(2) + c * c * B)):
+            rows[key].append(v)
+    return {k: np.concatenate(v) for k, v in rows.items()}
+
+
+@pytest.mark.parametrize("rho", [0.4, 1.0])
+def test_the_shared_share_is_recovered_from_errors_drawn_from_the_model(rho):
+    """benchmarks/background_share.py's estimator (least squares over pairs of distinct views, bootstrap over
+    targets) on errors drawn with a known share."""
+    from calibration.bundle.coherent import fit_share, share_pairs
+
+    r = _drawn_errors(np.random.default_rng(int(rho * 10)), rho, n_targets=300)
+    for cov in (None, r["cov"]):  # plain least squares, and whitened by the bundle's weights (the benchmark's)
+        p = share_pairs(r["e"], r["bound"], r["Jh"], r["target"], r["view"], obs_cov=cov)
+        assert not np.any(p["same_view"]) and len(p["num"]) > 1000
+        est, sig = fit_share(p["num"], p["den"], p["target"])
+        assert 0.02 < sig < 0.15, sig  # a measurement, not an exact echo
+        assert abs(est - rho) < 3 * sig, (est, sig)
+    with pytest.raises(ValueError, match="at least 20"):  # too few targets is said, not estimated
+        fit_share(p["num"][:30], p["den"][:30], p["target"][:30])
+
+
+def test_adjust_adds_the_shared_misfit_scaled_by_the_measured_share(monkeypatch):
+    """ADJUST's added covariance (per target and the scale bar ends' rank-one term) is proportional to the detector
+    model's rho_background; a model without it takes one and says so in bundle.json."""
+    from types import SimpleNamespace
+
+    import cell.stages.adjust as adjust
+    from calibration.alignment import PointCovariance
+    from calibration.bundle import ScaleBar
+    from calibration.detector_model import DetectorModel
+
+    rng = np.random.default_rng(5)
+    poses = _views(rng, 8)
+    n = 3
+    X = np.array([[0.0, 0.0, 0.0], [0.05, 0.01, 0.0], [-0.04, 0.03, 0.0]])
+    img = np.tile(np.arange(8), n)
+    tgt = np.repeat(np.arange(n), 8)
+    bg = np.array([np.diag(rng.uniform(0.05, 0.2, 2) ** 2) for _ in img])
+    K = rng.normal(0, 0.3, (n, 3, 1))
+    bars = (ScaleBar(1, 2, float(np.linalg.norm(X[1] - X[2])), 2e-6),)
+    added = {}
+    for rho in (None, 0.4, 1.0):
+        model = DetectorModel(0.004, 0.003, 1.5, 2.4, "4", 0.27, rho_background=rho)
+        monkeypatch.setattr(adjust, "load_model", lambda m=model: m)
+        cov0 = np.array([np.eye(3) * 1e-12] * n)
+        res = SimpleNamespace(intrinsics=INTR, cam_from_part=poses, points=X.copy(), rejected=np.zeros(len(img), bool),
+                              obs_sigma_px=np.full(len(img), 0.006), cov=cov0.copy(),
+                              covariance=PointCovariance(cov0.copy(), np.zeros((n, 3, 0)), np.zeros((0, 0))))
+        doc = adjust._add_coherent_background(res, bg, img, tgt, ["T1", "T2", "T3"], bars, K)
+        assert doc["share"] == (1.0 if rho is None else rho) and doc["share_measured"] == (rho is not None)
+        assert doc["n_targets"] == n and len(doc["scale_bar_ends"]) == 1
+        added[rho] = (res.cov - cov0, doc["scale_bar_ends"][0]["length_sigma_m"] ** 2)
+    assert np.trace(added[1.0][0][0]) > 0
+    np.testing.assert_allclose(added[None][0], added[1.0][0], rtol=1e-12, atol=0)
+    np.testing.assert_allclose(added[0.4][0], 0.4 * added[1.0][0], rtol=1e-9, atol=1e-30)
+    np.testing.assert_allclose(added[0.4][1], 0.4 * added[1.0][1], rtol=1e-9)
+
+
+def test_the_detector_model_carries_the_share_and_an_older_file_takes_one(tmp_path):
+    import json
+
+    from calibration.detector_model import DATA_PATH, load_model
+    from calibration.errors import CalibrationError
+
+    doc = json.loads(DATA_PATH.read_text())
+    assert 0.0 <= load_model().shared_share <= 1.0
+    old = {k: v for k, v in doc.items() if not k.startswith("rho_background")} | {"version": "3"}
+    (tmp_path / "old.json").write_text(json.dumps(old))
+    m = load_model(str(tmp_path / "old.json"))
+    assert m.rho_background is None and m.shared_share == 1.0 and "1 (not measured)" in m.describe()
+    (tmp_path / "bad.json").write_text(json.dumps(doc | {"rho_background": 1.4}))
+    with pytest.raises(CalibrationError, match="rho_background must be in"):
+        load_model(str(tmp_path / "bad.json"))

@@ -163,14 +163,16 @@ def _add_coherent_background(res, bg: np.ndarray, img, tgt, ids: list[str], bars
     bars' ends' shares do to every target through the scale (``K``: :func:`scale_bar_gains`); what was added."""
     bar_terms: list[dict] = []
     used = ~res.rejected
-    c = load_model().c_background
+    model = load_model()
+    c, share = model.c_background, model.shared_share  # the share the views have in common (decision 0032)
     extra = coherent_background_cov(res.intrinsics, res.cam_from_part, res.points, img[used], tgt[used],
-                                    res.obs_sigma_px[used], bg[used], c)
+                                    res.obs_sigma_px[used], bg[used], c, share)
     hit = np.flatnonzero(np.trace(extra, axis1=1, axis2=2) > 0)
     res.cov[hit] += extra[hit]
     res.covariance.D[hit] += extra[hit]
     # a scale bar's end with a shared misfit errs the bar's measured length, and every target follows the scale:
-    # the ends' extra along the bar, through the gains (rank one per bar, into the covariance's low-rank part)
+    # the ends' extra along the bar, through the gains (rank one per bar, into the covariance's low-rank part;
+    # the extra carries the share, so the bar's term scales with it too)
     for j, bar in enumerate(bars):
         u = res.points[bar.target_a] - res.points[bar.target_b]
         u = u / np.linalg.norm(u)
@@ -186,7 +188,7 @@ def _add_coherent_background(res, bg: np.ndarray, img, tgt, ids: list[str], bars
             bar_terms.append({"bar": [ids[bar.target_a], ids[bar.target_b]], "length_sigma_m": float(np.sqrt(v))})
     grow = np.sqrt(np.trace(res.cov[hit], axis1=1, axis2=2) / np.maximum(np.trace(res.cov[hit] - extra[hit], axis1=1, axis2=2), 1e-300))
     worst = np.argsort(-grow)[:5]
-    return {"share": 1.0, "c_background": c, "n_targets": int(len(hit)), "scale_bar_ends": bar_terms,
+    return {"share": share, "share_measured": model.rho_background is not None, "c_background": c, "n_targets": int(len(hit)), "scale_bar_ends": bar_terms,
             "sigma_growth_median": float(np.median(grow)) if len(hit) else 1.0,
             "largest": [{"target": ids[int(hit[k])], "sigma_growth": float(grow[k]),
                          "added_sigma_m": float(np.sqrt(np.trace(extra[hit[k]]) / 3))} for k in worst]}
@@ -471,6 +473,11 @@ def run(ctx) -> None:
         big = ", ".join(f"{x['target']} x{x['sigma_growth']:.1f}" for x in cb["largest"][:3])
         ctx.say(f"  {cb['n_targets']} target(s) next to an edge in several views: the background misfit their views "
                 f"share added to their covariance (sigma x{cb['sigma_growth_median']:.2f} median; largest {big})")
+        if not cb.get("share_measured", True):
+            msg = ("the detector model gives no measured share of the background misfit the views have in common "
+                   "(rho_background, version 4): taken as one, the conservative limit")
+            ctx.log.log("info", msg)
+            ctx.say(f"  {msg}")
     if doc["observation_weights"]["method"] == "incidence":
         ctx.say("  image sigma by incidence (variance components): " + ", ".join(
             f"{g['name']} {g['sigma_px']:.3f} px" + ("" if g["estimated"] else " (common)")
