@@ -37,7 +37,7 @@ from planning.augment import plan_extra_stations
 from planning.uncertainty import covariance_for_network, target_information
 from planning.visibility import compute_visibility
 
-__all__ = ["BarCheck", "secure_scale_bar", "finish_doc", "bar_facts", "bar_line", "bar_warnings", "covariance_with", "LENGTH_SHARE", "RAYS_FACTOR",
+__all__ = ["BarCheck", "secure_scale_bar", "finish_doc", "bar_facts", "bar_line", "bar_warnings", "rendered_rays_note", "covariance_with", "LENGTH_SHARE", "RAYS_FACTOR",
            "AZIMUTH_GAP_MAX_DEG", "MAX_BAR_STATIONS"]
 
 #: the ends' part of the bar length's sigma may be at most this times the certificate's sigma
@@ -372,6 +372,24 @@ def bar_warnings(doc: dict) -> list[tuple[str, str]]:
         out.append(("warning", f"scale bar {'-'.join(doc['ends'])}: end(s) {', '.join(weak)} seen by fewer than "
                                f"{need} reachable candidate stations: the scale rests on few rays"))
     return out
+
+
+def rendered_rays_note(doc: dict, named: list[int]) -> list[tuple[str, str]]:
+    """The pre-analysis's renders (PLAN renders the nominal part from every planned station and names the dots as
+    MEASURE does) against the rays the bar counts on: records ``rendered_rays`` in ``doc`` and returns a warning
+    naming each end the renders name in fewer than the rays it needs (the detector loses it where the geometry says
+    it is seen: an edge, a shading step; its measurement, and the scale, then rest on the few views that keep it)."""
+    doc["rendered_rays"] = [int(k) for k in named]
+    need = doc["requirement"]["rays_min"]
+    planned = (doc.get("after") or {}).get("rays") or [None, None]
+    short = [f"{t} in {n} image(s) ({p} sure views planned)" for t, n, p in zip(doc["ends"], named, planned)
+             if n < need]
+    if not short:
+        return []
+    return [("warning", f"scale bar {'-'.join(doc['ends'])}: the renders of the plan name {', '.join(short)} "
+                        f"(fewer than {need}): the detector loses the end where the geometry sees it, and the scale "
+                        "rests on the views that keep it; a bar end with clear surroundings, or [planning] "
+                        "closed_loop, measures better")]
 
 
 def covariance_with(intr, options, part, T: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

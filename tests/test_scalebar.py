@@ -179,3 +179,13 @@ def test_cheapest_mode_gets_the_bar_stations_after_its_search(scene):
     assert p.mode == "cheapest" and added and len(p.station_ids) == k + len(added)
     assert np.array_equal(p.part_from_cam[:k], plain.part_from_cam) and p.scale_bar["met"]
     assert np.all(p.sigma <= np.asarray(p.required_sigma_m) * (1 + 1e-9))  # still meets the search's requirement
+
+
+def test_renders_that_lose_a_bar_end_are_said():
+    from planning.scalebar import rendered_rays_note
+
+    doc = {"ends": ["A", "B"], "requirement": {"rays_min": 6}, "after": {"rays": [10, 8]}}
+    assert rendered_rays_note(doc, [7, 6]) == [] and doc["rendered_rays"] == [7, 6]
+    (level, line), = rendered_rays_note(doc, [3, 9])
+    assert level == "warning" and "scale bar A-B" in line and "A in 3 image(s) (10 sure views planned)" in line
+    assert "B in" not in line and doc["rendered_rays"] == [3, 9]

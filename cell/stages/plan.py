@@ -163,6 +163,11 @@ def run(ctx) -> None:
             ctx.say(f"  WARNING pre-analysis: {pre_facts['fallback']}")
         p = replace(p, predicted_sigma_max_m=doc["predicted_sigma_max_m"],
                     predicted_sigma_mean_m=doc["predicted_sigma_mean_m"])
+    bar_rendered = []
+    if p.scale_bar is not None and pred is not None and not pred[2].get("fallback"):  # the renders' word on the ends
+        from planning.scalebar import rendered_rays_note
+
+        bar_rendered = rendered_rays_note(doc["scale_bar"], [int(pred[1][k]) for k in ctx.job.scale_bar[:2]])
     atomic_write_json(ctx.folder.file("plan.json"), doc)
     try:
         from planning.plot import plot_plan
@@ -184,7 +189,7 @@ def run(ctx) -> None:
 
         ctx.folder.append("scale_bar_plan", **{k: p.scale_bar.get(k) for k in ("ends", "met", "before", "after")},
                           stations_added=[st["id"] for st in p.scale_bar["stations_added"]])
-        for level, line in bar_warnings(p.scale_bar):
+        for level, line in bar_warnings(p.scale_bar) + bar_rendered:
             ctx.log.log(level, f"plan: {line}")
             ctx.say(f"  {'WARNING ' if level == 'warning' else ''}{line}")
     weak = int(p.search.get("exact_unlinked") or 0)
