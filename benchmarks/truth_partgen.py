@@ -6,7 +6,8 @@ off its nominal placement and ``cell locate --write`` finds it first). Printed p
 m^2 / 3) of the deviations against the truth (1 = honest), the share of untouched targets inside their 99 %
 ellipsoid (both also given the scale bar: the simulated bar is exact, its certificate's share of the covariance
 is never realised; decision 0029), the realised scale error against the stated one (z), false "significant" flags, deviations beyond tolerance that failed, predicted / achieved sigma,
-and whether the alignment was trusted.
+and whether the alignment was trusted; the stated scale uncertainty (report.json ``uncertainty_budget``) and
+what the plan did for the scale bar's ends (plan.json ``scale_bar``, planning/scalebar.py).
 
 Also per run: what was left out (dots left unnamed, screened, rejected observations, suspect targets).
 
@@ -79,7 +80,15 @@ def losses(folder: Path) -> dict:
     plan = json.loads((folder / "plan.json").read_text())
     scr = bundle.get("screening", {})
     report = json.loads((folder / "report.json").read_text())
+    bar = plan.get("scale_bar") or {}
+    budget = report.get("uncertainty_budget") or {}
     return {"stations": len(plan["stations"]), "observations": bundle["n_observations"],
+            "scale_sigma_ppm": budget.get("scale_sigma_ppm"),
+            "scale_sigma_certificate_ppm": budget.get("scale_sigma_certificate_ppm"),
+            "bar_stations_added": len(bar.get("stations_added") or []),
+            "bar_length_sigma_planned_um": [None if (bar.get(k) or {}).get("length_sigma_m") is None
+                                            else 1e6 * bar[k]["length_sigma_m"] for k in ("before", "after")],
+            "bar_rays_planned": (bar.get("after") or {}).get("rays"), "bar_met": bar.get("met"),
             "predicted_max_um": 1e6 * report["predicted_sigma_max_m"],
             "achieved_max_um": 1e6 * report["achieved_sigma_max_m"],
             "unnamed": obs.get("dropped_by_reason", {}),

@@ -90,18 +90,30 @@ class Augmentation:
     facts: dict = field(default_factory=dict)
 
 
-def _sigma(N6: np.ndarray, rays: np.ndarray, min_rays: int) -> tuple[np.ndarray, np.ndarray]:
-    _, sigma, ok = _invert6(N6, rays, min_rays)
+def _sigma(N6: np.ndarray, rays: np.ndarray, min_rays: int,
+           along: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """sqrt(trace(N^-1)) per target, or ``sqrt(u^T N^-1 u)`` for a target whose ``along`` row ``u`` is not zero."""
+    cov6, sigma, ok = _invert6(N6, rays, min_rays)
+    if along is not None and np.any(along):
+        u = np.asarray(along, dtype=float)  # (t, 3), broadcast over leading axes of cov6 (..., t, 6)
+        w = np.stack([u[:, 0] ** 2, 2 * u[:, 0] * u[:, 1], 2 * u[:, 0] * u[:, 2], u[:, 1] ** 2, 2 * u[:, 1] * u[:, 2],
+                      u[:, 2] ** 2], axis=-1)
+        var = np.einsum("...k,...k->...", np.nan_to_num(cov6), w)
+        directed = np.broadcast_to(np.any(u != 0, axis=1), sigma.shape)
+        sigma = np.where(directed & ok, np.sqrt(np.maximum(var, 0.0)), sigma)
     return sigma, ok
 
 
 def plan_extra_stations(N_have: np.ndarray, rays_have: np.ndarray, required: np.ndarray, info: np.ndarray,
                         visible: np.ndarray, valid: np.ndarray, *, min_rays: int, max_new: int,
-                        consider: np.ndarray | None = None) -> Augmentation:
+                        consider: np.ndarray | None = None, along: np.ndarray | None = None) -> Augmentation:
     """The fewest extra candidate stations that bring every short target within its requirement.
 
     ``N_have`` is ``(n, 6)`` (or ``(n, 3, 3)``); ``consider: (n,)`` bool restricts the targets looked at
-    (default: all). ``max_new`` caps the number of stations added in this round.
+    (default: all). ``max_new`` caps the number of stations added in this round. ``along: (n, 3)`` unit vectors:
+    a target with a non-zero row is judged by its sigma along that direction, ``sqrt(u^T N^-1 u)``, instead of
+    ``sqrt(trace(N^-1))`` (the scale bar's ends along the bar, :mod:`planning.scalebar`); the bound holds for
+    it too (the variance in any direction can only fall when information is added).
     """
     N_have = np.asarray(N_have, dtype=float)
     if N_have.ndim == 3:
@@ -114,14 +126,15 @@ def plan_extra_stations(N_have: np.ndarray, rays_have: np.ndarray, required: np.
     if info.shape != (m, n, 6) or N_have.shape != (n, 6) or rays_have.shape != (n,) or required.shape != (n,):
         raise ValueError("plan_extra_stations: shapes of N_have, rays_have, required, info, visible disagree")
     consider = np.ones(n, dtype=bool) if consider is None else np.asarray(consider, dtype=bool)
+    U = np.zeros((n, 3)) if along is None else np.asarray(along, dtype=float).reshape(n, 3)
 
-    sigma0, ok0 = _sigma(N_have, rays_have, min_rays)
+    sigma0, ok0 = _sigma(N_have, rays_have, min_rays, U)
     short = consider & ~((sigma0 <= required) & ok0)
     cand = np.flatnonzero(valid)
     # the bound: every valid candidate added at once
     N_all = N_have + info[cand].astype(float).sum(axis=0)
     rays_all = rays_have + visible[cand].sum(axis=0)
-    bound, ok_all = _sigma(N_all, rays_all, min_rays)
+    bound, ok_all = _sigma(N_all, rays_all, min_rays, U)
     bound = np.where(ok_all, bound, np.inf)
     unreachable = short & ~(ok_all & (bound <= required))
     goal = short & ~unreachable  # what the stations can fix
@@ -130,19 +143,20 @@ def plan_extra_stations(N_have: np.ndarray, rays_have: np.ndarray, required: np.
     N = N_have[T].copy()
     rays = rays_have[T].copy()
     req = required[T]
+    UT = U[T]
     added: list[int] = []
     if T.size:
         infoT = info[cand][:, T].astype(float)  # (c, t, 6)
         visT = visible[cand][:, T]
         used = np.zeros(len(cand), dtype=bool)
         while len(added) < max_new:
-            s, ok = _sigma(N, rays, min_rays)
+            s, ok = _sigma(N, rays, min_rays, UT)
             d_now = _deficiency(s, ok, rays, req, min_rays)
             if not np.any(d_now > 0):
                 break
             Nc = N[None] + infoT  # (c, t, 6)
             rc = rays[None] + visT
-            sc, okc = _sigma(Nc, rc, min_rays)
+            sc, okc = _sigma(Nc, rc, min_rays, UT)
             gain = (d_now[None] - _deficiency(sc, okc, rc, req[None], min_rays)).sum(axis=1)
             gain[used] = -np.inf
             k = int(np.argmax(gain))
@@ -157,15 +171,15 @@ def plan_extra_stations(N_have: np.ndarray, rays_have: np.ndarray, required: np.
             rest = [a for a in added if a != c]
             Nr = N_have[T] + (info[rest][:, T].astype(float).sum(axis=0) if rest else 0.0)
             rr = rays_have[T] + (visible[rest][:, T].sum(axis=0) if rest else 0)
-            s, ok = _sigma(Nr, rr, min_rays)
-            s_full, ok_full = _sigma(N, rays, min_rays)
+            s, ok = _sigma(Nr, rr, min_rays, UT)
+            s_full, ok_full = _sigma(N, rays, min_rays, UT)
             met_full = (s_full <= req) & ok_full
             if np.all(((s <= req) & ok) | ~met_full):  # nothing that was met becomes short
                 added = rest
                 N, rays = Nr, rr
     N_after = N_have + (info[added].astype(float).sum(axis=0) if added else 0.0)
     rays_after = rays_have + (visible[added].sum(axis=0) if added else 0)
-    sigma_after, ok_after = _sigma(N_after, rays_after, min_rays)
+    sigma_after, ok_after = _sigma(N_after, rays_after, min_rays, U)
     sigma_after = np.where(ok_after, sigma_after, np.inf)
     met_after = (sigma_after <= required) & ok_after
     return Augmentation(added=np.asarray(added, dtype=int), short=short,

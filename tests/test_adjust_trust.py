@@ -190,3 +190,54 @@ def test_background_bounds_are_kept_image_by_image_and_an_image_without_them_is_
     d = job.part.targets.xyz[ok] - (xyz[ok] @ T[:3, :3].T + T[:3, 3])
     m2 = mahalanobis(d, cov[ok])
     assert np.mean(m2) < 6.0  # 3 expected; a wrong weighting or datum gives hundreds
+
+
+# --- a dot unlike its ellipse in most images that found it ---------------------------------------------------
+def _with_shape_drops(tmp_path, obs, target_id: str, n: int):
+    """Add to observations.json ``n`` images' MEASURE drops of ``target_id`` for its shape (decision 0016)."""
+    p = tmp_path / "observations.json"
+    doc = json.loads(p.read_text())
+    for im in doc["images"][:n]:
+        im.setdefault("dropped", []).append({"id": target_id, "reason": "shape 1.21..1.73 of its ellipse's"})
+    atomic_write_json(p, doc)
+
+
+def test_a_scale_bar_end_unlike_its_ellipse_in_most_images_is_scale_not_established_with_advice(tmp_path, example):
+    """Generated skin seed 110: the bar's end was unlike its ellipse in 11 of 15 images; the 4 kept erred the bar's
+    length by ~40 um against 11 um stated and every target followed (34 % inside their 99 % ellipsoids). The views
+    kept share the cause: the scale is not established, and the report's fault says what to do."""
+    from cell.stages.adjust import shape_doubtful
+
+    job, poses, obs = example
+    a, b = job.scale_bar[:2]
+    ids = job.part.targets.ids
+    ctx, said = _ctx(tmp_path, job, poses, obs)
+    kept = sum(a in s for s, _ in obs)
+    _with_shape_drops(tmp_path, obs, ids[a], kept + 1)
+    assert shape_doubtful(json.loads((tmp_path / "observations.json").read_text()), list(ids)) == {a: (kept + 1, kept)}
+    doc = run_bundle(ctx)
+    sc = doc["screening"]
+    assert sc["scale_established"] is False and doc["datum"] == "free"
+    assert f"{ids[a]} unlike its ellipse in {kept + 1} of the {2 * kept + 1} images" in sc["scale"]
+    assert any("scale not established" in m for _, m in said)
+    from calibration.errors import CalibrationError
+    from cell.stages.report import write_report
+
+    atomic_write_json(tmp_path / "bundle.json", doc)
+    with pytest.raises(CalibrationError, match=r"unlike its ellipse .*choose scale bar ends on a clear flat area"):
+        write_report(ctx)
+
+
+def test_a_target_unlike_its_ellipse_in_most_images_is_reported_suspect_and_one_in_fewer_is_not(tmp_path, example):
+    job, poses, obs = example
+    ids = list(job.part.targets.ids)
+    a, b = job.scale_bar[:2]
+    counts = np.bincount(np.concatenate([s for s, _ in obs]), minlength=len(ids))
+    x, y = [int(t) for t in np.flatnonzero((counts >= 4) & (counts <= 6)) if t not in (a, b)][:2]  # room for drops
+    ctx, said = _ctx(tmp_path, job, poses, obs)
+    _with_shape_drops(tmp_path, obs, ids[x], counts[x] + 1)  # more images unlike it than kept it
+    _with_shape_drops(tmp_path, obs, ids[y], counts[y])  # as many: not more
+    doc = run_bundle(ctx)
+    assert doc["screening"]["scale_established"] is True
+    assert ids[x] in doc["snooping"]["suspect_targets"] and ids[y] not in doc["snooping"]["suspect_targets"]
+    assert any(f"{ids[x]} ({counts[x] + 1} of {2 * counts[x] + 1})" in m for _, m in said)

@@ -97,7 +97,9 @@ def unmeasurable_targets(job: LoadedJob, cache_dir: Path | None = None) -> dict:
     """Targets that fewer than ``[planning] min_rays`` reachable candidate stations can measure (before planning).
 
     The same visibility and reachability databases as PLAN (cached), so ``cell check`` says what PLAN would
-    refuse. Returns {``min_rays``, ``candidates``, ``reachable``, ``unmeasurable``: ids, ``rays``: per id the count}.
+    refuse. Returns {``min_rays``, ``candidates``, ``reachable``, ``unmeasurable``: ids, ``rays``: per id the count,
+    and with a scale bar ``scale_bar``: {``ends``, ``candidates``: reachable candidates seeing each with a ray the bar
+    counts on (:func:`planning.scalebar.trusted_views`), ``rays_min``}}.
     """
     from dataclasses import replace as _replace
 
@@ -115,9 +117,19 @@ def unmeasurable_targets(job: LoadedJob, cache_dir: Path | None = None) -> dict:
     coded = job.part.targets.kind == "coded"
     bad = np.flatnonzero((rays < opts.min_rays) & ~coded)
     ids = job.part.targets.ids
-    return {"min_rays": int(opts.min_rays), "candidates": len(reach.reachable),
-            "reachable": int(reach.reachable.sum()), "unmeasurable": [ids[j] for j in bad],
-            "rays": {ids[j]: int(rays[j]) for j in bad}}
+    out = {"min_rays": int(opts.min_rays), "candidates": len(reach.reachable),
+           "reachable": int(reach.reachable.sum()), "unmeasurable": [ids[j] for j in bad],
+           "rays": {ids[j]: int(rays[j]) for j in bad}}
+    if job.scale_bar is not None:  # the bar's ends need more rays than any target, and sure ones (planning/scalebar.py)
+        from planning.scalebar import RAYS_FACTOR, trusted_views
+
+        e = list(job.scale_bar[:2])
+        t = job.part.targets
+        sure = trusted_views(job.intrinsics, db.part_from_cam, t.xyz[e], t.normals[e],
+                             db.visible[:, e] & reach.reachable[:, None], opts.incidence_max_rad).sum(axis=0)
+        out["scale_bar"] = {"ends": [ids[k] for k in e], "candidates": [int(k) for k in sure],
+                            "rays_min": RAYS_FACTOR * int(opts.min_rays)}
+    return out
 
 
 def run(ctx) -> None:
@@ -151,6 +163,11 @@ def run(ctx) -> None:
             ctx.say(f"  WARNING pre-analysis: {pre_facts['fallback']}")
         p = replace(p, predicted_sigma_max_m=doc["predicted_sigma_max_m"],
                     predicted_sigma_mean_m=doc["predicted_sigma_mean_m"])
+    bar_rendered = []
+    if p.scale_bar is not None and pred is not None and not pred[2].get("fallback"):  # the renders' word on the ends
+        from planning.scalebar import rendered_rays_note
+
+        bar_rendered = rendered_rays_note(doc["scale_bar"], [int(pred[1][k]) for k in ctx.job.scale_bar[:2]])
     atomic_write_json(ctx.folder.file("plan.json"), doc)
     try:
         from planning.plot import plot_plan
@@ -167,6 +184,14 @@ def run(ctx) -> None:
                "they will be reported not measured unless the images happen to measure them")
         ctx.log.log("warning", msg)
         ctx.say(f"  WARNING {msg}")
+    if p.scale_bar is not None:  # what the plan did for the scale bar's ends (planning/scalebar.py)
+        from planning.scalebar import bar_warnings
+
+        ctx.folder.append("scale_bar_plan", **{k: p.scale_bar.get(k) for k in ("ends", "met", "before", "after")},
+                          stations_added=[st["id"] for st in p.scale_bar["stations_added"]])
+        for level, line in bar_warnings(p.scale_bar) + bar_rendered:
+            ctx.log.log(level, f"plan: {line}")
+            ctx.say(f"  {'WARNING ' if level == 'warning' else ''}{line}")
     weak = int(p.search.get("exact_unlinked") or 0)
     if weak:  # docs/decisions/0031: ADJUST may drop their images, or their block may hang on one image
         msg = (f"plan: {weak} station(s) share fewer than {p.search.get('link_targets')} targets with the rest of the "

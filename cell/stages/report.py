@@ -265,8 +265,11 @@ def write_report(ctx) -> tuple[str, list[str]]:
     bundle = json.loads(f.file("bundle.json").read_text())
     sc = bundle.get("screening") or {}
     if sc.get("scale_established") is False:  # the job declares a scale bar: no report in the CAD's scale
-        raise CalibrationError(f"scale not established: {sc.get('scale')}; add stations that see both ends "
-                               "([planning] closed_loop = true plans them) or check the scale bar's targets")
+        why = str(sc.get("scale"))
+        advice = ("choose scale bar ends on a clear flat area ([job] scale_bar), away from the part's edges"
+                  if "unlike its ellipse" in why else "add stations that see both ends ([planning] closed_loop = true "
+                  "plans them) or check the scale bar's targets")
+        raise CalibrationError(f"scale not established: {why}; {advice}")
     plan = json.loads(f.file("plan.json").read_text())
     ids = job.part.targets.ids
     nominal = job.part.targets.xyz

@@ -15,6 +15,7 @@ from planning.planner.options import PlannerOptions, Progress
 from planning.planner.result import NetworkPlan
 from planning.planner.search import _Search, _search_fixed
 from planning.planner.setup import _set_up
+from planning.scalebar import covariance_with, finish_doc, secure_scale_bar
 from planning.visibility import VisibilityDB
 
 
@@ -89,6 +90,20 @@ def plan_network(
     T, final_genes, visible = final["T"][order], final_genes[order], final["visible"][order]
     station_ids = [f"S{i + 1:03d}" for i in range(len(order))]
     cov, n_rays = final["cov"], final["n_rays"]
+    bar_doc = None
+    if options.scale_bar is not None:  # the scale bar's ends: stations added after the search's (planning.scalebar)
+        t0 = time.perf_counter()
+        added, bar_doc = secure_scale_bar(part, intr, options, s.db, s.valid, T, visible, cov, s.cols,
+                                          options.scale_bar)
+        new_ids = [f"S{len(station_ids) + i + 1:03d}" for i in range(len(added))]
+        if len(added):
+            T = np.concatenate([T, s.db.part_from_cam[added]])
+            final_genes = np.concatenate([final_genes, s.db.genes[added]])
+            visible, cov, n_rays = covariance_with(intr, options, part, T)
+            station_ids = station_ids + new_ids
+        bar_doc = finish_doc(bar_doc, part, intr, options, T, visible, station_ids, new_ids)
+        timing["scale_bar_s"] = time.perf_counter() - t0
+        timing["total_s"] += timing["scale_bar_s"]
     sig = np.sqrt(np.trace(cov, axis1=1, axis2=2))
     sig_cols = sig[cols]
     finite = np.isfinite(sig_cols)
@@ -116,6 +131,7 @@ def plan_network(
         required_sigma_m=s.required,
         unmeasurable_target_ids=[ids[j] for j in np.flatnonzero(~s.measurable)],
         timing=timing,
+        scale_bar=bar_doc,
         search={
             "stopped_because": res.stopped_because,
             "generations": len(res.history) - 1,
