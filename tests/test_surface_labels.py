@@ -135,8 +135,9 @@ def test_measure_image_with_the_cad_mask_centres_an_edge_dot_of_the_example_clos
     occ = Occluder(job.part.mesh)
     out = []
     for surfaces in (None, SurfaceLabeller(job.part.mesh)):
-        m, _ = measure_image(img, job.part, job.intrinsics, approx, occ, coded_family=job.spec.job.coded_family,
-                             surfaces=surfaces)
+        m, counts = measure_image(img, job.part, job.intrinsics, approx, occ, coded_family=job.spec.job.coded_family,
+                                  surfaces=surfaces)
+        assert counts.get("background_mask") == (None if surfaces is None else "cad")
         e = m.uv - project(job.intrinsics, cam_from_part, sim.world.true_xyz[m.target])
         i = list(m.target).index(88)
         out.append((m.target, np.linalg.norm(e[i]), np.sqrt(np.mean(e**2)), np.trace(m.bg_cov[i])))

@@ -215,7 +215,8 @@ def measure_image(image: np.ndarray, part, intr: Intrinsics, cam_from_part_appro
     them, the surface each pixel around a named dot sees is labelled from the CAD at that pose and the dots are
     detected again with each dot's background fitted on its own surface only (:func:`masked_labels`;
     decision 0035). None: one detection, every ring pixel used.
-    Returns the measurement and counts for the record (dots, coded markers seen).
+    Returns the measurement and counts for the record (dots, coded markers seen; with ``surfaces``, whether the
+    image was masked).
     """
     det = detect_dots(image, detection or DetectionOptions())
     m, counts = _name_detections(image, det, part, intr, cam_from_part_approx, occluder, max_dist_px,
@@ -226,6 +227,8 @@ def measure_image(image: np.ndarray, part, intr: Intrinsics, cam_from_part_appro
             det = detect_dots(image, detection or DetectionOptions(), labels=labels)
             m, counts = _name_detections(image, det, part, intr, cam_from_part_approx, occluder, max_dist_px,
                                          incidence_max_rad, coded_family, shape_check)
+        # said in the record: an image with too few named dots for a pose to label with is measured unmasked
+        counts["background_mask"] = "cad" if labels is not None else "none (no pose to label with)"
     return m, counts
 
 

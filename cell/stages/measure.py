@@ -4,6 +4,8 @@ observations.json: ``images``: list of {``station``, ``image``, ``ids``, ``uv`` 
 each centre's covariance from the detector, px^2, ``calibration.dots.Detections.cov``), ``bg_cov_px2`` (k, 2, 2:
 the detector's bound on each centre's error from a background that is not a plane, px^2,
 ``Detections.background_cov``; ADJUST adds its share to the image precision), counts,
+``background_mask`` (only when ``[camera] background_mask = "cad"``: "cad", or "none (...)" for an image measured
+unmasked because too few dots were named to label it from; docs/decisions/0035),
 ``dropped``: list of {``id``, ``reason``} (dots that were named and then left unnamed: partly hidden,
 shape unlike the target's ellipse, the image's naming inconsistent, a background ring too small to bound the
 centre's error), ``resection_median_px``};
