@@ -79,8 +79,6 @@ def _check(fig: dict, report: dict) -> None:
     assert fig["false_significant"] <= 0.02, fig
     assert fig["suspect_not_inconclusive"] == 0, fig
     assert fig["beyond_tolerance"] > 0 and fig["beyond_tolerance_failed"] == fig["beyond_tolerance"], fig
-    # predicted = achieved: the pre-analysis from renders (decision 0034) on a part the suite has never seen
-    assert 0.75 <= report["predicted_over_achieved"]["median"] <= 1.25, report["predicted_over_achieved"]
 
 
 def test_random_part_deviations_match_the_truth(tmp_path):
@@ -92,6 +90,8 @@ def test_random_part_deviations_match_the_truth(tmp_path):
     fig = truth_figures(report, part)
     print(f"\n{part.kind} seed 100: {fig}")
     _check(fig, report)
+    # predicted = achieved: the pre-analysis from renders (decision 0034) on a part the suite has never seen
+    assert 0.75 <= report["predicted_over_achieved"]["median"] <= 1.25, report["predicted_over_achieved"]
 
 
 def test_a_misplaced_part_is_located_and_never_reported_quietly_wrong(tmp_path):
