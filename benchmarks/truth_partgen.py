@@ -4,8 +4,8 @@ For each seed a random plate or skin (100-400 dots, random tolerances, deviation
 and 5 sigma on 0-50 % of the dots) is measured by ``cell run`` (``--misplaced``: the part lies 10 mm / 5 deg
 off its nominal placement and ``cell locate --write`` finds it first). Printed per run and over all: sqrt(mean
 m^2 / 3) of the deviations against the truth (1 = honest), the share of untouched targets inside their 99 %
-ellipsoid (both also given the scale bar: the simulated bar is exact, its certificate's share of the covariance
-is never realised; decision 0029), the realised scale error against the stated one (z), false "significant" flags, deviations beyond tolerance that failed, predicted / achieved sigma,
+ellipsoid (both also given the scale bar: the covariance less its certificate's share; the generated bar's
+certificate is off its true length by a draw of its sigma, so a run realises that share; decisions 0029, 0036), the realised scale error against the stated one (z), false "significant" flags, deviations beyond tolerance that failed, predicted / achieved sigma,
 and whether the alignment was trusted; the stated scale uncertainty (report.json ``uncertainty_budget``) and
 what the plan did for the scale bar's ends (plan.json ``scale_bar``, planning/scalebar.py).
 

@@ -189,8 +189,13 @@ def make_part_job(out: Path, rng: np.random.Generator, kind: str | None = None, 
     a, b = clean[a], clean[b]
     text = (EXAMPLE / "job.toml").read_text()
     text = text.replace('name = "bracket"', f'name = "gen-{kind}"').replace('mesh = "bracket.stl"', 'mesh = "part.stl"')
+    # the bar's certificate is a calibration like any other: its length is off the true one by a draw of its stated
+    # sigma (2 um), so a run realises the certificate's share of every target's uncertainty as a real cell does. Drawn
+    # from a child stream: the part, its deviations and its plan are the same as without it.
+    bar_sigma = 0.002
+    cert = float(np.linalg.norm(xyz[a] - xyz[b]) + bar_sigma * rng.spawn(1)[0].standard_normal())
     text = re.sub(r"(?m)^scale_bar = .*$", f'scale_bar = {{ a = "{ids[a]}", b = "{ids[b]}", length = '
-                  f'{np.linalg.norm(xyz[a] - xyz[b]):.4f}, sigma = 0.002 }}', text)
+                  f'{cert:.5f}, sigma = {bar_sigma} }}', text)
     text = re.sub(r"(?m)^seed = 7$", f"seed = {int(rng.integers(1, 1000))}", text)
     text = re.sub(r"(?m)^target_diameter = .*$", f"target_diameter = {dot}", text)
     text = re.sub(r"(?m)^coded_size = .*$", f"coded_size = {coded_mm}", text)

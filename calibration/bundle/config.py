@@ -175,6 +175,8 @@ class BundleResult:
             ``variance_factor`` ("adjustment" | "robust": what the last round's tests divided by).
         solver_fallback: None when the chosen solver ran to the end; else why Gauss-Newton handed the first
             solve over to pycolmap's Levenberg-Marquardt (the result is pycolmap's, then checked as any other).
+        datum_left_out: indices of the targets the datum's minimum trace (free network, scale bars) leaves out
+            because they are determined far worse than the others (:data:`calibration.bundle.covariance.WEAK_DATUM`).
     """
 
     points: np.ndarray
@@ -198,6 +200,7 @@ class BundleResult:
     variance_components: VarianceComponents | None = None
     snooping: dict = field(default_factory=dict)
     solver_fallback: str | None = None
+    datum_left_out: np.ndarray | None = None  # targets the datum's minimum trace leaves out (weakly determined)
 
     def error_ellipsoids(self, k: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
         """Semi-axes ``(n, 3)`` (metres, ascending, times ``k``) and axis directions ``(n, 3, 3)`` (columns)."""

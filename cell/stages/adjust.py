@@ -317,6 +317,8 @@ def run_bundle(ctx) -> dict:
         "rejected": rejected,
         "screening": screening_doc(scr, obs, obs_image, obs_target, ids, attempt, rs),
         "coherent_background": coherent,
+        # targets determined >10x worse than the median: out of the datum's minimum trace (calibration.bundle.covariance)
+        "datum_left_out": [ids[int(t)] for t in (res.datum_left_out if res.datum_left_out is not None else [])],
         "snooping": res.snooping | {"suspect_targets": [ids[int(t)] for t in sorted(set(
                                         int(t) for t in res.snooping["suspect_targets"]) | suspect)],
                                     "protected": [p.replace(f"scale bar {a}-{b} ", f"scale bar {ids[a]}-{ids[b]} ")
