@@ -482,7 +482,7 @@ def detect_retro_targets(image: np.ndarray, options: DetectionOptions | None = N
 
 #: a dot's background is fitted on its own surface only when that keeps this share of its ring: with less, the plane
 #: is extrapolated across the dot from one side (an oblique dot along an edge) and errs more than the whole ring's
-#: (decision 0035: 0.5-0.6 kept, worse in 88 % of the dots; 0.6-0.7 even; 0.7-1 better in 70-80 %); such a dot
+#: (decision 0035: 0.5-0.6 kept, worse in 88 % of the dots; 0.6-0.7 even; 0.7-1 better in 69-79 %); such a dot
 #: keeps its whole ring and the bound that ring's misfit gives
 MASK_MIN_RING_SHARE = 0.6
 
