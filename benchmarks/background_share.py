@@ -35,7 +35,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.detector_precision import collect_each  # noqa: E402
+from benchmarks.detector_precision import collect_each, masked_rows  # noqa: E402
 from calibration.bundle.coherent import coherent_background_cov, fit_share, share_pairs, unit_projection  # noqa: E402
 from calibration.detector_model import DATA_PATH, load_model, observation_covariances  # noqa: E402
 
@@ -147,7 +147,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--write", action="store_true", help=f"store rho_background in {DATA_PATH}")
     ap.add_argument("--rows", help="an .npz to keep the rendered rows in (or to read them from when it exists: "
                                    "the views' arguments are then those of the run that wrote it)")
+    ap.add_argument("--background-mask", choices=("none", "cad"), default="none",
+                    help="measure the detector with the CAD's surface labels (decision 0035); not with --rows/--write")
     a = ap.parse_args(argv)
+    if a.background_mask == "cad" and (a.rows or a.write):
+        print("--background-mask cad measures the masked detector for comparison: not with --rows or --write",
+              file=sys.stderr)
+        return 2
     t0 = time.perf_counter()
     model = load_model()
     c = model.c_background
@@ -161,7 +167,9 @@ def main(argv: list[str] | None = None) -> int:
                     for p in range(int(z["n"]))]
             a.views, a.repeats, a.seed, a.plates, a.skins = (int(v) for v in z["args"])
     else:
-        each = collect_each(a.views, a.repeats, a.seed, a.plates, a.skins)
+        each = collect_each(a.views, a.repeats, a.seed, a.plates, a.skins, mask=a.background_mask == "cad")
+        if a.background_mask == "cad":
+            each = [(name, doc | {"rows": masked_rows(doc["rows"])}) for name, doc in each]
         if a.rows:
             np.savez_compressed(a.rows, n=len(each), args=[a.views, a.repeats, a.seed, a.plates, a.skins],
                                 **{f"{k}{p}": v for p, (name, doc) in enumerate(each) for k, v in

@@ -51,8 +51,17 @@ INCIDENCE_EDGES = (0, 20, 35, 50, 60, 65, 70, 75, 80, 86)
 SIZE_EDGES = (0, 14, 18, 22, 30, 100)
 
 
-def collect(n_views: int, repeats: int, seed: int = 0, job_path: Path = JOB) -> dict:
+def collect(n_views: int, repeats: int, seed: int = 0, job_path: Path = JOB, mask: bool = False) -> dict:
+    """Rows of detected-minus-true centres (see the module's doc). ``mask``: each image is also detected with the
+    CAD's surface labels at the true pose (``[camera] background_mask = "cad"``, decision 0035) and each row gets
+    8 more columns: that detection's error (eu, ev) and bound (b00, b01, b11), whether the dot's surroundings
+    (radius + 7 px) see another surface (1) or not (0), the ring pixels of the plain and the masked detection; a dot
+    the masked detection lost has NaN there."""
     job = load(job_path)
+    labeller = None
+    if mask:
+        from cell.stages.surface_labels import SurfaceLabeller
+        labeller = SurfaceLabeller(job.part.mesh)
     sim = make_job_sim_cell(job)
     cam, world, intr = sim.camera, sim.world, job.intrinsics
     cam.rng = np.random.default_rng(seed)
@@ -62,6 +71,7 @@ def collect(n_views: int, repeats: int, seed: int = 0, job_path: Path = JOB) -> 
     index = {t: i for i, t in enumerate(job.part.targets.ids)}
     rng = np.random.default_rng(seed)
     poses = np.full((n_views, 4, 4), np.nan)
+    times = np.zeros(4)  # s: detection, labels, masked detection; images
     rows = []  # view, target, incidence deg, diameter px, eu, ev, repeat, background bound b00, b01, b11, saturated px, area px
     for k in range(n_views):
         az = 2 * np.pi * k / n_views + rng.uniform(-0.2, 0.2)
@@ -73,11 +83,24 @@ def collect(n_views: int, repeats: int, seed: int = 0, job_path: Path = JOB) -> 
         poses[k] = cam_from_part
         for r in range(repeats):
             img, truth = cam.render(part_from_cam, noise=True)
+            t_det = time.perf_counter()
             det = detect_retro_targets(img, DetectionOptions())
+            times[0] += time.perf_counter() - t_det
             ids, kind = np.array(truth["ids"]), np.array(truth["kind"])
             sel = (kind != "coded") & ~np.isin(ids, truth["partial_ids"])
             if not sel.any() or len(det.uv) == 0:
                 continue
+            if labeller is not None:
+                tid_all = np.array([index[i] for i in ids[sel]], dtype=int)
+                uv_all = project(intr, cam_from_part, xyz[tid_all])
+                half = 0.5 * intr.fx_px * 2 * radius / (xyz[tid_all] @ cam_from_part[2, :3] + cam_from_part[2, 3]) + 7.0
+                t_lab = time.perf_counter()
+                labels = labeller.labels(intr, cam_from_part, uv_all, half)
+                t_det = time.perf_counter()
+                det_m = detect_retro_targets(img, DetectionOptions(), labels=labels)
+                times[1] += t_det - t_lab
+                times[2] += time.perf_counter() - t_det
+                times[3] += 1
             tid = np.array([index[i] for i in ids[sel]], dtype=int)
             uv = (project(intr, cam_from_part, xyz[tid])
                   + eccentricity_bias(intr, cam_from_part, xyz[tid], nrm[tid], radius)
@@ -92,11 +115,29 @@ def collect(n_views: int, repeats: int, seed: int = 0, job_path: Path = JOB) -> 
             dpx = intr.fx_px * 2 * radius / Xc[:, 2]
             B = det.background_cov[j[ok]]
             sat, area = det.saturated[j[ok]], det.area_px[j[ok]]
-            for t_, a_, s_, (eu, ev), b, ns, ar in zip(tid[ok], inc, dpx, e, B, sat, area):
-                rows.append((k, int(t_), float(a_), float(s_), float(eu), float(ev), r, b[0, 0], b[0, 1], b[1, 1], ns, ar))
-    return {"rows": np.array(rows, dtype=float).reshape(-1, 12), "fx_px": intr.fx_px, "fy_px": intr.fy_px,
+            extra = np.zeros((int(ok.sum()), 0))
+            if labeller is not None:
+                extra = np.full((int(ok.sum()), 8), np.nan)
+                if len(det_m.uv):
+                    dm, jm = cKDTree(det_m.uv).query(uv[ok])
+                    hit = dm < 1.0
+                    extra[hit, :2] = det_m.uv[jm[hit]] - uv[ok][hit]
+                    extra[hit, 2:5] = det_m.background_cov[jm[hit]][:, [0, 0, 1], [0, 1, 1]]
+                    extra[hit, 7] = det_m.ring_px[jm[hit]]
+                extra[:, 6] = det.ring_px[j[ok]]
+                c = np.round(uv[ok]).astype(int)
+                rad = np.ceil(0.5 * dpx + 7).astype(int)
+                for q in range(len(c)):
+                    y0, x0 = max(c[q, 1] - rad[q], 0), max(c[q, 0] - rad[q], 0)
+                    win = labels[y0:c[q, 1] + rad[q] + 1, x0:c[q, 0] + rad[q] + 1]
+                    own = labels[min(max(c[q, 1], 0), labels.shape[0] - 1), min(max(c[q, 0], 0), labels.shape[1] - 1)]
+                    extra[q, 5] = float(np.any((win != own) & (win != 0)))
+            for t_, a_, s_, (eu, ev), b, ns, ar, x_ in zip(tid[ok], inc, dpx, e, B, sat, area, extra):
+                rows.append((k, int(t_), float(a_), float(s_), float(eu), float(ev), r, b[0, 0], b[0, 1], b[1, 1], ns, ar,
+                             *x_))
+    return {"rows": np.array(rows, dtype=float).reshape(-1, 20 if mask else 12), "fx_px": intr.fx_px, "fy_px": intr.fy_px,
             "diameter_m": 2 * radius,
-            "cam_from_part": poses, "xyz": xyz}
+            "cam_from_part": poses, "xyz": xyz, "times": times}
 
 
 def class_table(rows: np.ndarray) -> list[dict]:
@@ -113,7 +154,8 @@ def class_table(rows: np.ndarray) -> list[dict]:
     return out
 
 
-def collect_each(n_views: int, repeats: int, seed: int, plates: int, skins: int = 0) -> list[tuple[str, dict]]:
+def collect_each(n_views: int, repeats: int, seed: int, plates: int, skins: int = 0,
+                 mask: bool = False) -> list[tuple[str, dict]]:
     """:func:`collect` on the example and on ``plates`` generated plates and ``skins`` generated skins
     (tests/partgen.py, seeds from 300 and 400), each part with its own view seed: ``(part name, collected)``."""
     from tests.partgen import make_part_job
@@ -124,13 +166,23 @@ def collect_each(n_views: int, repeats: int, seed: int, plates: int, skins: int 
             for k in range(count):
                 g = make_part_job(Path(tmp) / f"{kind}{k}", np.random.default_rng(first + k), kind)
                 parts.append((f"tests.partgen {kind} seed {first + k}", g.job))
-        return [(name, collect(n_views, repeats, seed + i, path)) for i, (name, path) in enumerate(parts)]
+        return [(name, collect(n_views, repeats, seed + i, path, mask)) for i, (name, path) in enumerate(parts)]
 
 
-def collect_parts(n_views: int, repeats: int, seed: int, plates: int, skins: int = 0) -> tuple[np.ndarray, list[str]]:
-    """Rows of :func:`collect_each`, stacked; and the parts' names."""
-    each = collect_each(n_views, repeats, seed, plates, skins)
-    return np.vstack([doc["rows"] for _, doc in each]), [name for name, _ in each]
+def collect_parts(n_views: int, repeats: int, seed: int, plates: int, skins: int = 0,
+                  background_mask: str = "none") -> tuple[np.ndarray, list[str]]:
+    """Rows of :func:`collect_each`, stacked; and the parts' names. ``background_mask="cad"``: the rows of the
+    detection with the CAD's surface labels (decision 0035; the dots it lost left out), in the same 12 columns."""
+    each = collect_each(n_views, repeats, seed, plates, skins, mask=background_mask == "cad")
+    rows = np.vstack([doc["rows"] for _, doc in each])
+    return (masked_rows(rows) if background_mask == "cad" else rows), [name for name, _ in each]
+
+
+def masked_rows(rows: np.ndarray) -> np.ndarray:
+    """The 12 columns of :func:`collect` from the masked detection of rows collected with ``mask=True`` (error and
+    bound of the detection with the CAD's surface labels; the dots it lost left out)."""
+    rows = rows[np.isfinite(rows[:, 12])]
+    return np.concatenate([rows[:, :4], rows[:, 12:14], rows[:, 6:7], rows[:, 14:17], rows[:, 10:12]], axis=1)
 
 
 def measured_ranges(rows: np.ndarray, table: list[dict]) -> dict:
@@ -141,11 +193,12 @@ def measured_ranges(rows: np.ndarray, table: list[dict]) -> dict:
     return {"incidence_range_deg": (0.0, float(inc)), "diameter_range_px": (round(float(d0), 1), round(float(d1), 1))}
 
 
-def measure_background(n_views: int, repeats: int, seed: int, plates: int, write: bool) -> int:
+def measure_background(n_views: int, repeats: int, seed: int, plates: int, write: bool,
+                       background_mask: str = "none") -> int:
     """``c_background`` by maximum likelihood on the example and ``plates`` generated plates."""
     t0 = time.perf_counter()
     model = load_model()
-    rows, parts = collect_parts(n_views, repeats, seed, plates)
+    rows, parts = collect_parts(n_views, repeats, seed, plates, background_mask=background_mask)
     e, B = rows[:, 4:6], rows[:, [7, 8, 8, 9]].reshape(-1, 2, 2)
     c = fit_background(model, rows[:, 2], rows[:, 3], e, B)
     s2 = model.sigma_px(np.radians(rows[:, 2]), rows[:, 3]) ** 2
@@ -162,10 +215,59 @@ def measure_background(n_views: int, repeats: int, seed: int, plates: int, write
         doc = json.loads(DATA_PATH.read_text())
         doc["c_background"] = c
         doc["c_background_measured_by"] = (f"python -m benchmarks.detector_precision --fit-background --views {n_views} "
-                                           f"--repeats {repeats} --seed {seed} --plates {plates} --write")
+                                           f"--repeats {repeats} --seed {seed} --plates {plates} "
+                                           f"--background-mask {background_mask} --write")
+        doc["background_mask"] = background_mask
         doc["c_background_dots"] = {"n": int(len(rows)), "with_misfit": int(flagged.sum())}
         DATA_PATH.write_text(json.dumps(doc, indent=1) + "\n")
         print(f"written {DATA_PATH}")
+    return 0
+
+
+def compare_mask(n_views: int, repeats: int, seed: int, plates: int, skins: int) -> int:
+    """The same renders detected without and with the CAD's surface labels (decision 0035): per-observation error
+    against the true projection, by whether the dot's surroundings see another surface and whether the unmasked
+    detector bounded its background; normalised by the stored model with its c_background (each detection's own
+    bound), and the masked detector's c_background fitted by maximum likelihood with the geometry held."""
+    t0 = time.perf_counter()
+    model = load_model()
+    each = collect_each(n_views, repeats, seed, plates, skins, mask=True)
+    rows = np.vstack([doc["rows"] for _, doc in each])
+    tm = np.sum([doc["times"] for _, doc in each], axis=0)
+    print(f"per image: detection {1e3 * tm[0] / max(tm[3], 1):.0f} ms; with the mask, labels {1e3 * tm[1] / max(tm[3], 1):.0f}"
+          f" ms + detection {1e3 * tm[2] / max(tm[3], 1):.0f} ms ({int(tm[3])} images)")
+    got = np.isfinite(rows[:, 12])
+    print(f"{len(rows)} dot images from {len(each)} parts x {n_views} views x {repeats} ({time.perf_counter() - t0:.0f} s);"
+          f" {int((~got).sum())} lost by the masked detection")
+    rows = rows[got]
+    inc, d = rows[:, 2], rows[:, 3]
+    s2 = model.sigma_px(np.radians(inc), d) ** 2
+    B0 = rows[:, [7, 8, 8, 9]].reshape(-1, 2, 2)
+    B1 = rows[:, [14, 15, 15, 16]].reshape(-1, 2, 2)
+    c1 = fit_background(model, inc, d, rows[:, 12:14], B1) if np.any(B1 != 0) else 0.0
+    edge = rows[:, 17] > 0
+    better = np.linalg.norm(rows[:, 12:14], axis=1) < np.linalg.norm(rows[:, 4:6], axis=1)
+    tame = (np.abs(rows[:, [4, 5, 12, 13]]) <= 0.25).all(axis=1)
+    f0 = np.any(B0 != 0, axis=(1, 2))
+    f1 = np.any(B1 != 0, axis=(1, 2))
+    print(f"model: {model.describe()}; masked fit c_background = {c1:.3f}")
+    print(f"{'dots':34s} {'n':>6s} {'rms none':>9s} {'rms cad':>9s} {'z none':>7s} {'z cad':>7s} {'z cad c1':>8s} "
+          f"{'bound none':>10s} {'bound cad':>9s} {'cad better':>10s} {'rms none*':>9s} {'rms cad*':>8s}")
+    for name, m in (("all", np.ones(len(rows), bool)), ("near another surface", edge), ("  with a bound (none)", edge & f0),
+                    ("  without a bound (none)", edge & ~f0), ("not near another surface", ~edge),
+                    ("  with a bound (none)", ~edge & f0)):
+        if not m.any():
+            continue
+        z = []
+        for e, B, c in ((rows[m, 4:6], B0[m], model.c_background), (rows[m, 12:14], B1[m], model.c_background),
+                        (rows[m, 12:14], B1[m], c1)):
+            var = s2[m, None] + c**2 * np.stack([B[:, 0, 0], B[:, 1, 1]], axis=1)
+            z.append(np.sqrt(np.mean(e**2 / var)))
+        print(f"{name:34s} {m.sum():6d} {np.sqrt(np.mean(rows[m, 4:6] ** 2)):9.4f} {np.sqrt(np.mean(rows[m, 12:14] ** 2)):9.4f}"
+              f" {z[0]:7.2f} {z[1]:7.2f} {z[2]:8.2f} {f0[m].mean():10.2f} {f1[m].mean():9.2f} {better[m].mean():10.2f}"
+              f" {np.sqrt(np.mean(rows[m & tame, 4:6] ** 2)):9.4f} {np.sqrt(np.mean(rows[m & tame, 12:14] ** 2)):8.4f}")
+    print("cad better: share of the dots whose masked centre is closer to the truth; * without the dots off by more than "
+          "0.25 px either way (features the CAD's labels do not explain: a neighbour, a clipped or washed-out dot)")
     return 0
 
 
@@ -179,12 +281,18 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--plates", type=int, default=3, help="generated plates besides the example (--fit-background; "
                                                            "the model fit: default 0)")
     ap.add_argument("--skins", type=int, default=0, help="generated skins besides the example (the model fit)")
+    ap.add_argument("--compare-mask", action="store_true", help="errors without and with the CAD's surface labels "
+                    "(decision 0035) on the same renders; --plates/--skins as given (default 3 / 0)")
+    ap.add_argument("--background-mask", choices=("none", "cad"), default="none",
+                    help="the detector the model describes: [camera] background_mask (decision 0035)")
     a = ap.parse_args(argv)
+    if a.compare_mask:
+        return compare_mask(a.views, a.repeats, a.seed, a.plates, a.skins)
     if a.fit_background:
-        return measure_background(a.views, a.repeats, a.seed, a.plates, a.write)
+        return measure_background(a.views, a.repeats, a.seed, a.plates, a.write, a.background_mask)
     t0 = time.perf_counter()
     plates = 0 if "--plates" not in (argv if argv is not None else sys.argv) else a.plates
-    rows, parts = collect_parts(a.views, a.repeats, a.seed, plates, a.skins)
+    rows, parts = collect_parts(a.views, a.repeats, a.seed, plates, a.skins, a.background_mask)
     # the geometry model on the dots whose surroundings are a plane; the share of the detector's background bound
     # on the others, with the geometry held (decision 0029: fitted on every dot, the geometry term took in the
     # example's edge dots and stated 15-20 % too much on the flat faces of generated plates)
@@ -229,7 +337,9 @@ def main(argv: list[str] | None = None) -> int:
     if a.write:
         doc = model.to_dict() | {
             "measured_by": f"python -m benchmarks.detector_precision --views {a.views} --repeats {a.repeats} "
-                           f"--seed {a.seed} --plates {plates} --skins {a.skins} --write",
+                           f"--seed {a.seed} --plates {plates} --skins {a.skins} --background-mask {a.background_mask}"
+                           " --write",
+            "background_mask": a.background_mask,
             "conditions": "examples/bracket job's simulated camera: 8 mm lens, 2448 x 2048, 3.45 um pixels, 5 mm dots, "
                           "sensor noise scale 1 (photons, read noise, 0.7 px blur, 8 bits), no image jitter; parts: "
                           + ", ".join(parts) + "; the geometry terms on dots neither clipped nor next to a background misfit, "

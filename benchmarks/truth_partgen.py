@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import sys
 import tempfile
 import time
@@ -31,11 +32,14 @@ from tests.partgen import make_part_job  # noqa: E402
 from tests.test_truth_partgen import truth_figures  # noqa: E402
 
 
-def one(work: Path, seed: int, misplaced: bool, search_weights: str | None = None) -> dict:
+def one(work: Path, seed: int, misplaced: bool, search_weights: str | None = None,
+        background_mask: str | None = None) -> dict:
     part = make_part_job(work / f"job{seed}", np.random.default_rng(seed),
                          misplacement=(10.0, 5.0) if misplaced else None)
     if search_weights is not None:  # [planning] search_weights (docs/decisions/0031)
         set_search_weights(part.job, search_weights)
+    if background_mask is not None:  # [camera] background_mask (docs/decisions/0035)
+        set_key(part.job, "camera", "background_mask", background_mask)
     t0 = time.perf_counter()
     if misplaced:
         loc = run_cell("locate", str(part.job), "--write", timeout=900)
@@ -54,10 +58,16 @@ def one(work: Path, seed: int, misplaced: bool, search_weights: str | None = Non
 
 def set_search_weights(job: Path, weights: str) -> None:
     """Write ``[planning] search_weights = weights`` into a generated job file."""
+    set_key(job, "planning", "search_weights", weights)
+
+
+def set_key(job: Path, table: str, key: str, value: str) -> None:
+    """Write ``[table] key = "value"`` into a generated job file (the table added when it has none)."""
     text = job.read_text()
-    line = f'search_weights = "{weights}"\n'
-    text = text.replace("[planning]\n", "[planning]\n" + line, 1) if "[planning]\n" in text \
-        else text + "\n[planning]\n" + line
+    line = f'{key} = "{value}"'
+    head = re.compile(rf"^\[{table}\][^\n]*$", re.M)
+    text = head.sub(lambda m: m.group(0) + "\n" + line, text, count=1) if head.search(text) \
+        else text + f"\n[{table}]\n{line}\n"
     job.write_text(text)
 
 
@@ -94,11 +104,13 @@ def main(argv=None) -> int:
     ap.add_argument("--json", type=Path)
     ap.add_argument("--search-weights", choices=("sigma", "model"), help="[planning] search_weights of the jobs "
                     "(default: the job file's default)")
+    ap.add_argument("--background-mask", choices=("none", "cad"), help="[camera] background_mask of the jobs "
+                    "(default: the job file's default; docs/decisions/0035)")
     a = ap.parse_args(argv)
     rows = []
     with tempfile.TemporaryDirectory(prefix="truth-partgen-") as tmp:
         for k in range(a.runs):
-            r = one(Path(tmp), a.first_seed + k, a.misplaced, a.search_weights)
+            r = one(Path(tmp), a.first_seed + k, a.misplaced, a.search_weights, a.background_mask)
             rows.append(r)
             print(json.dumps(r), flush=True)
     ok = [r for r in rows if "error" not in r]

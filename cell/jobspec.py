@@ -124,6 +124,10 @@ class CameraSection(_Strict):
     detection: Literal["cell", "photograph"] = Field(
         default="cell", description="cell: fixed 41 px background kernel (the lit cell's images); photograph: kernel, "
                                     "size limits and local half-maximum threshold found per image (docs/decisions/0015)")
+    background_mask: Literal["none", "cad"] = Field(
+        default="none", description="cad: each dot's background plane is fitted only to pixels of its own surface, "
+                                    "labelled from the CAD at the image's resected pose (a dot near an edge of the "
+                                    "part; docs/decisions/0035); none: every pixel of the ring around the dot")
     observation_weights: Literal["model", "incidence", "equal"] = Field(
         default="model",
         description="model: each observation's a priori sigma from the detector precision model (incidence, dot "

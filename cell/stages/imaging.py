@@ -22,6 +22,7 @@ from calibration.ringcodes import RING_FAMILIES, decode_ring_codes
 from calibration.errors import CalibrationError
 from calibration.targets import (DetectionOptions, detect_coded_targets, detect_dots, eccentricity_bias,
                                  ellipse_moments, identify_targets, refine_pose_pnp, shape_ratios)
+from cell.stages.surface_labels import SurfaceLabeller
 from planning.visibility import Occluder, VisibilityOptions, compute_visibility
 
 #: a coded marker's square, grown by a third, covers its quiet zone: blobs there are the marker's
@@ -186,6 +187,11 @@ def name_dots(det_uv: np.ndarray, part, intr: Intrinsics, cam_from_part: np.ndar
                           None if det_clipped is None else np.asarray(det_clipped, dtype=float)[dots], dropped, med)
 
 
+def surface_labeller(camera, part) -> SurfaceLabeller | None:
+    """The CAD's surface labeller when the job's ``[camera] background_mask`` is "cad", else None."""
+    return SurfaceLabeller(part.mesh) if getattr(camera, "background_mask", "none") == "cad" else None
+
+
 def detection_options(camera) -> DetectionOptions:
     """The detector's options for a job's ``[camera]`` section (``polarity``, ``detection``)."""
     polarity = getattr(camera, "polarity", "bright")
@@ -197,18 +203,57 @@ def detection_options(camera) -> DetectionOptions:
 def measure_image(image: np.ndarray, part, intr: Intrinsics, cam_from_part_approx: np.ndarray, occluder: Occluder, *,
                   detection: DetectionOptions | None = None, max_dist_px: float = 25.0,
                   incidence_max_rad: float = float(np.deg2rad(85.0)),
-                  coded_family: str = "aruco", shape_check: bool = True) -> tuple[DotMeasurement, dict]:
+                  coded_family: str = "aruco", shape_check: bool = True,
+                  surfaces: SurfaceLabeller | None = None) -> tuple[DotMeasurement, dict]:
     """Detect, identify and measure the dots of one image from its approximate pose.
 
     ``coded_family``: "aruco" (markers found by OpenCV) or a ring-code family (``calibration.ringcodes``:
     the code rings around detected dots are read, the rings' pieces dropped). Either way the coded targets
     name the image and refine its pose; they are not measured (decision 0004).
     ``shape_check``: drop named dots whose shape is not their target's ellipse (:func:`name_dots`).
-    Returns the measurement and counts for the record (dots, coded markers seen).
+    ``surfaces`` (``[camera] background_mask = "cad"``): once the dots are named, the image's pose is resected on
+    them, the surface each pixel around a named dot sees is labelled from the CAD at that pose and the dots are
+    detected again with each dot's background fitted on its own surface only (:func:`masked_labels`;
+    decision 0035). None: one detection, every ring pixel used.
+    Returns the measurement and counts for the record (dots, coded markers seen; with ``surfaces``, whether the
+    image was masked).
     """
+    det = detect_dots(image, detection or DetectionOptions())
+    m, counts = _name_detections(image, det, part, intr, cam_from_part_approx, occluder, max_dist_px,
+                                 incidence_max_rad, coded_family, shape_check)
+    if surfaces is not None:
+        labels = masked_labels(surfaces, part, intr, m)
+        if labels is not None:
+            det = detect_dots(image, detection or DetectionOptions(), labels=labels)
+            m, counts = _name_detections(image, det, part, intr, cam_from_part_approx, occluder, max_dist_px,
+                                         incidence_max_rad, coded_family, shape_check)
+        # said in the record: an image with too few named dots for a pose to label with is measured unmasked
+        counts["background_mask"] = "cad" if labels is not None else "none (no pose to label with)"
+    return m, counts
+
+
+def masked_labels(surfaces: SurfaceLabeller, part, intr: Intrinsics, m: DotMeasurement) -> np.ndarray | None:
+    """The surface labels around the dots ``m`` named, at the pose resected on them (None: fewer than
+    :data:`RESECTION_MIN_DOTS` named, or the resection failed: no pose good to a pixel to label with)."""
+    t = part.targets
+    if len(m.target) < RESECTION_MIN_DOTS:
+        return None
+    xyz = t.xyz[m.target]
+    try:
+        pose = refine_pose_pnp(intr, m.cam_from_part, xyz, m.uv)
+    except CalibrationError:
+        return None
+    uv = project(intr, pose, xyz)
+    depth = xyz @ pose[:3, :3].T + pose[:3, 3]
+    # the dot's imaged diameter, plus blur, the detector's margin (2) and ring (2) and a spare pixel
+    half = 0.5 * max(intr.fx_px, intr.fy_px) * part.target_diameter_m / np.maximum(depth[:, 2], 1e-6) + 7.0
+    return surfaces.labels(intr, pose, uv, half)
+
+
+def _name_detections(image, det, part, intr, cam_from_part_approx, occluder, max_dist_px, incidence_max_rad,
+                     coded_family, shape_check) -> tuple[DotMeasurement, dict]:
     t = part.targets
     code_to_index = {int(c): i for i, c in enumerate(t.code) if c >= 0}
-    det = detect_dots(image, detection or DetectionOptions())
     if coded_family in RING_FAMILIES:
         rc = decode_ring_codes(image, det, coded_family)
         codes, centres = rc.code, det.uv[rc.index]

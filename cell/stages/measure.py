@@ -4,6 +4,8 @@ observations.json: ``images``: list of {``station``, ``image``, ``ids``, ``uv`` 
 each centre's covariance from the detector, px^2, ``calibration.dots.Detections.cov``), ``bg_cov_px2`` (k, 2, 2:
 the detector's bound on each centre's error from a background that is not a plane, px^2,
 ``Detections.background_cov``; ADJUST adds its share to the image precision), counts,
+``background_mask`` (only when ``[camera] background_mask = "cad"``: "cad", or "none (...)" for an image measured
+unmasked because too few dots were named to label it from; docs/decisions/0035),
 ``dropped``: list of {``id``, ``reason``} (dots that were named and then left unnamed: partly hidden,
 shape unlike the target's ellipse, the image's naming inconsistent, a background ring too small to bound the
 centre's error), ``resection_median_px``};
@@ -17,7 +19,7 @@ import numpy as np
 from calibration.camera import invert
 from calibration.errors import CalibrationError
 from cell.record.jobfolder import atomic_write_json
-from cell.stages.imaging import detection_options, measure_image
+from cell.stages.imaging import detection_options, measure_image, surface_labeller
 from planning.visibility import Occluder
 
 
@@ -35,6 +37,7 @@ def run(ctx, keep: bool = False) -> None:
     bfp, ffc = job.spec.base_from_part(), job.spec.flange_from_cam()
     occluder = Occluder(job.part.mesh)
     detection = detection_options(job.spec.camera)
+    surfaces = surface_labeller(job.spec.camera, job.part)  # [camera] background_mask (decision 0035)
     # images measured before (a closed-loop round adds images to a measured network): kept as they are
     path = ctx.folder.file("observations.json")
     before = {o["image"]: o for o in ctx.folder.read_json("observations.json")["images"]} if keep and path.exists() else {}
@@ -51,7 +54,7 @@ def run(ctx, keep: bool = False) -> None:
             raise CalibrationError(f"{im['image']}: cannot read the image")
         cam_from_part = invert(invert(bfp) @ np.asarray(im["base_from_flange"], dtype=float) @ ffc)
         m, counts = measure_image(img, job.part, job.intrinsics, cam_from_part, occluder, detection=detection,
-                                  coded_family=job.spec.job.coded_family)
+                                  coded_family=job.spec.job.coded_family, surfaces=surfaces)
         names = [ids_all[int(i)] for i in m.target]
         dropped = [{"id": ids_all[i], "reason": why} for i, why in m.dropped]
         out.append({"station": im["station"], "image": im["image"], "ids": names, "uv": m.uv, "cov_px2": m.cov,
