@@ -62,7 +62,7 @@ def twin_camera(job):
 
 #: the code the renders' measurement depends on: a change to any of them makes a cached result stale
 _SOURCES = ("calibration/dots.py", "calibration/targets.py", "sim_backend/sim_camera.py", "sim_backend/world.py",
-            "cell/stages/imaging.py", "cell/stages/preanalysis.py")
+            "cell/stages/imaging.py", "cell/stages/surface_labels.py", "cell/stages/preanalysis.py")
 
 
 def _cache_key(job, poses: np.ndarray) -> str:
@@ -121,7 +121,7 @@ def rendered_rays(job, part_from_cam: np.ndarray, progress=None) -> PredictedRay
     import threading
     from concurrent.futures import ThreadPoolExecutor
 
-    from cell.stages.imaging import detection_options, measure_image
+    from cell.stages.imaging import detection_options, measure_image, surface_labeller
     from planning.visibility import Occluder
 
     detection = detection_options(job.spec.camera)
@@ -133,10 +133,11 @@ def rendered_rays(job, part_from_cam: np.ndarray, progress=None) -> PredictedRay
     def one(i: int):
         if not hasattr(local, "cam"):  # per thread: the camera's buffers and the ray caster are not shared
             local.cam, local.occluder = twin_camera(job), Occluder(job.part.mesh)
+            local.surfaces = surface_labeller(job.spec.camera, job.part)  # as MEASURE: [camera] background_mask
         local.cam.rng = np.random.default_rng([TWIN_SEED, i])
         image, _ = local.cam.render(poses[i])
         m, _ = measure_image(image, job.part, job.intrinsics, invert(poses[i]), local.occluder, detection=detection,
-                             coded_family=job.spec.job.coded_family)
+                             coded_family=job.spec.job.coded_family, surfaces=local.surfaces)
         with lock:
             done[0] += 1
             if progress is not None:
