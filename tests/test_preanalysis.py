@@ -87,3 +87,22 @@ def test_a_prediction_without_renders_says_so(example, monkeypatch):
     assert cov.shape == (len(job.part.targets.ids), 3, 3)
     retro = job.part.targets.kind != "coded"
     assert np.all(rays[retro] >= 0) and rays.sum() == facts["rays"]
+
+
+def test_renders_that_lose_a_bar_end_say_the_scale_is_not_established(example, monkeypatch):
+    """A plan whose renders do not name a scale bar's end: the prediction is a free network's and says so (PLAN warns
+    from ``scale_established``), and the end gets no prediction rather than another method's figure."""
+    job_path, folder = example
+    job = load(job_path)
+    plan = json.loads((folder / "plan.json").read_text())
+    poses = np.array([s["part_from_cam"] for s in plan["stations"]])
+    a = job.scale_bar[0]
+    full = PA.rendered_rays(job, poses)
+    keep = full.obs_target != a
+    lost = PA.PredictedRays(full.obs_image[keep], full.obs_target[keep], full.bg_cov[keep], full.clipped_share[keep])
+    monkeypatch.setattr(PA, "rendered_rays", lambda *args, **kw: lost)
+    cov, rays, facts = PA.measurement_prediction(job, poses)
+    assert facts["scale_established"] is False and job.part.targets.ids[a] in facts["scale_reason"]
+    assert rays[a] == 0 and not np.isfinite(cov[a]).any()
+    ok = np.isfinite(cov).all(axis=(1, 2))
+    assert ok.sum() > 150  # the others predicted, in a free network

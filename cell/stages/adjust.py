@@ -84,6 +84,16 @@ def initial_intrinsics(job, cal_doc: dict) -> Intrinsics:
                       pixel_size_m=nominal.pixel_size_m)
 
 
+def model_sigmas(job, backend: str, cam_from_part: np.ndarray, img: np.ndarray, tgt: np.ndarray,
+                 fx_px: float) -> np.ndarray:
+    """Each observation's sigma from the detector model (incidence, dot size; the simulated sensor's noise scale on
+    the sim backend), floored at 1e-4 px: ADJUST's weights and the pre-analysis's (cell.stages.preanalysis)."""
+    t = job.part.targets
+    s = observation_sigmas(t.xyz, t.normals, cam_from_part, img, tgt, fx_px, job.part.target_diameter_m,
+                           noise_scale=job.spec.sim.noise if backend == "sim" else 1.0)
+    return np.maximum(s, 1e-4)
+
+
 def bundle_config(job, scale: bool = True) -> BundleConfig:
     """What the job's adjustment estimates (self-calibration) and its datum (scale bar, else free).
 
@@ -133,10 +143,7 @@ def _adjust(ctx, scr: Screening, obs: dict, obs_image, obs_target, obs_uv, poses
     if weights == "model":  # the detector's precision by incidence and dot size; the variance factor scales it
         # (no per-class variance components on top: with issue 21's batch snooping they ran away on generated parts,
         # a face-on class estimated at 0.11 px and 280 rejections; the model alone: 10 rejections, honest sigma)
-        obs_sigma = observation_sigmas(targets.xyz, targets.normals, poses0, img, tgt, intr0.fx_px,
-                                       job.part.target_diameter_m,
-                                       noise_scale=job.spec.sim.noise if ctx.backend == "sim" else 1.0)
-        obs_sigma = np.maximum(obs_sigma, 1e-4)
+        obs_sigma = model_sigmas(job, ctx.backend, poses0, img, tgt, intr0.fx_px)
         # a dot next to an edge or a step of the shading: the detector's background bound, its measured share
         # (docs/decisions/0023, truth); the covariance is then 2x2 per observation
         bg, has_bg = background_bounds(obs)
@@ -451,6 +458,12 @@ def run(ctx) -> None:
     ctx.say(f"  sigma0 {doc['sigma0_px']:.3f} px, {doc['n_rejected']} observation(s) rejected, "
             f"datum {doc['datum']}, {doc['time_s']:.2f} s")
     say_screening(ctx, doc["screening"])
+    if doc.get("datum_left_out"):  # a datum choice, said (calibration.bundle.covariance.WEAK_DATUM)
+        ids = doc["datum_left_out"]
+        msg = (f"datum: {len(ids)} target(s) determined >10x worse than the median left out of the datum's minimum "
+               f"trace ({', '.join(ids[:8])}{' ...' if len(ids) > 8 else ''})")
+        ctx.log.log("info", msg)
+        ctx.say(f"  {msg}")
     if doc.get("solver_fallback"):
         msg = f"Gauss-Newton handed the adjustment to pycolmap's Levenberg-Marquardt: {doc['solver_fallback']}"
         ctx.log.log("warning", msg)

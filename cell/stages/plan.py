@@ -144,20 +144,38 @@ def run(ctx) -> None:
         ctx.say("  WARNING predicted precision from the search's limiting error propagation (pre-analysis failed)")
     if pred is not None:  # predicted = what the bundle will achieve: its rays, the detector's precision
         cov, n_rays, pre_facts = pred
-        for t, c_, n_ in zip(doc["targets"], cov, n_rays):
+        retro = ctx.job.part.targets.kind != "coded"
+        unpredicted = []
+        for t, c_, n_, r_ in zip(doc["targets"], cov, n_rays, retro):
             t["planned_cov"] = t["predicted_cov"]
-            t["predicted_cov"] = c_ if np.isfinite(c_).all() else t["predicted_cov"]
+            # a target the renders do not measure (or ADJUST's screening would drop) has no prediction: not the
+            # search's optimistic one in its place
+            t["predicted_cov"] = c_ if np.isfinite(c_).all() else None
             t["predicted_rays"] = int(n_)
+            if r_ and t["predicted_cov"] is None:
+                unpredicted.append(t["id"])
+        pre_facts["targets_not_predicted"] = unpredicted
+        if unpredicted:
+            msg = (f"plan: the renders of the plan do not measure {len(unpredicted)} target(s) ("
+                   f"{', '.join(unpredicted[:8])}{' ...' if len(unpredicted) > 8 else ''}): no predicted precision; "
+                   "they are likely to be reported not measured")
+            ctx.log.log("warning", msg)
+            ctx.say(f"  WARNING {msg}")
         sig = np.array([np.sqrt(np.trace(np.asarray(t["predicted_cov"], dtype=float))) if t["predicted_cov"] is not None
                         else np.nan for t in doc["targets"]])
-        doc["predicted_sigma_max_m"] = float(np.nanmax(sig))
-        doc["predicted_sigma_mean_m"] = float(np.nanmean(sig))
+        doc["predicted_sigma_max_m"] = float(np.nanmax(sig)) if np.isfinite(sig).any() else float("nan")
+        doc["predicted_sigma_mean_m"] = float(np.nanmean(sig)) if np.isfinite(sig).any() else float("nan")
         doc["prediction"] = {"method": "pre-analysis: the job's bundle adjustment (self-calibration, datum) on exact "
                                        "observations of the nominal targets from the planned stations",
                              "rays": pre_facts["rays_from"],
                              "image_precision": "detector model (calibration/data/detector_precision.json), with the "
                                                 "background bounds and clipped shares of the renders where rendered",
                              "facts": pre_facts}
+        if pre_facts.get("scale_established") is False:  # ADJUST would fault with this plan's images
+            msg = (f"plan: the renders of the plan do not establish the scale ({pre_facts.get('scale_reason')}): the "
+                   "prediction is a free network's, and REPORT will fault unless the images see both ends better")
+            ctx.log.log("warning", msg)
+            ctx.say(f"  WARNING {msg}")
         if pre_facts.get("fallback"):
             ctx.log.log("warning", f"plan: pre-analysis: {pre_facts['fallback']}")
             ctx.say(f"  WARNING pre-analysis: {pre_facts['fallback']}")

@@ -185,7 +185,7 @@ def adjust_prediction(job, part_from_cam: np.ndarray, rays: PredictedRays) -> tu
 
     Returns the predicted covariance ``(n, 3, 3)`` (m^2, a priori variance) and what the shared misfit added.
     Raises CalibrationError when the network cannot be adjusted (e.g. an image with fewer than 3 targets)."""
-    from cell.stages.adjust import WILD_SIGMA_FACTOR
+    from cell.stages.adjust import WILD_SIGMA_FACTOR, _wild_targets
     from cell.stages.screen import screen_network
 
     poses = np.array([invert(T) for T in part_from_cam])
@@ -206,27 +206,26 @@ def adjust_prediction(job, part_from_cam: np.ndarray, rays: PredictedRays) -> tu
                              ids=ids)
         if scr.keep_images.sum() < 2:
             raise CalibrationError("pre-analysis: fewer than 2 images usable")
-        cov, added = _adjust_exact(job, poses, img, tgt, uv, scr, rays, order)
-        tr = np.trace(cov, axis1=1, axis2=2)
-        sig = np.sqrt(np.where(np.isfinite(tr) & (tr > 0), tr, np.nan))
-        wild = (np.flatnonzero(sig > WILD_SIGMA_FACTOR * np.nanmedian(sig)) if np.isfinite(sig).sum() >= 3
-                else np.zeros(0, dtype=int))
+        res, added = _adjust_exact(job, poses, img, tgt, uv, scr, rays, order)
+        wild, _, _ = _wild_targets(res)  # ADJUST's own rule
         if not wild.size:
             break
         drop.update({int(t): f"sigma beyond {WILD_SIGMA_FACTOR:g} x the median" for t in wild})
     added["screened_targets"] = sorted(ids[t] for t in scr.targets)
     added["screened_images"] = int((~scr.keep_images).sum())
-    return cov, added
+    added["scale_established"] = bool(scr.scale_ok) if scale_pair is not None else None
+    if scale_pair is not None and not scr.scale_ok:
+        added["scale_reason"] = scr.scale_reason
+    return res.cov, added
 
 
-def _adjust_exact(job, poses, img, tgt, uv, scr, rays: PredictedRays, order) -> tuple[np.ndarray, dict]:
+def _adjust_exact(job, poses, img, tgt, uv, scr, rays: PredictedRays, order):
     """One adjustment of the exact observations the screening kept (NaN covariance for the targets it dropped)."""
     from calibration.bundle import BundleOptions, bundle_adjust
     from calibration.bundle.coherent import scale_bar_gains
-    from calibration.detector_model import observation_covariances, observation_sigmas
-    from cell.stages.adjust import _add_coherent_background, bundle_config
+    from calibration.detector_model import observation_covariances
+    from cell.stages.adjust import _add_coherent_background, bundle_config, model_sigmas
 
-    s = job.spec
     xyz = job.part.targets.xyz
     kept = np.flatnonzero(scr.keep_images)
     new_index = np.full(len(poses), -1)
@@ -234,9 +233,7 @@ def _adjust_exact(job, poses, img, tgt, uv, scr, rays: PredictedRays, order) -> 
     sel = scr.keep_obs & scr.keep_images[img]
     poses = poses[kept]
     img, tgt, uv = new_index[img[sel]], tgt[sel], uv[sel]
-    sig = observation_sigmas(xyz, job.part.targets.normals, poses, img, tgt, job.intrinsics.fx_px,
-                             job.part.target_diameter_m, noise_scale=s.sim.noise if s.cell.backend == "sim" else 1.0)
-    sig = np.maximum(sig, 1e-4)
+    sig = model_sigmas(job, job.spec.cell.backend, poses, img, tgt, job.intrinsics.fx_px)  # as ADJUST weighs them
     bg = None if rays.bg_cov is None else rays.bg_cov[order][sel]
     clip = None if rays.clipped_share is None else rays.clipped_share[order][sel]
     obs_sigma = sig if bg is None and clip is None else observation_covariances(sig, bg, clipped_share=clip)
@@ -249,7 +246,7 @@ def _adjust_exact(job, poses, img, tgt, uv, scr, rays: PredictedRays, order) -> 
         bars = config.scale_bars
         K = scale_bar_gains(res.covariance, res.points, bars)[0] if bars else None
         added = _add_coherent_background(res, bg, img, tgt, list(job.part.targets.ids), bars, K)
-    return res.cov, added
+    return res, added
 
 
 def measurement_prediction(job, part_from_cam: np.ndarray, progress=None, cache_dir=None):
@@ -285,6 +282,9 @@ def measurement_prediction(job, part_from_cam: np.ndarray, progress=None, cache_
         facts["fallback"] = fallback
     facts["screened_targets"] = added.pop("screened_targets", [])  # ADJUST's screening will drop them too
     facts["screened_images"] = added.pop("screened_images", 0)
+    facts["scale_established"] = added.pop("scale_established", None)
+    if "scale_reason" in added:
+        facts["scale_reason"] = added.pop("scale_reason")
     if added:
         facts["shared_misfit_targets"] = added.get("n_targets", 0)
         facts["scale_bar_ends"] = added.get("scale_bar_ends", [])
