@@ -407,11 +407,15 @@ def screening_doc(scr: Screening, obs: dict, obs_image, obs_target, ids: list[st
 def _flag_counts(flags: dict, rejected) -> dict:
     """Observations the adjustment used that are of clipped dots, and the images without clipped shares (measured
     before the detector counted them: no saturation term there; decision 0029)."""
-    if flags["clip"] is None:
-        return {"observations_clipped": None, "images_without_clipped_share": []}
     used = ~np.asarray(rejected, dtype=bool)
-    return {"observations_clipped": int(np.count_nonzero(flags["clip"][used] > 0)),
-            "images_without_clipped_share": list(flags["clip_missing"])}
+    out: dict = {}
+    if flags["bg"] is not None:  # the dots next to an edge: a non-zero bound (not every 2x2 that differs from the model)
+        out["observations_with_background_bound"] = int(np.count_nonzero(
+            np.trace(np.asarray(flags["bg"], dtype=float), axis1=1, axis2=2)[used] > 0))
+    if flags["clip"] is None:
+        return out | {"observations_clipped": None, "images_without_clipped_share": []}
+    return out | {"observations_clipped": int(np.count_nonzero(flags["clip"][used] > 0)),
+                  "images_without_clipped_share": list(flags["clip_missing"])}
 
 
 def _weights_doc(job, res, groups, model_sigma=None, bg_missing=()) -> dict:
@@ -424,12 +428,8 @@ def _weights_doc(job, res, groups, model_sigma=None, bg_missing=()) -> dict:
     if job.spec.camera.observation_weights == "model":
         s = res.obs_sigma_px if model_sigma is None else model_sigma
         used = s[~res.rejected] if s is not None else np.array([np.nan])
-        n_bg = 0
-        if model_sigma is not None:
-            C = res.obs_sigma_px
-            n_bg = int(np.count_nonzero(np.abs(C - model_sigma[:, None, None] ** 2 * np.eye(2)).max(axis=(1, 2)) > 0))
         return {"method": "model", "detector_model": load_model().to_dict(),
-                "observations_with_background_bound": n_bg,
+                "observations_with_background_bound": 0,  # counted from the bounds themselves (_flag_counts)
                 "images_without_background_bound": list(bg_missing),
                 "a_priori_sigma_px": {"median": float(np.median(used)), "p90": float(np.quantile(used, 0.9)),
                                       "max": float(np.max(used))},
