@@ -90,16 +90,21 @@ def test_scale_bar_gains_are_how_the_adjusted_points_move_with_the_certified_len
     a, b = int(np.argmin(net.points[:, 0])), int(np.argmax(net.points[:, 0]))
     length = float(np.linalg.norm(net.points[a] - net.points[b]))
     sigma, delta = 2e-6, 20e-6
-    runs = []
-    for L in (length, length + delta):
-        cfg = BundleConfig(scale_bars=(ScaleBar(a, b, L, sigma),))
-        runs.append(bundle_adjust(net.obs_image, net.obs_target, net.obs_uv, net.intrinsics, poses0, x0,
-                                  BundleOptions(sigma_px=0.05, max_rejections=0), cfg))
-    K, sig = scale_bar_gains(runs[0].covariance, runs[0].points, (ScaleBar(a, b, length, sigma),))
-    moved = (runs[1].points - runs[0].points) / delta
-    assert sig[0] == sigma
-    np.testing.assert_allclose(K[:, :, 0], moved, atol=0.02 * np.abs(moved).max())
-    assert np.abs(moved).max() > 0.1  # the far targets move a good share of the bar's change
+    # sigma_px as simulated, and half of it: the covariance is then scaled by an a posteriori s0^2 of ~4, which the
+    # gains must not follow (they are the a priori weights' N^-1 A^T / sigma^2)
+    for sigma_px in (0.05, 0.025):
+        runs = []
+        for L in (length, length + delta):
+            cfg = BundleConfig(scale_bars=(ScaleBar(a, b, L, sigma),))
+            runs.append(bundle_adjust(net.obs_image, net.obs_target, net.obs_uv, net.intrinsics, poses0, x0,
+                                      BundleOptions(sigma_px=sigma_px, max_rejections=0), cfg))
+        K, sig = scale_bar_gains(runs[0].covariance, runs[0].points, (ScaleBar(a, b, length, sigma),),
+                                 runs[0].variance_factor)
+        moved = (runs[1].points - runs[0].points) / delta
+        assert sig[0] == sigma
+        np.testing.assert_allclose(K[:, :, 0], moved, atol=0.02 * np.abs(moved).max())
+        assert np.abs(moved).max() > 0.1  # the far targets move a good share of the bar's change
+    assert runs[0].variance_factor > 3.0  # the second case did scale the covariance
 
 
 def test_the_report_states_the_uncertainty_budget():
@@ -226,7 +231,7 @@ def test_the_detector_model_carries_the_share_and_an_older_file_takes_one(tmp_pa
     from calibration.errors import CalibrationError
 
     doc = json.loads(DATA_PATH.read_text())
-    assert 0.0 <= load_model().shared_share <= 1.0
+    assert load_model().shared_share == doc["rho_background"]  # the applied share is the file's, not a default
     old = {k: v for k, v in doc.items() if not k.startswith("rho_background")} | {"version": "3"}
     (tmp_path / "old.json").write_text(json.dumps(old))
     m = load_model(str(tmp_path / "old.json"))
@@ -234,3 +239,12 @@ def test_the_detector_model_carries_the_share_and_an_older_file_takes_one(tmp_pa
     (tmp_path / "bad.json").write_text(json.dumps(doc | {"rho_background": 1.4}))
     with pytest.raises(CalibrationError, match="rho_background must be in"):
         load_model(str(tmp_path / "bad.json"))
+
+
+def test_the_report_names_the_targets_left_out_of_the_datum():
+    from cell.record.report import _budget_facts
+
+    facts = _budget_facts({"uncertainty_budget": {"datum_left_out": ["T0035", "T0111"]}})
+    assert facts["Left out of the bundle's datum"] == ("2 target(s) determined >10x worse than the median: "
+                                                       "T0035, T0111")
+    assert "Left out of the bundle's datum" not in _budget_facts({"uncertainty_budget": {"datum_left_out": []}})

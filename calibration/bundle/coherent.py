@@ -105,7 +105,7 @@ def coherent_background_cov(intr: Intrinsics, cam_from_part: np.ndarray, points:
     return out
 
 
-def scale_bar_gains(cov, points: np.ndarray, bars) -> tuple[np.ndarray, np.ndarray]:
+def scale_bar_gains(cov, points: np.ndarray, bars, variance_factor: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
     """How each target moves per metre of error in each scale bar's certified length, and the bars' sigmas.
 
     The length of a bar is an observation of weight ``1 / sigma^2`` in the adjustment, so the adjusted points
@@ -116,6 +116,8 @@ def scale_bar_gains(cov, points: np.ndarray, bars) -> tuple[np.ndarray, np.ndarr
 
     Args:
         cov: the bundle's :class:`calibration.alignment.PointCovariance` (in its datum).
+        variance_factor: the factor ``cov`` was scaled by (a posteriori ``s0^2``, ``BundleResult.variance_factor``):
+            the gains are ``N^-1 A^T / sigma^2`` of the a priori weights, whatever the covariance is scaled by.
         points: (n, 3) adjusted coordinates; ``bars``: :class:`calibration.bundle.config.ScaleBar` sequence.
     Returns:
         ``K: (n, 3, b)`` gains (m per m; NaN for targets not adjusted) and ``sigma: (b,)`` metres.
@@ -133,7 +135,7 @@ def scale_bar_gains(cov, points: np.ndarray, bars) -> tuple[np.ndarray, np.ndarr
         col = U @ (cov.C @ (U[a].T @ u - U[b].T @ u))  # (n, 3)
         col[a] += D[a] @ u
         col[b] -= D[b] @ u
-        K[:, :, j] = col / bar.sigma_m**2
+        K[:, :, j] = col / (bar.sigma_m**2 * variance_factor)
     K[~np.all(np.isfinite(points), axis=1)] = np.nan
     return K, sig
 

@@ -201,6 +201,7 @@ class BundleResult:
     snooping: dict = field(default_factory=dict)
     solver_fallback: str | None = None
     datum_left_out: np.ndarray | None = None  # targets the datum's minimum trace leaves out (weakly determined)
+    variance_factor: float = 1.0  # what ``cov`` and ``covariance`` were scaled by (a posteriori s0^2, or 1)
 
     def error_ellipsoids(self, k: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
         """Semi-axes ``(n, 3)`` (metres, ascending, times ``k``) and axis directions ``(n, 3, 3)`` (columns)."""

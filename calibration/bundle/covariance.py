@@ -73,11 +73,15 @@ def _result(state, lin, stats, lay, T, rejected, act_obs, obs_image, obs_target,
         P = H = Qg
         # the minimum trace over the determined targets: a weak one would spread its uncertainty to every other
         sig = np.sqrt(np.maximum(np.trace(blocks, axis1=1, axis2=2), 0.0))
-        weak = sig > WEAK_DATUM * np.median(sig) if len(sig) else np.zeros(0, dtype=bool)
+        fin = np.isfinite(sig)
+        weak = fin & (sig > WEAK_DATUM * np.median(sig[fin])) if fin.sum() >= 3 else np.zeros(len(sig), dtype=bool)
         if weak.any() and (~weak).sum() >= 3:
-            P, H = _datum_projectors(G, ~weak)
-            blocks = _datum_blocks(Qii, pc.D, pc.U, pc.C, P, H)
-            left_out = act[weak]
+            try:  # the kept targets span the datum's motions (not all on one line): else the all-target datum stays
+                P, H = _datum_projectors(G, ~weak)
+                blocks = _datum_blocks(Qii, pc.D, pc.U, pc.C, P, H)
+                left_out = act[weak]
+            except np.linalg.LinAlgError:
+                P = H = Qg
         pc = pc.s_transform(P, H)
     else:
         blocks = 0.5 * (Qii + np.swapaxes(Qii, 1, 2))
@@ -108,5 +112,5 @@ def _result(state, lin, stats, lay, T, rejected, act_obs, obs_image, obs_target,
         intrinsics_names=lay.names, intrinsics_cov=icov, sigma0_px=float(np.sqrt(s02) * options.sigma_px),
         residuals=res, test_statistic=T, redundancy=red, rejected=rejected, dof=int(stats["dof"]),
         datum=config.datum, converged=bool(converged), summary=report, timings=timings,
-        datum_left_out=np.sort(left_out),
+        datum_left_out=np.sort(left_out), variance_factor=float(factor),
     )

@@ -220,7 +220,7 @@ def _alerts(doc: dict) -> str:
         out.append('<div class="warn" id="snooping-diverged">Data-snooping rounds whose Gauss-Newton diverged '
                    f"(stopped, handed to pycolmap): {html.escape(said)}</div>")
     if sn.get("suspect_targets"):
-        out.append(f'<div class="warn">Targets whose observations the blunder test could not verify (lost half of their rays, or kept two or fewer after a rejection; inconclusive): '
+        out.append(f'<div class="warn">Targets whose observations the blunder test could not verify (lost half of their rays, kept two or fewer after a rejection or a screening drop, or unlike their ellipse in most images; inconclusive): '
                    f'{html.escape(", ".join(sn["suspect_targets"]))}</div>')
     if doc.get("solver_fallback"):
         out.append('<div class="warn" id="solver-fallback">Gauss-Newton handed the adjustment to pycolmap: '
@@ -299,6 +299,10 @@ def _budget_facts(doc: dict) -> dict:
               for e in b.get("scale_bar_ends") or []]
     if extra:
         out["Stated beyond the detector model"] = "; ".join(extra)
+    if b.get("datum_left_out"):
+        ids = b["datum_left_out"]
+        out["Left out of the bundle's datum"] = (f"{len(ids)} target(s) determined >10x worse than the median: "
+                                                 + ", ".join(ids[:8]) + (" ..." if len(ids) > 8 else ""))
     return out
 
 

@@ -292,7 +292,7 @@ def run_bundle(ctx) -> dict:
                                "images are too weakly linked; see the screening in the log")
     kept_images, sel, img, tgt, uv, groups, model_sigma, flags = sub
     bars = bundle_config(job, scale=scr.scale_ok).scale_bars
-    K, K_sigma = scale_bar_gains(res.covariance, res.points, bars) if bars else (np.zeros((len(ids), 3, 0)), np.zeros(0))
+    K, K_sigma = scale_bar_gains(res.covariance, res.points, bars, res.variance_factor) if bars else (np.zeros((len(ids), 3, 0)), np.zeros(0))
     coherent = _add_coherent_background(res, flags["bg"], img, tgt, ids, bars, K) if model_sigma is not None else None
     suspect = _screened_suspects(scr, obs_target, tgt[~res.rejected], len(ids))
     shaped = {t for t in doubtful if np.any(tgt[~res.rejected] == t)}

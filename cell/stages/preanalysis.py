@@ -244,7 +244,7 @@ def _adjust_exact(job, poses, img, tgt, uv, scr, rays: PredictedRays, order):
     added: dict = {}
     if bg is not None:
         bars = config.scale_bars
-        K = scale_bar_gains(res.covariance, res.points, bars)[0] if bars else None
+        K = scale_bar_gains(res.covariance, res.points, bars, res.variance_factor)[0] if bars else None
         added = _add_coherent_background(res, bg, img, tgt, list(job.part.targets.ids), bars, K)
     return res, added
 
