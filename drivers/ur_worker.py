@@ -330,6 +330,8 @@ class Worker:
         if moved > MOVED_RAD:
             raise _Fail("MotionError", f"the arm moved {moved:.4f} rad while the controller checked the target "
                         "(nothing was sent): the job stops")
+        if self.stop_requested:  # an abort that came during the check wins over the refusal (nothing was sent)
+            raise _Fail("MotionError", "move refused: a stop was requested and not yet acknowledged")
         kind = "joints" if joint_space else "pose"
         raise _Fail("MoveRefusedError", f"the controller refused the move: target {kind} "
                     f"{[round(v, 4) for v in target]} is outside its safety limits or reach "
