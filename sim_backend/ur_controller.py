@@ -23,9 +23,8 @@ Targets refused: ``is_within_safety_limits`` (ur-rtde's ``isJointsWithinSafetyLi
 ``isPoseWithinSafetyLimits``, commands 37 / 36) is false for joints outside the arm's limits, a pose
 without an IK branch inside them, and joint targets given to :meth:`refuse_targets` (a safety
 restriction the plan does not know: ``[sim] unreachable_stations``, also from another process by
-the emulator-only dashboard command ``sim refuse targets``, :func:`refuse_targets_at`). Those belong to
-the job that gave them: they end with the control program that runs when they are given (or the next one,
-given while none runs), so a later job's program, which replaces it, starts with none. A ``movej`` /
+the emulator-only dashboard command ``sim refuse targets``, :func:`refuse_targets_at`; they end with the
+running control program, or the next one if none runs: a later job's program starts with none). A ``movej`` /
 ``movel`` to such a target is a runtime error: the program stops before the arm moves (what ur-rtde's
 sources expect of a real controller when, e.g., inverse kinematics fails; decision 0028).
 
@@ -392,12 +391,8 @@ class LoopbackURController:
 
     # ------------------------------------------------------------ safety limits
     def refuse_targets(self, joints_rad) -> None:
-        """Joint targets ``(n, 6)`` outside the controller's safety limits from now on (replaces the last set).
-
-        They last until the control program ends (stopped, replaced by a new upload, a runtime error, the
-        watchdog, an emergency stop): a job's refusals are not a later job's. Give them once the job's driver
-        has connected (its program runs), as ACQUIRE does.
-        """
+        """Joint targets ``(n, 6)`` outside the controller's safety limits (replaces the last set) until the control
+        program ends (stop, a new upload, runtime error, watchdog, e-stop): give them once the job's driver connected."""
         with self._lock:
             self._refused = np.asarray(joints_rad, dtype=float).reshape(-1, 6).copy()
 
