@@ -58,7 +58,8 @@ def part_pairs(doc: dict, model, whiten: bool = True) -> dict:
     C = None
     if whiten:
         sigma = model.sigma_px(np.radians(rows[:, 2]), rows[:, 3])
-        C = observation_covariances(sigma, B, model, clipped_share=rows[:, 10] / np.maximum(rows[:, 11], 1.0))
+        C = observation_covariances(sigma, B, model, clipped_share=rows[:, 10] / np.maximum(rows[:, 11], 1.0),
+                                    diameter_px=rows[:, 3])
     return share_pairs(rows[:, 4:6], model.c_background**2 * B, Jh, t, k, sight, C)
 
 
@@ -81,7 +82,8 @@ def point_check(doc: dict, model, shares) -> dict:
     if not len(rows):
         return {"edge": np.zeros((len(shares), 0)), "one": np.zeros(0), "clean": np.zeros(0)}
     sigma = model.sigma_px(np.radians(rows[:, 2]), rows[:, 3])
-    C = observation_covariances(sigma, B, model, clipped_share=rows[:, 10] / np.maximum(rows[:, 11], 1.0))
+    C = observation_covariances(sigma, B, model, clipped_share=rows[:, 10] / np.maximum(rows[:, 11], 1.0),
+                                    diameter_px=rows[:, 3])
     W = np.linalg.inv(C)
     T, X = doc["cam_from_part"][k], doc["xyz"][t]
     Jh, depth = unit_projection(T, X)

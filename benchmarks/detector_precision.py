@@ -51,7 +51,8 @@ INCIDENCE_EDGES = (0, 20, 35, 50, 60, 65, 70, 75, 80, 86)
 SIZE_EDGES = (0, 14, 18, 22, 30, 100)
 
 
-def collect(n_views: int, repeats: int, seed: int = 0, job_path: Path = JOB, mask: bool = False) -> dict:
+def collect(n_views: int, repeats: int, seed: int = 0, job_path: Path = JOB, mask: bool = False,
+            distance_m: tuple[float, float] | str | None = (0.35, 0.7)) -> dict:
     """Rows of detected-minus-true centres (see the module's doc). ``mask``: each image is also detected with the
     CAD's surface labels at the true pose (``[camera] background_mask = "cad"``, decision 0035) and each row gets
     8 more columns: that detection's error (eu, ev) and bound (b00, b01, b11), whether the dot's surroundings
@@ -71,14 +72,33 @@ def collect(n_views: int, repeats: int, seed: int = 0, job_path: Path = JOB, mas
     index = {t: i for i, t in enumerate(job.part.targets.ids)}
     rng = np.random.default_rng(seed)
     poses = np.full((n_views, 4, 4), np.nan)
+    sphere = planned = None
+    if distance_m is None:  # random stations of the job's viewing sphere
+        from cell.setup import planner_options
+
+        sphere = planner_options(job).sphere
+    elif distance_m == "plan":  # the views the cell takes: the stations PLAN designs for the job (decision 0037)
+        from cell.stages.plan import make_plan
+
+        with tempfile.TemporaryDirectory(prefix="detector-precision-plan-") as tmp:
+            planned = make_plan(job, cache_dir=Path(tmp))[0].part_from_cam
+        n_views = len(planned)
+        poses = np.full((n_views, 4, 4), np.nan)
     times = np.zeros(4)  # s: detection, labels, masked detection; images
     rows = []  # view, target, incidence deg, diameter px, eu, ev, repeat, background bound b00, b01, b11, saturated px, area px
     for k in range(n_views):
-        az = 2 * np.pi * k / n_views + rng.uniform(-0.2, 0.2)
-        el = np.deg2rad(rng.uniform(8, 85))
-        dist = rng.uniform(0.35, 0.7)
-        eye = centre + dist * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
-        part_from_cam = look_at(eye, centre + rng.normal(0, 0.02, 3), roll_rad=rng.uniform(-np.pi, np.pi))
+        if planned is not None:
+            part_from_cam = planned[k]
+            eye = part_from_cam[:3, 3]
+        elif sphere is not None:
+            part_from_cam = sphere.poses(rng.uniform(sphere.lower, sphere.upper))
+            eye = part_from_cam[:3, 3]
+        else:
+            az = 2 * np.pi * k / n_views + rng.uniform(-0.2, 0.2)
+            el = np.deg2rad(rng.uniform(8, 85))
+            dist = rng.uniform(*distance_m)
+            eye = centre + dist * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+            part_from_cam = look_at(eye, centre + rng.normal(0, 0.02, 3), roll_rad=rng.uniform(-np.pi, np.pi))
         cam_from_part = invert(part_from_cam)
         poses[k] = cam_from_part
         for r in range(repeats):
@@ -155,7 +175,8 @@ def class_table(rows: np.ndarray) -> list[dict]:
 
 
 def collect_each(n_views: int, repeats: int, seed: int, plates: int, skins: int = 0,
-                 mask: bool = False) -> list[tuple[str, dict]]:
+                 mask: bool = False, distance_m: tuple[float, float] | str | None = (0.35, 0.7)
+                 ) -> list[tuple[str, dict]]:
     """:func:`collect` on the example and on ``plates`` generated plates and ``skins`` generated skins
     (tests/partgen.py, seeds from 300 and 400), each part with its own view seed: ``(part name, collected)``."""
     from tests.partgen import make_part_job
@@ -166,14 +187,15 @@ def collect_each(n_views: int, repeats: int, seed: int, plates: int, skins: int 
             for k in range(count):
                 g = make_part_job(Path(tmp) / f"{kind}{k}", np.random.default_rng(first + k), kind)
                 parts.append((f"tests.partgen {kind} seed {first + k}", g.job))
-        return [(name, collect(n_views, repeats, seed + i, path, mask)) for i, (name, path) in enumerate(parts)]
+        return [(name, collect(n_views, repeats, seed + i, path, mask, distance_m)) for i, (name, path) in enumerate(parts)]
 
 
 def collect_parts(n_views: int, repeats: int, seed: int, plates: int, skins: int = 0,
-                  background_mask: str = "none") -> tuple[np.ndarray, list[str]]:
+                  background_mask: str = "none", distance_m: tuple[float, float] | str | None = (0.35, 0.7)
+                  ) -> tuple[np.ndarray, list[str]]:
     """Rows of :func:`collect_each`, stacked; and the parts' names. ``background_mask="cad"``: the rows of the
     detection with the CAD's surface labels (decision 0035; the dots it lost left out), in the same 12 columns."""
-    each = collect_each(n_views, repeats, seed, plates, skins, mask=background_mask == "cad")
+    each = collect_each(n_views, repeats, seed, plates, skins, mask=background_mask == "cad", distance_m=distance_m)
     rows = np.vstack([doc["rows"] for _, doc in each])
     return (masked_rows(rows) if background_mask == "cad" else rows), [name for name, _ in each]
 
@@ -219,6 +241,58 @@ def measure_background(n_views: int, repeats: int, seed: int, plates: int, write
                                            f"--background-mask {background_mask} --write")
         doc["background_mask"] = background_mask
         doc["c_background_dots"] = {"n": int(len(rows)), "with_misfit": int(flagged.sum())}
+        DATA_PATH.write_text(json.dumps(doc, indent=1) + "\n")
+        print(f"written {DATA_PATH}")
+    return 0
+
+
+def measure_saturation(n_views: int, repeats: int, seed: int, plates: int, skins: int, write: bool,
+                       distance_m: tuple[float, float] | str | None) -> int:
+    """The saturation term ``c_s^2 rho^k_s (d / 20)^m_s`` by maximum likelihood with the stored geometry model held,
+    on the clipped dots that no background misfit flags: views from ``distance_m`` (m from the part's centre, looking
+    at it), None: random stations of each job's own viewing sphere, "plan": the stations PLAN designs for each job
+    (the views the cell takes; ``--views`` is then ignored, ``--repeats`` renders each; decision 0037)."""
+    t0 = time.perf_counter()
+    model = load_model()
+    rows, parts = collect_parts(n_views, repeats, seed, plates, skins, distance_m=distance_m)
+    B = rows[:, [7, 8, 8, 9]].reshape(-1, 2, 2)
+    rho = rows[:, 10] / np.maximum(rows[:, 11], 1.0)
+    cs = ~np.any(B != 0, axis=(1, 2)) & (rho > 0)
+    inc, d, e = rows[cs, 2], rows[cs, 3], rows[cs, 4:6]
+    where = ("stations of the jobs' viewing spheres" if distance_m is None else "the jobs' planned stations"
+             if distance_m == "plan" else f"{distance_m[0]:.2f}-{distance_m[1]:.2f} m")
+    print(f"{len(rows)} dot images from {len(parts)} part(s) x {n_views} views x {repeats} from {where} "
+          f"({time.perf_counter() - t0:.0f} s); {cs.sum()} clipped without a background misfit")
+    fits = {"held (stored)": model,
+            "rho only": replace(model, **dict(zip(("c_saturation", "k_saturation", "m_saturation"),
+                                                  fit_saturation(model, inc, d, e, rho[cs], size=False)))),
+            "rho and size": replace(model, **dict(zip(("c_saturation", "k_saturation", "m_saturation"),
+                                                      fit_saturation(model, inc, d, e, rho[cs], size=True))))}
+    s2 = model.sigma_px(np.radians(inc), d) ** 2
+    edges_d, edges_r = (0, 25, 30, 33, 36, 100), (0.0, 0.6, 0.7, 0.8, 1.01)
+    print(f"{'':16s} " + " ".join(f"{n:>22s}" for n in fits) + "   (normalised rms; share beyond the 99 % circle)")
+    for name, m in [("all", np.ones(len(d), bool))] + [
+            (f"d {d0}-{d1} px", (d >= d0) & (d < d1)) for d0, d1 in zip(edges_d[:-1], edges_d[1:])] + [
+            (f"rho {r0:.1f}-{r1:.1f}", (rho[cs] > r0) & (rho[cs] <= r1)) for r0, r1 in zip(edges_r[:-1], edges_r[1:])]:
+        if m.sum() < 20:
+            continue
+        cells = []
+        for fm in fits.values():
+            v = s2[m] + fm.saturation_var(rho[cs][m], d[m])
+            z2 = np.sum(e[m] ** 2, axis=1) / v
+            cells.append(f"{np.sqrt(np.mean(z2) / 2):.3f} {np.mean(z2 > 9.21):.3f}")
+        print(f"{name:16s} n={m.sum():6d} " + " ".join(f"{c:>15s}" for c in cells))
+    best = fits["rho and size"]
+    print(f"model: {best.describe()}")
+    if write:
+        doc = json.loads(DATA_PATH.read_text())
+        doc |= {"c_saturation_px": best.c_saturation, "k_saturation": best.k_saturation,
+                "m_saturation": best.m_saturation, "version": "5",
+                "saturation_measured_by": f"python -m benchmarks.detector_precision --fit-saturation --views {n_views} "
+                                          f"--repeats {repeats} --seed {seed} --plates {plates} --skins {skins} "
+                                          + (" --sphere" if distance_m is None else " --plans" if distance_m == "plan"
+                                             else f" --near {distance_m[0]}") + " --write",
+                "saturation_dots": {"n": int(cs.sum()), "views": where}}
         DATA_PATH.write_text(json.dumps(doc, indent=1) + "\n")
         print(f"written {DATA_PATH}")
     return 0
@@ -285,7 +359,17 @@ def main(argv: list[str] | None = None) -> int:
                     "(decision 0035) on the same renders; --plates/--skins as given (default 3 / 0)")
     ap.add_argument("--background-mask", choices=("none", "cad"), default="none",
                     help="the detector the model describes: [camera] background_mask (decision 0035)")
+    ap.add_argument("--fit-saturation", action="store_true", help="measure the saturation term (c_s, k_s, m_s) with "
+                    "the geometry model held, on views from --near to 0.7 m")
+    ap.add_argument("--near", type=float, default=0.25, help="nearest view distance (m) for --fit-saturation")
+    ap.add_argument("--sphere", action="store_true", help="--fit-saturation from random stations of each job's viewing "
+                    "sphere instead of views from --near to 0.7 m")
+    ap.add_argument("--plans", action="store_true", help="--fit-saturation on the stations PLAN designs for each part "
+                    "(the views the cell takes; --views ignored)")
     a = ap.parse_args(argv)
+    if a.fit_saturation:
+        return measure_saturation(a.views, a.repeats, a.seed, a.plates, a.skins, a.write,
+                                  "plan" if a.plans else None if a.sphere else (a.near, 0.7))
     if a.compare_mask:
         return compare_mask(a.views, a.repeats, a.seed, a.plates, a.skins)
     if a.fit_background:
@@ -302,15 +386,16 @@ def main(argv: list[str] | None = None) -> int:
     clipped = rho > 0
     clean = rows[~flagged & ~clipped]
     table = class_table(clean)
-    model = fit_model(clean[:, 2], clean[:, 3], clean[:, 4:6], version="3")
+    model = fit_model(clean[:, 2], clean[:, 3], clean[:, 4:6], version="5")
     c_bg = fit_background(model, rows[flagged, 2], rows[flagged, 3], rows[flagged, 4:6], B[flagged]) if flagged.any() else 0.0
     cs = ~flagged & clipped
-    c_s, k_s = fit_saturation(model, rows[cs, 2], rows[cs, 3], rows[cs, 4:6], rho[cs]) if cs.sum() >= 50 else (0.0, 1.0)
-    model = DetectorModel(model.a_px, model.b_px, model.p, model.q, model.version, c_bg, c_s, k_s)
+    c_s, k_s, m_s = (fit_saturation(model, rows[cs, 2], rows[cs, 3], rows[cs, 4:6], rho[cs], size=True)
+                     if cs.sum() >= 50 else (0.0, 1.0, 0.0))
+    model = DetectorModel(model.a_px, model.b_px, model.p, model.q, model.version, c_bg, c_s, k_s, m_saturation=m_s)
     model = replace(model, **measured_ranges(clean, table))  # where it was measured (the planner holds it there)
     pred = model.sigma_px(np.radians(clean[:, 2]), clean[:, 3])
     z = clean[:, 4:6] / pred[:, None]
-    var = (model.sigma_px(np.radians(rows[:, 2]), rows[:, 3]) ** 2 + model.saturation_var(rho))[:, None] \
+    var = (model.sigma_px(np.radians(rows[:, 2]), rows[:, 3]) ** 2 + model.saturation_var(rho, rows[:, 3]))[:, None] \
         + c_bg**2 * np.stack([B[:, 0, 0], B[:, 1, 1]], axis=1)
     zf = rows[flagged, 4:6] / np.sqrt(var[flagged])
     zs = rows[cs, 4:6] / np.sqrt(var[cs])
@@ -353,7 +438,7 @@ def main(argv: list[str] | None = None) -> int:
         old = json.loads(DATA_PATH.read_text())
         kept = {k: v for k, v in old.items() if k.startswith("rho_background")}
         if kept:
-            doc |= kept | {"version": "4"}
+            doc |= kept
             print(f"rho_background {kept['rho_background']:.3f} kept from {DATA_PATH.name} (measured with c_background "
                   f"{old.get('c_background', float('nan')):.3f}; now {c_bg:.3f}): measure it again with "
                   "python -m benchmarks.background_share --write when c changed")

@@ -41,6 +41,7 @@ import numpy as np
 from calibration.errors import CalibrationError
 
 __all__ = ["DetectorModel", "fit_model", "fit_background", "fit_saturation", "load_model", "observation_sigmas",
+           "observation_geometry",
            "observation_covariances", "DATA_PATH"]
 
 DATA_PATH = Path(__file__).resolve().parent / "data" / "detector_precision.json"
@@ -70,16 +71,25 @@ class DetectorModel:
     #: that say whether the statement built with it covers the errors); None: not in the model file (a model before
     #: version 4), :attr:`shared_share` then takes the conservative limit one
     rho_background: float | None = None
+    #: the saturation term's growth with the dot's size: ``(d / 20 px)^m`` (decision 0037: a near dot clipped over the
+    #: same share of its pixels errs more, the pixel phase of its longer clipped rim); 0: a model before version 5
+    m_saturation: float = 0.0
 
     @property
     def shared_share(self) -> float:
         """:attr:`rho_background`, or 1 (the conservative limit) where the model file does not give it."""
         return 1.0 if self.rho_background is None else self.rho_background
 
-    def saturation_var(self, clipped_share) -> np.ndarray:
-        """Variance (px^2) a clipped dot adds to each coordinate, for the clipped share of its pixels ``(k,)``."""
+    def saturation_var(self, clipped_share, diameter_px=None) -> np.ndarray:
+        """Variance (px^2) a clipped dot adds to each coordinate, for the clipped share of its pixels ``(k,)`` and
+        the dot's diameter ``(k,)`` px (needed when the model has a size term, :attr:`m_saturation`)."""
         rho = np.clip(np.asarray(clipped_share, dtype=float), 0.0, 1.0)
-        return np.where(rho > 0, self.c_saturation**2 * rho**self.k_saturation, 0.0)
+        size = 1.0
+        if self.m_saturation:
+            if diameter_px is None:
+                raise CalibrationError("detector model: the saturation term needs each clipped dot's diameter")
+            size = (np.maximum(np.asarray(diameter_px, dtype=float), 1.0) / D_REF_PX) ** self.m_saturation
+        return np.where(rho > 0, self.c_saturation**2 * rho**self.k_saturation * size, 0.0)
 
     def sigma_px(self, incidence_rad, diameter_px, noise_scale: float = 1.0) -> np.ndarray:
         """Standard deviation of one coordinate, ``(k,)`` pixels, for incidence ``(k,)`` rad and dot size ``(k,)`` px.
@@ -110,8 +120,9 @@ class DetectorModel:
     def describe(self) -> str:
         return (f"sigma^2 = {self.a_px:.4f}^2 + {self.b_px:.4f}^2 (d/{D_REF_PX:g} px)^-{2 * self.p:.2f} "
                 f"cos(theta)^-{2 * self.q:.2f} px^2, + {self.c_background:.3f}^2 x the detector's background bound, "
-                f"+ {self.c_saturation:.4f}^2 rho^{self.k_saturation:.1f} for a dot with a share rho of its pixels "
-                f"clipped; views share "
+                f"+ {self.c_saturation:.4f}^2 rho^{self.k_saturation:.1f}"
+                + (f" (d/{D_REF_PX:g} px)^{self.m_saturation:.2f}" if self.m_saturation else "")
+                + " for a dot with a share rho of its pixels clipped; views share "
                 + (f"{self.rho_background:.2f}" if self.rho_background is not None else "1 (not measured)")
                 + f" of the background misfit (version {self.version})")
 
@@ -119,6 +130,7 @@ class DetectorModel:
         return {"model": "sigma_px^2 = a^2 + b^2 (d / d_ref)^(-2p) cos(theta)^(-2q)", "d_ref_px": D_REF_PX,
                 "a_px": self.a_px, "b_px": self.b_px, "p": self.p, "q": self.q, "c_background": self.c_background,
                 "c_saturation_px": self.c_saturation, "k_saturation": self.k_saturation,
+                **({"m_saturation": self.m_saturation} if self.m_saturation else {}),
                 "version": self.version,
                 **({"incidence_range_deg": list(self.incidence_range_deg)} if self.incidence_range_deg else {}),
                 **({"diameter_range_px": list(self.diameter_range_px)} if self.diameter_range_px else {}),
@@ -172,23 +184,27 @@ def fit_background(model: DetectorModel, incidence_deg: np.ndarray, diameter_px:
 
 
 def fit_saturation(model: DetectorModel, incidence_deg: np.ndarray, diameter_px: np.ndarray, errors_px: np.ndarray,
-                   clipped_share: np.ndarray) -> tuple[float, float]:
-    """Maximum-likelihood ``(c_s, k_s)`` of ``e ~ N(0, (sigma_px^2 + c_s^2 rho^k_s) I)`` for the centre errors
-    ``errors_px: (k, 2)`` of clipped dots (``clipped_share: (k,)`` > 0), the geometry model held as it is."""
+                   clipped_share: np.ndarray, size: bool = False) -> tuple[float, float, float]:
+    """Maximum-likelihood ``(c_s, k_s, m_s)`` of ``e ~ N(0, (sigma_px^2 + c_s^2 rho^k_s (d / 20)^m_s) I)`` for the
+    centre errors ``errors_px: (k, 2)`` of clipped dots (``clipped_share: (k,)`` > 0), the geometry model held as it
+    is; ``size=False`` holds ``m_s`` at 0 (the term of a model before version 5)."""
     from scipy.optimize import minimize
 
-    s2 = model.sigma_px(np.radians(np.asarray(incidence_deg, dtype=float)), np.asarray(diameter_px, dtype=float)) ** 2
+    d = np.asarray(diameter_px, dtype=float)
+    s2 = model.sigma_px(np.radians(np.asarray(incidence_deg, dtype=float)), d) ** 2
     e2 = np.sum(np.asarray(errors_px, dtype=float) ** 2, axis=1)
     rho = np.clip(np.asarray(clipped_share, dtype=float), 1e-6, 1.0)
+    ld = np.log(np.maximum(d, 1.0) / D_REF_PX)
     if len(e2) < 50:
         raise CalibrationError(f"detector model: {len(e2)} clipped dots; at least 50 are needed for the saturation term")
 
     def nll(x):
-        v = s2 + np.exp(2 * x[0]) * rho ** np.exp(x[1])
+        v = s2 + np.exp(2 * x[0] + np.exp(x[1]) * np.log(rho) + (x[2] if size else 0.0) * ld)
         return float(np.sum(2 * np.log(v) + e2 / v))
 
-    r = minimize(nll, np.array([np.log(0.005), 0.0]), method="Nelder-Mead", options={"xatol": 1e-6, "fatol": 1e-6})
-    return float(np.exp(r.x[0])), float(np.exp(r.x[1]))
+    r = minimize(nll, np.array([np.log(0.005), 0.0, 0.0]), method="Nelder-Mead",
+                 options={"xatol": 1e-6, "fatol": 1e-6, "maxiter": 4000})
+    return float(np.exp(r.x[0])), float(np.exp(r.x[1])), float(r.x[2]) if size else 0.0
 
 
 @lru_cache(maxsize=4)
@@ -207,16 +223,14 @@ def load_model(path: str | None = None) -> DetectorModel:
         return DetectorModel(float(doc["a_px"]), float(doc["b_px"]), float(doc["p"]), float(doc["q"]),
                              str(doc.get("version", "1")), float(doc.get("c_background", 0.0)),
                              float(doc.get("c_saturation_px", 0.0)), float(doc.get("k_saturation", 1.0)),
-                             *ranges, None if rho is None else float(rho))
+                             *ranges, None if rho is None else float(rho), float(doc.get("m_saturation", 0.0)))
     except (OSError, KeyError, ValueError, TypeError) as exc:
         raise CalibrationError(f"{p}: cannot read the detector precision model ({exc})") from None
 
 
-def observation_sigmas(points: np.ndarray, normals: np.ndarray, cam_from_part: np.ndarray, obs_image: np.ndarray,
-                       obs_target: np.ndarray, fx_px: float, diameter_m: float, model: DetectorModel | None = None,
-                       noise_scale: float = 1.0) -> np.ndarray:
-    """A priori sigma of each observation ``(q,)`` pixels from the model, at approximate poses ``(m, 4, 4)``."""
-    model = model or load_model()
+def observation_geometry(points: np.ndarray, normals: np.ndarray, cam_from_part: np.ndarray, obs_image: np.ndarray,
+                         obs_target: np.ndarray, fx_px: float, diameter_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """Each observation's incidence ``(q,)`` rad and dot diameter ``(q,)`` px, at approximate poses ``(m, 4, 4)``."""
     poses = np.asarray(cam_from_part, dtype=float)
     P = np.asarray(points, dtype=float)[obs_target]
     R, t = poses[obs_image, :3, :3], poses[obs_image, :3, 3]
@@ -227,21 +241,31 @@ def observation_sigmas(points: np.ndarray, normals: np.ndarray, cam_from_part: n
     nrm = np.asarray(normals, dtype=float)[obs_target]
     nrm = nrm / np.linalg.norm(nrm, axis=1, keepdims=True)
     theta = np.arccos(np.clip(np.einsum("qa,qa->q", sight, nrm), -1.0, 1.0))
-    d_px = fx_px * diameter_m / np.maximum(Xc[:, 2], 1e-9)
+    return theta, fx_px * diameter_m / np.maximum(Xc[:, 2], 1e-9)
+
+
+def observation_sigmas(points: np.ndarray, normals: np.ndarray, cam_from_part: np.ndarray, obs_image: np.ndarray,
+                       obs_target: np.ndarray, fx_px: float, diameter_m: float, model: DetectorModel | None = None,
+                       noise_scale: float = 1.0) -> np.ndarray:
+    """A priori sigma of each observation ``(q,)`` pixels from the model, at approximate poses ``(m, 4, 4)``."""
+    model = model or load_model()
+    theta, d_px = observation_geometry(points, normals, cam_from_part, obs_image, obs_target, fx_px, diameter_m)
     return model.sigma_px(theta, d_px, noise_scale)
 
 
 def observation_covariances(sigma_px: np.ndarray, background_cov: np.ndarray | None,
-                            model: DetectorModel | None = None, clipped_share: np.ndarray | None = None) -> np.ndarray:
+                            model: DetectorModel | None = None, clipped_share: np.ndarray | None = None,
+                            diameter_px: np.ndarray | None = None) -> np.ndarray:
     """A priori covariance of each observation ``(q, 2, 2)`` px^2: the model's ``sigma_px: (q,)`` on both
     coordinates plus ``c_background^2`` times the detector's background bound ``background_cov: (q, 2, 2)``
     (None: no bound, e.g. a job measured before the detector gave one), plus the saturation term for the clipped
-    share of each dot's pixels ``clipped_share: (q,)`` (None: not known)."""
+    share of each dot's pixels ``clipped_share: (q,)`` (None: not known) and its diameter ``diameter_px: (q,)``
+    (:func:`observation_diameters`; the model's saturation term grows with it)."""
     model = model or load_model()
     s = np.asarray(sigma_px, dtype=float)
     C = s[:, None, None] ** 2 * np.eye(2)
     if clipped_share is not None:
-        C = C + model.saturation_var(clipped_share)[:, None, None] * np.eye(2)
+        C = C + model.saturation_var(clipped_share, diameter_px)[:, None, None] * np.eye(2)
     if background_cov is not None:
         B = np.asarray(background_cov, dtype=float)
         if B.shape != C.shape or not np.all(np.isfinite(B)):

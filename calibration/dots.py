@@ -16,7 +16,10 @@ gives the typical dot size that the background kernel then adapts to.
 4. Centre: the intensity-weighted centroid of the blob grown by a margin, over a plane fitted to
    a ring of background pixels around it, each pixel weighted by the dot's share of it
    (decision 0007), or (``centre="ellipse"``) an ellipse fitted to the blob's sub-pixel
-   half-level contour. Decision 0015 compares both on tilted, blurred renders.
+   half-level contour. Decision 0015 compares both on tilted, blurred renders. The default
+   ``centre="auto"`` fits the ellipse to the dots whose intensities mislead the centroid (clipped
+   pixels; a ring whose background is not the plane) and keeps the centroid for the others
+   (decision 0037); ``for_real_images`` keeps the centroid.
 5. ``cov``: each centre's 2x2 covariance in px^2 propagated from the pixel noise (the centroid is
    linear in the grey levels), plus ``cov_floor_px^2`` on the diagonal.
 6. ``background_cov``: what a background that is not the fitted plane does to the centre (an edge of
@@ -41,6 +44,7 @@ from calibration.errors import CalibrationError
 __all__ = ["DetectionOptions", "Detections", "to_grey", "detect_dots", "detect_retro_targets", "POLARITIES"]
 
 POLARITIES = ("auto", "bright", "dark")
+CENTRES = ("auto", "centroid", "ellipse")
 
 
 @dataclass(frozen=True)
@@ -84,19 +88,21 @@ class DetectionOptions:
     min_peak_snr: float = 10.0
     subsample: int = 7
     background_kernel_px: int = 41
-    centre: str = "centroid"
+    centre: str = "auto"
     cov_floor_px: float = 0.005
 
     def __post_init__(self) -> None:
         if self.polarity not in POLARITIES:
             raise CalibrationError(f"detection polarity must be one of {POLARITIES}, got {self.polarity!r}")
-        if self.centre not in ("centroid", "ellipse"):
-            raise CalibrationError(f"detection centre must be 'centroid' or 'ellipse', got {self.centre!r}")
+        if self.centre not in CENTRES:
+            raise CalibrationError(f"detection centre must be one of {CENTRES}, got {self.centre!r}")
 
     @classmethod
     def for_real_images(cls, **kw) -> "DetectionOptions":
         """Defaults for photographs of unknown make: polarity, kernel and size limits from the image."""
-        base = dict(polarity="auto", local_fraction=0.5, max_area_px=None, background_kernel_px=0, cov_floor_px=0.01)
+        # the centroid everywhere: what the real-image benchmarks validated (decision 0015)
+        base = dict(polarity="auto", local_fraction=0.5, max_area_px=None, background_kernel_px=0, cov_floor_px=0.01,
+                    centre="centroid")
         base.update(kw)
         return cls(**base)
 
@@ -122,6 +128,8 @@ class Detections:
             its centre errs by what no noise model states; decision 0029), or None.
         ring_px: (k,) int ring pixels the background plane and the misfit test used; below
             :data:`MIN_RING_PX` the bound could not be measured (it is zero then, not known), or None.
+        ellipse: (k,) bool, the centre is the ellipse fitted to the dot's half-level contour (``centre="ellipse"``,
+            or ``"auto"`` for a clipped dot or one with a background misfit; decision 0037), not the centroid; or None.
     """
 
     uv: np.ndarray
@@ -136,6 +144,7 @@ class Detections:
     background_cov: np.ndarray | None = None
     saturated: np.ndarray | None = None
     ring_px: np.ndarray | None = None
+    ellipse: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.uv)
@@ -146,7 +155,8 @@ class Detections:
                        background=self.background[keep], cov=self.cov[keep], axes=self.axes[keep],
                        background_cov=None if self.background_cov is None else self.background_cov[keep],
                        saturated=None if self.saturated is None else self.saturated[keep],
-                       ring_px=None if self.ring_px is None else self.ring_px[keep])
+                       ring_px=None if self.ring_px is None else self.ring_px[keep],
+                       ellipse=None if self.ellipse is None else self.ellipse[keep])
 
 
 def to_grey(image: np.ndarray) -> np.ndarray:
@@ -550,7 +560,7 @@ def _detect(image: np.ndarray, o: DetectionOptions, surface: np.ndarray | None =
     n_lab, labels, stats = _components(mask)
     empty = Detections(np.zeros((0, 2)), np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0), noise,
                        np.zeros((0, 2, 2)), o.polarity, np.zeros((0, 2, 2)), np.zeros((0, 2, 2)),
-                       np.zeros(0, dtype=int), np.zeros(0, dtype=int))
+                       np.zeros(0, dtype=int), np.zeros(0, dtype=int), np.zeros(0, dtype=bool))
     if n_lab <= 1:
         return empty
     w_box = stats[1:, cv2.CC_STAT_WIDTH].astype(float)
@@ -629,12 +639,21 @@ def _detect(image: np.ndarray, o: DetectionOptions, surface: np.ndarray | None =
     axes[:, 0, 0] = per_blob(wgt * dx * dx) / sws
     axes[:, 0, 1] = axes[:, 1, 0] = per_blob(wgt * dx * dy) / sws
     axes[:, 1, 1] = per_blob(wgt * dy * dy) / sws
-    if o.centre == "ellipse":
+    # the ellipse fitted to the half-level contour: for every dot ("ellipse"), or ("auto") for the dots whose centroid
+    # the intensities mislead: a clipped dot (its clipped pixels weigh by the ceiling, not by their light) and a dot
+    # whose ring shows a background that is not the plane (the misfit enters every pixel's weight); decision 0037
+    pick = np.ones(k, dtype=bool) if o.centre == "ellipse" else (
+        (n_sat > 0) | (misfit > 0) if o.centre == "auto" else np.zeros(k, dtype=bool))
+    used_ellipse = np.zeros(k, dtype=bool)
+    if pick.any():
         from calibration.ellipse_fit import contour_ellipse_centres
 
-        e_uv, e_cov, ok = contour_ellipse_centres(image, remap[labels], k, coef, xc, yc, top[1:], noise)
-        uv = np.where(ok[:, None], e_uv, uv)
-        cov = np.where(ok[:, None, None], e_cov, cov)
+        blobs = remap if pick.all() else np.where(np.concatenate([[False], pick])[remap.astype(np.int64)], remap,
+                                                  np.float32(0)).astype(np.float32)
+        e_uv, e_cov, ok = contour_ellipse_centres(image, blobs[labels], k, coef, xc, yc, top[1:], noise)
+        used_ellipse = ok & pick
+        uv = np.where(used_ellipse[:, None], e_uv, uv)
+        cov = np.where(used_ellipse[:, None, None], e_cov, cov)
     cov += o.cov_floor_px**2 * np.eye(2)
     # a misfit e of one sign over each half of the dot, along each principal axis a of the dot's ellipse:
     # the centroid moves by e sum|(x_i - u) . a| / (span_i sum w)
@@ -648,4 +667,4 @@ def _detect(image: np.ndarray, o: DetectionOptions, surface: np.ndarray | None =
     flux = sw * np.maximum(peak, 0.0)
     ring_px = np.bincount(lf, minlength=k + 1)[1:]
     return Detections(uv[good], area[keep][good], peak[good], flux[good], bg_local[good], noise, cov[good],
-                      o.polarity, axes[good], bcov[good], n_sat[good].astype(int), ring_px[good])
+                      o.polarity, axes[good], bcov[good], n_sat[good].astype(int), ring_px[good], used_ellipse[good])

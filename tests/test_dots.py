@@ -139,7 +139,8 @@ def test_a_step_of_the_background_next_to_a_dot_is_bounded_in_its_background_cov
     bg = np.full((h, w), 0.08)
     for e in edges:
         bg[:, e:e + 60] = 0.16  # wider than the top-hat kernel: ground, not a blob
-    det = detect_dots(render_dots(rng, h, w, uv, radius_px=5.0, bg_level=bg), DetectionOptions())
+    img = render_dots(rng, h, w, uv, radius_px=5.0, bg_level=bg)
+    det = detect_dots(img, DetectionOptions(centre="centroid"))
     j, d = _match(uv, det.uv)
     order = np.argsort(j)
     assert len(det) == len(uv) and np.all(j[order] == np.arange(len(uv)))
@@ -151,6 +152,16 @@ def test_a_step_of_the_background_next_to_a_dot_is_bounded_in_its_background_cov
     assert np.all(err[~far] > 5 * noise[~far]) and np.all(bound[~far] > 0)
     assert np.all(err[~far] <= bound[~far])
     assert np.all(det.ring_px >= MIN_RING_PX)  # every bound here was measured (decision 0030: below, it is unknown)
+    # the default fits the ellipse to the dots whose ring shows the misfit (decision 0037): the same bound, a centre
+    # the step moves far less; the dots on a plane keep their centroid
+    auto = detect_dots(img, DetectionOptions())
+    ja, _ = _match(uv, auto.uv)
+    oa = np.argsort(ja)
+    assert np.array_equal(auto.ellipse[oa], ~far)
+    assert np.array_equal(auto.uv[oa][far], det.uv[order][far])
+    assert np.allclose(auto.background_cov[oa], det.background_cov[order])
+    err_auto = np.linalg.norm(auto.uv[oa] - uv, axis=1)
+    assert np.all(err_auto[~far] < 0.5 * err[~far]) and np.all(err_auto[~far] <= bound[~far])
 
 
 def _random_blobs(rng, h, w, n):
@@ -213,3 +224,29 @@ def test_blob_margins_from_windows_are_the_whole_image_dilations():
         assert np.array_equal(ys[ref], ys2[got]) and np.array_equal(xs[ref], xs2[got])
         assert np.array_equal(outer[ys, xs][ref].astype(int), lo2[got])
         assert np.array_equal(grown[ys, xs][ref].astype(int), lg2[got])
+
+
+def test_the_default_centres_clipped_dots_by_their_ellipse_and_clean_dots_by_their_centroid():
+    """Decision 0037: a dot the sensor clips is centred by the ellipse of its half-level contour (its clipped pixels
+    carry no weight information for a centroid), a clean dot keeps the centroid; both within a few hundredths of a
+    pixel of the truth."""
+    rng = np.random.default_rng(7)
+    uv = grid_uv(rng, 240, 480, 8, 4)
+    levels = np.where(np.arange(len(uv)) % 2 == 0, 0.5, 2.5)  # every other dot 2.5x over the sensor's ceiling
+    parts = [render_dots(np.random.default_rng(k), 240, 480, uv[levels == lv], radius_px=7.0, level=lv)
+             for k, lv in enumerate((0.5, 2.5))]
+    img = np.maximum(parts[0], parts[1])  # two renders of the same background: each dot from its own
+    auto = detect_dots(img, DetectionOptions())
+    cent = detect_dots(img, DetectionOptions(centre="centroid"))
+    j, d = _match(uv, auto.uv)
+    o = np.argsort(j)
+    assert len(auto) == len(uv) and d.max() < 0.5
+    clipped = auto.saturated[o] > 0
+    assert np.array_equal(clipped, levels == 2.5)
+    assert np.array_equal(auto.ellipse[o], clipped)
+    jc, _ = _match(uv, cent.uv)
+    oc = np.argsort(jc)
+    assert np.array_equal(auto.uv[o][~clipped], cent.uv[oc][~clipped])
+    assert not cent.ellipse.any()
+    err = np.linalg.norm(auto.uv[o] - uv, axis=1)
+    assert np.sqrt(np.mean(err[clipped] ** 2)) < 0.05 and np.sqrt(np.mean(err[~clipped] ** 2)) < 0.05

@@ -10,7 +10,7 @@ import numpy as np
 from calibration.bundle import BundleConfig, BundleOptions, ScaleBar, bundle_adjust
 from calibration.bundle.coherent import coherent_background_cov, scale_bar_gains
 from calibration.camera import Intrinsics
-from calibration.detector_model import load_model, observation_covariances, observation_sigmas
+from calibration.detector_model import load_model, observation_covariances, observation_geometry, observation_sigmas
 from calibration.errors import CalibrationError, ScaleNotEstablishedError
 from calibration.plausibility import check_adjustment
 from calibration.weights import INCIDENCE_EDGES_DEG, group_labels, incidence_angles, incidence_groups, mean_variance
@@ -94,6 +94,12 @@ def model_sigmas(job, backend: str, cam_from_part: np.ndarray, img: np.ndarray, 
     return np.maximum(s, 1e-4)
 
 
+def model_diameters(job, cam_from_part: np.ndarray, img: np.ndarray, tgt: np.ndarray, fx_px: float) -> np.ndarray:
+    """Each observation's dot diameter in pixels (the saturation term grows with it: decision 0037)."""
+    t = job.part.targets
+    return observation_geometry(t.xyz, t.normals, cam_from_part, img, tgt, fx_px, job.part.target_diameter_m)[1]
+
+
 def bundle_config(job, scale: bool = True) -> BundleConfig:
     """What the job's adjustment estimates (self-calibration) and its datum (scale bar, else free).
 
@@ -150,7 +156,8 @@ def _adjust(ctx, scr: Screening, obs: dict, obs_image, obs_target, obs_uv, poses
         # a dot the sensor clipped: the model's saturation term for the clipped share of its pixels (decision 0029)
         clip, has_clip = clipped_shares(obs)
         if np.any(bg[sel]) or np.any(clip[sel] > 0):
-            model_sigma, obs_sigma = obs_sigma, observation_covariances(obs_sigma, bg[sel], clipped_share=clip[sel])
+            model_sigma, obs_sigma = obs_sigma, observation_covariances(
+                obs_sigma, bg[sel], clipped_share=clip[sel], diameter_px=model_diameters(job, poses0, img, tgt, intr0.fx_px))
         flags = {"bg": bg[sel], "clip": clip[sel],
                  "bg_missing": sorted({obs["images"][int(i)]["image"] for i in obs_image[sel & ~has_bg]}),
                  "clip_missing": sorted({obs["images"][int(i)]["image"] for i in obs_image[sel & ~has_clip]})}

@@ -61,8 +61,8 @@ def twin_camera(job):
 
 
 #: the code the renders' measurement depends on: a change to any of them makes a cached result stale
-_SOURCES = ("calibration/dots.py", "calibration/targets.py", "sim_backend/sim_camera.py", "sim_backend/world.py",
-            "cell/stages/imaging.py", "cell/stages/surface_labels.py", "cell/stages/preanalysis.py")
+_SOURCES = ("calibration/dots.py", "calibration/ellipse_fit.py", "calibration/targets.py", "sim_backend/sim_camera.py",
+            "sim_backend/world.py", "cell/stages/imaging.py", "cell/stages/surface_labels.py", "cell/stages/preanalysis.py")
 
 
 def _cache_key(job, poses: np.ndarray) -> str:
@@ -224,7 +224,7 @@ def _adjust_exact(job, poses, img, tgt, uv, scr, rays: PredictedRays, order):
     from calibration.bundle import BundleOptions, bundle_adjust
     from calibration.bundle.coherent import scale_bar_gains
     from calibration.detector_model import observation_covariances
-    from cell.stages.adjust import _add_coherent_background, bundle_config, model_sigmas
+    from cell.stages.adjust import _add_coherent_background, bundle_config, model_diameters, model_sigmas
 
     xyz = job.part.targets.xyz
     kept = np.flatnonzero(scr.keep_images)
@@ -236,7 +236,8 @@ def _adjust_exact(job, poses, img, tgt, uv, scr, rays: PredictedRays, order):
     sig = model_sigmas(job, job.spec.cell.backend, poses, img, tgt, job.intrinsics.fx_px)  # as ADJUST weighs them
     bg = None if rays.bg_cov is None else rays.bg_cov[order][sel]
     clip = None if rays.clipped_share is None else rays.clipped_share[order][sel]
-    obs_sigma = sig if bg is None and clip is None else observation_covariances(sig, bg, clipped_share=clip)
+    obs_sigma = sig if bg is None and clip is None else observation_covariances(
+        sig, bg, clipped_share=clip, diameter_px=model_diameters(job, poses, img, tgt, job.intrinsics.fx_px))
     config = bundle_config(job, scale=scr.scale_ok)
     res = bundle_adjust(img, tgt, uv, job.intrinsics, poses, xyz,
                         BundleOptions(sigma_px=float(np.sqrt(np.mean(sig**2))), a_posteriori=False, snooping=False),
