@@ -218,7 +218,7 @@ def _bundle_adjust(obs_image, obs_target, obs_uv, intrinsics, cam_from_part, poi
             break
     res = _result(state, lin, stats, lay, T, rejected, act_obs, obs_image, obs_target, obs_uv, options, config,
                   usable and (dconv or (config.datum == "free" and not full_gn and not warm)), report, timings,
-                  time.perf_counter() - t_start)
+                  time.perf_counter() - t_start, x0)
     res.obs_sigma_px, res.variance_components, res.snooping = sig, vc, snoop
     res.solver_fallback = solver_fallback
     _say_snooping(snoop, config, options, rejected, obs_target)

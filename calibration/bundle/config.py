@@ -177,6 +177,8 @@ class BundleResult:
             solve over to pycolmap's Levenberg-Marquardt (the result is pycolmap's, then checked as any other).
         datum_left_out: indices of the targets the datum's minimum trace (free network, scale bars) leaves out
             because they are determined far worse than the others (:data:`calibration.bundle.covariance.WEAK_DATUM`).
+            ``points`` are then in the same datum as the covariance: the similarity onto the approximate coordinates
+            is fitted over the other targets only.
     """
 
     points: np.ndarray

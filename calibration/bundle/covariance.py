@@ -3,8 +3,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from calibration.alignment import PointCovariance, helmert_basis
+from calibration.alignment import PointCovariance, helmert_basis, similarity_fit
 from calibration.bundle.config import BundleResult
+from calibration.bundle.datum import _apply_similarity
 from calibration.bundle.projection import project_pixels
 
 
@@ -43,8 +44,24 @@ def _datum_projectors(G: np.ndarray, keep: np.ndarray) -> tuple[np.ndarray, np.n
     return P.reshape(n, 3, d), Qk.reshape(n, 3, d)
 
 
+def _refit_coordinates(state, x0: np.ndarray, keep: np.ndarray, with_scale: bool, pc: PointCovariance,
+                       blocks: np.ndarray):
+    """The coordinates into the covariance's datum over the targets ``keep``: the similarity (rigid without scale)
+    onto the approximate coordinates ``x0`` fitted over those targets only (the datum stage fits over all).
+
+    A least-squares fit over ``keep`` is, to first order, the S-transformation ``I - G (G_k^T G_k)^-1 G_k^T`` the
+    covariance took (:func:`_datum_projectors`): with it, the kept targets' centroid, orientation (and scale) sit on
+    their approximate ones in the coordinates as in the covariance, and a left-out target's approximate coordinates
+    (e.g. a CAD nominal far off its two nearly parallel rays) no longer move every other target. The network moves
+    as a whole (cameras too: the images and residuals do not change); the covariance, already in that datum, is
+    carried along (``s R`` applied to it). Returns ``(state, pc, blocks)``."""
+    s, R, t = similarity_fit(state.points[keep], x0[keep], with_scale=with_scale)
+    A = s * R
+    return _apply_similarity(state, s, R, t), pc.rotated(A), A @ blocks @ A.T
+
+
 def _result(state, lin, stats, lay, T, rejected, act_obs, obs_image, obs_target, obs_uv, options, config,
-            converged, report, timings, total) -> BundleResult:
+            converged, report, timings, total, x0: np.ndarray | None = None) -> BundleResult:
     n = lay.n
     s02 = stats["s02"]
     factor = s02 if options.a_posteriori else 1.0
@@ -83,6 +100,8 @@ def _result(state, lin, stats, lay, T, rejected, act_obs, obs_image, obs_target,
             except np.linalg.LinAlgError:
                 P = H = Qg
         pc = pc.s_transform(P, H)
+        if len(left_out) and x0 is not None:  # the coordinates in the same datum as the covariance
+            state, pc, blocks = _refit_coordinates(state, x0, act[~weak], lin.defect == 7, pc, blocks)
     else:
         blocks = 0.5 * (Qii + np.swapaxes(Qii, 1, 2))
     pc = pc.scaled(factor)
