@@ -302,8 +302,12 @@ def run_bundle(ctx) -> dict:
         suspect |= shaped
     dt = time.perf_counter() - t0
     n_img = np.bincount(tgt[~res.rejected], minlength=len(ids))
-    rejected = [{"image": obs["images"][int(kept_images[i])]["image"], "target": ids[int(t)], "residual_px": r}
-                for i, t, r, bad in zip(img, tgt, res.residuals, res.rejected) if bad]
+    # each with the statistic it was rejected with and its degrees of freedom (1: a pair of rays, tested at the 1-dof
+    # critical value snooping.threshold_1dof; 2: snooping.threshold)
+    rejected = [{"image": obs["images"][int(kept_images[i])]["image"], "target": ids[int(t)], "residual_px": r,
+                 "test_statistic": float(w), "test_dof": int(f)}
+                for i, t, r, bad, w, f in zip(img, tgt, res.residuals, res.rejected, res.rejected_test, res.test_dof)
+                if bad]
     axes, dirs = res.error_ellipsoids()
     # keep the full covariance for the report's alignment (exact propagation)
     buf = io.BytesIO()
