@@ -15,6 +15,25 @@ from calibration.bundle.projection import project_pixels
 WEAK_DATUM = 10.0
 
 
+def append_columns(pc: PointCovariance, cols: np.ndarray, weights) -> PointCovariance:
+    """``pc`` with ``b`` more columns in its low-rank factor: ``Q + sum_j w_j c_j c_j^T`` (``cols: (n, 3, b)``,
+    ``weights: (b,)`` their variances, the new core block diagonal).
+
+    Weight zero leaves the covariance as it is: the columns then ride along any transformation of it (an alignment's
+    S-transformation) and come out transformed like the points (REPORT: the scale bars' gains, decision 0029);
+    a positive weight adds a shared term (ADJUST: a scale bar's ends' shared misfit through the gains). A target
+    the adjustment did not determine (NaN block) keeps NaN rows."""
+    cols = np.asarray(cols, dtype=float).reshape(pc.n, 3, -1)
+    w = np.atleast_1d(np.asarray(weights, dtype=float))
+    r, b = pc.U.shape[2], cols.shape[2]
+    if w.shape != (b,):
+        raise ValueError(f"append_columns: {b} column(s) need {b} weight(s), got {w.shape}")
+    C = np.zeros((r + b, r + b))
+    C[:r, :r] = pc.C
+    C[r:, r:] = np.diag(w)
+    return PointCovariance(pc.D, np.concatenate([pc.U, np.where(np.isnan(pc.D[:, :, :1]), np.nan, cols)], axis=2), C)
+
+
 def _datum_blocks(Q: np.ndarray, D: np.ndarray, U: np.ndarray, C: np.ndarray, P: np.ndarray,
                   H: np.ndarray | None = None) -> np.ndarray:
     """Per-point blocks of ``S Q S^T`` with ``S = I - P H^T`` (``P, H: (n, 3, d)``, ``H^T P = I``; ``H = P``

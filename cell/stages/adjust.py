@@ -9,6 +9,7 @@ import numpy as np
 
 from calibration.bundle import BundleConfig, BundleOptions, ScaleBar, bundle_adjust
 from calibration.bundle.coherent import coherent_background_cov, scale_bar_gains
+from calibration.bundle.covariance import append_columns
 from calibration.camera import Intrinsics
 from calibration.detector_model import load_model, observation_covariances, observation_sigmas
 from calibration.errors import CalibrationError, ScaleNotEstablishedError
@@ -187,11 +188,7 @@ def _add_coherent_background(res, bg: np.ndarray, img, tgt, ids: list[str], bars
         if v > 0:
             k = np.nan_to_num(K[:, :, j])  # NaN only for targets the adjustment did not determine
             res.cov += v * np.einsum("na,nb->nab", k, k)
-            cv = res.covariance
-            r = cv.U.shape[2]
-            C = np.zeros((r + 1, r + 1))
-            C[:r, :r], C[r, r] = cv.C, v
-            res.covariance = type(cv)(cv.D, np.concatenate([cv.U, np.where(np.isnan(cv.D[:, :, :1]), np.nan, k[:, :, None])], axis=2), C)
+            res.covariance = append_columns(res.covariance, k[:, :, None], [v])
             bar_terms.append({"bar": [ids[bar.target_a], ids[bar.target_b]], "length_sigma_m": float(np.sqrt(v))})
     grow = np.sqrt(np.trace(res.cov[hit], axis1=1, axis2=2) / np.maximum(np.trace(res.cov[hit] - extra[hit], axis1=1, axis2=2), 1e-300))
     worst = np.argsort(-grow)[:5]
