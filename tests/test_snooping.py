@@ -205,6 +205,7 @@ def test_a_rank_one_statistic_is_tested_at_its_one_dof_quantile_with_the_false_a
         assert np.all(res.test_dof[pair] == 1) and np.all(res.test_dof[~pair] == 2)
         fails = res.test_statistic > crit[res.test_dof]
         assert sn["still_failing"] == int(fails.sum())  # the bundle's decisions are these
+        assert sn["tested_1dof"] == int(pair.sum())
         first = np.zeros(q, bool)  # both rays of a pair have the same statistic: one per pair
         first[np.unique(ot, return_index=True)[1]] = True
         for dof, sel in ((1, pair & first), (2, ~pair)):

@@ -188,6 +188,7 @@ def _bundle_adjust(obs_image, obs_target, obs_uv, intrinsics, cam_from_part, poi
         test_dof[act_obs] = stats["T_dof"]
         thr = crit[np.where(act_obs, test_dof, 0)]  # each observation's critical value (nan: untestable, inactive)
         testable = np.isfinite(T)
+        snoop["tested_1dof"] = int(np.count_nonzero(testable & (test_dof == 1)))
         fails = testable & (T > thr)
         snoop["still_failing"] = int(fails.sum())
         # this round settled: what a later round that diverges falls back to

@@ -174,7 +174,8 @@ class BundleResult:
             those of the observations used: the network's image precision, as with equal weights).
         variance_components: the per-group estimate when ``obs_group`` was given, else None.
         snooping: how data snooping went: ``rounds`` (re-adjustments), ``threshold`` (critical value of the
-            divided statistic with 2 dof; ``threshold_1dof``: with 1 dof, at the same ``alpha / q``), ``stopped_because`` ("no observation fails" | "max_rejections reached" |
+            divided statistic with 2 dof; ``threshold_1dof``: with 1 dof, at the same ``alpha / q``; ``tested_1dof``:
+            how many of the last round's statistics had 1 dof), ``stopped_because`` ("no observation fails" | "max_rejections reached" |
             "off" | "nothing testable"), ``still_failing`` (active observations above the threshold when
             it stopped), ``reinstated`` (observations put back), ``untestable_rejected`` (rejected
             observations whose target left the network, so they could not be re-tested),
