@@ -212,7 +212,7 @@ def _bundle_adjust(obs_image, obs_target, obs_uv, intrinsics, cam_from_part, poi
             pick = pick_rejections(np.where(reinstated, np.nan, T), thr, obs_image, obs_target,
                                    options.max_rejections - int(rejected.sum()))
             if len(pick) == 0:  # only reinstated observations fail: take the largest (the plain rule)
-                pick = [int(np.nanargmax(T))]
+                pick = [int(np.nanargmax(T / thr))]
             rejected[pick] = True
             more = local_followers(np.asarray(pick), T, thr, obs_target, np.flatnonzero(act_obs), lin.r_img, lin.Jp,
                                    s_test, reinstated | rejected, options.max_rejections - int(rejected.sum()), crit)
