@@ -248,3 +248,38 @@ def test_a_gross_error_on_a_two_ray_target_between_the_1_and_2_dof_quantiles_is_
     assert clean.test_dof[k] == 1 and res.test_dof[j] == 1 and t1 < res.rejected_test[j] < t2
     assert res.snooping["threshold_1dof"] == pytest.approx(t1) and res.snooping["threshold"] == pytest.approx(t2)
     assert np.all(clean.test_dof[ot >= 250] == 2)
+
+
+def test_the_rank_of_a_redundancy_block_decides_the_statistic_and_its_degrees_of_freedom():
+    """A regular block keeps ``v^T Q^-1 v`` (2 dof) to the bit; a block whose smaller eigenvalue is below RANK_RTOL of
+    the larger gets ``(e . v)^2 / lambda`` along its larger eigenvector (1 dof), no redundancy stays untestable; the
+    re-test of a left-out observation (from ``M = I + J Q_xx J^T``) decides and computes as the block it would have
+    inside (``M^-1``) with the residual it would have there (``M^-1 v``)."""
+    from calibration.bundle.snooping import RANK_RTOL, _predicted_statistic, _quadratic, _test_statistic
+
+    rng = np.random.default_rng(33)
+
+    def blocks(lam):
+        a = rng.uniform(0, np.pi, len(lam))
+        E = np.stack([np.column_stack([np.cos(a), np.sin(a)]), np.column_stack([-np.sin(a), np.cos(a)])], axis=2)
+        return np.einsum("qij,qj,qkj->qik", E, lam, E), E
+
+    v = rng.normal(size=(200, 2))
+    lam = np.column_stack([rng.uniform(0.05, 1, 200), rng.uniform(0.05, 1, 200)])
+    Q, _ = blocks(lam)
+    T, dof = _test_statistic(Q, v)
+    assert np.all(dof == 2) and np.array_equal(T, _quadratic(Q, v))
+    lam1 = np.column_stack([rng.uniform(0.1, 1, 200), np.zeros(200)])
+    lam1[:, 1] = lam1[:, 0] * rng.uniform(0, 0.5 * RANK_RTOL, 200)  # near rank one (det well above 1e-12)
+    Q1, E1 = blocks(lam1)
+    T1, dof1 = _test_statistic(Q1, v)
+    assert np.all(dof1 == 1)
+    np.testing.assert_allclose(T1, np.einsum("qi,qi->q", E1[:, :, 0], v) ** 2 / lam1[:, 0], rtol=1e-9)
+    Tn, dn = _test_statistic(np.array([[[4e-4, 0.0], [0.0, 0.0]]]), v[:1])  # no redundancy
+    assert np.isnan(Tn[0]) and dn[0] == 0
+    for Qin in (Q, Q1):  # the predicted statistic: M = Qin^-1, the predicted residual M v_in
+        M = np.linalg.inv(Qin)
+        Tp, dp = _predicted_statistic(M, v)
+        Ti, di = _test_statistic(Qin, np.einsum("qij,qj->qi", Qin, v))
+        assert np.array_equal(dp, di)
+        np.testing.assert_allclose(Tp, Ti, rtol=1e-6)
