@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import Callable
 
 from calibration.errors import AbortRequested, CellError, InputError, RecordError
+from cell.jobspec import check_backend
 from cell.loadedjob import LoadedJob, load
 from cell.record import integrity
 from cell.record.archive import Archive, check_archive_root, check_job_id
@@ -394,6 +395,8 @@ def start_job(job_path: Path, archive_root: Path, backend: str | None, out, *, s
     index (:func:`open_archive`).
     """
     job = load(job_path)  # bad input fails here, before any folder exists
+    if backend is not None:  # the command line's robot: what only a simulated one can do is refused for a real one
+        check_backend(job.spec, backend, job_path)
     info = make_run_info(job.spec, serial, operator, cell_id)  # a bad serial fails here too
     root = check_archive_root(Path(archive_root), write=True).resolve()
     archive = open_archive(job, root, archive_url)

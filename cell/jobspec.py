@@ -9,11 +9,13 @@ file's folder. Every problem is a ``JobSpecError`` naming the file and the key.
 Every number is checked here, at ``cell check``, never after the robot moved: finite
 (NaN and infinity are refused everywhere), within a plausible range, and ordered where
 two keys bound an interval (near < far, elevation min < max, workspace min < max,
-distance min < max).
+distance min < max). Keys that only a simulated device can honour are checked against the robot the job
+will drive (:func:`check_backend`): ``[sim] unreachable_stations`` with a real UR is refused here.
 """
 from __future__ import annotations
 
 import csv
+import ipaddress
 import math
 import tomllib
 from pathlib import Path
@@ -27,7 +29,7 @@ from calibration.camera import Intrinsics, make_pose
 from calibration.errors import JobSpecError
 from planning.part import UNITS_TO_M
 
-__all__ = ["JobSpec", "Pose", "load_job", "pose_matrix"]
+__all__ = ["JobSpec", "Pose", "check_backend", "load_job", "pose_matrix"]
 
 
 class _Strict(BaseModel):
@@ -419,7 +421,34 @@ def load_job(path: str | Path) -> tuple[JobSpec, Path]:
         spec = JobSpec.model_validate(data)
     except ValidationError as err:
         raise JobSpecError(_format_validation_error(path, err)) from None
+    check_backend(spec, spec.cell.backend, path)
     return spec, path.resolve().parent  # scale-bar ids are checked at LOAD, once the targets are known
+
+
+def is_loopback_host(host: str) -> bool:
+    """``host`` is a loopback IP address (127.x.x.x, ::1): where the loopback UR controller runs
+    (``sim_backend.ur_controller`` binds only those), and where no real UR controller, a box of its own, can be."""
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def check_backend(spec: JobSpec, backend: str, path: str | Path) -> None:
+    """Refuse what only a simulated device can do when the job drives a real robot; ``backend`` is the one that
+    will run (the job file's, or ``cell run --backend``'s). ``JobSpecError``, one line, before anything is written.
+
+    ``[sim] unreachable_stations`` makes the controller refuse stations: the simulated robot does, and so does the
+    loopback UR controller (tests drive the real ur-rtde client against it with ``backend = "ur"``), told over an
+    emulator-only dashboard command. A real UR cannot be told; before, that surfaced only at ACQUIRE.
+    """
+    s = spec.sim
+    if backend == "ur" and s.unreachable_stations and not is_loopback_host(spec.cell.host):
+        raise JobSpecError(
+            f"{path}: [sim] unreachable_stations = {list(s.unreachable_stations)} is a simulation device (the "
+            f"simulated robot or the loopback UR controller refuses those stations), but the robot is the UR at "
+            f"[cell] host = {spec.cell.host!r}, which is not the loopback controller (a 127.x.x.x or ::1 address) and "
+            "cannot be told to refuse them: remove [sim] unreachable_stations for a real robot")
 
 
 def resolve(folder: Path, rel: str) -> Path:

@@ -51,8 +51,8 @@ from scipy.spatial.transform import Rotation
 
 from calibration import errors
 from calibration.errors import DriverError, LimitError, MotionError, MoveRefusedError, NotConnectedError
+from drivers.motion import arm_moved, describe_change, joint_change_rad
 from drivers.protocols import RobotState, SafetyStatus
-from drivers.ur_worker import MOVED_RAD
 
 # safety_status_bits (RTDE guide)
 BIT_PROTECTIVE_STOP, BIT_ROBOT_ESTOP, BIT_ESTOP, BIT_VIOLATION, BIT_FAULT = 2, 6, 7, 8, 9
@@ -313,10 +313,11 @@ class URRobot:
             reply = self._request(request, deadline + stop_allowance + self.deadline_s)
         except MoveRefusedError:
             # a refusal only if the arm is still where this move started (the child checked from its own reading)
-            moved = float(np.max(np.abs(self.state().joints_rad - start.joints_rad)))
-            if moved > MOVED_RAD:
-                raise MotionError(f"UR at {self.host}: the controller refused the move, but the arm is {moved:.4f} "
-                                  "rad from where the move started: the job stops") from None
+            now = self.state().joints_rad
+            if arm_moved(start.joints_rad, now):
+                raise MotionError(f"UR at {self.host}: the controller refused the move, but the arm is "
+                                  f"{describe_change(joint_change_rad(start.joints_rad, now))} from where the move "
+                                  "started: the job stops") from None
             raise
         state = self._to_state(reply)
         if not state.safety.normal:  # the child checked already; a second look costs nothing

@@ -28,12 +28,12 @@ import sys
 import time
 from multiprocessing.connection import Connection
 
+from drivers.motion import arm_moved, describe_change, joint_change_rad
+
 BIT_PROTECTIVE_STOP, BIT_ROBOT_ESTOP, BIT_ESTOP = 2, 6, 7
 RUNTIME_PLAYING = 2
 RECEIVE_VARIABLES = ["timestamp", "actual_q", "actual_qd", "actual_TCP_pose", "safety_status_bits",
                      "runtime_state", "robot_mode", "safety_mode"]
-#: joints further than this (rad) from where they were mean the arm moved
-MOVED_RAD = 1e-4
 RUNTIME_NAMES = {0: "stopping", 1: "stopped", 2: "playing", 3: "pausing", 4: "paused", 5: "resuming"}
 
 
@@ -326,9 +326,9 @@ class Worker:
             self._check_safe(self._state(), "when the controller checked the target")
             raise _Fail("MotionError", "the controller's safety-limit check refuses even the arm's own joints: it "
                         "does not answer as it should; nothing was sent, check the pendant log")
-        moved = max(abs(a - b) for a, b in zip(state["q"], before["q"]))
-        if moved > MOVED_RAD:
-            raise _Fail("MotionError", f"the arm moved {moved:.4f} rad while the controller checked the target "
+        if arm_moved(before["q"], state["q"]):
+            moved = describe_change(joint_change_rad(before["q"], state["q"]))
+            raise _Fail("MotionError", f"the arm moved {moved} while the controller checked the target "
                         "(nothing was sent): the job stops")
         if self.stop_requested:  # an abort that came during the check wins over the refusal (nothing was sent)
             raise _Fail("MotionError", "move refused: a stop was requested and not yet acknowledged")

@@ -23,7 +23,8 @@ Targets refused: ``is_within_safety_limits`` (ur-rtde's ``isJointsWithinSafetyLi
 ``isPoseWithinSafetyLimits``, commands 37 / 36) is false for joints outside the arm's limits, a pose
 without an IK branch inside them, and joint targets given to :meth:`refuse_targets` (a safety
 restriction the plan does not know: ``[sim] unreachable_stations``, also from another process by
-the emulator-only dashboard command ``sim refuse targets``, :func:`refuse_targets_at`). A ``movej`` /
+the emulator-only dashboard command ``sim refuse targets``, :func:`refuse_targets_at`; they end with the
+running control program, or the next one if none runs: a later job's program starts with none). A ``movej`` /
 ``movel`` to such a target is a runtime error: the program stops before the arm moves (what ur-rtde's
 sources expect of a real controller when, e.g., inverse kinematics fails; decision 0028).
 
@@ -390,7 +391,8 @@ class LoopbackURController:
 
     # ------------------------------------------------------------ safety limits
     def refuse_targets(self, joints_rad) -> None:
-        """Joint targets ``(n, 6)`` outside the controller's safety limits from now on (replaces the last set)."""
+        """Joint targets ``(n, 6)`` outside the controller's safety limits (replaces the last set) until the control
+        program ends (stop, a new upload, runtime error, watchdog, e-stop): give them once the job's driver connected."""
         with self._lock:
             self._refused = np.asarray(joints_rad, dtype=float).reshape(-1, 6).copy()
 
@@ -442,6 +444,7 @@ class LoopbackURController:
         self._halt()
         if self._script is not None:
             self.messages.append(f"program stopped: {reason}")
+            self._refused = np.zeros((0, 6))  # the injected restriction was the ending program's (its job's)
         self._script = None
         self._runtime = STOPPED
         self._watchdog_var = None

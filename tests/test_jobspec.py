@@ -162,3 +162,42 @@ def test_cli_plan_with_bound_reports_how_good_any_network_could_be(job_dir, tmp_
     # the plan may beat the database's bound only by what the polish gains off the database
     assert 0.8 < doc["plan_over_lower_bound"] < 1.5
     assert "bound  no 16-station network" in r.stderr
+
+
+def _sim_refusals(job_dir, backend: str, host: str | None):
+    _edit(job_dir, 'backend = "sim"', f'backend = "{backend}"' + (f'\nhost = "{host}"' if host else ""))
+    return _edit(job_dir, "[sim]", '[sim]\nunreachable_stations = ["S003"]')
+
+
+@pytest.mark.parametrize("host", ["192.168.10.20", "ur-cell-3.local", "localhost"])
+def test_sim_unreachable_stations_with_a_real_ur_is_refused_at_load(job_dir, host):
+    # a simulation device: only the simulated robot and the loopback UR controller (127.x.x.x) take it
+    p = _sim_refusals(job_dir, "ur", host)
+    with pytest.raises(JobSpecError) as e:
+        load_job(p)
+    msg = str(e.value)
+    assert str(p) in msg and "\n" not in msg and "[sim] unreachable_stations" in msg and host in msg
+    assert "loopback" in msg
+
+
+@pytest.mark.parametrize("backend,host", [("ur", "127.0.9.10"), ("ur", None), ("ur", "::1"), ("sim", "10.1.2.3")])
+def test_sim_unreachable_stations_loads_with_the_simulated_robot_or_the_loopback_controller(job_dir, backend, host):
+    spec, _ = load_job(_sim_refusals(job_dir, backend, host))
+    assert spec.sim.unreachable_stations == ["S003"] and spec.cell.backend == backend
+
+
+def test_cli_check_and_run_refuse_sim_unreachable_stations_for_a_real_ur_before_writing(job_dir, tmp_path):
+    p = _sim_refusals(job_dir, "ur", "192.168.10.20")
+    before = {q.name: q.read_bytes() for q in job_dir.iterdir()}
+    r = _cli("check", p)
+    lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
+    assert r.returncode == 2 and len(lines) == 1 and "[sim] unreachable_stations" in lines[0], r.stderr
+    # the job file says sim, the command line says ur: the robot that will move is what counts
+    _edit(job_dir, 'backend = "ur"', 'backend = "sim"')
+    archive = tmp_path / "archive"
+    r = _cli("run", p, "--backend", "ur", "--yes", "--archive", archive)
+    lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
+    assert r.returncode == 2 and len(lines) == 1 and "[sim] unreachable_stations" in lines[0], r.stderr
+    assert "192.168.10.20" in lines[0] and "Traceback" not in r.stderr
+    assert not archive.exists() or not any(archive.rglob("journal.jsonl"))  # no job folder, nothing journalled
+    assert {q.name for q in job_dir.iterdir()} == set(before)

@@ -265,3 +265,29 @@ def test_a_move_the_program_dies_on_before_the_arm_moves_is_a_fault_not_a_refusa
     assert any("runtime error: movej" in m for m in controller.messages)
     assert controller.runtime_state == STOPPED
     np.testing.assert_array_equal(controller.joints, Q0)
+
+
+@pytest.mark.parametrize("first_ends", ["closed", "killed"])
+def test_a_jobs_refused_targets_end_with_its_program_a_later_job_setting_none_is_not_refused(controller, first_ends):
+    # two jobs on one controller: the first refuses a target (as ACQUIRE does for [sim] unreachable_stations, from
+    # another process), the second sets none; its move to that target goes. Whether the first job's driver
+    # closed (stopScript) or died (its program replaced by the next job's upload), its refusals went with it
+    from sim_backend.ur_controller import refuse_targets_at
+
+    q = Q0 + np.array([0.2, -0.1, 0.1, 0.0, 0.1, 0.0])
+    first = URRobot(controller.host, CellLimits(), deadline_s=3.0, model=MODEL)
+    first.connect()
+    try:
+        refuse_targets_at(controller.host, [q])
+        with pytest.raises(MoveRefusedError, match="refused the move"):
+            first.move_joints(q, 0.8, 1.5)
+    finally:
+        first.close() if first_ends == "closed" else first._discard_worker(kill=True)
+    second = URRobot(controller.host, CellLimits(), deadline_s=3.0, model=MODEL)
+    second.connect()
+    try:
+        np.testing.assert_allclose(second.move_joints(q, 0.8, 1.5).joints_rad, q, atol=1e-9)
+    finally:
+        second.close()
+    assert sum(c.name == "movej" for c in controller.commands) == 1  # the second job's only
+    assert controller.within_safety_limits(q)

@@ -11,6 +11,7 @@ from calibration.errors import DriverError, MoveRefusedError
 from cell.record.integrity import acquired
 from cell.record.jobfolder import atomic_write_bytes, atomic_write_json, sha256_file
 from cell.stages.exposure import ExposureTaker, FrameFault, wait_settled
+from drivers.motion import arm_moved
 
 SIM_HOLD_S = 0.02
 
@@ -124,7 +125,7 @@ def _move_or_skip(ctx, robot, sid: str, q: np.ndarray, skipped: dict, q_next) ->
         robot.move_joints(q, c.max_joint_speed_rad_s, c.max_joint_accel_rad_s2)
         return True
     except MoveRefusedError as exc:  # only a refusal before any motion: a stop, a limit, an abort still fault
-        if float(np.max(np.abs(np.asarray(robot.state().joints_rad, dtype=float) - q_from))) > 1e-4:
+        if arm_moved(q_from, robot.state().joints_rad):
             raise
         if q_next is not None:
             _check_detour(ctx, sid, q_from, np.asarray(q_next, dtype=float))

@@ -17,10 +17,10 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from calibration.errors import DriverError, NotConnectedError
+from drivers.motion import arm_moved, describe_change, joint_change_rad
 from drivers.protocols import Frame, RobotState
 
 POLL_S = 0.008  # 125 Hz: the UR's RTDE rate
-MOVED_TOL_RAD = 1e-4  # the arm counts as still during the exposure within this (encoder noise is ~1e-5 rad)
 
 
 class FrameFault(DriverError):
@@ -148,10 +148,10 @@ class ExposureTaker:
             raise self._fault(rec, f"station {station}: the frame came {rec.latency_s:.3f} s after its trigger (limit "
                                    f"{self.exposure_s + self.frame_timeout_s:.3f} s)")
         after = self.robot.state()
-        moved = float(np.max(np.abs(np.asarray(after.joints_rad) - settled.joints_rad)))
-        if moved > MOVED_TOL_RAD or not after.safety.normal:
+        if arm_moved(settled.joints_rad, after.joints_rad) or not after.safety.normal:
             rec.outcome = "moved"
-            raise self._fault(rec, f"station {station}: the arm moved {moved:.5f} rad during the exposure"
+            moved = describe_change(joint_change_rad(settled.joints_rad, after.joints_rad))
+            raise self._fault(rec, f"station {station}: the arm moved {moved} during the exposure"
                                    + ("" if after.safety.normal else f" ({after.safety.detail})"))
         # the robot state at the frame's instant: the arm was still from the settled reading to the one after the
         # frame, so its joints are the settled ones; its controller time is mapped from the host clock
