@@ -248,3 +248,55 @@ def test_the_report_names_the_targets_left_out_of_the_datum():
     assert facts["Left out of the bundle's datum"] == ("2 target(s) determined >10x worse than the median: "
                                                        "T0035, T0111")
     assert "Left out of the bundle's datum" not in _budget_facts({"uncertainty_budget": {"datum_left_out": []}})
+
+
+def test_one_function_appends_columns_to_the_low_rank_covariance_for_adjust_and_report(monkeypatch):
+    """ADJUST (the scale bar ends' shared misfit: a column of weight v) and REPORT (the bars' gains: columns of weight
+    zero that ride along the alignment) append columns to the covariance's low-rank factor with one function; the
+    covariance is the one each built before (a target not adjusted keeps NaN rows)."""
+    from types import SimpleNamespace
+
+    import cell.stages.adjust as adjust
+    from calibration.alignment import PointCovariance
+    from calibration.bundle import ScaleBar
+    from calibration.bundle.covariance import append_columns
+    from calibration.detector_model import DetectorModel
+
+    def before(cv, k, weights):  # the two copies' construction, written out
+        r, b = cv.U.shape[2], k.shape[2]
+        C = np.zeros((r + b, r + b))
+        C[:r, :r] = cv.C
+        C[r:, r:] = np.diag(weights)
+        return cv.D, np.concatenate([cv.U, np.where(np.isnan(cv.D[:, :, :1]), np.nan, k)], axis=2), C
+
+    rng = np.random.default_rng(8)
+    n = 4
+    D = np.array([np.diag(rng.uniform(1, 2, 3)) * 1e-12 for _ in range(n)])
+    U = rng.normal(0, 1e-6, (n, 3, 2))
+    D[3], U[3] = np.nan, np.nan  # a target the adjustment did not determine
+    pc = PointCovariance(D, U, np.array([[2.0, 0.3], [0.3, 1.0]]))
+    K = rng.normal(0, 0.3, (n, 3, 2))
+    K[3] = np.nan
+    got = append_columns(pc, K, np.zeros(2))  # REPORT's
+    for a, b in zip((got.D, got.U, got.C), before(pc, K, np.zeros(2))):
+        np.testing.assert_array_equal(a, b)
+    # ADJUST's, through _add_coherent_background
+    poses = _views(rng, 8)
+    X = np.array([[0.0, 0.0, 0.0], [0.05, 0.01, 0.0], [-0.04, 0.03, 0.0], [np.nan] * 3])
+    img = np.tile(np.arange(8), 3)
+    tgt = np.repeat(np.arange(3), 8)
+    bg = np.array([np.diag(rng.uniform(0.05, 0.2, 2) ** 2) for _ in img])
+    bars = (ScaleBar(1, 2, float(np.linalg.norm(X[1] - X[2])), 2e-6),)
+    model = DetectorModel(0.004, 0.003, 1.5, 2.4, "4", 0.27, rho_background=0.6)
+    monkeypatch.setattr(adjust, "load_model", lambda: model)
+    D_added = pc.D + coherent_background_cov(INTR, poses, X, img, tgt, np.full(len(img), 0.006), bg, 0.27, 0.6)
+    res = SimpleNamespace(intrinsics=INTR, cam_from_part=poses, points=X, rejected=np.zeros(len(img), bool),
+                          obs_sigma_px=np.full(len(img), 0.006), cov=pc.blocks(),
+                          covariance=PointCovariance(pc.D.copy(), pc.U, pc.C))
+    doc = adjust._add_coherent_background(res, bg, img, tgt, ["T1", "T2", "T3", "T4"], bars, K[:, :, :1])
+    v = doc["scale_bar_ends"][0]["length_sigma_m"] ** 2
+    assert v > 0 and doc["n_targets"] == 3
+    want = before(PointCovariance(D_added, pc.U, pc.C), np.nan_to_num(K[:, :, :1]), [v])
+    np.testing.assert_array_equal(res.covariance.D, want[0])
+    np.testing.assert_array_equal(res.covariance.U, want[1])
+    np.testing.assert_allclose(res.covariance.C, want[2], rtol=1e-14, atol=0)  # v read back through a sqrt

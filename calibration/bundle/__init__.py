@@ -28,7 +28,8 @@ Stages (``bundle_adjust``):
    test checks it) and returned in the low-rank :class:`PointCovariance` form, so the
    alignment can propagate cross-covariances exactly.
 4. Residual statistics (sigma0, redundancy numbers) and data snooping: each observation's test
-   statistic ``v^T Q_vv^-1 v / s0^2`` (chi-square, 2 dof) against the critical value at ``alpha / q``.
+   statistic ``v^T Q_vv^+ v / s0^2`` (chi-square, 2 dof; 1 dof where the observation's redundancy block
+   is of rank one, e.g. a target seen by two rays) against the critical value of its dof at ``alpha / q``.
    Many observations are rejected per re-adjustment (the largest failing statistic of each target, at
    most a tenth of an image's observations; a robust variance factor while blunders inflate ``s0^2``),
    until none fails; then every rejected observation is tested against the final adjustment and put

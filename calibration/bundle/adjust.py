@@ -5,7 +5,6 @@ import time
 from dataclasses import replace
 
 import numpy as np
-from scipy.special import chdtri  # chi2.isf without importing scipy.stats (~1 s of a job's start)
 
 try:  # BLAS threads fight with Ceres' threads on small machines: small dense algebra runs faster on one
     from threadpoolctl import threadpool_limits
@@ -20,6 +19,7 @@ from calibration.bundle.normal import _Layout, _linearise, _State
 from calibration.bundle.solve import _solve
 from calibration.bundle.snooping import (
     _statistics,
+    critical_values,
     local_followers,
     pick_rejections,
     predicted_test,
@@ -114,10 +114,13 @@ def _bundle_adjust(obs_image, obs_target, obs_uv, intrinsics, cam_from_part, poi
     reinstated = np.zeros(q, dtype=bool)  # put back once: never rejected again by the batch rounds' mistakes
     state = _State(intrinsics, poses0, x0.copy())
     timings = {"solve": 0.0, "datum": 0.0, "covariance": 0.0, "snooping": 0.0}
-    thr = chdtri(2, options.alpha / q)  # chi2.isf(alpha / q, 2)
+    # chi2.isf(alpha / q, dof) by each statistic's degrees of freedom (1: a rank-one redundancy block, two rays)
+    crit = critical_values(options.alpha / q)
+    test_dof = np.zeros(q, dtype=int)  # each observation's, when last tested (a rejected one's: when rejected)
+    rejected_T = np.full(q, np.nan)  # the divided statistic each rejected observation was rejected with
     solver_fallback = None
-    snoop = {"rounds": 0, "threshold": float(thr), "reinstated": 0, "untestable_rejected": 0,
-             "batch": bool(options.snooping_batch)}
+    snoop = {"rounds": 0, "threshold": float(crit[2]), "threshold_1dof": float(crit[1]), "reinstated": 0,
+             "untestable_rejected": 0, "batch": bool(options.snooping_batch)}
     while True:
         snoop["rounds"] += 1
         act_obs = ~rejected
@@ -176,12 +179,16 @@ def _bundle_adjust(obs_image, obs_target, obs_uv, intrinsics, cam_from_part, poi
             if vc.converged:
                 break
         t4 = time.perf_counter()
-        s_test, which = (test_variance_factor(stats["T"], stats["s02"], options.snooping_contamination)
+        s_test, which = (test_variance_factor(stats["T"], stats["s02"], options.snooping_contamination,
+                                              stats["T_dof"])
                          if options.snooping_batch else (stats["s02"], "adjustment"))
         snoop["variance_factor"] = which
         T = np.full(q, np.nan)
         T[act_obs] = stats["T"] / s_test
+        test_dof[act_obs] = stats["T_dof"]
+        thr = crit[np.where(act_obs, test_dof, 0)]  # each observation's critical value (nan: untestable, inactive)
         testable = np.isfinite(T)
+        snoop["tested_1dof"] = int(np.count_nonzero(testable & (test_dof == 1)))
         fails = testable & (T > thr)
         snoop["still_failing"] = int(fails.sum())
         # this round settled: what a later round that diverges falls back to
@@ -193,8 +200,8 @@ def _bundle_adjust(obs_image, obs_target, obs_uv, intrinsics, cam_from_part, poi
         elif not testable.any():
             stop = "nothing testable"  # e.g. two images: no redundancy per observation
         elif not fails.any():
-            back = _reinstate(options, rejected, reinstated, act_obs, state, lin, lay, stats, s_test, thr,
-                              obs_image, obs_target, obs_uv, sig, snoop)
+            back = _reinstate(options, rejected, reinstated, act_obs, state, lin, lay, stats, s_test, crit,
+                              obs_image, obs_target, obs_uv, sig, snoop, test_dof)
             if not back.any():
                 stop = "no observation fails"
             rejected[back], reinstated[back] = False, True
@@ -205,21 +212,24 @@ def _bundle_adjust(obs_image, obs_target, obs_uv, intrinsics, cam_from_part, poi
             pick = pick_rejections(np.where(reinstated, np.nan, T), thr, obs_image, obs_target,
                                    options.max_rejections - int(rejected.sum()))
             if len(pick) == 0:  # only reinstated observations fail: take the largest (the plain rule)
-                pick = [int(np.nanargmax(T))]
+                pick = [int(np.nanargmax(T / thr))]
             rejected[pick] = True
             more = local_followers(np.asarray(pick), T, thr, obs_target, np.flatnonzero(act_obs), lin.r_img, lin.Jp,
-                                   s_test, reinstated | rejected, options.max_rejections - int(rejected.sum()))
+                                   s_test, reinstated | rejected, options.max_rejections - int(rejected.sum()), crit)
             rejected[more] = True
+            rejected_T[pick], rejected_T[more] = T[pick], T[more]
         else:
-            rejected[int(np.nanargmax(T))] = True
+            worst = int(np.nanargmax(T / thr))
+            rejected[worst], rejected_T[worst] = True, T[worst]
         timings["snooping"] += time.perf_counter() - t4
         if stop is not None:
             snoop["stopped_because"] = stop
             break
     res = _result(state, lin, stats, lay, T, rejected, act_obs, obs_image, obs_target, obs_uv, options, config,
                   usable and (dconv or (config.datum == "free" and not full_gn and not warm)), report, timings,
-                  time.perf_counter() - t_start)
+                  time.perf_counter() - t_start, x0)
     res.obs_sigma_px, res.variance_components, res.snooping = sig, vc, snoop
+    res.test_dof, res.rejected_test = test_dof, np.where(rejected, rejected_T, np.nan)
     res.solver_fallback = solver_fallback
     _say_snooping(snoop, config, options, rejected, obs_target)
     if weighted:  # sigma0 in pixels: of an observation of the rms a priori sigma (equal weights: options.sigma_px)
@@ -268,17 +278,23 @@ def _check_scale(config, active_pts: np.ndarray, counts: np.ndarray, rejected: n
                                                         for t, k in ends.items()) + f" (2 needed){how}", ends, rej)
 
 
-def _reinstate(options, rejected, reinstated, act_obs, state, lin, lay, stats, s_test, thr, obs_image, obs_target,
-               obs_uv, sig, snoop) -> np.ndarray:
-    """Rejected observations that pass the test against the final adjustment (batch rounds only; each once)."""
+def _reinstate(options, rejected, reinstated, act_obs, state, lin, lay, stats, s_test, crit, obs_image, obs_target,
+               obs_uv, sig, snoop, test_dof) -> np.ndarray:
+    """Rejected observations that pass the test against the final adjustment (batch rounds only; each once), each
+    at the critical value ``crit[dof]`` of its predicted statistic's degrees of freedom (``test_dof`` takes those of
+    the ones put back)."""
     back = np.zeros(len(rejected), dtype=bool)
     out = rejected & ~act_obs
     if not options.snooping_batch or not out.any():
         return back
     idx = np.flatnonzero(out & ~reinstated)
-    Tp = predicted_test(state, lin, lay, stats, obs_image[idx], obs_target[idx], obs_uv[idx], sig[idx]) / s_test
+    Tp, dp = predicted_test(state, lin, lay, stats, obs_image[idx], obs_target[idx], obs_uv[idx], sig[idx],
+                            with_dof=True)
+    Tp = Tp / s_test
     snoop["untestable_rejected"] = int(np.count_nonzero(~np.isfinite(Tp)))
-    back[idx[np.isfinite(Tp) & (Tp <= thr)]] = True
+    ok = np.isfinite(Tp) & (Tp <= crit[dp])
+    back[idx[ok]] = True
+    test_dof[idx[ok]] = dp[ok]
     return back
 
 

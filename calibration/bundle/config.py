@@ -155,7 +155,13 @@ class BundleResult:
         intrinsics_names, intrinsics_cov: the refined interior parameters and their covariance.
         sigma0_px: a posteriori standard deviation of unit weight, in pixels.
         residuals: (q, 2) observed minus computed pixels (rejected ones too).
-        test_statistic: (q,) data-snooping statistic (chi-square 2 dof; nan for rejected).
+        test_statistic: (q,) data-snooping statistic (divided by the variance factor; chi-square with ``test_dof``
+            degrees of freedom for a good observation; nan for rejected).
+        test_dof: (q,) its degrees of freedom: 2, 1 where the observation's redundancy block is of rank one (a target
+            seen by two rays; :data:`calibration.bundle.snooping.RANK_RTOL`), 0 untestable; a rejected observation's:
+            those it was rejected with. Each is tested at its own dof's quantile (``snooping`` ``threshold`` and
+            ``threshold_1dof``).
+        rejected_test: (q,) the statistic each rejected observation was rejected with (nan for the others).
         redundancy: (q,) redundancy number of each observation (0..1 per coordinate, averaged).
         rejected: (q,) observations removed as blunders.
         dof: degrees of freedom.
@@ -168,7 +174,8 @@ class BundleResult:
             those of the observations used: the network's image precision, as with equal weights).
         variance_components: the per-group estimate when ``obs_group`` was given, else None.
         snooping: how data snooping went: ``rounds`` (re-adjustments), ``threshold`` (critical value of the
-            divided statistic), ``stopped_because`` ("no observation fails" | "max_rejections reached" |
+            divided statistic with 2 dof; ``threshold_1dof``: with 1 dof, at the same ``alpha / q``; ``tested_1dof``:
+            how many of the last round's statistics had 1 dof), ``stopped_because`` ("no observation fails" | "max_rejections reached" |
             "off" | "nothing testable"), ``still_failing`` (active observations above the threshold when
             it stopped), ``reinstated`` (observations put back), ``untestable_rejected`` (rejected
             observations whose target left the network, so they could not be re-tested),
@@ -177,6 +184,8 @@ class BundleResult:
             solve over to pycolmap's Levenberg-Marquardt (the result is pycolmap's, then checked as any other).
         datum_left_out: indices of the targets the datum's minimum trace (free network, scale bars) leaves out
             because they are determined far worse than the others (:data:`calibration.bundle.covariance.WEAK_DATUM`).
+            ``points`` are then in the same datum as the covariance: the similarity onto the approximate coordinates
+            is fitted over the other targets only.
     """
 
     points: np.ndarray
@@ -202,6 +211,8 @@ class BundleResult:
     solver_fallback: str | None = None
     datum_left_out: np.ndarray | None = None  # targets the datum's minimum trace leaves out (weakly determined)
     variance_factor: float = 1.0  # what ``cov`` and ``covariance`` were scaled by (a posteriori s0^2, or 1)
+    test_dof: np.ndarray | None = None  # (q,) each statistic's degrees of freedom (1: rank-one block; 0: untestable)
+    rejected_test: np.ndarray | None = None  # (q,) the statistic a rejected observation was rejected with
 
     def error_ellipsoids(self, k: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
         """Semi-axes ``(n, 3)`` (metres, ascending, times ``k``) and axis directions ``(n, 3, 3)`` (columns)."""

@@ -3,8 +3,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from calibration.alignment import PointCovariance, helmert_basis
+from calibration.alignment import PointCovariance, helmert_basis, similarity_fit
 from calibration.bundle.config import BundleResult
+from calibration.bundle.datum import _apply_similarity
 from calibration.bundle.projection import project_pixels
 
 
@@ -12,6 +13,25 @@ from calibration.bundle.projection import project_pixels
 #: of the datum: two nearly parallel rays' 0.3-0.5 mm depth uncertainty, averaged into the datum's translation and
 #: rotation, gave every other target of generated plate seed 113 11 um instead of 1.6 um
 WEAK_DATUM = 10.0
+
+
+def append_columns(pc: PointCovariance, cols: np.ndarray, weights) -> PointCovariance:
+    """``pc`` with ``b`` more columns in its low-rank factor: ``Q + sum_j w_j c_j c_j^T`` (``cols: (n, 3, b)``,
+    ``weights: (b,)`` their variances, the new core block diagonal).
+
+    Weight zero leaves the covariance as it is: the columns then ride along any transformation of it (an alignment's
+    S-transformation) and come out transformed like the points (REPORT: the scale bars' gains, decision 0029);
+    a positive weight adds a shared term (ADJUST: a scale bar's ends' shared misfit through the gains). A target
+    the adjustment did not determine (NaN block) keeps NaN rows."""
+    cols = np.asarray(cols, dtype=float).reshape(pc.n, 3, -1)
+    w = np.atleast_1d(np.asarray(weights, dtype=float))
+    r, b = pc.U.shape[2], cols.shape[2]
+    if w.shape != (b,):
+        raise ValueError(f"append_columns: {b} column(s) need {b} weight(s), got {w.shape}")
+    C = np.zeros((r + b, r + b))
+    C[:r, :r] = pc.C
+    C[r:, r:] = np.diag(w)
+    return PointCovariance(pc.D, np.concatenate([pc.U, np.where(np.isnan(pc.D[:, :, :1]), np.nan, cols)], axis=2), C)
 
 
 def _datum_blocks(Q: np.ndarray, D: np.ndarray, U: np.ndarray, C: np.ndarray, P: np.ndarray,
@@ -43,8 +63,24 @@ def _datum_projectors(G: np.ndarray, keep: np.ndarray) -> tuple[np.ndarray, np.n
     return P.reshape(n, 3, d), Qk.reshape(n, 3, d)
 
 
+def _refit_coordinates(state, x0: np.ndarray, keep: np.ndarray, with_scale: bool, pc: PointCovariance,
+                       blocks: np.ndarray):
+    """The coordinates into the covariance's datum over the targets ``keep``: the similarity (rigid without scale)
+    onto the approximate coordinates ``x0`` fitted over those targets only (the datum stage fits over all).
+
+    A least-squares fit over ``keep`` is, to first order, the S-transformation ``I - G (G_k^T G_k)^-1 G_k^T`` the
+    covariance took (:func:`_datum_projectors`): with it, the kept targets' centroid, orientation (and scale) sit on
+    their approximate ones in the coordinates as in the covariance, and a left-out target's approximate coordinates
+    (e.g. a CAD nominal far off its two nearly parallel rays) no longer move every other target. The network moves
+    as a whole (cameras too: the images and residuals do not change); the covariance, already in that datum, is
+    carried along (``s R`` applied to it). Returns ``(state, pc, blocks)``."""
+    s, R, t = similarity_fit(state.points[keep], x0[keep], with_scale=with_scale)
+    A = s * R
+    return _apply_similarity(state, s, R, t), pc.rotated(A), A @ blocks @ A.T
+
+
 def _result(state, lin, stats, lay, T, rejected, act_obs, obs_image, obs_target, obs_uv, options, config,
-            converged, report, timings, total) -> BundleResult:
+            converged, report, timings, total, x0: np.ndarray | None = None) -> BundleResult:
     n = lay.n
     s02 = stats["s02"]
     factor = s02 if options.a_posteriori else 1.0
@@ -83,6 +119,8 @@ def _result(state, lin, stats, lay, T, rejected, act_obs, obs_image, obs_target,
             except np.linalg.LinAlgError:
                 P = H = Qg
         pc = pc.s_transform(P, H)
+        if len(left_out) and x0 is not None:  # the coordinates in the same datum as the covariance
+            state, pc, blocks = _refit_coordinates(state, x0, act[~weak], lin.defect == 7, pc, blocks)
     else:
         blocks = 0.5 * (Qii + np.swapaxes(Qii, 1, 2))
     pc = pc.scaled(factor)

@@ -312,9 +312,12 @@ def _rejected_table(doc: dict) -> str:
         return ""
     rows = "".join(f"<tr><td class=l>{html.escape(str(r.get('image')))}</td><td class=l>{html.escape(str(r.get('target')))}</td>"
                    f"<td>{_num((r.get('residual_px') or [None, None])[0], 1, 2)}</td>"
-                   f"<td>{_num((r.get('residual_px') or [None, None])[1], 1, 2)}</td></tr>" for r in rej)
+                   f"<td>{_num((r.get('residual_px') or [None, None])[1], 1, 2)}</td>"
+                   f"<td>{_num(r.get('test_statistic'), 1, 1)}</td><td>{html.escape(str(r.get('test_dof', '')))}</td></tr>"
+                   for r in rej)
     return (f"<h3>Observations rejected by the bundle adjustment ({len(rej)})</h3><table id=rejected><tr><th>image</th>"
-            f"<th>target</th><th>residual u [px]</th><th>residual v [px]</th></tr>{rows}</table>")
+            f"<th>target</th><th>residual u [px]</th><th>residual v [px]</th><th>test statistic</th><th>dof</th></tr>"
+            f"{rows}</table>")
 
 
 def _dropped_table(doc: dict) -> str:

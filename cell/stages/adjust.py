@@ -9,6 +9,7 @@ import numpy as np
 
 from calibration.bundle import BundleConfig, BundleOptions, ScaleBar, bundle_adjust
 from calibration.bundle.coherent import coherent_background_cov, scale_bar_gains
+from calibration.bundle.covariance import append_columns
 from calibration.camera import Intrinsics
 from calibration.detector_model import load_model, observation_covariances, observation_geometry, observation_sigmas
 from calibration.errors import CalibrationError, ScaleNotEstablishedError
@@ -194,11 +195,7 @@ def _add_coherent_background(res, bg: np.ndarray, img, tgt, ids: list[str], bars
         if v > 0:
             k = np.nan_to_num(K[:, :, j])  # NaN only for targets the adjustment did not determine
             res.cov += v * np.einsum("na,nb->nab", k, k)
-            cv = res.covariance
-            r = cv.U.shape[2]
-            C = np.zeros((r + 1, r + 1))
-            C[:r, :r], C[r, r] = cv.C, v
-            res.covariance = type(cv)(cv.D, np.concatenate([cv.U, np.where(np.isnan(cv.D[:, :, :1]), np.nan, k[:, :, None])], axis=2), C)
+            res.covariance = append_columns(res.covariance, k[:, :, None], [v])
             bar_terms.append({"bar": [ids[bar.target_a], ids[bar.target_b]], "length_sigma_m": float(np.sqrt(v))})
     grow = np.sqrt(np.trace(res.cov[hit], axis1=1, axis2=2) / np.maximum(np.trace(res.cov[hit] - extra[hit], axis1=1, axis2=2), 1e-300))
     worst = np.argsort(-grow)[:5]
@@ -309,8 +306,12 @@ def run_bundle(ctx) -> dict:
         suspect |= shaped
     dt = time.perf_counter() - t0
     n_img = np.bincount(tgt[~res.rejected], minlength=len(ids))
-    rejected = [{"image": obs["images"][int(kept_images[i])]["image"], "target": ids[int(t)], "residual_px": r}
-                for i, t, r, bad in zip(img, tgt, res.residuals, res.rejected) if bad]
+    # each with the statistic it was rejected with and its degrees of freedom (1: a pair of rays, tested at the 1-dof
+    # critical value snooping.threshold_1dof; 2: snooping.threshold)
+    rejected = [{"image": obs["images"][int(kept_images[i])]["image"], "target": ids[int(t)], "residual_px": r,
+                 "test_statistic": float(w), "test_dof": int(f)}
+                for i, t, r, bad, w, f in zip(img, tgt, res.residuals, res.rejected, res.rejected_test, res.test_dof)
+                if bad]
     axes, dirs = res.error_ellipsoids()
     # keep the full covariance for the report's alignment (exact propagation)
     buf = io.BytesIO()

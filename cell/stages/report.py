@@ -8,6 +8,7 @@ from importlib import metadata
 import numpy as np
 
 from calibration.alignment import PointCovariance
+from calibration.bundle.covariance import append_columns
 from calibration.errors import CalibrationError
 from calibration.robust_alignment import AlignmentOutcome, frame_alignment, robust_best_fit, rps_align, rps_locks
 from cell.record import report as R
@@ -284,10 +285,7 @@ def write_report(ctx) -> tuple[str, list[str]]:
     # out transformed like the deviations (decision 0029)
     nb = len(K_sigma)
     if nb:
-        r = pc.U.shape[2]
-        C = np.zeros((r + nb, r + nb))
-        C[:r, :r] = pc.C
-        pc = PointCovariance(pc.D, np.concatenate([pc.U, K], axis=2), C)
+        pc = append_columns(pc, K, np.zeros(nb))
     ok = np.isfinite(measured).all(axis=1)
     tol = job.tolerance_m
     k = job.spec.report.sigma_factor
