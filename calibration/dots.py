@@ -379,6 +379,130 @@ def _components(mask: np.ndarray) -> tuple[int, np.ndarray, np.ndarray]:
     return n, labels, stats
 
 
+
+#: a component that is too large or too loose for a dot is split at its own noise (:func:`_split_merged`) when it has
+#: at least this many pixels (smaller: noise, or a small dot that stays lost)
+SPLIT_MIN_AREA_PX = 64
+
+#: pairs of pixels a level's bin needs for its noise (:func:`_noise_by_level`): ~5 % on the standard deviation
+NOISE_BIN_MIN_PAIRS = 200
+
+
+def _blob_tests(stats: np.ndarray, o: DetectionOptions, max_area: float, shape: tuple[int, int]
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """Per component 1..n-1 of ``stats``: (size and shape of a dot: area, bounding-box aspect and fill; clear of the
+    image border by the margin, so that the centroid's window is whole)."""
+    w_box = stats[1:, cv2.CC_STAT_WIDTH].astype(float)
+    h_box = stats[1:, cv2.CC_STAT_HEIGHT].astype(float)
+    area = stats[1:, cv2.CC_STAT_AREA].astype(float)
+    compact = ((area >= o.min_area_px) & (area <= max_area)
+               & (np.maximum(w_box, h_box) / np.minimum(w_box, h_box) <= o.max_aspect)
+               & (area / (w_box * h_box) >= o.min_fill))
+    x0, y0 = stats[1:, cv2.CC_STAT_LEFT], stats[1:, cv2.CC_STAT_TOP]
+    H, W = shape
+    m = o.margin_px
+    clear = (x0 - m - 1 >= 0) & (y0 - m - 1 >= 0) & (x0 + w_box + m + 1 <= W) & (y0 + h_box + m + 1 <= H)
+    return compact, clear
+
+
+def _noise_by_level(image: np.ndarray, background: np.ndarray, stride: int, bins: int = 16
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """The pixel noise as a function of the background level: photon noise grows with the light.
+
+    The differences of pixels two apart along every ``stride``-th row (as :func:`_noise`), neither clipped, binned by
+    the mean ``background`` level of the pair in ``bins`` equal bins up to the sensor's ceiling; per bin of at least
+    :data:`NOISE_BIN_MIN_PAIRS` pairs, their rms about the median within 5 robust standard deviations (the steps
+    across a dot's rim are left out), over sqrt(2).
+    Returns ((b,) mean background level of each such bin, increasing; (b,) its noise standard deviation).
+    """
+    ceiling = _ceiling(image)
+    rows = image[::stride].astype(np.int32)
+    d = rows[:, 2:] - rows[:, :-2]
+    ok = (rows[:, 2:] < ceiling) & (rows[:, :-2] < ceiling)
+    back = background[::stride].astype(np.float32)
+    g = 0.5 * (back[:, 2:] + back[:, :-2])[ok]
+    d = d[ok]
+    if len(d) == 0:
+        return np.zeros(0), np.zeros(0)
+    b = np.minimum((g * np.float32(bins / (ceiling + 1.0))).astype(np.int64), bins - 1)
+    lo = int(d.min())
+    nv = int(d.max()) - lo + 1
+    hist = np.bincount(b * nv + (d - lo), minlength=bins * nv).reshape(bins, nv)
+    n = hist.sum(axis=1)
+    mean_g = np.bincount(b, weights=g, minlength=bins) / np.maximum(n, 1)
+    values = lo + np.arange(nv)
+    levels, sigmas = [], []
+    for i in np.flatnonzero(n >= NOISE_BIN_MIN_PAIRS):
+        med2 = _twice_median(values, hist[i])
+        dev2 = np.abs(2 * values - med2)
+        mad = 0.25 * _twice_median(np.arange(int(dev2.max()) + 1), np.bincount(dev2, weights=hist[i]).astype(np.int64))
+        s = max(1.4826 * mad, 1.0)  # integer differences: a MAD of 0 or 1 is coarse
+        r = values - 0.5 * med2
+        sel = np.abs(r) <= 5.0 * s
+        levels.append(mean_g[i])
+        sigmas.append(np.sqrt(np.sum(hist[i][sel] * r[sel] ** 2) / max(np.sum(hist[i][sel]), 1) / 2.0))
+    return np.asarray(levels), np.asarray(sigmas)
+
+
+def _split_merged(image: np.ndarray, tophat: np.ndarray, opening: np.ndarray, levels: np.ndarray, sigmas: np.ndarray,
+                  labels: np.ndarray, stats: np.ndarray, merged: np.ndarray, found: np.ndarray, reach: int,
+                  threshold_sigma: float, thr: float) -> tuple[np.ndarray, np.ndarray]:
+    """Split the components ``merged`` (too large or too loose for a dot) at ``threshold_sigma`` times the noise of
+    their own background.
+
+    The threshold ``thr`` is ``threshold_sigma`` times one noise figure of the whole image, which its dark background
+    (most of its pixels) sets; on the lit surface of the part the photon noise is 2-3 times that, and the top-hat (the
+    image minus its opening, a maximum of minima) sits ~2.5 of that noise above zero: about half of the surface's
+    pixels pass ``thr``, and they join into clusters of thousands of pixels, or tendrils, that reach a dot's rim at
+    random. The dot is then part of a blob too large or too loose to be one, and is lost (the large dots of a near
+    view, on the brightest surface, most often). In such a component a pixel is kept where its top-hat exceeds
+    ``max(thr, threshold_sigma * noise(level))``, the noise ``sigmas`` at the ``levels`` (:func:`_noise_by_level`) of
+    the ``opening`` under it; the kept pixels are labelled anew and their blobs appended to ``labels`` (in place; the
+    component's other pixels become background) and ``stats``. A new blob within ``reach`` px of a dot ``found``
+    before ((n,) bool per component, 0 the background) is left out: it is that dot's own skirt, cut off.
+    Returns (the extended stats, (appended,) each appended blob's noise: the mean over its pixels).
+    """
+    n = len(stats)
+    new_stats, new_noise = [stats], []
+    H, W = image.shape
+    n0 = len(found)
+    found = np.append(found, False).astype(np.uint8)  # labels from n0 on are new blobs: not found before
+    near_kernel = np.ones((2 * reach + 1, 2 * reach + 1), dtype=np.uint8)
+    for c in merged:
+        x, y, w, h = (int(v) for v in stats[c, :4])
+        lab = labels[y:y + h, x:x + w]  # a view: written in place
+        # the blobs found before, in the box grown by the reach, dilated by it: where a new blob may not come
+        ex0, ey0, ex1, ey1 = max(x - reach, 0), max(y - reach, 0), min(x + w + reach, W), min(y + h + reach, H)
+        near = cv2.dilate(found[np.minimum(labels[ey0:ey1, ex0:ex1], n0)], near_kernel)[y - ey0:y - ey0 + h, x - ex0:x - ex0 + w] > 0
+        comp = lab == c
+        sig = np.interp(opening[y:y + h, x:x + w], levels, sigmas)
+        level = np.maximum(threshold_sigma * sig, thr)
+        if not np.any(level[comp] > thr):  # its noise is the image's: nothing to split off
+            continue
+        sub = (comp & (tophat[y:y + h, x:x + w] > level)).astype(np.uint8)
+        ns, sl, ss, _ = cv2.connectedComponentsWithStats(sub, connectivity=8, ltype=cv2.CV_32S)
+        lab[comp] = 0
+        if ns > 1 and near.any():
+            close = np.zeros(ns, dtype=bool)
+            close[sl[near]] = True
+            close[0] = False
+            if close.any():
+                sl = np.where(close[sl], 0, sl)
+                ns, sl, ss, _ = cv2.connectedComponentsWithStats((sl > 0).astype(np.uint8), connectivity=8,
+                                                                 ltype=cv2.CV_32S)
+        if ns > 1:
+            inside = sl > 0
+            lab[inside] = sl[inside] + (n - 1)
+            ss = ss[1:].copy()
+            ss[:, cv2.CC_STAT_LEFT] += x
+            ss[:, cv2.CC_STAT_TOP] += y
+            new_stats.append(ss)
+            new_noise.append(np.bincount(sl[inside], weights=sig[inside], minlength=ns)[1:] / ss[:, cv2.CC_STAT_AREA])
+            n += ns - 1
+        stats[c, cv2.CC_STAT_AREA] = 0  # no longer a blob: fails every test
+    return np.concatenate(new_stats), (np.concatenate(new_noise) if new_noise else np.zeros(0))
+
+
 def _busy_pairs(busy: np.ndarray) -> np.ndarray:
     """Indices of the aligned pairs (2i, 2i+1) with a busy member, and of the pair after each run of them."""
     n = len(busy)
@@ -558,28 +682,67 @@ def _detect(image: np.ndarray, o: DetectionOptions, surface: np.ndarray | None =
         local *= np.float32(o.local_fraction)
         mask &= cv2.compare(tophat.astype(np.float32), local, cv2.CMP_GT)  # 0/255: keeps mask's 0/1
     n_lab, labels, stats = _components(mask)
+    max_area = o.max_area_px if o.max_area_px is not None else 0.5 * o.background_kernel_px**2
+    compact, clear = _blob_tests(stats, o, max_area, image.shape)
+    det, found = _measure(image, o, surface, labels, stats, compact & clear, np.full(len(compact), noise), noise, bg)
+    if o.threshold is not None or n_lab <= 1:
+        return det
+    # dots joined to the lit surface they lie on, split off at that surface's own noise; a new blob that comes within
+    # the reach of a detected one's margin and ring (m + 2 px) or of its ellipse fit's window (2 + 2 px) is its skirt
+    merged = np.flatnonzero(~compact & (stats[1:, cv2.CC_STAT_AREA] >= SPLIT_MIN_AREA_PX)) + 1
+    if len(merged) == 0:
+        return det
+    opening = cv2.subtract(image, tophat)  # the background under the top-hat
+    levels, sigmas = _noise_by_level(image, opening, o.subsample)
+    if len(levels) == 0 or o.threshold_sigma * sigmas.max() <= thr:  # nowhere noisier than the image's figure
+        return det
+    # a detection whose peak is not min_peak_snr times the noise above the opening under it is a speck of that noise
+    # (its ring may have held the merged dot, and its plane with it): no dot next to it is its skirt
+    H, W = image.shape
+    under = opening[np.clip(np.round(det.uv[:, 1]).astype(np.int64), 0, H - 1),
+                    np.clip(np.round(det.uv[:, 0]).astype(np.int64), 0, W - 1)].astype(np.float64)
+    dot = det.peak + det.background - under >= o.min_peak_snr * np.interp(under, levels, sigmas)
+    is_found = np.zeros(n_lab, dtype=bool)
+    is_found[found[dot] + 1] = True
+    stats, new_noise = _split_merged(image, tophat, opening, levels, sigmas, labels, stats, merged, is_found,
+                                     2 * (o.margin_px + 2), o.threshold_sigma, thr)
+    if len(new_noise) == 0:
+        return det
+    compact, clear = _blob_tests(stats, o, max_area, image.shape)
+    new = np.arange(len(compact)) >= n_lab - 1
+    more, _ = _measure(image, o, surface, labels, stats, compact & clear & new,
+                       np.concatenate([np.full(n_lab - 1, noise), new_noise]), noise, bg)
+    return _concatenate(det, more)
+
+
+def _concatenate(a: Detections, b: Detections) -> Detections:
+    """The detections ``a`` followed by ``b`` (of one image: ``a``'s noise and polarity)."""
+    if len(b) == 0:
+        return a
+    if len(a) == 0:
+        return b
+    cat = {f: np.concatenate([getattr(a, f), getattr(b, f)]) for f in
+           ("uv", "area_px", "peak", "flux", "background", "cov", "axes", "background_cov", "saturated", "ring_px",
+            "ellipse")}
+    return replace(a, **cat)
+
+
+def _measure(image: np.ndarray, o: DetectionOptions, surface: np.ndarray | None, labels: np.ndarray, stats: np.ndarray,
+             keep: np.ndarray, blob_noise: np.ndarray, noise: float, bg: float) -> tuple[Detections, np.ndarray]:
+    """Centres, covariances and the rest of the blobs ``keep`` ((n - 1,) bool over the components 1..n-1 of
+    ``labels`` / ``stats``); ``blob_noise`` (n - 1,) is each one's noise for the peak test, ``noise`` the image's,
+    ``bg`` its median level. Returns (the detections, (k,) the component index (0-based, label - 1) of each)."""
     empty = Detections(np.zeros((0, 2)), np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0), noise,
                        np.zeros((0, 2, 2)), o.polarity, np.zeros((0, 2, 2)), np.zeros((0, 2, 2)),
                        np.zeros(0, dtype=int), np.zeros(0, dtype=int), np.zeros(0, dtype=bool))
-    if n_lab <= 1:
-        return empty
+    if not np.any(keep):
+        return empty, np.zeros(0, dtype=np.int64)
+    n_lab = len(stats)
     w_box = stats[1:, cv2.CC_STAT_WIDTH].astype(float)
     h_box = stats[1:, cv2.CC_STAT_HEIGHT].astype(float)
     area = stats[1:, cv2.CC_STAT_AREA].astype(float)
-    max_area = o.max_area_px if o.max_area_px is not None else 0.5 * o.background_kernel_px**2
-    keep = (
-        (area >= o.min_area_px)
-        & (area <= max_area)
-        & (np.maximum(w_box, h_box) / np.minimum(w_box, h_box) <= o.max_aspect)
-        & (area / (w_box * h_box) >= o.min_fill)
-    )
-    # blobs touching the border are cut: their centroid would be biased
     x0, y0 = stats[1:, cv2.CC_STAT_LEFT], stats[1:, cv2.CC_STAT_TOP]
-    H, W = image.shape
     m = o.margin_px
-    keep &= (x0 - m - 1 >= 0) & (y0 - m - 1 >= 0) & (x0 + w_box + m + 1 <= W) & (y0 + h_box + m + 1 <= H)
-    if not np.any(keep):
-        return empty
     # relabel the kept blobs 1..k, grow them by the margin, and a ring further out for the local background
     remap = np.zeros(n_lab, dtype=np.float32)
     kept = np.flatnonzero(keep) + 1
@@ -663,8 +826,9 @@ def _detect(image: np.ndarray, o: DetectionOptions, surface: np.ndarray | None =
     a2 = per_blob(h * np.abs(dx * vec[li - 1, 0, 1] + dy * vec[li - 1, 1, 1]))
     bcov = (misfit**2)[:, None, None] * (a1[:, None, None] ** 2 * np.einsum("ka,kb->kab", vec[:, :, 0], vec[:, :, 0])
                                          + a2[:, None, None] ** 2 * np.einsum("ka,kb->kab", vec[:, :, 1], vec[:, :, 1]))
-    good = (sw > 0) & (peak >= o.min_peak_snr * noise)
+    good = (sw > 0) & (peak >= o.min_peak_snr * blob_noise[keep])
     flux = sw * np.maximum(peak, 0.0)
     ring_px = np.bincount(lf, minlength=k + 1)[1:]
-    return Detections(uv[good], area[keep][good], peak[good], flux[good], bg_local[good], noise, cov[good],
-                      o.polarity, axes[good], bcov[good], n_sat[good].astype(int), ring_px[good], used_ellipse[good])
+    return (Detections(uv[good], area[keep][good], peak[good], flux[good], bg_local[good], noise, cov[good],
+                       o.polarity, axes[good], bcov[good], n_sat[good].astype(int), ring_px[good], used_ellipse[good]),
+            np.flatnonzero(keep)[good])
