@@ -384,6 +384,9 @@ def _components(mask: np.ndarray) -> tuple[int, np.ndarray, np.ndarray]:
 #: at least this many pixels (smaller: noise, or a small dot that stays lost)
 SPLIT_MIN_AREA_PX = 64
 
+#: a blob split off a merged component is a dot only if its ellipse and centroid centres agree within this (px)
+SPLIT_AGREE_PX = 0.25
+
 #: pairs of pixels a level's bin needs for its noise (:func:`_noise_by_level`): ~5 % on the standard deviation
 NOISE_BIN_MIN_PAIRS = 200
 
@@ -709,10 +712,22 @@ def _detect(image: np.ndarray, o: DetectionOptions, surface: np.ndarray | None =
     if len(new_noise) == 0:
         return det
     compact, clear = _blob_tests(stats, o, max_area, image.shape)
-    new = np.arange(len(compact)) >= n_lab - 1
-    more, _ = _measure(image, o, surface, labels, stats, compact & clear & new,
-                       np.concatenate([np.full(n_lab - 1, noise), new_noise]), noise, bg)
-    return _concatenate(det, more)
+    keep = compact & clear & (np.arange(len(compact)) >= n_lab - 1)  # the new blobs only
+    if not np.any(keep):
+        return det
+    # measured in the box that holds them with what their margins, rings and ellipse windows reach: the new blobs are
+    # few, the image large
+    box = stats[1:][keep]
+    pad = 4 * (o.margin_px + 2)
+    bx0, by0 = max(int(box[:, 0].min()) - pad, 0), max(int(box[:, 1].min()) - pad, 0)
+    bx1, by1 = min(int((box[:, 0] + box[:, 2]).max()) + pad, W), min(int((box[:, 1] + box[:, 3]).max()) + pad, H)
+    shifted = stats.copy()
+    shifted[1:, cv2.CC_STAT_LEFT] -= bx0
+    shifted[1:, cv2.CC_STAT_TOP] -= by0
+    more, _ = _measure(image[by0:by1, bx0:bx1], o, None if surface is None else surface[by0:by1, bx0:bx1],
+                       labels[by0:by1, bx0:bx1], shifted, keep, np.concatenate([np.full(n_lab - 1, noise), new_noise]),
+                       noise, bg, _ceiling(image), SPLIT_AGREE_PX)
+    return _concatenate(det, replace(more, uv=more.uv + np.array([bx0, by0], dtype=float)))
 
 
 def _concatenate(a: Detections, b: Detections) -> Detections:
@@ -728,10 +743,14 @@ def _concatenate(a: Detections, b: Detections) -> Detections:
 
 
 def _measure(image: np.ndarray, o: DetectionOptions, surface: np.ndarray | None, labels: np.ndarray, stats: np.ndarray,
-             keep: np.ndarray, blob_noise: np.ndarray, noise: float, bg: float) -> tuple[Detections, np.ndarray]:
+             keep: np.ndarray, blob_noise: np.ndarray, noise: float, bg: float, ceiling: float | None = None,
+             agree_px: float | None = None) -> tuple[Detections, np.ndarray]:
     """Centres, covariances and the rest of the blobs ``keep`` ((n - 1,) bool over the components 1..n-1 of
     ``labels`` / ``stats``); ``blob_noise`` (n - 1,) is each one's noise for the peak test, ``noise`` the image's,
-    ``bg`` its median level. Returns (the detections, (k,) the component index (0-based, label - 1) of each)."""
+    ``bg`` its median level, ``ceiling`` its clipping level (None: ``image``'s). ``agree_px``: the ellipse is fitted to
+    every blob and a blob is kept only where the fit succeeds and its centre is within this of the centroid (two
+    estimates of one dot's centre; a patch of the surface, a dot cut by an edge, is not one). Returns (the detections,
+    (k,) the component index (0-based, label - 1) of each)."""
     empty = Detections(np.zeros((0, 2)), np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0), noise,
                        np.zeros((0, 2, 2)), o.polarity, np.zeros((0, 2, 2)), np.zeros((0, 2, 2)),
                        np.zeros(0, dtype=int), np.zeros(0, dtype=int), np.zeros(0, dtype=bool))
@@ -776,7 +795,8 @@ def _measure(image: np.ndarray, o: DetectionOptions, surface: np.ndarray | None,
         li, xi, yi, vi, bgp = li[sym], xi[sym], yi[sym], vi[sym], bgp[sym]
     top = np.zeros(k + 1)
     np.maximum.at(top, li, vi)
-    n_sat = np.bincount(li, weights=(vi >= _ceiling(image)).astype(float), minlength=k + 1)[1:]
+    n_sat = np.bincount(li, weights=(vi >= (_ceiling(image) if ceiling is None else ceiling)).astype(float),
+                        minlength=k + 1)[1:]
     peak = top[1:] - bg_local
     # the dot hides the surface behind it: a pixel's value is bg (1 - a) + L a for a dot of level L
     # covering the fraction a, so its share of the dot is (value - bg) / (L - bg), with L ~ the peak
@@ -808,12 +828,16 @@ def _measure(image: np.ndarray, o: DetectionOptions, surface: np.ndarray | None,
     pick = np.ones(k, dtype=bool) if o.centre == "ellipse" else (
         (n_sat > 0) | (misfit > 0) if o.centre == "auto" else np.zeros(k, dtype=bool))
     used_ellipse = np.zeros(k, dtype=bool)
-    if pick.any():
+    fit = pick if agree_px is None else np.ones(k, dtype=bool)
+    agree = np.ones(k, dtype=bool)
+    if fit.any():
         from calibration.ellipse_fit import contour_ellipse_centres
 
-        blobs = remap if pick.all() else np.where(np.concatenate([[False], pick])[remap.astype(np.int64)], remap,
-                                                  np.float32(0)).astype(np.float32)
+        blobs = remap if fit.all() else np.where(np.concatenate([[False], fit])[remap.astype(np.int64)], remap,
+                                                 np.float32(0)).astype(np.float32)
         e_uv, e_cov, ok = contour_ellipse_centres(image, blobs[labels], k, coef, xc, yc, top[1:], noise)
+        if agree_px is not None:
+            agree = ok & (np.hypot(*(e_uv - uv).T) <= agree_px)
         used_ellipse = ok & pick
         uv = np.where(used_ellipse[:, None], e_uv, uv)
         cov = np.where(used_ellipse[:, None, None], e_cov, cov)
@@ -826,7 +850,7 @@ def _measure(image: np.ndarray, o: DetectionOptions, surface: np.ndarray | None,
     a2 = per_blob(h * np.abs(dx * vec[li - 1, 0, 1] + dy * vec[li - 1, 1, 1]))
     bcov = (misfit**2)[:, None, None] * (a1[:, None, None] ** 2 * np.einsum("ka,kb->kab", vec[:, :, 0], vec[:, :, 0])
                                          + a2[:, None, None] ** 2 * np.einsum("ka,kb->kab", vec[:, :, 1], vec[:, :, 1]))
-    good = (sw > 0) & (peak >= o.min_peak_snr * blob_noise[keep])
+    good = (sw > 0) & (peak >= o.min_peak_snr * blob_noise[keep]) & agree
     flux = sw * np.maximum(peak, 0.0)
     ring_px = np.bincount(lf, minlength=k + 1)[1:]
     return (Detections(uv[good], area[keep][good], peak[good], flux[good], bg_local[good], noise, cov[good],
