@@ -448,8 +448,8 @@ def _noise_by_level(image: np.ndarray, background: np.ndarray, stride: int, bins
 
 
 def _split_merged(image: np.ndarray, tophat: np.ndarray, opening: np.ndarray, levels: np.ndarray, sigmas: np.ndarray,
-                  labels: np.ndarray, stats: np.ndarray, merged: np.ndarray, found: np.ndarray, reach: int,
-                  threshold_sigma: float, thr: float) -> tuple[np.ndarray, np.ndarray]:
+                  labels: np.ndarray, stats: np.ndarray, merged: np.ndarray, joined: np.ndarray, found: np.ndarray,
+                  reach: int, threshold_sigma: float, thr: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Split the components ``merged`` (too large or too loose for a dot) at ``threshold_sigma`` times the noise of
     their own background.
 
@@ -463,20 +463,20 @@ def _split_merged(image: np.ndarray, tophat: np.ndarray, opening: np.ndarray, le
     the ``opening`` under it; the kept pixels are labelled anew and their blobs appended to ``labels`` (in place; the
     component's other pixels become background) and ``stats``. A new blob within ``reach`` px of a dot ``found``
     before ((n,) bool per component, 0 the background) is left out: it is that dot's own skirt, cut off.
-    Returns (the extended stats, (appended,) each appended blob's noise: the mean over its pixels).
+    The components ``joined`` passed as dots (two dots bridged by the noise can); one of them is taken apart the same
+    way only where it falls into two or more blobs of :data:`SPLIT_MIN_AREA_PX`, and its detection is then undone.
+    Returns (the extended stats, (appended,) each appended blob's noise: the mean over its pixels, the components
+    of ``joined`` taken apart).
     """
     n = len(stats)
-    new_stats, new_noise = [stats], []
+    new_stats, new_noise, undone = [stats], [], []
     H, W = image.shape
     n0 = len(found)
     found = np.append(found, False).astype(np.uint8)  # labels from n0 on are new blobs: not found before
     near_kernel = np.ones((2 * reach + 1, 2 * reach + 1), dtype=np.uint8)
-    for c in merged:
+    for c, whole in [(c, True) for c in joined] + [(c, False) for c in merged]:
         x, y, w, h = (int(v) for v in stats[c, :4])
         lab = labels[y:y + h, x:x + w]  # a view: written in place
-        # the blobs found before, in the box grown by the reach, dilated by it: where a new blob may not come
-        ex0, ey0, ex1, ey1 = max(x - reach, 0), max(y - reach, 0), min(x + w + reach, W), min(y + h + reach, H)
-        near = cv2.dilate(found[np.minimum(labels[ey0:ey1, ex0:ex1], n0)], near_kernel)[y - ey0:y - ey0 + h, x - ex0:x - ex0 + w] > 0
         comp = lab == c
         sig = np.interp(opening[y:y + h, x:x + w], levels, sigmas)
         level = np.maximum(threshold_sigma * sig, thr)
@@ -484,6 +484,15 @@ def _split_merged(image: np.ndarray, tophat: np.ndarray, opening: np.ndarray, le
             continue
         sub = (comp & (tophat[y:y + h, x:x + w] > level)).astype(np.uint8)
         ns, sl, ss, _ = cv2.connectedComponentsWithStats(sub, connectivity=8, ltype=cv2.CV_32S)
+        if whole:  # a blob that passed as one dot is taken apart only if it holds two
+            if np.count_nonzero(ss[1:, cv2.CC_STAT_AREA] >= SPLIT_MIN_AREA_PX) < 2:
+                continue
+            found[c] = 0
+            undone.append(c)
+        # the dots found before, in the box grown by the reach, dilated by it: where a new blob may not come
+        ex0, ey0, ex1, ey1 = max(x - reach, 0), max(y - reach, 0), min(x + w + reach, W), min(y + h + reach, H)
+        near = cv2.dilate(found[np.minimum(labels[ey0:ey1, ex0:ex1], n0)],
+                          near_kernel)[y - ey0:y - ey0 + h, x - ex0:x - ex0 + w] > 0
         lab[comp] = 0
         if ns > 1 and near.any():
             close = np.zeros(ns, dtype=bool)
@@ -503,7 +512,8 @@ def _split_merged(image: np.ndarray, tophat: np.ndarray, opening: np.ndarray, le
             new_noise.append(np.bincount(sl[inside], weights=sig[inside], minlength=ns)[1:] / ss[:, cv2.CC_STAT_AREA])
             n += ns - 1
         stats[c, cv2.CC_STAT_AREA] = 0  # no longer a blob: fails every test
-    return np.concatenate(new_stats), (np.concatenate(new_noise) if new_noise else np.zeros(0))
+    return (np.concatenate(new_stats), (np.concatenate(new_noise) if new_noise else np.zeros(0)),
+            np.asarray(undone, dtype=np.int64))
 
 
 def _busy_pairs(busy: np.ndarray) -> np.ndarray:
@@ -693,22 +703,25 @@ def _detect(image: np.ndarray, o: DetectionOptions, surface: np.ndarray | None =
     # dots joined to the lit surface they lie on, split off at that surface's own noise; a new blob that comes within
     # the reach of a detected one's margin and ring (m + 2 px) or of its ellipse fit's window (2 + 2 px) is its skirt
     merged = np.flatnonzero(~compact & (stats[1:, cv2.CC_STAT_AREA] >= SPLIT_MIN_AREA_PX)) + 1
-    if len(merged) == 0:
-        return det
     opening = cv2.subtract(image, tophat)  # the background under the top-hat
     levels, sigmas = _noise_by_level(image, opening, o.subsample)
     if len(levels) == 0 or o.threshold_sigma * sigmas.max() <= thr:  # nowhere noisier than the image's figure
         return det
-    # a detection whose peak is not min_peak_snr times the noise above the opening under it is a speck of that noise
-    # (its ring may have held the merged dot, and its plane with it): no dot next to it is its skirt
+    # a detection whose own pixels' top-hat does not reach min_peak_snr times the noise of the opening under it is a
+    # speck of that noise (its peak may not say so: its margin and ring may have held the merged dot): no dot next to
+    # it is its skirt
     H, W = image.shape
-    under = opening[np.clip(np.round(det.uv[:, 1]).astype(np.int64), 0, H - 1),
-                    np.clip(np.round(det.uv[:, 0]).astype(np.int64), 0, W - 1)].astype(np.float64)
-    dot = det.peak + det.background - under >= o.min_peak_snr * np.interp(under, levels, sigmas)
     is_found = np.zeros(n_lab, dtype=bool)
-    is_found[found[dot] + 1] = True
-    stats, new_noise = _split_merged(image, tophat, opening, levels, sigmas, labels, stats, merged, is_found,
-                                     2 * (o.margin_px + 2), o.threshold_sigma, thr)
+    for f, (u, v) in zip(found + 1, det.uv):
+        x, y, w, h = (int(a) for a in stats[f, :4])
+        top = tophat[y:y + h, x:x + w][labels[y:y + h, x:x + w] == f].max()
+        under = float(opening[min(max(int(round(v)), 0), H - 1), min(max(int(round(u)), 0), W - 1)])
+        is_found[f] = top >= o.min_peak_snr * np.interp(under, levels, sigmas)
+    joined = found[(stats[found + 1, cv2.CC_STAT_AREA] >= 2 * SPLIT_MIN_AREA_PX) & is_found[found + 1]] + 1
+    stats, new_noise, undone = _split_merged(image, tophat, opening, levels, sigmas, labels, stats, merged, joined,
+                                             is_found, 2 * (o.margin_px + 2), o.threshold_sigma, thr)
+    if len(undone):
+        det = det.subset(~np.isin(found + 1, undone))
     if len(new_noise) == 0:
         return det
     compact, clear = _blob_tests(stats, o, max_area, image.shape)
