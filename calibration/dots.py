@@ -384,6 +384,11 @@ def _components(mask: np.ndarray) -> tuple[int, np.ndarray, np.ndarray]:
 #: at least this many pixels (smaller: noise, or a small dot that stays lost)
 SPLIT_MIN_AREA_PX = 64
 
+#: a blob that passed as one dot is measured again at its own noise where its largest part there keeps less than this
+#: share of its pixels: a dot with a cluster of the surface's noise attached (a single dot on a lit surface keeps
+#: ~85 %: its skirt between the two thresholds), whose centre the cluster pulls
+JOINED_MIN_SHARE = 0.7
+
 #: a blob split off a merged component is a dot only if its ellipse and centroid centres agree within this (px)
 SPLIT_AGREE_PX = 0.25
 
@@ -447,9 +452,9 @@ def _noise_by_level(image: np.ndarray, background: np.ndarray, stride: int, bins
     return np.asarray(levels), np.asarray(sigmas)
 
 
-def _split_merged(image: np.ndarray, tophat: np.ndarray, opening: np.ndarray, levels: np.ndarray, sigmas: np.ndarray,
-                  labels: np.ndarray, stats: np.ndarray, merged: np.ndarray, joined: np.ndarray, found: np.ndarray,
-                  reach: int, threshold_sigma: float, thr: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _split_merged(image: np.ndarray, tophat: np.ndarray, opening: np.ndarray, noise_at: np.ndarray, labels: np.ndarray,
+                  stats: np.ndarray, merged: np.ndarray, joined: np.ndarray, found: np.ndarray, reach: int,
+                  threshold_sigma: float, thr: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Split the components ``merged`` (too large or too loose for a dot) at ``threshold_sigma`` times the noise of
     their own background.
 
@@ -459,17 +464,19 @@ def _split_merged(image: np.ndarray, tophat: np.ndarray, opening: np.ndarray, le
     pixels pass ``thr``, and they join into clusters of thousands of pixels, or tendrils, that reach a dot's rim at
     random. The dot is then part of a blob too large or too loose to be one, and is lost (the large dots of a near
     view, on the brightest surface, most often). In such a component a pixel is kept where its top-hat exceeds
-    ``max(thr, threshold_sigma * noise(level))``, the noise ``sigmas`` at the ``levels`` (:func:`_noise_by_level`) of
+    ``max(thr, threshold_sigma * noise(level))``, ``noise_at`` (:func:`_noise_by_level`, by grey level) the level of
     the ``opening`` under it; the kept pixels are labelled anew and their blobs appended to ``labels`` (in place; the
     component's other pixels become background) and ``stats``. A new blob within ``reach`` px of a dot ``found``
     before ((n,) bool per component, 0 the background) is left out: it is that dot's own skirt, cut off.
-    The components ``joined`` passed as dots (two dots bridged by the noise can); one of them is taken apart the same
-    way only where it falls into two or more blobs of :data:`SPLIT_MIN_AREA_PX`, and its detection is then undone.
-    Returns (the extended stats, (appended,) each appended blob's noise: the mean over its pixels, the components
-    of ``joined`` taken apart).
+    The components ``joined`` passed as dots (two dots bridged by the noise can, or a dot with a cluster of the noise);
+    one of them is taken apart the same way only where it falls into two or more blobs of :data:`SPLIT_MIN_AREA_PX`
+    or its largest part keeps less than :data:`JOINED_MIN_SHARE` of its pixels (its pixels are relabelled then; the
+    caller keeps its detection unless one of its parts is a dot).
+    Returns (the extended stats; (appended,) each appended blob's noise, the mean over its pixels, and the component it
+    came from; the components of ``joined`` taken apart).
     """
     n = len(stats)
-    new_stats, new_noise, undone = [stats], [], []
+    new_stats, new_noise, parent, undone = [stats], [], [], []
     H, W = image.shape
     n0 = len(found)
     found = np.append(found, False).astype(np.uint8)  # labels from n0 on are new blobs: not found before
@@ -478,20 +485,21 @@ def _split_merged(image: np.ndarray, tophat: np.ndarray, opening: np.ndarray, le
         x, y, w, h = (int(v) for v in stats[c, :4])
         lab = labels[y:y + h, x:x + w]  # a view: written in place
         comp = lab == c
-        sig = np.interp(opening[y:y + h, x:x + w], levels, sigmas)
+        sig = noise_at[opening[y:y + h, x:x + w]]
         level = np.maximum(threshold_sigma * sig, thr)
         if not np.any(level[comp] > thr):  # its noise is the image's: nothing to split off
             continue
         sub = (comp & (tophat[y:y + h, x:x + w] > level)).astype(np.uint8)
         ns, sl, ss, _ = cv2.connectedComponentsWithStats(sub, connectivity=8, ltype=cv2.CV_32S)
-        if whole:  # a blob that passed as one dot is taken apart only if it holds two
-            if np.count_nonzero(ss[1:, cv2.CC_STAT_AREA] >= SPLIT_MIN_AREA_PX) < 2:
+        if whole:  # a blob that passed as one dot is taken apart only if it holds two, or a dot and much noise
+            a = ss[1:, cv2.CC_STAT_AREA]
+            if np.count_nonzero(a >= SPLIT_MIN_AREA_PX) < 2 and a.max(initial=0) >= JOINED_MIN_SHARE * stats[c, 4]:
                 continue
-            found[c] = 0
             undone.append(c)
-        # the dots found before, in the box grown by the reach, dilated by it: where a new blob may not come
+        # the other dots found before, in the box grown by the reach, dilated by it: where a new blob may not come
         ex0, ey0, ex1, ey1 = max(x - reach, 0), max(y - reach, 0), min(x + w + reach, W), min(y + h + reach, H)
-        near = cv2.dilate(found[np.minimum(labels[ey0:ey1, ex0:ex1], n0)],
+        around = labels[ey0:ey1, ex0:ex1]
+        near = cv2.dilate(found[np.minimum(around, n0)] * (around != c).astype(np.uint8),
                           near_kernel)[y - ey0:y - ey0 + h, x - ex0:x - ex0 + w] > 0
         lab[comp] = 0
         if ns > 1 and near.any():
@@ -510,10 +518,11 @@ def _split_merged(image: np.ndarray, tophat: np.ndarray, opening: np.ndarray, le
             ss[:, cv2.CC_STAT_TOP] += y
             new_stats.append(ss)
             new_noise.append(np.bincount(sl[inside], weights=sig[inside], minlength=ns)[1:] / ss[:, cv2.CC_STAT_AREA])
+            parent.append(np.full(ns - 1, c))
             n += ns - 1
         stats[c, cv2.CC_STAT_AREA] = 0  # no longer a blob: fails every test
     return (np.concatenate(new_stats), (np.concatenate(new_noise) if new_noise else np.zeros(0)),
-            np.asarray(undone, dtype=np.int64))
+            (np.concatenate(parent) if parent else np.zeros(0, dtype=np.int64)), np.asarray(undone, dtype=np.int64))
 
 
 def _busy_pairs(busy: np.ndarray) -> np.ndarray:
@@ -704,24 +713,33 @@ def _detect(image: np.ndarray, o: DetectionOptions, surface: np.ndarray | None =
     # the reach of a detected one's margin and ring (m + 2 px) or of its ellipse fit's window (2 + 2 px) is its skirt
     merged = np.flatnonzero(~compact & (stats[1:, cv2.CC_STAT_AREA] >= SPLIT_MIN_AREA_PX)) + 1
     opening = cv2.subtract(image, tophat)  # the background under the top-hat
-    levels, sigmas = _noise_by_level(image, opening, o.subsample)
+    levels, sigmas = _noise_by_level(image, opening, 2 * o.subsample)
     if len(levels) == 0 or o.threshold_sigma * sigmas.max() <= thr:  # nowhere noisier than the image's figure
         return det
     # a detection whose own pixels' top-hat does not reach min_peak_snr times the noise of the opening under it is a
     # speck of that noise (its peak may not say so: its margin and ring may have held the merged dot): no dot next to
-    # it is its skirt
+    # it is its skirt. Asked of the detections that could hold two dots, or that come within reach of a merged blob.
     H, W = image.shape
+    reach = 2 * (o.margin_px + 2)
+    noise_at = np.interp(np.arange(int(_ceiling(image)) + 1), levels, sigmas)  # by grey level of the opening
+    big = stats[found + 1, cv2.CC_STAT_AREA] >= 2 * SPLIT_MIN_AREA_PX
+    fb, mb = stats[found + 1, :4].astype(np.int64), stats[merged, :4].astype(np.int64)
+    close = np.ones((len(found), len(merged)), dtype=bool)
+    for a in (0, 1):  # the boxes, grown by the reach, overlap along x and along y
+        close &= ((fb[:, None, a] <= mb[None, :, a] + mb[None, :, a + 2] + reach)
+                  & (mb[None, :, a] <= fb[:, None, a] + fb[:, None, a + 2] + reach))
+    close = close.any(axis=1)
     is_found = np.zeros(n_lab, dtype=bool)
-    for f, (u, v) in zip(found + 1, det.uv):
+    for i in np.flatnonzero(big | close):
+        f = found[i] + 1
         x, y, w, h = (int(a) for a in stats[f, :4])
         top = tophat[y:y + h, x:x + w][labels[y:y + h, x:x + w] == f].max()
-        under = float(opening[min(max(int(round(v)), 0), H - 1), min(max(int(round(u)), 0), W - 1)])
-        is_found[f] = top >= o.min_peak_snr * np.interp(under, levels, sigmas)
-    joined = found[(stats[found + 1, cv2.CC_STAT_AREA] >= 2 * SPLIT_MIN_AREA_PX) & is_found[found + 1]] + 1
-    stats, new_noise, undone = _split_merged(image, tophat, opening, levels, sigmas, labels, stats, merged, joined,
-                                             is_found, 2 * (o.margin_px + 2), o.threshold_sigma, thr)
-    if len(undone):
-        det = det.subset(~np.isin(found + 1, undone))
+        u, v = det.uv[i]
+        under = opening[min(max(int(round(v)), 0), H - 1), min(max(int(round(u)), 0), W - 1)]
+        is_found[f] = top >= o.min_peak_snr * noise_at[under]
+    joined = found[big & is_found[found + 1]] + 1
+    stats, new_noise, parent, undone = _split_merged(image, tophat, opening, noise_at, labels, stats, merged, joined,
+                                                     is_found, reach, o.threshold_sigma, thr)
     if len(new_noise) == 0:
         return det
     compact, clear = _blob_tests(stats, o, max_area, image.shape)
@@ -737,9 +755,12 @@ def _detect(image: np.ndarray, o: DetectionOptions, surface: np.ndarray | None =
     shifted = stats.copy()
     shifted[1:, cv2.CC_STAT_LEFT] -= bx0
     shifted[1:, cv2.CC_STAT_TOP] -= by0
-    more, _ = _measure(image[by0:by1, bx0:bx1], o, None if surface is None else surface[by0:by1, bx0:bx1],
-                       labels[by0:by1, bx0:bx1], shifted, keep, np.concatenate([np.full(n_lab - 1, noise), new_noise]),
-                       noise, bg, _ceiling(image), SPLIT_AGREE_PX)
+    more, comp = _measure(image[by0:by1, bx0:bx1], o, None if surface is None else surface[by0:by1, bx0:bx1],
+                          labels[by0:by1, bx0:bx1], shifted, keep, np.concatenate([np.full(n_lab - 1, noise), new_noise]),
+                          noise, bg, _ceiling(image), SPLIT_AGREE_PX)
+    # a blob that passed as one dot gives way to its parts only where one of them is a dot
+    replaced = np.intersect1d(undone, parent[comp - (n_lab - 1)])
+    det = det.subset(~np.isin(found + 1, replaced))
     return _concatenate(det, replace(more, uv=more.uv + np.array([bx0, by0], dtype=float)))
 
 
