@@ -738,6 +738,10 @@ def _detect(image: np.ndarray, o: DetectionOptions, surface: np.ndarray | None =
         under = opening[min(max(int(round(v)), 0), H - 1), min(max(int(round(u)), 0), W - 1)]
         is_found[f] = top >= o.min_peak_snr * noise_at[under]
     joined = found[big & is_found[found + 1]] + 1
+    # only where the ground under a blob's centre is noisier than the image's figure can the noise have joined it
+    cx = np.minimum(stats[joined, 0] + stats[joined, 2] // 2, W - 1)
+    cy = np.minimum(stats[joined, 1] + stats[joined, 3] // 2, H - 1)
+    joined = joined[o.threshold_sigma * noise_at[opening[cy, cx]] > thr]
     stats, new_noise, parent, undone = _split_merged(image, tophat, opening, noise_at, labels, stats, merged, joined,
                                                      is_found, reach, o.threshold_sigma, thr)
     if len(new_noise) == 0:
