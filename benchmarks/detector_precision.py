@@ -288,10 +288,11 @@ def measure_saturation(n_views: int, repeats: int, seed: int, plates: int, skins
         doc = json.loads(DATA_PATH.read_text())
         doc |= {"c_saturation_px": best.c_saturation, "k_saturation": best.k_saturation,
                 "m_saturation": best.m_saturation, "version": "5",
-                "saturation_measured_by": f"python -m benchmarks.detector_precision --fit-saturation --views {n_views} "
-                                          f"--repeats {repeats} --seed {seed} --plates {plates} --skins {skins} "
+                "saturation_measured_by": "python -m benchmarks.detector_precision --fit-saturation"
                                           + (" --sphere" if distance_m is None else " --plans" if distance_m == "plan"
-                                             else f" --near {distance_m[0]}") + " --write",
+                                             else f" --near {distance_m[0]}")
+                                          + ("" if distance_m == "plan" else f" --views {n_views}")
+                                          + f" --repeats {repeats} --seed {seed} --plates {plates} --skins {skins} --write",
                 "saturation_dots": {"n": int(cs.sum()), "views": where}}
         DATA_PATH.write_text(json.dumps(doc, indent=1) + "\n")
         print(f"written {DATA_PATH}")

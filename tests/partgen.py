@@ -139,8 +139,11 @@ def _place_targets(rng, mesh: trimesh.Trimesh, solids: list, n: int, dot_mm: flo
 
 def make_part_job(out: Path, rng: np.random.Generator, kind: str | None = None, n_targets: int | None = None,
                   deviating_share: float | None = None, five_sigma_m: float = 25e-6,
-                  misplacement: tuple[float, float] | None = None) -> GeneratedPart:
+                  misplacement: tuple[float, float] | None = None, bar_sigma_mm: float = 0.002) -> GeneratedPart:
     """Write a random part's job folder into ``out``; returns what was made (with the injected truth).
+
+    ``bar_sigma_mm``: the scale bar certificate's stated sigma; the certificate is off the bar's true length by a
+    draw of it (the same standard normal draw for a seed whatever the sigma).
 
     ``misplacement``: (mm, deg) by which the simulated part lies away from its nominal placement (shifted on
     the table, turned about the vertical; ``[sim] base_from_part_true``), for jobs that locate the part first.
@@ -192,7 +195,7 @@ def make_part_job(out: Path, rng: np.random.Generator, kind: str | None = None, 
     # the bar's certificate is a calibration like any other: its length is off the true one by a draw of its stated
     # sigma (2 um), so a run realises the certificate's share of every target's uncertainty as a real cell does. Drawn
     # from a child stream: the part, its deviations and its plan are the same as without it.
-    bar_sigma = 0.002
+    bar_sigma = float(bar_sigma_mm)
     cert = float(np.linalg.norm(xyz[a] - xyz[b]) + bar_sigma * rng.spawn(1)[0].standard_normal())
     text = re.sub(r"(?m)^scale_bar = .*$", f'scale_bar = {{ a = "{ids[a]}", b = "{ids[b]}", length = '
                   f'{cert:.5f}, sigma = {bar_sigma} }}', text)

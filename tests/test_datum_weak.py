@@ -1,6 +1,8 @@
 """The datum's minimum trace is taken over the determined targets: one target seen by two nearly parallel rays (its
 depth uncertain by ~0.5 mm) must not spread its uncertainty to every other target through the datum (generated
-plate seed 113: every target 11 um instead of 1.6 um, truth ratio 0.69, predicted / achieved 0.41)."""
+plate seed 113: every target 11 um instead of 1.6 um, truth ratio 0.69, predicted / achieved 0.41). Which targets are
+weak is judged by their own intersection, which depends on no datum (decision 0040): in a free network a target far
+behind the part went into the datum's scale and hid itself by inflating the median it was compared with."""
 from __future__ import annotations
 
 import numpy as np
@@ -12,9 +14,8 @@ from calibration.bundle.covariance import WEAK_DATUM
 
 def _network(with_weak: bool, off_m: float = 0.0, free: bool = False, behind: float = 12.0):
     """``off_m``: the weak target's approximate (CAD) coordinates lie this far off its truth, across its rays;
-    ``free``: a free network (no scale bar; the datum takes the scale too). In a free network a target far behind
-    (``behind`` 2-12) is not left out: its depth goes into the datum's scale, which inflates the median sigma the
-    criterion compares with (decision 0036's criterion, unchanged here); at 1 it is."""
+    ``free``: a free network (no scale bar; the datum takes the scale too); ``behind``: the weak target lies on the
+    two cameras' bisector this many times their distance behind the part (rays ~2.5 deg apart at 12)."""
     rng = np.random.default_rng(5)
     net = simulate_network(rng, n_targets=120, n_images=10, sigma_px=0.02)
     oi, ot, uv, pts = net.obs_image, net.obs_target, net.obs_uv, net.points
@@ -39,16 +40,20 @@ def _network(with_weak: bool, off_m: float = 0.0, free: bool = False, behind: fl
     return res, x0
 
 
-def test_a_weak_target_is_left_out_of_the_datum_and_the_others_keep_their_precision():
-    ref, _ = _network(False)
-    res, _ = _network(True)
+@pytest.mark.parametrize("free, behind", [(False, 12.0), (True, 2.0), (True, 5.0), (True, 12.0)])
+def test_a_weak_target_is_left_out_of_the_datum_and_the_others_keep_their_precision(free, behind):
+    """With a scale bar and in a free network. A free network's far-behind target (2-12 x the cameras' distance) put
+    its depth into the datum's scale when the criterion was the sigma in the all-target datum: every other target's
+    sigma grew 1.7-10x (median), the median with it, and the target was not left out (decision 0038)."""
+    ref, _ = _network(False, free=free)
+    res, _ = _network(True, free=free, behind=behind)
     sig_ref = ref.sigma_m()
     sig = res.sigma_m()
     n = len(sig_ref)
-    assert sig[n] > WEAK_DATUM * np.median(sig[:n])  # the weak target: determined far worse than the others
     assert list(res.datum_left_out) == [n]
     # the others: as precise as without the weak target (its two rays add almost nothing), not inflated by it
     np.testing.assert_allclose(sig[:n], sig_ref, rtol=0.05)
+    assert sig[n] > WEAK_DATUM * np.median(sig[:n])  # the weak target: determined far worse than the others
     assert ref.datum_left_out is not None and len(ref.datum_left_out) == 0
 
 
@@ -64,7 +69,7 @@ def _datum_motion(points: np.ndarray, x0: np.ndarray, with_scale: bool) -> np.nd
     return np.concatenate([s * R @ c + t - c, Rotation.from_matrix(R).as_rotvec(), [s - 1.0]])
 
 
-@pytest.mark.parametrize("free, behind", [(False, 12.0), (True, 1.0)])
+@pytest.mark.parametrize("free, behind", [(False, 12.0), (True, 1.0), (True, 12.0)])
 def test_the_coordinates_are_in_the_covariance_s_datum_when_a_weak_target_is_left_out(free, behind):
     """bundle.json's coordinates and covariance in one datum: both over the kept targets. The weak target's approximate
     coordinates 5 mm off used to pull the similarity fit over all targets (the others moved by ~10 sigma) while the
@@ -90,3 +95,46 @@ def test_the_coordinates_are_in_the_covariance_s_datum_when_a_weak_target_is_lef
     M = Gf.T @ Q @ Gf
     scale = np.trace(Gf.T @ Gf) * np.median(sig) ** 2
     assert np.max(np.abs(M)) < 1e-9 * scale, np.max(np.abs(M)) / scale
+
+
+def test_the_weak_target_criterion_is_each_target_s_own_intersection_whatever_the_datum(monkeypatch):
+    """``own_intersection_sigma`` is ``sqrt(trace(N_pp^-1))`` of each target's rays with the cameras and interior held,
+    checked against the same sum built from finite-difference Jacobians of ``project`` at the adjusted network. The
+    scale bar's ends (their unknowns on the camera side of the normal equations) and the same targets in a free
+    network (unknowns on the point side) give the same value: the criterion does not depend on the datum."""
+    import calibration.bundle.covariance as cv
+    from calibration.camera import project
+
+    seen = {}
+
+    def spy(lin, lay, obs_target_act):
+        out = own(lin, lay, obs_target_act)
+        full = np.full(lay.n, np.nan)
+        full[np.concatenate([lay.unlinked, lay.linked])] = out
+        seen["sigma"] = full
+        return out
+
+    own = cv.own_intersection_sigma
+    monkeypatch.setattr(cv, "own_intersection_sigma", spy)
+    got = {}
+    for free in (False, True):
+        res, _ = _network(True, free=free, behind=4.0)
+        got[free] = seen["sigma"]
+    rng = np.random.default_rng(5)  # the same observations as _network's: which image sees which target
+    net = simulate_network(rng, n_targets=120, n_images=10, sigma_px=0.02)
+    oi = np.concatenate([net.obs_image, [0, 1]])
+    ot = np.concatenate([net.obs_target, [120, 120]])
+    for t in (0, 1, 7, 120):  # the bar's ends, an ordinary target, the weak one (from the free network's result)
+        N = np.zeros((3, 3))
+        for i in oi[ot == t]:
+            J = np.empty((2, 3))
+            for a in range(3):
+                d = np.zeros(3)
+                d[a] = 1e-6
+                J[:, a] = (project(res.intrinsics, res.cam_from_part[i], (res.points[t] + d)[None])[0]
+                           - project(res.intrinsics, res.cam_from_part[i], (res.points[t] - d)[None])[0]) / 2e-6
+            N += J.T @ J / 0.02**2
+        direct = np.sqrt(np.trace(np.linalg.inv(N)))
+        assert got[True][t] == pytest.approx(direct, rel=1e-4), (t, got[True][t], direct)
+        assert got[False][t] == pytest.approx(direct, rel=1e-3), (t, got[False][t], direct)
+    assert got[True][120] > 50 * np.median(got[True][:120])

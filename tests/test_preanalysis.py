@@ -106,3 +106,19 @@ def test_renders_that_lose_a_bar_end_say_the_scale_is_not_established(example, m
     assert rays[a] == 0 and not np.isfinite(cov[a]).any()
     ok = np.isfinite(cov).all(axis=(1, 2))
     assert ok.sum() > 150  # the others predicted, in a free network
+
+
+def test_measure_says_which_dots_it_centred_by_their_ellipse(example):
+    """Decision 0037: observations.json marks the dots centred by the ellipse of their contour; they are the clipped
+    dots and the dots with a background bound (the ellipse fit may fail on a few, which keep their centroid)."""
+    job, folder = example
+    obs = json.loads((folder / "observations.json").read_text())
+    flagged = ellipse = stray = 0
+    for im in obs["images"]:
+        e = np.asarray(im["ellipse_centre"], dtype=bool)
+        f = (np.asarray(im["clipped_share"]) > 0) | (np.trace(np.asarray(im["bg_cov_px2"]), axis1=1, axis2=2) > 0)
+        assert len(e) == len(im["ids"])
+        flagged += int(f.sum())
+        ellipse += int((e & f).sum())
+        stray += int((e & ~f).sum())
+    assert stray == 0 and flagged > 50 and ellipse >= 0.9 * flagged, (stray, ellipse, flagged)

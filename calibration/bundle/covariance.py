@@ -9,9 +9,16 @@ from calibration.bundle.datum import _apply_similarity
 from calibration.bundle.projection import project_pixels
 
 
-#: a target whose sigma exceeds this many times the median target's (in the minimum-trace datum over all) is left out
-#: of the datum: two nearly parallel rays' 0.3-0.5 mm depth uncertainty, averaged into the datum's translation and
-#: rotation, gave every other target of generated plate seed 113 11 um instead of 1.6 um
+#: a target whose own intersection (its rays alone, cameras and interior held: :func:`own_intersection_sigma`) is this
+#: many times worse than the median target's is left out of the datum's minimum trace. Generated plate seed 113: two
+#: targets seen by two nearly parallel rays each (0.3-0.5 mm in depth) gave every other target 11 um instead of 1.6 um
+#: through the datum (decision 0036). The own intersection depends on no datum: in a free network a target far behind
+#: the part (2-12 x the cameras' distance) put its depth into the datum's scale, inflated every target's sigma and so
+#: the median a rule on the datum's sigma compared with, and hid itself (decision 0040). Why 10: the datum averages
+#: the targets' own errors; one target at k x the median brings k^2 median targets' worth of variance into that
+#: average, at 10 as much as 100 of them, the same order as all the others on a 100-400 target part. Measured
+#: (decision 0040): the example's largest is 3.8x; on generated parts 0-4 targets per run exceed 10x, seen by 2-11
+#: rays (most by 2-5) where the median target is seen by 6-24
 WEAK_DATUM = 10.0
 
 
@@ -63,6 +70,32 @@ def _datum_projectors(G: np.ndarray, keep: np.ndarray) -> tuple[np.ndarray, np.n
     return P.reshape(n, 3, d), Qk.reshape(n, 3, d)
 
 
+def own_intersection_sigma(lin, lay, obs_target_act: np.ndarray) -> np.ndarray:
+    """Each adjusted target's sigma (m, a priori: ``sqrt(trace(N_pp^-1))``) from its own rays with the cameras and the
+    interior orientation held: its 3 x 3 block of the normal equations, in the order ``[unlinked, linked]`` of the
+    covariance. It depends on no datum (a similarity of the network scales every block alike): a weak target's own
+    intersection is weak whatever frame the others' sigma is stated in.
+
+    The unlinked targets' blocks are the Schur complement's ``N_pp^-1`` (``lin.Dinv``; a weighted control target's
+    own observation is in it). The linked ones (scale-bar ends) carry their point Jacobian in the camera-side columns
+    ``6 + k ..`` of ``lin.Jc``: their blocks are summed from their rays here (the bar's length is not their own
+    intersection). ``obs_target_act``: the targets of the observations ``lin`` linearised. A singular block: inf."""
+    nu, nl = len(lay.unlinked), len(lay.linked)
+    tr = np.empty(nu + nl)
+    tr[:nu] = np.trace(lin.Dinv, axis1=1, axis2=2)
+    if nl:
+        k = lay.k
+        ls = lay.lslot[obs_target_act]
+        on = ls >= 0
+        J = lin.Jc[on][:, :, 6 + k : 6 + k + 3]
+        N = np.zeros((nl, 3, 3))
+        np.add.at(N, ls[on], np.matmul(np.swapaxes(J, 1, 2), J))
+        ev = np.linalg.eigvalsh(N)
+        tiny = ev[:, -1:] * 1e-15
+        tr[nu:] = np.where(np.all(ev > tiny, axis=1), np.sum(1.0 / np.where(ev > tiny, ev, 1.0), axis=1), np.inf)
+    return np.sqrt(np.where(tr >= 0, tr, np.inf))
+
+
 def _refit_coordinates(state, x0: np.ndarray, keep: np.ndarray, with_scale: bool, pc: PointCovariance,
                        blocks: np.ndarray):
     """The coordinates into the covariance's datum over the targets ``keep``: the similarity (rigid without scale)
@@ -107,10 +140,11 @@ def _result(state, lin, stats, lay, T, rejected, act_obs, obs_image, obs_target,
         Qg = Qg.reshape(len(act), 3, lin.defect)
         blocks = _datum_blocks(Qii, pc.D, pc.U, pc.C, Qg)
         P = H = Qg
-        # the minimum trace over the determined targets: a weak one would spread its uncertainty to every other
-        sig = np.sqrt(np.maximum(np.trace(blocks, axis1=1, axis2=2), 0.0))
+        # the minimum trace over the determined targets: a weak one would spread its uncertainty to every other. Which
+        # are weak: by their own intersection (no datum in it), not by their sigma in a datum they would shape
+        sig = own_intersection_sigma(lin, lay, obs_target[act_obs])
         fin = np.isfinite(sig)
-        weak = fin & (sig > WEAK_DATUM * np.median(sig[fin])) if fin.sum() >= 3 else np.zeros(len(sig), dtype=bool)
+        weak = ~fin | (sig > WEAK_DATUM * np.median(sig[fin])) if fin.sum() >= 3 else np.zeros(len(sig), dtype=bool)
         if weak.any() and (~weak).sum() >= 3:
             try:  # the kept targets span the datum's motions (not all on one line): else the all-target datum stays
                 P, H = _datum_projectors(G, ~weak)

@@ -95,6 +95,8 @@ class DotMeasurement:
             plane (px^2, ``Detections.background_cov``), or None.
         clipped_share: (k,) the share of each dot's pixels the sensor clipped (``Detections.saturated`` over its
             area; the bundle adds the detector model's saturation term), or None.
+        ellipse: (k,) bool, the centre is the ellipse of the dot's half-level contour (``Detections.ellipse``:
+            a clipped dot, a dot next to an edge; decision 0037), not its centroid; or None.
         dropped: (target index, reason) of every dot that was named and then left unnamed (partly hidden,
             shape unlike its target's ellipse, the image's naming inconsistent); never silent.
         resection_median_px: median residual of the resection on the named dots (None: too few to check).
@@ -110,6 +112,7 @@ class DotMeasurement:
     clipped_share: np.ndarray | None = None
     dropped: list = field(default_factory=list)
     resection_median_px: float | None = None
+    ellipse: np.ndarray | None = None
 
     @property
     def n_shape(self) -> int:
@@ -122,7 +125,7 @@ def name_dots(det_uv: np.ndarray, part, intr: Intrinsics, cam_from_part: np.ndar
               coded_ids: np.ndarray | None = None, coded_uv: np.ndarray | None = None,
               det_cov: np.ndarray | None = None, det_bg_cov: np.ndarray | None = None,
               det_axes: np.ndarray | None = None, det_ring_px: np.ndarray | None = None,
-              det_clipped: np.ndarray | None = None) -> DotMeasurement:
+              det_clipped: np.ndarray | None = None, det_ellipse: np.ndarray | None = None) -> DotMeasurement:
     """Identify detected dot centres ``det_uv: (k, 2)`` with an approximate pose and measure them.
 
     ``det_cov, det_bg_cov: (k, 2, 2)`` (px^2) travel with the centres they belong to. ``det_axes: (k, 2, 2)``
@@ -184,7 +187,8 @@ def name_dots(det_uv: np.ndarray, part, intr: Intrinsics, cam_from_part: np.ndar
                           int((match < 0).sum()), int((~clear).sum()),
                           None if det_cov is None else np.asarray(det_cov)[dots],
                           None if det_bg_cov is None else np.asarray(det_bg_cov)[dots],
-                          None if det_clipped is None else np.asarray(det_clipped, dtype=float)[dots], dropped, med)
+                          None if det_clipped is None else np.asarray(det_clipped, dtype=float)[dots], dropped, med,
+                          None if det_ellipse is None else np.asarray(det_ellipse, dtype=bool)[dots])
 
 
 def surface_labeller(camera, part) -> SurfaceLabeller | None:
@@ -269,5 +273,6 @@ def _name_detections(image, det, part, intr, cam_from_part_approx, occluder, max
                   det_cov=det.cov[keep], det_bg_cov=None if det.background_cov is None else det.background_cov[keep],
                   det_axes=det.axes[keep] if shape_check else None,
                   det_ring_px=None if det.ring_px is None else det.ring_px[keep],
-                  det_clipped=None if det.saturated is None else (det.saturated / np.maximum(det.area_px, 1.0))[keep])
+                  det_clipped=None if det.saturated is None else (det.saturated / np.maximum(det.area_px, 1.0))[keep],
+                  det_ellipse=None if det.ellipse is None else det.ellipse[keep])
     return m, {"n_dots": int(keep.sum()), "n_coded": int(known.sum())}

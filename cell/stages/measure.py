@@ -3,7 +3,8 @@
 observations.json: ``images``: list of {``station``, ``image``, ``ids``, ``uv`` (k, 2 px), ``cov_px2`` (k, 2, 2:
 each centre's covariance from the detector, px^2, ``calibration.dots.Detections.cov``), ``bg_cov_px2`` (k, 2, 2:
 the detector's bound on each centre's error from a background that is not a plane, px^2,
-``Detections.background_cov``; ADJUST adds its share to the image precision), counts,
+``Detections.background_cov``; ADJUST adds its share to the image precision), ``clipped_share`` (k,),
+``ellipse_centre`` (k, bool: the centre is the ellipse of the dot's contour, not its centroid; decision 0037), counts,
 ``background_mask`` (only when ``[camera] background_mask = "cad"``: "cad", or "none (...)" for an image measured
 unmasked because too few dots were named to label it from; docs/decisions/0035),
 ``dropped``: list of {``id``, ``reason``} (dots that were named and then left unnamed: partly hidden,
@@ -59,6 +60,7 @@ def run(ctx, keep: bool = False) -> None:
         dropped = [{"id": ids_all[i], "reason": why} for i, why in m.dropped]
         out.append({"station": im["station"], "image": im["image"], "ids": names, "uv": m.uv, "cov_px2": m.cov,
                     "bg_cov_px2": m.bg_cov, "clipped_share": m.clipped_share,
+                    **({"ellipse_centre": m.ellipse} if m.ellipse is not None else {}),
                     "n_unidentified": m.n_unidentified, "n_partly_hidden": m.n_partly_hidden,
                     "n_shape_rejected": m.n_shape, "dropped": dropped,
                     "resection_median_px": m.resection_median_px} | counts)
@@ -75,6 +77,9 @@ def run(ctx, keep: bool = False) -> None:
     ctx.say(f"  {sum(n)} observations in {len(out)} images ({min(n)}..{max(n)} per image); "
             f"{sum(o['n_partly_hidden'] for o in out)} partly hidden dots dropped, "
             f"{sum(o['n_unidentified'] for o in out)} other blobs (marker pieces, edges) ignored")
+    n_ell = sum(int(np.sum(o.get("ellipse_centre", []))) for o in out)
+    if n_ell:
+        ctx.say(f"  {n_ell} dots centred by the ellipse of their contour (clipped, or next to an edge: decision 0037)")
     other = {k: v for k, v in by_reason.items() if k != "partly hidden (CAD)"}
     if other:
         ctx.say("  named dots left unnamed rather than misnamed: " + ", ".join(f"{v} {k}" for k, v in other.items()))
