@@ -84,8 +84,8 @@ def split_pass(image: np.ndarray, o: DetectionOptions, surface: np.ndarray | Non
     cx = np.minimum(stats[joined, 0] + stats[joined, 2] // 2, W - 1)
     cy = np.minimum(stats[joined, 1] + stats[joined, 3] // 2, H - 1)
     joined = joined[o.threshold_sigma * noise_at[opening[cy, cx]] > thr]
-    stats, new_noise, parent, undone = _split(image, tophat, opening, noise_at, labels, stats, merged, joined,
-                                                     is_found, reach, o.threshold_sigma, thr)
+    stats, new_noise, parent, undone = _split(image, tophat, opening, noise_at, labels, stats, merged, joined, is_found,
+                                              reach, o.threshold_sigma, thr)
     if len(new_noise) == 0:
         return det
     compact, clear = _blob_tests(stats, o, max_area, image.shape)
@@ -101,9 +101,10 @@ def split_pass(image: np.ndarray, o: DetectionOptions, surface: np.ndarray | Non
     shifted = stats.copy()
     shifted[1:, cv2.CC_STAT_LEFT] -= bx0
     shifted[1:, cv2.CC_STAT_TOP] -= by0
-    more, comp = _measure(image[by0:by1, bx0:bx1], o, None if surface is None else surface[by0:by1, bx0:bx1],
-                          labels[by0:by1, bx0:bx1], shifted, keep, np.concatenate([np.full(n_lab - 1, noise), new_noise]),
-                          noise, bg, _ceiling(image), SPLIT_AGREE_PX)
+    blob_noise = np.concatenate([np.full(n_lab - 1, noise), new_noise])
+    crop = (slice(by0, by1), slice(bx0, bx1))
+    more, comp = _measure(image[crop], o, None if surface is None else surface[crop], labels[crop], shifted, keep,
+                          blob_noise, noise, bg, _ceiling(image), SPLIT_AGREE_PX)
     # a blob that passed as one dot gives way to its parts only where one of them is a dot
     replaced = np.intersect1d(undone, parent[comp - (n_lab - 1)])
     det = det.subset(~np.isin(found + 1, replaced))
@@ -123,11 +124,12 @@ def _concatenate(a: Detections, b: Detections) -> Detections:
 
 
 def noise_by_level(image: np.ndarray, background: np.ndarray, stride: int, bins: int = 16
-                    ) -> tuple[np.ndarray, np.ndarray]:
+                   ) -> tuple[np.ndarray, np.ndarray]:
     """The pixel noise as a function of the background level: photon noise grows with the light.
 
-    The differences of pixels two apart along every ``stride``-th row (as :func:`_noise`), neither clipped, binned by
-    the mean ``background`` level of the pair in ``bins`` equal bins up to the sensor's ceiling; per bin of at least
+    The differences of pixels two apart along every ``stride``-th row (as :func:`calibration.dots._noise`), neither
+    clipped, binned by the mean ``background`` level of the pair in ``bins`` equal bins up to the sensor's ceiling; per
+    bin of at least
     :data:`NOISE_BIN_MIN_PAIRS` pairs, their rms about the median within 5 robust standard deviations (the steps
     across a dot's rim are left out), over sqrt(2).
     Returns ((b,) mean background level of each such bin, increasing; (b,) its noise standard deviation).
@@ -162,25 +164,19 @@ def noise_by_level(image: np.ndarray, background: np.ndarray, stride: int, bins:
 
 
 def _split(image: np.ndarray, tophat: np.ndarray, opening: np.ndarray, noise_at: np.ndarray, labels: np.ndarray,
-                  stats: np.ndarray, merged: np.ndarray, joined: np.ndarray, found: np.ndarray, reach: int,
-                  threshold_sigma: float, thr: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+           stats: np.ndarray, merged: np.ndarray, joined: np.ndarray, found: np.ndarray, reach: int,
+           threshold_sigma: float, thr: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Split the components ``merged`` (too large or too loose for a dot) at ``threshold_sigma`` times the noise of
-    their own background.
+    their own background (module docstring).
 
-    The threshold ``thr`` is ``threshold_sigma`` times one noise figure of the whole image, which its dark background
-    (most of its pixels) sets; on the lit surface of the part the photon noise is 2-3 times that, and the top-hat (the
-    image minus its opening, a maximum of minima) sits ~2.5 of that noise above zero: about half of the surface's
-    pixels pass ``thr``, and they join into clusters of thousands of pixels, or tendrils, that reach a dot's rim at
-    random. The dot is then part of a blob too large or too loose to be one, and is lost (the large dots of a near
-    view, on the brightest surface, most often). In such a component a pixel is kept where its top-hat exceeds
-    ``max(thr, threshold_sigma * noise(level))``, ``noise_at`` (:func:`noise_by_level`, by grey level) the level of
-    the ``opening`` under it; the kept pixels are labelled anew and their blobs appended to ``labels`` (in place; the
-    component's other pixels become background) and ``stats``. A new blob within ``reach`` px of a dot ``found``
-    before ((n,) bool per component, 0 the background) is left out: it is that dot's own skirt, cut off.
-    The components ``joined`` passed as dots (two dots bridged by the noise can, or a dot with a cluster of the noise);
-    one of them is taken apart the same way only where it falls into two or more blobs of :data:`SPLIT_MIN_AREA_PX`
-    or its largest part keeps less than :data:`JOINED_MIN_SHARE` of its pixels (its pixels are relabelled then; the
-    caller keeps its detection unless one of its parts is a dot).
+    In such a component a pixel is kept where its top-hat exceeds ``max(thr, threshold_sigma * noise)``, the noise
+    ``noise_at`` (:func:`noise_by_level`, by grey level) of the ``opening`` under it; the kept pixels are labelled anew
+    and their blobs appended to ``labels`` (in place; the component's other pixels become background) and ``stats``.
+    A new blob within ``reach`` px of a dot ``found`` before ((n,) bool per component, 0 the background) is left out:
+    it is that dot's own skirt, cut off. The components ``joined`` passed as dots (two dots bridged by the noise can,
+    or a dot with a cluster of it); one of them is taken apart the same way only where it falls into two or more blobs
+    of :data:`SPLIT_MIN_AREA_PX` or its largest part keeps less than :data:`JOINED_MIN_SHARE` of its pixels (its
+    pixels are relabelled then; the caller keeps its detection unless one of its parts is a dot).
     Returns (the extended stats; (appended,) each appended blob's noise, the mean over its pixels, and the component it
     came from; the components of ``joined`` taken apart).
     """
@@ -202,7 +198,8 @@ def _split(image: np.ndarray, tophat: np.ndarray, opening: np.ndarray, noise_at:
         ns, sl, ss, _ = cv2.connectedComponentsWithStats(sub, connectivity=8, ltype=cv2.CV_32S)
         if whole:  # a blob that passed as one dot is taken apart only if it holds two, or a dot and much noise
             a = ss[1:, cv2.CC_STAT_AREA]
-            if np.count_nonzero(a >= SPLIT_MIN_AREA_PX) < 2 and a.max(initial=0) >= JOINED_MIN_SHARE * stats[c, 4]:
+            whole_share = a.max(initial=0) / stats[c, cv2.CC_STAT_AREA]
+            if np.count_nonzero(a >= SPLIT_MIN_AREA_PX) < 2 and whole_share >= JOINED_MIN_SHARE:
                 continue
             undone.append(c)
         # the other dots found before, in the box grown by the reach, dilated by it: where a new blob may not come

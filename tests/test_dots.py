@@ -293,5 +293,5 @@ def test_a_dot_that_passed_with_a_cluster_of_the_surface_noise_is_measured_witho
     d = np.linalg.norm(det.uv[None] - uv[:, None], axis=2)
     assert np.all(d.min(axis=1) < 0.02)
     assert np.all(det.area_px[d.argmin(axis=1)] < 1300)  # the dot's own pixels, no cluster
-    # no piece of a dot beside it (specks of the surface's noise, a few pixels each, pass the image's threshold as before)
+    # no piece of a dot beside it (specks of the surface's noise, a few pixels each, pass as before)
     assert np.all(((d < 40) & (det.area_px >= 50)).sum(axis=1) == 1)
