@@ -202,13 +202,13 @@ def _split(image: np.ndarray, tophat: np.ndarray, opening: np.ndarray, noise_at:
             if np.count_nonzero(a >= SPLIT_MIN_AREA_PX) < 2 and whole_share >= JOINED_MIN_SHARE:
                 continue
             undone.append(c)
-        # the other dots found before, in the box grown by the reach, dilated by it: where a new blob may not come
-        ex0, ey0, ex1, ey1 = max(x - reach, 0), max(y - reach, 0), min(x + w + reach, W), min(y + h + reach, H)
-        around = labels[ey0:ey1, ex0:ex1]
-        near = cv2.dilate(found[np.minimum(around, n0)] * (around != c).astype(np.uint8),
-                          near_kernel)[y - ey0:y - ey0 + h, x - ex0:x - ex0 + w] > 0
         lab[comp] = 0
-        if ns > 1 and near.any():
+        if ns > 1:
+            # the other dots found before, in the box grown by the reach, dilated by it: where a new blob may not come
+            ex0, ey0, ex1, ey1 = max(x - reach, 0), max(y - reach, 0), min(x + w + reach, W), min(y + h + reach, H)
+            around = labels[ey0:ey1, ex0:ex1]
+            near = cv2.dilate(found[np.minimum(around, n0)] * (around != c).astype(np.uint8),
+                              near_kernel)[y - ey0:y - ey0 + h, x - ex0:x - ex0 + w] > 0
             close = np.zeros(ns, dtype=bool)
             close[sl[near]] = True
             close[0] = False
