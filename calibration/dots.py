@@ -12,7 +12,10 @@ gives the typical dot size that the background kernel then adapts to.
    compressed JPEG the noise estimate is tiny (0.6 grey levels) and a pure noise threshold
    bridges a dot to its neighbour through their blurred skirts; half the local peak does not.
 3. Blobs are filtered by shape (bounding-box aspect, fill) and by size relative to the image's
-   dots: no fixed pixel counts unless given.
+   dots: no fixed pixel counts unless given. The noise of a lit surface is 2-3 times the image's
+   figure and joins its dots to blobs that are no dot (lost) or pass as one with a wrong centre:
+   with the automatic threshold such blobs are split again at the noise of their own background
+   (:mod:`calibration.dot_split`, decision 0039); what the first pass found otherwise stays as it is.
 4. Centre: the intensity-weighted centroid of the blob grown by a margin, over a plane fitted to
    a ring of background pixels around it, each pixel weighted by the dot's share of it
    (decision 0007), or (``centre="ellipse"``) an ellipse fitted to the blob's sub-pixel
@@ -379,6 +382,24 @@ def _components(mask: np.ndarray) -> tuple[int, np.ndarray, np.ndarray]:
     return n, labels, stats
 
 
+
+def _blob_tests(stats: np.ndarray, o: DetectionOptions, max_area: float, shape: tuple[int, int]
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """Per component 1..n-1 of ``stats``: (size and shape of a dot: area, bounding-box aspect and fill; clear of the
+    image border by the margin, so that the centroid's window is whole)."""
+    w_box = stats[1:, cv2.CC_STAT_WIDTH].astype(float)
+    h_box = stats[1:, cv2.CC_STAT_HEIGHT].astype(float)
+    area = stats[1:, cv2.CC_STAT_AREA].astype(float)
+    compact = ((area >= o.min_area_px) & (area <= max_area)
+               & (np.maximum(w_box, h_box) / np.minimum(w_box, h_box) <= o.max_aspect)
+               & (area / (w_box * h_box) >= o.min_fill))
+    x0, y0 = stats[1:, cv2.CC_STAT_LEFT], stats[1:, cv2.CC_STAT_TOP]
+    H, W = shape
+    m = o.margin_px
+    clear = (x0 - m - 1 >= 0) & (y0 - m - 1 >= 0) & (x0 + w_box + m + 1 <= W) & (y0 + h_box + m + 1 <= H)
+    return compact, clear
+
+
 def _busy_pairs(busy: np.ndarray) -> np.ndarray:
     """Indices of the aligned pairs (2i, 2i+1) with a busy member, and of the pair after each run of them."""
     n = len(busy)
@@ -558,28 +579,36 @@ def _detect(image: np.ndarray, o: DetectionOptions, surface: np.ndarray | None =
         local *= np.float32(o.local_fraction)
         mask &= cv2.compare(tophat.astype(np.float32), local, cv2.CMP_GT)  # 0/255: keeps mask's 0/1
     n_lab, labels, stats = _components(mask)
+    max_area = o.max_area_px if o.max_area_px is not None else 0.5 * o.background_kernel_px**2
+    compact, clear = _blob_tests(stats, o, max_area, image.shape)
+    det, found = _measure(image, o, surface, labels, stats, compact & clear, np.full(len(compact), noise), noise, bg)
+    if o.threshold is not None or n_lab <= 1:
+        return det
+    from calibration.dot_split import split_pass  # dots joined by the noise of a lit surface (issue 15)
+
+    return split_pass(image, o, surface, tophat, thr, noise, bg, labels, stats, compact, max_area, det, found)
+
+
+def _measure(image: np.ndarray, o: DetectionOptions, surface: np.ndarray | None, labels: np.ndarray, stats: np.ndarray,
+             keep: np.ndarray, blob_noise: np.ndarray, noise: float, bg: float, ceiling: float | None = None,
+             agree_px: float | None = None) -> tuple[Detections, np.ndarray]:
+    """Centres, covariances and the rest of the blobs ``keep`` ((n - 1,) bool over the components 1..n-1 of
+    ``labels`` / ``stats``); ``blob_noise`` (n - 1,) is each one's noise for the peak test, ``noise`` the image's,
+    ``bg`` its median level, ``ceiling`` its clipping level (None: ``image``'s). ``agree_px``: the ellipse is fitted to
+    every blob and a blob is kept only where the fit succeeds and its centre is within this of the centroid (two
+    estimates of one dot's centre; a patch of the surface, a dot cut by an edge, is not one). Returns (the detections,
+    (k,) the component index (0-based, label - 1) of each)."""
     empty = Detections(np.zeros((0, 2)), np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0), noise,
                        np.zeros((0, 2, 2)), o.polarity, np.zeros((0, 2, 2)), np.zeros((0, 2, 2)),
                        np.zeros(0, dtype=int), np.zeros(0, dtype=int), np.zeros(0, dtype=bool))
-    if n_lab <= 1:
-        return empty
+    if not np.any(keep):
+        return empty, np.zeros(0, dtype=np.int64)
+    n_lab = len(stats)
     w_box = stats[1:, cv2.CC_STAT_WIDTH].astype(float)
     h_box = stats[1:, cv2.CC_STAT_HEIGHT].astype(float)
     area = stats[1:, cv2.CC_STAT_AREA].astype(float)
-    max_area = o.max_area_px if o.max_area_px is not None else 0.5 * o.background_kernel_px**2
-    keep = (
-        (area >= o.min_area_px)
-        & (area <= max_area)
-        & (np.maximum(w_box, h_box) / np.minimum(w_box, h_box) <= o.max_aspect)
-        & (area / (w_box * h_box) >= o.min_fill)
-    )
-    # blobs touching the border are cut: their centroid would be biased
     x0, y0 = stats[1:, cv2.CC_STAT_LEFT], stats[1:, cv2.CC_STAT_TOP]
-    H, W = image.shape
     m = o.margin_px
-    keep &= (x0 - m - 1 >= 0) & (y0 - m - 1 >= 0) & (x0 + w_box + m + 1 <= W) & (y0 + h_box + m + 1 <= H)
-    if not np.any(keep):
-        return empty
     # relabel the kept blobs 1..k, grow them by the margin, and a ring further out for the local background
     remap = np.zeros(n_lab, dtype=np.float32)
     kept = np.flatnonzero(keep) + 1
@@ -613,7 +642,8 @@ def _detect(image: np.ndarray, o: DetectionOptions, surface: np.ndarray | None =
         li, xi, yi, vi, bgp = li[sym], xi[sym], yi[sym], vi[sym], bgp[sym]
     top = np.zeros(k + 1)
     np.maximum.at(top, li, vi)
-    n_sat = np.bincount(li, weights=(vi >= _ceiling(image)).astype(float), minlength=k + 1)[1:]
+    n_sat = np.bincount(li, weights=(vi >= (_ceiling(image) if ceiling is None else ceiling)).astype(float),
+                        minlength=k + 1)[1:]
     peak = top[1:] - bg_local
     # the dot hides the surface behind it: a pixel's value is bg (1 - a) + L a for a dot of level L
     # covering the fraction a, so its share of the dot is (value - bg) / (L - bg), with L ~ the peak
@@ -645,12 +675,16 @@ def _detect(image: np.ndarray, o: DetectionOptions, surface: np.ndarray | None =
     pick = np.ones(k, dtype=bool) if o.centre == "ellipse" else (
         (n_sat > 0) | (misfit > 0) if o.centre == "auto" else np.zeros(k, dtype=bool))
     used_ellipse = np.zeros(k, dtype=bool)
-    if pick.any():
+    fit = pick if agree_px is None else np.ones(k, dtype=bool)
+    agree = np.ones(k, dtype=bool)
+    if fit.any():
         from calibration.ellipse_fit import contour_ellipse_centres
 
-        blobs = remap if pick.all() else np.where(np.concatenate([[False], pick])[remap.astype(np.int64)], remap,
-                                                  np.float32(0)).astype(np.float32)
+        blobs = remap if fit.all() else np.where(np.concatenate([[False], fit])[remap.astype(np.int64)], remap,
+                                                 np.float32(0)).astype(np.float32)
         e_uv, e_cov, ok = contour_ellipse_centres(image, blobs[labels], k, coef, xc, yc, top[1:], noise)
+        if agree_px is not None:
+            agree = ok & (np.hypot(*(e_uv - uv).T) <= agree_px)
         used_ellipse = ok & pick
         uv = np.where(used_ellipse[:, None], e_uv, uv)
         cov = np.where(used_ellipse[:, None, None], e_cov, cov)
@@ -663,8 +697,9 @@ def _detect(image: np.ndarray, o: DetectionOptions, surface: np.ndarray | None =
     a2 = per_blob(h * np.abs(dx * vec[li - 1, 0, 1] + dy * vec[li - 1, 1, 1]))
     bcov = (misfit**2)[:, None, None] * (a1[:, None, None] ** 2 * np.einsum("ka,kb->kab", vec[:, :, 0], vec[:, :, 0])
                                          + a2[:, None, None] ** 2 * np.einsum("ka,kb->kab", vec[:, :, 1], vec[:, :, 1]))
-    good = (sw > 0) & (peak >= o.min_peak_snr * noise)
+    good = (sw > 0) & (peak >= o.min_peak_snr * blob_noise[keep]) & agree
     flux = sw * np.maximum(peak, 0.0)
     ring_px = np.bincount(lf, minlength=k + 1)[1:]
-    return Detections(uv[good], area[keep][good], peak[good], flux[good], bg_local[good], noise, cov[good],
-                      o.polarity, axes[good], bcov[good], n_sat[good].astype(int), ring_px[good], used_ellipse[good])
+    return (Detections(uv[good], area[keep][good], peak[good], flux[good], bg_local[good], noise, cov[good],
+                       o.polarity, axes[good], bcov[good], n_sat[good].astype(int), ring_px[good], used_ellipse[good]),
+            np.flatnonzero(keep)[good])
