@@ -1,35 +1,30 @@
 """A loopback Universal Robots controller that the real ur-rtde client can drive.
 
-It speaks the public RTDE protocol on port 30004, answers the dashboard server
-on 29999, and accepts URScript programs on 30003. The program that ur-rtde
-uploads (its ``rtde_control`` script) is not interpreted line by line: the
-controller checks that the script's command table is the one it knows
-(:func:`sim_backend.rtde_protocol.check_control_script`, the contract with the pinned ur-rtde version) and
-then *plays* that script's register handshake: command id in
-``input_int_register_0``, arguments in ``input_double_register_0..``, 1 (ready) /
-2 (done) in ``output_int_register_0``, async progress in ``output_int_register_2``.
+It speaks the public RTDE protocol on port 30004, answers the dashboard server on 29999, and accepts URScript programs
+on 30003. The program that ur-rtde uploads (its ``rtde_control`` script) is not interpreted line by line: the
+controller checks that the script's command table is the one it knows (:func:`sim_backend.rtde_protocol.
+check_control_script`, the contract with the pinned ur-rtde version) and then *plays* that script's register
+handshake: command id in ``input_int_register_0``, arguments in ``input_double_register_0..``, 1 (ready) / 2 (done) in
+``output_int_register_0``, async progress in ``output_int_register_2``.
 
-Motion comes from the pin model of the arm (``planning.kinematics``): ``movej`` is a
-synchronised trapezoidal profile in joint space (leading joint at the given speed
-and acceleration), ``movel`` a trapezoidal profile along the straight line of the
-TCP with the orientation interpolated on SO(3), joints by IK (branch nearest the
-current joints). ``time_scale`` > 1 runs the robot's clock faster than the wall.
+Motion comes from the pin model of the arm (``planning.kinematics``): ``movej`` is a synchronised trapezoidal profile
+in joint space (leading joint at the given speed and acceleration), ``movel`` a trapezoidal profile along the straight
+line of the TCP with the orientation interpolated on SO(3), joints by IK (branch nearest the current joints).
+``time_scale`` > 1 runs the robot's clock faster than the wall.
 
-Faults to inject: :meth:`protective_stop`, :meth:`emergency_stop`,
-:meth:`drop_connections`, :meth:`stop_script`. The RTDE input watchdog that the
-script arms (``rtde_set_watchdog``) stops the program if the host stops writing.
+Faults to inject: :meth:`protective_stop`, :meth:`emergency_stop`, :meth:`drop_connections`, :meth:`stop_script`. The
+RTDE input watchdog that the script arms (``rtde_set_watchdog``) stops the program if the host stops writing.
 
-Targets refused: ``is_within_safety_limits`` (ur-rtde's ``isJointsWithinSafetyLimits`` /
-``isPoseWithinSafetyLimits``, commands 37 / 36) is false for joints outside the arm's limits, a pose
-without an IK branch inside them, and joint targets given to :meth:`refuse_targets` (a safety
-restriction the plan does not know: ``[sim] unreachable_stations``, also from another process by
-the emulator-only dashboard command ``sim refuse targets``, :func:`refuse_targets_at`; they end with the
-running control program, or the next one if none runs: a later job's program starts with none). A ``movej`` /
-``movel`` to such a target is a runtime error: the program stops before the arm moves (what ur-rtde's
+Targets refused: ``is_within_safety_limits`` (ur-rtde's ``isJointsWithinSafetyLimits`` / ``isPoseWithinSafetyLimits``,
+commands 37 / 36) is false for joints outside the arm's limits, a pose without an IK branch inside them, and joint
+targets given to :meth:`refuse_targets` (a safety restriction the plan does not know: ``[sim] unreachable_stations``,
+also from another process by the emulator-only dashboard command ``sim refuse targets``, :func:`refuse_targets_at`;
+they end with the running control program, or the next one if none runs: a later job's program starts with none). A
+``movej`` / ``movel`` to such a target is a runtime error: the program stops before the arm moves (what ur-rtde's
 sources expect of a real controller when, e.g., inverse kinematics fails; decision 0028).
 
-Only loopback addresses are accepted; several controllers run side by side on
-127.0.0.2, 127.0.0.3, ... because the ports are fixed.
+Only loopback addresses are accepted; several controllers run side by side on 127.0.0.2, 127.0.0.3, ... because the
+ports are fixed.
 """
 from __future__ import annotations
 

@@ -74,14 +74,16 @@ def _step_scene(seed: int = 2):
 
 
 def test_a_dot_next_to_an_edge_is_centred_on_its_own_surface_with_the_labels():
-    """Next to the step the plain detector is off by 10-20x its noise sigma (bounded by background_cov); with the
+    """Next to the step the plain centroid is off by 10-20x its noise sigma (bounded by background_cov); with the
     labels its ring sees only its own surface and its centroid window stays symmetric: within 3.5 sigma of the
-    truth, and the dots far from the step do not move."""
+    truth, and the dots far from the step do not move. The default detector without labels centres those dots by
+    the ellipse of their contour (decision 0037): within 4 of its own noise sigmas."""
     img, uv, labels, dist = _step_scene()
     near = dist < 10
     errs = []
+    centroid = DetectionOptions(centre="centroid")
     for lab in (None, labels):
-        det = detect_dots(img, DetectionOptions(), labels=lab)
+        det = detect_dots(img, centroid, labels=lab)
         j, _ = _match(uv, det.uv)
         o = np.argsort(j)
         assert len(det) == len(uv)
@@ -91,7 +93,12 @@ def test_a_dot_next_to_an_edge_is_centred_on_its_own_surface_with_the_labels():
             plain = det
     assert np.all(errs[0][near] > 8)
     assert np.all(errs[1][near] < 3.5) and np.all(errs[1][near] < 0.3 * errs[0][near])
-    masked = detect_dots(img, DetectionOptions(), labels=labels)
+    masked = detect_dots(img, centroid, labels=labels)
+    auto = detect_dots(img, DetectionOptions())
+    ja, _ = _match(uv, auto.uv)
+    oa = np.argsort(ja)
+    err_auto = np.linalg.norm(auto.uv[oa] - uv, axis=1) / np.sqrt(np.linalg.eigvalsh(auto.cov[oa])[:, 1])
+    assert np.all(auto.ellipse[oa][near]) and np.all(err_auto[near] < 4.0)
     for q in np.flatnonzero(dist > 20):  # their rings see one surface: nothing left out, the same numbers
         a = np.argmin(np.linalg.norm(plain.uv - uv[q], axis=1))
         b = np.argmin(np.linalg.norm(masked.uv - uv[q], axis=1))
@@ -134,9 +141,10 @@ def test_measure_image_with_the_cad_mask_centres_an_edge_dot_of_the_example_clos
     approx[:3, 3] += [0.002, -0.001, 0.003]
     occ = Occluder(job.part.mesh)
     out = []
+    centroid = DetectionOptions(centre="centroid")  # the mask's subject: the centroid's window and ring
     for surfaces in (None, SurfaceLabeller(job.part.mesh)):
         m, counts = measure_image(img, job.part, job.intrinsics, approx, occ, coded_family=job.spec.job.coded_family,
-                                  surfaces=surfaces)
+                                  surfaces=surfaces, detection=centroid)
         assert counts.get("background_mask") == (None if surfaces is None else "cad")
         e = m.uv - project(job.intrinsics, cam_from_part, sim.world.true_xyz[m.target])
         i = list(m.target).index(88)
@@ -146,3 +154,9 @@ def test_measure_image_with_the_cad_mask_centres_an_edge_dot_of_the_example_clos
     assert e0 > 0.1 and e1 < 0.05
     assert b0 > 0 and b1 > 0  # the whole ring's misfit still bounds the masked dot
     assert rms1 < rms0
+    # the default detector, unmasked, centres that dot by the ellipse of its contour (decision 0037): closer than the
+    # centroid, with the same bound
+    m, _ = measure_image(img, job.part, job.intrinsics, approx, occ, coded_family=job.spec.job.coded_family)
+    i = list(m.target).index(88)
+    e2 = np.linalg.norm(m.uv[i] - project(job.intrinsics, cam_from_part, sim.world.true_xyz[88:89])[0])
+    assert m.ellipse[i] and e2 < e0 and np.trace(m.bg_cov[i]) > 0

@@ -61,8 +61,9 @@ def twin_camera(job):
 
 
 #: the code the renders' measurement depends on: a change to any of them makes a cached result stale
-_SOURCES = ("calibration/dots.py", "calibration/ellipse_fit.py", "calibration/targets.py", "sim_backend/sim_camera.py",
-            "sim_backend/world.py", "cell/stages/imaging.py", "cell/stages/surface_labels.py", "cell/stages/preanalysis.py")
+_SOURCES = ("calibration/dots.py", "calibration/dot_split.py", "calibration/ellipse_fit.py", "calibration/targets.py",
+            "sim_backend/sim_camera.py", "sim_backend/world.py", "cell/stages/imaging.py", "cell/stages/surface_labels.py",
+            "cell/stages/preanalysis.py")
 
 
 def _cache_key(job, poses: np.ndarray) -> str:
