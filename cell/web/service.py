@@ -120,13 +120,21 @@ class Console:
         return job_id
 
     def abort(self, job_id: str, user: str) -> bool:
-        if not self.runner.abort(job_id, user):
-            from cell.job import abort_job
+        from cell.job import abort_job
 
-            job_folder(self.root, job_id, staged=True)  # NotFound for anything that is not a job
-            # a job this console did not start (cell run in a terminal): the same abort path, by its lock's pid
-            if not abort_job(job_id, reason=f"console: {user}", archive_root=self.root):
-                raise InputError(f"{job_id} is not running on this cell")
+        job_folder(self.root, job_id, staged=True)  # NotFound for anything that is not a job
+        s = self.runner.session_of(job_id)
+        if s is not None and s.alive():
+            # journalled before the job is signalled: its runner, ending at once, writes its terminal record after the
+            # request (the journal's order is the order of events)
+            self.audit(user, "abort", job_id)
+            if self.runner.abort(job_id, user):
+                return True
+            self.audit(user, "abort refused", job_id, "the job ended before the request reached it")
+            raise InputError(f"{job_id} is not running on this cell")
+        # a job this console did not start (cell run in a terminal): the same abort path, by its lock's pid
+        if not abort_job(job_id, reason=f"console: {user}", archive_root=self.root):
+            raise InputError(f"{job_id} is not running on this cell")
         self.audit(user, "abort", job_id)
         return True
 
