@@ -678,11 +678,16 @@ def _measure(image: np.ndarray, o: DetectionOptions, surface: np.ndarray | None,
     fit = pick if agree_px is None else np.ones(k, dtype=bool)
     agree = np.ones(k, dtype=bool)
     if fit.any():
-        from calibration.ellipse_fit import contour_ellipse_centres
+        from calibration.ellipse_fit import contour_ellipse_centres, contour_ellipse_centres_in_boxes
 
-        blobs = remap if fit.all() else np.where(np.concatenate([[False], fit])[remap.astype(np.int64)], remap,
-                                                 np.float32(0)).astype(np.float32)
-        e_uv, e_cov, ok = contour_ellipse_centres(image, blobs[labels], k, coef, xc, yc, top[1:], noise)
+        box = np.stack([x0[keep], y0[keep], w_box[keep], h_box[keep]], axis=1)
+        if np.sum((box[fit, 2] + 6) * (box[fit, 3] + 6)) > 0.25 * image.size:  # blobs all over: the whole image at once
+            blobs = remap if fit.all() else np.where(np.concatenate([[False], fit])[remap.astype(np.int64)], remap,
+                                                     np.float32(0)).astype(np.float32)
+            e_uv, e_cov, ok = contour_ellipse_centres(image, blobs[labels], k, coef, xc, yc, top[1:], noise)
+        else:  # a few (the clipped dots, those next to an edge; a split pass's parts): each in its own box
+            e_uv, e_cov, ok = contour_ellipse_centres_in_boxes(image, labels, remap, fit, box, coef, xc, yc, top[1:],
+                                                               noise)
         if agree_px is not None:
             agree = ok & (np.hypot(*(e_uv - uv).T) <= agree_px)
         used_ellipse = ok & pick

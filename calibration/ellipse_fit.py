@@ -101,3 +101,44 @@ def contour_ellipse_centres(image: np.ndarray, lab: np.ndarray, k: int, coef: np
     cov[:, 1, 1] = 2.0 / np.maximum(info_y, 1e-12)
     ok &= (info_x > 0) & (info_y > 0)
     return uv, cov, ok
+
+
+def contour_ellipse_centres_in_boxes(image: np.ndarray, labels: np.ndarray, remap: np.ndarray, sel: np.ndarray,
+                                     box: np.ndarray, coef: np.ndarray, xc: np.ndarray, yc: np.ndarray,
+                                     top: np.ndarray, noise: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`contour_ellipse_centres` of the blobs ``sel: (k,) bool`` only, each in its own box: the boxes (each
+    blob's bounding box ``box: (k, 4)`` x0, y0, w, h grown by 3 px, what the contour's 5 x 5 growth and its pixel pairs
+    reach) are cut out, stacked into one small image with only their own blob labelled, and fitted at once. The same
+    centres as the whole image gives (where no other selected blob reaches within 2 px) for a fraction of its cost
+    when few blobs are selected (decision 0037: the clipped dots and those next to an edge).
+
+    ``labels``: (h, w) component labels; ``remap``: (n,) float32, component label -> 1..k (0: not kept).
+    Returns uv (k, 2), cov (k, 2, 2), ok (k,) bool (False where not selected).
+    """
+    k = len(sel)
+    uv, cov, ok = np.zeros((k, 2)), np.zeros((k, 2, 2)), np.zeros(k, dtype=bool)
+    idx = np.flatnonzero(sel)
+    if not len(idx):
+        return uv, cov, ok
+    H, W = image.shape
+    g = 3
+    bx0 = np.maximum(box[idx, 0] - g, 0).astype(int)
+    by0 = np.maximum(box[idx, 1] - g, 0).astype(int)
+    bx1 = np.minimum(box[idx, 0] + box[idx, 2] + g, W).astype(int)
+    by1 = np.minimum(box[idx, 1] + box[idx, 3] + g, H).astype(int)
+    hh = by1 - by0
+    oy = np.concatenate([[0], np.cumsum(hh + g)[:-1]])  # a gap of g empty rows between the boxes
+    mosaic = np.zeros((int(oy[-1] + hh[-1]), int((bx1 - bx0).max())), dtype=image.dtype)
+    lab = np.zeros(mosaic.shape, dtype=np.float32)
+    for j, q in enumerate(idx):
+        win = image[by0[j]:by1[j], bx0[j]:bx1[j]]
+        own = remap[labels[by0[j]:by1[j], bx0[j]:bx1[j]]] == q + 1
+        mosaic[oy[j]:oy[j] + hh[j], :win.shape[1]] = win
+        lab[oy[j]:oy[j] + hh[j], :win.shape[1]][own] = q + 1
+    # the blobs' plane reference points moved with their boxes (the plane is in x - xc, y - yc: unchanged)
+    sx, sy = np.zeros(k), np.zeros(k)
+    sx[idx], sy[idx] = bx0, by0 - oy
+    e_uv, e_cov, e_ok = contour_ellipse_centres(mosaic, lab, k, coef, xc - sx, yc - sy, top, noise)
+    uv[idx] = e_uv[idx] + np.stack([sx[idx], sy[idx]], axis=1)
+    cov[idx], ok[idx] = e_cov[idx], e_ok[idx]
+    return uv, cov, ok
