@@ -87,3 +87,12 @@ def test_observation_geometry_gives_the_dots_size_in_pixels():
     assert theta[0] == pytest.approx(0.0, abs=1e-12)
     assert theta[1] == pytest.approx(np.arctan2(0.2, 0.5))
     assert load_model().saturation_var(np.array([0.7]), d[:1]).shape == (1,)
+
+
+def test_the_shipped_model_says_it_is_the_version_with_the_size_term():
+    # the size term and the auto centre's c_background came with version 5 (decision 0037); a record that says
+    # "version 4" would name the model measured for the centroid
+    model = load_model()
+    assert model.m_saturation != 0.0
+    assert int(model.version) >= 5
+    assert "(version 5)" in model.describe()
