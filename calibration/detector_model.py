@@ -41,7 +41,7 @@ import numpy as np
 from calibration.errors import CalibrationError
 
 __all__ = ["DetectorModel", "fit_model", "fit_background", "fit_saturation", "load_model", "observation_sigmas",
-           "observation_geometry",
+           "observation_geometry", "centroid_bound_scale", "C_BACKGROUND_CENTROID",
            "observation_covariances", "DATA_PATH"]
 
 DATA_PATH = Path(__file__).resolve().parent / "data" / "detector_precision.json"
@@ -205,6 +205,28 @@ def fit_saturation(model: DetectorModel, incidence_deg: np.ndarray, diameter_px:
     r = minimize(nll, np.array([np.log(0.005), 0.0, 0.0]), method="Nelder-Mead",
                  options={"xatol": 1e-6, "fatol": 1e-6, "maxiter": 4000})
     return float(np.exp(r.x[0])), float(np.exp(r.x[1])), float(r.x[2]) if size else 0.0
+
+
+#: ``c_background`` of the centroid: version 4's, measured for a detector that centred every dot by its centroid
+#: (``python -m benchmarks.detector_precision --views 80 --repeats 2 --seed 0 --plates 3 --skins 3 --write`` at
+#: 69a810f). From version 5 on the model's ``c_background`` is the auto centre's (decision 0037: its dots with a
+#: bound are centred by their ellipse, which feels a quarter of the misfit); a dot with a bound that was centred by
+#: its centroid (a photograph's detector, ``DetectionOptions.for_real_images``; an ellipse fit that failed; a job
+#: measured before version 5) errs by the centroid's share, not by that one
+C_BACKGROUND_CENTROID = 0.2712
+
+
+def centroid_bound_scale(model: DetectorModel) -> float:
+    """Factor on the detector's background bound of a dot centred by its centroid, so that ``c_background^2`` times
+    the scaled bound is the centroid's share :data:`C_BACKGROUND_CENTROID` squared: one for a model before version 5
+    (its ``c_background`` is the centroid's) or without a background term."""
+    try:
+        v = int(str(model.version).split(".")[0])
+    except ValueError:
+        v = 0
+    if v < 5 or model.c_background <= 0:
+        return 1.0
+    return (C_BACKGROUND_CENTROID / model.c_background) ** 2
 
 
 @lru_cache(maxsize=4)

@@ -96,3 +96,31 @@ def test_the_shipped_model_says_it_is_the_version_with_the_size_term():
     assert model.m_saturation != 0.0
     assert int(model.version) >= 5
     assert "(version 5)" in model.describe()
+
+
+def test_a_centroid_centred_dot_next_to_an_edge_is_weighed_at_the_centroids_share():
+    # the model's c_background (version 5) is the ellipse centre's; the centroid errs by ~4x its share: a dot with a
+    # bound centred by its centroid (a photograph's detector, a failed ellipse fit, a job measured before decision
+    # 0037: no ellipse_centre) is stated at the centroid's share, not silently at the ellipse's
+    from calibration.detector_model import C_BACKGROUND_CENTROID
+    from cell.stages.adjust import centroid_bounds_scaled, ellipse_centred
+
+    model = load_model()
+    assert model.c_background < 0.5 * C_BACKGROUND_CENTROID
+    obs = {"images": [{"ids": ["A", "B", "C"], "ellipse_centre": [True, False, False]}, {"ids": ["A", "D"]}]}
+    ell = ellipse_centred(obs)
+    assert ell.tolist() == [True, False, False, False, False]
+    B = np.zeros((5, 2, 2))
+    B[[0, 1, 3]] = np.diag([0.04, 0.01])  # C and D have no bound
+    scaled, hit = centroid_bounds_scaled(B, ell, model)
+    assert hit.tolist() == [False, True, False, True, False]
+    sig = np.full(5, 0.004)
+    C = observation_covariances(sig, scaled, model)
+    extra = C[:, 0, 0] - sig**2
+    assert extra[0] == pytest.approx(model.c_background**2 * 0.04)  # the ellipse centre: the model's share
+    assert extra[1] == pytest.approx(C_BACKGROUND_CENTROID**2 * 0.04)  # the centroid: its own
+    assert extra[3] == pytest.approx(C_BACKGROUND_CENTROID**2 * 0.04)
+    assert extra[2] == extra[4] == pytest.approx(0.0)
+    # a model whose c_background is the centroid's (before version 5) is left as it is
+    old = replace(model, version="4")
+    assert np.array_equal(centroid_bounds_scaled(B, ell, old)[0], B)
