@@ -18,7 +18,9 @@ shading next to it) carries a further error the geometry cannot predict; the det
 (``Detections.background_cov``, observations.json ``bg_cov_px2``) and the bundle adds ``c^2`` times that
 bound to the model's variance (:func:`observation_covariances`); ``c`` (``c_background``), the share of the
 bound that such errors reach on average, is measured by ``benchmarks/detector_precision.py --fit-background``
-against the simulated truth (docs/decisions/0023). The share of that error a target's views have in common
+against the simulated truth (docs/decisions/0023), for the detector's default centre (from version 5 the auto
+centre, whose dots with a bound are centred by their ellipse: decision 0037; a dot with a bound centred by its
+centroid takes the centroid's share, :data:`C_BACKGROUND_CENTROID`). The share of that error a target's views have in common
 (``rho_background``; ADJUST adds the cross terms between the views, calibration/bundle/coherent.py) comes from
 ``benchmarks/background_share.py`` (decision 0032); a model file without it (before version 4) gives one.
 
@@ -26,7 +28,8 @@ A dot the sensor clips (its pixels at the ceiling: an exposure too bright for a 
 an error of pixel phase that grows with how far it is overexposed (decision 0029: 0.0046 px rms with 60-70 % of
 its pixels clipped, 0.0104 px with 80-90 %, against 0.005 px unclipped). The detector counts the clipped pixels
 (``Detections.saturated``; observations.json ``saturated_px`` with ``area_px``) and the bundle adds
-``c_s^2 rho^k_s`` (``rho`` the clipped share of the dot's pixels) to the model's variance; the geometry terms are
+``c_s^2 rho^k_s (d / d_ref)^m_s`` (``rho`` the clipped share of the dot's pixels, ``d`` its diameter; the size
+factor from version 5, decision 0037) to the model's variance; the geometry terms are
 fitted on dots that are neither clipped nor next to an edge.
 """
 from __future__ import annotations
