@@ -74,8 +74,9 @@ class DetectorModel:
     #: that say whether the statement built with it covers the errors); None: not in the model file (a model before
     #: version 4), :attr:`shared_share` then takes the conservative limit one
     rho_background: float | None = None
-    #: the saturation term's growth with the dot's size: ``(d / 20 px)^m`` (decision 0037: a near dot clipped over the
-    #: same share of its pixels errs more, the pixel phase of its longer clipped rim); 0: a model before version 5
+    #: the saturation term's change with the dot's size: ``(d / 20 px)^m`` (decision 0037; measured for the auto
+    #: centre, whose ellipse fits the longer rim of a large clipped dot better: version 5's m is negative, the term
+    #: shrinks with size); 0: a model before version 5
     m_saturation: float = 0.0
 
     @property
