@@ -207,7 +207,9 @@ def fit_saturation(model: DetectorModel, incidence_deg: np.ndarray, diameter_px:
         return float(np.sum(2 * np.log(v) + e2 / v))
 
     r = minimize(nll, np.array([np.log(0.005), 0.0, 0.0]), method="Nelder-Mead",
-                 options={"xatol": 1e-6, "fatol": 1e-6, "maxiter": 4000})
+                 options={"xatol": 1e-6, "fatol": 1e-6, "maxiter": 4000, "maxfev": 8000})
+    if not r.success:  # Nelder-Mead's default 600 evaluations: ~500 on a size term's fit
+        raise CalibrationError(f"detector model: the saturation term's fit did not converge ({r.message})")
     return float(np.exp(r.x[0])), float(np.exp(r.x[1])), float(r.x[2]) if size else 0.0
 
 

@@ -124,3 +124,21 @@ def test_a_centroid_centred_dot_next_to_an_edge_is_weighed_at_the_centroids_shar
     # a model whose c_background is the centroid's (before version 5) is left as it is
     old = replace(model, version="4")
     assert np.array_equal(centroid_bounds_scaled(B, ell, old)[0], B)
+
+
+def test_a_saturation_fit_that_does_not_converge_is_refused(monkeypatch):
+    import scipy.optimize
+
+    real = scipy.optimize.minimize
+
+    def short(fun, x0, method=None, options=None):  # an optimiser that runs out of evaluations
+        return real(fun, x0, method=method, options={**(options or {}), "maxfev": 30, "maxiter": 30})
+
+    rng = np.random.default_rng(2)
+    n = 400
+    inc, d, rho = rng.uniform(10, 60, n), rng.uniform(18, 38, n), rng.uniform(0.4, 0.85, n)
+    e = rng.standard_normal((n, 2)) * np.sqrt(BASE.sigma_px(np.radians(inc), d) ** 2 + BASE.saturation_var(rho, d))[:, None]
+    fit_saturation(BASE, inc, d, e, rho, size=True)  # converges as it is
+    monkeypatch.setattr(scipy.optimize, "minimize", short)
+    with pytest.raises(CalibrationError, match="did not converge"):
+        fit_saturation(BASE, inc, d, e, rho, size=True)
