@@ -189,7 +189,7 @@ def _adjust(ctx, scr: Screening, obs: dict, obs_image, obs_target, obs_uv, poses
         if np.any(bg[sel]) or np.any(clip[sel] > 0):
             model_sigma, obs_sigma = obs_sigma, observation_covariances(
                 obs_sigma, bg[sel], clipped_share=clip[sel], diameter_px=model_diameters(job, poses0, img, tgt, intr0.fx_px))
-        flags = {"bg": bg[sel], "clip": clip[sel],
+        flags = {"bg": bg[sel], "clip": clip[sel], "bg_centroid": centroid[sel],
                  "bg_missing": sorted({obs["images"][int(i)]["image"] for i in obs_image[sel & ~has_bg]}),
                  "clip_missing": sorted({obs["images"][int(i)]["image"] for i in obs_image[sel & ~has_clip]})}
     res = bundle_adjust(img, tgt, uv, intr0, poses0, targets.xyz, options, config, obs_sigma_px=obs_sigma,
@@ -450,6 +450,8 @@ def _flag_counts(flags: dict, rejected) -> dict:
     if flags["bg"] is not None:  # the dots next to an edge: a non-zero bound (not every 2x2 that differs from the model)
         out["observations_with_background_bound"] = int(np.count_nonzero(
             np.trace(np.asarray(flags["bg"], dtype=float), axis1=1, axis2=2)[used] > 0))
+        # of them, centred by their centroid: the bound at the centroid's share (decision 0037)
+        out["background_bound_at_centroid_share"] = int(np.count_nonzero(flags["bg_centroid"][used]))
     if flags["clip"] is None:
         return out | {"observations_clipped": None, "images_without_clipped_share": []}
     return out | {"observations_clipped": int(np.count_nonzero(flags["clip"][used] > 0)),
