@@ -18,7 +18,9 @@ shading next to it) carries a further error the geometry cannot predict; the det
 (``Detections.background_cov``, observations.json ``bg_cov_px2``) and the bundle adds ``c^2`` times that
 bound to the model's variance (:func:`observation_covariances`); ``c`` (``c_background``), the share of the
 bound that such errors reach on average, is measured by ``benchmarks/detector_precision.py --fit-background``
-against the simulated truth (docs/decisions/0023). The share of that error a target's views have in common
+against the simulated truth (docs/decisions/0023), for the detector's default centre (from version 5 the auto
+centre, whose dots with a bound are centred by their ellipse: decision 0037; a dot with a bound centred by its
+centroid takes the centroid's share, :data:`C_BACKGROUND_CENTROID`). The share of that error a target's views have in common
 (``rho_background``; ADJUST adds the cross terms between the views, calibration/bundle/coherent.py) comes from
 ``benchmarks/background_share.py`` (decision 0032); a model file without it (before version 4) gives one.
 
@@ -26,7 +28,8 @@ A dot the sensor clips (its pixels at the ceiling: an exposure too bright for a 
 an error of pixel phase that grows with how far it is overexposed (decision 0029: 0.0046 px rms with 60-70 % of
 its pixels clipped, 0.0104 px with 80-90 %, against 0.005 px unclipped). The detector counts the clipped pixels
 (``Detections.saturated``; observations.json ``saturated_px`` with ``area_px``) and the bundle adds
-``c_s^2 rho^k_s`` (``rho`` the clipped share of the dot's pixels) to the model's variance; the geometry terms are
+``c_s^2 rho^k_s (d / d_ref)^m_s`` (``rho`` the clipped share of the dot's pixels, ``d`` its diameter; the size
+factor from version 5, decision 0037) to the model's variance; the geometry terms are
 fitted on dots that are neither clipped nor next to an edge.
 """
 from __future__ import annotations
@@ -41,7 +44,7 @@ import numpy as np
 from calibration.errors import CalibrationError
 
 __all__ = ["DetectorModel", "fit_model", "fit_background", "fit_saturation", "load_model", "observation_sigmas",
-           "observation_geometry",
+           "observation_geometry", "centroid_bound_scale", "C_BACKGROUND_CENTROID",
            "observation_covariances", "DATA_PATH"]
 
 DATA_PATH = Path(__file__).resolve().parent / "data" / "detector_precision.json"
@@ -71,8 +74,9 @@ class DetectorModel:
     #: that say whether the statement built with it covers the errors); None: not in the model file (a model before
     #: version 4), :attr:`shared_share` then takes the conservative limit one
     rho_background: float | None = None
-    #: the saturation term's growth with the dot's size: ``(d / 20 px)^m`` (decision 0037: a near dot clipped over the
-    #: same share of its pixels errs more, the pixel phase of its longer clipped rim); 0: a model before version 5
+    #: the saturation term's change with the dot's size: ``(d / 20 px)^m`` (decision 0037; measured for the auto
+    #: centre, whose ellipse fits the longer rim of a large clipped dot better: version 5's m is negative, the term
+    #: shrinks with size); 0: a model before version 5
     m_saturation: float = 0.0
 
     @property
@@ -203,8 +207,32 @@ def fit_saturation(model: DetectorModel, incidence_deg: np.ndarray, diameter_px:
         return float(np.sum(2 * np.log(v) + e2 / v))
 
     r = minimize(nll, np.array([np.log(0.005), 0.0, 0.0]), method="Nelder-Mead",
-                 options={"xatol": 1e-6, "fatol": 1e-6, "maxiter": 4000})
+                 options={"xatol": 1e-6, "fatol": 1e-6, "maxiter": 4000, "maxfev": 8000})
+    if not r.success:  # Nelder-Mead's default 600 evaluations: ~500 on a size term's fit
+        raise CalibrationError(f"detector model: the saturation term's fit did not converge ({r.message})")
     return float(np.exp(r.x[0])), float(np.exp(r.x[1])), float(r.x[2]) if size else 0.0
+
+
+#: ``c_background`` of the centroid: version 4's, measured for a detector that centred every dot by its centroid
+#: (``python -m benchmarks.detector_precision --views 80 --repeats 2 --seed 0 --plates 3 --skins 3 --write`` at
+#: 69a810f). From version 5 on the model's ``c_background`` is the auto centre's (decision 0037: its dots with a
+#: bound are centred by their ellipse, which feels a quarter of the misfit); a dot with a bound that was centred by
+#: its centroid (a photograph's detector, ``DetectionOptions.for_real_images``; an ellipse fit that failed; a job
+#: measured before version 5) errs by the centroid's share, not by that one
+C_BACKGROUND_CENTROID = 0.2712
+
+
+def centroid_bound_scale(model: DetectorModel) -> float:
+    """Factor on the detector's background bound of a dot centred by its centroid, so that ``c_background^2`` times
+    the scaled bound is the centroid's share :data:`C_BACKGROUND_CENTROID` squared: one for a model before version 5
+    (its ``c_background`` is the centroid's) or without a background term."""
+    try:
+        v = int(str(model.version).split(".")[0])
+    except ValueError:
+        v = 0
+    if v < 5 or model.c_background <= 0:
+        return 1.0
+    return (C_BACKGROUND_CENTROID / model.c_background) ** 2
 
 
 @lru_cache(maxsize=4)

@@ -684,10 +684,11 @@ def _measure(image: np.ndarray, o: DetectionOptions, surface: np.ndarray | None,
         if np.sum((box[fit, 2] + 6) * (box[fit, 3] + 6)) > 0.25 * image.size:  # blobs all over: the whole image at once
             blobs = remap if fit.all() else np.where(np.concatenate([[False], fit])[remap.astype(np.int64)], remap,
                                                      np.float32(0)).astype(np.float32)
-            e_uv, e_cov, ok = contour_ellipse_centres(image, blobs[labels], k, coef, xc, yc, top[1:], noise)
+            e_uv, e_cov, ok = contour_ellipse_centres(image, blobs[labels], k, coef, xc, yc, top[1:], noise, labels,
+                                                      kept)
         else:  # a few (the clipped dots, those next to an edge; a split pass's parts): each in its own box
             e_uv, e_cov, ok = contour_ellipse_centres_in_boxes(image, labels, remap, fit, box, coef, xc, yc, top[1:],
-                                                               noise)
+                                                               noise, kept)
         if agree_px is not None:
             agree = ok & (np.hypot(*(e_uv - uv).T) <= agree_px)
         used_ellipse = ok & pick

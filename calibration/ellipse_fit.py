@@ -20,7 +20,8 @@ __all__ = ["contour_ellipse_centres"]
 
 
 def contour_ellipse_centres(image: np.ndarray, lab: np.ndarray, k: int, coef: np.ndarray, xc: np.ndarray,
-                            yc: np.ndarray, top: np.ndarray, noise: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                            yc: np.ndarray, top: np.ndarray, noise: float, components: np.ndarray | None = None,
+                            own: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Ellipse centres of ``k`` blobs.
 
     Args:
@@ -30,6 +31,9 @@ def contour_ellipse_centres(image: np.ndarray, lab: np.ndarray, k: int, coef: np
         xc, yc: (k,) reference point of each blob's plane.
         top: (k,) peak grey level of each blob.
         noise: pixel noise standard deviation (grey levels).
+        components, own: (h, w) int the thresholded components and (k,) each blob's own component: a pair of pixels
+            one of which belongs to another component is no point of the blob's contour (a neighbour's rim within
+            the blob's window crosses the blob's level too). None: every pair in the window counts.
 
     Returns:
         uv (k, 2), cov (k, 2, 2) px^2, ok (k,) bool (enough contour points and a real ellipse).
@@ -53,6 +57,10 @@ def contour_ellipse_centres(image: np.ndarray, lab: np.ndarray, k: int, coef: np
         x1, y1, l1, x2, y2 = xs[inb], ys[inb], L[inb], x2[inb], y2[inb]
         same = grown[y2, x2].astype(np.int64) == l1
         x1, y1, l1, x2, y2 = x1[same], y1[same], l1[same], x2[same], y2[same]
+        if components is not None:  # neither pixel of another blob (the background is 0)
+            c1, c2, mine = components[y1, x1], components[y2, x2], own[l1 - 1]
+            mine_only = ((c1 == 0) | (c1 == mine)) & ((c2 == 0) | (c2 == mine))
+            x1, y1, l1, x2, y2 = x1[mine_only], y1[mine_only], l1[mine_only], x2[mine_only], y2[mine_only]
         f1 = img[y1, x1] - level(l1, x1 + 0.5 * ddx, y1 + 0.5 * ddy)
         f2 = img[y2, x2] - level(l1, x1 + 0.5 * ddx, y1 + 0.5 * ddy)
         cross = (f1 * f2 < 0)
@@ -105,14 +113,17 @@ def contour_ellipse_centres(image: np.ndarray, lab: np.ndarray, k: int, coef: np
 
 def contour_ellipse_centres_in_boxes(image: np.ndarray, labels: np.ndarray, remap: np.ndarray, sel: np.ndarray,
                                      box: np.ndarray, coef: np.ndarray, xc: np.ndarray, yc: np.ndarray,
-                                     top: np.ndarray, noise: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                                     top: np.ndarray, noise: float, own_comp: np.ndarray | None = None
+                                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """:func:`contour_ellipse_centres` of the blobs ``sel: (k,) bool`` only, each in its own box: the boxes (each
     blob's bounding box ``box: (k, 4)`` x0, y0, w, h grown by 3 px, what the contour's 5 x 5 growth and its pixel pairs
     reach) are cut out, stacked into one small image with only their own blob labelled, and fitted at once. The same
     centres as the whole image gives (where no other selected blob reaches within 2 px) for a fraction of its cost
     when few blobs are selected (decision 0037: the clipped dots and those next to an edge).
 
-    ``labels``: (h, w) component labels; ``remap``: (n,) float32, component label -> 1..k (0: not kept).
+    ``labels``: (h, w) component labels; ``remap``: (n,) float32, component label -> 1..k (0: not kept);
+    ``own_comp``: (k,) each blob's component label (pairs with a pixel of another component are left out, as
+    :func:`contour_ellipse_centres` does with them; None: kept).
     Returns uv (k, 2), cov (k, 2, 2), ok (k,) bool (False where not selected).
     """
     k = len(sel)
@@ -130,15 +141,19 @@ def contour_ellipse_centres_in_boxes(image: np.ndarray, labels: np.ndarray, rema
     oy = np.concatenate([[0], np.cumsum(hh + g)[:-1]])  # a gap of g empty rows between the boxes
     mosaic = np.zeros((int(oy[-1] + hh[-1]), int((bx1 - bx0).max())), dtype=image.dtype)
     lab = np.zeros(mosaic.shape, dtype=np.float32)
+    comp = np.zeros(mosaic.shape, dtype=labels.dtype)  # the components, as in the image (others' pixels excluded)
     for j, q in enumerate(idx):
         win = image[by0[j]:by1[j], bx0[j]:bx1[j]]
-        own = remap[labels[by0[j]:by1[j], bx0[j]:bx1[j]]] == q + 1
+        cw = labels[by0[j]:by1[j], bx0[j]:bx1[j]]
+        own = remap[cw] == q + 1
         mosaic[oy[j]:oy[j] + hh[j], :win.shape[1]] = win
+        comp[oy[j]:oy[j] + hh[j], :win.shape[1]] = cw
         lab[oy[j]:oy[j] + hh[j], :win.shape[1]][own] = q + 1
     # the blobs' plane reference points moved with their boxes (the plane is in x - xc, y - yc: unchanged)
     sx, sy = np.zeros(k), np.zeros(k)
     sx[idx], sy[idx] = bx0, by0 - oy
-    e_uv, e_cov, e_ok = contour_ellipse_centres(mosaic, lab, k, coef, xc - sx, yc - sy, top, noise)
+    e_uv, e_cov, e_ok = contour_ellipse_centres(mosaic, lab, k, coef, xc - sx, yc - sy, top, noise,
+                                                None if own_comp is None else comp, own_comp)
     uv[idx] = e_uv[idx] + np.stack([sx[idx], sy[idx]], axis=1)
     cov[idx], ok[idx] = e_cov[idx], e_ok[idx]
     return uv, cov, ok

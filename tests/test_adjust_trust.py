@@ -192,6 +192,26 @@ def test_background_bounds_are_kept_image_by_image_and_an_image_without_them_is_
     assert np.mean(m2) < 6.0  # 3 expected; a wrong weighting or datum gives hundreds
 
 
+def test_a_bound_of_a_dot_centred_by_its_centroid_is_weighed_at_the_centroids_share_and_said(tmp_path, example):
+    """Decision 0037: the model's c_background is the ellipse centre's; observations.json's ``ellipse_centre`` says
+    which dots were centred by the ellipse. The others (here: one image's, and the images without the flag, measured
+    before it) are weighed at the centroid's share, counted in the record and said."""
+    job, poses, obs = example
+    s4, s5 = obs[4][0], obs[5][0]
+    bg = {k: {} for k in range(14)}
+    bg[4] = {int(s4[j]): np.diag([0.04, 0.01]) for j in (0, 5, 9)}
+    bg[5] = {int(s5[j]): np.diag([0.04, 0.01]) for j in (1, 2)}
+    ctx, said = _ctx(tmp_path, job, poses, obs, bg=bg)
+    p = tmp_path / "observations.json"
+    doc = json.loads(p.read_text())
+    doc["images"][4]["ellipse_centre"] = [True] * len(s4)  # image 4's bounded dots by their ellipse; 5's: no flag
+    atomic_write_json(p, doc)
+    w = run_bundle(ctx)["observation_weights"]
+    assert w["observations_with_background_bound"] == 5
+    assert w["background_bound_at_centroid_share"] == 2
+    assert any("2 observations next to an edge centred by their centroid" in str(m) for m in said)
+
+
 # --- a dot unlike its ellipse in most images that found it ---------------------------------------------------
 def _with_shape_drops(tmp_path, obs, target_id: str, n: int):
     """Add to observations.json ``n`` images' MEASURE drops of ``target_id`` for its shape (decision 0016)."""

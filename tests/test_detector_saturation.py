@@ -87,3 +87,58 @@ def test_observation_geometry_gives_the_dots_size_in_pixels():
     assert theta[0] == pytest.approx(0.0, abs=1e-12)
     assert theta[1] == pytest.approx(np.arctan2(0.2, 0.5))
     assert load_model().saturation_var(np.array([0.7]), d[:1]).shape == (1,)
+
+
+def test_the_shipped_model_says_it_is_the_version_with_the_size_term():
+    # the size term and the auto centre's c_background came with version 5 (decision 0037); a record that says
+    # "version 4" would name the model measured for the centroid
+    model = load_model()
+    assert model.m_saturation != 0.0
+    assert int(model.version) >= 5
+    assert "(version 5)" in model.describe()
+
+
+def test_a_centroid_centred_dot_next_to_an_edge_is_weighed_at_the_centroids_share():
+    # the model's c_background (version 5) is the ellipse centre's; the centroid errs by ~4x its share: a dot with a
+    # bound centred by its centroid (a photograph's detector, a failed ellipse fit, a job measured before decision
+    # 0037: no ellipse_centre) is stated at the centroid's share, not silently at the ellipse's
+    from calibration.detector_model import C_BACKGROUND_CENTROID
+    from cell.stages.adjust import centroid_bounds_scaled, ellipse_centred
+
+    model = load_model()
+    assert model.c_background < 0.5 * C_BACKGROUND_CENTROID
+    obs = {"images": [{"ids": ["A", "B", "C"], "ellipse_centre": [True, False, False]}, {"ids": ["A", "D"]}]}
+    ell = ellipse_centred(obs)
+    assert ell.tolist() == [True, False, False, False, False]
+    B = np.zeros((5, 2, 2))
+    B[[0, 1, 3]] = np.diag([0.04, 0.01])  # C and D have no bound
+    scaled, hit = centroid_bounds_scaled(B, ell, model)
+    assert hit.tolist() == [False, True, False, True, False]
+    sig = np.full(5, 0.004)
+    C = observation_covariances(sig, scaled, model)
+    extra = C[:, 0, 0] - sig**2
+    assert extra[0] == pytest.approx(model.c_background**2 * 0.04)  # the ellipse centre: the model's share
+    assert extra[1] == pytest.approx(C_BACKGROUND_CENTROID**2 * 0.04)  # the centroid: its own
+    assert extra[3] == pytest.approx(C_BACKGROUND_CENTROID**2 * 0.04)
+    assert extra[2] == extra[4] == pytest.approx(0.0)
+    # a model whose c_background is the centroid's (before version 5) is left as it is
+    old = replace(model, version="4")
+    assert np.array_equal(centroid_bounds_scaled(B, ell, old)[0], B)
+
+
+def test_a_saturation_fit_that_does_not_converge_is_refused(monkeypatch):
+    import scipy.optimize
+
+    real = scipy.optimize.minimize
+
+    def short(fun, x0, method=None, options=None):  # an optimiser that runs out of evaluations
+        return real(fun, x0, method=method, options={**(options or {}), "maxfev": 30, "maxiter": 30})
+
+    rng = np.random.default_rng(2)
+    n = 400
+    inc, d, rho = rng.uniform(10, 60, n), rng.uniform(18, 38, n), rng.uniform(0.4, 0.85, n)
+    e = rng.standard_normal((n, 2)) * np.sqrt(BASE.sigma_px(np.radians(inc), d) ** 2 + BASE.saturation_var(rho, d))[:, None]
+    fit_saturation(BASE, inc, d, e, rho, size=True)  # converges as it is
+    monkeypatch.setattr(scipy.optimize, "minimize", short)
+    with pytest.raises(CalibrationError, match="did not converge"):
+        fit_saturation(BASE, inc, d, e, rho, size=True)

@@ -295,3 +295,27 @@ def test_a_dot_that_passed_with_a_cluster_of_the_surface_noise_is_measured_witho
     assert np.all(det.area_px[d.argmin(axis=1)] < 1300)  # the dot's own pixels, no cluster
     # no piece of a dot beside it (specks of the surface's noise, a few pixels each, pass as before)
     assert np.all(((d < 40) & (det.area_px >= 50)).sum(axis=1) == 1)
+
+
+@pytest.mark.parametrize("h, w, du, dv", [(300, 400, 120, 50), (85, 170, 50, 30)])  # the fit in boxes; the whole image
+def test_clipped_neighbours_a_few_pixels_apart_are_centred_on_their_own_contours(h, w, du, dv):
+    """Two clipped dots whose rims are 4 px apart: a neighbour's rim inside a dot's contour window crosses its level
+    too; those pairs of pixels (one of them the other blob's) are no points of the dot's ellipse (0.45 px before, in
+    the boxes; 0.39 px in the whole image), whichever way the fit runs."""
+    r, errs = 7.0, []
+    for s in range(4):
+        rng = np.random.default_rng(s)
+        uv = []
+        for v0 in np.arange(27.0, h - 20, dv):
+            for u0 in np.arange(27.0, w - 40, du):
+                u0, v0 = u0 + rng.uniform(-0.5, 0.5), v0 + rng.uniform(-0.5, 0.5)
+                uv += [(u0, v0), (u0 + 2 * r + 4, v0 + rng.uniform(-1, 1))]
+        uv = np.array(uv)
+        img = render_dots(np.random.default_rng(100 + s), h, w, uv, radius_px=r, level=2.5)
+        det = detect_dots(img, DetectionOptions())
+        assert det.ellipse.all()
+        d = np.linalg.norm(det.uv[:, None] - uv[None], axis=2).min(axis=0)
+        errs += list(d[d < 3])
+    errs = np.array(errs)
+    assert len(errs) >= 20
+    assert errs.max() < 0.06 and np.sqrt(np.mean(errs**2)) < 0.025

@@ -63,6 +63,7 @@ def test_rendered_rays_are_deterministic_and_cached_by_everything_they_depend_on
         np.testing.assert_array_equal(r.obs_image, a.obs_image)
         np.testing.assert_allclose(r.bg_cov, a.bg_cov)
         np.testing.assert_allclose(r.clipped_share, a.clipped_share)
+        np.testing.assert_array_equal(r.ellipse, a.ellipse)  # which bounds are the centroid's (decision 0037)
     assert b.facts == a.facts and len(a.obs_target) > 60
     moved = poses.copy()
     moved[0, :3, 3] += 0.01  # another station: another key
@@ -70,6 +71,27 @@ def test_rendered_rays_are_deterministic_and_cached_by_everything_they_depend_on
     files[0].write_bytes(b"torn")  # a torn cache file is measured again, not trusted
     d = PA.cached_rendered_rays(job, poses, tmp_path)
     np.testing.assert_array_equal(d.obs_target, a.obs_target)
+
+
+def test_the_cache_key_holds_every_module_the_measurement_imports():
+    # the cache lives on across versions of the code (planning's cache folder): a module the renders or their naming
+    # import (the camera's projection, the ring codes, the visibility that names dots) changed without a new key
+    # would serve stale rays
+    import ast
+    from pathlib import Path
+
+    root = Path(PA.__file__).resolve().parents[2]
+    seen, todo = set(), [f for f in PA._SOURCES if f != "cell/stages/preanalysis.py"]
+    while todo:
+        f = todo.pop()
+        if f in seen:
+            continue
+        seen.add(f)
+        for node in ast.walk(ast.parse((root / f).read_text())):
+            names = ([node.module] if isinstance(node, ast.ImportFrom) and node.module and node.level == 0
+                     else [a.name for a in node.names] if isinstance(node, ast.Import) else [])
+            todo += [p for p in (n.replace(".", "/") + ".py" for n in names) if (root / p).exists()]
+    assert sorted(seen - set(PA._SOURCES)) == []
 
 
 def test_a_prediction_without_renders_says_so(example, monkeypatch):

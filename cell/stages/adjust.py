@@ -11,7 +11,8 @@ from calibration.bundle import BundleConfig, BundleOptions, ScaleBar, bundle_adj
 from calibration.bundle.coherent import coherent_background_cov, scale_bar_gains
 from calibration.bundle.covariance import append_columns
 from calibration.camera import Intrinsics
-from calibration.detector_model import load_model, observation_covariances, observation_geometry, observation_sigmas
+from calibration.detector_model import (C_BACKGROUND_CENTROID, centroid_bound_scale, load_model, observation_covariances,
+                                        observation_geometry, observation_sigmas)
 from calibration.errors import CalibrationError, ScaleNotEstablishedError
 from calibration.plausibility import check_adjustment
 from calibration.weights import INCIDENCE_EDGES_DEG, group_labels, incidence_angles, incidence_groups, mean_variance
@@ -49,6 +50,28 @@ def background_bounds(obs_doc: dict) -> tuple[np.ndarray, np.ndarray]:
     if not B:
         return np.zeros((0, 2, 2)), np.zeros(0, dtype=bool)
     return np.concatenate(B), np.concatenate(has)
+
+
+def ellipse_centred(obs_doc: dict) -> np.ndarray:
+    """Whether each observation's centre is the ellipse of its dot's contour, ``(q,)`` bool in the order of
+    :func:`observation_arrays` (observations.json ``ellipse_centre``); an image without it (measured before
+    decision 0037, when every dot was centred by its centroid) has False."""
+    E = []
+    for o in obs_doc["images"]:
+        k = len(o["ids"])
+        e = o.get("ellipse_centre")
+        arr = np.asarray(e, dtype=bool).reshape(-1) if e is not None else None
+        E.append(arr if arr is not None and len(arr) == k else np.zeros(k, dtype=bool))
+    return np.concatenate(E) if E else np.zeros(0, dtype=bool)
+
+
+def centroid_bounds_scaled(bg: np.ndarray, ellipse: np.ndarray, model=None) -> tuple[np.ndarray, np.ndarray]:
+    """The background bounds ``bg: (q, 2, 2)`` with those of the dots centred by their centroid (``ellipse: (q,)``
+    False) scaled by :func:`calibration.detector_model.centroid_bound_scale`: the model's ``c_background`` is the
+    ellipse centre's, the centroid errs by about four times its share. Returns (the bounds, (q,) which were scaled)."""
+    scale = centroid_bound_scale(model or load_model())
+    hit = ~np.asarray(ellipse, dtype=bool) & (np.trace(bg, axis1=1, axis2=2) > 0) & (scale != 1.0)
+    return (np.where(hit[:, None, None], bg * scale, bg) if hit.any() else bg), hit
 
 
 def clipped_shares(obs_doc: dict) -> tuple[np.ndarray, np.ndarray]:
@@ -154,12 +177,19 @@ def _adjust(ctx, scr: Screening, obs: dict, obs_image, obs_target, obs_uv, poses
         # a dot next to an edge or a step of the shading: the detector's background bound, its measured share
         # (docs/decisions/0023, truth); the covariance is then 2x2 per observation
         bg, has_bg = background_bounds(obs)
+        # the model's c_background is the ellipse centre's: a dot with a bound centred by its centroid (a photograph's
+        # detector, an ellipse fit that failed, a job measured before decision 0037) states the centroid's share
+        bg, centroid = centroid_bounds_scaled(bg, ellipse_centred(obs))
+        if np.any(centroid[sel]):
+            ctx.say(f"  {int(np.count_nonzero(centroid[sel]))} observations next to an edge centred by their centroid: "
+                    f"their background bound weighed at the centroid's share ({C_BACKGROUND_CENTROID:g}, not the "
+                    "ellipse centre's)")
         # a dot the sensor clipped: the model's saturation term for the clipped share of its pixels (decision 0029)
         clip, has_clip = clipped_shares(obs)
         if np.any(bg[sel]) or np.any(clip[sel] > 0):
             model_sigma, obs_sigma = obs_sigma, observation_covariances(
                 obs_sigma, bg[sel], clipped_share=clip[sel], diameter_px=model_diameters(job, poses0, img, tgt, intr0.fx_px))
-        flags = {"bg": bg[sel], "clip": clip[sel],
+        flags = {"bg": bg[sel], "clip": clip[sel], "bg_centroid": centroid[sel],
                  "bg_missing": sorted({obs["images"][int(i)]["image"] for i in obs_image[sel & ~has_bg]}),
                  "clip_missing": sorted({obs["images"][int(i)]["image"] for i in obs_image[sel & ~has_clip]})}
     res = bundle_adjust(img, tgt, uv, intr0, poses0, targets.xyz, options, config, obs_sigma_px=obs_sigma,
@@ -420,6 +450,8 @@ def _flag_counts(flags: dict, rejected) -> dict:
     if flags["bg"] is not None:  # the dots next to an edge: a non-zero bound (not every 2x2 that differs from the model)
         out["observations_with_background_bound"] = int(np.count_nonzero(
             np.trace(np.asarray(flags["bg"], dtype=float), axis1=1, axis2=2)[used] > 0))
+        # of them, centred by their centroid: the bound at the centroid's share (decision 0037)
+        out["background_bound_at_centroid_share"] = int(np.count_nonzero(flags["bg_centroid"][used]))
     if flags["clip"] is None:
         return out | {"observations_clipped": None, "images_without_clipped_share": []}
     return out | {"observations_clipped": int(np.count_nonzero(flags["clip"][used] > 0)),

@@ -39,6 +39,7 @@ class PredictedRays:
     obs_target: np.ndarray
     bg_cov: np.ndarray | None = None  # (q, 2, 2) px^2, the detector's background bound on the render
     clipped_share: np.ndarray | None = None  # (q,) share of the dot's pixels at the sensor's ceiling
+    ellipse: np.ndarray | None = None  # (q,) bool, the centre is the ellipse of the dot's contour (decision 0037)
     method: str = "rendered"
     facts: dict = field(default_factory=dict)
 
@@ -60,8 +61,11 @@ def twin_camera(job):
                      rng=np.random.default_rng(TWIN_SEED), coded_family=s.job.coded_family)
 
 
-#: the code the renders' measurement depends on: a change to any of them makes a cached result stale
+#: the code the renders' measurement depends on: a change to any of them makes a cached result stale (every project
+#: module these import, tests/test_preanalysis.py checks; the detector model is applied after the cache)
 _SOURCES = ("calibration/dots.py", "calibration/dot_split.py", "calibration/ellipse_fit.py", "calibration/targets.py",
+            "calibration/camera.py", "calibration/ringcodes.py", "calibration/errors.py", "planning/visibility.py",
+            "planning/cache.py", "planning/stations.py", "sim_backend/coverage.py", "drivers/protocols.py",
             "sim_backend/sim_camera.py", "sim_backend/world.py", "cell/stages/imaging.py", "cell/stages/surface_labels.py",
             "cell/stages/preanalysis.py")
 
@@ -97,7 +101,7 @@ def cached_rendered_rays(job, part_from_cam: np.ndarray, cache_dir, progress=Non
     if path.exists():
         try:
             with np.load(path) as z:
-                r = PredictedRays(z["obs_image"], z["obs_target"], z["bg_cov"], z["clipped_share"])
+                r = PredictedRays(z["obs_image"], z["obs_target"], z["bg_cov"], z["clipped_share"], z["ellipse"])
                 r.facts = json.loads(str(z["facts"]))
             return r
         except (OSError, ValueError, KeyError):  # a torn or foreign file: measured again, rewritten
@@ -107,7 +111,7 @@ def cached_rendered_rays(job, part_from_cam: np.ndarray, cache_dir, progress=Non
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_suffix(f".{os.getpid()}.tmp.npz")
         np.savez(tmp, obs_image=r.obs_image, obs_target=r.obs_target, bg_cov=r.bg_cov,
-                 clipped_share=r.clipped_share, facts=json.dumps(r.facts))
+                 clipped_share=r.clipped_share, ellipse=r.ellipse, facts=json.dumps(r.facts))
         os.replace(tmp, path)
     except OSError:  # a read-only cache: measured every time
         pass
@@ -148,7 +152,7 @@ def rendered_rays(job, part_from_cam: np.ndarray, progress=None) -> PredictedRay
     workers = max(1, min(2, os.cpu_count() or 1, len(poses)))
     with ThreadPoolExecutor(max_workers=workers) as ex:
         found = list(ex.map(one, range(len(poses))))
-    img_idx, tgt, bg, clip = [], [], [], []
+    img_idx, tgt, bg, clip, ell = [], [], [], [], []
     lost: dict[str, int] = {}
     for i, m in enumerate(found):
         k = len(m.target)
@@ -156,11 +160,12 @@ def rendered_rays(job, part_from_cam: np.ndarray, progress=None) -> PredictedRay
         tgt.append(np.asarray(m.target, dtype=int))
         bg.append(np.zeros((k, 2, 2)) if m.bg_cov is None else np.asarray(m.bg_cov, dtype=float).reshape(k, 2, 2))
         clip.append(np.zeros(k) if m.clipped_share is None else np.asarray(m.clipped_share, dtype=float).reshape(k))
+        ell.append(np.zeros(k, dtype=bool) if m.ellipse is None else np.asarray(m.ellipse, dtype=bool).reshape(k))
         for _, why in m.dropped:
             key = "shape unlike its ellipse" if why.startswith("shape") else why.split(":")[0].split("(")[0].strip()
             lost[key] = lost.get(key, 0) + 1
     r = PredictedRays(np.concatenate(img_idx).astype(int), np.concatenate(tgt).astype(int), np.concatenate(bg),
-                      np.concatenate(clip))
+                      np.concatenate(clip), np.concatenate(ell))
     r.facts = {"images_rendered": len(poses), "rays": len(r.obs_target),
                "rays_with_background_bound": int(np.count_nonzero(np.trace(r.bg_cov, axis1=1, axis2=2) > 0)),
                "rays_clipped": int(np.count_nonzero(r.clipped_share > 0)), "dots_left_unnamed": lost}
@@ -225,7 +230,8 @@ def _adjust_exact(job, poses, img, tgt, uv, scr, rays: PredictedRays, order):
     from calibration.bundle import BundleOptions, bundle_adjust
     from calibration.bundle.coherent import scale_bar_gains
     from calibration.detector_model import observation_covariances
-    from cell.stages.adjust import _add_coherent_background, bundle_config, model_diameters, model_sigmas
+    from cell.stages.adjust import (_add_coherent_background, bundle_config, centroid_bounds_scaled, model_diameters,
+                                    model_sigmas)
 
     xyz = job.part.targets.xyz
     kept = np.flatnonzero(scr.keep_images)
@@ -236,6 +242,9 @@ def _adjust_exact(job, poses, img, tgt, uv, scr, rays: PredictedRays, order):
     img, tgt, uv = new_index[img[sel]], tgt[sel], uv[sel]
     sig = model_sigmas(job, job.spec.cell.backend, poses, img, tgt, job.intrinsics.fx_px)  # as ADJUST weighs them
     bg = None if rays.bg_cov is None else rays.bg_cov[order][sel]
+    if bg is not None:  # as ADJUST: a centroid-centred dot's bound at the centroid's share (decision 0037)
+        bg = centroid_bounds_scaled(bg, np.zeros(len(bg), dtype=bool) if rays.ellipse is None
+                                    else rays.ellipse[order][sel])[0]
     clip = None if rays.clipped_share is None else rays.clipped_share[order][sel]
     obs_sigma = sig if bg is None and clip is None else observation_covariances(
         sig, bg, clipped_share=clip, diameter_px=model_diameters(job, poses, img, tgt, job.intrinsics.fx_px))
