@@ -161,7 +161,9 @@ def fit_model(incidence_deg: np.ndarray, diameter_px: np.ndarray, errors_px: np.
         return float(np.sum(np.log(s2) + 0.5 * e2 / s2))  # two coordinates: 2 * (log s + e^2 / (2 s^2)) / ...
 
     x0 = np.array([np.log(0.005), np.log(0.01), 1.0, 1.0])
-    r = minimize(nll, x0, method="Nelder-Mead", options={"maxiter": 4000, "xatol": 1e-6, "fatol": 1e-6})
+    r = minimize(nll, x0, method="Nelder-Mead", options={"maxiter": 4000, "maxfev": 8000, "xatol": 1e-6, "fatol": 1e-6})
+    if not r.success:  # where the optimiser stopped is no fit: never written to the model file as one
+        raise CalibrationError(f"detector model: the fit did not converge ({r.message})")
     return DetectorModel(float(np.exp(r.x[0])), float(np.exp(r.x[1])), float(r.x[2]), float(r.x[3]), version)
 
 

@@ -142,3 +142,24 @@ def test_a_saturation_fit_that_does_not_converge_is_refused(monkeypatch):
     monkeypatch.setattr(scipy.optimize, "minimize", short)
     with pytest.raises(CalibrationError, match="did not converge"):
         fit_saturation(BASE, inc, d, e, rho, size=True)
+
+
+def test_a_geometry_fit_that_does_not_converge_is_refused(monkeypatch):
+    import scipy.optimize
+
+    from calibration.detector_model import fit_model
+
+    real = scipy.optimize.minimize
+
+    def short(fun, x0, method=None, options=None):  # an optimiser that runs out of evaluations
+        return real(fun, x0, method=method, options={**(options or {}), "maxfev": 20, "maxiter": 20})
+
+    rng = np.random.default_rng(3)
+    n = 2000
+    inc, d = rng.uniform(0, 75, n), rng.uniform(15, 38, n)
+    e = rng.standard_normal((n, 2)) * BASE.sigma_px(np.radians(inc), d)[:, None]
+    m = fit_model(inc, d, e)  # converges as it is, near the model it was drawn from
+    assert m.p == pytest.approx(BASE.p, abs=0.5) and m.q == pytest.approx(BASE.q, abs=0.5)
+    monkeypatch.setattr(scipy.optimize, "minimize", short)
+    with pytest.raises(CalibrationError, match="did not converge"):
+        fit_model(inc, d, e)
