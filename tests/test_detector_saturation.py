@@ -126,33 +126,28 @@ def test_a_centroid_centred_dot_next_to_an_edge_is_weighed_at_the_centroids_shar
     assert np.array_equal(centroid_bounds_scaled(B, ell, old)[0], B)
 
 
-def test_a_saturation_fit_that_does_not_converge_is_refused(monkeypatch):
+def _optimiser_out_of_evaluations(monkeypatch, n: int) -> None:
+    """scipy's minimize, stopped after ``n`` evaluations: the fits must refuse where it stopped."""
     import scipy.optimize
 
     real = scipy.optimize.minimize
+    monkeypatch.setattr(scipy.optimize, "minimize", lambda fun, x0, method=None, options=None: real(
+        fun, x0, method=method, options={**(options or {}), "maxfev": n, "maxiter": n}))
 
-    def short(fun, x0, method=None, options=None):  # an optimiser that runs out of evaluations
-        return real(fun, x0, method=method, options={**(options or {}), "maxfev": 30, "maxiter": 30})
 
+def test_a_saturation_fit_that_does_not_converge_is_refused(monkeypatch):
     rng = np.random.default_rng(2)
     n = 400
     inc, d, rho = rng.uniform(10, 60, n), rng.uniform(18, 38, n), rng.uniform(0.4, 0.85, n)
     e = rng.standard_normal((n, 2)) * np.sqrt(BASE.sigma_px(np.radians(inc), d) ** 2 + BASE.saturation_var(rho, d))[:, None]
     fit_saturation(BASE, inc, d, e, rho, size=True)  # converges as it is
-    monkeypatch.setattr(scipy.optimize, "minimize", short)
+    _optimiser_out_of_evaluations(monkeypatch, 30)
     with pytest.raises(CalibrationError, match="did not converge"):
         fit_saturation(BASE, inc, d, e, rho, size=True)
 
 
 def test_a_geometry_fit_that_does_not_converge_is_refused(monkeypatch):
-    import scipy.optimize
-
     from calibration.detector_model import fit_model
-
-    real = scipy.optimize.minimize
-
-    def short(fun, x0, method=None, options=None):  # an optimiser that runs out of evaluations
-        return real(fun, x0, method=method, options={**(options or {}), "maxfev": 20, "maxiter": 20})
 
     rng = np.random.default_rng(3)
     n = 2000
@@ -160,6 +155,6 @@ def test_a_geometry_fit_that_does_not_converge_is_refused(monkeypatch):
     e = rng.standard_normal((n, 2)) * BASE.sigma_px(np.radians(inc), d)[:, None]
     m = fit_model(inc, d, e)  # converges as it is, near the model it was drawn from
     assert m.p == pytest.approx(BASE.p, abs=0.5) and m.q == pytest.approx(BASE.q, abs=0.5)
-    monkeypatch.setattr(scipy.optimize, "minimize", short)
+    _optimiser_out_of_evaluations(monkeypatch, 20)
     with pytest.raises(CalibrationError, match="did not converge"):
         fit_model(inc, d, e)
