@@ -144,3 +144,16 @@ def test_measure_says_which_dots_it_centred_by_their_ellipse(example):
         ellipse += int((e & f).sum())
         stray += int((e & ~f).sum())
     assert stray == 0 and flagged > 50 and ellipse >= 0.9 * flagged, (stray, ellipse, flagged)
+
+
+def test_clipped_or_edge_dots_that_kept_their_centroid_are_counted():
+    """MEASURE says how many flagged dots kept their centroid because the ellipse fit failed (decision 0037)."""
+    from cell.stages.measure import centroid_kept
+
+    bound = [[1e-3, 0.0], [0.0, 1e-3]]
+    zero = [[0.0, 0.0], [0.0, 0.0]]
+    rec = {"clipped_share": [0.0, 0.7, 0.0, 0.5], "bg_cov_px2": [zero, zero, bound, zero],
+           "ellipse_centre": [False, True, False, False]}
+    assert centroid_kept([rec]) == 2  # the edge dot and the second clipped one
+    assert centroid_kept([{"clipped_share": [0.7], "bg_cov_px2": [zero]}]) == 0  # measured before the flags
+    assert centroid_kept([{"clipped_share": [], "bg_cov_px2": [], "ellipse_centre": []}]) == 0

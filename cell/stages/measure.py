@@ -80,9 +80,28 @@ def run(ctx, keep: bool = False) -> None:
     n_ell = sum(int(np.sum(o.get("ellipse_centre", []))) for o in out)
     if n_ell:
         ctx.say(f"  {n_ell} dots centred by the ellipse of their contour (clipped, or next to an edge: decision 0037)")
+    if getattr(job.spec.camera, "detection", "cell") == "cell":
+        kept = centroid_kept(out)
+        if kept:  # said, not silent: their weights are the centroid's (ADJUST), their centres the centroid's
+            ctx.say(f"  {kept} clipped or edge dots kept their centroid: the ellipse fit of their contour failed")
+            ctx.log.log("info", f"{kept} clipped or edge dots kept their centroid (ellipse fit failed; decision 0037)")
     other = {k: v for k, v in by_reason.items() if k != "partly hidden (CAD)"}
     if other:
         ctx.say("  named dots left unnamed rather than misnamed: " + ", ".join(f"{v} {k}" for k, v in other.items()))
+
+
+def centroid_kept(images: list[dict]) -> int:
+    """Clipped dots and dots with a background bound that kept their centroid (the ellipse fit of their contour failed;
+    decision 0037), over ``images`` (observations.json's records; records without the flags count nothing)."""
+    n = 0
+    for o in images:
+        if "ellipse_centre" not in o or o.get("clipped_share") is None or o.get("bg_cov_px2") is None:
+            continue
+        flagged = np.asarray(o["clipped_share"], dtype=float) > 0
+        if len(o["bg_cov_px2"]):
+            flagged |= np.trace(np.asarray(o["bg_cov_px2"], dtype=float).reshape(-1, 2, 2), axis1=1, axis2=2) > 0
+        n += int(np.sum(flagged & ~np.asarray(o["ellipse_centre"], dtype=bool)))
+    return n
 
 
 def dropped_by_reason(images: list[dict]) -> dict[str, int]:
