@@ -300,3 +300,40 @@ def test_one_function_appends_columns_to_the_low_rank_covariance_for_adjust_and_
     np.testing.assert_array_equal(res.covariance.D, want[0])
     np.testing.assert_array_equal(res.covariance.U, want[1])
     np.testing.assert_allclose(res.covariance.C, want[2], rtol=1e-14, atol=0)  # v read back through a sqrt
+
+
+def test_the_certificate_keeps_its_stated_sigma_when_the_covariance_is_scaled_by_s0():
+    """An a posteriori covariance scales the images' part by s0^2 and must leave the bar's certificate as certified:
+    corrected, it equals the a priori covariance of the same adjustment weighted at the sigma the residuals found
+    (images at sigma_px * s0, the bar at its certificate), block by block and in the low-rank form."""
+    from calibration.bundle import BundleConfig, BundleOptions, ScaleBar, bundle_adjust, simulate_network
+    from calibration.bundle.coherent import certificate_at_face_value, scale_bar_gains
+    from calibration.camera import exp_se3
+
+    rng = np.random.default_rng(5)
+    net = simulate_network(rng, n_targets=80, n_images=10, sigma_px=0.05)
+    poses0 = np.array([exp_se3(rng.normal(0, 0.002, 6)) @ T for T in net.cam_from_part])
+    x0 = net.points + rng.normal(0.0, 5e-4, net.points.shape)
+    a, b = int(np.argmin(net.points[:, 0])), int(np.argmax(net.points[:, 0]))
+    bar = ScaleBar(a, b, float(np.linalg.norm(net.points[a] - net.points[b])), 20e-6)
+    cfg = BundleConfig(scale_bars=(bar,))
+    post = bundle_adjust(net.obs_image, net.obs_target, net.obs_uv, net.intrinsics, poses0, x0,
+                         BundleOptions(sigma_px=0.025, max_rejections=0), cfg)
+    vf = post.variance_factor
+    assert vf > 3.0  # the images were weighted at half their noise
+    prior = bundle_adjust(net.obs_image, net.obs_target, net.obs_uv, net.intrinsics, poses0, x0,
+                          BundleOptions(sigma_px=0.025 * np.sqrt(vf), max_rejections=0, a_posteriori=False), cfg)
+    K, sig = scale_bar_gains(post.covariance, post.points, (bar,), vf)
+    blocks, pc = certificate_at_face_value(post.cov, post.covariance, K, sig, vf)
+    ok = np.isfinite(post.cov).all(axis=(1, 2))
+    np.testing.assert_allclose(blocks[ok], prior.cov[ok], rtol=2e-3, atol=1e-4 * np.abs(prior.cov[ok]).max())
+    # the bar's direction, through the whole covariance: the variance of the scale of a similarity fit
+    g = net.points[ok] - net.points[ok].mean(axis=0)
+    g /= np.sum(g * g)
+
+    def var(q):
+        U = np.einsum("nar,na->r", np.nan_to_num(q.U[ok]), g)
+        return float(np.einsum("na,nab,nb->", g, np.nan_to_num(q.D[ok]), g) + U @ q.C @ U)
+
+    assert var(pc) == pytest.approx(var(prior.covariance), rel=2e-3)
+    assert var(post.covariance) > 1.5 * var(pc)  # uncorrected, the certificate was stated ~vf times too large

@@ -140,6 +140,36 @@ def scale_bar_gains(cov, points: np.ndarray, bars, variance_factor: float = 1.0)
     return K, sig
 
 
+def certificate_at_face_value(cov_blocks: np.ndarray, cov, K: np.ndarray, sigma: np.ndarray,
+                              variance_factor: float):
+    """The covariance with the scale bars' certificates at their stated sigma, not at ``s0^2`` times it.
+
+    An a posteriori adjustment scales its whole covariance ``Q`` by the variance factor ``s0^2`` that the image
+    residuals estimate. The certificates' share of ``Q`` is ``sum_b sigma_b^2 k_b k_b^T`` (``k_b`` the gains of
+    :func:`scale_bar_gains`); the residuals say nothing about a certificate (a free network has no other scale),
+    so that share must stay as certified. The honest covariance is ``s0^2 (Q_a - C) + C = s0^2 Q_a + (1 - s0^2) C``
+    (``Q_a`` the a priori one, ``C`` the certificates' share): ``(1 - s0^2) sigma_b^2`` more along each bar's gains,
+    a rank-one term per bar (negative when ``s0^2 > 1``, where the images were worse than their weights; the sum
+    stays positive, as ``s0^2 (Q_a - C)`` is a covariance).
+
+    Args:
+        cov_blocks: (n, 3, 3) the points' blocks (``BundleResult.cov``); ``cov``: the
+            :class:`calibration.alignment.PointCovariance` (``BundleResult.covariance``); both as scaled by
+            ``variance_factor``.
+        K: (n, 3, b) gains (NaN rows for targets not adjusted); ``sigma``: (b,) the certificates' sigmas (m).
+    Returns:
+        ``(cov_blocks, cov)`` corrected (new arrays; the inputs are not changed).
+    """
+    from calibration.bundle.covariance import append_columns
+
+    w = (1.0 - float(variance_factor)) * np.asarray(sigma, dtype=float) ** 2
+    if not len(w) or not np.any(w):
+        return cov_blocks, cov
+    k = np.nan_to_num(np.asarray(K, dtype=float))
+    blocks = np.asarray(cov_blocks, dtype=float) + np.einsum("nar,r,nbr->nab", k, w, k)
+    return blocks, append_columns(cov, k, w)
+
+
 def share_pairs(errors_px: np.ndarray, bound_px2: np.ndarray, Jh: np.ndarray, target: np.ndarray, view: np.ndarray,
                 sight: np.ndarray | None = None, obs_cov: np.ndarray | None = None) -> dict:
     """The moments behind the shared share: for every pair of observations of one target, both with a background

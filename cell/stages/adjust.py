@@ -8,7 +8,7 @@ import time
 import numpy as np
 
 from calibration.bundle import BundleConfig, BundleOptions, ScaleBar, bundle_adjust
-from calibration.bundle.coherent import coherent_background_cov, scale_bar_gains
+from calibration.bundle.coherent import certificate_at_face_value, coherent_background_cov, scale_bar_gains
 from calibration.bundle.covariance import append_columns
 from calibration.camera import Intrinsics
 from calibration.detector_model import (C_BACKGROUND_CENTROID, centroid_bound_scale, load_model, observation_covariances,
@@ -327,6 +327,8 @@ def run_bundle(ctx) -> dict:
     kept_images, sel, img, tgt, uv, groups, model_sigma, flags = sub
     bars = bundle_config(job, scale=scr.scale_ok).scale_bars
     K, K_sigma = scale_bar_gains(res.covariance, res.points, bars, res.variance_factor) if bars else (np.zeros((len(ids), 3, 0)), np.zeros(0))
+    if bars:  # the certificates at their stated sigma: s0^2 scales what the images determined, not the bars
+        res.cov, res.covariance = certificate_at_face_value(res.cov, res.covariance, K, K_sigma, res.variance_factor)
     coherent = _add_coherent_background(res, flags["bg"], img, tgt, ids, bars, K) if model_sigma is not None else None
     suspect = _screened_suspects(scr, obs_target, tgt[~res.rejected], len(ids))
     shaped = {t for t in doubtful if np.any(tgt[~res.rejected] == t)}
