@@ -268,7 +268,7 @@ def write_report(ctx) -> tuple[str, list[str]]:
     sc = bundle.get("screening") or {}
     if sc.get("scale_established") is False:  # the job declares a scale bar: no report in the CAD's scale
         why = str(sc.get("scale"))
-        advice = ("choose scale bar ends on a clear flat area ([job] scale_bar), away from the part's edges"
+        advice = ("choose scale bar ends on a clear flat area ([job] scale_bar / scale_bars), away from the part's edges"
                   if "unlike its ellipse" in why else "add stations that see both ends ([planning] closed_loop = true "
                   "plans them) or check the scale bar's targets")
         raise CalibrationError(f"scale not established: {why}; {advice}")
@@ -322,6 +322,9 @@ def write_report(ctx) -> tuple[str, list[str]]:
         targets.append({
             "id": tid, "kind": str(job.part.targets.kind[j]), "nominal": nominal[j], "measured": al.aligned[j],
             "cov": al.deviation_cov[j], "measured_cov": cov[j], "cov_scale_bar": cov_scale[j] if nb else None,
+            # metres per metre of each used bar's certificate error, aligned frame (3 x b; bundle.json scale_bars
+            # gain_column gives each bar's column)
+            "scale_bar_gains": Kd[j] if nb else None,
             "deviation": al.deviation[j],
             "deviation_norm_m": dev_norm[j], "tolerance_m": tol[j], "pass": bool(passed[j]),
             "significance_sigma": level[j], "significant": bool(level[j] > k),
@@ -368,6 +371,7 @@ def write_report(ctx) -> tuple[str, list[str]]:
         "coded_targets": [ids[j] for j in np.flatnonzero(coded)],
         "rejected_observations": bundle.get("rejected", []),
         "identification_dropped": identification_drops(f.read_json("observations.json")),
+        "scale_bars": bundle.get("scale_bars") or [],
         "uncertainty_budget": _budget(cov_scale if nb else None, al.deviation_cov, judged & ok, bundle,
                                       scale_sigma(measured, pc, judged & ok & ~np.isin(ids, list(suspect)), K, K_sigma)
                                       if nb else None),
