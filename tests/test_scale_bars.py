@@ -8,9 +8,11 @@ from __future__ import annotations
 
 import json
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
+from jobutil import REPO
 from test_adjust_trust import _ctx, _with_shape_drops, example  # noqa: F401  (the fixture)
 
 from calibration.alignment import PointCovariance
@@ -191,3 +193,45 @@ def test_report_scale_bar_gains_are_the_aligned_deviations_change_per_metre_of_a
     # (measured: 1.5e-5 against a largest gain of 0.23)
     assert np.max(err) < 1e-3 * np.max(np.abs(Kd[ok, :, 1])), (np.max(err), np.max(np.abs(Kd[ok, :, 1])))
     assert np.max(np.abs(Kd[ok, :, 1])) > 0.01  # a gain worth the name: the test can fail
+
+
+# --- the whole job ---------------------------------------------------------------------------------------------
+@pytest.mark.slow
+def test_the_example_with_three_bars_runs_end_to_end_each_bar_planned_tested_and_reported(tmp_path):
+    """``cell run`` of the example with its bar and two more (ends without a simulated deviation, certified at their
+    CAD distance = the truth): PLAN secures every bar's ends, ADJUST uses and tests all three, report.json and
+    report.html carry each bar and the targets' 3 x 3 ``scale_bar_gains``; the measurement meets the truth."""
+    from jobutil import job_variant, run_cell, truth_xyz_m
+
+    from cell.loadedjob import load
+
+    ex = load(REPO / "examples/bracket/job.toml")
+    index, xyz = ex.part.targets.index(), ex.part.targets.xyz
+    pairs = [("T0094", "T0100"), ("T0075", "T0124"), ("T0022", "T0187")]
+    bars = [{"a": a, "b": b, "length": round(float(np.linalg.norm(xyz[index[a]] - xyz[index[b]])) * 1e3, 4),
+             "sigma": 0.002} for a, b in pairs]
+    job = job_variant(tmp_path / "job", {"job": {"scale_bar": None, "scale_bars": bars}})
+    run = run_cell("run", str(job), "--archive", str(tmp_path / "archive"), timeout=600)
+    assert run.code == 0, run.stderr[-3000:]
+    folder = Path(run.doc["folder"])
+    plan = json.loads((folder / "plan.json").read_text())
+    assert [d["ends"] for d in plan["scale_bars"]] == [list(p) for p in pairs] and "scale_bar" not in plan
+    bundle = json.loads((folder / "bundle.json").read_text())
+    sb = bundle["scale_bars"]
+    assert [d["bar"] for d in sb] == [list(p) for p in pairs]
+    assert all(d["used"] and d["test"] == "pass" for d in sb), sb
+    assert bundle["screening"]["scale_established"] is True
+    assert sum(p.startswith("scale bar ") for p in bundle["snooping"]["protected"]) == 3
+    report = json.loads((folder / "report.json").read_text())
+    assert [d["bar"] for d in report["scale_bars"]] == [list(p) for p in pairs]
+    g = [t["scale_bar_gains"] for t in report["targets"]]
+    assert all(x is None or np.shape(x) == (3, 3) for x in g) and sum(x is not None for x in g) > 150
+    html = (folder / "report.html").read_text()
+    assert all(f"Scale bar {a}-{b}" in html for a, b in pairs)
+    assert "Scale bar T0094-T0100" in run.stderr or "scale bar T0094-T0100" in run.stderr
+    # the truth: the measured bars' lengths within their stated sigma, and the scale from three bars
+    ids, _, true_xyz = truth_xyz_m(job)
+    ti = {t: k for k, t in enumerate(ids)}
+    for d in sb:
+        a, b = (ti[t] for t in d["bar"])
+        assert abs(d["adjusted_length_m"] - np.linalg.norm(true_xyz[a] - true_xyz[b])) < 5 * d["certificate_sigma_m"]
