@@ -53,7 +53,8 @@ def check(args, out) -> int:
         hit = ["-".join(b["ends"]) for b in bars if any(t in b["ends"] for t in bad)]
         what = (f"{len(bad)} target(s) cannot be seen by [planning] min_rays = {reach['min_rays']} reachable "
                 f"stations (e.g. " + ", ".join(f"{t}: {reach['rays'][t]}" for t in (on_bar + bad)[:5]) + ")"
-                + (f", among them the end(s) {', '.join(on_bar)} of the scale bar(s) {', '.join(hit)}: "
+                + (f", among them the end(s) {', '.join(on_bar)} of the scale bar{'s' if len(hit) > 1 else ''} "
+                   f"{', '.join(hit)}: "
                    + ("the scale cannot be established" if len(hit) == len(bars) else "those bars cannot be used")
                    if on_bar else ""))
         if job.spec.planning.unmeasurable != "report":
