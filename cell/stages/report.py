@@ -334,8 +334,8 @@ def write_report(ctx) -> tuple[str, list[str]]:
             "id": tid, "kind": str(job.part.targets.kind[j]), "nominal": nominal[j], "measured": al.aligned[j],
             "cov": al.deviation_cov[j], "measured_cov": cov[j], "cov_scale_bar": cov_scale[j] if nb else None,
             # metres per metre of each used bar's certificate error, aligned frame (3 x b; bundle.json scale_bars
-            # gain_column gives each bar's column)
-            "scale_bar_gains": Kd[j] if nb else None,
+            # gain_column gives each bar's column); null for a target not measured or without the gains
+            "scale_bar_gains": Kd[j] if nb and np.isfinite(Kd[j]).all() else None,
             "deviation": al.deviation[j],
             "deviation_norm_m": dev_norm[j], "tolerance_m": tol[j], "pass": bool(passed[j]),
             "significance_sigma": level[j], "significant": bool(level[j] > k),
