@@ -302,7 +302,10 @@ def _screen_and_adjust(ctx, obs, obs_image, obs_target, obs_uv, poses_all, intr0
         tgt = sub[3]
         kept = np.bincount(tgt[~res.rejected], minlength=len(ids))
         lost = [j for j in use if min(kept[t] for t in pairs[j]) < 2]
-        if lost and attempt < MAX_RETRIES:
+        if lost and attempt == MAX_RETRIES:
+            raise CalibrationError(f"bundle: scale bar(s) {', '.join(bar_name(job, j) for j in lost)} lost an end to data "
+                                   f"snooping after {MAX_RETRIES} retries: no adjustment left to use the others alone")
+        if lost:
             ends = {int(t): int(kept[t]) for j in lost for t in pairs[j] if kept[t] < 2}
             sel = np.flatnonzero(scr.keep_obs & scr.keep_images[obs_image])
             rej = sorted({obs["images"][int(obs_image[sel[q]])]["image"]
