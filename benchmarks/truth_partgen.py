@@ -33,9 +33,10 @@ from tests.test_truth_partgen import truth_figures  # noqa: E402
 
 
 def one(work: Path, seed: int, misplaced: bool, search_weights: str | None = None,
-        background_mask: str | None = None, bar_sigma_um: float = 2.0) -> dict:
+        background_mask: str | None = None, bar_sigma_um: float = 2.0, n_bars: int = 1) -> dict:
     part = make_part_job(work / f"job{seed}", np.random.default_rng(seed),
-                         misplacement=(10.0, 5.0) if misplaced else None, bar_sigma_mm=1e-3 * bar_sigma_um)
+                         misplacement=(10.0, 5.0) if misplaced else None, bar_sigma_mm=1e-3 * bar_sigma_um,
+                         n_bars=n_bars)
     if search_weights is not None:  # [planning] search_weights (docs/decisions/0031)
         set_search_weights(part.job, search_weights)
     if background_mask is not None:  # [camera] background_mask (docs/decisions/0035)
@@ -106,13 +107,14 @@ def main(argv=None) -> int:
                     "(default: the job file's default)")
     ap.add_argument("--background-mask", choices=("none", "cad"), help="[camera] background_mask of the jobs "
                     "(default: the job file's default; docs/decisions/0035)")
+    ap.add_argument("--bars", type=int, default=1, help="how many scale bars the generated jobs carry")
     ap.add_argument("--bar-sigma-um", type=float, default=2.0, help="the generated scale bar certificate's sigma (um; "
                     "its length is off the true one by a draw of it, the same draw per seed whatever the sigma)")
     a = ap.parse_args(argv)
     rows = []
     with tempfile.TemporaryDirectory(prefix="truth-partgen-") as tmp:
         for k in range(a.runs):
-            r = one(Path(tmp), a.first_seed + k, a.misplaced, a.search_weights, a.background_mask, a.bar_sigma_um)
+            r = one(Path(tmp), a.first_seed + k, a.misplaced, a.search_weights, a.background_mask, a.bar_sigma_um, a.bars)
             rows.append(r)
             print(json.dumps(r), flush=True)
     ok = [r for r in rows if "error" not in r]

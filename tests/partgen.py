@@ -90,8 +90,9 @@ def _inside_any(p: np.ndarray, solids: list, skip: int) -> np.ndarray:
 
 
 def _flat_spots(rng, mesh: trimesh.Trimesh, solids: list, count: int, spacing_mm: float,
-                rim_mm: float) -> tuple[np.ndarray, np.ndarray]:
-    """Points on the outer surface where a disc of radius ``rim_mm`` lies on one flat patch, spaced apart."""
+                rim_mm: float, gap_mm: float = 0.15, min_cos: float = 0.995) -> tuple[np.ndarray, np.ndarray]:
+    """Points on the outer surface where a disc of radius ``rim_mm`` lies on one flat patch, spaced apart (its rim
+    within ``gap_mm`` of the surface, the surface's normal there within ``acos(min_cos)`` of the disc's)."""
     pts, fi = trimesh.sample.sample_surface(mesh, count, seed=int(rng.integers(1 << 31)))
     kept: list[int] = []  # greedy thinning to the spacing (a Poisson-disc set)
     from scipy.spatial import cKDTree
@@ -106,24 +107,66 @@ def _flat_spots(rng, mesh: trimesh.Trimesh, solids: list, count: int, spacing_mm
     nrm = mesh.face_normals[fi]
     keep = nrm[:, 2] > -0.3  # not on the underside (the part stands on it)
     # a whole dot (and a margin) must lie on one flat patch: its rim projected onto the surface stays in plane
-    a = np.cross(nrm, [0.0, 0.0, 1.0])
-    a[np.linalg.norm(a, axis=1) < 1e-6] = [1.0, 0.0, 0.0]
-    a /= np.linalg.norm(a, axis=1, keepdims=True)
-    b = np.cross(nrm, a)
-    r = rim_mm
-    for ang in np.linspace(0, 2 * np.pi, 8, endpoint=False):
-        q = pts + r * (np.cos(ang) * a + np.sin(ang) * b)
-        closest, dist, tri = trimesh.proximity.closest_point(mesh, q)
-        keep &= (dist < 0.15) & (np.einsum("ij,ij->i", mesh.face_normals[tri], nrm) > 0.995)
+    keep &= _disc_on_surface(mesh, pts, nrm, rim_mm, gap_mm, min_cos)
     if solids:  # on the outside of the joined solids only (not on a face buried in a neighbour)
         keep &= ~_inside_any(pts + 0.5 * nrm, solids, -1)
     return pts[keep], nrm[keep]
 
 
+def _disc_on_surface(mesh: trimesh.Trimesh, pts: np.ndarray, nrm: np.ndarray, rim_mm: float, gap_mm: float,
+                     min_cos: float, rings: int = 1) -> np.ndarray:
+    """Whether a disc of radius ``rim_mm`` in each point's tangent plane lies on the surface: its rim (and
+    ``rings - 1`` circles inside it) within ``gap_mm`` of the surface, where the surface's normal is within
+    ``acos(min_cos)`` of the point's. An edge of the part inside the disc fails it (the rim leaves the face)."""
+    keep = np.ones(len(pts), dtype=bool)
+    if not len(pts):
+        return keep
+    a = np.cross(nrm, [0.0, 0.0, 1.0])
+    a[np.linalg.norm(a, axis=1) < 1e-6] = [1.0, 0.0, 0.0]
+    a /= np.linalg.norm(a, axis=1, keepdims=True)
+    b = np.cross(nrm, a)
+    for r in rim_mm * np.arange(1, rings + 1) / rings:
+        for ang in np.linspace(0, 2 * np.pi, 8 if rings == 1 else 16, endpoint=False):
+            q = pts + r * (np.cos(ang) * a + np.sin(ang) * b)
+            closest, dist, tri = trimesh.proximity.closest_point(mesh, q)
+            keep &= (dist < gap_mm) & (np.einsum("ij,ij->i", mesh.face_normals[tri], nrm) > min_cos)
+    return keep
+
+
+def _scale_bars(mesh: trimesh.Trimesh, xyz: np.ndarray, nrm: np.ndarray, clean: list[int], n_bars: int,
+                clear_mm: float = 12.0) -> list[tuple[int, int]]:
+    """``n_bars`` scale bars (pairs of dots) as an operator sets them up: each end on the top, on a clear area (no
+    edge of the part within ``clear_mm``: a dot next to an edge is centred off by the ground beyond it, outward on
+    average, which a bar's length turns into a scale error), the bars as long as the part allows, no dot the end of
+    two bars and the ends of different bars apart (their errors independent). The longest bar first."""
+    top = [k for k in clean if nrm[k, 2] > 0.7]  # on top: seen by many images
+    ok = _disc_on_surface(mesh, xyz[top], nrm[top], clear_mm, 0.6, 0.98, rings=3) if top else np.zeros(0, bool)
+    cand = [k for k, good in zip(top, ok) if good]
+    if len(cand) < 2:  # a part without a clear area: the top dots, else any clean ones
+        cand = top if len(top) >= 2 else clean
+    P = xyz[cand]
+    dist = np.linalg.norm(P[:, None] - P[None], axis=2)
+    order = np.dstack(np.unravel_index(np.argsort(-dist, axis=None), dist.shape))[0]
+    bars: list[tuple[int, int]] = []
+    ends: list[np.ndarray] = []
+    for i, j in order:
+        if len(bars) == n_bars or dist[i, j] <= 0:
+            break
+        if i < j and all(min(np.linalg.norm(P[i] - e), np.linalg.norm(P[j] - e)) > 30.0 for e in ends):
+            bars.append((cand[i], cand[j]))
+            ends += [P[i], P[j]]
+    return bars
+
+
 def _place_targets(rng, mesh: trimesh.Trimesh, solids: list, n: int, dot_mm: float, n_coded: int,
-                   coded_mm: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """``n`` dots and up to ``n_coded`` coded markers (ArUco, for identification and ``cell locate``)."""
-    cp, cn = _flat_spots(rng, mesh, solids, 4000, 0.5 * coded_mm, 0.8 * coded_mm)
+                   coded_mm: float, curved: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``n`` dots and up to ``n_coded`` coded markers (ArUco, for identification and ``cell locate``).
+
+    On a ``curved`` part (a skin) no patch of a marker's size is flat: the markers are rigid plates that touch the
+    surface at their centre and stand off it by at most 1 mm at their rim (the simulator renders them as the flat
+    squares they are, and ``cell locate`` models them so)."""
+    gap, cos = (1.0, 0.98) if curved else (0.15, 0.995)
+    cp, cn = _flat_spots(rng, mesh, solids, 4000, 0.5 * coded_mm, 0.8 * coded_mm, gap, cos)
     pick: list[int] = []
     for k in rng.permutation(len(cp)):  # spread the markers: at least three marker sizes apart
         if len(pick) < n_coded and all(np.linalg.norm(cp[k] - cp[j]) > 3 * coded_mm for j in pick):
@@ -139,11 +182,14 @@ def _place_targets(rng, mesh: trimesh.Trimesh, solids: list, n: int, dot_mm: flo
 
 def make_part_job(out: Path, rng: np.random.Generator, kind: str | None = None, n_targets: int | None = None,
                   deviating_share: float | None = None, five_sigma_m: float = 25e-6,
-                  misplacement: tuple[float, float] | None = None, bar_sigma_mm: float = 0.002) -> GeneratedPart:
+                  misplacement: tuple[float, float] | None = None, bar_sigma_mm: float = 0.002,
+                  n_bars: int = 1) -> GeneratedPart:
     """Write a random part's job folder into ``out``; returns what was made (with the injected truth).
 
-    ``bar_sigma_mm``: the scale bar certificate's stated sigma; the certificate is off the bar's true length by a
-    draw of it (the same standard normal draw for a seed whatever the sigma).
+    ``n_bars``: how many scale bars (:func:`_scale_bars`; one is written as ``[job] scale_bar``, more as
+    ``scale_bars``); fewer where the part has no room for more.
+    ``bar_sigma_mm``: each bar certificate's stated sigma; a certificate is off its bar's true length by a draw of
+    it (the same standard normal draws for a seed whatever the sigma).
 
     ``misplacement``: (mm, deg) by which the simulated part lies away from its nominal placement (shifted on
     the table, turned about the vertical; ``[sim] base_from_part_true``), for jobs that locate the part first.
@@ -155,7 +201,7 @@ def make_part_job(out: Path, rng: np.random.Generator, kind: str | None = None, 
     dot = 5.0
     n = int(n_targets or rng.integers(100, 401))
     coded_mm = 20.0
-    xyz, nrm, cxyz, cnrm = _place_targets(rng, mesh, solids, n, dot, 8, coded_mm)
+    xyz, nrm, cxyz, cnrm = _place_targets(rng, mesh, solids, n, dot, 8, coded_mm, curved=kind == "skin")
     n = len(xyz)
     ids = [f"T{k + 1:04d}" for k in range(n)]
     # mm; at 10x the largest moves a dot 2.5 mm, a fifth of the dot spacing: MEASURE names dots by projecting
@@ -183,22 +229,19 @@ def make_part_job(out: Path, rng: np.random.Generator, kind: str | None = None, 
         w.writerow(["id", "dx", "dy", "dz"])
         for i, d in deviations.items():
             w.writerow([i, *(f"{v:.5f}" for v in d)])
-    # the scale bar: the two targets furthest apart that carry no deviation
-    clean = [k for k in range(n) if ids[k] not in deviations and nrm[k, 2] > 0.7]  # on top: seen by many images
-    if len(clean) < 2:
-        clean = [k for k in range(n) if ids[k] not in deviations]
-    P = xyz[clean]
-    a, b = np.unravel_index(np.argmax(np.linalg.norm(P[:, None] - P[None], axis=2)), (len(P), len(P)))
-    a, b = clean[a], clean[b]
+    # the scale bars: long ones between targets that carry no deviation, their ends on a clear area
+    bars = _scale_bars(mesh, xyz, nrm, [k for k in range(n) if ids[k] not in deviations], n_bars)
     text = (EXAMPLE / "job.toml").read_text()
     text = text.replace('name = "bracket"', f'name = "gen-{kind}"').replace('mesh = "bracket.stl"', 'mesh = "part.stl"')
-    # the bar's certificate is a calibration like any other: its length is off the true one by a draw of its stated
-    # sigma (2 um), so a run realises the certificate's share of every target's uncertainty as a real cell does. Drawn
-    # from a child stream: the part, its deviations and its plan are the same as without it.
+    # a bar's certificate is a calibration like any other: its length is off the true one by a draw of its stated
+    # sigma (2 um), so a run realises the certificates' share of every target's uncertainty as a real cell does; each
+    # bar its own draw. Drawn from a child stream: the part, its deviations and its plan are the same as without it.
     bar_sigma = float(bar_sigma_mm)
-    cert = float(np.linalg.norm(xyz[a] - xyz[b]) + bar_sigma * rng.spawn(1)[0].standard_normal())
-    text = re.sub(r"(?m)^scale_bar = .*$", f'scale_bar = {{ a = "{ids[a]}", b = "{ids[b]}", length = '
-                  f'{cert:.5f}, sigma = {bar_sigma} }}', text)
+    draws = rng.spawn(1)[0].standard_normal(len(bars))
+    tables = [f'{{ a = "{ids[a]}", b = "{ids[b]}", length = {np.linalg.norm(xyz[a] - xyz[b]) + bar_sigma * z:.5f}, '
+              f'sigma = {bar_sigma} }}' for (a, b), z in zip(bars, draws)]
+    line = f"scale_bar = {tables[0]}" if len(tables) == 1 else f"scale_bars = [{', '.join(tables)}]"
+    text = re.sub(r"(?m)^scale_bar = .*$", lambda m: line, text)
     text = re.sub(r"(?m)^seed = 7$", f"seed = {int(rng.integers(1, 1000))}", text)
     text = re.sub(r"(?m)^target_diameter = .*$", f"target_diameter = {dot}", text)
     text = re.sub(r"(?m)^coded_size = .*$", f"coded_size = {coded_mm}", text)

@@ -73,25 +73,31 @@ def truth_figures(report: dict, part) -> dict:
 
 
 def given_certificate(report: dict, part) -> dict:
-    """The truth figures given the scale bar certificate's realised error: the generator knows the bar's true length,
-    so the measurement's scale error from the certificate (``eps = certified / true - 1``: every coordinate scaled by
-    ``1 + eps`` about the alignment's centroid) is taken out of each deviation, and the certificate's share
-    (``cov_scale_bar``) out of each covariance. What is left is the rest of the statement: the images, the network and
-    the bar ends' measurement. One shared draw moves every target of a run (decision 0036), so this tells a run whose
-    ratio a certificate draw moved from a statement that is wrong; it is printed, the criteria stay the unconditional
-    ones."""
+    """The truth figures given the scale bar certificates' realised errors: the generator knows each bar's true
+    length, so the measurement's error from the certificates is taken out of each deviation (exactly, through the
+    report's ``scale_bar_gains``: metres per metre of each certificate's error, in the aligned frame; for a report
+    without them and one bar, to first order: every coordinate scaled by ``certified / true`` about the alignment's
+    centroid), and the certificates' share (``cov_scale_bar``) out of each covariance. What is left is the rest of the
+    statement: the images, the network and the bar ends' measurement. One shared draw moves every target of a run
+    (decision 0036), so this tells a run whose ratio a certificate draw moved from a statement that is wrong; it is
+    printed, the criteria stay the unconditional ones. ``certificate_z``: the bars' draws, combined as the scale
+    sees them (their gains' weights), in units of the combination's sigma."""
     import csv
     import tomllib
 
     doc = tomllib.loads(Path(part.job).read_text())
-    bar = (doc.get("job") or {}).get("scale_bar")
-    if not bar:
+    job = doc.get("job") or {}
+    bars = job.get("scale_bars") or ([job["scale_bar"]] if job.get("scale_bar") else [])
+    if not bars:
         return {}
-    with open(Path(part.job).parent / doc["job"]["targets"], newline="") as f:
+    with open(Path(part.job).parent / job["targets"], newline="") as f:
         cad = {r["id"]: np.array([float(r["x"]), float(r["y"]), float(r["z"])]) for r in csv.DictReader(f)}
-    ends = [cad[bar[k]] + np.asarray(part.deviations.get(bar[k], np.zeros(3))) for k in ("a", "b")]
-    true_mm = float(np.linalg.norm(ends[0] - ends[1]))
-    eps = float(bar["length"]) / true_mm - 1.0
+    err_mm, sig_mm = [], []
+    for bar in bars:
+        ends = [cad[bar[k]] + np.asarray(part.deviations.get(bar[k], np.zeros(3))) for k in ("a", "b")]
+        err_mm.append(float(bar["length"]) - float(np.linalg.norm(ends[0] - ends[1])))
+        sig_mm.append(float(bar["sigma"]))
+    err_m, sig_m = 1e-3 * np.array(err_mm), 1e-3 * np.array(sig_mm)
     fit = set(report["alignment"].get("targets_in_fit") or [])
     c = np.mean([t["nominal"] for t in report["targets"] if t["id"] in fit], axis=0) if fit else None
     m2, inside = [], []
@@ -99,14 +105,29 @@ def given_certificate(report: dict, part) -> dict:
         if t["measured"][0] is None or t.get("suspect") or t.get("cov_scale_bar") is None or c is None:
             continue
         d = np.asarray(part.deviations.get(t["id"], np.zeros(3))) * 1e-3
-        e = np.asarray(t["deviation"]) - d - eps * (np.asarray(t["nominal"]) - c)
+        gains = t.get("scale_bar_gains")
+        if gains is not None and np.shape(gains) == (3, len(bars)):
+            G = np.asarray(gains, dtype=float)
+            shift = G @ err_m
+        elif len(bars) == 1:
+            eps = err_mm[0] / (float(bars[0]["length"]) - err_mm[0])
+            shift = eps * (np.asarray(t["nominal"]) - c)
+        else:
+            return {}
+        e = np.asarray(t["deviation"]) - d - shift
         C = np.asarray(t["cov"]) - np.asarray(t["cov_scale_bar"])
         m2.append(float(e @ np.linalg.solve(C, e)))
         if t["id"] not in part.deviations:
             inside.append(m2[-1] <= chi2.ppf(0.99, 3))
     if not m2:
         return {}
-    return {"certificate_z": (float(bar["length"]) - true_mm) / float(bar["sigma"]),
+    if len(bars) == 1:
+        cz = err_mm[0] / sig_mm[0]
+    else:  # the combination the scale sees: inverse-variance weights of the bars' relative errors
+        L = np.array([float(b["length"]) for b in bars]) * 1e-3
+        w = (L / sig_m) ** 2
+        cz = float(np.sum(w * err_m / L) / np.sum(w) / (1.0 / np.sqrt(np.sum(w))))
+    return {"certificate_z": float(cz), "certificate_z_bars": [float(v) for v in err_m / sig_m],
             "ratio_given_certificate": float(np.sqrt(np.mean(m2) / 3)),
             "untouched_in_99_given_certificate": float(np.mean(inside)) if inside else None}
 
@@ -151,3 +172,19 @@ def test_a_misplaced_part_is_located_and_never_reported_quietly_wrong(tmp_path):
         _check(fig, report)
     else:
         assert report["verdict"] == "UNTRUSTED" and report["alignment"]["reasons"]
+
+
+def test_a_misplaced_skin_is_located_by_its_coded_markers(tmp_path):
+    """A curved skin carries coded markers too (rigid plates touching it at their centre): ``cell locate`` finds a
+    10 mm / 5 deg misplacement within what it states, against the simulated truth."""
+    import csv
+
+    part = make_part_job(tmp_path / "job", np.random.default_rng(100), "skin", misplacement=(10.0, 5.0))
+    with (part.folder / "targets.csv").open(newline="") as f:
+        assert sum(r["kind"] == "coded" for r in csv.DictReader(f)) >= 6
+    loc = run_cell("locate", str(part.job), "--write", timeout=600)
+    assert loc.code == 0, loc.stderr[-3000:]
+    s = loc.doc
+    assert s["written"] and abs(s["change_from_nominal_m"] - 0.010) < 1e-4
+    assert s["truth"]["error_m"] <= 4 * np.linalg.norm(s["sigma_translation_m"]) + 20e-6, s["truth"]
+    assert s["truth"]["error_rad"] <= 4 * np.linalg.norm(s["sigma_rotation_rad"]) + 1e-4, s["truth"]
