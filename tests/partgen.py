@@ -21,6 +21,8 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
+from planning.clear_area import disc_on_surface
+
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "bracket"
 KINDS = ("plate", "skin")
 
@@ -107,30 +109,10 @@ def _flat_spots(rng, mesh: trimesh.Trimesh, solids: list, count: int, spacing_mm
     nrm = mesh.face_normals[fi]
     keep = nrm[:, 2] > -0.3  # not on the underside (the part stands on it)
     # a whole dot (and a margin) must lie on one flat patch: its rim projected onto the surface stays in plane
-    keep &= _disc_on_surface(mesh, pts, nrm, rim_mm, gap_mm, min_cos)
+    keep &= disc_on_surface(mesh, pts, nrm, rim_mm, gap_mm, min_cos)
     if solids:  # on the outside of the joined solids only (not on a face buried in a neighbour)
         keep &= ~_inside_any(pts + 0.5 * nrm, solids, -1)
     return pts[keep], nrm[keep]
-
-
-def _disc_on_surface(mesh: trimesh.Trimesh, pts: np.ndarray, nrm: np.ndarray, rim_mm: float, gap_mm: float,
-                     min_cos: float, rings: int = 1) -> np.ndarray:
-    """Whether a disc of radius ``rim_mm`` in each point's tangent plane lies on the surface: its rim (and
-    ``rings - 1`` circles inside it) within ``gap_mm`` of the surface, where the surface's normal is within
-    ``acos(min_cos)`` of the point's. An edge of the part inside the disc fails it (the rim leaves the face)."""
-    keep = np.ones(len(pts), dtype=bool)
-    if not len(pts):
-        return keep
-    a = np.cross(nrm, [0.0, 0.0, 1.0])
-    a[np.linalg.norm(a, axis=1) < 1e-6] = [1.0, 0.0, 0.0]
-    a /= np.linalg.norm(a, axis=1, keepdims=True)
-    b = np.cross(nrm, a)
-    for r in rim_mm * np.arange(1, rings + 1) / rings:
-        for ang in np.linspace(0, 2 * np.pi, 8 if rings == 1 else 16, endpoint=False):
-            q = pts + r * (np.cos(ang) * a + np.sin(ang) * b)
-            closest, dist, tri = trimesh.proximity.closest_point(mesh, q)
-            keep &= (dist < gap_mm) & (np.einsum("ij,ij->i", mesh.face_normals[tri], nrm) > min_cos)
-    return keep
 
 
 def _scale_bars(mesh: trimesh.Trimesh, xyz: np.ndarray, nrm: np.ndarray, clean: list[int], n_bars: int,
@@ -140,7 +122,7 @@ def _scale_bars(mesh: trimesh.Trimesh, xyz: np.ndarray, nrm: np.ndarray, clean: 
     average, which a bar's length turns into a scale error), the bars as long as the part allows, no dot the end of
     two bars and the ends of different bars apart (their errors independent). The longest bar first."""
     top = [k for k in clean if nrm[k, 2] > 0.7]  # on top: seen by many images
-    ok = _disc_on_surface(mesh, xyz[top], nrm[top], clear_mm, 0.6, 0.98, rings=3) if top else np.zeros(0, bool)
+    ok = disc_on_surface(mesh, xyz[top], nrm[top], clear_mm, 0.6, 0.98, rings=3) if top else np.zeros(0, bool)
     cand = [k for k, good in zip(top, ok) if good]
     if len(cand) < 2:  # a part without a clear area: the top dots, else any clean ones
         cand = top if len(top) >= 2 else clean
