@@ -25,8 +25,7 @@ def _human_check(doc: dict, out) -> None:
     elif r:
         out.say(f"reach  every target seen by >= {r['min_rays']} of {r['reachable']} reachable candidate stations "
                 f"({r['candidates']} on the viewing sphere)")
-    if r and r.get("scale_bar"):
-        b = r["scale_bar"]
+    for b in (r or {}).get("scale_bars") or []:
         out.say(f"bar    scale bar {'-'.join(b['ends'])}: ends seen by {b['candidates'][0]} / {b['candidates'][1]} "
                 f"reachable candidate stations well inside the image, 10 deg below the incidence limit")
         if b.get("warning"):
@@ -47,21 +46,24 @@ def check(args, out) -> int:
 
     reach = unmeasurable_targets(job)
     doc["measurability"] = reach
-    bar = reach.get("scale_bar")
+    bars = reach.get("scale_bars") or []
     if reach["unmeasurable"]:
         bad = reach["unmeasurable"]
-        on_bar = [t for t in bad if bar and t in bar["ends"]]
+        on_bar = [t for t in bad if any(t in b["ends"] for b in bars)]
+        hit = ["-".join(b["ends"]) for b in bars if any(t in b["ends"] for t in bad)]
         what = (f"{len(bad)} target(s) cannot be seen by [planning] min_rays = {reach['min_rays']} reachable "
                 f"stations (e.g. " + ", ".join(f"{t}: {reach['rays'][t]}" for t in (on_bar + bad)[:5]) + ")"
-                + (f", among them the end(s) {', '.join(on_bar)} of the scale bar {'-'.join(bar['ends'])}: the "
-                   "scale cannot be established" if on_bar else ""))
+                + (f", among them the end(s) {', '.join(on_bar)} of the scale bar{'s' if len(hit) > 1 else ''} "
+                   f"{', '.join(hit)}: "
+                   + ("the scale cannot be established" if len(hit) == len(bars) else "those bars cannot be used")
+                   if on_bar else ""))
         if job.spec.planning.unmeasurable != "report":
             raise JobSpecError(
                 f"{job.path}: {what}: lower [planning] min_rays, raise [planning] incidence_max_deg, widen [planning] "
                 "elevation_min_deg / elevation_max_deg, move the part ([cell] base_from_part), or set [planning] "
                 'unmeasurable = "report" to measure the others and report these not measured')
         doc["warnings"] = [f"{what}: they will be reported not measured ([planning] unmeasurable = \"report\")"]
-    if bar is not None:
+    for bar in bars:
         weak = [f"{t} ({n})" for t, n in zip(bar["ends"], bar["candidates"]) if n < bar["rays_min"]]
         if weak:  # a warning, not an error: PLAN says what it achieves for the bar (planning/scalebar.py)
             bar["warning"] = (
@@ -96,11 +98,11 @@ def plan(args, out) -> int:
                "predicted_sigma_max_m": p.predicted_sigma_max_m, "predicted_sigma_mean_m": p.predicted_sigma_mean_m,
                "timing": p.timing, "databases": facts,
                **{k: v for k, v in p.search.items() if k.startswith(("lower_bound", "plan_over", "fewer_stations"))}}
-    if p.scale_bar is not None:
+    if p.scale_bars:
         from planning.scalebar import bar_warnings
 
-        summary["scale_bar"] = p.scale_bar
-        summary["scale_bar_lines"] = bar_warnings(p.scale_bar)
+        summary["scale_bars"] = p.scale_bars
+        summary["scale_bar_lines"] = [w for d in p.scale_bars for w in bar_warnings(d)]
 
     def human(d):
         out.say(f"plan   {d['stations']} stations, predicted sigma max {d['predicted_sigma_max_m'] * 1e6:.1f} um, "
@@ -109,11 +111,11 @@ def plan(args, out) -> int:
             r = d["plan_over_lower_bound"]
             how = ("within {:.0%} of it".format(r - 1) if r >= 1 else
                    "below it: the polish moved stations off the database's lattice")
-            n_bar = len((d.get("scale_bar") or {}).get("stations_added") or [])
+            n_bar = sum(len(b.get("stations_added") or []) for b in d.get("scale_bars") or [])
             out.say(f"bound  no {d['stations'] - n_bar}-station network made of the {facts['candidates']} database "
                     f"candidates gets its worst target below {d['lower_bound_sigma_m'] * 1e6:.1f} um; the "
                     f"{'search' + chr(39) + 's ' if n_bar else ''}plan is {how}"
-                    + (f" ({n_bar} station(s) added for the scale bar after it)" if n_bar else ""))
+                    + (f" ({n_bar} station(s) added for the scale bar(s) after it)" if n_bar else ""))
         for level, line in d.get("scale_bar_lines", []):
             out.say(f"{'WARNING ' if level == 'warning' else 'bar    '}{line}")
         if "fewer_stations" in d:

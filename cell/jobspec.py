@@ -83,7 +83,10 @@ class JobSection(_Strict):
         default="aruco", description="the coded targets the part carries: ArUco DICT_4X4_250 markers, or ring codes "
                                      "(a centre dot of target_diameter in a coded ring; calibration.ringcodes)")
     seed: int = Field(default=0, ge=0, lt=2**63, description="random seed (a non-negative integer)")
-    scale_bar: ScaleBar | None = None
+    scale_bar: ScaleBar | None = Field(default=None, description="one scale bar (the same as scale_bars with one)")
+    scale_bars: list[ScaleBar] | None = Field(
+        default=None, min_length=1, description="several certified scale bars: every usable one enters the adjustment, "
+                                                "their certificates are tested against each other (decision 0041)")
     number: str | None = Field(default=None, max_length=80, description="the part number (drawing), e.g. 'BR-1002'")
     revision: str | None = Field(default=None, max_length=40, description="the part's drawing revision")
 
@@ -92,6 +95,26 @@ class JobSection(_Strict):
         if (self.targets is None) == (self.n_targets is None):
             raise ValueError("give exactly one of 'targets' (a CSV file) or 'n_targets' (a count to sample)")
         return self
+
+    @model_validator(mode="after")
+    def _one_bar_key(self):
+        if self.scale_bar is not None and self.scale_bars is not None:
+            raise ValueError("give either 'scale_bar' (one bar) or 'scale_bars' (a list of bars), not both")
+        seen: dict[frozenset, str] = {}
+        for key, bar in self.bars():
+            pair = frozenset((bar.a, bar.b))
+            if pair in seen:
+                raise ValueError(f"{key} joins {bar.a} and {bar.b}, as {seen[pair]} does: one certificate per pair "
+                                 "of targets")
+            seen[pair] = key
+        return self
+
+    def bars(self) -> list[tuple[str, ScaleBar]]:
+        """Every scale bar with the key that names it in messages (``job.scale_bar`` or ``job.scale_bars[i]``);
+        two bars may share an end (their certificates are independent), not both."""
+        if self.scale_bar is not None:
+            return [("job.scale_bar", self.scale_bar)]
+        return [(f"job.scale_bars[{i}]", b) for i, b in enumerate(self.scale_bars or [])]
 
 
 class CameraSection(_Strict):
@@ -353,8 +376,8 @@ class JobSpec(_Strict):
         for i, ob in enumerate(c.obstacles):
             lengths[f"cell.obstacles[{i}].size"] = ob.size
             lengths[f"cell.obstacles[{i}].pose.xyz"] = ob.pose.xyz
-        if self.job.scale_bar is not None:
-            lengths["job.scale_bar.length"] = [self.job.scale_bar.length]
+        for key, bar in self.job.bars():
+            lengths[f"{key}.length"] = [bar.length]
         for key, values in lengths.items():
             big = [v for v in values if abs(v) * k > MAX_LENGTH_M]
             if big:
@@ -390,7 +413,7 @@ def pose_matrix(pose: Pose, scale: float) -> np.ndarray:
 
 def _format_validation_error(path: Path, err: ValidationError) -> str:
     e = err.errors()[0]
-    loc = ".".join(str(x) for x in e["loc"]) or "(top level)"
+    loc = "".join(f"[{x}]" if isinstance(x, int) else f".{x}" for x in e["loc"]).lstrip(".") or "(top level)"
     kind = e["type"]
     if kind == "extra_forbidden":
         return f"{path}: unknown key '{loc}'"

@@ -26,7 +26,8 @@ class LoadedJob:
         intrinsics: the nominal camera.
         deviations: (n, 3) true displacement of each target for the simulated cell (metres).
         tolerance_m: (n,) tolerance per target.
-        scale_bar: ``(index_a, index_b, length_m, sigma_m)`` or None.
+        scale_bars: ``(index_a, index_b, length_m, sigma_m)`` per scale bar of the job file (``[job] scale_bar`` or
+            ``scale_bars``, in their order); empty without one.
     """
 
     spec: JobSpec
@@ -36,7 +37,7 @@ class LoadedJob:
     intrinsics: Intrinsics
     deviations: np.ndarray
     tolerance_m: np.ndarray
-    scale_bar: tuple[int, int, float, float] | None
+    scale_bars: tuple[tuple[int, int, float, float], ...] = ()
 
     def summary(self) -> dict:
         s = self.spec
@@ -45,9 +46,8 @@ class LoadedJob:
             "part": self.part.summary(),
             "camera": self.intrinsics.to_dict() | {"sigma_px": s.camera.sigma_px},
             "cell": {"robot": s.cell.robot, "backend": s.cell.backend, "obstacles": len(s.cell.obstacles)},
-            "scale_bar": None
-            if self.scale_bar is None
-            else {"a": s.job.scale_bar.a, "b": s.job.scale_bar.b, "length_m": self.scale_bar[2]},
+            "scale_bars": [{"a": self.part.targets.ids[a], "b": self.part.targets.ids[b], "length_m": L}
+                           for a, b, L, _ in self.scale_bars],
             "sim_deviations": int((np.linalg.norm(self.deviations, axis=1) > 0).sum()),
         }
 
@@ -78,21 +78,21 @@ def load(job_path: str | Path, overrides: dict[str, str] | None = None) -> Loade
         tessellation_tolerance=j.tessellation_tolerance,
     )
     ids = part.targets.ids
-    scale_bar = None
-    if j.scale_bar is not None:
-        index = part.targets.index()
-        for key in (j.scale_bar.a, j.scale_bar.b):
-            if key not in index:
-                raise JobSpecError(f"{job_path}: job.scale_bar names target {key!r}, which the part does not have")
-        a, b = index[j.scale_bar.a], index[j.scale_bar.b]
+    scale_bars = []
+    index = part.targets.index()
+    for key, bar in j.bars():
+        for end in (bar.a, bar.b):
+            if end not in index:
+                raise JobSpecError(f"{job_path}: {key} names target {end!r}, which the part does not have")
+        a, b = index[bar.a], index[bar.b]
         nominal = float(np.linalg.norm(part.targets.xyz[a] - part.targets.xyz[b]))
-        length = j.scale_bar.length * s
+        length = bar.length * s
         if abs(nominal - length) > max(0.01 * length, 1e-3):
             raise JobSpecError(
-                f"{job_path}: job.scale_bar length {j.scale_bar.length} {j.units} differs from the CAD distance "
-                f"{nominal / s:.4f} {j.units} between {j.scale_bar.a} and {j.scale_bar.b} by more than 1%"
+                f"{job_path}: {key} length {bar.length} {j.units} differs from the CAD distance "
+                f"{nominal / s:.4f} {j.units} between {bar.a} and {bar.b} by more than 1%"
             )
-        scale_bar = (a, b, length, j.scale_bar.sigma * s)
+        scale_bars.append((a, b, length, bar.sigma * s))
     al = spec.alignment
     named = [("alignment.targets", t) for t in (al.targets or [])] + [("alignment.rps", t) for t in (al.rps or {})]
     index = part.targets.index()
@@ -119,5 +119,5 @@ def load(job_path: str | Path, overrides: dict[str, str] | None = None) -> Loade
         intrinsics=spec.intrinsics(),
         deviations=deviations,
         tolerance_m=tol,
-        scale_bar=scale_bar,
+        scale_bars=tuple(scale_bars),
     )

@@ -52,7 +52,7 @@ def planner_options(job: LoadedJob) -> PlannerOptions:
         n_candidates=p.n_candidates,
         lower_bound=p.lower_bound,
         allow_unmeasurable=p.unmeasurable == "report",
-        scale_bar=job.scale_bar,  # the bar's ends get the stations they need after the search (planning.scalebar)
+        scale_bars=job.scale_bars,  # the bars' ends get the stations they need after the search (planning.scalebar)
     )
 
 

@@ -1,6 +1,8 @@
 """The scale bar's ends in the plan: measured as well as the certificate deserves.
 
-A job's scale comes from one scale bar (``job.scale_bar``: two of the part's targets and a certified length).
+A job's scale comes from its scale bars (``job.scale_bars``: each two of the part's targets and a certified length;
+the planner secures them one after the other, each counting the stations added for the bars before it, decision
+0041; this module handles one bar).
 Every target's coordinates follow the scale, so the measurement of the bar's two ends enters every target's
 uncertainty (ADJUST: bundle.json, report.json ``uncertainty_budget.scale_sigma_ppm``). The search treats the ends
 as two targets among hundreds; this module checks them after the search and, where they fall short, adds stations
@@ -167,7 +169,8 @@ def _fewest(N_have, rays_have, req, info, vis, ok, min_rays, along, max_new):
 
 def secure_scale_bar(part, intr, options, db, valid: np.ndarray, T: np.ndarray, visible: np.ndarray, cov: np.ndarray,
                      cols: np.ndarray, bar: tuple[int, int, float, float]) -> tuple[np.ndarray, dict]:
-    """Candidates to add so that the bar's ends meet the requirement (see the module), and plan.json ``scale_bar``.
+    """Candidates to add so that the bar's ends meet the requirement (see the module), and the bar's record of plan.json
+    ``scale_bars``.
 
     Args:
         part, intr, options: the plan's part, camera and :class:`planning.planner.PlannerOptions`.

@@ -117,7 +117,7 @@ def test_a_scale_bar_end_snooping_takes_below_two_rays_is_scale_not_established_
     untestable: the error stayed, the end came out 139 um off, and 48 good observations of its other image were
     rejected instead."""
     job, poses, obs = example
-    a, b = job.scale_bar[:2]
+    a, b = job.scale_bars[0][:2]
     obs = [(s.copy(), u.copy()) for s, u in obs]
     with_a = [k for k, (s, _) in enumerate(obs) if a in s]
     assert len(with_a) == 2
@@ -147,7 +147,7 @@ def test_adjust_handles_the_scale_lost_inside_the_bundle_on_any_round(tmp_path, 
     import cell.stages.adjust as A
 
     job, poses, obs = example
-    a, b = job.scale_bar[:2]
+    a, b = job.scale_bars[0][:2]
     real = A.bundle_adjust
 
     def snooping_takes_the_end(img, tgt, uv, *args, **kw):
@@ -229,7 +229,7 @@ def test_a_scale_bar_end_unlike_its_ellipse_in_most_images_is_scale_not_establis
     from cell.stages.adjust import shape_doubtful
 
     job, poses, obs = example
-    a, b = job.scale_bar[:2]
+    a, b = job.scale_bars[0][:2]
     ids = job.part.targets.ids
     ctx, said = _ctx(tmp_path, job, poses, obs)
     kept = sum(a in s for s, _ in obs)
@@ -251,7 +251,7 @@ def test_a_scale_bar_end_unlike_its_ellipse_in_most_images_is_scale_not_establis
 def test_a_target_unlike_its_ellipse_in_most_images_is_reported_suspect_and_one_in_fewer_is_not(tmp_path, example):
     job, poses, obs = example
     ids = list(job.part.targets.ids)
-    a, b = job.scale_bar[:2]
+    a, b = job.scale_bars[0][:2]
     counts = np.bincount(np.concatenate([s for s, _ in obs]), minlength=len(ids))
     x, y = [int(t) for t in np.flatnonzero((counts >= 4) & (counts <= 6)) if t not in (a, b)][:2]  # room for drops
     ctx, said = _ctx(tmp_path, job, poses, obs)

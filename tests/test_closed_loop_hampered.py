@@ -72,7 +72,7 @@ def test_screening_drops_gross_observations_undetermined_targets_and_unlinked_im
         oi = np.concatenate([oi, np.full(8, 8 + k)])
         ot = np.concatenate([ot, 60 + np.arange(8)])
         uv = np.vstack([uv, project(net.intrinsics, T, extra_pts)])
-    s = screen_network(oi, ot, uv, net.intrinsics, poses, len(pts), scale_pair=(0, 60))
+    s = screen_network(oi, ot, uv, net.intrinsics, poses, len(pts), scale_pairs=[(0, 60)])
     assert q_bad in s.obs and f"> {GROSS_PX} px" in s.obs[q_bad]
     assert len(s.obs) <= 3, s.obs  # the clean observations stay (0.05 px noise)
     assert not s.keep_images[8] and not s.keep_images[9]

@@ -41,7 +41,7 @@ def test_example_job_loads_in_si_units():
     assert 100 <= len(job.part.targets) <= 300
     assert np.count_nonzero(np.linalg.norm(job.deviations, axis=1)) == 6
     assert job.tolerance_m.min() == pytest.approx(2.5e-4)
-    assert job.scale_bar is not None and job.scale_bar[2] == pytest.approx(0.3573936)
+    assert len(job.scale_bars) == 1 and job.scale_bars[0][2] == pytest.approx(0.3573936)
 
 
 @pytest.mark.parametrize("old,new,message", [
@@ -81,6 +81,52 @@ def test_scale_bar_naming_an_unknown_target(job_dir):
     p = _edit(job_dir, 'a = "T0094"', 'a = "C99"')
     with pytest.raises(JobSpecError, match="C99"):
         load(p)
+
+
+BAR = 'scale_bar = { a = "T0094", b = "T0100", length = 357.3936, sigma = 0.002 }'
+SECOND = '{ a = "T0012", b = "T0094", length = %s, sigma = 0.002 }'
+
+
+def _two_bars(job_dir, second: str):
+    return _edit(job_dir, BAR, 'scale_bars = [ { a = "T0094", b = "T0100", length = 357.3936, sigma = 0.002 }, '
+                               + second + ' ]')
+
+
+def _cad(job, a: str, b: str) -> float:
+    i = job.part.targets.index()
+    return float(np.linalg.norm(job.part.targets.xyz[i[a]] - job.part.targets.xyz[i[b]])) * 1e3
+
+
+def test_several_scale_bars_load_in_order_in_metres_and_may_share_an_end(job_dir):
+    L = _cad(load(EXAMPLE / "job.toml"), "T0012", "T0094")
+    job = load(_two_bars(job_dir, SECOND % f"{L:.4f}"))  # T0094 ends both bars: independent certificates, allowed
+    ids = job.part.targets.ids
+    assert [(ids[a], ids[b]) for a, b, _, _ in job.scale_bars] == [("T0094", "T0100"), ("T0012", "T0094")]
+    assert job.scale_bars[1][2] == pytest.approx(L * 1e-3) and job.scale_bars[1][3] == pytest.approx(2e-6)
+    assert not hasattr(job, "scale_bar")  # no attribute that silently means "the first bar"
+    assert [b["a"] for b in job.summary()["scale_bars"]] == ["T0094", "T0012"]
+
+
+@pytest.mark.parametrize("second,message", [
+    (SECOND % "300.0", "job.scale_bars[1] length 300.0 mm differs from the CAD distance"),
+    ('{ a = "T0012", b = "X9", length = 300.0 }', "job.scale_bars[1] names target 'X9'"),
+    ('{ a = "T0012", b = "T0012", length = 300.0 }', "'job.scale_bars[1]'"),
+    ('{ a = "T0100", b = "T0094", length = 357.3936, sigma = 0.001 }', "job.scale_bars[1] joins T0100 and T0094, as "
+                                                                        "job.scale_bars[0] does"),
+    ('{ a = "T0012", b = "T0094", length = -1.0 }', "'job.scale_bars[1].length' = -1.0"),
+])
+def test_each_scale_bar_is_checked_with_its_index_in_the_message(job_dir, second, message):
+    p = _two_bars(job_dir, second)
+    with pytest.raises(JobSpecError) as e:
+        load(p)
+    assert message in str(e.value) and str(p) in str(e.value) and "\n" not in str(e.value)
+
+
+def test_scale_bar_and_scale_bars_together_are_refused_in_one_line(job_dir):
+    p = _edit(job_dir, BAR, BAR + '\nscale_bars = [ { a = "T0012", b = "T0094", length = 300.0 } ]')
+    r = _cli("check", p)
+    assert r.returncode == 2 and "either 'scale_bar' (one bar) or 'scale_bars'" in r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1 and "Traceback" not in r.stderr
 
 
 def _cli(*args, cwd=None):

@@ -118,7 +118,7 @@ def test_renders_that_lose_a_bar_end_say_the_scale_is_not_established(example, m
     job = load(job_path)
     plan = json.loads((folder / "plan.json").read_text())
     poses = np.array([s["part_from_cam"] for s in plan["stations"]])
-    a = job.scale_bar[0]
+    a = job.scale_bars[0][0]
     full = PA.rendered_rays(job, poses)
     keep = full.obs_target != a
     lost = PA.PredictedRays(full.obs_image[keep], full.obs_target[keep], full.bg_cov[keep], full.clipped_share[keep])

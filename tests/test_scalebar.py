@@ -46,9 +46,9 @@ def test_weak_bar_end_gets_stations_and_meets_the_requirement(scene):
     a, b, L = _far_pair(part, np.arange(len(part.targets.ids)))
     plain = plan_network(part, intr, _options(), np.random.default_rng(3), cache_dir=cache, seed=3)
     assert min(plain.n_rays[[a, b]]) < RAYS_FACTOR * 3  # the search alone leaves an end weak
-    p = plan_network(part, intr, _options(scale_bar=(a, b, L, 2e-6)), np.random.default_rng(3), cache_dir=cache,
+    p = plan_network(part, intr, _options(scale_bars=((a, b, L, 2e-6),)), np.random.default_rng(3), cache_dir=cache,
                      seed=3)
-    bar = p.scale_bar
+    bar = p.scale_bars[0]
     k = len(plain.station_ids)
     added = [s["id"] for s in bar["stations_added"]]
     # the search's own stations are kept station for station; the added ones come after them
@@ -92,12 +92,12 @@ def test_plan_already_meeting_the_requirement_is_unchanged_station_for_station(s
     a, b, L = _far_pair(part, np.asarray(sure))
     # a bar of a loose certificate (40 um): the ends' length part may be as large (the network's own reference
     # is below it), and their rays and spread are already there
-    p = plan_network(part, intr, _options(n_stations=24, scale_bar=(a, b, L, 40e-6)), np.random.default_rng(3),
+    p = plan_network(part, intr, _options(n_stations=24, scale_bars=((a, b, L, 40e-6),)), np.random.default_rng(3),
                      cache_dir=cache, seed=3)
-    assert p.scale_bar["before"]["met"] and p.scale_bar["met"] and p.scale_bar["stations_added"] == []
+    assert p.scale_bars[0]["before"]["met"] and p.scale_bars[0]["met"] and p.scale_bars[0]["stations_added"] == []
     assert p.station_ids == plain.station_ids and np.array_equal(p.part_from_cam, plain.part_from_cam)
     assert np.array_equal(p.cov, plain.cov, equal_nan=True)
-    level, line = bar_warnings(p.scale_bar)[0]
+    level, line = bar_warnings(p.scale_bars[0])[0]
     assert level == "info" and "0 station(s) added" in line
 
 
@@ -111,9 +111,9 @@ def test_bar_end_no_candidate_can_serve_is_said_in_one_line_and_the_plan_goes_on
     # the robot reaches only 5 of the candidates that see end b (5 < 2 x min_rays): no choice can meet the rays
     reachable = ~db.visible[:, b]
     reachable[sees_b[np.argsort(-db.visible[sees_b].sum(axis=1))[:5]]] = True
-    p = plan_network(part, intr, _options(scale_bar=(a, b, L, 2e-6)), np.random.default_rng(3), reachable=reachable,
+    p = plan_network(part, intr, _options(scale_bars=((a, b, L, 2e-6),)), np.random.default_rng(3), reachable=reachable,
                      cache_dir=cache, seed=3, db=db)
-    bar = p.scale_bar
+    bar = p.scale_bars[0]
     assert not bar["met"] and bar["best_achievable"]["rays"][1] == 5 and bar["after"]["rays"][1] == 5
     assert bar["candidates_seeing_end"][1] == 5
     lines = bar_warnings(bar)
@@ -139,7 +139,7 @@ def test_cell_check_names_the_bar_when_an_end_has_few_sure_views_or_none(tmp_pat
     job = job_variant(tmp_path / "low", {"planning": {"elevation_min_deg": 40.0}})
     r = run_cell("check", str(job), timeout=300)
     assert r.code == 0, r.stderr[-2000:]
-    bar = r.doc["measurability"]["scale_bar"]
+    bar = r.doc["measurability"]["scale_bars"][0]
     assert bar["ends"] == ["T0094", "T0100"] and bar["rays_min"] == 6 and min(bar["candidates"]) < 6
     assert "scale bar T0094-T0100" in bar["warning"] and "T0100 (" in bar["warning"]
     # no lower than 45 deg: T0100 cannot be seen by min_rays stations at all: one line naming the bar, exit 2
@@ -173,11 +173,11 @@ def test_cheapest_mode_gets_the_bar_stations_after_its_search(scene):
     a, b, L = _far_pair(part, np.arange(len(part.targets.ids)))
     kw = dict(n_stations=10, population=40, generations=40, stall_generations=40, required_sigma_m=60e-6)
     plain = cheapest_network(part, intr, _options(**kw), np.random.default_rng(3), cache_dir=cache, seed=3)
-    p = cheapest_network(part, intr, _options(**kw, scale_bar=(a, b, L, 2e-6)), np.random.default_rng(3),
+    p = cheapest_network(part, intr, _options(**kw, scale_bars=((a, b, L, 2e-6),)), np.random.default_rng(3),
                          cache_dir=cache, seed=3)
-    k, added = len(plain.station_ids), p.scale_bar["stations_added"]
+    k, added = len(plain.station_ids), p.scale_bars[0]["stations_added"]
     assert p.mode == "cheapest" and added and len(p.station_ids) == k + len(added)
-    assert np.array_equal(p.part_from_cam[:k], plain.part_from_cam) and p.scale_bar["met"]
+    assert np.array_equal(p.part_from_cam[:k], plain.part_from_cam) and p.scale_bars[0]["met"]
     assert np.all(p.sigma <= np.asarray(p.required_sigma_m) * (1 + 1e-9))  # still meets the search's requirement
 
 
@@ -189,3 +189,29 @@ def test_renders_that_lose_a_bar_end_are_said():
     (level, line), = rendered_rays_note(doc, [3, 9])
     assert level == "warning" and "scale bar A-B" in line and "A in 3 image(s) (10 sure views planned)" in line
     assert "B in" not in line and doc["rendered_rays"] == [3, 9]
+
+
+def test_every_bar_of_several_gets_its_ends_secured_and_plan_json_lists_them(scene):
+    """Two bars (the far top pair, and a second pair of other top targets): each is secured after the search, bar
+    after bar, and judged on the final network; plan.json carries ``scale_bars`` (and ``scale_bar`` only for one)."""
+    part, intr, cache = scene
+    a, b, L = _far_pair(part, np.arange(len(part.targets.ids)))
+    rest = np.setdiff1d(np.arange(len(part.targets.ids)), [a, b])
+    c, d, L2 = _far_pair(part, rest)
+    p = plan_network(part, intr, _options(scale_bars=((a, b, L, 2e-6), (c, d, L2, 2e-6))), np.random.default_rng(3),
+                     cache_dir=cache, seed=3)
+    ids = part.targets.ids
+    assert [bar["ends"] for bar in p.scale_bars] == [[ids[a], ids[b]], [ids[c], ids[d]]]
+    assert all(bar["met"] and bar["after"]["met"] for bar in p.scale_bars)
+    doc = p.to_plan_dict()
+    assert len(doc["scale_bars"]) == 2 and "scale_bar" not in doc
+    # the stations added for each bar are the plan's last ones, in the bars' order, none twice
+    added = [s["id"] for bar in p.scale_bars for s in bar["stations_added"]]
+    assert added == p.station_ids[len(p.station_ids) - len(added):] and len(set(added)) == len(added)
+    # every end has its rays on the final network
+    visible, _, _ = covariance_with(intr, _options(), part, p.part_from_cam)
+    t = part.targets
+    for e in (a, b, c, d):
+        sure = trusted_views(intr, p.part_from_cam, t.xyz[[e]], t.normals[[e]], visible[:, [e]],
+                             _options().incidence_max_rad)
+        assert sure.sum() >= RAYS_FACTOR * 3

@@ -44,7 +44,7 @@ def artefact_job(cf: CellFile, folder: Path, cell_path: Path, *, name: str, mesh
                      target_diameter_m=target_diameter * k, coded_size_m=coded_size * k)
     n = len(part.targets)
     return LoadedJob(spec=spec, path=Path(cell_path), folder=folder, part=part, intrinsics=spec.intrinsics(),
-                     deviations=np.zeros((n, 3)), tolerance_m=np.full(n, k), scale_bar=None)
+                     deviations=np.zeros((n, 3)), tolerance_m=np.full(n, k))
 
 
 # --- stations: the inspection's planner, reachability and validation -----------------------------------

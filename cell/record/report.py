@@ -288,6 +288,16 @@ def _budget_facts(doc: dict) -> dict:
     if b.get("scale_sigma_ppm") is not None:
         out["Scale uncertainty (1 sigma)"] = (f"{b['scale_sigma_ppm']:.1f} ppm, of which the scale bar certificate "
                                               f"{b['scale_sigma_certificate_ppm']:.1f} ppm")
+    for d in doc.get("scale_bars") or []:  # each bar: its certificate, its test, used or left out (decision 0041)
+        name = "-".join(d["bar"])
+        cert = f"certificate {d['certificate_m'] * 1e3:.4f} mm +- {d['certificate_sigma_m'] * 1e6:.1f} um"
+        if not d.get("used"):
+            out[f"Scale bar {name}"] = f"{cert}; LEFT OUT: {d.get('left_out')}"
+        elif d.get("normalised_residual") is not None:
+            out[f"Scale bar {name}"] = (f"{cert}; adjusted minus certificate {d['residual_m'] * 1e6:+.1f} um "
+                                        f"({d['normalised_residual']:+.2f} sigma): {d['test']}; used")
+        else:
+            out[f"Scale bar {name}"] = f"{cert}; used; {d.get('test') or 'not tested'}"
     if b.get("scale_bar_share_median") is not None:
         out["Scale bar certificate in the variance"] = (f"{100 * b['scale_bar_share_median']:.0f} % median, "
                                                          f"{100 * b['scale_bar_share_max']:.0f} % at most")

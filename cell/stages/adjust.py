@@ -8,6 +8,7 @@ import time
 import numpy as np
 
 from calibration.bundle import BundleConfig, BundleOptions, ScaleBar, bundle_adjust
+from calibration.bundle.bartest import bar_residual_test
 from calibration.bundle.coherent import certificate_at_face_value, coherent_background_cov, scale_bar_gains
 from calibration.bundle.covariance import append_columns
 from calibration.camera import Intrinsics
@@ -17,6 +18,8 @@ from calibration.errors import CalibrationError, ScaleNotEstablishedError
 from calibration.plausibility import check_adjustment
 from calibration.weights import INCIDENCE_EDGES_DEG, group_labels, incidence_angles, incidence_groups, mean_variance
 from cell.record.jobfolder import atomic_write_bytes, atomic_write_json
+from cell.stages.scalebars import (bar_name, bars_doc, protected_entries, say_bars, shape_reason, snooping_reason,
+                                   test_reason)
 from cell.stages.screen import Resection, Screening, resect, screen_network
 
 
@@ -124,14 +127,14 @@ def model_diameters(job, cam_from_part: np.ndarray, img: np.ndarray, tgt: np.nda
     return observation_geometry(t.xyz, t.normals, cam_from_part, img, tgt, fx_px, job.part.target_diameter_m)[1]
 
 
-def bundle_config(job, scale: bool = True) -> BundleConfig:
-    """What the job's adjustment estimates (self-calibration) and its datum (scale bar, else free).
+def bundle_config(job, use_bars=None) -> BundleConfig:
+    """What the job's adjustment estimates (self-calibration) and its datum (scale bars, else free).
 
-    ``scale=False``: the scale bar cannot be used (an end not seen twice): a free network, scale not established."""
-    scale_bars = ()
-    if job.scale_bar is not None and scale:
-        a, b, length, sigma = job.scale_bar
-        scale_bars = (ScaleBar(a, b, length, max(sigma, 1e-7)),)
+    ``use_bars``: positions in ``job.scale_bars`` of the bars the adjustment uses (None: every bar; empty: none can
+    be used, a free network, scale not established)."""
+    keep = set(range(len(job.scale_bars)) if use_bars is None else use_bars)
+    scale_bars = tuple(ScaleBar(a, b, length, max(sigma, 1e-7))
+                       for j, (a, b, length, sigma) in enumerate(job.scale_bars) if j in keep)
     sc = job.spec.camera.self_calibrate
     return BundleConfig(camera_model="RADIAL" if sc else "PINHOLE", refine_focal_length=sc,
                         refine_principal_point=sc, refine_distortion=sc, scale_bars=scale_bars)
@@ -151,8 +154,9 @@ WILD_SIGMA_FACTOR = 100.0
 MAX_RETRIES = 4
 
 
-def _adjust(ctx, scr: Screening, obs: dict, obs_image, obs_target, obs_uv, poses_all, intr0):
-    """One bundle adjustment of what the screening kept; returns the result and the subset it used."""
+def _adjust(ctx, scr: Screening, use: list[int], obs: dict, obs_image, obs_target, obs_uv, poses_all, intr0):
+    """One bundle adjustment of what the screening kept, with the scale bars ``use`` (positions in
+    ``job.scale_bars``); returns the result and the subset it used."""
     job = ctx.job
     kept_images = np.flatnonzero(scr.keep_images)
     new_index = np.full(len(poses_all), -1)
@@ -160,7 +164,7 @@ def _adjust(ctx, scr: Screening, obs: dict, obs_image, obs_target, obs_uv, poses
     sel = scr.keep_obs & scr.keep_images[obs_image]
     img, tgt, uv = new_index[obs_image[sel]], obs_target[sel], obs_uv[sel]
     poses0 = poses_all[kept_images]
-    config = bundle_config(job, scale=scr.scale_ok)
+    config = bundle_config(job, use)
     options = BundleOptions(sigma_px=job.spec.camera.sigma_px, max_rejections=max_rejections(len(uv)))
     targets = job.part.targets
     groups = None
@@ -226,7 +230,8 @@ def _add_coherent_background(res, bg: np.ndarray, img, tgt, ids: list[str], bars
             k = np.nan_to_num(K[:, :, j])  # NaN only for targets the adjustment did not determine
             res.cov += v * np.einsum("na,nb->nab", k, k)
             res.covariance = append_columns(res.covariance, k[:, :, None], [v])
-            bar_terms.append({"bar": [ids[bar.target_a], ids[bar.target_b]], "length_sigma_m": float(np.sqrt(v))})
+            bar_terms.append({"bar": [ids[bar.target_a], ids[bar.target_b]], "bar_index": j,
+                              "length_sigma_m": float(np.sqrt(v))})
     grow = np.sqrt(np.trace(res.cov[hit], axis1=1, axis2=2) / np.maximum(np.trace(res.cov[hit] - extra[hit], axis1=1, axis2=2), 1e-300))
     worst = np.argsort(-grow)[:5]
     return {"share": share, "share_measured": model.rho_background is not None, "c_background": c, "n_targets": int(len(hit)), "scale_bar_ends": bar_terms,
@@ -251,47 +256,36 @@ def _weakest(sig: np.ndarray, med: float) -> np.ndarray:
     return np.flatnonzero(np.isfinite(sig) & (sig > 10.0 * med)) if np.isfinite(med) else np.zeros(0, dtype=int)
 
 
-def run_bundle(ctx) -> dict:
-    """Screen the network (:mod:`cell.stages.screen`), adjust what it kept, and drop what the adjustment shows
-    it cannot use (a target that ends behind a camera, one that is not determined), each with its reason."""
+def _screen_and_adjust(ctx, obs, obs_image, obs_target, obs_uv, poses_all, intr0, rs, ids, drop_t: dict,
+                       bars_out: dict, doubtful: dict):
+    """Screen the network and adjust what it kept with the scale bars not in ``bars_out`` (positions in
+    ``job.scale_bars`` -> why left out; completed here when data snooping takes an end below two rays); drop
+    the targets the adjustment shows it cannot use (``drop_t``, completed here). Returns ``(res, sub, scr, use,
+    retries, wild)``."""
     job = ctx.job
-    obs = json.loads(ctx.folder.file("observations.json").read_text())
-    cal = json.loads(ctx.folder.file("calibration.json").read_text())
-    obs_image, obs_target, obs_uv = observation_arrays(job, obs)
-    poses_all = np.array([r["cam_from_part"] for r in cal["images"]], dtype=float)
-    intr0 = initial_intrinsics(job, cal)
-    ids = list(job.part.targets.ids)
-    # poses that go with the common interior orientation: the screening's rays and the adjustment start from them
-    # (Faugeras-Toscani's per-image poses, paired with the common interior orientation, are pixels off: on a thin
-    # network with glare the adjustment started from them diverged, 100 targets behind a camera)
-    rs = resect(intr0, poses_all, obs_image, job.part.targets.xyz[obs_target], obs_uv)
-    poses_screen = rs.poses
-    scale_pair = tuple(job.scale_bar[:2]) if job.scale_bar is not None else None
-    drop_t: dict[int, str] = {}
-    scale_lost: str | None = None  # data snooping took a scale-bar end below two rays: a free network from then on
-    doubtful = shape_doubtful(obs, ids)
-    if scale_pair is not None and any(t in doubtful for t in scale_pair):
-        scale_lost = ("scale bar " + "-".join(ids[int(t)] for t in scale_pair) + ": " + ", ".join(
-            f"{ids[int(t)]} unlike its ellipse in {doubtful[t][0]} of the {sum(doubtful[t])} images that found it "
-            "(cut or crowded by an edge, clipped or washed out): the views kept cannot be trusted either"
-            for t in scale_pair if t in doubtful))
-        ctx.log.log("warning", f"adjustment: scale not established: {scale_lost}; adjusting a free network")
-    t0 = time.perf_counter()
+    nb = len(job.scale_bars)
+    pairs = [tuple(bar[:2]) for bar in job.scale_bars]
     for attempt in range(MAX_RETRIES + 1):
-        scr = screen_network(obs_image, obs_target, obs_uv, intr0, poses_screen, len(ids), scale_pair=scale_pair,
+        scr = screen_network(obs_image, obs_target, obs_uv, intr0, rs.poses, len(ids), scale_pairs=pairs,
                              drop_targets=drop_t, drop_images=rs.left_out, ids=ids)
-        if scale_lost is not None and scr.scale_ok:
-            scr.scale_ok, scr.scale_reason = False, scale_lost
+        left = dict(scr.bars_out) | bars_out
+        use = [j for j in range(nb) if j not in left]
+        scr.bars_out = left
+        if nb and not use:
+            scr.scale_ok, scr.scale_reason = False, "; ".join(left[j] for j in range(nb))
         if scr.keep_images.sum() < 2:
             raise CalibrationError(f"bundle: {int(scr.keep_images.sum())} of {len(poses_all)} images usable "
                                    "(see the screening reasons in the log); nothing to adjust")
         try:
-            res, sub = _adjust(ctx, scr, obs, obs_image, obs_target, obs_uv, poses_screen, intr0)
+            res, sub = _adjust(ctx, scr, use, obs, obs_image, obs_target, obs_uv, rs.poses, intr0)
         except ScaleNotEstablishedError as exc:
             if attempt == MAX_RETRIES:
                 raise
-            scale_lost = _scale_lost_reason(exc, scr, obs, obs_image, ids, scale_pair)
-            ctx.log.log("warning", f"adjustment: scale not established: {scale_lost}; adjusting a free network")
+            rej = _snooped_images(exc, scr, obs, obs_image)
+            for j in use:
+                bars_out[j] = snooping_reason(job, j, exc.ends, rej)
+            ctx.log.log("warning", "adjustment: scale not established: " + "; ".join(bars_out[j] for j in use)
+                        + "; adjusting a free network")
             continue
         except CalibrationError as exc:
             bad = getattr(exc, "targets", None)
@@ -302,6 +296,23 @@ def run_bundle(ctx) -> dict:
                                   "(misnamed, or its rays nearly parallel)")
             ctx.log.log("warning", f"adjustment: {len(bad)} target(s) ended behind a camera "
                                    f"({', '.join(ids[int(t)] for t in bad[:8])}); dropped, adjusting again")
+            continue
+        # a bar whose end data snooping took below two rays while another bar kept the scale: the adjustment did not
+        # use its length (calibration.bundle.normal skips it); left out by name and adjusted again without it
+        tgt = sub[3]
+        kept = np.bincount(tgt[~res.rejected], minlength=len(ids))
+        lost = [j for j in use if min(kept[t] for t in pairs[j]) < 2]
+        if lost and attempt == MAX_RETRIES:
+            raise CalibrationError(f"bundle: scale bar(s) {', '.join(bar_name(job, j) for j in lost)} lost an end to data "
+                                   f"snooping after {MAX_RETRIES} retries: no adjustment left to use the others alone")
+        if lost:
+            ends = {int(t): int(kept[t]) for j in lost for t in pairs[j] if kept[t] < 2}
+            sel = np.flatnonzero(scr.keep_obs & scr.keep_images[obs_image])
+            rej = sorted({obs["images"][int(obs_image[sel[q]])]["image"]
+                          for q in np.flatnonzero(res.rejected & np.isin(tgt, list(ends)))})
+            for j in lost:
+                bars_out[j] = snooping_reason(job, j, ends, rej)
+                ctx.log.log("warning", f"adjustment: {bars_out[j]}; bar left out, adjusting again")
             continue
         wild, sig, med = _wild_targets(res)
         if not res.converged and not wild.size:  # the weakest targets are what keeps an adjustment from settling
@@ -314,22 +325,80 @@ def run_bundle(ctx) -> dict:
                                    f"({', '.join(ids[int(t)] for t in wild[:8])}); dropped, adjusting again")
             continue
         break
-    if not res.converged:
-        raise CalibrationError(f"bundle adjustment did not converge: {res.summary}")
-    if wild.size:  # still undetermined after the last retry: their covariance would spoil every other target's
-        raise CalibrationError(f"bundle: {len(wild)} target(s) still not determined after {MAX_RETRIES} retries "
-                               f"({', '.join(ids[int(t)] for t in wild[:8])}): their rays are nearly parallel")
-    check_adjustment(res.sigma0_px, res.intrinsics, job.intrinsics)  # a converged nonsense is a failure
-    var = np.diagonal(res.cov, axis1=1, axis2=2)
-    if np.any(np.isfinite(var).all(axis=1) & (var <= 0).any(axis=1)):  # a singular network, not a measurement
-        raise CalibrationError("bundle: the network is not determined (a target's variance is not positive): its "
-                               "images are too weakly linked; see the screening in the log")
-    kept_images, sel, img, tgt, uv, groups, model_sigma, flags = sub
-    bars = bundle_config(job, scale=scr.scale_ok).scale_bars
-    K, K_sigma = scale_bar_gains(res.covariance, res.points, bars, res.variance_factor) if bars else (np.zeros((len(ids), 3, 0)), np.zeros(0))
-    if bars:  # the certificates at their stated sigma: s0^2 scales what the images determined, not the bars
-        res.cov, res.covariance = certificate_at_face_value(res.cov, res.covariance, K, K_sigma, res.variance_factor)
-    coherent = _add_coherent_background(res, flags["bg"], img, tgt, ids, bars, K) if model_sigma is not None else None
+    return res, sub, scr, use, attempt, wild
+
+
+def _snooped_images(exc, scr: Screening, obs: dict, obs_image) -> list[str]:
+    """The images whose observations of a scale-bar end data snooping rejected (``exc``:
+    :class:`ScaleNotEstablishedError` of the adjusted subset)."""
+    sel = np.flatnonzero(scr.keep_obs & scr.keep_images[obs_image])
+    return [obs["images"][int(obs_image[sel[q]])]["image"] for q in exc.rejected if q < len(sel)]
+
+
+def run_bundle(ctx) -> dict:
+    """Screen the network (:mod:`cell.stages.screen`), adjust what it kept, and drop what the adjustment shows
+    it cannot use (a target that ends behind a camera, one that is not determined), each with its reason; with
+    several scale bars, test their certificates against each other (:mod:`cell.stages.scalebars`)."""
+    job = ctx.job
+    obs = json.loads(ctx.folder.file("observations.json").read_text())
+    cal = json.loads(ctx.folder.file("calibration.json").read_text())
+    obs_image, obs_target, obs_uv = observation_arrays(job, obs)
+    poses_all = np.array([r["cam_from_part"] for r in cal["images"]], dtype=float)
+    intr0 = initial_intrinsics(job, cal)
+    ids = list(job.part.targets.ids)
+    # poses that go with the common interior orientation: the screening's rays and the adjustment start from them
+    # (Faugeras-Toscani's per-image poses, paired with the common interior orientation, are pixels off: on a thin
+    # network with glare the adjustment started from them diverged, 100 targets behind a camera)
+    rs = resect(intr0, poses_all, obs_image, job.part.targets.xyz[obs_target], obs_uv)
+    drop_t: dict[int, str] = {}
+    bars_out: dict[int, str] = {}  # scale bars left out (position in job.scale_bars -> why)
+    doubtful = shape_doubtful(obs, ids)
+    for j in range(len(job.scale_bars)):
+        why = shape_reason(job, j, doubtful)
+        if why is not None:
+            bars_out[j] = why
+            ctx.log.log("warning", f"adjustment: {why}; bar left out")
+    if job.scale_bars and len(bars_out) == len(job.scale_bars):
+        ctx.log.log("warning", "adjustment: scale not established: " + "; ".join(bars_out.values())
+                    + "; adjusting a free network")
+    t0 = time.perf_counter()
+    while True:  # with three bars or more, a bar whose certificate fails the test is left out and the job adjusted again
+        res, sub, scr, use, attempt, wild = _screen_and_adjust(ctx, obs, obs_image, obs_target, obs_uv, poses_all,
+                                                               intr0, rs, ids, drop_t, bars_out, doubtful)
+        if not res.converged:
+            raise CalibrationError(f"bundle adjustment did not converge: {res.summary}")
+        if wild.size:  # still undetermined after the last retry: their covariance would spoil every other target's
+            raise CalibrationError(f"bundle: {len(wild)} target(s) still not determined after {MAX_RETRIES} retries "
+                                   f"({', '.join(ids[int(t)] for t in wild[:8])}): their rays are nearly parallel")
+        check_adjustment(res.sigma0_px, res.intrinsics, job.intrinsics)  # a converged nonsense is a failure
+        var = np.diagonal(res.cov, axis1=1, axis2=2)
+        if np.any(np.isfinite(var).all(axis=1) & (var <= 0).any(axis=1)):  # a singular network, not a measurement
+            raise CalibrationError("bundle: the network is not determined (a target's variance is not positive): its "
+                                   "images are too weakly linked; see the screening in the log")
+        kept_images, sel, img, tgt, uv, groups, model_sigma, flags = sub
+        bars = bundle_config(job, use).scale_bars
+        K, K_sigma = scale_bar_gains(res.covariance, res.points, bars, res.variance_factor) if bars else (np.zeros((len(ids), 3, 0)), np.zeros(0))
+        if bars:  # the certificates at their stated sigma: s0^2 scales what the images determined, not the bars
+            res.cov, res.covariance = certificate_at_face_value(res.cov, res.covariance, K, K_sigma, res.variance_factor)
+        coherent = _add_coherent_background(res, flags["bg"], img, tgt, ids, bars, K) if model_sigma is not None else None
+        v = np.zeros(len(bars))
+        for e in (coherent or {}).get("scale_bar_ends", []):
+            v[e["bar_index"]] = e["length_sigma_m"] ** 2
+        test = bar_residual_test(res.points, res.covariance, K, bars, v) if bars else None
+        worst = test.worst() if test is not None else None
+        if worst is None:
+            break
+        if len(use) == 2:  # two bars cannot tell which certificate is wrong
+            raise CalibrationError(
+                "scale bars disagree: " + ", ".join(
+                    f"{bar_name(job, j)} adjusted minus certificate {test.residual_m[k] * 1e6:+.1f} um "
+                    f"({test.w[k]:+.1f} sigma)" for k, j in enumerate(use))
+                + f" (|w| > {test.critical:.2f}): one certificate, or an end's measurement, is wrong and two bars "
+                  "cannot tell which; check both certificates and their ends, or add a third bar")
+        bars_out[use[worst]] = test_reason(job, use[worst], test, worst)
+        msg = f"{bars_out[use[worst]]}; bar left out, adjusting again with the other {len(use) - 1}"
+        ctx.log.log("warning", f"adjustment: {msg}")
+        ctx.say(f"  WARNING {msg}")
     suspect = _screened_suspects(scr, obs_target, tgt[~res.rejected], len(ids))
     shaped = {t for t in doubtful if np.any(tgt[~res.rejected] == t)}
     if shaped:  # the views kept share the cause that made most of its views unlike the target's ellipse
@@ -362,15 +431,14 @@ def run_bundle(ctx) -> dict:
         "n_observations": int(len(uv)),
         "n_rejected": int(res.rejected.sum()),
         "rejected": rejected,
-        "screening": screening_doc(scr, obs, obs_image, obs_target, ids, attempt, rs),
+        "screening": screening_doc(scr, obs, obs_image, obs_target, ids, attempt, rs, job),
+        "scale_bars": bars_doc(job, use, scr.bars_out, test),
         "coherent_background": coherent,
         # targets determined >10x worse than the median: out of the datum's minimum trace (calibration.bundle.covariance)
         "datum_left_out": [ids[int(t)] for t in (res.datum_left_out if res.datum_left_out is not None else [])],
         "snooping": res.snooping | {"suspect_targets": [ids[int(t)] for t in sorted(set(
                                         int(t) for t in res.snooping["suspect_targets"]) | suspect)],
-                                    "protected": [p.replace(f"scale bar {a}-{b} ", f"scale bar {ids[a]}-{ids[b]} ")
-                                                  for p in res.snooping["protected"]
-                                                  for a, b in [job.scale_bar[:2] if job.scale_bar else (-1, -1)]]},
+                                    "protected": protected_entries(job, use, res.snooping["protected"])},
         "intrinsics": res.intrinsics.to_dict(),
         "intrinsics_refined": list(res.intrinsics_names),
         "intrinsics_sigma": np.sqrt(np.diag(res.intrinsics_cov)).tolist() if len(res.intrinsics_names) else [],
@@ -409,21 +477,11 @@ def _screened_suspects(scr: Screening, obs_target, used_target, n: int) -> set[i
     return {int(t) for t in np.flatnonzero((lost > 0) & (kept <= 2) & (kept > 0))}
 
 
-def _scale_lost_reason(exc, scr: Screening, obs: dict, obs_image, ids: list[str], scale_pair) -> str:
-    """``screening.scale`` when data snooping took a scale-bar end below two rays: the bar, each end and the images
-    whose observations of it were rejected (``exc``: :class:`ScaleNotEstablishedError` of the adjusted subset)."""
-    sel = np.flatnonzero(scr.keep_obs & scr.keep_images[obs_image])
-    ims = obs["images"]
-    bar = "-".join(ids[int(t)] for t in scale_pair) if scale_pair is not None else "?"
-    rej = [ims[int(obs_image[sel[q]])]["image"] for q in exc.rejected if q < len(sel)]
-    return (f"scale bar {bar}: " + ", ".join(f"{ids[int(t)]} usable in {k} image(s)" for t, k in exc.ends.items())
-            + " (2 needed)" + (f" after data snooping rejected its observation(s) in {', '.join(rej)}" if rej else ""))
-
-
 def screening_doc(scr: Screening, obs: dict, obs_image, obs_target, ids: list[str], retries: int,
-                  rs: Resection | None = None) -> dict:
+                  rs: Resection | None = None, job=None) -> dict:
     """bundle.json's ``screening``: every observation, target and image the adjustment did not use, and why;
-    whether the scale was established; ``resection``: how many images took their resection with the common
+    whether the scale was established and (``job`` given, with scale bars) ``scale_bars``: per bar whether the
+    adjustment used it or why it left it out; ``resection``: how many images took their resection with the common
     interior orientation and which kept their start pose, and why (an image a resection left out is in
     ``dropped_images``)."""
     ims = obs["images"]
@@ -440,6 +498,8 @@ def screening_doc(scr: Screening, obs: dict, obs_image, obs_target, ids: list[st
                            for i, why in sorted(scr.images.items())],
         "scale_established": scr.scale_ok,
         "scale": scr.scale_reason,
+        **({"scale_bars": [{"bar": bar_name(job, j), "used": j not in scr.bars_out, "reason": scr.bars_out.get(j)}
+                           for j in range(len(job.scale_bars))]} if job is not None and job.scale_bars else {}),
         "retries": retries,
     }
 
@@ -500,6 +560,7 @@ def run(ctx) -> None:
     ctx.say(f"  sigma0 {doc['sigma0_px']:.3f} px, {doc['n_rejected']} observation(s) rejected, "
             f"datum {doc['datum']}, {doc['time_s']:.2f} s")
     say_screening(ctx, doc["screening"])
+    say_bars(ctx, doc["scale_bars"])
     if doc.get("datum_left_out"):  # a datum choice, said (calibration.bundle.covariance.WEAK_DATUM)
         ids = doc["datum_left_out"]
         msg = (f"datum: {len(ids)} target(s) determined >10x worse than the median left out of the datum's minimum "

@@ -61,12 +61,15 @@ def _short(sigma: np.ndarray, rays: np.ndarray, required: np.ndarray, min_rays: 
 
 
 def _scale_ends(job, bundle: dict) -> np.ndarray:
-    """(n,) bool: the scale bar's two ends while the last adjustment could not establish the scale (bundle.json
-    ``screening.scale_established`` false: an end without two usable rays, or data snooping took them below two).
-    They are short whatever their sigma: the round plans fresh rays for them (decision 0030)."""
+    """(n,) bool: the scale bars' ends while the last adjustment could not establish the scale (bundle.json
+    ``screening.scale_established`` false: no bar left, each with an end without two usable rays, or data snooping
+    took them below two, or unlike its ellipse). They are short whatever their sigma: the round plans fresh rays for
+    them (decision 0030); every bar's, as any one bar that comes back establishes the scale. A bar left out while
+    another kept the scale is not chased (its reason is in bundle.json ``scale_bars``)."""
     out = np.zeros(len(job.part.targets.ids), dtype=bool)
-    if job.scale_bar is not None and (bundle.get("screening") or {}).get("scale_established") is False:
-        out[list(job.scale_bar[:2])] = True
+    if job.scale_bars and (bundle.get("screening") or {}).get("scale_established") is False:
+        for bar in job.scale_bars:
+            out[list(bar[:2])] = True
     return out
 
 

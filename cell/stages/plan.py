@@ -98,8 +98,8 @@ def unmeasurable_targets(job: LoadedJob, cache_dir: Path | None = None) -> dict:
 
     The same visibility and reachability databases as PLAN (cached), so ``cell check`` says what PLAN would
     refuse. Returns {``min_rays``, ``candidates``, ``reachable``, ``unmeasurable``: ids, ``rays``: per id the count,
-    and with a scale bar ``scale_bar``: {``ends``, ``candidates``: reachable candidates seeing each with a ray the bar
-    counts on (:func:`planning.scalebar.trusted_views`), ``rays_min``}}.
+    and with scale bars ``scale_bars``: per bar {``ends``, ``candidates``: reachable candidates seeing each with a ray
+    the bar counts on (:func:`planning.scalebar.trusted_views`), ``rays_min``}}.
     """
     from dataclasses import replace as _replace
 
@@ -120,15 +120,17 @@ def unmeasurable_targets(job: LoadedJob, cache_dir: Path | None = None) -> dict:
     out = {"min_rays": int(opts.min_rays), "candidates": len(reach.reachable),
            "reachable": int(reach.reachable.sum()), "unmeasurable": [ids[j] for j in bad],
            "rays": {ids[j]: int(rays[j]) for j in bad}}
-    if job.scale_bar is not None:  # the bar's ends need more rays than any target, and sure ones (planning/scalebar.py)
+    if job.scale_bars:  # the bars' ends need more rays than any target, and sure ones (planning/scalebar.py)
         from planning.scalebar import RAYS_FACTOR, trusted_views
 
-        e = list(job.scale_bar[:2])
         t = job.part.targets
-        sure = trusted_views(job.intrinsics, db.part_from_cam, t.xyz[e], t.normals[e],
-                             db.visible[:, e] & reach.reachable[:, None], opts.incidence_max_rad).sum(axis=0)
-        out["scale_bar"] = {"ends": [ids[k] for k in e], "candidates": [int(k) for k in sure],
-                            "rays_min": RAYS_FACTOR * int(opts.min_rays)}
+        out["scale_bars"] = []
+        for a, b, *_ in job.scale_bars:
+            e = [a, b]
+            sure = trusted_views(job.intrinsics, db.part_from_cam, t.xyz[e], t.normals[e],
+                                 db.visible[:, e] & reach.reachable[:, None], opts.incidence_max_rad).sum(axis=0)
+            out["scale_bars"].append({"ends": [ids[k] for k in e], "candidates": [int(k) for k in sure],
+                                      "rays_min": RAYS_FACTOR * int(opts.min_rays)})
     return out
 
 
@@ -176,16 +178,21 @@ def run(ctx) -> None:
                    "prediction is a free network's, and REPORT will fault unless the images see both ends better")
             ctx.log.log("warning", msg)
             ctx.say(f"  WARNING {msg}")
+        for why in pre_facts.get("scale_bars_left_out") or []:  # ADJUST would leave this bar out, use the others
+            msg = f"plan: the renders of the plan do not measure a scale bar ({why}): ADJUST will use the other bars"
+            ctx.log.log("warning", msg)
+            ctx.say(f"  WARNING {msg}")
         if pre_facts.get("fallback"):
             ctx.log.log("warning", f"plan: pre-analysis: {pre_facts['fallback']}")
             ctx.say(f"  WARNING pre-analysis: {pre_facts['fallback']}")
         p = replace(p, predicted_sigma_max_m=doc["predicted_sigma_max_m"],
                     predicted_sigma_mean_m=doc["predicted_sigma_mean_m"])
-    bar_rendered = []
-    if p.scale_bar is not None and pred is not None and not pred[2].get("fallback"):  # the renders' word on the ends
+    bar_rendered: list[list] = [[] for _ in p.scale_bars]
+    if p.scale_bars and pred is not None and not pred[2].get("fallback"):  # the renders' word on the ends
         from planning.scalebar import rendered_rays_note
 
-        bar_rendered = rendered_rays_note(doc["scale_bar"], [int(pred[1][k]) for k in ctx.job.scale_bar[:2]])
+        bar_rendered = [rendered_rays_note(d, [int(pred[1][k]) for k in bar[:2]])
+                        for d, bar in zip(doc["scale_bars"], ctx.job.scale_bars)]
     atomic_write_json(ctx.folder.file("plan.json"), doc)
     try:
         from planning.plot import plot_plan
@@ -202,12 +209,12 @@ def run(ctx) -> None:
                "they will be reported not measured unless the images happen to measure them")
         ctx.log.log("warning", msg)
         ctx.say(f"  WARNING {msg}")
-    if p.scale_bar is not None:  # what the plan did for the scale bar's ends (planning/scalebar.py)
+    for bar_doc, rendered in zip(p.scale_bars, bar_rendered):  # what the plan did for each bar's ends (planning/scalebar.py)
         from planning.scalebar import bar_warnings
 
-        ctx.folder.append("scale_bar_plan", **{k: p.scale_bar.get(k) for k in ("ends", "met", "before", "after")},
-                          stations_added=[st["id"] for st in p.scale_bar["stations_added"]])
-        for level, line in bar_warnings(p.scale_bar) + bar_rendered:
+        ctx.folder.append("scale_bar_plan", **{k: bar_doc.get(k) for k in ("ends", "met", "before", "after")},
+                          stations_added=[st["id"] for st in bar_doc["stations_added"]])
+        for level, line in bar_warnings(bar_doc) + rendered:
             ctx.log.log(level, f"plan: {line}")
             ctx.say(f"  {'WARNING ' if level == 'warning' else ''}{line}")
     weak = int(p.search.get("exact_unlinked") or 0)

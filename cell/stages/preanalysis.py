@@ -205,10 +205,10 @@ def adjust_prediction(job, part_from_cam: np.ndarray, rays: PredictedRays) -> tu
     # what ADJUST's screening will drop (a target with one ray or nearly parallel ones, an image with too few dots,
     # a block not linked to the rest), then a target the adjustment cannot determine, as ADJUST drops it
     ids = list(job.part.targets.ids)
-    scale_pair = tuple(job.scale_bar[:2]) if job.scale_bar is not None else None
+    scale_pairs = [tuple(bar[:2]) for bar in job.scale_bars]
     drop: dict[int, str] = {}
     for _ in range(3):
-        scr = screen_network(img, tgt, uv, job.intrinsics, poses, len(xyz), scale_pair=scale_pair, drop_targets=drop,
+        scr = screen_network(img, tgt, uv, job.intrinsics, poses, len(xyz), scale_pairs=scale_pairs, drop_targets=drop,
                              ids=ids)
         if scr.keep_images.sum() < 2:
             raise CalibrationError("pre-analysis: fewer than 2 images usable")
@@ -219,9 +219,11 @@ def adjust_prediction(job, part_from_cam: np.ndarray, rays: PredictedRays) -> tu
         drop.update({int(t): f"sigma beyond {WILD_SIGMA_FACTOR:g} x the median" for t in wild})
     added["screened_targets"] = sorted(ids[t] for t in scr.targets)
     added["screened_images"] = int((~scr.keep_images).sum())
-    added["scale_established"] = bool(scr.scale_ok) if scale_pair is not None else None
-    if scale_pair is not None and not scr.scale_ok:
+    added["scale_established"] = bool(scr.scale_ok) if scale_pairs else None
+    if scale_pairs and not scr.scale_ok:
         added["scale_reason"] = scr.scale_reason
+    if scr.bars_out and scr.scale_ok:  # some bars lost, not all: ADJUST measures with the others
+        added["scale_bars_left_out"] = [scr.bars_out[j] for j in sorted(scr.bars_out)]
     return res.cov, added
 
 
@@ -248,7 +250,7 @@ def _adjust_exact(job, poses, img, tgt, uv, scr, rays: PredictedRays, order):
     clip = None if rays.clipped_share is None else rays.clipped_share[order][sel]
     obs_sigma = sig if bg is None and clip is None else observation_covariances(
         sig, bg, clipped_share=clip, diameter_px=model_diameters(job, poses, img, tgt, job.intrinsics.fx_px))
-    config = bundle_config(job, scale=scr.scale_ok)
+    config = bundle_config(job, [j for j in range(len(job.scale_bars)) if j not in scr.bars_out])
     res = bundle_adjust(img, tgt, uv, job.intrinsics, poses, xyz,
                         BundleOptions(sigma_px=float(np.sqrt(np.mean(sig**2))), a_posteriori=False, snooping=False),
                         config, obs_sigma_px=obs_sigma)
@@ -296,6 +298,8 @@ def measurement_prediction(job, part_from_cam: np.ndarray, progress=None, cache_
     facts["scale_established"] = added.pop("scale_established", None)
     if "scale_reason" in added:
         facts["scale_reason"] = added.pop("scale_reason")
+    if "scale_bars_left_out" in added:
+        facts["scale_bars_left_out"] = added.pop("scale_bars_left_out")
     if added:
         facts["shared_misfit_targets"] = added.get("n_targets", 0)
         facts["scale_bar_ends"] = added.get("scale_bar_ends", [])

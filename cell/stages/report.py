@@ -206,6 +206,21 @@ def identification_drops(obs: dict) -> dict:
     return {"n_dropped": sum(by_reason.values()), "by_reason": by_reason, "images": images}
 
 
+def align_with_gains(job, measured: np.ndarray, pc: PointCovariance, K: np.ndarray, ok: np.ndarray, datum: str,
+                     suspect: np.ndarray | None = None):
+    """:func:`align_measurement` with the scale bars' gains ``K: (n, 3, b)`` riding along: extra columns of the
+    covariance's low-rank factor with zero weight (the alignment and every covariance stay as they are) come out
+    transformed like the deviations (decision 0029). Returns ``(outcome, Kd)``, ``Kd: (n, 3, b)`` the change of
+    each aligned deviation per metre of each certificate's error (report.json ``scale_bar_gains``); None when the
+    alignment dropped the low-rank part (or ``b`` is 0 and ``K`` has no column: then ``(n, 3, 0)``)."""
+    nb = K.shape[2]
+    outcome = align_measurement(job, measured, append_columns(pc, K, np.zeros(nb)) if nb else pc, ok, datum, suspect)
+    U = outcome.alignment.deviation_covariance.U
+    if nb and U.shape[2] < nb:
+        return outcome, None
+    return outcome, U[:, :, U.shape[2] - nb:]
+
+
 def scale_sigma(measured: np.ndarray, pc: PointCovariance, use: np.ndarray, K: np.ndarray, K_sigma: np.ndarray):
     """The stated uncertainty of the measurement's scale, and the bars' certificates' part of it (relative, 1 sigma).
 
@@ -268,7 +283,7 @@ def write_report(ctx) -> tuple[str, list[str]]:
     sc = bundle.get("screening") or {}
     if sc.get("scale_established") is False:  # the job declares a scale bar: no report in the CAD's scale
         why = str(sc.get("scale"))
-        advice = ("choose scale bar ends on a clear flat area ([job] scale_bar), away from the part's edges"
+        advice = ("choose scale bar ends on a clear flat area ([job] scale_bar / scale_bars), away from the part's edges"
                   if "unlike its ellipse" in why else "add stations that see both ends ([planning] closed_loop = true "
                   "plans them) or check the scale bar's targets")
         raise CalibrationError(f"scale not established: {why}; {advice}")
@@ -280,17 +295,12 @@ def write_report(ctx) -> tuple[str, list[str]]:
     with np.load(f.file("bundle_covariance.npz")) as z:
         pc = PointCovariance(z["D"], z["U"], z["C"])
         K, K_sigma = (z["K"], z["K_sigma"]) if "K" in z.files else (np.zeros((len(ids), 3, 0)), np.zeros(0))
-    # the scale bars' certificates in the budget: their gains ride along the alignment as extra columns of the
-    # covariance's low-rank factor with zero weight (the alignment and every covariance stay as they are), and come
-    # out transformed like the deviations (decision 0029)
     nb = len(K_sigma)
-    if nb:
-        pc = append_columns(pc, K, np.zeros(nb))
     ok = np.isfinite(measured).all(axis=1)
     tol = job.tolerance_m
     k = job.spec.report.sigma_factor
     suspect = set((bundle.get("snooping") or {}).get("suspect_targets") or [])
-    outcome = align_measurement(job, measured, pc, ok, bundle["datum"], np.array([t in suspect for t in ids]))
+    outcome, Kd = align_with_gains(job, measured, pc, K, ok, bundle["datum"], np.array([t in suspect for t in ids]))
     al = outcome.alignment
     if not outcome.trusted and job.spec.alignment.on_untrusted == "fault":
         raise CalibrationError("alignment not trusted: " + "; ".join(outcome.reasons))
@@ -298,11 +308,12 @@ def write_report(ctx) -> tuple[str, list[str]]:
         ctx.log.log("warning", "alignment not trusted: " + "; ".join(outcome.reasons))
         ctx.say("  WARNING alignment not trusted: " + "; ".join(outcome.reasons))
     dev_norm = np.linalg.norm(al.deviation, axis=1)
-    if nb and al.deviation_covariance.U.shape[2] < nb:  # an alignment that dropped the low-rank part: no share known
+    if nb and Kd is None:  # an alignment that dropped the low-rank part: no share known
         ctx.log.log("warning", "uncertainty budget: the alignment did not carry the scale bar's gains; "
                                "cov_scale_bar not reported")
         nb = 0
-    Kd = al.deviation_covariance.U[:, :, al.deviation_covariance.U.shape[2] - nb:] if nb else np.zeros((len(ids), 3, 0))
+    if Kd is None:
+        Kd = np.zeros((len(ids), 3, 0))
     cov_scale = np.einsum("nar,r,nbr->nab", Kd, K_sigma[:nb] ** 2, Kd)
     level = al.sigma_level()
     predicted = {t["id"]: (np.sqrt(np.trace(t["predicted_cov"])) if t["predicted_cov"] is not None else np.nan)
@@ -322,6 +333,9 @@ def write_report(ctx) -> tuple[str, list[str]]:
         targets.append({
             "id": tid, "kind": str(job.part.targets.kind[j]), "nominal": nominal[j], "measured": al.aligned[j],
             "cov": al.deviation_cov[j], "measured_cov": cov[j], "cov_scale_bar": cov_scale[j] if nb else None,
+            # metres per metre of each used bar's certificate error, aligned frame (3 x b; bundle.json scale_bars
+            # gain_column gives each bar's column); null for a target not measured or without the gains
+            "scale_bar_gains": Kd[j] if nb and np.isfinite(Kd[j]).all() else None,
             "deviation": al.deviation[j],
             "deviation_norm_m": dev_norm[j], "tolerance_m": tol[j], "pass": bool(passed[j]),
             "significance_sigma": level[j], "significant": bool(level[j] > k),
@@ -368,6 +382,7 @@ def write_report(ctx) -> tuple[str, list[str]]:
         "coded_targets": [ids[j] for j in np.flatnonzero(coded)],
         "rejected_observations": bundle.get("rejected", []),
         "identification_dropped": identification_drops(f.read_json("observations.json")),
+        "scale_bars": bundle.get("scale_bars") or [],
         "uncertainty_budget": _budget(cov_scale if nb else None, al.deviation_cov, judged & ok, bundle,
                                       scale_sigma(measured, pc, judged & ok & ~np.isin(ids, list(suspect)), K, K_sigma)
                                       if nb else None),

@@ -51,7 +51,8 @@ RESECTION_JUMP_DEG = 10.0
 class Screening:
     """What the adjustment may use. ``keep_obs: (q,) bool``, ``keep_images: (m,) bool``; the dropped ones
     with their reasons: ``obs`` {observation index: reason}, ``targets`` {target index: reason},
-    ``images`` {image index: reason}; ``scale_ok`` and, when not, ``scale_reason``."""
+    ``images`` {image index: reason}; ``bars_out`` {scale bar position in ``scale_pairs``: why it cannot be used};
+    ``scale_ok`` (a bar is left, or the job has none) and, when not, ``scale_reason`` (every bar and why)."""
 
     keep_obs: np.ndarray
     keep_images: np.ndarray
@@ -60,6 +61,7 @@ class Screening:
     images: dict = field(default_factory=dict)
     scale_ok: bool = True
     scale_reason: str | None = None
+    bars_out: dict = field(default_factory=dict)
 
 
 def _rays(intr: Intrinsics, poses: np.ndarray, obs_image: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -209,13 +211,14 @@ def _keep_main_block(s: Screening, obs_image: np.ndarray, obs_target: np.ndarray
 
 
 def screen_network(obs_image: np.ndarray, obs_target: np.ndarray, obs_uv: np.ndarray, intr: Intrinsics,
-                   poses: np.ndarray, n_targets: int, *, scale_pair: tuple[int, int] | None = None,
+                   poses: np.ndarray, n_targets: int, *, scale_pairs=(),
                    drop_targets: dict | None = None, drop_images: dict | None = None,
                    ids: list[str] | None = None) -> Screening:
     """Screen the observations ``(obs_image, obs_target, obs_uv)`` of a network oriented by ``poses: (m, 4, 4)``.
 
     ``drop_targets`` / ``drop_images``: {index: reason} already known to be unusable (e.g. a target that ended
-    behind a camera in an adjustment); ``scale_pair``: the scale bar's two target indices.
+    behind a camera in an adjustment); ``scale_pairs``: each scale bar's two target indices (a bar with an end
+    left with fewer than two rays is out: ``bars_out``; the scale is lost only when every bar is).
     """
     obs_image = np.asarray(obs_image, dtype=int)
     obs_target = np.asarray(obs_target, dtype=int)
@@ -280,12 +283,15 @@ def screen_network(obs_image: np.ndarray, obs_target: np.ndarray, obs_uv: np.nda
         changed |= _keep_main_block(s, obs_image, obs_target, m, n_targets)
         if not changed:
             break
-    if scale_pair is not None:
+    if len(scale_pairs):
         rays = np.bincount(obs_target[s.keep_obs], minlength=n_targets)
-        short = [t for t in scale_pair if rays[t] < 2]
-        if short:
+        for j, pair in enumerate(scale_pairs):
+            short = [t for t in pair if rays[t] < 2]
+            if short:
+                s.bars_out[j] = ("scale bar " + "-".join(name(t) for t in pair) + ": " + ", ".join(
+                    f"{name(t)} usable in {rays[t]} image(s)" + (f" ({s.targets[t]})" if t in s.targets else "")
+                    for t in short) + " (2 needed)")
+        if len(s.bars_out) == len(scale_pairs):
             s.scale_ok = False
-            s.scale_reason = ("scale bar " + "-".join(name(t) for t in scale_pair) + ": " + ", ".join(
-                f"{name(t)} usable in {rays[t]} image(s)" + (f" ({s.targets[t]})" if t in s.targets else "")
-                for t in short) + " (2 needed)")
+            s.scale_reason = "; ".join(s.bars_out[j] for j in range(len(scale_pairs)))
     return s

@@ -34,7 +34,7 @@ def _measurable(mesh, targets):
     k = spec.scale
     part = Part("bracket", mesh, targets, spec.job.target_diameter * k, spec.job.coded_size * k)
     job = LoadedJob(spec, HERE / "job.toml", folder, part, spec.intrinsics(), np.zeros((len(targets), 3)),
-                    np.full(len(targets), spec.report.tolerance * k), None)
+                    np.full(len(targets), spec.report.tolerance * k))
     o = planner_options(job)
     sphere = replace(o.sphere, max_roll_rad=0.0, max_offset_m=0.0)
     vis = replace(o.visibility, incidence_max_rad=o.incidence_max_rad)

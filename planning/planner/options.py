@@ -75,9 +75,10 @@ class PlannerOptions:
             block): ADJUST's screening would drop those images (cell/stages/screen.py LINK_TARGETS, the same 8).
             Limiting error propagation holds the orientations fixed and cannot see it (docs/decisions/0031); 0: off
             (the default; a job's search weighted by the detector model sets 8, cell.setup.planner_options).
-        scale_bar: ``(index_a, index_b, length_m, sigma_m)`` of the job's scale bar, or None: after the search
-            the plan adds stations until the bar's ends meet the requirement of :mod:`planning.scalebar`
-            (the search's own stations kept as they are).
+        scale_bars: ``(index_a, index_b, length_m, sigma_m)`` per scale bar of the job (empty: none): after the
+            search the plan adds stations until every bar's ends meet the requirement of :mod:`planning.scalebar`,
+            bar after bar, each counting the stations added for the bars before it (the search's own stations kept
+            as they are).
         sole_links: with ``link_targets``, a station that alone links a part of the network to the rest (removing it
             splits the network) counts as a violation too (the model-ranked search's failure, decision 0031).
         lower_bound: also compute (planning.bound) how good any network could be on the
@@ -126,7 +127,7 @@ class PlannerOptions:
     lower_bound: bool = False
     link_targets: int = 0
     sole_links: bool = True
-    scale_bar: tuple | None = None
+    scale_bars: tuple = ()
 
     def check(self) -> None:
         """Raise InputError naming the first bad option."""

@@ -90,18 +90,22 @@ def plan_network(
     T, final_genes, visible = final["T"][order], final_genes[order], final["visible"][order]
     station_ids = [f"S{i + 1:03d}" for i in range(len(order))]
     cov, n_rays = final["cov"], final["n_rays"]
-    bar_doc = None
-    if options.scale_bar is not None:  # the scale bar's ends: stations added after the search's (planning.scalebar)
+    bar_docs: list[dict] = []
+    if options.scale_bars:  # the scale bars' ends: stations added after the search's (planning.scalebar)
         t0 = time.perf_counter()
-        added, bar_doc = secure_scale_bar(part, intr, options, s.db, s.valid, T, visible, cov, s.cols,
-                                          options.scale_bar)
-        new_ids = [f"S{len(station_ids) + i + 1:03d}" for i in range(len(added))]
-        if len(added):
-            T = np.concatenate([T, s.db.part_from_cam[added]])
-            final_genes = np.concatenate([final_genes, s.db.genes[added]])
-            visible, cov, n_rays = covariance_with(intr, options, part, T)
-            station_ids = station_ids + new_ids
-        bar_doc = finish_doc(bar_doc, part, intr, options, T, visible, station_ids, new_ids)
+        added_ids: list[list[str]] = []
+        for bar in options.scale_bars:  # bar after bar: a station added for one bar counts for the next
+            added, doc = secure_scale_bar(part, intr, options, s.db, s.valid, T, visible, cov, s.cols, bar)
+            new_ids = [f"S{len(station_ids) + i + 1:03d}" for i in range(len(added))]
+            if len(added):
+                T = np.concatenate([T, s.db.part_from_cam[added]])
+                final_genes = np.concatenate([final_genes, s.db.genes[added]])
+                visible, cov, n_rays = covariance_with(intr, options, part, T)
+                station_ids = station_ids + new_ids
+            bar_docs.append(doc)
+            added_ids.append(new_ids)
+        # each bar judged on the final network (the stations added for the bars after it count too)
+        bar_docs = [finish_doc(d, part, intr, options, T, visible, station_ids, a) for d, a in zip(bar_docs, added_ids)]
         timing["scale_bar_s"] = time.perf_counter() - t0
         timing["total_s"] += timing["scale_bar_s"]
     sig = np.sqrt(np.trace(cov, axis1=1, axis2=2))
@@ -131,7 +135,7 @@ def plan_network(
         required_sigma_m=s.required,
         unmeasurable_target_ids=[ids[j] for j in np.flatnonzero(~s.measurable)],
         timing=timing,
-        scale_bar=bar_doc,
+        scale_bars=bar_docs,
         search={
             "stopped_because": res.stopped_because,
             "generations": len(res.history) - 1,

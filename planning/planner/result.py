@@ -35,8 +35,10 @@ class NetworkPlan:
         unmeasurable_target_ids: targets left out of the search (allow_unmeasurable).
         timing: seconds per stage.
         search: summary (stopped_because, n_evaluations, which poses were kept, ...).
-        scale_bar: plan.json ``scale_bar`` (:mod:`planning.scalebar`): the bar's ends, their predicted part of the
-            length sigma before and after, the stations added for them and why; None without a bar.
+        scale_bars: plan.json ``scale_bars`` (:mod:`planning.scalebar`), one record per bar: its ends, their
+            predicted part of the length sigma before and after, the stations added for them and why; empty
+            without a bar. With exactly one bar plan.json also carries it as ``scale_bar`` (the single-bar record
+            older readers know).
     """
 
     seed: int | None
@@ -63,7 +65,7 @@ class NetworkPlan:
     unmeasurable_target_ids: list[str] = field(default_factory=list)
     timing: dict = field(default_factory=dict)
     search: dict = field(default_factory=dict)
-    scale_bar: dict | None = None
+    scale_bars: list[dict] = field(default_factory=list)
 
     @property
     def sigma(self) -> np.ndarray:
@@ -107,7 +109,8 @@ class NetworkPlan:
             "pareto_front": [{k: _json_float(v) for k, v in row.items()} for row in self.pareto_front],
             "timing": dict(self.timing),
             "search": {k: _json_float(v) for k, v in self.search.items()},
-            **({} if self.scale_bar is None else {"scale_bar": self.scale_bar}),
+            **({"scale_bars": list(self.scale_bars)} if self.scale_bars else {}),
+            **({"scale_bar": self.scale_bars[0]} if len(self.scale_bars) == 1 else {}),
         }
 
     @classmethod
@@ -152,7 +155,7 @@ class NetworkPlan:
                 unmeasurable_target_ids=list(d.get("unmeasurable_target_ids", [])),
                 timing=dict(d.get("timing", {})),
                 search=dict(d.get("search", {})),
-                scale_bar=d.get("scale_bar"),
+                scale_bars=list(d.get("scale_bars") or ([d["scale_bar"]] if d.get("scale_bar") else [])),
             )
         except (KeyError, TypeError, ValueError) as exc:
             raise InputError(f"plan.json is not a valid plan ({type(exc).__name__}: {exc}); re-run `cell plan`") from exc
