@@ -7,7 +7,7 @@ m^2 / 3) of the deviations against the truth (1 = honest), the share of untouche
 ellipsoid (both also given the scale bar: the covariance less its certificate's share; the generated bar's
 certificate is off its true length by a draw of its sigma, so a run realises that share; decisions 0029, 0036), the realised scale error against the stated one (z), false "significant" flags, deviations beyond tolerance that failed, predicted / achieved sigma,
 and whether the alignment was trusted; the stated scale uncertainty (report.json ``uncertainty_budget``) and
-what the plan did for the scale bar's ends (plan.json ``scale_bar``, planning/scalebar.py).
+what the plan did for the scale bars' ends (plan.json ``scale_bars``, planning/scalebar.py).
 
 Also per run: what was left out (dots left unnamed, screened, rejected observations, suspect targets).
 
@@ -81,15 +81,22 @@ def losses(folder: Path) -> dict:
     plan = json.loads((folder / "plan.json").read_text())
     scr = bundle.get("screening", {})
     report = json.loads((folder / "report.json").read_text())
-    bar = plan.get("scale_bar") or {}
+    bars = plan.get("scale_bars") or ([plan["scale_bar"]] if plan.get("scale_bar") else [])
     budget = report.get("uncertainty_budget") or {}
+
+    def planned(bar: dict, k: str):
+        v = (bar.get(k) or {}).get("length_sigma_m")
+        return None if v is None else 1e6 * v
+
     return {"stations": len(plan["stations"]), "observations": bundle["n_observations"],
             "scale_sigma_ppm": budget.get("scale_sigma_ppm"),
             "scale_sigma_certificate_ppm": budget.get("scale_sigma_certificate_ppm"),
-            "bar_stations_added": len(bar.get("stations_added") or []),
-            "bar_length_sigma_planned_um": [None if (bar.get(k) or {}).get("length_sigma_m") is None
-                                            else 1e6 * bar[k]["length_sigma_m"] for k in ("before", "after")],
-            "bar_rays_planned": (bar.get("after") or {}).get("rays"), "bar_met": bar.get("met"),
+            "share_median": budget.get("scale_bar_share_median"),
+            "bar_stations_added": sum(len(b.get("stations_added") or []) for b in bars),
+            "bar_length_sigma_planned_um": [[planned(b, k) for k in ("before", "after")] for b in bars],
+            "bar_rays_planned": [(b.get("after") or {}).get("rays") for b in bars],
+            "bar_met": [b.get("met") for b in bars],
+            "bars_used": sum(bool(b.get("used")) for b in report.get("scale_bars") or []),
             "predicted_max_um": 1e6 * report["predicted_sigma_max_m"],
             "achieved_max_um": 1e6 * report["achieved_sigma_max_m"],
             "unnamed": obs.get("dropped_by_reason", {}),

@@ -39,7 +39,7 @@ from planning.augment import plan_extra_stations
 from planning.uncertainty import covariance_for_network, target_information
 from planning.visibility import compute_visibility
 
-__all__ = ["BarCheck", "secure_scale_bar", "finish_doc", "bar_facts", "bar_line", "bar_warnings", "rendered_rays_note", "covariance_with", "LENGTH_SHARE", "RAYS_FACTOR",
+__all__ = ["BarCheck", "secure_scale_bar", "finish_doc", "bar_facts", "bar_line", "bar_warnings", "ends_clear", "rendered_rays_note", "covariance_with", "LENGTH_SHARE", "RAYS_FACTOR",
            "AZIMUTH_GAP_MAX_DEG", "MAX_BAR_STATIONS"]
 
 #: the ends' part of the bar length's sigma may be at most this times the certificate's sigma
@@ -332,10 +332,34 @@ def finish_doc(doc: dict, part, intr, options, T: np.ndarray, visible: np.ndarra
                       doc["requirement"]["length_sigma_max_m"], int(options.min_rays),
                       doc["requirement"].get("azimuth_gap_goal_deg", (AZIMUTH_GAP_MAX_DEG,) * 2))
     doc = dict(doc, after=after.to_dict(), met=after.met,
-               stations_added=[{"id": s, "why": w} for s, w in zip(added_ids, doc.pop("added_reasons", []))])
+               stations_added=[{"id": s, "why": w} for s, w in zip(added_ids, doc.pop("added_reasons", []))],
+               ends_clear=ends_clear(part, ends))
     if not after.met:
         doc["note"] = bar_line(doc)
     return doc
+
+
+#: a bar's end wants this many dot diameters of clear surface around it (decision 0042: 5 mm dots within 6 mm of
+#: an edge were centred 0.64 um outward on average, those 10 mm or more away without a measurable shift)
+CLEAR_DIAMETERS = 2.0
+
+
+def ends_clear(part, ends) -> list[dict]:
+    """Per end of a bar: the clear radius around it (:func:`planning.clear_area.clear_radius`, checked in steps of
+    half a dot diameter up to :data:`CLEAR_DIAMETERS` diameters) and whether that is enough."""
+    from planning.clear_area import clear_radius
+
+    d = float(part.target_diameter_m)
+    radii = 0.5 * d * np.arange(1, int(2 * CLEAR_DIAMETERS) + 1)
+    idx = np.asarray(ends, dtype=int)
+    r = clear_radius(part.mesh, np.asarray(part.targets.xyz, dtype=float)[idx],
+                     np.asarray(part.targets.normals, dtype=float)[idx], radii)
+    out = []
+    for k, v in zip(idx, r):
+        beyond = radii[radii > v + 1e-12]  # the smallest disc that left the surface: an edge lies within it
+        out.append({"target": str(part.targets.ids[k]), "clear_radius_m": float(v), "clear": not len(beyond),
+                    "edge_within_m": float(beyond[0]) if len(beyond) else None})
+    return out
 
 
 def bar_line(doc: dict) -> str:
@@ -374,6 +398,13 @@ def bar_warnings(doc: dict) -> list[tuple[str, str]]:
     if weak:
         out.append(("warning", f"scale bar {'-'.join(doc['ends'])}: end(s) {', '.join(weak)} seen by fewer than "
                                f"{need} reachable candidate stations: the scale rests on few rays"))
+    near = [e for e in doc.get("ends_clear") or [] if not e["clear"]]
+    if near:
+        out.append(("warning", f"scale bar {'-'.join(doc['ends'])}: an edge of the part within "
+                               + ", ".join(f"{e['edge_within_m'] * 1e3:.1f} mm of {e['target']}" for e in near)
+                               + ": a dot there is centred off by what lies beyond the edge (outward, on average), "
+                               "which the bar turns into a scale error of every target; put the bar's ends on a clear "
+                               f"flat area ({CLEAR_DIAMETERS:g} dot diameters around each)"))
     return out
 
 

@@ -49,3 +49,27 @@ def test_a_gently_curved_skin_is_clear_and_its_outline_is_not():
     p1, n1 = on_top(60.0, 95.0)  # 5 mm from the long edge
     r = clear_radius(skin, np.array([p0, p1]), np.array([n0, n1]), RADII)
     assert r[0] == 12.0 and r[1] == 4.0, r
+
+
+def test_planning_warns_when_a_scale_bar_end_has_an_edge_close_by(monkeypatch):
+    """planning.scalebar.ends_clear / bar_warnings (metres, as the cell works): a 5 mm dot 4 mm from the plate's
+    outline is named with the edge's distance; one in the middle is clear and says nothing."""
+    from types import SimpleNamespace
+
+    from planning.scalebar import bar_warnings, ends_clear
+
+    mesh = trimesh.creation.box(extents=(0.2, 0.1, 0.01))
+    targets = SimpleNamespace(ids=np.array(["T1", "T2"]), xyz=np.array([[0.0, 0.0, 0.005], [0.096, 0.0, 0.005]]),
+                              normals=np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]]))
+    part = SimpleNamespace(mesh=mesh, targets=targets, target_diameter_m=0.005)
+    facts = ends_clear(part, [0, 1])
+    assert facts[0]["clear"] and facts[0]["edge_within_m"] is None
+    assert not facts[1]["clear"] and facts[1]["edge_within_m"] == 0.005  # 4 mm: inside the 5 mm disc, not the 2.5
+    doc = {"ends": ["T1", "T2"], "met": True, "requirement": {"rays_min": 6}, "candidates_seeing_end": [20, 20],
+           "ends_clear": facts}
+    import planning.scalebar as sb
+
+    monkeypatch.setattr(sb, "bar_line", lambda d: "bar line")  # the bar's own line is tested in test_scalebar.py
+    lines = bar_warnings(doc)
+    edge = [line for level, line in lines if "edge of the part" in line]
+    assert len(edge) == 1 and "5.0 mm of T2" in edge[0] and "T1" not in edge[0].split("within")[1]

@@ -100,15 +100,21 @@ def given_certificate(report: dict, part) -> dict:
     err_m, sig_m = 1e-3 * np.array(err_mm), 1e-3 * np.array(sig_mm)
     fit = set(report["alignment"].get("targets_in_fit") or [])
     c = np.mean([t["nominal"] for t in report["targets"] if t["id"] in fit], axis=0) if fit else None
+    # the gains' columns are the bars ADJUST used (report.json scale_bars[i].gain_column); a bar left out has none,
+    # and its certificate did not enter the measurement
+    cols = [b.get("gain_column") for b in report.get("scale_bars") or []]
+    if len(cols) != len(bars):
+        cols = list(range(len(bars)))
+    used = [i for i, col in enumerate(cols) if col is not None]
     m2, inside = [], []
     for t in report["targets"]:
         if t["measured"][0] is None or t.get("suspect") or t.get("cov_scale_bar") is None or c is None:
             continue
         d = np.asarray(part.deviations.get(t["id"], np.zeros(3))) * 1e-3
         gains = t.get("scale_bar_gains")
-        if gains is not None and np.shape(gains) == (3, len(bars)):
+        if gains is not None and np.shape(gains) == (3, len(used)):
             G = np.asarray(gains, dtype=float)
-            shift = G @ err_m
+            shift = G @ err_m[used] if used else np.zeros(3)
         elif len(bars) == 1:
             eps = err_mm[0] / (float(bars[0]["length"]) - err_mm[0])
             shift = eps * (np.asarray(t["nominal"]) - c)
@@ -123,8 +129,9 @@ def given_certificate(report: dict, part) -> dict:
         return {}
     if len(bars) == 1:
         cz = err_mm[0] / sig_mm[0]
-    else:  # the combination the scale sees: inverse-variance weights of the bars' relative errors
-        L = np.array([float(b["length"]) for b in bars]) * 1e-3
+    else:  # the combination the scale sees: inverse-variance weights of the used bars' relative errors
+        L = np.array([float(bars[i]["length"]) for i in used]) * 1e-3
+        err_m, sig_m = err_m[used], sig_m[used]
         w = (L / sig_m) ** 2
         cz = float(np.sum(w * err_m / L) / np.sum(w) / (1.0 / np.sqrt(np.sum(w))))
     return {"certificate_z": float(cz), "certificate_z_bars": [float(v) for v in err_m / sig_m],
