@@ -78,6 +78,10 @@ class DetectorModel:
     #: centre, whose ellipse fits the longer rim of a large clipped dot better: version 5's m is negative, the term
     #: shrinks with size); 0: a model before version 5
     m_saturation: float = 0.0
+    #: the share of every observation's variance (the covariance it is weighted with) that a target's views have in
+    #: common (decision 0043: measured on clean dots against the rendered truth with the true poses,
+    #: ``benchmarks/shared_floor.py``); 0: not in the model file, nothing added
+    rho_all: float = 0.0
 
     @property
     def shared_share(self) -> float:
@@ -128,7 +132,9 @@ class DetectorModel:
                 + (f" (d/{D_REF_PX:g} px)^{self.m_saturation:.2f}" if self.m_saturation else "")
                 + " for a dot with a share rho of its pixels clipped; views share "
                 + (f"{self.rho_background:.2f}" if self.rho_background is not None else "1 (not measured)")
-                + f" of the background misfit (version {self.version})")
+                + " of the background misfit"
+                + (f" and {self.rho_all:.3f} of every observation's variance" if self.rho_all else "")
+                + f" (version {self.version})")
 
     def to_dict(self) -> dict:
         return {"model": "sigma_px^2 = a^2 + b^2 (d / d_ref)^(-2p) cos(theta)^(-2q)", "d_ref_px": D_REF_PX,
@@ -138,7 +144,8 @@ class DetectorModel:
                 "version": self.version,
                 **({"incidence_range_deg": list(self.incidence_range_deg)} if self.incidence_range_deg else {}),
                 **({"diameter_range_px": list(self.diameter_range_px)} if self.diameter_range_px else {}),
-                **({"rho_background": self.rho_background} if self.rho_background is not None else {})}
+                **({"rho_background": self.rho_background} if self.rho_background is not None else {}),
+                **({"rho_all": self.rho_all} if self.rho_all else {})}
 
 
 def fit_model(incidence_deg: np.ndarray, diameter_px: np.ndarray, errors_px: np.ndarray,
@@ -250,10 +257,14 @@ def load_model(path: str | None = None) -> DetectorModel:
         rho = doc.get("rho_background")
         if rho is not None and not 0.0 <= float(rho) <= 1.0:
             raise ValueError(f"rho_background must be in [0, 1], got {rho}")
+        rho_all = float(doc.get("rho_all", 0.0))
+        if not 0.0 <= rho_all <= 1.0:
+            raise ValueError(f"rho_all must be in [0, 1], got {rho_all}")
         return DetectorModel(float(doc["a_px"]), float(doc["b_px"]), float(doc["p"]), float(doc["q"]),
                              str(doc.get("version", "1")), float(doc.get("c_background", 0.0)),
                              float(doc.get("c_saturation_px", 0.0)), float(doc.get("k_saturation", 1.0)),
-                             *ranges, None if rho is None else float(rho), float(doc.get("m_saturation", 0.0)))
+                             *ranges, None if rho is None else float(rho), float(doc.get("m_saturation", 0.0)),
+                             rho_all)
     except (OSError, KeyError, ValueError, TypeError) as exc:
         raise CalibrationError(f"{p}: cannot read the detector precision model ({exc})") from None
 

@@ -74,7 +74,7 @@ def _skin(rng) -> tuple[trimesh.Trimesh, list]:
     """A thin panel bent about y (a curved skin), 300-450 mm long."""
     L, W, T = rng.uniform(300, 420), rng.uniform(160, 240), rng.uniform(6, 10)
     m = _box((-L / 2, -W / 2, 0), (L / 2, W / 2, T))
-    v, f = trimesh.remesh.subdivide_to_size(m.vertices, m.faces, max_edge=12.0)
+    v, f = trimesh.remesh.subdivide_to_size(m.vertices, m.faces, max_edge=4.0)
     sag = rng.uniform(20, 70)  # mm at the ends
     v = v.copy()
     v[:, 2] += sag * (2 * v[:, 0] / L) ** 2

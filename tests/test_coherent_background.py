@@ -337,3 +337,56 @@ def test_the_certificate_keeps_its_stated_sigma_when_the_covariance_is_scaled_by
 
     assert var(pc) == pytest.approx(var(prior.covariance), rel=2e-3)
     assert var(post.covariance) > 1.5 * var(pc)  # uncorrected, the certificate was stated ~vf times too large
+
+
+def test_a_small_share_of_every_error_common_to_many_views_is_stated_monte_carlo():
+    """decision 0043: each view errs by its own noise plus a share rho of its whole variance that all views of the
+    target have in common (``e_i = sqrt(rho) S_i Jh_i z + sqrt(1 - rho) S_i n_i``, ``S_i^2`` the observation's
+    covariance). With 40 views and rho 0.02 the weighted intersection is ~1.3x optimistic; the cross terms with the
+    observations' own covariance as the bound (c = 1, share rho) make it honest."""
+    rng = np.random.default_rng(12)
+    m, rho = 40, 0.02
+    poses = _views(rng, m, spread_deg=35.0)
+    X = np.array([[0.0005, 0.001, 0.0]])
+    sig = rng.uniform(0.006, 0.012, m)
+    C = sig[:, None, None] ** 2 * np.eye(2)
+    W = np.linalg.inv(C)
+    J = np.array([_jacobian(T, X[0]) for T in poses])
+    N = np.einsum("qba,qbc,qcd->ad", J, W, J)
+    indep = np.linalg.inv(N)
+    E = coherent_background_cov(INTR, poses, X, np.arange(m), np.zeros(m, dtype=int), C, C, 1.0, rho)[0]
+    Xc = np.einsum("qab,b->qa", poses[:, :3, :3], X[0]) + poses[:, :3, 3]
+    Jh = J * (Xc[:, 2] / INTR.fx_px)[:, None, None]
+    trials = 4000
+    z = rng.normal(size=(trials, 3))
+    d = (np.sqrt(rho) * np.einsum("q,qbc,tc->tqb", sig, Jh, z)
+         + np.sqrt(1 - rho) * rng.normal(size=(trials, m, 2)) * sig[None, :, None])
+    err = np.einsum("ab,qcb,qcd,tqd->ta", indep, J, W, d)
+    with_ = np.sqrt(np.einsum("ta,ab,tb->t", err, np.linalg.inv(indep + E), err).mean() / 3)
+    without = np.sqrt(np.einsum("ta,ab,tb->t", err, N, err).mean() / 3)
+    assert 0.9 <= with_ <= 1.1, with_
+    assert without > 1.2, without
+
+
+def test_the_model_file_gives_the_common_share_of_every_error_and_refuses_one_out_of_range(tmp_path):
+    """detector_precision.json ``rho_all`` (decision 0043): read, round-tripped, said in the report's facts; outside
+    [0, 1] the model is refused with the file named."""
+    import json
+
+    from calibration.detector_model import DATA_PATH, load_model
+    from calibration.errors import CalibrationError
+    from cell.record.report import _budget_facts
+
+    doc = json.loads(DATA_PATH.read_text())
+    for value, ok in ((0.004, True), (1.5, False)):
+        p = tmp_path / f"m{value}.json"
+        p.write_text(json.dumps(doc | {"rho_all": value}))
+        if ok:
+            m = load_model(str(p))
+            assert m.rho_all == 0.004 and m.to_dict()["rho_all"] == 0.004 and "0.004 of every observation" in m.describe()
+        else:
+            with pytest.raises(CalibrationError, match="rho_all"):
+                load_model(str(p))
+    facts = _budget_facts({"uncertainty_budget": {"shared_floor": {"rho_all": 0.0033, "n_targets": 120,
+                                                                    "sigma_growth_median": 1.03}}})
+    assert "0.0033 of every dot's error" in facts["Stated beyond the detector model"]

@@ -305,6 +305,10 @@ def _budget_facts(doc: dict) -> dict:
         if b.get("shared_misfit_targets") else []
     if b.get("observations_clipped"):
         extra.append(f"{b['observations_clipped']} observation(s) of clipped (overexposed) dots")
+    if (b.get("shared_floor") or {}).get("n_targets"):
+        f = b["shared_floor"]
+        extra.append(f"a share {f['rho_all']:.4f} of every dot's error common to its views (sigma x"
+                     f"{f['sigma_growth_median']:.2f} median)")
     extra += [f"scale bar {'-'.join(e['bar'])} ends next to an edge: length {1e6 * e['length_sigma_m']:.1f} um (1 sigma)"
               for e in b.get("scale_bar_ends") or []]
     if extra:

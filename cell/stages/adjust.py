@@ -217,8 +217,21 @@ def _add_coherent_background(res, bg: np.ndarray, img, tgt, ids: list[str], bars
     extra = coherent_background_cov(res.intrinsics, res.cam_from_part, res.points, img[used], tgt[used],
                                     res.obs_sigma_px[used], bg[used], c, share)
     hit = np.flatnonzero(np.trace(extra, axis1=1, axis2=2) > 0)
-    res.cov[hit] += extra[hit]
-    res.covariance.D[hit] += extra[hit]
+    bg_extra = extra
+    # every dot's views also share a small part of its whole error (decision 0043: the detector's deterministic
+    # response to the dot's own geometry, which more views do not average away): the model's rho_all of the
+    # covariance each observation was weighted with, through the same cross terms
+    floor = np.zeros_like(extra)
+    if model.rho_all > 0:
+        C = np.asarray(res.obs_sigma_px, dtype=float)[used]
+        C = C[:, None, None] ** 2 * np.eye(2) if C.ndim == 1 else C
+        floor = coherent_background_cov(res.intrinsics, res.cam_from_part, res.points, img[used], tgt[used], C, C,
+                                        1.0, model.rho_all)
+        extra = extra + floor
+    on = np.flatnonzero(np.trace(extra, axis1=1, axis2=2) > 0)
+    before = np.trace(res.cov, axis1=1, axis2=2).copy()
+    res.cov[on] += extra[on]
+    res.covariance.D[on] += extra[on]
     # a scale bar's end with a shared misfit errs the bar's measured length, and every target follows the scale:
     # the ends' extra along the bar, through the gains (rank one per bar, into the covariance's low-rank part;
     # the extra carries the share, so the bar's term scales with it too)
@@ -232,12 +245,17 @@ def _add_coherent_background(res, bg: np.ndarray, img, tgt, ids: list[str], bars
             res.covariance = append_columns(res.covariance, k[:, :, None], [v])
             bar_terms.append({"bar": [ids[bar.target_a], ids[bar.target_b]], "bar_index": j,
                               "length_sigma_m": float(np.sqrt(v))})
-    grow = np.sqrt(np.trace(res.cov[hit], axis1=1, axis2=2) / np.maximum(np.trace(res.cov[hit] - extra[hit], axis1=1, axis2=2), 1e-300))
+    grow = np.sqrt(np.trace(res.cov[hit], axis1=1, axis2=2) / np.maximum(np.trace(res.cov[hit] - bg_extra[hit], axis1=1, axis2=2), 1e-300))
     worst = np.argsort(-grow)[:5]
+    fl = np.flatnonzero(np.trace(floor, axis1=1, axis2=2) > 0)
+    fgrow = np.sqrt((before[fl] + np.trace(floor[fl], axis1=1, axis2=2)) / np.maximum(before[fl], 1e-300))
     return {"share": share, "share_measured": model.rho_background is not None, "c_background": c, "n_targets": int(len(hit)), "scale_bar_ends": bar_terms,
             "sigma_growth_median": float(np.median(grow)) if len(hit) else 1.0,
             "largest": [{"target": ids[int(hit[k])], "sigma_growth": float(grow[k]),
-                         "added_sigma_m": float(np.sqrt(np.trace(extra[hit[k]]) / 3))} for k in worst]}
+                         "added_sigma_m": float(np.sqrt(np.trace(bg_extra[hit[k]]) / 3))} for k in worst],
+            "shared_floor": {"rho_all": model.rho_all, "n_targets": int(len(fl)),
+                             "sigma_growth_median": float(np.median(fgrow)) if len(fl) else 1.0,
+                             "sigma_growth_max": float(np.max(fgrow)) if len(fl) else 1.0}}
 
 
 def _wild_targets(res) -> tuple[np.ndarray, np.ndarray, float]:
@@ -626,6 +644,11 @@ def run(ctx) -> None:
                    "(rho_background, version 4): taken as one, the conservative limit")
             ctx.log.log("info", msg)
             ctx.say(f"  {msg}")
+    fl = (cb or {}).get("shared_floor") or {}
+    if fl.get("n_targets"):
+        ctx.say(f"  every dot's views share {fl['rho_all']:.4f} of its error (detector model rho_all, decision 0043): "
+                f"added to {fl['n_targets']} target(s) (sigma x{fl['sigma_growth_median']:.2f} median, "
+                f"x{fl['sigma_growth_max']:.2f} at most)")
     if doc["observation_weights"]["method"] == "incidence":
         ctx.say("  image sigma by incidence (variance components): " + ", ".join(
             f"{g['name']} {g['sigma_px']:.3f} px" + ("" if g["estimated"] else " (common)")
