@@ -33,7 +33,7 @@ from tests.test_truth_partgen import truth_figures  # noqa: E402
 
 
 def one(work: Path, seed: int, misplaced: bool, search_weights: str | None = None,
-        background_mask: str | None = None, bar_sigma_um: float = 2.0, n_bars: int = 1) -> dict:
+        background_mask: str | None = None, bar_sigma_um: float = 1.0, n_bars: int = 4) -> dict:
     part = make_part_job(work / f"job{seed}", np.random.default_rng(seed),
                          misplacement=(10.0, 5.0) if misplaced else None, bar_sigma_mm=1e-3 * bar_sigma_um,
                          n_bars=n_bars)
@@ -114,8 +114,8 @@ def main(argv=None) -> int:
                     "(default: the job file's default)")
     ap.add_argument("--background-mask", choices=("none", "cad"), help="[camera] background_mask of the jobs "
                     "(default: the job file's default; docs/decisions/0035)")
-    ap.add_argument("--bars", type=int, default=1, help="how many scale bars the generated jobs carry")
-    ap.add_argument("--bar-sigma-um", type=float, default=2.0, help="the generated scale bar certificate's sigma (um; "
+    ap.add_argument("--bars", type=int, default=4, help="how many scale bars the generated jobs carry")
+    ap.add_argument("--bar-sigma-um", type=float, default=1.0, help="the generated scale bar certificate's sigma (um; "
                     "its length is off the true one by a draw of it, the same draw per seed whatever the sigma)")
     a = ap.parse_args(argv)
     rows = []

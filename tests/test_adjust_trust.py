@@ -118,17 +118,8 @@ def test_a_scale_bar_end_snooping_takes_below_two_rays_is_scale_not_established_
     rejected instead."""
     job, poses, obs = example
     a, b = job.scale_bars[0][:2]
-    obs = [(s.copy(), u.copy()) for s, u in obs]
-    with_a = [k for k, (s, _) in enumerate(obs) if a in s]
-    assert len(with_a) == 2
-    # across the epipolar line (along it, the point's depth would absorb the error: a pair of rays cannot see it)
-    T0, T1 = poses[with_a[0]], poses[with_a[1]]
-    c0 = -T0[:3, :3].T @ T0[:3, 3]
-    ray = job.part.targets.xyz[a] - c0
-    ends = project(job.intrinsics, T1, np.array([c0 + 0.97 * ray, c0 + 1.03 * ray]))
-    along = (ends[1] - ends[0]) / np.linalg.norm(ends[1] - ends[0])
-    s, u = obs[with_a[1]]
-    u[list(s).index(a)] += 1.2 * np.array([-along[1], along[0]])
+    assert len([k for k, (s, _) in enumerate(obs) if a in s]) == 2
+    obs = blunder_across_epipolar(job, poses, obs, a)
     ctx, said = _ctx(tmp_path, job, poses, obs)
     doc = run_bundle(ctx)
     sc = doc["screening"]
@@ -261,3 +252,18 @@ def test_a_target_unlike_its_ellipse_in_most_images_is_reported_suspect_and_one_
     assert doc["screening"]["scale_established"] is True
     assert ids[x] in doc["snooping"]["suspect_targets"] and ids[y] not in doc["snooping"]["suspect_targets"]
     assert any(f"{ids[x]} ({counts[x] + 1} of {2 * counts[x] + 1})" in m for _, m in said)
+
+
+def blunder_across_epipolar(job, poses, obs, a: int, px: float = 1.2):
+    """``obs`` (copied) with target ``a``'s observation in its second image moved ``px`` across the epipolar line of
+    its first (along it, the point's depth would absorb the error: a pair of rays could not see it)."""
+    obs = [(s.copy(), u.copy()) for s, u in obs]
+    with_a = [k for k, (s, _) in enumerate(obs) if a in s]
+    T0, T1 = poses[with_a[0]], poses[with_a[1]]
+    c0 = -T0[:3, :3].T @ T0[:3, 3]
+    ray = job.part.targets.xyz[a] - c0
+    ends = project(job.intrinsics, T1, np.array([c0 + 0.97 * ray, c0 + 1.03 * ray]))
+    along = (ends[1] - ends[0]) / np.linalg.norm(ends[1] - ends[0])
+    s, u = obs[with_a[1]]
+    u[list(s).index(a)] += px * np.array([-along[1], along[0]])
+    return obs

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from jobutil import REPO
-from test_adjust_trust import _ctx, _with_shape_drops, example  # noqa: F401  (the fixture)
+from test_adjust_trust import _ctx, _with_shape_drops, blunder_across_epipolar, example  # noqa: F401  (the fixture)
 
 from calibration.alignment import PointCovariance
 from calibration.bundle import BundleConfig, BundleOptions, ScaleBar, bundle_adjust, simulate_network
@@ -242,21 +242,11 @@ def test_a_bar_whose_end_snooping_takes_below_two_rays_is_left_out_by_name_while
     """The example's bar end T0094 is seen in two images; one ray 1.2 px off across the epipolar line (as in
     tests/test_adjust_trust.py). With one bar the scale was lost; with two more bars that bar alone is left out (the
     bundle would skip its length silently), named with the image, and the job adjusted again with the others."""
-    from calibration.camera import project
-
     job, poses, obs = example
     a, b = job.scale_bars[0][:2]
     others = [bar for bar in _bars(job, obs, 4) if a not in bar[:2] and b not in bar[:2]][:2]
     bars = (job.scale_bars[0], *others)
-    obs = [(s.copy(), u.copy()) for s, u in obs]
-    with_a = [k for k, (s, _) in enumerate(obs) if a in s]
-    T0, T1 = poses[with_a[0]], poses[with_a[1]]
-    c0 = -T0[:3, :3].T @ T0[:3, 3]
-    ray = job.part.targets.xyz[a] - c0
-    ends = project(job.intrinsics, T1, np.array([c0 + 0.97 * ray, c0 + 1.03 * ray]))
-    along = (ends[1] - ends[0]) / np.linalg.norm(ends[1] - ends[0])
-    s, u = obs[with_a[1]]
-    u[list(s).index(a)] += 1.2 * np.array([-along[1], along[0]])
+    obs = blunder_across_epipolar(job, poses, obs, a)
     ctx, said = _ctx(tmp_path, replace(job, scale_bars=bars), poses, obs)
     doc = run_bundle(ctx)
     ids = job.part.targets.ids
