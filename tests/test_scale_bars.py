@@ -261,3 +261,23 @@ def test_a_bar_whose_end_snooping_takes_below_two_rays_is_left_out_by_name_while
     assert all(d["test"] == "pass" for d in sb[1:])
     # adjusted again without the bar, T0100 keeps both its rays (its ray was taken only for the bar's sake)
     assert next(t for t in doc["targets"] if t["id"] == ids[b])["n_images"] == 2
+
+
+def test_a_bar_used_but_not_testable_is_said_on_the_console_and_in_the_journal():
+    """say_bars: among several bars, one whose residual has no variance is used but untested: a warning names it
+    (bundle.json alone was not enough for an operator)."""
+    from types import SimpleNamespace
+
+    from cell.stages.scalebars import say_bars
+
+    said, logged, appended = [], [], []
+    ctx = SimpleNamespace(say=said.append, log=SimpleNamespace(log=lambda lv, m: logged.append((lv, m))),
+                          folder=SimpleNamespace(append=lambda *a, **k: appended.append(k)))
+    doc = [{"bar": ["T1", "T2"], "used": True, "left_out": None, "certificate_m": 0.3, "adjusted_length_m": 0.3000001,
+            "residual_m": 1e-7, "residual_sigma_m": 1e-6, "normalised_residual": 0.1, "test": "pass"},
+           {"bar": ["T3", "T4"], "used": True, "left_out": None, "normalised_residual": None,
+            "test": "not tested: the residual has no variance"}]
+    say_bars(ctx, doc)
+    assert any("T3-T4" in line and "not tested" in line and "WARNING" in line for line in said), said
+    assert ("warning", "scale bar T3-T4: used; not tested: the residual has no variance") in logged
+    assert appended and len(appended[0]["bars"]) == 2

@@ -116,6 +116,10 @@ def say_bars(ctx, doc: list[dict]) -> None:
                    f"{d['residual_sigma_m'] * 1e6:.1f} um, {d['normalised_residual']:+.2f} sigma): {d['test']}")
             ctx.log.log("info", msg)
             ctx.say(f"  {msg}")
+        else:  # used, but its residual has no variance to test it by: said, not passed over
+            msg = f"scale bar {name}: used; {d.get('test') or 'not tested'}"
+            ctx.log.log("warning", msg)
+            ctx.say(f"  WARNING {msg}")
     ctx.folder.append("scale_bars", bars=[{"bar": d["bar"], "used": d["used"], "left_out": d["left_out"],
                                            "test": d.get("test"), "normalised_residual": d.get("normalised_residual")}
                                           for d in doc])
