@@ -150,6 +150,9 @@ def max_rejections(n_obs: int) -> int:
 #: a target whose sigma is this many times the median target's is not determined (two nearly parallel rays):
 #: its near-singular block spoils the whole covariance (one 1 m-deep target gave every target a 9 mm axis)
 WILD_SIGMA_FACTOR = 100.0
+#: the variance factor (a posteriori / detector model image variance) of images the model describes: 0.79-0.99 on
+#: the simulated cell's generated parts and the example; outside this range the model does not describe the images
+VARIANCE_FACTOR_RANGE = (0.5, 2.0)
 #: adjustments after dropping what the previous one could not use (targets behind a camera, wild targets)
 MAX_RETRIES = 4
 
@@ -538,6 +541,24 @@ def _flag_counts(flags: dict, rejected) -> dict:
                   "images_without_clipped_share": list(flags["clip_missing"])}
 
 
+def model_mismatch(variance_factor: float) -> str | None:
+    """What a variance factor outside :data:`VARIANCE_FACTOR_RANGE` says (None inside it): the images fit the
+    detector model's image sigma that many times worse (or better). The stated uncertainties follow the images
+    (a posteriori), the plan's prediction and the model do not."""
+    lo, hi = VARIANCE_FACTOR_RANGE
+    if not np.isfinite(variance_factor):
+        return f"variance factor {variance_factor}: the images' fit to the detector model is unknown"
+    if lo <= variance_factor <= hi:
+        return None
+    head = (f"the images fit {np.sqrt(variance_factor):.2f}x the detector model's image sigma (variance factor "
+            f"{variance_factor:.2f}, {lo:g}-{hi:g} expected)")
+    if variance_factor > hi:
+        return (head + ": the model does not describe these images (focus, vibration, exposure, the targets' print?); "
+                "the stated uncertainties follow the images, the plan's predicted sigma does not")
+    return (head + ": better than the model allows; check that the job's camera and [sim] settings are the ones that "
+            "took the images; the stated uncertainties were scaled down with them")
+
+
 def _weights_doc(job, res, groups, model_sigma=None, bg_missing=()) -> dict:
     """The a priori image sigmas the adjustment used: one per incidence class (estimated) or one for all.
 
@@ -553,7 +574,8 @@ def _weights_doc(job, res, groups, model_sigma=None, bg_missing=()) -> dict:
                 "images_without_background_bound": list(bg_missing),
                 "a_priori_sigma_px": {"median": float(np.median(used)), "p90": float(np.quantile(used, 0.9)),
                                       "max": float(np.max(used))},
-                "variance_factor": float((res.sigma0_px / np.sqrt(np.mean(used**2))) ** 2)}
+                "variance_factor": (vf := float((res.sigma0_px / np.sqrt(np.mean(used**2))) ** 2)),
+                "model_mismatch": model_mismatch(vf)}
     if groups is None or vc is None:
         return {"method": "equal", "sigma_px": job.spec.camera.sigma_px}
     edges = (0.0,) + INCIDENCE_EDGES_DEG + (90.0,)
@@ -611,6 +633,9 @@ def run(ctx) -> None:
                 + (f", {w['observations_clipped']} of clipped dots (saturation term)" if w.get("observations_clipped")
                    else ""))
     w = doc["observation_weights"]
+    if w.get("model_mismatch"):
+        ctx.log.log("warning", w["model_mismatch"])
+        ctx.say(f"  WARNING {w['model_mismatch']}")
     for key, what, then in (("images_without_background_bound", "background bounds",
                              "their observations keep the detector model's plain sigma (a dot next to an edge there is "
                              "not down-weighted)"),

@@ -261,6 +261,7 @@ def _budget(cov_scale, dev_cov, use, bundle: dict, scale=None) -> dict:
     out.update(shared_misfit_targets=cb.get("n_targets", 0), scale_bar_ends=cb.get("scale_bar_ends", []),
                observations_with_background_bound=w.get("observations_with_background_bound"),
                observations_clipped=w.get("observations_clipped"),
+               variance_factor=w.get("variance_factor"), detector_model_mismatch=w.get("model_mismatch"),
                datum_left_out=bundle.get("datum_left_out") or [])
     return out
 
