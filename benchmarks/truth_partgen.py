@@ -115,6 +115,7 @@ def losses(folder: Path) -> dict:
         return None if v is None else 1e6 * v
 
     return {"stations": len(plan["stations"]), "observations": bundle["n_observations"],
+            "variance_factor": (bundle.get("observation_weights") or {}).get("variance_factor"),
             "scale_sigma_ppm": budget.get("scale_sigma_ppm"),
             "scale_sigma_certificate_ppm": budget.get("scale_sigma_certificate_ppm"),
             "share_median": budget.get("scale_bar_share_median"),
@@ -166,6 +167,8 @@ def main(argv=None) -> int:
             "pred_over_ach_min": min(r["pred_over_ach"] for r in ok),
             "pred_over_ach_max": max(r["pred_over_ach"] for r in ok),
             "meet_every_criterion": sum(r["meets"] for r in ok),
+            "variance_factor_range": [min(r["variance_factor"] for r in ok), max(r["variance_factor"] for r in ok)]
+            if all(r.get("variance_factor") is not None for r in ok) else None,
         }
         # the criteria judge one draw of errors the targets share: an exact statement misses them at a rate each run's
         # joint covariance gives; the misses seen against that, and how likely so many would be (Poisson binomial)
