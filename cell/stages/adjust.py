@@ -111,6 +111,44 @@ def initial_intrinsics(job, cal_doc: dict) -> Intrinsics:
                       pixel_size_m=nominal.pixel_size_m)
 
 
+#: a start whose screening takes more than this share of the observations as gross is tried against the nominal lens
+START_GROSS_SHARE = 0.10
+
+
+def choose_start(job, cal_doc: dict, obs_image: np.ndarray, obs_target: np.ndarray, obs_uv: np.ndarray,
+                 poses_all: np.ndarray, ids: list[str]) -> tuple[Intrinsics, Resection, dict]:
+    """The interior orientation the adjustment starts from, with the poses resected with it.
+
+    :func:`initial_intrinsics` (Faugeras-Toscani's median), unless its screening takes more than
+    :data:`START_GROSS_SHARE` of the observations as gross and the nominal lens's takes fewer: a wrong start makes
+    good rays disagree, and the screening would leave them out. Returns ``(intr0, resection, doc)``, ``doc`` for
+    bundle.json ``start``: which interior orientation and, for each tried, the share of observations screened gross.
+    """
+    nominal = job.intrinsics
+    pairs = [tuple(bar[:2]) for bar in job.scale_bars]
+
+    def tried(intr):
+        rs = resect(intr, poses_all, obs_image, job.part.targets.xyz[obs_target], obs_uv)
+        scr = screen_network(obs_image, obs_target, obs_uv, intr, rs.poses, len(ids), scale_pairs=pairs,
+                             drop_images=rs.left_out, ids=ids)
+        return rs, len(scr.obs) / max(len(obs_uv), 1)
+
+    intr0 = initial_intrinsics(job, cal_doc)
+    rs, gross = tried(intr0)
+    name = "nominal lens" if intr0 is nominal else "Faugeras-Toscani (median of the accepted images)"
+    doc = {"interior": name, "fx_px": float(intr0.fx_px), "gross_share": {name: gross}}
+    if intr0 is not nominal and gross > START_GROSS_SHARE:
+        rs_n, gross_n = tried(nominal)
+        doc["gross_share"]["nominal lens"] = gross_n
+        if gross_n < gross:
+            doc |= {"interior": "nominal lens", "fx_px": float(nominal.fx_px),
+                    "reason": f"Faugeras-Toscani's interior orientation (fx {intr0.fx_px:.1f} px) left {gross:.0%} of "
+                              f"the observations gross in the screening, the nominal lens (fx {nominal.fx_px:.1f} px) "
+                              f"{gross_n:.0%}: the adjustment starts from the nominal lens"}
+            return nominal, rs_n, doc
+    return intr0, rs, doc
+
+
 def model_sigmas(job, backend: str, cam_from_part: np.ndarray, img: np.ndarray, tgt: np.ndarray,
                  fx_px: float) -> np.ndarray:
     """Each observation's sigma from the detector model (incidence, dot size; the simulated sensor's noise scale on
@@ -365,12 +403,14 @@ def run_bundle(ctx) -> dict:
     cal = json.loads(ctx.folder.file("calibration.json").read_text())
     obs_image, obs_target, obs_uv = observation_arrays(job, obs)
     poses_all = np.array([r["cam_from_part"] for r in cal["images"]], dtype=float)
-    intr0 = initial_intrinsics(job, cal)
     ids = list(job.part.targets.ids)
     # poses that go with the common interior orientation: the screening's rays and the adjustment start from them
     # (Faugeras-Toscani's per-image poses, paired with the common interior orientation, are pixels off: on a thin
     # network with glare the adjustment started from them diverged, 100 targets behind a camera)
-    rs = resect(intr0, poses_all, obs_image, job.part.targets.xyz[obs_target], obs_uv)
+    intr0, rs, start = choose_start(job, cal, obs_image, obs_target, obs_uv, poses_all, ids)
+    if start.get("reason"):
+        ctx.log.log("warning", start["reason"])
+        ctx.say(f"  WARNING {start['reason']}")
     drop_t: dict[int, str] = {}
     bars_out: dict[int, str] = {}  # scale bars left out (position in job.scale_bars -> why)
     doubtful = shape_doubtful(obs, ids)
@@ -441,6 +481,7 @@ def run_bundle(ctx) -> dict:
     atomic_write_bytes(ctx.folder.file("bundle_covariance.npz"), buf.getvalue())
     return {
         "datum": res.datum,
+        "start": start,
         "sigma0_px": res.sigma0_px,
         "observation_weights": _weights_doc(job, res, groups, model_sigma, flags["bg_missing"]) | _flag_counts(flags, res.rejected),
         "dof": res.dof,
