@@ -9,7 +9,12 @@ certificate is off its true length by a draw of its sigma, so a run realises tha
 and whether the alignment was trusted; the stated scale uncertainty (report.json ``uncertainty_budget``) and
 what the plan did for the scale bars' ends (plan.json ``scale_bars``, planning/scalebar.py).
 
-Also per run: what was left out (dots left unnamed, screened, rejected observations, suspect targets).
+Also per run: what was left out (dots left unnamed, screened, rejected observations, suspect targets), whether it
+meets every criterion of issue 15, and the odds that it would miss one were its statement exactly right
+(``odds_of_a_miss``: its errors drawn from the targets' stated joint covariance, report.json
+``deviation_covariance``; the targets share the poses, the camera, the scale and the alignment, so one run's ratio
+scatters, honest or not). Over all: the misses seen, the misses an exact statement would give on these runs, and the
+probability of at least as many (``p_at_least_as_many_misses``; small: the statement is not honest).
 
     .venv/bin/python -m benchmarks.truth_partgen [--runs 6] [--first-seed 100] [--misplaced] [--json out.json]
 """
@@ -29,7 +34,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from tests.jobutil import run_cell  # noqa: E402
 from tests.partgen import make_part_job  # noqa: E402
-from tests.test_truth_partgen import truth_figures  # noqa: E402
+from tests.test_truth_partgen import (FALSE_SIGNIFICANT_MAX, IN99_MIN, RATIO_BAND, report_odds,  # noqa: E402
+                                      truth_figures)
 
 
 def one(work: Path, seed: int, misplaced: bool, search_weights: str | None = None,
@@ -52,9 +58,29 @@ def one(work: Path, seed: int, misplaced: bool, search_weights: str | None = Non
     folder = Path(run.doc["folder"])
     report = json.loads((folder / "report.json").read_text())
     fig = truth_figures(report, part)
-    return {"seed": seed, "kind": part.kind, "targets": part.n_targets, "deviating": len(part.deviations),
-            "trusted": report["alignment"]["trusted"], "pred_over_ach": report["predicted_over_achieved"]["median"],
-            "seconds": time.perf_counter() - t0} | fig | losses(folder)
+    seconds = time.perf_counter() - t0
+    row = {"seed": seed, "kind": part.kind, "targets": part.n_targets, "deviating": len(part.deviations),
+           "trusted": report["alignment"]["trusted"], "pred_over_ach": report["predicted_over_achieved"]["median"],
+           "seconds": seconds} | fig | losses(folder)
+    # how often this run's criteria would be missed were its statement exactly right (the targets' joint covariance)
+    return row | {"meets": meets(row), "odds_of_a_miss": report_odds(report, folder, part)}
+
+
+def meets(r: dict) -> bool:
+    """Whether a run meets every truth criterion of issue 15."""
+    return bool(r["trusted"] and RATIO_BAND[0] <= r["ratio"] <= RATIO_BAND[1] and r["untouched_in_99"] >= IN99_MIN
+                and r["false_significant"] <= FALSE_SIGNIFICANT_MAX
+                and r["beyond_tolerance_failed"] == r["beyond_tolerance"])
+
+
+def misses_tail(p: list[float], k: int) -> float:
+    """P(at least ``k`` of independent runs miss) when run ``i`` misses with probability ``p[i]`` (Poisson binomial)."""
+    dist = np.zeros(len(p) + 1)
+    dist[0] = 1.0
+    for q in p:
+        dist[1:] = dist[1:] * (1 - q) + dist[:-1] * q
+        dist[0] *= 1 - q
+    return float(dist[k:].sum())
 
 
 def set_search_weights(job: Path, weights: str) -> None:
@@ -89,6 +115,7 @@ def losses(folder: Path) -> dict:
         return None if v is None else 1e6 * v
 
     return {"stations": len(plan["stations"]), "observations": bundle["n_observations"],
+            "variance_factor": (bundle.get("observation_weights") or {}).get("variance_factor"),
             "scale_sigma_ppm": budget.get("scale_sigma_ppm"),
             "scale_sigma_certificate_ppm": budget.get("scale_sigma_certificate_ppm"),
             "share_median": budget.get("scale_bar_share_median"),
@@ -139,7 +166,16 @@ def main(argv=None) -> int:
             "scale_z_max_abs": max((abs(r["scale_z"]) for r in ok if r.get("scale_z") is not None), default=None),
             "pred_over_ach_min": min(r["pred_over_ach"] for r in ok),
             "pred_over_ach_max": max(r["pred_over_ach"] for r in ok),
+            "meet_every_criterion": sum(r["meets"] for r in ok),
+            "variance_factor_range": [min(r["variance_factor"] for r in ok), max(r["variance_factor"] for r in ok)]
+            if all(r.get("variance_factor") is not None for r in ok) else None,
         }
+        # the criteria judge one draw of errors the targets share: an exact statement misses them at a rate each run's
+        # joint covariance gives; the misses seen against that, and how likely so many would be (Poisson binomial)
+        p = [r["odds_of_a_miss"]["any"] for r in ok]
+        missed = len(ok) - summary["meet_every_criterion"]
+        summary |= {"misses_expected_if_exact": float(sum(p)), "misses_seen": missed,
+                    "p_at_least_as_many_misses": misses_tail(p, missed)}
         print(json.dumps(summary, indent=1))
         if a.json:
             a.json.write_text(json.dumps({"summary": summary, "runs": rows}, indent=1))

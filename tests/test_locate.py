@@ -170,3 +170,45 @@ def test_writing_base_from_part_keeps_every_other_byte_and_rejects_a_multi_line_
     with pytest.raises(JobSpecError, match="one line"):
         write_base_from_part(job_path, Y)
     assert job_path.read_bytes() == dotted.encode()
+
+
+def _with_markers_underneath(job_path: Path, codes: dict[str, int]) -> None:
+    """Add coded markers on the bracket's underside (facing the table: no station sees them)."""
+    p = job_path.parent / "targets.csv"
+    rows = "".join(f"{name},{-60.0 + 40.0 * k:.1f},-40.0,0.0,0,0,-1,coded,,{code}\n"
+                   for k, (name, code) in enumerate(codes.items()))
+    p.write_text(p.read_text().rstrip("\n") + "\n" + rows)
+
+
+def test_a_marker_no_station_can_see_is_left_out_and_named(tmp_path):
+    job_path = _job(tmp_path)
+    _with_markers_underneath(job_path, {"C9": 9})
+    truth = _truth(job_path)
+    job = load(job_path)
+    devices = open_devices(job, "sim")
+    out = _Out()
+    try:
+        Y, s = estimate_part_placement(job, devices, out)
+    finally:
+        devices.close()
+    assert s["markers_not_planned"] == ["C9"]
+    assert any("WARNING" in ln and "C9" in ln and "uses the other 5" in ln for ln in out.lines), out.lines
+    dt, dr = pose_error(Y, truth)
+    assert dt < 0.5e-3 and np.rad2deg(dr) < 0.1
+
+
+def test_too_few_markers_in_sight_is_an_error_naming_the_hidden_ones(tmp_path):
+    from calibration.errors import ReachabilityError
+
+    job_path = _job(tmp_path)
+    p = job_path.parent / "targets.csv"  # keep one marker on top, the others moved underneath
+    p.write_text("".join(ln + "\n" for ln in p.read_text().splitlines()
+                         if ",coded," not in ln or ln.startswith("C0,")))
+    _with_markers_underneath(job_path, {"C7": 7, "C8": 8})
+    job = load(job_path)
+    devices = open_devices(job, "sim")
+    try:
+        with pytest.raises(ReachabilityError, match=r"only 1 of the part's 3 coded markers .*not seen: C7, C8"):
+            estimate_part_placement(job, devices, _Out())
+    finally:
+        devices.close()

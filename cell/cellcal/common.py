@@ -74,7 +74,8 @@ class StationPlan:
 def plan_stations(job: LoadedJob, k: int, *, min_rays: int, max_tilt_rad: float, incidence_max_rad: float,
                   sigma_px: float, n_candidates: int, seed: int, targets: np.ndarray | None = None,
                   margin_px: float = 20.0, depth_margin: float = 0.35,
-                  bands: tuple[tuple[float, float], ...] = ((0.0, 1.0),), roll_spread_rad: float = 0.0) -> StationPlan:
+                  bands: tuple[tuple[float, float], ...] = ((0.0, 1.0),), roll_spread_rad: float = 0.0,
+                  allow_unmeasurable: bool = False) -> StationPlan:
     """``k`` stations around the artefact of ``job`` by the network planner, as an inspection plans them.
 
     The artefact is the part planned for (``targets``: a boolean mask of the targets that count,
@@ -88,7 +89,9 @@ def plan_stations(job: LoadedJob, k: int, *, min_rays: int, max_tilt_rad: float,
     points are measured with); a job that needs rotations about the optical axis too (the hand-eye)
     gets rolls spread evenly over +-``roll_spread_rad`` (in a seeded order), halved while a target would
     lose one of its ``min_rays`` rays to the image border. Then :func:`validate_plan` on them all (IK
-    branches, collision-checked moves, visiting order).
+    branches, collision-checked moves, visiting order). ``allow_unmeasurable``: a counted target that no
+    ``min_rays`` reachable candidates see is left out of the plan (its id in the plans'
+    ``unmeasurable_target_ids``) instead of failing it.
     """
     from planning.execution import MotionLimits, validate_plan
     from planning.reachability import ReachabilityDB
@@ -114,6 +117,7 @@ def plan_stations(job: LoadedJob, k: int, *, min_rays: int, max_tilt_rad: float,
                          distance_min_m=d0 + f0 * (d1 - d0), distance_max_m=d0 + f1 * (d1 - d0))
         opts = PlannerOptions(n_stations=int(kb), min_rays=min(min_rays, int(kb)), incidence_max_rad=float(incidence_max_rad),
                               criterion="worst", sigma_px=sigma_px, mode="fixed", population=CAL_POPULATION,
+                              allow_unmeasurable=allow_unmeasurable,
                               generations=CAL_GENERATIONS, stall_generations=CAL_STALL, sphere=sphere,
                               n_candidates=n_candidates, n_shells=2,
                               visibility=VisibilityOptions(margin_px=margin_px, near_m=near, far_m=far,

@@ -43,6 +43,9 @@ PLACEMENT_AGREE_M = 0.015
 #: lighting). On the simulated images the mean centring error along the normal's image is now 0.001 px,
 #: 0.0035 px beyond 70 deg incidence (benchmarks/centre_bias.py; it was 0.006-0.014 px before decision 0007).
 PLACEMENT_SYSTEMATIC_PX = 0.015
+#: The overview plans for the coded markers it can show twice; fewer than this many such markers is an error (one
+#: marker fixes an image's pose, but a marker whose code is on the wrong target needs others to outvote it).
+PLACEMENT_MIN_MARKERS = 3
 
 
 def estimate_part_placement(job: LoadedJob, devices, out, *, n_images: int = 4) -> tuple[np.ndarray, dict]:
@@ -61,7 +64,10 @@ def estimate_part_placement(job: LoadedJob, devices, out, *, n_images: int = 4) 
     (the marker stage) and the figures of the adjustment. The robot's readings and the hand-eye are
     taken as exact: their errors (tens of micrometres on a calibrated UR) come on top.
     """
-    P, joints = _placement_stations(job, n_images)
+    P, joints, unseen = _placement_stations(job, n_images)
+    if unseen:
+        out.say(f"placement: WARNING: coded marker(s) {', '.join(unseen)} cannot be seen twice from the reachable "
+                f"overview stations; the placement uses the other {int((job.part.targets.kind == 'coded').sum()) - len(unseen)}")
     X, Y0 = job.spec.flange_from_cam(), job.spec.base_from_part()
     intr = job.intrinsics
     B, images = [], []
@@ -103,16 +109,26 @@ def estimate_part_placement(job: LoadedJob, devices, out, *, n_images: int = 4) 
                "images": int(len(B)), "n_observations": int(len(tgt)), "n_rejected": int(res.rejected.sum()),
                "sigma0_px": res.sigma0_px, "per_image_rms_px": res.per_image_rms_px,
                "change_from_nominal_m": dt, "change_from_nominal_rad": dr,
-               "coded": coded | {"error_m": dt1, "error_rad": dr1}, "stations_part_from_cam": P}
+               "coded": coded | {"error_m": dt1, "error_rad": dr1}, "stations_part_from_cam": P,
+               "markers_not_planned": unseen}
     out.say(f"placement: {len(B)} images, {coded['n_markers']} marker views, {len(tgt)} dots "
             f"({summary['n_rejected']} rejected), sigma0 {res.sigma0_px:.3f} px; the part is {dt * 1e3:.2f} mm, "
             f"{np.rad2deg(dr):.3f} deg from the job's base_from_part (+- {np.linalg.norm(sig_t) * 1e6:.1f} um, "
             f"{np.rad2deg(np.linalg.norm(sig_r)) * 3600:.1f} arcsec)")
     if coded["dropped"]:
-        bad = sorted({(d["code"], d["target"]) for d in coded["dropped"]})
-        out.say("placement: WARNING: marker(s) " + ", ".join(f"code {c} (target {t})" for c, t in bad) + " are not "
-                "where the targets file puts them (the dots disagree); they were left out: check the file's "
-                "code column")
+        # a marker none of whose views fits the placement is not where the file says; a single view that does not
+        # fit while the marker's other views do is a poor view (grazing, partly hidden), not a wrong file
+        kept = set(coded["used_targets"])
+        bad = sorted({(d["code"], d["target"]) for d in coded["dropped"] if d["target"] not in kept})
+        poor = [d for d in coded["dropped"] if d["target"] in kept]
+        if bad:
+            out.say("placement: WARNING: marker(s) " + ", ".join(f"code {c} (target {t})" for c, t in bad) + " are "
+                    "not where the targets file puts them (none of their views fits the others and the dots); they "
+                    "were left out: check the file's code column")
+        if poor:
+            out.say("placement: " + ", ".join(f"{d['target']} in image {d['image']} ({d['rms_px']:.1f} px)" for d in poor)
+                    + f": view(s) whose corners miss the placement by more than {PLACEMENT_MARKER_RMS_PX:g} px rms "
+                    "while the marker's other views fit; left out")
     return Y, summary
 
 
@@ -260,6 +276,7 @@ def _placement_from_codes(job: LoadedJob, B: np.ndarray, markers: list, dots: li
                 "rms_px": float(rms[v])} for v in range(len(views)) if v not in set(use.tolist())]
     return Y, {"base_from_part": Y, "n_markers": int(len(use)), "images": int(len(set(img[use].tolist()))),
                "sigma0_px": s0, "max_marker_rms_px": float(rms[use].max()), "dropped": dropped,
+               "used_targets": sorted({t.ids[views[v][1]] for v in use.tolist()}),
                "hypotheses": min(3, len(seeds)), "dots_found": int(score)}
 
 
@@ -288,12 +305,15 @@ def _identify_dots(job: LoadedJob, det_uv: np.ndarray, cam_from_part: np.ndarray
     return m.target[steep], m.uv[steep]
 
 
-def _placement_stations(job: LoadedJob, n: int) -> tuple[np.ndarray, np.ndarray]:
-    """Overview stations around the nominal part, ``(part_from_cam (n, 4, 4), joints (n, 6))`` in visiting order.
+def _placement_stations(job: LoadedJob, n: int) -> tuple[np.ndarray, np.ndarray, list[str]]:
+    """Overview stations around the nominal part, ``(part_from_cam (n, 4, 4), joints (n, 6), markers left out)``
+    in visiting order.
 
     Planned by :func:`plan_stations` (the inspection's planner and reachability) for the coded
     markers alone, with a wide image margin (the part may be centimetres off its nominal place)
-    and every marker in two images (more stations than ``n`` when the markers need them).
+    and every marker in two images (more stations than ``n`` when the markers need them). A marker that
+    no two reachable candidates see (under a flange, on a face turned away from the robot) is left out and
+    named; fewer than :data:`PLACEMENT_MIN_MARKERS` markers left is an error naming them.
     """
     coded = job.part.targets.kind == "coded"
     if not coded.any():
@@ -304,10 +324,17 @@ def _placement_stations(job: LoadedJob, n: int) -> tuple[np.ndarray, np.ndarray]
         try:
             sp = plan_stations(job, k, min_rays=2, max_tilt_rad=np.deg2rad(60.0), incidence_max_rad=np.deg2rad(60.0),
                                sigma_px=job.spec.camera.sigma_px, n_candidates=300, seed=job.spec.job.seed,
-                               targets=coded, margin_px=150.0)
+                               targets=coded, margin_px=150.0, allow_unmeasurable=True)
             break
         except ReachabilityError as exc:
             last = exc
     else:
         raise ReachabilityError(f"part placement: {last}")
-    return sp.part_from_cam, sp.joints
+    unseen = sorted({i for p in sp.plans for i in p.unmeasurable_target_ids})
+    n_coded = int(coded.sum())
+    if n_coded - len(unseen) < min(PLACEMENT_MIN_MARKERS, n_coded):
+        raise ReachabilityError(
+            f"part placement: only {n_coded - len(unseen)} of the part's {n_coded} coded markers can be seen twice from "
+            f"the reachable overview stations ({PLACEMENT_MIN_MARKERS} needed; not seen: {', '.join(unseen)}): put "
+            "markers where the robot sees the part from above, or move the part within the robot's reach")
+    return sp.part_from_cam, sp.joints, unseen

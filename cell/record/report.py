@@ -222,6 +222,9 @@ def _alerts(doc: dict) -> str:
     if sn.get("suspect_targets"):
         out.append(f'<div class="warn">Targets whose observations the blunder test could not verify (lost half of their rays, kept two or fewer after a rejection or a screening drop, or unlike their ellipse in most images; inconclusive): '
                    f'{html.escape(", ".join(sn["suspect_targets"]))}</div>')
+    mismatch = (doc.get("uncertainty_budget") or {}).get("detector_model_mismatch")
+    if mismatch:
+        out.append(f'<div class="warn" id="model-mismatch">Image precision: {html.escape(mismatch)}</div>')
     if doc.get("solver_fallback"):
         out.append('<div class="warn" id="solver-fallback">Gauss-Newton handed the adjustment to pycolmap: '
                    f'{html.escape(str(doc["solver_fallback"]))}</div>')

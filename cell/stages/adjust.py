@@ -111,6 +111,44 @@ def initial_intrinsics(job, cal_doc: dict) -> Intrinsics:
                       pixel_size_m=nominal.pixel_size_m)
 
 
+#: a start whose screening takes more than this share of the observations as gross is tried against the nominal lens
+START_GROSS_SHARE = 0.10
+
+
+def choose_start(job, cal_doc: dict, obs_image: np.ndarray, obs_target: np.ndarray, obs_uv: np.ndarray,
+                 poses_all: np.ndarray, ids: list[str]) -> tuple[Intrinsics, Resection, dict]:
+    """The interior orientation the adjustment starts from, with the poses resected with it.
+
+    :func:`initial_intrinsics` (Faugeras-Toscani's median), unless its screening takes more than
+    :data:`START_GROSS_SHARE` of the observations as gross and the nominal lens's takes fewer: a wrong start makes
+    good rays disagree, and the screening would leave them out. Returns ``(intr0, resection, doc)``, ``doc`` for
+    bundle.json ``start``: which interior orientation and, for each tried, the share of observations screened gross.
+    """
+    nominal = job.intrinsics
+    pairs = [tuple(bar[:2]) for bar in job.scale_bars]
+
+    def tried(intr):
+        rs = resect(intr, poses_all, obs_image, job.part.targets.xyz[obs_target], obs_uv)
+        scr = screen_network(obs_image, obs_target, obs_uv, intr, rs.poses, len(ids), scale_pairs=pairs,
+                             drop_images=rs.left_out, ids=ids)
+        return rs, len(scr.obs) / max(len(obs_uv), 1)
+
+    intr0 = initial_intrinsics(job, cal_doc)
+    rs, gross = tried(intr0)
+    name = "nominal lens" if intr0 is nominal else "Faugeras-Toscani (median of the accepted images)"
+    doc = {"interior": name, "fx_px": float(intr0.fx_px), "gross_share": {name: gross}}
+    if intr0 is not nominal and gross > START_GROSS_SHARE:
+        rs_n, gross_n = tried(nominal)
+        doc["gross_share"]["nominal lens"] = gross_n
+        if gross_n < gross:
+            doc |= {"interior": "nominal lens", "fx_px": float(nominal.fx_px),
+                    "reason": f"Faugeras-Toscani's interior orientation (fx {intr0.fx_px:.1f} px) left {gross:.0%} of "
+                              f"the observations gross in the screening, the nominal lens (fx {nominal.fx_px:.1f} px) "
+                              f"{gross_n:.0%}: the adjustment starts from the nominal lens"}
+            return nominal, rs_n, doc
+    return intr0, rs, doc
+
+
 def model_sigmas(job, backend: str, cam_from_part: np.ndarray, img: np.ndarray, tgt: np.ndarray,
                  fx_px: float) -> np.ndarray:
     """Each observation's sigma from the detector model (incidence, dot size; the simulated sensor's noise scale on
@@ -150,6 +188,9 @@ def max_rejections(n_obs: int) -> int:
 #: a target whose sigma is this many times the median target's is not determined (two nearly parallel rays):
 #: its near-singular block spoils the whole covariance (one 1 m-deep target gave every target a 9 mm axis)
 WILD_SIGMA_FACTOR = 100.0
+#: the variance factor (a posteriori / detector model image variance) of images the model describes: 0.79-0.99 on
+#: the simulated cell's generated parts and the example; outside this range the model does not describe the images
+VARIANCE_FACTOR_RANGE = (0.5, 2.0)
 #: adjustments after dropping what the previous one could not use (targets behind a camera, wild targets)
 MAX_RETRIES = 4
 
@@ -362,12 +403,14 @@ def run_bundle(ctx) -> dict:
     cal = json.loads(ctx.folder.file("calibration.json").read_text())
     obs_image, obs_target, obs_uv = observation_arrays(job, obs)
     poses_all = np.array([r["cam_from_part"] for r in cal["images"]], dtype=float)
-    intr0 = initial_intrinsics(job, cal)
     ids = list(job.part.targets.ids)
     # poses that go with the common interior orientation: the screening's rays and the adjustment start from them
     # (Faugeras-Toscani's per-image poses, paired with the common interior orientation, are pixels off: on a thin
     # network with glare the adjustment started from them diverged, 100 targets behind a camera)
-    rs = resect(intr0, poses_all, obs_image, job.part.targets.xyz[obs_target], obs_uv)
+    intr0, rs, start = choose_start(job, cal, obs_image, obs_target, obs_uv, poses_all, ids)
+    if start.get("reason"):
+        ctx.log.log("warning", start["reason"])
+        ctx.say(f"  WARNING {start['reason']}")
     drop_t: dict[int, str] = {}
     bars_out: dict[int, str] = {}  # scale bars left out (position in job.scale_bars -> why)
     doubtful = shape_doubtful(obs, ids)
@@ -438,6 +481,7 @@ def run_bundle(ctx) -> dict:
     atomic_write_bytes(ctx.folder.file("bundle_covariance.npz"), buf.getvalue())
     return {
         "datum": res.datum,
+        "start": start,
         "sigma0_px": res.sigma0_px,
         "observation_weights": _weights_doc(job, res, groups, model_sigma, flags["bg_missing"]) | _flag_counts(flags, res.rejected),
         "dof": res.dof,
@@ -538,6 +582,24 @@ def _flag_counts(flags: dict, rejected) -> dict:
                   "images_without_clipped_share": list(flags["clip_missing"])}
 
 
+def model_mismatch(variance_factor: float) -> str | None:
+    """What a variance factor outside :data:`VARIANCE_FACTOR_RANGE` says (None inside it): the images fit the
+    detector model's image sigma that many times worse (or better). The stated uncertainties follow the images
+    (a posteriori), the plan's prediction and the model do not."""
+    lo, hi = VARIANCE_FACTOR_RANGE
+    if not np.isfinite(variance_factor):
+        return f"variance factor {variance_factor}: the images' fit to the detector model is unknown"
+    if lo <= variance_factor <= hi:
+        return None
+    head = (f"the images fit {np.sqrt(variance_factor):.2f}x the detector model's image sigma (variance factor "
+            f"{variance_factor:.2f}, {lo:g}-{hi:g} expected)")
+    if variance_factor > hi:
+        return (head + ": the model does not describe these images (focus, vibration, exposure, the targets' print?); "
+                "the stated uncertainties follow the images, the plan's predicted sigma does not")
+    return (head + ": better than the model allows; check that the job's camera and [sim] settings are the ones that "
+            "took the images; the stated uncertainties were scaled down with them")
+
+
 def _weights_doc(job, res, groups, model_sigma=None, bg_missing=()) -> dict:
     """The a priori image sigmas the adjustment used: one per incidence class (estimated) or one for all.
 
@@ -553,7 +615,8 @@ def _weights_doc(job, res, groups, model_sigma=None, bg_missing=()) -> dict:
                 "images_without_background_bound": list(bg_missing),
                 "a_priori_sigma_px": {"median": float(np.median(used)), "p90": float(np.quantile(used, 0.9)),
                                       "max": float(np.max(used))},
-                "variance_factor": float((res.sigma0_px / np.sqrt(np.mean(used**2))) ** 2)}
+                "variance_factor": (vf := float((res.sigma0_px / np.sqrt(np.mean(used**2))) ** 2)),
+                "model_mismatch": model_mismatch(vf)}
     if groups is None or vc is None:
         return {"method": "equal", "sigma_px": job.spec.camera.sigma_px}
     edges = (0.0,) + INCIDENCE_EDGES_DEG + (90.0,)
@@ -611,6 +674,9 @@ def run(ctx) -> None:
                 + (f", {w['observations_clipped']} of clipped dots (saturation term)" if w.get("observations_clipped")
                    else ""))
     w = doc["observation_weights"]
+    if w.get("model_mismatch"):
+        ctx.log.log("warning", w["model_mismatch"])
+        ctx.say(f"  WARNING {w['model_mismatch']}")
     for key, what, then in (("images_without_background_bound", "background bounds",
                              "their observations keep the detector model's plain sigma (a dot next to an edge there is "
                              "not down-weighted)"),

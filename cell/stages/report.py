@@ -1,6 +1,7 @@
 """REPORT: align to CAD, judge each target against its tolerance, write report.json and report.html."""
 from __future__ import annotations
 
+import io
 import json
 import platform
 from importlib import metadata
@@ -13,6 +14,8 @@ from calibration.errors import CalibrationError
 from calibration.robust_alignment import AlignmentOutcome, frame_alignment, robust_best_fit, rps_align, rps_locks
 from cell.record import report as R
 from cell.record.jobfolder import atomic_write_bytes, atomic_write_json, utc_now
+
+DEVIATION_COVARIANCE = "deviation_covariance.npz"  # the deviations' joint covariance (report.json deviation_covariance)
 
 
 def _versions() -> dict:
@@ -258,6 +261,7 @@ def _budget(cov_scale, dev_cov, use, bundle: dict, scale=None) -> dict:
     out.update(shared_misfit_targets=cb.get("n_targets", 0), scale_bar_ends=cb.get("scale_bar_ends", []),
                observations_with_background_bound=w.get("observations_with_background_bound"),
                observations_clipped=w.get("observations_clipped"),
+               variance_factor=w.get("variance_factor"), detector_model_mismatch=w.get("model_mismatch"),
                datum_left_out=bundle.get("datum_left_out") or [])
     return out
 
@@ -387,6 +391,11 @@ def write_report(ctx) -> tuple[str, list[str]]:
         "uncertainty_budget": _budget(cov_scale if nb else None, al.deviation_cov, judged & ok, bundle,
                                       scale_sigma(measured, pc, judged & ok & ~np.isin(ids, list(suspect)), K, K_sigma)
                                       if nb else None),
+        # the deviations' joint covariance (targets correlate through the poses, the camera, the scale and the
+        # alignment): what a derived quantity (a distance, a feature's position) needs beyond each target's block
+        "deviation_covariance": {"file": DEVIATION_COVARIANCE, "ids": list(ids), "units": "m^2",
+                                 "form": "Sigma = blockdiag(D) + U C U^T: D (n, 3, 3), U (n, 3, r), C (r, r); targets "
+                                         "in the order of ids, the aligned (CAD) frame; NaN for a target not measured"},
         "left_out": {"observations": len(sc.get("dropped_observations", [])),
                      "targets": sc.get("dropped_targets", []), "images": sc.get("dropped_images", []),
                      "start_pose_kept": (sc.get("resection") or {}).get("start_kept", [])},
@@ -411,6 +420,10 @@ def write_report(ctx) -> tuple[str, list[str]]:
                                        passed[judged]),
         "network": F3.network_3d(job.part.mesh, stations, nominal, list(ids)),
     })
+    dc = al.deviation_covariance
+    buf = io.BytesIO()
+    np.savez_compressed(buf, D=dc.D, U=dc.U, C=dc.C, ids=np.asarray(ids, dtype=str))
+    atomic_write_bytes(f.file(DEVIATION_COVARIANCE), buf.getvalue())
     # the REPORT stage's own time is not known yet: the report lists the stages before it
     atomic_write_json(f.file("report.json"), doc)
     from cell.record.jobfolder import to_jsonable
