@@ -11,23 +11,60 @@ from planning.stations import ViewingSphere
 from planning.visibility import VisibilityOptions
 
 
-def planner_options(job: LoadedJob) -> PlannerOptions:
+#: a part too large to frame in one image within the depth of field: the stations look at regions of it, their
+#: look-at point up to this fraction of the part's radius from its centre (the whole part is framed: 0.25)
+REGION_OFFSET_FRACTION = 0.6
+
+
+def viewing_sphere(job: LoadedJob) -> tuple[ViewingSphere, str | None]:
+    """The stations' viewing sphere for a job, and a note when the part is too large to frame in one image.
+
+    Sized so that the part fills the image (:meth:`ViewingSphere.for_part`), overridden by ``[planning]
+    distance_min / distance_max``, and kept where every target is in the depth of field (``[camera] near / far``,
+    half the part's radius inside them). A part that the image frames only beyond the depth of field (a panel
+    wider than the field of view at ``far``) is planned from within it, the stations looking at regions of the
+    part (their look-at offsets up to :data:`REGION_OFFSET_FRACTION` of its radius): said in the note. A range
+    that is empty even so is an error naming the keys."""
+    from dataclasses import replace
+
+    from calibration.errors import JobSpecError
+
     s, p, c = job.spec, job.spec.planning, job.spec.camera
     k = s.scale
+    r = float(job.part.radius)
     sphere = ViewingSphere.for_part(job.part, job.intrinsics)
+    framed = sphere.distance_min_m
     overrides = {}
     if p.distance_min is not None:
         overrides["distance_min_m"] = p.distance_min * k
     if p.distance_max is not None:
         overrides["distance_max_m"] = p.distance_max * k
-    from dataclasses import replace
-
     sphere = replace(sphere, elevation_min_rad=np.deg2rad(p.elevation_min_deg),
                      elevation_max_rad=np.deg2rad(p.elevation_max_deg), **overrides)
     # the camera's distance to the part's centre must keep every target within the depth of field
     near, far = c.near * k, c.far * k
-    sphere = replace(sphere, distance_min_m=max(sphere.distance_min_m, near + job.part.radius * 0.5),
-                     distance_max_m=min(sphere.distance_max_m, far - job.part.radius * 0.5))
+    lo, hi = max(sphere.distance_min_m, near + r * 0.5), min(sphere.distance_max_m, far - r * 0.5)
+    note = None
+    if lo > hi and p.distance_min is None:  # the framing distance, not the job, put the range beyond the depth of field
+        lo = max(near + r * 0.5, r + 0.05)
+        if lo <= hi:
+            sphere = replace(sphere, max_offset_m=max(sphere.max_offset_m, REGION_OFFSET_FRACTION * r))
+            note = (f"the part ({2 * r / k:.0f} {s.job.units} across) fits one image only from {framed / k:.0f} "
+                    f"{s.job.units}, beyond the camera's depth of field ({c.near:g}-{c.far:g} {s.job.units}): the "
+                    f"stations stand {lo / k:.0f}-{hi / k:.0f} {s.job.units} from its centre and look at regions of it")
+    if lo > hi:
+        raise JobSpecError(
+            f"{job.path}: no camera distance keeps the part ({2 * r / k:.0f} {s.job.units} across) within the "
+            f"camera's depth of field: the stations would stand {lo / k:.0f}-{hi / k:.0f} {s.job.units} from its "
+            f"centre; widen [camera] near / far (now {c.near:g}-{c.far:g}) or [planning] distance_min / distance_max")
+    return replace(sphere, distance_min_m=lo, distance_max_m=hi), note
+
+
+def planner_options(job: LoadedJob) -> PlannerOptions:
+    s, p, c = job.spec, job.spec.planning, job.spec.camera
+    k = s.scale
+    sphere, _ = viewing_sphere(job)
+    near, far = c.near * k, c.far * k
     vis = VisibilityOptions(margin_px=p.margin_px, near_m=near, far_m=far,
                             incidence_max_rad=np.deg2rad(p.incidence_max_deg))
     return PlannerOptions(

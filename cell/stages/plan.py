@@ -136,8 +136,14 @@ def unmeasurable_targets(job: LoadedJob, cache_dir: Path | None = None) -> dict:
 
 def run(ctx) -> None:
     """PLAN: the network design; plan.json and figures/plan.png."""
+    from cell.setup import viewing_sphere
+
+    note = viewing_sphere(ctx.job)[1]
+    if note:
+        ctx.log.log("info", note)
+        ctx.say(f"  {note}")
     p, facts = make_plan(ctx.job, progress=ctx.progress)
-    doc = p.to_plan_dict() | {"databases": facts}
+    doc = p.to_plan_dict() | {"databases": facts, "framing": note}
     pred = measurement_prediction(ctx.job, np.asarray(p.part_from_cam, dtype=float), progress=ctx.progress,
                                   cache_dir=default_cache_dir())
     if pred is None and ctx.job.spec.camera.observation_weights == "model":
