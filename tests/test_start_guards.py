@@ -71,7 +71,7 @@ def test_images_of_the_example_leave_out_only_its_deviating_targets(tmp_path_fac
     for xyz, uv, pose, ids in images:
         rec = orient_image(job, xyz, uv, pose)
         assert rec["method"] == "Faugeras-Toscani", rec.get("fallback_reason")
-        out = {i for i, k in zip(ids, consistent_points(xyz, uv, job.intrinsics, pose)) if not k}
+        out = {i for i, k in zip(ids, consistent_points(xyz, uv, job.intrinsics, pose)[0]) if not k}
         assert out <= moved and rec["ft_points_left_out"] == len(out), (out, moved)
 
 
@@ -81,13 +81,13 @@ def test_a_faugeras_toscani_start_that_makes_good_rays_disagree_gives_way_to_the
     obs_image, obs_target, obs_uv = observation_arrays(job, obs)
     poses = np.array([r["cam_from_part"] for r in cal["images"]], dtype=float)
     ids = list(job.part.targets.ids)
-    intr0, _, doc = choose_start(job, cal, obs_image, obs_target, obs_uv, poses, ids)
+    intr0, _, _, doc = choose_start(job, cal, obs_image, obs_target, obs_uv, poses, ids)
     assert doc["interior"].startswith("Faugeras-Toscani") and "reason" not in doc, doc
     assert doc["gross_share"][doc["interior"]] <= START_GROSS_SHARE
     for r in cal["images"]:  # every image's Faugeras-Toscani 7 % long: the median passes as plausible
         r["alpha_u"] *= 1.07
         r["alpha_v"] *= 1.07
-    intr0, _, doc = choose_start(job, cal, obs_image, obs_target, obs_uv, poses, ids)
+    intr0, _, _, doc = choose_start(job, cal, obs_image, obs_target, obs_uv, poses, ids)
     assert intr0 is job.intrinsics and doc["interior"] == "nominal lens", doc
     shares = doc["gross_share"]
     assert shares["Faugeras-Toscani (median of the accepted images)"] > START_GROSS_SHARE > shares["nominal lens"]

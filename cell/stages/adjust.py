@@ -116,13 +116,14 @@ START_GROSS_SHARE = 0.10
 
 
 def choose_start(job, cal_doc: dict, obs_image: np.ndarray, obs_target: np.ndarray, obs_uv: np.ndarray,
-                 poses_all: np.ndarray, ids: list[str]) -> tuple[Intrinsics, Resection, dict]:
+                 poses_all: np.ndarray, ids: list[str]) -> tuple[Intrinsics, Resection, Screening, dict]:
     """The interior orientation the adjustment starts from, with the poses resected with it.
 
     :func:`initial_intrinsics` (Faugeras-Toscani's median), unless its screening takes more than
     :data:`START_GROSS_SHARE` of the observations as gross and the nominal lens's takes fewer: a wrong start makes
     good rays disagree, and the screening would leave them out. Returns ``(intr0, resection, doc)``, ``doc`` for
     bundle.json ``start``: which interior orientation and, for each tried, the share of observations screened gross.
+    The chosen start's screening is returned too: the adjustment's first round uses it (not screened twice).
     """
     nominal = job.intrinsics
     pairs = [tuple(bar[:2]) for bar in job.scale_bars]
@@ -131,22 +132,22 @@ def choose_start(job, cal_doc: dict, obs_image: np.ndarray, obs_target: np.ndarr
         rs = resect(intr, poses_all, obs_image, job.part.targets.xyz[obs_target], obs_uv)
         scr = screen_network(obs_image, obs_target, obs_uv, intr, rs.poses, len(ids), scale_pairs=pairs,
                              drop_images=rs.left_out, ids=ids)
-        return rs, len(scr.obs) / max(len(obs_uv), 1)
+        return rs, scr, len(scr.obs) / max(len(obs_uv), 1)
 
     intr0 = initial_intrinsics(job, cal_doc)
-    rs, gross = tried(intr0)
+    rs, scr, gross = tried(intr0)
     name = "nominal lens" if intr0 is nominal else "Faugeras-Toscani (median of the accepted images)"
     doc = {"interior": name, "fx_px": float(intr0.fx_px), "gross_share": {name: gross}}
     if intr0 is not nominal and gross > START_GROSS_SHARE:
-        rs_n, gross_n = tried(nominal)
+        rs_n, scr_n, gross_n = tried(nominal)
         doc["gross_share"]["nominal lens"] = gross_n
         if gross_n < gross:
             doc |= {"interior": "nominal lens", "fx_px": float(nominal.fx_px),
                     "reason": f"Faugeras-Toscani's interior orientation (fx {intr0.fx_px:.1f} px) left {gross:.0%} of "
                               f"the observations gross in the screening, the nominal lens (fx {nominal.fx_px:.1f} px) "
                               f"{gross_n:.0%}: the adjustment starts from the nominal lens"}
-            return nominal, rs_n, doc
-    return intr0, rs, doc
+            return nominal, rs_n, scr_n, doc
+    return intr0, rs, scr, doc
 
 
 def model_sigmas(job, backend: str, cam_from_part: np.ndarray, img: np.ndarray, tgt: np.ndarray,
@@ -317,17 +318,21 @@ def _weakest(sig: np.ndarray, med: float) -> np.ndarray:
 
 
 def _screen_and_adjust(ctx, obs, obs_image, obs_target, obs_uv, poses_all, intr0, rs, ids, drop_t: dict,
-                       bars_out: dict, doubtful: dict):
+                       bars_out: dict, doubtful: dict, first: Screening | None = None):
     """Screen the network and adjust what it kept with the scale bars not in ``bars_out`` (positions in
     ``job.scale_bars`` -> why left out; completed here when data snooping takes an end below two rays); drop
     the targets the adjustment shows it cannot use (``drop_t``, completed here). Returns ``(res, sub, scr, use,
-    retries, wild)``."""
+    retries, wild)``. ``first``: the screening of ``rs`` with nothing dropped yet (:func:`choose_start`'s), used while
+    ``drop_t`` is still empty."""
     job = ctx.job
     nb = len(job.scale_bars)
     pairs = [tuple(bar[:2]) for bar in job.scale_bars]
     for attempt in range(MAX_RETRIES + 1):
-        scr = screen_network(obs_image, obs_target, obs_uv, intr0, rs.poses, len(ids), scale_pairs=pairs,
-                             drop_targets=drop_t, drop_images=rs.left_out, ids=ids)
+        if first is not None and attempt == 0 and not drop_t:
+            scr = first
+        else:
+            scr = screen_network(obs_image, obs_target, obs_uv, intr0, rs.poses, len(ids), scale_pairs=pairs,
+                                 drop_targets=drop_t, drop_images=rs.left_out, ids=ids)
         left = dict(scr.bars_out) | bars_out
         use = [j for j in range(nb) if j not in left]
         scr.bars_out = left
@@ -408,7 +413,7 @@ def run_bundle(ctx) -> dict:
     # poses that go with the common interior orientation: the screening's rays and the adjustment start from them
     # (Faugeras-Toscani's per-image poses, paired with the common interior orientation, are pixels off: on a thin
     # network with glare the adjustment started from them diverged, 100 targets behind a camera)
-    intr0, rs, start = choose_start(job, cal, obs_image, obs_target, obs_uv, poses_all, ids)
+    intr0, rs, first, start = choose_start(job, cal, obs_image, obs_target, obs_uv, poses_all, ids)
     if start.get("reason"):
         ctx.log.log("warning", start["reason"])
         ctx.say(f"  WARNING {start['reason']}")
@@ -426,7 +431,8 @@ def run_bundle(ctx) -> dict:
     t0 = time.perf_counter()
     while True:  # with three bars or more, a bar whose certificate fails the test is left out and the job adjusted again
         res, sub, scr, use, attempt, wild = _screen_and_adjust(ctx, obs, obs_image, obs_target, obs_uv, poses_all,
-                                                               intr0, rs, ids, drop_t, bars_out, doubtful)
+                                                               intr0, rs, ids, drop_t, bars_out, doubtful, first)
+        first = None  # the start's screening serves the first round only
         if not res.converged:
             raise CalibrationError(f"bundle adjustment did not converge: {res.summary}")
         if wild.size:  # still undetermined after the last retry: their covariance would spoil every other target's

@@ -61,6 +61,13 @@ def run(ctx) -> None:
     atomic_write_json(ctx.folder.file("calibration.json"), {"method": "Faugeras-Toscani", "images": res,
                                                             "interior_start": start,
                                                             "n_fallback": len(res) - len(ft_ok)})
+    left = [r for r in res if r["ft_points_left_out"]]
+    if left:  # what Faugeras-Toscani did not calibrate from: said, with the images
+        msg = (f"Faugeras-Toscani left out {sum(r['ft_points_left_out'] for r in left)} point(s) in {len(left)} "
+               f"image(s) that one pose of the nominal lens does not explain within {CONSISTENT_PX:g} px (targets off "
+               "their nominal position, misnamed dots): calibration.json ft_points_left_out")
+        ctx.log.log("info", msg)
+        ctx.say(f"  {msg}")
     if not ft_ok:
         ctx.log.log("warning", "Faugeras-Toscani refused every image; interior orientation starts from the nominal lens")
         ctx.say(f"  WARNING Faugeras-Toscani refused all {len(res)} images (e.g. {res[0]['fallback_reason']}); "
@@ -73,68 +80,71 @@ def run(ctx) -> None:
                if len(ft_ok) < len(res) else ""))
 
 
-def consistent_points(xyz: np.ndarray, uv: np.ndarray, intr, robot_pose: np.ndarray) -> np.ndarray:
-    """(k,) bool: the points one pose of the nominal lens explains within :data:`CONSISTENT_PX` (OpenCV's PnP
-    RANSAC, from the robot pose): a target far off its nominal position (a deviating part) or a misnamed dot pulls
-    a direct linear calibration off by percent of the focal length while staying plausible; all True when fewer
-    than :data:`CONSISTENT_MIN` points or no consensus is found (Faugeras-Toscani's own checks then judge)."""
+def consistent_points(xyz: np.ndarray, uv: np.ndarray, intr, robot_pose: np.ndarray) -> tuple[np.ndarray, bool]:
+    """``(keep (k,) bool, consensus)``: the points one pose of the nominal lens explains within
+    :data:`CONSISTENT_PX` (OpenCV's PnP RANSAC, from the robot pose): a target far off its nominal position (a
+    deviating part) or a misnamed dot pulls a direct linear calibration off by percent of the focal length while
+    staying plausible. With fewer than :data:`CONSISTENT_MIN` points, or when no consensus of that many is found,
+    every point and ``consensus`` False (calibration.json says so; Faugeras-Toscani's own checks then judge)."""
     import cv2
 
     xyz = np.asarray(xyz, dtype=float)
     uv = np.asarray(uv, dtype=float)
     every = np.ones(len(uv), dtype=bool)
     if len(uv) < CONSISTENT_MIN:
-        return every
+        return every, False
     rvec0, _ = cv2.Rodrigues(np.asarray(robot_pose, dtype=float)[:3, :3])
     ok, _, _, idx = cv2.solvePnPRansac(xyz, uv, intr.K, intr.dist_coeffs, rvec0.copy(),
                                        np.asarray(robot_pose, dtype=float)[:3, 3].copy(), useExtrinsicGuess=True,
                                        iterationsCount=200, reprojectionError=CONSISTENT_PX, confidence=0.999,
                                        flags=cv2.SOLVEPNP_ITERATIVE)
     if not ok or idx is None or len(idx) < CONSISTENT_MIN:
-        return every
+        return every, False
     keep = np.zeros(len(uv), dtype=bool)
     keep[np.ravel(idx)] = True
-    return keep
+    return keep, True
 
 
 def orient_image(job, xyz: np.ndarray, uv: np.ndarray, robot_pose: np.ndarray) -> dict:
     """One image's orientation from its named dots ``uv: (k, 2)`` and their nominal targets ``xyz: (k, 3)``: by
-    Faugeras-Toscani (interior and exterior) when it accepts the image and its solution fits at least about as
-    well as the nominal lens does (:data:`FT_RMS_FACTOR`), else by PnP with the nominal lens from the robot pose
-    ``robot_pose`` (cam_from_part), else the robot pose itself. calibration.json's record of the image (without
-    its station and name): ``method``, ``cam_from_part``, ``rms_px``, ``nominal_lens_rms_px``, the interior
-    orientation when Faugeras-Toscani's, ``fallback_reason`` when not."""
-    rec = {"n_points": len(uv)}
-    inl = consistent_points(xyz, uv, job.intrinsics, robot_pose)
-    rec["ft_points_left_out"] = int(len(uv) - inl.sum())
+    Faugeras-Toscani (interior and exterior) on the :func:`consistent_points` when it accepts them and its solution
+    fits at least about as well as the nominal lens does there (:data:`FT_RMS_FACTOR`), else by PnP with the nominal
+    lens from the robot pose ``robot_pose`` (cam_from_part) on the same points, else the robot pose itself.
+    calibration.json's record of the image (without its station and name): ``method``, ``cam_from_part``,
+    ``rms_px``, ``nominal_lens_rms_px``, ``ft_points_left_out``, ``consensus``, the interior orientation when
+    Faugeras-Toscani's, ``fallback_reason`` when not."""
+    inl, consensus = consistent_points(xyz, uv, job.intrinsics, robot_pose)
+    rec = {"n_points": len(uv), "ft_points_left_out": int(len(uv) - inl.sum()), "consensus": consensus}
+    xyz, uv = np.asarray(xyz, dtype=float)[inl], np.asarray(uv, dtype=float)[inl]
+    try:  # the nominal lens on the same points: the reference Faugeras-Toscani must match, and the fallback
+        if len(uv) < 4:
+            raise CalibrationError(f"only {len(uv)} targets identified")
+        nominal = orient_without_ft(xyz, uv, job.intrinsics, guess=robot_pose)
+        nominal_error = None
+    except CalibrationError as exc:
+        nominal, nominal_error = None, exc
+    rec["nominal_lens_rms_px"] = None if nominal is None else nominal[1]
     try:
-        nominal_rms = orient_without_ft(xyz[inl], uv[inl], job.intrinsics, guess=robot_pose, max_rms_px=np.inf)[1]
-    except CalibrationError:
-        nominal_rms = None
-    rec["nominal_lens_rms_px"] = nominal_rms
-    try:
-        ft = faugeras_toscani(xyz[inl], uv[inl], job.intrinsics.width, job.intrinsics.height, nominal=job.intrinsics)
+        ft = faugeras_toscani(xyz, uv, job.intrinsics.width, job.intrinsics.height, nominal=job.intrinsics)
         centre_gap = float(np.linalg.norm(invert(ft.cam_from_part)[:3, 3] - invert(robot_pose)[:3, 3]))
         if centre_gap > 0.1 * float(np.linalg.norm(robot_pose[:3, 3])):
             raise CalibrationError(f"its camera centre is {centre_gap * 1e3:.0f} mm from the robot's")
-        if nominal_rms is not None and ft.rms_px > FT_RMS_FACTOR * nominal_rms + FT_RMS_SLACK_PX:
+        if nominal is not None and ft.rms_px > FT_RMS_FACTOR * nominal[1] + FT_RMS_SLACK_PX:
             raise CalibrationError(f"its reprojection rms {ft.rms_px:.2f} px is worse than the nominal lens's "
-                                   f"{nominal_rms:.2f} px on the same points: points that fit no camera (targets "
+                                   f"{nominal[1]:.2f} px on the same points: points that fit no camera (targets "
                                    "off their nominal position, misnamed dots) pulled it off")
         return rec | {"method": "Faugeras-Toscani", "alpha_u": ft.intrinsics.fx_px, "alpha_v": ft.intrinsics.fy_px,
                       "u0": ft.intrinsics.cx_px, "v0": ft.intrinsics.cy_px, "cam_from_part": ft.cam_from_part,
                       "M": ft.M, "rms_px": ft.rms_px}
     except CalibrationError as exc:
         reason = str(exc) if str(exc).startswith("Faugeras-Toscani") else f"Faugeras-Toscani: {exc}"
-    try:
-        if len(uv) < 4:
-            raise CalibrationError(f"only {len(uv)} targets identified")
-        T, rms, method = orient_without_ft(xyz, uv, job.intrinsics, guess=robot_pose)
-    except CalibrationError as exc2:
+    if nominal is not None:
+        T, rms, method = nominal
+    else:
         # a weak image (glare, a fixture) does not fault the job: it keeps the robot's pose, and ADJUST's
         # screening leaves it out unless its observations support it
         T, rms, method = robot_pose, None, "robot pose (not oriented)"
-        reason = f"{reason}; and {exc2}: not oriented"
+        reason = f"{reason}; and {nominal_error}: not oriented"
     return rec | {"method": method, "fallback_reason": reason, "cam_from_part": T, "rms_px": rms}
 
 
