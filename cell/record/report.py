@@ -225,6 +225,9 @@ def _alerts(doc: dict) -> str:
     mismatch = (doc.get("uncertainty_budget") or {}).get("detector_model_mismatch")
     if mismatch:
         out.append(f'<div class="warn" id="model-mismatch">Image precision: {html.escape(mismatch)}</div>')
+    shape = (doc.get("uncertainty_budget") or {}).get("detector_model_shape")
+    if shape:
+        out.append(f'<div class="warn" id="model-shape">Image precision: {html.escape(shape)}</div>')
     if doc.get("solver_fallback"):
         out.append('<div class="warn" id="solver-fallback">Gauss-Newton handed the adjustment to pycolmap: '
                    f'{html.escape(str(doc["solver_fallback"]))}</div>')

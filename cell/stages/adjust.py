@@ -20,6 +20,7 @@ from calibration.weights import INCIDENCE_EDGES_DEG, group_labels, incidence_ang
 from cell.record.jobfolder import atomic_write_bytes, atomic_write_json
 from cell.stages.scalebars import (bar_name, bars_doc, protected_entries, say_bars, shape_reason, snooping_reason,
                                    test_reason)
+from cell.stages.model_shape import geometry_classes, reweighted, shape_check
 from cell.stages.screen import Resection, Screening, resect, screen_network
 
 
@@ -241,6 +242,20 @@ def _adjust(ctx, scr: Screening, use: list[int], obs: dict, obs_image, obs_targe
                  "clip_missing": sorted({obs["images"][int(i)]["image"] for i in obs_image[sel & ~has_clip]})}
     res = bundle_adjust(img, tgt, uv, intr0, poses0, targets.xyz, options, config, obs_sigma_px=obs_sigma,
                         obs_group=groups)
+    if weights == "model":  # does the model's shape (sigma by incidence and size) fit the images? (decision 0046)
+        theta, dpx = observation_geometry(targets.xyz, targets.normals, poses0, img, tgt, intr0.fx_px,
+                                          job.part.target_diameter_m)
+        classes, desc = geometry_classes(np.degrees(theta), dpx)
+        shape = shape_check(res.residuals, obs_sigma, res.redundancy, res.rejected, classes, desc)
+        if shape["reweight"]:  # a class off the model beyond its scatter: weighted by its own precision, once
+            # (not iterated: see above)
+            if model_sigma is None:
+                model_sigma = obs_sigma
+            obs_sigma = reweighted(obs_sigma, classes, shape["factors"])
+            res = bundle_adjust(img, tgt, uv, intr0, poses0, targets.xyz, options, config, obs_sigma_px=obs_sigma)
+            after = shape_check(res.residuals, obs_sigma, res.redundancy, res.rejected, classes, desc)
+            shape["after_reweighting"] = [c["variance_ratio"] for c in after["classes"]]
+        flags["shape"] = shape
     if model_sigma is not None:
         # sigma0 of an observation of the model's rms sigma: a few dots with large background bounds (near zero
         # weight) would otherwise dominate the rms a priori sigma the bundle refers sigma0 to
@@ -490,7 +505,8 @@ def run_bundle(ctx) -> dict:
         "datum": res.datum,
         "start": start,
         "sigma0_px": res.sigma0_px,
-        "observation_weights": _weights_doc(job, res, groups, model_sigma, flags["bg_missing"]) | _flag_counts(flags, res.rejected),
+        "observation_weights": (_weights_doc(job, res, groups, model_sigma, flags["bg_missing"])
+                                | _flag_counts(flags, res.rejected) | {"model_shape": flags.get("shape")}),
         "dof": res.dof,
         "converged": res.converged,
         "summary": res.summary,
@@ -681,9 +697,20 @@ def run(ctx) -> None:
                 + (f", {w['observations_clipped']} of clipped dots (saturation term)" if w.get("observations_clipped")
                    else ""))
     w = doc["observation_weights"]
-    if w.get("model_mismatch"):
-        ctx.log.log("warning", w["model_mismatch"])
-        ctx.say(f"  WARNING {w['model_mismatch']}")
+    for msg in (w.get("model_mismatch"), (w.get("model_shape") or {}).get("mismatch")):
+        if msg:
+            ctx.log.log("warning", msg)
+            ctx.say(f"  WARNING {msg}")
+    shape = w.get("model_shape") or {}
+    if shape.get("reweight") and not shape.get("mismatch"):  # within the band: said, not warned
+        moved = [c for c in shape["classes"] if c["significant"]]
+        msg = ("image variance by class against the network's, off the detector model beyond its scatter: "
+               + "; ".join(f"{c['incidence_deg'][0]:g}-{c['incidence_deg'][1]:g} deg, dots "
+                           + (f"< {c['diameter_px'][1]:g}" if c["diameter_px"][1] is not None
+                              else f">= {c['diameter_px'][0]:g}") + f" px: {c['variance_ratio']:.2f}" for c in moved)
+               + f"; {len(moved)} class(es) weighted by their own precision")
+        ctx.log.log("info", msg)
+        ctx.say(f"  {msg}")
     for key, what, then in (("images_without_background_bound", "background bounds",
                              "their observations keep the detector model's plain sigma (a dot next to an edge there is "
                              "not down-weighted)"),

@@ -262,6 +262,7 @@ def _budget(cov_scale, dev_cov, use, bundle: dict, scale=None) -> dict:
                observations_with_background_bound=w.get("observations_with_background_bound"),
                observations_clipped=w.get("observations_clipped"),
                variance_factor=w.get("variance_factor"), detector_model_mismatch=w.get("model_mismatch"),
+               detector_model_shape=(w.get("model_shape") or {}).get("mismatch"),
                datum_left_out=bundle.get("datum_left_out") or [])
     return out
 

@@ -1,0 +1,106 @@
+"""The detector model's shape against the images (cell/stages/model_shape.py, decision 0046): a class of incidence
+and dot size whose images scatter unlike the model is found from the adjustment's residuals, said in every record,
+and weighted by its own precision; a network the model describes is left as it is."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from cell.record.report import render_html
+from cell.record.runlog import read_messages
+from cell.stages.model_shape import FACTOR_CLAMP, MIN_REDUNDANCY, SHAPE_BAND, geometry_classes, reweighted, shape_check
+from tests.jobutil import job_variant, run_cell
+
+
+def _network(rng, scale_by_class, n=4000, covariances=False):
+    """Residuals of ``n`` observations whose variance in each class is the model's times ``scale_by_class``."""
+    inc = rng.uniform(0, 80, n)
+    dpx = rng.uniform(15, 40, n)
+    classes, desc = geometry_classes(inc, dpx)
+    sigma = 0.005 + 0.01 * rng.random(n)
+    red = np.full(n, 0.9)
+    v = rng.normal(size=(n, 2)) * (sigma * np.sqrt(np.asarray(scale_by_class)[classes] * red))[:, None]
+    w = sigma if not covariances else sigma[:, None, None] ** 2 * np.eye(2)
+    return v, w, red, classes, desc
+
+
+@pytest.mark.parametrize("covariances", [False, True])
+def test_a_network_the_model_describes_is_left_as_it_is(covariances):
+    v, w, red, classes, desc = _network(np.random.default_rng(0), np.ones(8), covariances=covariances)
+    out = shape_check(v, w, red, np.zeros(len(v), bool), classes, desc)
+    assert out["mismatch"] is None
+    ratios = [c["variance_ratio"] for c in out["classes"]]
+    assert all(0.8 < r < 1.25 for r in ratios), ratios
+    assert np.isclose(out["network_variance"], 1.0, atol=0.1)
+
+
+@pytest.mark.parametrize("covariances", [False, True])
+def test_a_class_unlike_the_model_is_named_and_weighted_by_its_own_precision(covariances):
+    scale = np.ones(8)
+    scale[7] = 3.0  # the most oblique large dots scatter sqrt(3)x the model's sigma
+    scale[0] = 0.3
+    v, w, red, classes, desc = _network(np.random.default_rng(1), scale, covariances=covariances)
+    out = shape_check(v, w, red, np.zeros(len(v), bool), classes, desc)
+    assert out["mismatch"] and "65-90 deg" in out["mismatch"] and "0-35 deg" in out["mismatch"]
+    flagged = [g for g, c in enumerate(out["classes"]) if c["beyond_band"]]
+    assert flagged == [0, 7], out["classes"]
+    # the factors are relative to the network's variance: their ratio is the classes' ratio
+    f = np.array(out["factors"])
+    assert 7.0 < f[7] / f[0] < 13.0
+    again = shape_check(v, reweighted(w, classes, f), red, np.zeros(len(v), bool), classes, desc)
+    assert again["mismatch"] is None
+    assert all(0.8 < c["variance_ratio"] < 1.25 for c in again["classes"]), again["classes"]
+
+
+def test_rejected_observations_and_thin_classes_are_not_judged():
+    scale = np.ones(8)
+    scale[3] = 5.0
+    v, w, red, classes, desc = _network(np.random.default_rng(2), scale)
+    rejected = classes == 3  # the class's every observation rejected: nothing left to judge it by
+    out = shape_check(v, w, red, rejected, classes, desc)
+    assert out["mismatch"] is None and out["classes"][3]["n_observations"] == 0
+    keep = (classes != 3) | (np.cumsum(classes == 3) <= 40)  # 40 observations: redundancy below the minimum
+    out = shape_check(v[keep], w[keep], red[keep], np.zeros(keep.sum(), bool), classes[keep], desc)
+    assert out["classes"][3]["redundancy"] < MIN_REDUNDANCY and not out["classes"][3]["judged"]
+    assert out["mismatch"] is None and out["factors"][3] == 1.0
+
+
+def test_factors_are_clamped_and_the_band_is_a_band():
+    assert FACTOR_CLAMP[0] < SHAPE_BAND[0] < 1.0 < SHAPE_BAND[1] < FACTOR_CLAMP[1]
+    scale = np.ones(8)
+    scale[5] = 50.0
+    v, w, red, classes, desc = _network(np.random.default_rng(3), scale)
+    out = shape_check(v, w, red, np.zeros(len(v), bool), classes, desc)
+    assert out["factors"][5] == FACTOR_CLAMP[1]
+
+
+def test_report_shows_the_shape_mismatch_as_a_note():
+    doc = {"job": {"id": "j1", "name": "n", "seed": 1, "started": "s", "finished": "f", "versions": {}},
+           "verdict": "PASS", "targets": [], "stage_times_s": {}, "images": 3, "sigma0_px": 0.05,
+           "uncertainty_budget": {"detector_model_shape": "the images do not follow the detector model's shape (x)"}}
+    assert 'id="model-shape"' in render_html(doc, {})
+    doc["uncertainty_budget"]["detector_model_shape"] = None
+    assert 'id="model-shape"' not in render_html(doc, {})
+
+
+def test_a_lens_unlike_the_models_is_said_and_its_classes_weighted_in_every_record(tmp_path):
+    """The example with a 12 mm lens (the model was measured with the 8 mm one): the classes' precision departs
+    from the model's shape; ADJUST says so on the console, in the run log, bundle.json, report.json and report.html,
+    and after weighting each class by its own precision every class fits."""
+    job = job_variant(tmp_path / "job", {"camera": {"focal_length_mm": 12.0}})
+    run = run_cell("run", str(job), "--archive", str(tmp_path / "archive"), timeout=900)
+    assert run.code == 0, run.stderr[-3000:]
+    folder = Path(run.doc["folder"])
+    shape = json.loads((folder / "bundle.json").read_text())["observation_weights"]["model_shape"]
+    assert shape["mismatch"], shape["classes"]
+    assert "WARNING the images do not follow the detector model's shape" in run.stderr
+    logged = [m["message"] for t, m in read_messages(folder / "run.mcap") if t == "/log"]
+    assert shape["mismatch"] in logged
+    after = [r for r, c in zip(shape["after_reweighting"], shape["classes"]) if c["judged"] and r is not None]
+    assert after and all(SHAPE_BAND[0] <= r <= SHAPE_BAND[1] for r in after), shape
+    budget = json.loads((folder / "report.json").read_text())["uncertainty_budget"]
+    assert budget["detector_model_shape"] == shape["mismatch"]
+    assert 'id="model-shape"' in (folder / "report.html").read_text()
