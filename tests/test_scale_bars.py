@@ -164,11 +164,24 @@ def test_the_normalised_bar_residuals_have_unit_variance_over_noise_draws():
     assert 0.8 < rms < 1.2, rms
 
 
-def test_report_scale_bar_gains_are_the_aligned_deviations_change_per_metre_of_a_certificate(tmp_path, example):
+def test_report_scale_bar_gains_are_the_aligned_deviations_change_per_metre_of_a_certificate(tmp_path, example,
+                                                                                            monkeypatch):
     """Finite difference: the job adjusted and aligned (REPORT's own functions) with one certificate 0.2 um longer
-    (a tenth of its sigma: the bar test passes)."""
+    (a tenth of its sigma: the bar test passes). The gains are at fixed weights: the detector model's class factors
+    (cell/stages/model_shape.py, estimated from the residuals like the variance factor) are those of the first
+    adjustment in both."""
+    import cell.stages.adjust as adjust_stage
     from cell.stages.report import align_with_gains
 
+    first: dict = {}
+
+    def fixed_factors(*args, **kwargs):
+        out = adjust_stage_shape_check(*args, **kwargs)
+        first.setdefault("factors", out["factors"])
+        return out | {"factors": first["factors"], "reweight": any(f != 1.0 for f in first["factors"])}
+
+    adjust_stage_shape_check = adjust_stage.shape_check
+    monkeypatch.setattr(adjust_stage, "shape_check", fixed_factors)
     job, poses, obs = example
     bars = _bars(job, obs, 3)
     h = 0.2e-6
