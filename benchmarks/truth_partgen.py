@@ -17,6 +17,7 @@ scatters, honest or not). Over all: the misses seen, the misses an exact stateme
 probability of at least as many (``p_at_least_as_many_misses``; small: the statement is not honest).
 
     .venv/bin/python -m benchmarks.truth_partgen [--runs 6] [--first-seed 100] [--misplaced] [--json out.json]
+        [--focal-length-mm 12]    (another lens than the detector model's: decision 0046)
 """
 from __future__ import annotations
 
@@ -39,7 +40,8 @@ from tests.test_truth_partgen import (FALSE_SIGNIFICANT_MAX, IN99_MIN, RATIO_BAN
 
 
 def one(work: Path, seed: int, misplaced: bool, search_weights: str | None = None,
-        background_mask: str | None = None, bar_sigma_um: float = 1.0, n_bars: int = 4) -> dict:
+        background_mask: str | None = None, bar_sigma_um: float = 1.0, n_bars: int = 4,
+        focal_length_mm: float | None = None) -> dict:
     part = make_part_job(work / f"job{seed}", np.random.default_rng(seed),
                          misplacement=(10.0, 5.0) if misplaced else None, bar_sigma_mm=1e-3 * bar_sigma_um,
                          n_bars=n_bars)
@@ -47,6 +49,12 @@ def one(work: Path, seed: int, misplaced: bool, search_weights: str | None = Non
         set_search_weights(part.job, search_weights)
     if background_mask is not None:  # [camera] background_mask (docs/decisions/0035)
         set_key(part.job, "camera", "background_mask", background_mask)
+    if focal_length_mm is not None:  # a lens unlike the one the detector model was measured with (decision 0046)
+        text, n = re.subn(r"(?m)^focal_length_mm = .*$", f"focal_length_mm = {float(focal_length_mm)}",
+                          part.job.read_text())
+        if n != 1:
+            raise SystemExit(f"{part.job}: [camera] focal_length_mm not found once (found {n})")
+        part.job.write_text(text)
     t0 = time.perf_counter()
     if misplaced:
         loc = run_cell("locate", str(part.job), "--write", timeout=900)
@@ -59,9 +67,13 @@ def one(work: Path, seed: int, misplaced: bool, search_weights: str | None = Non
     report = json.loads((folder / "report.json").read_text())
     fig = truth_figures(report, part)
     seconds = time.perf_counter() - t0
+    shape = json.loads((folder / "bundle.json").read_text())["observation_weights"].get("model_shape") or {}
     row = {"seed": seed, "kind": part.kind, "targets": part.n_targets, "deviating": len(part.deviations),
            "trusted": report["alignment"]["trusted"], "pred_over_ach": report["predicted_over_achieved"]["median"],
-           "seconds": seconds} | fig | losses(folder)
+           "seconds": seconds,
+           # the detector model's shape against the images (decision 0046): warned, and classes weighted by their own
+           "model_shape_warned": bool(shape.get("mismatch")),
+           "classes_reweighted": sum(c.get("significant", False) for c in shape.get("classes", []))} | fig | losses(folder)
     # how often this run's criteria would be missed were its statement exactly right (the targets' joint covariance)
     return row | {"meets": meets(row), "odds_of_a_miss": report_odds(report, folder, part)}
 
@@ -144,11 +156,14 @@ def main(argv=None) -> int:
     ap.add_argument("--bars", type=int, default=4, help="how many scale bars the generated jobs carry")
     ap.add_argument("--bar-sigma-um", type=float, default=1.0, help="the generated scale bar certificate's sigma (um; "
                     "its length is off the true one by a draw of it, the same draw per seed whatever the sigma)")
+    ap.add_argument("--focal-length-mm", type=float, help="[camera] focal_length_mm of the jobs (default: the "
+                    "example's 8 mm, the lens the detector model was measured with; decision 0046)")
     a = ap.parse_args(argv)
     rows = []
     with tempfile.TemporaryDirectory(prefix="truth-partgen-") as tmp:
         for k in range(a.runs):
-            r = one(Path(tmp), a.first_seed + k, a.misplaced, a.search_weights, a.background_mask, a.bar_sigma_um, a.bars)
+            r = one(Path(tmp), a.first_seed + k, a.misplaced, a.search_weights, a.background_mask, a.bar_sigma_um, a.bars,
+                    a.focal_length_mm)
             rows.append(r)
             print(json.dumps(r), flush=True)
     ok = [r for r in rows if "error" not in r]
@@ -167,6 +182,7 @@ def main(argv=None) -> int:
             "pred_over_ach_min": min(r["pred_over_ach"] for r in ok),
             "pred_over_ach_max": max(r["pred_over_ach"] for r in ok),
             "meet_every_criterion": sum(r["meets"] for r in ok),
+            "model_shape_warned": sum(r["model_shape_warned"] for r in ok),
             "variance_factor_range": [min(r["variance_factor"] for r in ok), max(r["variance_factor"] for r in ok)]
             if all(r.get("variance_factor") is not None for r in ok) else None,
         }
