@@ -5,14 +5,14 @@ and dot size, measured on the simulated camera with the 8 mm lens. One variance 
 what the images show. That is right when the model's *shape* (how sigma changes with incidence and size) holds and
 only its level differs. It does not always: with a 12 mm lens on the same cell (dots 25-58 px, the model measured on
 15-39 px, farther and dimmer), the dots seen face-on scattered 0.72x the model's sigma and those beyond 65 deg 1.34x
-(true poses, generated plate seed 201; decision 0046). One factor cannot mend that, and the targets' stated
-uncertainty came out 14 % too small: a quiet wrong number.
+(true poses, generated plate seed 201; decision 0046). One factor cannot mend that: the targets intersected at the
+true poses with the model's weights erred 1.14x what those weights state, and nothing said so.
 
 :func:`shape_check` estimates, after an adjustment, one variance factor per class of incidence and dot size from the
-residuals and their redundancy numbers (``sum v^T W v / sum 2 r``), relative to the whole network's. A class
-outside :data:`SHAPE_BAND` (and beyond its own sampling scatter) is a mismatch of the model's shape. ADJUST then says
-so and adjusts once more with each class's weights scaled by its factor (clamped to :data:`FACTOR_CLAMP`), so the
-statement follows the images' own precision by class; bundle.json, report.json and report.html record both.
+residuals and their redundancy numbers (``sum v^T W v / sum 2 r``), relative to the whole network's. A class off 1
+beyond three times its own sampling scatter is weighted by its factor (clamped to :data:`FACTOR_CLAMP`) in one more
+adjustment, so the statement follows the images' own precision by class; one also outside :data:`SHAPE_BAND` is a
+mismatch of the model's shape, warned on the console, in the run log, bundle.json, report.json and report.html.
 """
 from __future__ import annotations
 
