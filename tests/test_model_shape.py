@@ -103,4 +103,15 @@ def test_a_lens_unlike_the_models_is_said_and_its_classes_weighted_in_every_reco
     assert after and all(SHAPE_BAND[0] <= r <= SHAPE_BAND[1] for r in after), shape
     budget = json.loads((folder / "report.json").read_text())["uncertainty_budget"]
     assert budget["detector_model_shape"] == shape["mismatch"]
+    assert budget["detector_model_classes_reweighted"] == sum(c["significant"] for c in shape["classes"]) > 0
     assert 'id="model-shape"' in (folder / "report.html").read_text()
+
+
+def test_a_class_the_reweighting_cannot_mend_is_said_as_still_off():
+    """A factor held at its clamp leaves the class off the model after the reweighting: the check says so."""
+    scale = np.ones(8)
+    scale[5] = 50.0
+    v, w, red, classes, desc = _network(np.random.default_rng(4), scale)
+    out = shape_check(v, w, red, np.zeros(len(v), bool), classes, desc)
+    again = shape_check(v, reweighted(w, classes, out["factors"]), red, np.zeros(len(v), bool), classes, desc)
+    assert again["mismatch"] and again["off"] and again["classes"][5]["beyond_band"], again["classes"][5]

@@ -219,9 +219,12 @@ def _adjust(ctx, scr: Screening, use: list[int], obs: dict, obs_image, obs_targe
         angles = incidence_angles(targets.xyz, targets.normals, poses0, img, tgt)
         groups = incidence_groups(angles, INCIDENCE_EDGES_DEG)
     if weights == "model":  # the detector's precision by incidence and dot size; the variance factor scales it
-        # (no per-class variance components on top: with issue 21's batch snooping they ran away on generated parts,
-        # a face-on class estimated at 0.11 px and 280 rejections; the model alone: 10 rejections, honest sigma)
+        # (no iterated per-class variance components on top: with issue 21's batch snooping they ran away on generated
+        # parts, a face-on class estimated at 0.11 px and 280 rejections; the model alone: 10 rejections, honest sigma;
+        # the model's shape is checked once after the adjustment instead, below)
         obs_sigma = model_sigmas(job, ctx.backend, poses0, img, tgt, intr0.fx_px)
+        theta, dpx = observation_geometry(targets.xyz, targets.normals, poses0, img, tgt, intr0.fx_px,
+                                          job.part.target_diameter_m)
         # a dot next to an edge or a step of the shading: the detector's background bound, its measured share
         # (docs/decisions/0023, truth); the covariance is then 2x2 per observation
         bg, has_bg = background_bounds(obs)
@@ -236,15 +239,13 @@ def _adjust(ctx, scr: Screening, use: list[int], obs: dict, obs_image, obs_targe
         clip, has_clip = clipped_shares(obs)
         if np.any(bg[sel]) or np.any(clip[sel] > 0):
             model_sigma, obs_sigma = obs_sigma, observation_covariances(
-                obs_sigma, bg[sel], clipped_share=clip[sel], diameter_px=model_diameters(job, poses0, img, tgt, intr0.fx_px))
+                obs_sigma, bg[sel], clipped_share=clip[sel], diameter_px=dpx)
         flags = {"bg": bg[sel], "clip": clip[sel], "bg_centroid": centroid[sel],
                  "bg_missing": sorted({obs["images"][int(i)]["image"] for i in obs_image[sel & ~has_bg]}),
                  "clip_missing": sorted({obs["images"][int(i)]["image"] for i in obs_image[sel & ~has_clip]})}
     res = bundle_adjust(img, tgt, uv, intr0, poses0, targets.xyz, options, config, obs_sigma_px=obs_sigma,
                         obs_group=groups)
     if weights == "model":  # does the model's shape (sigma by incidence and size) fit the images? (decision 0046)
-        theta, dpx = observation_geometry(targets.xyz, targets.normals, poses0, img, tgt, intr0.fx_px,
-                                          job.part.target_diameter_m)
         classes, desc = geometry_classes(np.degrees(theta), dpx)
         shape = shape_check(res.residuals, obs_sigma, res.redundancy, res.rejected, classes, desc)
         if shape["reweight"]:  # a class off the model beyond its scatter: weighted by its own precision, once
@@ -255,6 +256,9 @@ def _adjust(ctx, scr: Screening, use: list[int], obs: dict, obs_image, obs_targe
             res = bundle_adjust(img, tgt, uv, intr0, poses0, targets.xyz, options, config, obs_sigma_px=obs_sigma)
             after = shape_check(res.residuals, obs_sigma, res.redundancy, res.rejected, classes, desc)
             shape["after_reweighting"] = [c["variance_ratio"] for c in after["classes"]]
+            if after["mismatch"]:  # a factor held at its clamp, or snooping changed the classes: not mended, said
+                shape["mismatch"] = (shape["mismatch"] or "the images do not follow the detector model's shape") + (
+                    "; still off after the reweighting: " + "; ".join(after["off"]))
         flags["shape"] = shape
     if model_sigma is not None:
         # sigma0 of an observation of the model's rms sigma: a few dots with large background bounds (near zero

@@ -95,7 +95,7 @@ def shape_check(residuals: np.ndarray, weights: np.ndarray, redundancy: np.ndarr
                     + "; ".join(off) + f"; {SHAPE_BAND[0]:g}-{SHAPE_BAND[1]:g} in variance expected): a camera, lens "
                     "or light unlike the one the model was measured with; adjusted again with each class weighted by "
                     "its own precision")
-    return {"classes": out, "factors": factors.tolist(), "mismatch": mismatch, "network_variance": total,
+    return {"classes": out, "factors": factors.tolist(), "mismatch": mismatch, "off": off, "network_variance": total,
             "reweight": bool(np.any(factors != 1.0))}
 
 
