@@ -104,7 +104,7 @@ def split_pass(image: np.ndarray, o: DetectionOptions, surface: np.ndarray | Non
     blob_noise = np.concatenate([np.full(n_lab - 1, noise), new_noise])
     crop = (slice(by0, by1), slice(bx0, bx1))
     more, comp = _measure(image[crop], o, None if surface is None else surface[crop], labels[crop], shifted, keep,
-                          blob_noise, noise, bg, _ceiling(image), SPLIT_AGREE_PX)
+                          blob_noise, noise, bg, _ceiling(image), SPLIT_AGREE_PX, levels=det.noise_levels)
     # a blob that passed as one dot gives way to its parts only where one of them is a dot
     replaced = np.intersect1d(undone, parent[comp - (n_lab - 1)])
     det = det.subset(~np.isin(found + 1, replaced))

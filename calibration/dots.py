@@ -24,7 +24,9 @@ gives the typical dot size that the background kernel then adapts to.
    pixels; a ring whose background is not the plane) and keeps the centroid for the others
    (decision 0037); ``for_real_images`` keeps the centroid.
 5. ``cov``: each centre's 2x2 covariance in px^2 propagated from the pixel noise (the centroid is
-   linear in the grey levels), plus ``cov_floor_px^2`` on the diagonal.
+   linear in the grey levels), each pixel with its own noise (a line in the grey level measured on the
+   dots' tops and rings: photon noise grows with the light), and from the background plane's own error
+   (its ring's noise), plus ``cov_floor_px^2`` on the diagonal (decision 0047).
 6. ``background_cov``: what a background that is not the fitted plane does to the centre (an edge of
    the part or a step of its shading near the dot; docs/decisions/0023): the ring's residuals about
    the plane have a smooth part (the misfit, significant at 3 standard errors of the pixel noise) and
@@ -116,7 +118,8 @@ class Detections:
 
     Attributes:
         uv: (k, 2) sub-pixel centres (px, origin at the centre of the top-left pixel).
-        cov: (k, 2, 2) covariance of each centre in px^2 (pixel noise propagated + ``cov_floor_px^2``).
+        cov: (k, 2, 2) covariance of each centre in px^2 (each pixel's noise and the background plane's error
+            propagated + ``cov_floor_px^2``).
         area_px: (k,) pixels above threshold.
         peak: (k,) peak contrast above (bright) or below (dark) the local background, grey levels.
         flux: (k,) summed background-subtracted grey levels over the grown blob.
@@ -131,6 +134,9 @@ class Detections:
             its centre errs by what no noise model states; decision 0029), or None.
         ring_px: (k,) int ring pixels the background plane and the misfit test used; below
             :data:`MIN_RING_PX` the bound could not be measured (it is zero then, not known), or None.
+        noise_levels: ``(v0, s)``: a pixel's noise variance at grey level ``v`` is ``v0 + s v`` (grey levels^2; photon
+            noise grows with the light), measured on the dots' own plateaus and background rings
+            (:func:`_noise_levels`); what ``cov`` propagated. None: not measured.
         ellipse: (k,) bool, the centre is the ellipse fitted to the dot's half-level contour (``centre="ellipse"``,
             or ``"auto"`` for a clipped dot or one with a background misfit; decision 0037), not the centroid; or None.
     """
@@ -148,6 +154,7 @@ class Detections:
     saturated: np.ndarray | None = None
     ring_px: np.ndarray | None = None
     ellipse: np.ndarray | None = None
+    noise_levels: tuple[float, float] | None = None
 
     def __len__(self) -> int:
         return len(self.uv)
@@ -277,12 +284,13 @@ def _tophat(image: np.ndarray, kernel: int) -> np.ndarray:
 MIN_RING_PX = 8
 
 
-def _ring_planes(lab: np.ndarray, dx: np.ndarray, dy: np.ndarray, val: np.ndarray, k: int, fallback: float) -> np.ndarray:
+def _ring_planes(lab: np.ndarray, dx: np.ndarray, dy: np.ndarray, val: np.ndarray, k: int, fallback: float,
+                 normal: bool = False):
     """Least-squares plane ``b0 + gx dx + gy dy`` through the ring pixels of each of ``k`` blobs.
 
     ``lab`` (1..k) names the blob of each ring pixel at offset ``(dx, dy)`` from the blob's centre.
     Returns (k, 3) ``(b0, gx, gy)``; a blob whose ring cannot carry a plane gets its mean (or
-    ``fallback`` without ring pixels) and no slope.
+    ``fallback`` without ring pixels) and no slope. ``normal``: also the (k, 3, 3) normal matrices ``A^T A``.
     """
     def s(w):
         return np.bincount(lab, weights=w, minlength=k + 1)[1:]
@@ -304,24 +312,143 @@ def _ring_planes(lab: np.ndarray, dx: np.ndarray, dy: np.ndarray, val: np.ndarra
         good = np.flatnonzero(ok)[np.abs(det) > 1e-9 * np.maximum(n[ok], 1) ** 3]
         if len(good):
             coef[good] = np.linalg.solve(A[good], b[good][..., None])[..., 0]
-    return coef
+    return (coef, A) if normal else coef
 
 
 def _ring_fit(lab: np.ndarray, xs: np.ndarray, ys: np.ndarray, val: np.ndarray, xc: np.ndarray, yc: np.ndarray, k: int,
-              fallback: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+              fallback: float) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray]]:
     """Each blob's background plane through its ring pixels ``lab`` (1..k) at ``(xs, ys)`` of grey ``val``, fitted
     twice (the second time without the pixels far off the first plane: an edge of the part, a neighbour's rim), and
-    its misfit (:func:`_ring_misfit`): ((k, 3) plane, (k,) misfit, the labels of the ring pixels that carried them)."""
+    its misfit (:func:`_ring_misfit`): ((k, 3) plane, (k,) misfit, (the labels of the ring pixels that carried them,
+    (k, 3, 3) their normal matrices)))."""
     rdx, rdy = xs - xc[lab - 1], ys - yc[lab - 1]
     coef = _ring_planes(lab, rdx, rdy, val, k, fallback)
     r = val - (coef[lab - 1, 0] + coef[lab - 1, 1] * rdx + coef[lab - 1, 2] * rdy)
     cnt = np.maximum(np.bincount(lab, minlength=k + 1)[1:], 1)
     rms = np.sqrt(np.bincount(lab, weights=r * r, minlength=k + 1)[1:] / cnt)
     fit = np.abs(r) <= 2.0 * rms[lab - 1] + 1.0
-    coef = _ring_planes(lab[fit], rdx[fit], rdy[fit], val[fit], k, fallback)
+    coef, A = _ring_planes(lab[fit], rdx[fit], rdy[fit], val[fit], k, fallback, normal=True)
     lf, dxf, dyf = lab[fit], rdx[fit], rdy[fit]
     misfit = _ring_misfit(lf, dxf, dyf, val[fit] - (coef[lf - 1, 0] + coef[lf - 1, 1] * dxf + coef[lf - 1, 2] * dyf), k)
-    return coef, misfit, lf
+    return coef, misfit, (lf, A)
+
+
+#: fewest pixel pairs on the dots' plateaus for the noise's growth with the light to be measured (else none is used)
+MIN_PLATEAU_PAIRS = 200
+#: about this many dots (every n-th) measure the noise's line
+NOISE_DOTS = 250
+
+
+def _pairs_two_apart(lab: np.ndarray, x: np.ndarray, y: np.ndarray, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """Index pairs ``(i, j)`` of pixels of the same label two apart along a row or a column (the image's noise
+    figure's spacing: neighbours share the lens blur's light but not the noise, two apart barely share either)."""
+    H, W = shape
+    key = (lab.astype(np.int64) * H + y) * W + x
+    order = np.argsort(key, kind="stable")
+    sk = key[order]
+    out_i, out_j = [], []
+    for step in (2, 2 * W):
+        ok_dir = (x + 2 < W) if step == 2 else (y + 2 < H)
+        want = key + step
+        pos = np.minimum(np.searchsorted(sk, want), len(sk) - 1)
+        hit = ok_dir & (sk[pos] == want) if len(sk) else np.zeros(len(key), dtype=bool)
+        out_i.append(np.flatnonzero(hit))
+        out_j.append(order[pos[hit]])
+    return np.concatenate(out_i), np.concatenate(out_j)
+
+
+def _level_variances(level: np.ndarray, d: np.ndarray, n_bins: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per bin of grey ``level`` (quantiles), the noise variance from the differences ``d`` of pixel pairs
+    (``mean(d^2) / 2`` over the pairs within 4 robust sd of the median: an edge or a neighbour's rim left out);
+    returns (mean level, variance, pairs) per bin."""
+    if len(d) < 20:
+        return np.zeros(0), np.zeros(0), np.zeros(0)
+    edges = np.unique(np.quantile(level, np.linspace(0.0, 1.0, n_bins + 1)))
+    b = np.clip(np.searchsorted(edges, level, side="right") - 1, 0, max(len(edges) - 2, 0))
+    lv, var, cnt = [], [], []
+    for j in range(max(len(edges) - 1, 1)):
+        m = b == j
+        if m.sum() < 20:
+            continue
+        dj = d[m]
+        med = np.median(dj)
+        scale = 1.4826 * np.median(np.abs(dj - med))
+        keep = np.abs(dj - med) <= max(4.0 * scale, 3.0)
+        lv.append(float(level[m][keep].mean()))
+        var.append(float(np.mean(dj[keep] ** 2) / 2.0))
+        cnt.append(int(keep.sum()))
+    return np.array(lv), np.array(var), np.array(cnt)
+
+
+def _noise_levels(shape: tuple[int, int], dots: tuple, rings: tuple, noise: float) -> tuple[float, float]:
+    """The pixel noise's variance as a line in the grey level, ``(v0, s)``: ``var(v) = v0 + s v``.
+
+    Photon noise makes a pixel's variance grow with its light: on the simulated sensor a dot's plateau is about 3x
+    noisier (in sd) than the part's shading around it, and a camera's photon transfer is the same line. Measured on
+    the image's own dots: differences of pixels two apart on their flat tops (``dots = (label, x, y, value)``: the
+    unclipped pixels within half the dot's ellipse, chosen by position: a choice by value would keep the pixels the
+    noise lifted and halve the variance) and on their background rings about the fitted plane (``rings = (label, x, y,
+    value, residual)``), binned by level, and a line fitted to the bins (weighted by their pairs over their variance
+    squared, the estimates' own scatter). Too few plateau pairs (:data:`MIN_PLATEAU_PAIRS`), or a line that does not
+    rise, give ``(noise^2, 0)``: the image's one figure for every pixel, as before this was measured.
+    """
+    flat = (noise**2, 0.0)
+    lt, xt, yt, vt = dots
+    lr, xr, yr, vr, rr = rings
+    i, j = _pairs_two_apart(lt, xt, yt, shape)
+    if len(i) < MIN_PLATEAU_PAIRS:
+        return flat
+    ir, jr = _pairs_two_apart(lr, xr, yr, shape)
+    l1, v1, n1 = _level_variances(0.5 * (vt[i] + vt[j]), vt[i] - vt[j], 4)
+    l2, v2, n2 = _level_variances(0.5 * (vr[ir] + vr[jr]), rr[ir] - rr[jr], 4)
+    lv, var, cnt = np.concatenate([l1, l2]), np.concatenate([v1, v2]), np.concatenate([n1, n2])
+    if len(lv) < 2 or np.ptp(lv) <= 0:
+        return flat
+    w = cnt / np.maximum(var, 1e-6) ** 2
+    X = np.column_stack([np.ones_like(lv), lv])
+    v0, s = np.linalg.lstsq(X * np.sqrt(w)[:, None], var * np.sqrt(w), rcond=None)[0]
+    if not (np.isfinite(v0) and np.isfinite(s)) or s <= 0:
+        return flat
+    return float(v0), float(s)
+
+
+def _plane_cov(li, vi, wi, top_i, span, sws, dx, dy, xi, yi, xc, yc, A: np.ndarray, ring_var: np.ndarray,
+               k: int) -> np.ndarray:
+    """What the background plane's own error does to each centroid, (k, 2, 2) px^2.
+
+    The plane ``b0 + gx (x - xc) + gy (y - yc)`` is fitted to the ring's pixels (``A``: (k, 3, 3) their normal
+    matrices): its coefficients err by ``ring_var A^-1``. A pixel's weight ``w = (v - b) / (top - b)`` moves by
+    ``(v - top) / (top - b)^2`` per grey level of the plane under it: the margin's pixels (w ~ 0) the most, the
+    plateau's (w ~ 1) hardly (those above 0.9 are left out: a few per cent of the term). So the centre moves by
+    ``sum (x - u) (v - top) / (top - b)^2 [1, x - xc, y - yc] / sum w`` per unit of the coefficients.
+    """
+    m = wi < 0.9
+    lm = li[m]
+
+    def per(w):
+        return np.bincount(lm, weights=w, minlength=k + 1)[1:]
+
+    h = np.where(span[m] > 1.0, (vi[m] - top_i[m]) / span[m] ** 2, 0.0) / sws[lm - 1]
+    rx, ry = xi[m] - xc[lm - 1], yi[m] - yc[lm - 1]
+    hx, hy = h * dx[m], h * dy[m]
+    J = np.stack([np.stack([per(hx), per(hx * rx), per(hx * ry)], -1),
+                  np.stack([per(hy), per(hy * rx), per(hy * ry)], -1)], 1)  # (k, 2, 3)
+    out = np.zeros((k, 2, 2))
+    n = A[:, 0, 0]
+    ok = n >= MIN_RING_PX
+    if np.any(ok):
+        det = np.linalg.det(A[ok])
+        good = np.flatnonzero(ok)[np.abs(det) > 1e-9 * np.maximum(n[ok], 1) ** 3]
+        if len(good):
+            Jg = J[good]
+            out[good] = ring_var[good, None, None] * (Jg @ np.linalg.solve(A[good], np.swapaxes(Jg, 1, 2)))
+            ok[:] = False
+            ok[good] = True
+    # a ring that carried no plane (too few pixels): its mean level alone, erring by ring_var / n
+    flat = ~ok & (n > 0)
+    if np.any(flat):
+        out[flat] = (ring_var[flat] / n[flat])[:, None, None] * np.einsum("ka,kb->kab", J[flat, :, 0], J[flat, :, 0])
+    return out
 
 
 def _ring_misfit(lab: np.ndarray, dx: np.ndarray, dy: np.ndarray, r: np.ndarray, k: int, z: float = 3.0) -> np.ndarray:
@@ -591,13 +718,15 @@ def _detect(image: np.ndarray, o: DetectionOptions, surface: np.ndarray | None =
 
 def _measure(image: np.ndarray, o: DetectionOptions, surface: np.ndarray | None, labels: np.ndarray, stats: np.ndarray,
              keep: np.ndarray, blob_noise: np.ndarray, noise: float, bg: float, ceiling: float | None = None,
-             agree_px: float | None = None) -> tuple[Detections, np.ndarray]:
+             agree_px: float | None = None, levels: tuple[float, float] | None = None) -> tuple[Detections, np.ndarray]:
     """Centres, covariances and the rest of the blobs ``keep`` ((n - 1,) bool over the components 1..n-1 of
     ``labels`` / ``stats``); ``blob_noise`` (n - 1,) is each one's noise for the peak test, ``noise`` the image's,
     ``bg`` its median level, ``ceiling`` its clipping level (None: ``image``'s). ``agree_px``: the ellipse is fitted to
     every blob and a blob is kept only where the fit succeeds and its centre is within this of the centroid (two
     estimates of one dot's centre; a patch of the surface, a dot cut by an edge, is not one). Returns (the detections,
-    (k,) the component index (0-based, label - 1) of each)."""
+    (k,) the component index (0-based, label - 1) of each). ``levels``: the pixel noise's line (:func:`_noise_levels`) when already measured on the image (the split pass's few
+    blobs take the first pass's), else measured on these blobs.
+    """
     empty = Detections(np.zeros((0, 2)), np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0), noise,
                        np.zeros((0, 2, 2)), o.polarity, np.zeros((0, 2, 2)), np.zeros((0, 2, 2)),
                        np.zeros(0, dtype=int), np.zeros(0, dtype=int), np.zeros(0, dtype=bool))
@@ -630,7 +759,7 @@ def _measure(image: np.ndarray, o: DetectionOptions, surface: np.ndarray | None,
         ys, xs, lo, lg, foreign = (a[~off_ring] for a in (ys, xs, lo, lg, foreign))
     val = image[ys, xs].astype(np.float64)
     ring = lg == 0
-    coef, misfit, lf = _ring_fit(lo[ring], xs[ring], ys[ring], val[ring], xc, yc, k, bg)
+    coef, misfit, (lf, ring_normal) = _ring_fit(lo[ring], xs[ring], ys[ring], val[ring], xc, yc, k, bg)
     if surface is not None and off_ring.any():
         misfit = np.maximum(misfit, misfit_all)
     bg_local = coef[:, 0]
@@ -657,18 +786,38 @@ def _measure(image: np.ndarray, o: DetectionOptions, surface: np.ndarray | None,
     sws = np.where(sw > 0, sw, 1.0)
     uv = np.stack([per_blob(wgt * xi) / sws, per_blob(wgt * yi) / sws], axis=1)
     dx, dy = xi - uv[li - 1, 0], yi - uv[li - 1, 1]
-    # covariance: u = sum(w x) / sum(w) with w_i = (v_i - b_i) / span_i, so du/dv_i = (x_i - u) / (span_i sum w)
-    g = 1.0 / (span * sws[li - 1]) ** 2
-    cov = np.empty((k, 2, 2))
-    cov[:, 0, 0] = per_blob(g * dx * dx)
-    cov[:, 0, 1] = cov[:, 1, 0] = per_blob(g * dx * dy)
-    cov[:, 1, 1] = per_blob(g * dy * dy)
-    cov *= noise**2
     # second moments of the dot (its ellipse), for ring decoding and size checks
     axes = np.empty((k, 2, 2))
     axes[:, 0, 0] = per_blob(wgt * dx * dx) / sws
     axes[:, 0, 1] = axes[:, 1, 0] = per_blob(wgt * dx * dy) / sws
     axes[:, 1, 1] = per_blob(wgt * dy * dy) / sws
+    # covariance: u = sum(w x) / sum(w) with w_i = (v_i - b_i) / span_i, so du/dv_i = (x_i - u) / (span_i sum w),
+    # each pixel with its own noise (photon noise grows with the light: a dot's pixels are noisier than the
+    # background the image's figure is measured on), and the background plane's own error from its ring's noise
+    # the noise's line from every step-th dot (a sensor's line needs no more than a few hundred): their flat tops,
+    # within half the ellipse's radius (chosen by position, not by the noisy values) and unclipped, and their rings
+    step = max(1, k // NOISE_DOTS)
+    ps = np.flatnonzero(li % step == 0) if step > 1 else np.arange(len(li))
+    lp, dxp, dyp = li[ps], dx[ps], dy[ps]
+    det_ax = axes[:, 0, 0] * axes[:, 1, 1] - axes[:, 0, 1] ** 2
+    q = (axes[lp - 1, 1, 1] * dxp * dxp - 2 * axes[lp - 1, 0, 1] * dxp * dyp + axes[lp - 1, 0, 0] * dyp * dyp)
+    flat_top = ps[(q <= det_ax[lp - 1]) & (det_ax[lp - 1] > 0)]
+    flat_top = flat_top[vi[flat_top] < (_ceiling(image) if ceiling is None else ceiling)]
+    rs = np.flatnonzero(ring)
+    rs = rs[lo[rs] % step == 0] if step > 1 else rs
+    lr = lo[rs]
+    ring_r = val[rs] - (coef[lr - 1, 0] + coef[lr - 1, 1] * (xs[rs] - xc[lr - 1]) + coef[lr - 1, 2] * (ys[rs] - yc[lr - 1]))
+    var0, slope = levels if levels is not None else _noise_levels(
+        image.shape, (li[flat_top], xi[flat_top], yi[flat_top], vi[flat_top]), (lr, xs[rs], ys[rs], val[rs], ring_r),
+        noise)
+    var_px = np.maximum(var0 + slope * vi, 0.25 * noise**2)
+    g = var_px / (span * sws[li - 1]) ** 2
+    cov = np.empty((k, 2, 2))
+    cov[:, 0, 0] = per_blob(g * dx * dx)
+    cov[:, 0, 1] = cov[:, 1, 0] = per_blob(g * dx * dy)
+    cov[:, 1, 1] = per_blob(g * dy * dy)
+    cov += _plane_cov(li, vi, wgt, top[li], span, sws, dx, dy, xi, yi, xc, yc, ring_normal,
+                      np.maximum(var0 + slope * bg_local, 0.25 * noise**2), k)
     # the ellipse fitted to the half-level contour: for every dot ("ellipse"), or ("auto") for the dots whose centroid
     # the intensities mislead: a clipped dot (its clipped pixels weigh by the ceiling, not by their light) and a dot
     # whose ring shows a background that is not the plane (the misfit enters every pixel's weight); decision 0037
@@ -680,15 +829,18 @@ def _measure(image: np.ndarray, o: DetectionOptions, surface: np.ndarray | None,
     if fit.any():
         from calibration.ellipse_fit import contour_ellipse_centres, contour_ellipse_centres_in_boxes
 
+        # each contour's noise at its own level, halfway between the background and the peak
+        half_noise = np.sqrt(np.maximum(var0 + slope * 0.5 * (bg_local + top[1:]), 0.25 * noise**2))
+
         box = np.stack([x0[keep], y0[keep], w_box[keep], h_box[keep]], axis=1)
         if np.sum((box[fit, 2] + 6) * (box[fit, 3] + 6)) > 0.25 * image.size:  # blobs all over: the whole image at once
             blobs = remap if fit.all() else np.where(np.concatenate([[False], fit])[remap.astype(np.int64)], remap,
                                                      np.float32(0)).astype(np.float32)
-            e_uv, e_cov, ok = contour_ellipse_centres(image, blobs[labels], k, coef, xc, yc, top[1:], noise, labels,
+            e_uv, e_cov, ok = contour_ellipse_centres(image, blobs[labels], k, coef, xc, yc, top[1:], half_noise, labels,
                                                       kept)
         else:  # a few (the clipped dots, those next to an edge; a split pass's parts): each in its own box
             e_uv, e_cov, ok = contour_ellipse_centres_in_boxes(image, labels, remap, fit, box, coef, xc, yc, top[1:],
-                                                               noise, kept)
+                                                               half_noise, kept)
         if agree_px is not None:
             agree = ok & (np.hypot(*(e_uv - uv).T) <= agree_px)
         used_ellipse = ok & pick
@@ -707,5 +859,6 @@ def _measure(image: np.ndarray, o: DetectionOptions, surface: np.ndarray | None,
     flux = sw * np.maximum(peak, 0.0)
     ring_px = np.bincount(lf, minlength=k + 1)[1:]
     return (Detections(uv[good], area[keep][good], peak[good], flux[good], bg_local[good], noise, cov[good],
-                       o.polarity, axes[good], bcov[good], n_sat[good].astype(int), ring_px[good], used_ellipse[good]),
+                       o.polarity, axes[good], bcov[good], n_sat[good].astype(int), ring_px[good], used_ellipse[good],
+                       (float(var0), float(slope))),
             np.flatnonzero(keep)[good])

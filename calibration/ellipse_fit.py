@@ -20,7 +20,7 @@ __all__ = ["contour_ellipse_centres"]
 
 
 def contour_ellipse_centres(image: np.ndarray, lab: np.ndarray, k: int, coef: np.ndarray, xc: np.ndarray,
-                            yc: np.ndarray, top: np.ndarray, noise: float, components: np.ndarray | None = None,
+                            yc: np.ndarray, top: np.ndarray, noise, components: np.ndarray | None = None,
                             own: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Ellipse centres of ``k`` blobs.
 
@@ -30,7 +30,8 @@ def contour_ellipse_centres(image: np.ndarray, lab: np.ndarray, k: int, coef: np
         coef: (k, 3) background plane ``b0 + gx (x - xc) + gy (y - yc)`` of each blob.
         xc, yc: (k,) reference point of each blob's plane.
         top: (k,) peak grey level of each blob.
-        noise: pixel noise standard deviation (grey levels).
+        noise: pixel noise standard deviation (grey levels): one for the image, or (k,) each blob's at its contour's
+            level.
         components, own: (h, w) int the thresholded components and (k,) each blob's own component: a pair of pixels
             one of which belongs to another component is no point of the blob's contour (a neighbour's rim within
             the blob's window crosses the blob's level too). None: every pair in the window counts.
@@ -69,7 +70,8 @@ def contour_ellipse_centres(image: np.ndarray, lab: np.ndarray, k: int, coef: np
         px.append(x1 + t * ddx)
         py.append(y1 + t * ddy)
         pl.append(l1)
-        pw.append((f1 - f2) ** 2 / (2 * noise**2))  # 1 / sigma^2 of the point along the pair's axis
+        nz2 = noise**2 if np.ndim(noise) == 0 else np.asarray(noise, dtype=float)[l1 - 1] ** 2
+        pw.append((f1 - f2) ** 2 / (2 * nz2))  # 1 / sigma^2 of the point along the pair's axis
         ax.append(np.full(len(l1), ddx == 1))
     x, y, ll, w, along_x = map(np.concatenate, (px, py, pl, pw, ax))
     # centre the coordinates on each blob for conditioning
@@ -113,7 +115,7 @@ def contour_ellipse_centres(image: np.ndarray, lab: np.ndarray, k: int, coef: np
 
 def contour_ellipse_centres_in_boxes(image: np.ndarray, labels: np.ndarray, remap: np.ndarray, sel: np.ndarray,
                                      box: np.ndarray, coef: np.ndarray, xc: np.ndarray, yc: np.ndarray,
-                                     top: np.ndarray, noise: float, own_comp: np.ndarray | None = None
+                                     top: np.ndarray, noise, own_comp: np.ndarray | None = None
                                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """:func:`contour_ellipse_centres` of the blobs ``sel: (k,) bool`` only, each in its own box: the boxes (each
     blob's bounding box ``box: (k, 4)`` x0, y0, w, h grown by 3 px, what the contour's 5 x 5 growth and its pixel pairs

@@ -3,7 +3,9 @@
 With ``--json`` one document on stdout (contract in ARCHITECTURE.md): ``image``, ``width``, ``height``,
 ``detections``: list of {``u``, ``v`` (px, origin at the centre of the top-left pixel), ``cov`` (2x2, px^2),
 ``polarity`` ("bright" | "dark"), ``code`` (int or null), ``family`` (str or null)}; plus ``noise``
-(grey levels) and ``polarity`` of the image. Ring-coded targets are reported once, at their centre dot,
+(grey levels) and ``polarity`` of the image, and ``noise_levels`` ({``variance_at_zero``, ``variance_per_grey_level``}:
+the pixel noise's variance as a line in the grey level, measured on the dots' tops and rings, what each ``cov``
+propagated; a zero slope where the image had too few dots to measure it; decision 0047). Ring-coded targets are reported once, at their centre dot,
 with their code; the pieces of their rings are not dots and are left out. ArUco markers are reported
 at the intersection of their diagonals with a covariance of (0.3 px)^2 (their corners' bias,
 decision 0004).
@@ -133,7 +135,10 @@ def detect_command(args, out) -> int:
     image = read_image(args.image)
     det, dets = detect_image(image, cam)
     doc = {"image": str(args.image), "width": int(image.shape[1]), "height": int(image.shape[0]),
-           "polarity": det.polarity, "noise": float(det.noise), "detections": dets}
+           "polarity": det.polarity, "noise": float(det.noise),
+           "noise_levels": None if det.noise_levels is None else
+           {"variance_at_zero": det.noise_levels[0], "variance_per_grey_level": det.noise_levels[1]},
+           "detections": dets}
     if args.png is not None:
         png = Path(args.png)
         if png.suffix.lower() != ".png":

@@ -11,7 +11,8 @@ import pytest
 
 from cell.record.report import render_html
 from cell.record.runlog import read_messages
-from cell.stages.model_shape import FACTOR_CLAMP, MIN_REDUNDANCY, SHAPE_BAND, geometry_classes, reweighted, shape_check
+from cell.stages.model_shape import (FACTOR_CLAMP, MIN_REDUNDANCY, OUTSIDE_SHARE_MAX, SHAPE_BAND, geometry_classes,
+                                     range_check, reweighted, shape_check)
 from tests.jobutil import job_variant, run_cell
 
 
@@ -86,6 +87,29 @@ def test_report_shows_the_shape_mismatch_as_a_note():
     assert 'id="model-shape"' not in render_html(doc, {})
 
 
+def test_observations_outside_where_the_model_was_measured_are_counted_and_many_of_them_warned():
+    box = (np.radians(80.0), 15.4, 38.9)
+    rng = np.random.default_rng(3)
+    inc = rng.uniform(0, 75, 1000)
+    inside = range_check(inc, rng.uniform(17, 35, 1000), np.ones(1000, bool), box)
+    assert inside["share_outside"] == 0 and inside["mismatch"] is None
+    d = rng.uniform(10, 22, 1000)  # small dots: a third below the model's smallest
+    used = np.ones(1000, bool)
+    used[:100] = False  # rejected observations do not count
+    out = range_check(inc, d, used, box)
+    assert out["observations"] == 900 and out["smaller"] == int(np.sum(d[100:] < 15.4)) and out["larger"] == 0
+    assert out["share_outside"] > OUTSIDE_SHARE_MAX and "dots smaller than 15.4 px" in out["mismatch"]
+    inc[:50] = 83.0  # a few beyond the measured incidence, too few to warn alone
+    few = range_check(inc, rng.uniform(17, 35, 1000), np.ones(1000, bool), box)
+    assert few["beyond_incidence"] == 50 and few["mismatch"] is None
+    doc = {"job": {"id": "j1", "name": "n", "seed": 1, "started": "s", "finished": "f", "versions": {}},
+           "verdict": "PASS", "targets": [], "stage_times_s": {}, "images": 3, "sigma0_px": 0.05,
+           "uncertainty_budget": {"detector_model_range": out["mismatch"]}}
+    assert 'id="model-range"' in render_html(doc, {})
+    doc["uncertainty_budget"]["detector_model_range"] = None
+    assert 'id="model-range"' not in render_html(doc, {})
+
+
 def test_a_lens_unlike_the_models_is_said_and_its_classes_weighted_in_every_record(tmp_path):
     """The example with a 12 mm lens (the model was measured with the 8 mm one): the classes' precision departs
     from the model's shape; ADJUST says so on the console, in the run log, bundle.json, report.json and report.html,
@@ -105,6 +129,12 @@ def test_a_lens_unlike_the_models_is_said_and_its_classes_weighted_in_every_reco
     assert budget["detector_model_shape"] == shape["mismatch"]
     assert budget["detector_model_classes_reweighted"] == sum(c["significant"] for c in shape["classes"]) > 0
     assert 'id="model-shape"' in (folder / "report.html").read_text()
+    # its dots image larger than any the model was measured on: said too, in every record
+    outside = json.loads((folder / "bundle.json").read_text())["observation_weights"]["model_range"]
+    assert outside["larger"] > 0 and outside["mismatch"], outside
+    assert outside["mismatch"] in logged and f"WARNING {outside['mismatch']}" in run.stderr
+    assert budget["detector_model_range"] == outside["mismatch"]
+    assert 'id="model-range"' in (folder / "report.html").read_text()
 
 
 def test_a_class_the_reweighting_cannot_mend_is_said_as_still_off():

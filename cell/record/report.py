@@ -228,6 +228,9 @@ def _alerts(doc: dict) -> str:
     shape = (doc.get("uncertainty_budget") or {}).get("detector_model_shape")
     if shape:
         out.append(f'<div class="warn" id="model-shape">Image precision: {html.escape(shape)}</div>')
+    outside = (doc.get("uncertainty_budget") or {}).get("detector_model_range")
+    if outside:
+        out.append(f'<div class="warn" id="model-range">Image precision: {html.escape(outside)}</div>')
     if doc.get("solver_fallback"):
         out.append('<div class="warn" id="solver-fallback">Gauss-Newton handed the adjustment to pycolmap: '
                    f'{html.escape(str(doc["solver_fallback"]))}</div>')

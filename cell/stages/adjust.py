@@ -20,7 +20,7 @@ from calibration.weights import INCIDENCE_EDGES_DEG, group_labels, incidence_ang
 from cell.record.jobfolder import atomic_write_bytes, atomic_write_json
 from cell.stages.scalebars import (bar_name, bars_doc, protected_entries, say_bars, shape_reason, snooping_reason,
                                    test_reason)
-from cell.stages.model_shape import geometry_classes, reweighted, shape_check
+from cell.stages.model_shape import geometry_classes, range_check, reweighted, shape_check
 from cell.stages.screen import Resection, Screening, resect, screen_network
 
 
@@ -260,6 +260,8 @@ def _adjust(ctx, scr: Screening, use: list[int], obs: dict, obs_image, obs_targe
                 shape["mismatch"] = (shape["mismatch"] or "the images do not follow the detector model's shape") + (
                     "; still off after the reweighting: " + "; ".join(after["off"]))
         flags["shape"] = shape
+        # where the model was measured: weights beyond it are its extrapolation, said when they are many
+        flags["range"] = range_check(np.degrees(theta), dpx, ~res.rejected, load_model().measured_box())
     if model_sigma is not None:
         # sigma0 of an observation of the model's rms sigma: a few dots with large background bounds (near zero
         # weight) would otherwise dominate the rms a priori sigma the bundle refers sigma0 to
@@ -510,7 +512,8 @@ def run_bundle(ctx) -> dict:
         "start": start,
         "sigma0_px": res.sigma0_px,
         "observation_weights": (_weights_doc(job, res, groups, model_sigma, flags["bg_missing"])
-                                | _flag_counts(flags, res.rejected) | {"model_shape": flags.get("shape")}),
+                                | _flag_counts(flags, res.rejected) | {"model_shape": flags.get("shape"),
+                                                                               "model_range": flags.get("range")}),
         "dof": res.dof,
         "converged": res.converged,
         "summary": res.summary,
@@ -701,7 +704,8 @@ def run(ctx) -> None:
                 + (f", {w['observations_clipped']} of clipped dots (saturation term)" if w.get("observations_clipped")
                    else ""))
     w = doc["observation_weights"]
-    for msg in (w.get("model_mismatch"), (w.get("model_shape") or {}).get("mismatch")):
+    for msg in (w.get("model_mismatch"), (w.get("model_shape") or {}).get("mismatch"),
+                (w.get("model_range") or {}).get("mismatch")):
         if msg:
             ctx.log.log("warning", msg)
             ctx.say(f"  WARNING {msg}")

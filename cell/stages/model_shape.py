@@ -18,8 +18,8 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["INCIDENCE_EDGES_DEG", "SHAPE_BAND", "MIN_REDUNDANCY", "FACTOR_CLAMP", "geometry_classes", "shape_check",
-           "reweighted"]
+__all__ = ["INCIDENCE_EDGES_DEG", "SHAPE_BAND", "MIN_REDUNDANCY", "FACTOR_CLAMP", "OUTSIDE_SHARE_MAX", "geometry_classes",
+           "shape_check", "reweighted", "range_check"]
 
 #: incidence class edges (deg) of the check
 INCIDENCE_EDGES_DEG = (35.0, 50.0, 65.0)
@@ -32,6 +32,9 @@ SHAPE_BAND = (0.5, 1.8)
 MIN_REDUNDANCY = 150.0
 #: the reweighting's factors are held within this
 FACTOR_CLAMP = (0.25, 4.0)
+#: a larger share of the observations than this outside where the detector model was measured (dot sizes, incidence)
+#: is warned: their weights are the model's extrapolation
+OUTSIDE_SHARE_MAX = 0.10
 
 
 def geometry_classes(incidence_deg: np.ndarray, diameter_px: np.ndarray) -> tuple[np.ndarray, list[dict]]:
@@ -104,3 +107,41 @@ def reweighted(weights: np.ndarray, classes: np.ndarray, factors) -> np.ndarray:
     k = np.asarray(factors, dtype=float)[classes]
     w = np.asarray(weights, dtype=float)
     return w * np.sqrt(k) if w.ndim == 1 else w * k[:, None, None]
+
+
+def range_check(incidence_deg: np.ndarray, diameter_px: np.ndarray, used: np.ndarray, box: tuple[float, float, float],
+                ) -> dict:
+    """Where the observations ``used: (q,) bool`` lie against where the detector model was measured.
+
+    ``box``: :meth:`calibration.detector_model.DetectorModel.measured_box` (largest incidence rad, smallest and
+    largest dot diameter px). The model's sigma beyond it is an extrapolation of its fitted powers (ADJUST weighs
+    with it; PLAN holds the geometry at the box's edge), so the precision such observations are given is not a
+    measured one: the job's dots are imaged smaller or larger than any the model saw (another lens, stand-off or
+    dot size). Returns the counts, the observed dot sizes (1st-99th percentile) and ``mismatch``: a warning when
+    more than :data:`OUTSIDE_SHARE_MAX` of the observations lie outside, else None.
+    """
+    inc = np.asarray(incidence_deg, dtype=float)[used]
+    d = np.asarray(diameter_px, dtype=float)[used]
+    inc_max, d0, d1 = float(np.degrees(box[0])), float(box[1]), float(box[2])
+    beyond, smaller, larger = inc > inc_max, d < d0, d > d1
+    n = int(len(d))
+    outside = int(np.count_nonzero(beyond | smaller | larger))
+    share = outside / n if n else 0.0
+    seen = [float(np.percentile(d, 1)), float(np.percentile(d, 99))] if n else [None, None]
+    out = {"measured": {"incidence_max_deg": inc_max, "diameter_px": [d0, d1 if np.isfinite(d1) else None]},
+           "observed_diameter_px_p1_p99": seen, "observations": n, "beyond_incidence": int(beyond.sum()),
+           "smaller": int(smaller.sum()), "larger": int(larger.sum()), "share_outside": share, "mismatch": None}
+    if share > OUTSIDE_SHARE_MAX:
+        parts = []
+        if smaller.any():
+            parts.append(f"{int(smaller.sum())} of dots smaller than {d0:.1f} px")
+        if larger.any():
+            parts.append(f"{int(larger.sum())} of dots larger than {d1:.1f} px")
+        if beyond.any():
+            parts.append(f"{int(beyond.sum())} seen beyond {inc_max:.0f} deg")
+        out["mismatch"] = (f"{100 * share:.0f} % of the observations lie outside where the detector model was measured "
+                           f"(dots {d0:.1f}-{d1:.1f} px, incidence to {inc_max:.0f} deg; these dots image at "
+                           f"{seen[0]:.1f}-{seen[1]:.1f} px: " + ", ".join(parts) + "): their image sigma is the "
+                           "model's extrapolation; measure a model for this camera, lens and dot size "
+                           "(benchmarks/detector_precision.py)")
+    return out

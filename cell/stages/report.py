@@ -263,6 +263,7 @@ def _budget(cov_scale, dev_cov, use, bundle: dict, scale=None) -> dict:
                observations_clipped=w.get("observations_clipped"),
                variance_factor=w.get("variance_factor"), detector_model_mismatch=w.get("model_mismatch"),
                detector_model_shape=(w.get("model_shape") or {}).get("mismatch"),
+               detector_model_range=(w.get("model_range") or {}).get("mismatch"),
                detector_model_classes_reweighted=sum(bool(c.get("significant")) for c in
                                                      (w.get("model_shape") or {}).get("classes", [])),
                datum_left_out=bundle.get("datum_left_out") or [])
