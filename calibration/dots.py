@@ -389,8 +389,9 @@ def _noise_levels(shape: tuple[int, int], dots: tuple, rings: tuple, noise: floa
     unclipped pixels within half the dot's ellipse, chosen by position: a choice by value would keep the pixels the
     noise lifted and halve the variance) and on their background rings about the fitted plane (``rings = (label, x, y,
     value, residual)``), binned by level, and a line fitted to the bins (weighted by their pairs over their variance
-    squared, the estimates' own scatter). Too few plateau pairs (:data:`MIN_PLATEAU_PAIRS`), or a line that does not
-    rise, give ``(noise^2, 0)``: the image's one figure for every pixel, as before this was measured.
+    squared, the estimates' own scatter). Too few plateau pairs (:data:`MIN_PLATEAU_PAIRS`), or a line that is not
+    positive over the levels measured, give ``(noise^2, 0)``: the image's one figure for every pixel, as before this
+    was measured.
     """
     flat = (noise**2, 0.0)
     lt, xt, yt, vt = dots
@@ -407,7 +408,8 @@ def _noise_levels(shape: tuple[int, int], dots: tuple, rings: tuple, noise: floa
     w = cnt / np.maximum(var, 1e-6) ** 2
     X = np.column_stack([np.ones_like(lv), lv])
     v0, s = np.linalg.lstsq(X * np.sqrt(w)[:, None], var * np.sqrt(w), rcond=None)[0]
-    if not (np.isfinite(v0) and np.isfinite(s)) or s <= 0:
+    # a dark dot's image is inverted before it is measured: there the line falls (the paper around it is the lit part)
+    if not (np.isfinite(v0) and np.isfinite(s)) or min(v0 + s * lv.min(), v0 + s * lv.max()) <= 0:
         return flat
     return float(v0), float(s)
 
