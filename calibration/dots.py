@@ -44,6 +44,7 @@ from dataclasses import dataclass, field, replace
 import cv2
 import numpy as np
 
+from calibration.dot_noise import NOISE_DOTS, noise_levels, plane_cov
 from calibration.errors import CalibrationError
 
 __all__ = ["DetectionOptions", "Detections", "to_grey", "detect_dots", "detect_retro_targets", "POLARITIES"]
@@ -136,7 +137,7 @@ class Detections:
             :data:`MIN_RING_PX` the bound could not be measured (it is zero then, not known), or None.
         noise_levels: ``(v0, s)``: a pixel's noise variance at grey level ``v`` is ``v0 + s v`` (grey levels^2; photon
             noise grows with the light), measured on the dots' own plateaus and background rings
-            (:func:`_noise_levels`); what ``cov`` propagated. None: not measured.
+            (:func:`calibration.dot_noise.noise_levels`); what ``cov`` propagated. None: not measured.
         ellipse: (k,) bool, the centre is the ellipse fitted to the dot's half-level contour (``centre="ellipse"``,
             or ``"auto"`` for a clipped dot or one with a background misfit; decision 0037), not the centroid; or None.
     """
@@ -331,126 +332,6 @@ def _ring_fit(lab: np.ndarray, xs: np.ndarray, ys: np.ndarray, val: np.ndarray, 
     lf, dxf, dyf = lab[fit], rdx[fit], rdy[fit]
     misfit = _ring_misfit(lf, dxf, dyf, val[fit] - (coef[lf - 1, 0] + coef[lf - 1, 1] * dxf + coef[lf - 1, 2] * dyf), k)
     return coef, misfit, (lf, A)
-
-
-#: fewest pixel pairs on the dots' plateaus for the noise's growth with the light to be measured (else none is used)
-MIN_PLATEAU_PAIRS = 200
-#: about this many dots (every n-th) measure the noise's line
-NOISE_DOTS = 250
-
-
-def _pairs_two_apart(lab: np.ndarray, x: np.ndarray, y: np.ndarray, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
-    """Index pairs ``(i, j)`` of pixels of the same label two apart along a row or a column (the image's noise
-    figure's spacing: neighbours share the lens blur's light but not the noise, two apart barely share either)."""
-    H, W = shape
-    key = (lab.astype(np.int64) * H + y) * W + x
-    order = np.argsort(key, kind="stable")
-    sk = key[order]
-    out_i, out_j = [], []
-    for step in (2, 2 * W):
-        ok_dir = (x + 2 < W) if step == 2 else (y + 2 < H)
-        want = key + step
-        pos = np.minimum(np.searchsorted(sk, want), len(sk) - 1)
-        hit = ok_dir & (sk[pos] == want) if len(sk) else np.zeros(len(key), dtype=bool)
-        out_i.append(np.flatnonzero(hit))
-        out_j.append(order[pos[hit]])
-    return np.concatenate(out_i), np.concatenate(out_j)
-
-
-def _level_variances(level: np.ndarray, d: np.ndarray, n_bins: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per bin of grey ``level`` (quantiles), the noise variance from the differences ``d`` of pixel pairs
-    (``mean(d^2) / 2`` over the pairs within 4 robust sd of the median: an edge or a neighbour's rim left out);
-    returns (mean level, variance, pairs) per bin."""
-    if len(d) < 20:
-        return np.zeros(0), np.zeros(0), np.zeros(0)
-    edges = np.unique(np.quantile(level, np.linspace(0.0, 1.0, n_bins + 1)))
-    b = np.clip(np.searchsorted(edges, level, side="right") - 1, 0, max(len(edges) - 2, 0))
-    lv, var, cnt = [], [], []
-    for j in range(max(len(edges) - 1, 1)):
-        m = b == j
-        if m.sum() < 20:
-            continue
-        dj = d[m]
-        med = np.median(dj)
-        scale = 1.4826 * np.median(np.abs(dj - med))
-        keep = np.abs(dj - med) <= max(4.0 * scale, 3.0)
-        lv.append(float(level[m][keep].mean()))
-        var.append(float(np.mean(dj[keep] ** 2) / 2.0))
-        cnt.append(int(keep.sum()))
-    return np.array(lv), np.array(var), np.array(cnt)
-
-
-def _noise_levels(shape: tuple[int, int], dots: tuple, rings: tuple, noise: float) -> tuple[float, float]:
-    """The pixel noise's variance as a line in the grey level, ``(v0, s)``: ``var(v) = v0 + s v``.
-
-    Photon noise makes a pixel's variance grow with its light: on the simulated sensor a dot's plateau is about 3x
-    noisier (in sd) than the part's shading around it, and a camera's photon transfer is the same line. Measured on
-    the image's own dots: differences of pixels two apart on their flat tops (``dots = (label, x, y, value)``: the
-    unclipped pixels within half the dot's ellipse, chosen by position: a choice by value would keep the pixels the
-    noise lifted and halve the variance) and on their background rings about the fitted plane (``rings = (label, x, y,
-    value, residual)``), binned by level, and a line fitted to the bins (weighted by their pairs over their variance
-    squared, the estimates' own scatter). Too few plateau pairs (:data:`MIN_PLATEAU_PAIRS`), or a line that is not
-    positive over the levels measured, give ``(noise^2, 0)``: the image's one figure for every pixel, as before this
-    was measured.
-    """
-    flat = (noise**2, 0.0)
-    lt, xt, yt, vt = dots
-    lr, xr, yr, vr, rr = rings
-    i, j = _pairs_two_apart(lt, xt, yt, shape)
-    if len(i) < MIN_PLATEAU_PAIRS:
-        return flat
-    ir, jr = _pairs_two_apart(lr, xr, yr, shape)
-    l1, v1, n1 = _level_variances(0.5 * (vt[i] + vt[j]), vt[i] - vt[j], 4)
-    l2, v2, n2 = _level_variances(0.5 * (vr[ir] + vr[jr]), rr[ir] - rr[jr], 4)
-    lv, var, cnt = np.concatenate([l1, l2]), np.concatenate([v1, v2]), np.concatenate([n1, n2])
-    if len(lv) < 2 or np.ptp(lv) <= 0:
-        return flat
-    w = cnt / np.maximum(var, 1e-6) ** 2
-    X = np.column_stack([np.ones_like(lv), lv])
-    v0, s = np.linalg.lstsq(X * np.sqrt(w)[:, None], var * np.sqrt(w), rcond=None)[0]
-    # a dark dot's image is inverted before it is measured: there the line falls (the paper around it is the lit part)
-    if not (np.isfinite(v0) and np.isfinite(s)) or min(v0 + s * lv.min(), v0 + s * lv.max()) <= 0:
-        return flat
-    return float(v0), float(s)
-
-
-def _plane_cov(li, vi, wi, top_i, span, sws, dx, dy, xi, yi, xc, yc, A: np.ndarray, ring_var: np.ndarray,
-               k: int) -> np.ndarray:
-    """What the background plane's own error does to each centroid, (k, 2, 2) px^2.
-
-    The plane ``b0 + gx (x - xc) + gy (y - yc)`` is fitted to the ring's pixels (``A``: (k, 3, 3) their normal
-    matrices): its coefficients err by ``ring_var A^-1``. A pixel's weight ``w = (v - b) / (top - b)`` moves by
-    ``(v - top) / (top - b)^2`` per grey level of the plane under it: the margin's pixels (w ~ 0) the most, the
-    plateau's (w ~ 1) hardly (those above 0.9 are left out: a few per cent of the term). So the centre moves by
-    ``sum (x - u) (v - top) / (top - b)^2 [1, x - xc, y - yc] / sum w`` per unit of the coefficients.
-    """
-    m = wi < 0.9
-    lm = li[m]
-
-    def per(w):
-        return np.bincount(lm, weights=w, minlength=k + 1)[1:]
-
-    h = np.where(span[m] > 1.0, (vi[m] - top_i[m]) / span[m] ** 2, 0.0) / sws[lm - 1]
-    rx, ry = xi[m] - xc[lm - 1], yi[m] - yc[lm - 1]
-    hx, hy = h * dx[m], h * dy[m]
-    J = np.stack([np.stack([per(hx), per(hx * rx), per(hx * ry)], -1),
-                  np.stack([per(hy), per(hy * rx), per(hy * ry)], -1)], 1)  # (k, 2, 3)
-    out = np.zeros((k, 2, 2))
-    n = A[:, 0, 0]
-    ok = n >= MIN_RING_PX
-    if np.any(ok):
-        det = np.linalg.det(A[ok])
-        good = np.flatnonzero(ok)[np.abs(det) > 1e-9 * np.maximum(n[ok], 1) ** 3]
-        if len(good):
-            Jg = J[good]
-            out[good] = ring_var[good, None, None] * (Jg @ np.linalg.solve(A[good], np.swapaxes(Jg, 1, 2)))
-            ok[:] = False
-            ok[good] = True
-    # a ring that carried no plane (too few pixels): its mean level alone, erring by ring_var / n
-    flat = ~ok & (n > 0)
-    if np.any(flat):
-        out[flat] = (ring_var[flat] / n[flat])[:, None, None] * np.einsum("ka,kb->kab", J[flat, :, 0], J[flat, :, 0])
-    return out
 
 
 def _ring_misfit(lab: np.ndarray, dx: np.ndarray, dy: np.ndarray, r: np.ndarray, k: int, z: float = 3.0) -> np.ndarray:
@@ -726,7 +607,7 @@ def _measure(image: np.ndarray, o: DetectionOptions, surface: np.ndarray | None,
     ``bg`` its median level, ``ceiling`` its clipping level (None: ``image``'s). ``agree_px``: the ellipse is fitted to
     every blob and a blob is kept only where the fit succeeds and its centre is within this of the centroid (two
     estimates of one dot's centre; a patch of the surface, a dot cut by an edge, is not one). Returns (the detections,
-    (k,) the component index (0-based, label - 1) of each). ``levels``: the pixel noise's line (:func:`_noise_levels`) when already measured on the image (the split pass's few
+    (k,) the component index (0-based, label - 1) of each). ``levels``: the pixel noise's line (:func:`calibration.dot_noise.noise_levels`) when already measured on the image (the split pass's few
     blobs take the first pass's), else measured on these blobs.
     """
     empty = Detections(np.zeros((0, 2)), np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0), noise,
@@ -809,7 +690,7 @@ def _measure(image: np.ndarray, o: DetectionOptions, surface: np.ndarray | None,
     rs = rs[lo[rs] % step == 0] if step > 1 else rs
     lr = lo[rs]
     ring_r = val[rs] - (coef[lr - 1, 0] + coef[lr - 1, 1] * (xs[rs] - xc[lr - 1]) + coef[lr - 1, 2] * (ys[rs] - yc[lr - 1]))
-    var0, slope = levels if levels is not None else _noise_levels(
+    var0, slope = levels if levels is not None else noise_levels(
         image.shape, (li[flat_top], xi[flat_top], yi[flat_top], vi[flat_top]), (lr, xs[rs], ys[rs], val[rs], ring_r),
         noise)
     var_px = np.maximum(var0 + slope * vi, 0.25 * noise**2)
@@ -818,8 +699,8 @@ def _measure(image: np.ndarray, o: DetectionOptions, surface: np.ndarray | None,
     cov[:, 0, 0] = per_blob(g * dx * dx)
     cov[:, 0, 1] = cov[:, 1, 0] = per_blob(g * dx * dy)
     cov[:, 1, 1] = per_blob(g * dy * dy)
-    cov += _plane_cov(li, vi, wgt, top[li], span, sws, dx, dy, xi, yi, xc, yc, ring_normal,
-                      np.maximum(var0 + slope * bg_local, 0.25 * noise**2), k)
+    cov += plane_cov(li, vi, wgt, top[li], span, sws, dx, dy, xi, yi, xc, yc, ring_normal,
+                     np.maximum(var0 + slope * bg_local, 0.25 * noise**2), k, MIN_RING_PX)
     # the ellipse fitted to the half-level contour: for every dot ("ellipse"), or ("auto") for the dots whose centroid
     # the intensities mislead: a clipped dot (its clipped pixels weigh by the ceiling, not by their light) and a dot
     # whose ring shows a background that is not the plane (the misfit enters every pixel's weight); decision 0037

@@ -11,8 +11,16 @@ import pytest
 
 from cell.record.report import render_html
 from cell.record.runlog import read_messages
-from cell.stages.model_shape import (FACTOR_CLAMP, MIN_REDUNDANCY, OUTSIDE_SHARE_MAX, SHAPE_BAND, geometry_classes,
-                                     range_check, reweighted, shape_check)
+from cell.stages.model_shape import (
+    FACTOR_CLAMP,
+    MIN_REDUNDANCY,
+    OUTSIDE_SHARE_MAX,
+    SHAPE_BAND,
+    geometry_classes,
+    range_check,
+    reweighted,
+    shape_check,
+)
 from tests.jobutil import job_variant, run_cell
 
 
