@@ -63,11 +63,11 @@ def twin_camera(job):
 
 #: the code the renders' measurement depends on: a change to any of them makes a cached result stale (every project
 #: module these import, tests/test_preanalysis.py checks; the detector model is applied after the cache)
-_SOURCES = ("calibration/dots.py", "calibration/dot_split.py", "calibration/ellipse_fit.py", "calibration/targets.py",
-            "calibration/camera.py", "calibration/ringcodes.py", "calibration/errors.py", "planning/visibility.py",
-            "planning/cache.py", "planning/stations.py", "sim_backend/coverage.py", "drivers/protocols.py",
-            "sim_backend/sim_camera.py", "sim_backend/world.py", "cell/stages/imaging.py", "cell/stages/surface_labels.py",
-            "cell/stages/preanalysis.py")
+_SOURCES = ("calibration/dots.py", "calibration/dot_noise.py", "calibration/dot_split.py", "calibration/ellipse_fit.py",
+            "calibration/targets.py", "calibration/camera.py", "calibration/ringcodes.py", "calibration/errors.py",
+            "planning/visibility.py", "planning/cache.py", "planning/stations.py", "sim_backend/coverage.py",
+            "drivers/protocols.py", "sim_backend/sim_camera.py", "sim_backend/world.py", "cell/stages/imaging.py",
+            "cell/stages/surface_labels.py", "cell/stages/preanalysis.py")
 
 
 def _cache_key(job, poses: np.ndarray) -> str:
