@@ -192,6 +192,17 @@ def test_measured_coordinates_agree_with_truth_within_stated_covariance(example)
           f"rms {rms * 1e6:.1f} um; achieved/predicted sigma median {np.median(ratio):.2f}")
 
 
+def test_each_images_pixel_noise_line_is_measured_and_recorded(example):
+    """observations.json records, per image, the pixel noise's line its centres' covariances propagated (decision
+    0047): on the simulated sensor (10 000 e- full well, 8 bits) the variance grows by 255 / 10 000 grey levels^2 per
+    grey level; the example's images each carry enough dots to measure it."""
+    job, folder, run, report = example
+    obs = json.loads((folder / "observations.json").read_text())["images"]
+    slopes = np.array([im["noise_levels"][1] for im in obs])
+    assert np.all(slopes > 0), slopes
+    assert abs(np.median(slopes) / (255 / 10_000) - 1.0) < 0.2, np.median(slopes)
+
+
 def test_run_log_holds_every_transition_image_and_detection(example):
     job, folder, run, report = example
     msgs = list(read_messages(folder / "run.mcap"))

@@ -233,6 +233,8 @@ def measure_image(image: np.ndarray, part, intr: Intrinsics, cam_from_part_appro
                                          incidence_max_rad, coded_family, shape_check)
         # said in the record: an image with too few named dots for a pose to label with is measured unmasked
         counts["background_mask"] = "cad" if labels is not None else "none (no pose to label with)"
+    # the pixel noise's line that the centres' covariances propagated (decision 0047): in the record, with its fallback
+    counts["noise_levels"] = None if det.noise_levels is None else [float(v) for v in det.noise_levels]
     return m, counts
 
 

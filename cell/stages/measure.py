@@ -1,7 +1,10 @@
 """MEASURE: sub-pixel target detection and identification in every image; observations.json.
 
 observations.json: ``images``: list of {``station``, ``image``, ``ids``, ``uv`` (k, 2 px), ``cov_px2`` (k, 2, 2:
-each centre's covariance from the detector, px^2, ``calibration.dots.Detections.cov``), ``bg_cov_px2`` (k, 2, 2:
+each centre's covariance from the detector, px^2, ``calibration.dots.Detections.cov``), ``noise_levels`` ([v0, s]:
+the pixel noise's variance ``v0 + s v`` at grey level ``v`` that ``cov_px2`` propagated, measured on the image's own
+dots; ``s`` 0 where too few dots carried it and the image's one figure stood for every pixel; decision 0047),
+``bg_cov_px2`` (k, 2, 2:
 the detector's bound on each centre's error from a background that is not a plane, px^2,
 ``Detections.background_cov``; ADJUST adds its share to the image precision), ``clipped_share`` (k,),
 ``ellipse_centre`` (k, bool: the centre is the ellipse of the dot's contour, not its centroid; decision 0037), counts,
