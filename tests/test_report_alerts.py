@@ -108,3 +108,20 @@ def test_measure_drops_are_in_report_json_by_reason_and_image_and_in_the_html():
     # the routine drops (dots the CAD says an edge clips) are listed, not raised as a warning
     only_hidden = identification_drops({"images": [obs["images"][1] | {"dropped": obs["images"][1]["dropped"][:1]}]})
     assert 'id="identification-dropped"' not in render_html(_doc(identification_dropped=only_hidden), {})
+
+
+def test_a_plan_whose_prediction_did_not_hold_is_said():
+    """Predicted / achieved outside 1.00 +- 0.25 (issue 15): the report says what it means, in a note."""
+    from cell.stages.report import PREDICTION_BAND, _predicted_over_achieved
+
+    def targets(ratio):
+        return [{"predicted_sigma_m": ratio * 5e-6, "achieved_sigma_m": 5e-6} for _ in range(10)]
+
+    held = _predicted_over_achieved(targets(1.1))
+    assert held["note"] is None and held["band"] == list(PREDICTION_BAND)
+    assert 'id="prediction-off"' not in render_html(_doc(predicted_over_achieved=held), {})
+    over = _predicted_over_achieved(targets(1.29))
+    assert "predicted 1.29x" in over["note"] and "more stations than its requirement needed" in over["note"]
+    assert 'id="prediction-off"' in render_html(_doc(predicted_over_achieved=over), {})
+    under = _predicted_over_achieved(targets(0.6))
+    assert "less margin than planned" in under["note"]

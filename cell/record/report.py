@@ -228,6 +228,9 @@ def _alerts(doc: dict) -> str:
     shape = (doc.get("uncertainty_budget") or {}).get("detector_model_shape")
     if shape:
         out.append(f'<div class="warn" id="model-shape">Image precision: {html.escape(shape)}</div>')
+    predicted = (doc.get("predicted_over_achieved") or {}).get("note")
+    if predicted:
+        out.append(f'<div class="warn" id="prediction-off">Plan: {html.escape(predicted)}</div>')
     outside = (doc.get("uncertainty_budget") or {}).get("detector_model_range")
     if outside:
         out.append(f'<div class="warn" id="model-range">Image precision: {html.escape(outside)}</div>')
