@@ -222,18 +222,14 @@ def _alerts(doc: dict) -> str:
     if sn.get("suspect_targets"):
         out.append(f'<div class="warn">Targets whose observations the blunder test could not verify (lost half of their rays, kept two or fewer after a rejection or a screening drop, or unlike their ellipse in most images; inconclusive): '
                    f'{html.escape(", ".join(sn["suspect_targets"]))}</div>')
-    mismatch = (doc.get("uncertainty_budget") or {}).get("detector_model_mismatch")
-    if mismatch:
-        out.append(f'<div class="warn" id="model-mismatch">Image precision: {html.escape(mismatch)}</div>')
-    shape = (doc.get("uncertainty_budget") or {}).get("detector_model_shape")
-    if shape:
-        out.append(f'<div class="warn" id="model-shape">Image precision: {html.escape(shape)}</div>')
-    predicted = (doc.get("predicted_over_achieved") or {}).get("note")
-    if predicted:
-        out.append(f'<div class="warn" id="prediction-off">Plan: {html.escape(predicted)}</div>')
-    outside = (doc.get("uncertainty_budget") or {}).get("detector_model_range")
-    if outside:
-        out.append(f'<div class="warn" id="model-range">Image precision: {html.escape(outside)}</div>')
+    # what the images say of the detector model and the plan (decisions 0044, 0046, 0047): one note each
+    budget, plan = doc.get("uncertainty_budget") or {}, doc.get("predicted_over_achieved") or {}
+    for said, tag, head in ((budget.get("detector_model_mismatch"), "model-mismatch", "Image precision"),
+                            (budget.get("detector_model_shape"), "model-shape", "Image precision"),
+                            (budget.get("detector_model_range"), "model-range", "Image precision"),
+                            (plan.get("note"), "prediction-off", "Plan")):
+        if said:
+            out.append(f'<div class="warn" id="{tag}">{head}: {html.escape(said)}</div>')
     if doc.get("solver_fallback"):
         out.append('<div class="warn" id="solver-fallback">Gauss-Newton handed the adjustment to pycolmap: '
                    f'{html.escape(str(doc["solver_fallback"]))}</div>')
