@@ -121,7 +121,7 @@ def test_a_plan_whose_prediction_did_not_hold_is_said():
     assert held["note"] is None and held["band"] == list(PREDICTION_BAND)
     assert 'id="prediction-off"' not in render_html(_doc(predicted_over_achieved=held), {})
     over = _predicted_over_achieved(targets(1.29))
-    assert "predicted 1.29x" in over["note"] and "more stations than its requirement needed" in over["note"]
+    assert "predicted 1.29x" in over["note"] and "took more stations than it needed" in over["note"]
     assert 'id="prediction-off"' in render_html(_doc(predicted_over_achieved=over), {})
     under = _predicted_over_achieved(targets(0.6))
-    assert "less margin than planned" in under["note"]
+    assert "worse than planned" in under["note"] and "less margin" in under["note"]

@@ -180,9 +180,10 @@ def _predicted_over_achieved(targets: list[dict]) -> dict:
     if not lo <= m <= hi:
         note = (f"the plan predicted {m:.2f}x the sigma the images achieved (median over {len(r)} targets; {lo:g}-{hi:g} "
                 "expected): the plan's image precision (the detector model) does not describe these images; the stated "
-                "uncertainties follow the images, and a network designed on this prediction has "
-                + ("more stations than its requirement needed" if m > hi else "less margin than planned (the achieved "
-                   "sigma, not the prediction, is what CLOSE_LOOP and the decisions use)"))
+                "uncertainties follow the images. The network measured "
+                + ("better than planned: a plan to a required sigma took more stations than it needed" if m > hi else
+                   "worse than planned: a plan to a required sigma has less margin than it showed (CLOSE_LOOP and the "
+                   "decisions use the achieved sigma, not the prediction)"))
     return {"median": m, "p10": float(np.quantile(r, 0.1)), "p90": float(np.quantile(r, 0.9)), "n": int(len(r)),
             "band": list(PREDICTION_BAND), "note": note}
 
