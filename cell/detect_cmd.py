@@ -152,6 +152,12 @@ def detect_command(args, out) -> int:
         n_coded = sum(1 for x in d["detections"] if x["code"] is not None)
         out.say(f"{d['image']}: {d['width']}x{d['height']}, {d['polarity']} dots, noise {d['noise']:.2f} grey levels: "
                 f"{len(d['detections']) - n_coded} dots, {n_coded} coded targets")
+        lv = d.get("noise_levels")
+        if lv and lv["variance_per_grey_level"] != 0:  # the line the covariances propagated (decision 0047)
+            out.say(f"  pixel noise variance {lv['variance_at_zero']:.3f} + {lv['variance_per_grey_level']:.4f} x grey "
+                    "level (measured on the dots' tops and rings)")
+        elif lv:
+            out.say("  pixel noise: one figure for every pixel (too few dots to measure its growth with the light)")
         if not out.as_json:
             for x in d["detections"]:
                 sd = np.sqrt(np.diag(np.asarray(x["cov"])))

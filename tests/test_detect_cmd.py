@@ -33,6 +33,11 @@ def test_detect_prints_every_dot_of_a_16_bit_dark_image_as_the_contract_says(tmp
         assert cov.shape == (2, 2) and np.all(np.linalg.eigvalsh(cov) > 0)
     drawn = cv2.imread(str(png))
     assert drawn.shape == (240, 320, 3)
+    # the pixel noise's line the covariances propagated (decision 0047), in the document and said to a person
+    assert set(doc["noise_levels"]) == {"variance_at_zero", "variance_per_grey_level"}
+    assert main(["detect", str(path), "--camera", str(cam)]) == 0
+    said = capsys.readouterr()
+    assert "pixel noise" in said.out + said.err
 
 
 def test_detect_refuses_what_it_cannot_read_with_exit_2(tmp_path, capsys):
