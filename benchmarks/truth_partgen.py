@@ -67,13 +67,18 @@ def one(work: Path, seed: int, misplaced: bool, search_weights: str | None = Non
     report = json.loads((folder / "report.json").read_text())
     fig = truth_figures(report, part)
     seconds = time.perf_counter() - t0
-    shape = json.loads((folder / "bundle.json").read_text())["observation_weights"].get("model_shape") or {}
+    weights = json.loads((folder / "bundle.json").read_text())["observation_weights"]
+    shape = weights.get("model_shape") or {}
+    outside = weights.get("model_range") or {}
     row = {"seed": seed, "kind": part.kind, "targets": part.n_targets, "deviating": len(part.deviations),
            "trusted": report["alignment"]["trusted"], "pred_over_ach": report["predicted_over_achieved"]["median"],
            "seconds": seconds,
            # the detector model's shape against the images (decision 0046): warned, and classes weighted by their own
            "model_shape_warned": bool(shape.get("mismatch")),
-           "classes_reweighted": sum(c.get("significant", False) for c in shape.get("classes", []))} | fig | losses(folder)
+           "classes_reweighted": sum(c.get("significant", False) for c in shape.get("classes", [])),
+           # dots outside the sizes / incidences the model was measured on, and a plan's prediction missed (0047)
+           "outside_model_share": outside.get("share_outside"), "model_range_warned": bool(outside.get("mismatch")),
+           "prediction_said": bool(report["predicted_over_achieved"].get("note"))} | fig | losses(folder)
     # how often this run's criteria would be missed were its statement exactly right (the targets' joint covariance)
     return row | {"meets": meets(row), "odds_of_a_miss": report_odds(report, folder, part)}
 
@@ -183,6 +188,8 @@ def main(argv=None) -> int:
             "pred_over_ach_max": max(r["pred_over_ach"] for r in ok),
             "meet_every_criterion": sum(r["meets"] for r in ok),
             "model_shape_warned": sum(r["model_shape_warned"] for r in ok),
+            "model_range_warned": sum(r["model_range_warned"] for r in ok),
+            "prediction_said": sum(r["prediction_said"] for r in ok),
             "variance_factor_range": [min(r["variance_factor"] for r in ok), max(r["variance_factor"] for r in ok)]
             if all(r.get("variance_factor") is not None for r in ok) else None,
         }
