@@ -9,7 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["MIN_PLATEAU_PAIRS", "NOISE_DOTS", "noise_levels", "plane_cov", "pairs_two_apart", "level_variances"]
+__all__ = ["MIN_PLATEAU_PAIRS", "NOISE_DOTS", "noise_levels", "plane_cov", "pairs_two_apart", "triples_two_apart",
+           "level_variances"]
 
 
 #: fewest pixel pairs on the dots' plateaus for the noise's growth with the light to be measured (else none is used)
@@ -21,25 +22,44 @@ NOISE_DOTS = 250
 def pairs_two_apart(lab: np.ndarray, x: np.ndarray, y: np.ndarray, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
     """Index pairs ``(i, j)`` of pixels of the same label two apart along a row or a column (the image's noise
     figure's spacing: neighbours share the lens blur's light but not the noise, two apart barely share either)."""
+    return _runs(lab, x, y, shape, 2)
+
+
+def triples_two_apart(lab: np.ndarray, x: np.ndarray, y: np.ndarray, shape: tuple[int, int]
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Index triples ``(i, j, k)`` of pixels of the same label at 0, 2 and 4 along a row or a column: their second
+    difference ``v_i - 2 v_j + v_k`` is blind to a local slope (a shading the ring's plane does not follow)."""
+    return _runs(lab, x, y, shape, 3)
+
+
+def _runs(lab: np.ndarray, x: np.ndarray, y: np.ndarray, shape: tuple[int, int], n: int) -> tuple[np.ndarray, ...]:
+    """``n`` index arrays: runs of ``n`` pixels of one label, each two from the last, along a row or a column."""
     H, W = shape
     key = (lab.astype(np.int64) * H + y) * W + x
     order = np.argsort(key, kind="stable")
     sk = key[order]
-    out_i, out_j = [], []
-    for step in (2, 2 * W):
-        ok_dir = (x + 2 < W) if step == 2 else (y + 2 < H)
-        want = key + step
-        pos = np.minimum(np.searchsorted(sk, want), len(sk) - 1)
-        hit = ok_dir & (sk[pos] == want) if len(sk) else np.zeros(len(key), dtype=bool)
-        out_i.append(np.flatnonzero(hit))
-        out_j.append(order[pos[hit]])
-    return np.concatenate(out_i), np.concatenate(out_j)
+    out: list[list[np.ndarray]] = [[] for _ in range(n)]
+    for along_row in (True, False):
+        step = 2 if along_row else 2 * W
+        ok = np.ones(len(key), dtype=bool)
+        idx = [np.arange(len(key))]
+        for m in range(1, n):
+            ok &= (x + 2 * m < W) if along_row else (y + 2 * m < H)
+            want = key + m * step
+            pos = np.minimum(np.searchsorted(sk, want), max(len(sk) - 1, 0))
+            if len(sk):
+                ok &= sk[pos] == want
+            idx.append(order[pos] if len(sk) else pos)
+        for m in range(n):
+            out[m].append(idx[m][ok])
+    return tuple(np.concatenate(o) for o in out)
 
 
-def level_variances(level: np.ndarray, d: np.ndarray, n_bins: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per bin of grey ``level`` (quantiles), the noise variance from the differences ``d`` of pixel pairs
-    (``mean(d^2) / 2`` over the pairs within 4 robust sd of the median: an edge or a neighbour's rim left out);
-    returns (mean level, variance, pairs) per bin."""
+def level_variances(level: np.ndarray, d: np.ndarray, n_bins: int, gain: float = 2.0
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per bin of grey ``level`` (quantiles), the noise variance from the differences ``d`` of pixels (``mean(d^2) /
+    gain`` over those within 4 robust sd of the median: an edge or a neighbour's rim left out; ``gain`` 2 for a
+    difference of two pixels, 6 for a second difference); returns (mean level, variance, differences) per bin."""
     if len(d) < 20:
         return np.zeros(0), np.zeros(0), np.zeros(0)
     edges = np.unique(np.quantile(level, np.linspace(0.0, 1.0, n_bins + 1)))
@@ -54,7 +74,7 @@ def level_variances(level: np.ndarray, d: np.ndarray, n_bins: int) -> tuple[np.n
         scale = 1.4826 * np.median(np.abs(dj - med))
         keep = np.abs(dj - med) <= max(4.0 * scale, 3.0)
         lv.append(float(level[m][keep].mean()))
-        var.append(float(np.mean(dj[keep] ** 2) / 2.0))
+        var.append(float(np.mean(dj[keep] ** 2) / gain))
         cnt.append(int(keep.sum()))
     return np.array(lv), np.array(var), np.array(cnt)
 
@@ -67,8 +87,8 @@ def noise_levels(shape: tuple[int, int], dots: tuple, rings: tuple, noise: float
     the image's own dots: differences of pixels two apart on their flat tops (``dots = (label, x, y, value)``: the
     unclipped pixels within half the dot's ellipse, chosen by position: a choice by value would keep the pixels the
     noise lifted and halve the variance) and on their background rings about the fitted plane (``rings = (label, x, y,
-    value, residual)``), binned by level, and a line fitted to the bins (weighted by their pairs over their variance
-    squared, the estimates' own scatter). Too few plateau pairs (:data:`MIN_PLATEAU_PAIRS`), or a line that is not
+    value, residual)``), binned by a level the pairs' own noise does not set (a dot's mean top, the ring's plane), and a
+    line fitted to the bins (weighted by their pairs over the line's variance squared, the estimates' scatter). Too few plateau pairs (:data:`MIN_PLATEAU_PAIRS`), or a line that is not
     positive over the levels measured, give ``(noise^2, 0)``: the image's one figure for every pixel, as before this
     was measured.
     """
@@ -78,15 +98,26 @@ def noise_levels(shape: tuple[int, int], dots: tuple, rings: tuple, noise: float
     i, j = pairs_two_apart(lt, xt, yt, shape)
     if len(i) < MIN_PLATEAU_PAIRS:
         return flat
-    ir, jr = pairs_two_apart(lr, xr, yr, shape)
-    l1, v1, n1 = level_variances(0.5 * (vt[i] + vt[j]), vt[i] - vt[j], 4)
-    l2, v2, n2 = level_variances(0.5 * (vr[ir] + vr[jr]), rr[ir] - rr[jr], 4)
+    # the rings by second differences: the part's shading is no plane across a ring (kinks, curvature), and first
+    # differences took its local slope for noise (the ground's variance came out up to 2-3x the sensor's)
+    ir, jr, kr = triples_two_apart(lr, xr, yr, shape)
+    # each pair binned by a level its own noise does not set (binned by their own values, the pairs the noise pushed
+    # apart and those it left alike fall in different bins): a dot's mean top, the ring's fitted plane
+    n_top = np.bincount(lt)
+    mean_top = np.bincount(lt, weights=vt) / np.maximum(n_top, 1)
+    plane = vr - rr
+    l1, v1, n1 = level_variances(mean_top[lt[i]], vt[i] - vt[j], 4)
+    l2, v2, n2 = level_variances(plane[jr], rr[ir] - 2.0 * rr[jr] + rr[kr], 4, gain=6.0)
     lv, var, cnt = np.concatenate([l1, l2]), np.concatenate([v1, v2]), np.concatenate([n1, n2])
     if len(lv) < 2 or np.ptp(lv) <= 0:
         return flat
-    w = cnt / np.maximum(var, 1e-6) ** 2
+    # weighted by the pairs over the line's variance squared (the estimates' scatter), not over their own: a bin the
+    # noise made quiet would otherwise weigh more and pull the line down
     X = np.column_stack([np.ones_like(lv), lv])
-    v0, s = np.linalg.lstsq(X * np.sqrt(w)[:, None], var * np.sqrt(w), rcond=None)[0]
+    w = cnt.astype(float)
+    for _ in range(2):
+        v0, s = np.linalg.lstsq(X * np.sqrt(w)[:, None], var * np.sqrt(w), rcond=None)[0]
+        w = cnt / np.maximum(v0 + s * lv, 1e-6) ** 2
     # a dark dot's image is inverted before it is measured: there the line falls (the paper around it is the lit part)
     if not (np.isfinite(v0) and np.isfinite(s)) or min(v0 + s * lv.min(), v0 + s * lv.max()) <= 0:
         return flat
