@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["MIN_PLATEAU_PAIRS", "NOISE_DOTS", "noise_levels", "plane_cov", "pairs_two_apart", "triples_two_apart",
-           "level_variances"]
+__all__ = ["MIN_PLATEAU_PAIRS", "NOISE_DOTS", "level_variances", "noise_levels", "pairs_two_apart", "plane_cov",
+           "triples_two_apart"]
 
 
 #: fewest pixel pairs on the dots' plateaus for the noise's growth with the light to be measured (else none is used)
