@@ -84,13 +84,18 @@ def noise_levels(shape: tuple[int, int], dots: tuple, rings: tuple, noise: float
 
     Photon noise makes a pixel's variance grow with its light: on the simulated sensor a dot's plateau is about 3x
     noisier (in sd) than the part's shading around it, and a camera's photon transfer is the same line. Measured on
-    the image's own dots: differences of pixels two apart on their flat tops (``dots = (label, x, y, value)``: the
-    unclipped pixels within half the dot's ellipse, chosen by position: a choice by value would keep the pixels the
-    noise lifted and halve the variance) and on their background rings about the fitted plane (``rings = (label, x, y,
-    value, residual)``), binned by a level the pairs' own noise does not set (a dot's mean top, the ring's plane), and a
-    line fitted to the bins (weighted by their pairs over the line's variance squared, the estimates' scatter). Too few plateau pairs (:data:`MIN_PLATEAU_PAIRS`), or a line that is not
-    positive over the levels measured, give ``(noise^2, 0)``: the image's one figure for every pixel, as before this
-    was measured.
+    the image's own dots:
+    - differences of pixels two apart on their flat tops (``dots = (label, x, y, value)``: the unclipped pixels
+      within half the dot's ellipse, chosen by position: a choice by value would keep the pixels the noise lifted
+      and halve the variance);
+    - second differences of pixels 0, 2 and 4 apart on their background rings about the fitted plane (``rings =
+      (label, x, y, value, residual)``), blind to a local slope of the shading the plane does not follow;
+    binned by a level the pairs' own noise does not set (a dot's mean top, the ring's plane), and a line fitted to
+    the bins, weighted by their pairs over the line's variance squared (the estimates' scatter).
+    Too few plateau pairs (:data:`MIN_PLATEAU_PAIRS`), or a line that is not positive over the levels measured, give
+    ``(noise^2, 0)``: the image's one figure for every pixel, as before this was measured. No check says whether a
+    line describes the image's noise: the bins' misfit to the line is 13-1400x their sampling scatter even on the
+    simulated sensor, whose noise is a line, so it cannot tell a camera whose noise is not (decision 0047).
     """
     flat = (noise**2, 0.0)
     lt, xt, yt, vt = dots
@@ -99,7 +104,7 @@ def noise_levels(shape: tuple[int, int], dots: tuple, rings: tuple, noise: float
     if len(i) < MIN_PLATEAU_PAIRS:
         return flat
     # the rings by second differences: the part's shading is no plane across a ring (kinks, curvature), and first
-    # differences took its local slope for noise (the ground's variance came out up to 2-3x the sensor's)
+    # differences took its local slope for noise (the renders' statement came out 4-10 % more pessimistic)
     ir, jr, kr = triples_two_apart(lr, xr, yr, shape)
     # each pair binned by a level its own noise does not set (binned by their own values, the pairs the noise pushed
     # apart and those it left alike fall in different bins): a dot's mean top, the ring's fitted plane
@@ -129,9 +134,9 @@ def plane_cov(li, vi, wi, top_i, span, sws, dx, dy, xi, yi, xc, yc, A: np.ndarra
     """What the background plane's own error does to each centroid, (k, 2, 2) px^2.
 
     The plane ``b0 + gx (x - xc) + gy (y - yc)`` is fitted to the ring's pixels (``A``: (k, 3, 3) their normal
-    matrices; fewer than ``min_ring_px`` carry none): its coefficients err by ``ring_var A^-1``. A pixel's weight ``w = (v - b) / (top - b)`` moves by
-    ``(v - top) / (top - b)^2`` per grey level of the plane under it: the margin's pixels (w ~ 0) the most, the
-    plateau's (w ~ 1) hardly (those above 0.9 are left out: a few per cent of the term). So the centre moves by
+    matrices; fewer than ``min_ring_px`` carry none): its coefficients err by ``ring_var A^-1``. A pixel's weight
+    ``w = (v - b) / (top - b)`` moves by ``(v - top) / (top - b)^2`` per grey level of the plane under it: the
+    margin's pixels (w ~ 0) the most, the plateau's (w ~ 1) hardly (those above 0.9 are left out: a few per cent of the term). So the centre moves by
     ``sum (x - u) (v - top) / (top - b)^2 [1, x - xc, y - yc] / sum w`` per unit of the coefficients.
     """
     m = wi < 0.9

@@ -607,8 +607,9 @@ def _measure(image: np.ndarray, o: DetectionOptions, surface: np.ndarray | None,
     ``bg`` its median level, ``ceiling`` its clipping level (None: ``image``'s). ``agree_px``: the ellipse is fitted to
     every blob and a blob is kept only where the fit succeeds and its centre is within this of the centroid (two
     estimates of one dot's centre; a patch of the surface, a dot cut by an edge, is not one). Returns (the detections,
-    (k,) the component index (0-based, label - 1) of each). ``levels``: the pixel noise's line (:func:`calibration.dot_noise.noise_levels`) when already measured on the image (the split pass's few
-    blobs take the first pass's), else measured on these blobs.
+    (k,) the component index (0-based, label - 1) of each). ``levels``: the pixel noise's line
+    (:func:`calibration.dot_noise.noise_levels`) when already measured on the image (the split pass's few blobs take
+    the first pass's), else measured on these blobs.
     """
     empty = Detections(np.zeros((0, 2)), np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0), noise,
                        np.zeros((0, 2, 2)), o.polarity, np.zeros((0, 2, 2)), np.zeros((0, 2, 2)),
@@ -689,7 +690,8 @@ def _measure(image: np.ndarray, o: DetectionOptions, surface: np.ndarray | None,
     rs = np.flatnonzero(ring)
     rs = rs[lo[rs] % step == 0] if step > 1 else rs
     lr = lo[rs]
-    ring_r = val[rs] - (coef[lr - 1, 0] + coef[lr - 1, 1] * (xs[rs] - xc[lr - 1]) + coef[lr - 1, 2] * (ys[rs] - yc[lr - 1]))
+    ring_r = val[rs] - (coef[lr - 1, 0] + coef[lr - 1, 1] * (xs[rs] - xc[lr - 1])
+                        + coef[lr - 1, 2] * (ys[rs] - yc[lr - 1]))
     var0, slope = levels if levels is not None else noise_levels(
         image.shape, (li[flat_top], xi[flat_top], yi[flat_top], vi[flat_top]), (lr, xs[rs], ys[rs], val[rs], ring_r),
         noise)

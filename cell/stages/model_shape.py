@@ -18,8 +18,17 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["INCIDENCE_EDGES_DEG", "SHAPE_BAND", "MIN_REDUNDANCY", "FACTOR_CLAMP", "OUTSIDE_SHARE_MAX", "geometry_classes",
-           "shape_check", "reweighted", "range_check"]
+__all__ = [
+    "FACTOR_CLAMP",
+    "INCIDENCE_EDGES_DEG",
+    "MIN_REDUNDANCY",
+    "OUTSIDE_SHARE_MAX",
+    "SHAPE_BAND",
+    "geometry_classes",
+    "range_check",
+    "reweighted",
+    "shape_check",
+]
 
 #: incidence class edges (deg) of the check
 INCIDENCE_EDGES_DEG = (35.0, 50.0, 65.0)
@@ -124,7 +133,7 @@ def range_check(incidence_deg: np.ndarray, diameter_px: np.ndarray, used: np.nda
     d = np.asarray(diameter_px, dtype=float)[used]
     inc_max, d0, d1 = float(np.degrees(box[0])), float(box[1]), float(box[2])
     beyond, smaller, larger = inc > inc_max, d < d0, d > d1
-    n = int(len(d))
+    n = len(d)
     outside = int(np.count_nonzero(beyond | smaller | larger))
     share = outside / n if n else 0.0
     seen = [float(np.percentile(d, 1)), float(np.percentile(d, 99))] if n else [None, None]

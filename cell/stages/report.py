@@ -162,7 +162,8 @@ def part_verdict(trusted: bool, ok: np.ndarray, passed: np.ndarray, judged: np.n
     return "PASS", reasons
 
 
-#: the plan's predicted sigma over the achieved one, median over the targets, outside this is said (issue 15: 1.00 +- 0.25)
+#: the plan's predicted sigma over the achieved one (median over the targets): outside this it is said (issue 15:
+#: 1.00 +- 0.25)
 PREDICTION_BAND = (0.75, 1.25)
 
 
@@ -178,9 +179,9 @@ def _predicted_over_achieved(targets: list[dict]) -> dict:
     lo, hi = PREDICTION_BAND
     note = None
     if not lo <= m <= hi:
-        note = (f"the plan predicted {m:.2f}x the sigma the images achieved (median over {len(r)} targets; {lo:g}-{hi:g} "
-                "expected): the plan's image precision (the detector model) does not describe these images; the stated "
-                "uncertainties follow the images. The network measured "
+        note = (f"the plan predicted {m:.2f}x the sigma the images achieved (median over {len(r)} targets; "
+                f"{lo:g}-{hi:g} expected): the plan's image precision (the detector model) does not describe these "
+                "images; the stated uncertainties follow the images. The network measured "
                 + ("better than planned: a plan to a required sigma took more stations than it needed" if m > hi else
                    "worse than planned: a plan to a required sigma has less margin than it showed (CLOSE_LOOP and the "
                    "decisions use the achieved sigma, not the prediction)"))
