@@ -18,6 +18,7 @@ probability of at least as many (``p_at_least_as_many_misses``; small: the state
 
     .venv/bin/python -m benchmarks.truth_partgen [--runs 6] [--first-seed 100] [--misplaced] [--json out.json]
         [--focal-length-mm 12]    (another lens than the detector model's: decision 0046)
+        [--set sim.noise=2 --set camera.exposure_s=0.001 ...]    (any job key, its value as TOML)
 """
 from __future__ import annotations
 
@@ -41,7 +42,7 @@ from tests.test_truth_partgen import (FALSE_SIGNIFICANT_MAX, IN99_MIN, RATIO_BAN
 
 def one(work: Path, seed: int, misplaced: bool, search_weights: str | None = None,
         background_mask: str | None = None, bar_sigma_um: float = 1.0, n_bars: int = 4,
-        focal_length_mm: float | None = None) -> dict:
+        focal_length_mm: float | None = None, settings: tuple[str, ...] = ()) -> dict:
     part = make_part_job(work / f"job{seed}", np.random.default_rng(seed),
                          misplacement=(10.0, 5.0) if misplaced else None, bar_sigma_mm=1e-3 * bar_sigma_um,
                          n_bars=n_bars)
@@ -55,6 +56,12 @@ def one(work: Path, seed: int, misplaced: bool, search_weights: str | None = Non
         if n != 1:
             raise SystemExit(f"{part.job}: [camera] focal_length_mm not found once (found {n})")
         part.job.write_text(text)
+    for setting in settings:  # --set table.key=value: a condition the detector model or the tests never saw
+        name, _, value = setting.partition("=")
+        table, _, key = name.strip().partition(".")
+        if not (table and key and value.strip()):
+            raise SystemExit(f"--set {setting!r}: expected table.key=value (value as TOML: 3.0, \"cad\", [1, 2])")
+        set_key(part.job, table, key, value.strip(), raw=True)
     t0 = time.perf_counter()
     if misplaced:
         loc = run_cell("locate", str(part.job), "--write", timeout=900)
@@ -78,6 +85,9 @@ def one(work: Path, seed: int, misplaced: bool, search_weights: str | None = Non
            "classes_reweighted": sum(c.get("significant", False) for c in shape.get("classes", [])),
            # dots outside the sizes / incidences the model was measured on, and a plan's prediction missed (0047)
            "outside_model_share": outside.get("share_outside"), "model_range_warned": bool(outside.get("mismatch")),
+           # dots the sensor clipped deeply, and the images' light against the model's (decision 0048)
+           "deeply_clipped_share": (outside.get("clipping") or {}).get("share"),
+           "light_factor": outside.get("light_factor"),
            "prediction_said": bool(report["predicted_over_achieved"].get("note"))} | fig | losses(folder)
     # how often this run's criteria would be missed were its statement exactly right (the targets' joint covariance)
     return row | {"meets": meets(row), "odds_of_a_miss": report_odds(report, folder, part)}
@@ -105,14 +115,22 @@ def set_search_weights(job: Path, weights: str) -> None:
     set_key(job, "planning", "search_weights", weights)
 
 
-def set_key(job: Path, table: str, key: str, value: str) -> None:
-    """Write ``[table] key = "value"`` into a generated job file (the table added when it has none)."""
+def set_key(job: Path, table: str, key: str, value: str, raw: bool = False) -> None:
+    """Write ``[table] key = "value"`` (``raw``: ``value`` is TOML as it stands, a number or an array) into a
+    generated job file: the table's own line of that key replaced, else the key added under the table's head (the
+    table added when it has none)."""
     text = job.read_text()
-    line = f'{key} = "{value}"'
-    head = re.compile(rf"^\[{table}\][^\n]*$", re.M)
-    text = head.sub(lambda m: m.group(0) + "\n" + line, text, count=1) if head.search(text) \
-        else text + f"\n[{table}]\n{line}\n"
-    job.write_text(text)
+    line = f"{key} = {value}" if raw else f'{key} = "{value}"'
+    tables = re.split(r"(?m)^(?=\[)", text)
+    for k, part in enumerate(tables):
+        if re.match(rf"\[{re.escape(table)}\]", part):
+            own = re.compile(rf"(?m)^{re.escape(key)}\s*=.*$")
+            tables[k] = own.sub(lambda m: line, part, count=1) if own.search(part) else \
+                re.sub(r"^[^\n]*\n", lambda m: m.group(0) + line + "\n", part, count=1)
+            break
+    else:
+        tables.append(f"\n[{table}]\n{line}\n")
+    job.write_text("".join(tables))
 
 
 def losses(folder: Path) -> dict:
@@ -163,12 +181,15 @@ def main(argv=None) -> int:
                     "its length is off the true one by a draw of it, the same draw per seed whatever the sigma)")
     ap.add_argument("--focal-length-mm", type=float, help="[camera] focal_length_mm of the jobs (default: the "
                     "example's 8 mm, the lens the detector model was measured with; decision 0046)")
+    ap.add_argument("--set", action="append", default=[], metavar="TABLE.KEY=VALUE",
+                    help="a job key of every generated job, VALUE as TOML (e.g. sim.noise=2, camera.exposure_s=0.001, "
+                         "job.target_diameter=3.0); repeatable")
     a = ap.parse_args(argv)
     rows = []
     with tempfile.TemporaryDirectory(prefix="truth-partgen-") as tmp:
         for k in range(a.runs):
             r = one(Path(tmp), a.first_seed + k, a.misplaced, a.search_weights, a.background_mask, a.bar_sigma_um, a.bars,
-                    a.focal_length_mm)
+                    a.focal_length_mm, tuple(a.set))
             rows.append(r)
             print(json.dumps(r), flush=True)
     ok = [r for r in rows if "error" not in r]

@@ -79,10 +79,13 @@ def make_job_sim_cell(job: LoadedJob, seed_offset: int = 0):
         photometry = replace(photometry, max_incidence_rad=float(np.deg2rad(s.sim.dot_max_incidence_deg)))
     return make_sim_cell(job.part, s.base_from_part(), s.flange_from_cam(), job.intrinsics, robot=robot_model(job),
                          deviations=job.deviations, image_sigma_px=s.sim.image_sigma_px, seed=s.sim.seed + seed_offset,
-                         sensor=Sensor().with_noise_scale(s.sim.noise), photometry=photometry,
+                         sensor=Sensor().with_noise_scale(s.sim.noise).with_camera(s.camera.pixel_format,
+                                                                                    s.camera.gain_db),
+                         photometry=photometry,
                          fixture=_fixture_mesh(job),
                          motion=s.sim.motion, time_scale=s.sim.time_scale, true_flange_from_cam=true_ffc,
-                         true_base_from_part=true_bfp, coded_family=s.job.coded_family)
+                         true_base_from_part=true_bfp, coded_family=s.job.coded_family,
+                         exposure_s=s.camera.exposure_s)
 
 
 def open_devices(job: LoadedJob, backend: str, *, seed_offset: int = 0) -> Devices:

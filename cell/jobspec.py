@@ -27,6 +27,7 @@ from scipy.spatial.transform import Rotation
 
 from calibration.camera import Intrinsics, make_pose
 from calibration.errors import JobSpecError
+from drivers.pixels import BIT_DEPTH
 from planning.part import UNITS_TO_M
 
 __all__ = ["JobSpec", "Pose", "check_backend", "load_job", "pose_matrix"]
@@ -137,7 +138,8 @@ class CameraSection(_Strict):
     driver: Literal["genicam", "opencv"] = Field(default="genicam", description="how `device` is opened")
     producer: str | None = Field(default=None, description="GenTL producer .cti (default: GENICAM_GENTL64_PATH)")
     pixel_format: str = Field(default="Mono8", description="GenICam pixel format (Mono8/10/12/16, Mono10p/12p ...)")
-    gain_db: float | None = Field(default=None, description="GenICam Gain (dB); None: leave the camera's")
+    gain_db: float | None = Field(default=None, ge=-40, le=60, description="GenICam Gain (dB); None: leave the camera's "
+                                  "(the simulated cell: unit gain)")
     trigger: str = Field(default="software", description="GenICam frame trigger: software, off, or a line (Line1)")
     strobe_line: str | None = Field(default=None, description="GenICam output line that fires the light (Line2)")
     exposure_s: float = Field(default=0.002, gt=0, le=10)
@@ -153,6 +155,12 @@ class CameraSection(_Strict):
         default="none", description="cad: each dot's background plane is fitted only to pixels of its own surface, "
                                     "labelled from the CAD at the image's resected pose (a dot near an edge of the "
                                     "part; docs/decisions/0035); none: every pixel of the ring around the dot")
+    dot_precision: Literal["model", "stated"] = Field(
+        default="model", description="with observation_weights = 'model', where each dot's noise comes from: model: "
+                                     "the detector model's sigma for every dot; stated: the detector's covariance of "
+                                     "the dot's centre from the image's own measured noise, which follows the light "
+                                     "and the sensor (a dot centred by its ellipse keeps the model; "
+                                     "docs/decisions/0048)")
     observation_weights: Literal["model", "incidence", "equal"] = Field(
         default="model",
         description="model: each observation's a priori sigma from the detector precision model (incidence, dot "
@@ -164,6 +172,9 @@ class CameraSection(_Strict):
     def _dof(self):
         if self.far <= self.near:
             raise ValueError("camera.far must be greater than camera.near")
+        if self.pixel_format not in BIT_DEPTH:
+            raise ValueError(f"camera.pixel_format = {self.pixel_format!r} is not one the cell reads: "
+                             f"{', '.join(BIT_DEPTH)}")
         for key, value, size in (("cx_px", self.cx_px, self.width), ("cy_px", self.cy_px, self.height)):
             if value is not None and not 0 <= value <= size - 1:
                 raise ValueError(f"camera.{key} = {value} lies outside the image (0..{size - 1} px)")

@@ -57,6 +57,7 @@ def make_sim_cell(
     light: Any = None,
     fixture: Any = None,
     coded_family: str = "aruco",
+    exposure_s: float = 0.002,
 ) -> SimCell:
     """Build a simulated cell around ``part``.
 
@@ -74,6 +75,8 @@ def make_sim_cell(
         light: any ``drivers.protocols.Light`` (e.g. the serial driver on the pty emulator), or None.
         fixture: a trimesh in the part frame that hides dots but is not in the CAD (see :class:`World`).
         coded_family: how the coded targets look (``SimCamera``'s ``coded_family``).
+        exposure_s: the camera's exposure time (the job's ``[camera] exposure_s``): the scene's brightness scales
+            with it from the photometry's reference exposure (0.002 s), so a longer one clips more dots.
     """
     if isinstance(robot, str):
         from planning.kinematics import load_robot
@@ -103,5 +106,5 @@ def make_sim_cell(
     )
     opts = replace(render or RenderOptions(), image_sigma_px=float(image_sigma_px))
     camera = SimCamera(world, photometry=photometry or Photometry(), sensor=sensor or Sensor(), options=opts,
-                       coded_family=coded_family)
+                       coded_family=coded_family, exposure_s=exposure_s)
     return SimCell(world=world, robot=sim_robot, camera=camera, light=light)

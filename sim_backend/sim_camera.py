@@ -86,7 +86,12 @@ class Photometry:
 
 @dataclass(frozen=True)
 class Sensor:
-    """Sensor and lens: ``full_well_e`` electrons = full scale; noise off gives a clean image."""
+    """Sensor and lens: ``full_well_e`` electrons = full scale at unit gain; noise off gives a clean image.
+
+    ``gain``: the analog gain (linear; a GenICam ``Gain`` of G dB is ``10 ** (G / 20)``). It multiplies the
+    electrons' signal and their photon and read noise alike before the converter, so the image is brighter, clips
+    sooner and is no less noisy relative to its light: it does not add information.
+    """
 
     bit_depth: int = 8
     full_well_e: float = 10000.0
@@ -94,10 +99,26 @@ class Sensor:
     black_level: float = 0.01
     blur_sigma_px: float = 0.7
     noise: bool = True
+    gain: float = 1.0
 
     def __post_init__(self) -> None:
         if not 8 <= self.bit_depth <= 16:
             raise InputError(f"sensor bit_depth must be 8..16, got {self.bit_depth}")
+        if not (np.isfinite(self.gain) and self.gain > 0):
+            raise InputError(f"sensor gain must be a positive number, got {self.gain}")
+
+    def with_camera(self, pixel_format: str = "Mono8", gain_db: float | None = None) -> "Sensor":
+        """This sensor read out as a GenICam camera set to ``pixel_format`` (its bit depth: ``Mono12`` gives
+        12-bit images in 16-bit words) and ``Gain`` ``gain_db`` (None: unit gain, the camera's own)."""
+        from dataclasses import replace
+
+        from drivers.pixels import PixelFormatUnsupported, bit_depth
+
+        try:
+            bits = bit_depth(pixel_format)
+        except PixelFormatUnsupported as e:
+            raise InputError(f"simulated camera: {e}") from e
+        return replace(self, bit_depth=bits, gain=1.0 if gain_db is None else float(10.0 ** (gain_db / 20.0)))
 
     def with_noise_scale(self, scale: float) -> "Sensor":
         """This sensor with its photon and read noise scaled by ``scale`` (0: no noise).
@@ -166,10 +187,11 @@ def apply_sensor(img: np.ndarray, sensor: Sensor, rng: np.random.Generator | Non
             cv2.randn(zb, 0.0, 1.0)
             sb *= zb
             eb += sb
-            eb *= np.float32(full / sensor.full_well_e)
+            eb *= np.float32(full * sensor.gain / sensor.full_well_e)
             eb += np.float32(sensor.black_level * full)
         else:
-            np.add(xb, np.float32(sensor.black_level), out=eb)
+            np.multiply(xb, np.float32(sensor.gain), out=eb)
+            eb += np.float32(sensor.black_level)
             eb *= np.float32(full)
         np.maximum(eb, np.float32(0.0), out=eb)
         if fast8:  # saturating round (half to even, as np.rint) in one pass
@@ -383,13 +405,14 @@ class SimCamera:
         return np.column_stack([xy, np.ones(len(xy))]), (gh, gw)
 
     def _render_background(self, part_from_cam: np.ndarray, light: float) -> np.ndarray:
-        """Dim Lambertian part under the ring light, (h, w) float32 fraction of full scale."""
+        """Dim Lambertian part under the ring light, (h, w) float32 fraction of full scale; the ambient light is
+        continuous, so the exposure time scales it as it scales the ring light, which the light switch does not."""
         ph, intr = self.photometry, self.intr
         rays, (gh, gw) = self._bg_rays
         d = rays @ part_from_cam[:3, :3].T
         d /= np.linalg.norm(d, axis=1, keepdims=True)
         dist, tri = self.world.first_hit(part_from_cam[:3, 3], d)
-        shade = np.full(len(d), float(ph.ambient_level))
+        shade = np.full(len(d), float(ph.ambient_level * self.exposure_s / ph.reference_exposure_s))
         hit = tri >= 0
         if hit.any():
             n = np.asarray(self.world.scene_mesh.face_normals)[tri[hit]]

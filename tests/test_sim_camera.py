@@ -364,6 +364,56 @@ def test_job_sim_noise_scales_the_sensor_noise(tmp_path):
     assert stds[2.0] / stds[1.0] == pytest.approx(2.0, rel=0.1), stds
 
 
+def test_job_exposure_sets_the_simulated_brightness_in_the_cell_and_in_plans_twin(tmp_path):
+    """``[camera] exposure_s`` reaches the simulated camera and PLAN's twin (the pre-analysis renders): half the
+    reference exposure renders every unclipped pixel at half the irradiance, twice it clips the brightest dots."""
+    from cell.devices import make_job_sim_cell
+    from cell.loadedjob import load
+    from cell.stages.preanalysis import twin_camera
+    from jobutil import job_variant
+
+    T = look_at(np.array([0.25, -0.35, 0.45]), np.zeros(3))
+    clean, twins = {}, {}
+    for exposure in (0.001, 0.002, 0.004):
+        job = load(job_variant(tmp_path / f"e{exposure}", {"camera": {"exposure_s": exposure}}))
+        cell_cam, twin = make_job_sim_cell(job).camera, twin_camera(job)
+        assert cell_cam.exposure_s == twin.exposure_s == exposure
+        clean[exposure] = cell_cam.render(T, noise=False, quantise=False)[0]
+        twins[exposure] = twin.render(T, noise=False, quantise=False)[0]  # the nominal part: its own image
+    for images in (clean, twins):
+        lit = images[0.002] < 0.45  # not near the ceiling at twice the exposure
+        assert (images[0.002][lit] > 0.3).sum() > 1000  # dots among them
+        np.testing.assert_allclose(images[0.001][lit], 0.5 * images[0.002][lit], rtol=1e-4, atol=1e-6)
+        np.testing.assert_allclose(images[0.004][lit], 2.0 * images[0.002][lit], rtol=1e-4, atol=1e-6)
+        assert (images[0.004] >= 0.999).sum() > (images[0.002] >= 0.999).sum()
+
+
+def test_job_pixel_format_and_gain_set_the_simulated_read_out(tmp_path):
+    """``[camera] pixel_format`` sets the simulated images' bit depth (12-bit values in 16-bit words, as the GenICam
+    driver delivers them) and ``gain_db`` multiplies the signal before the converter; a format the cell cannot read
+    is refused when the job is read."""
+    from calibration.errors import JobSpecError
+    from cell.devices import make_job_sim_cell
+    from cell.loadedjob import load
+    from jobutil import job_variant
+
+    T = look_at(np.array([0.25, -0.35, 0.45]), np.zeros(3))
+    grey = {}
+    for fmt, gain in (("Mono8", None), ("Mono12", None), ("Mono12", 6.0)):
+        camera = {"pixel_format": fmt} | ({} if gain is None else {"gain_db": gain})
+        cam = make_job_sim_cell(load(job_variant(tmp_path / f"{fmt}{gain}", {"camera": camera}))).camera
+        img = cam.render(T, noise=False)[0]
+        full = 2**cam.sensor.bit_depth - 1
+        assert img.dtype == (np.uint8 if fmt == "Mono8" else np.uint16) and int(img.max()) <= full
+        grey[fmt, gain] = img.astype(float) / full - cam.sensor.black_level
+    mid = (grey["Mono12", None] > 0.05) & (grey["Mono12", None] < 0.45)
+    assert mid.sum() > 1000
+    np.testing.assert_allclose(grey["Mono12", 6.0][mid], 10 ** 0.3 * grey["Mono12", None][mid], rtol=0.02, atol=2e-3)
+    np.testing.assert_allclose(grey["Mono8", None][mid], grey["Mono12", None][mid], atol=1 / 255)
+    with pytest.raises(JobSpecError, match="pixel_format"):
+        load(job_variant(tmp_path / "rgb", {"camera": {"pixel_format": "RGB8"}}))
+
+
 def test_sensor_noise_scale_is_checked():
     with pytest.raises(InputError, match="noise scale"):
         Sensor().with_noise_scale(-1.0)

@@ -18,6 +18,7 @@ from calibration.errors import CalibrationError, ScaleNotEstablishedError
 from calibration.plausibility import check_adjustment
 from calibration.weights import INCIDENCE_EDGES_DEG, group_labels, incidence_angles, incidence_groups, mean_variance
 from cell.record.jobfolder import atomic_write_bytes, atomic_write_json
+from cell.stages.dot_precision import rms_sigma, stated_weights
 from cell.stages.scalebars import (bar_name, bars_doc, protected_entries, say_bars, shape_reason, snooping_reason,
                                    test_reason)
 from cell.stages.model_shape import geometry_classes, range_check, reweighted, shape_check
@@ -223,6 +224,8 @@ def _adjust(ctx, scr: Screening, use: list[int], obs: dict, obs_image, obs_targe
         # parts, a face-on class estimated at 0.11 px and 280 rejections; the model alone: 10 rejections, honest sigma;
         # the model's shape is checked once after the adjustment instead, below)
         obs_sigma = model_sigmas(job, ctx.backend, poses0, img, tgt, intr0.fx_px)
+        # each centroid-centred dot's noise as the detector states it from its own image (decision 0048)
+        stated, flags["stated"] = stated_weights(job, obs, sel, obs_sigma, ellipse_centred(obs))
         theta, dpx = observation_geometry(targets.xyz, targets.normals, poses0, img, tgt, intr0.fx_px,
                                           job.part.target_diameter_m)
         # a dot next to an edge or a step of the shading: the detector's background bound, its measured share
@@ -237,10 +240,10 @@ def _adjust(ctx, scr: Screening, use: list[int], obs: dict, obs_image, obs_targe
                     "ellipse centre's)")
         # a dot the sensor clipped: the model's saturation term for the clipped share of its pixels (decision 0029)
         clip, has_clip = clipped_shares(obs)
-        if np.any(bg[sel]) or np.any(clip[sel] > 0):
-            model_sigma, obs_sigma = obs_sigma, observation_covariances(
-                obs_sigma, bg[sel], clipped_share=clip[sel], diameter_px=dpx)
-        flags = {"bg": bg[sel], "clip": clip[sel], "bg_centroid": centroid[sel],
+        if np.any(bg[sel]) or np.any(clip[sel] > 0) or stated is not None:
+            model_sigma, obs_sigma = (obs_sigma if stated is None else rms_sigma(stated)), observation_covariances(
+                obs_sigma if stated is None else stated, bg[sel], clipped_share=clip[sel], diameter_px=dpx)
+        flags |= {"bg": bg[sel], "clip": clip[sel], "bg_centroid": centroid[sel],
                  "bg_missing": sorted({obs["images"][int(i)]["image"] for i in obs_image[sel & ~has_bg]}),
                  "clip_missing": sorted({obs["images"][int(i)]["image"] for i in obs_image[sel & ~has_clip]})}
     res = bundle_adjust(img, tgt, uv, intr0, poses0, targets.xyz, options, config, obs_sigma_px=obs_sigma,
@@ -260,11 +263,11 @@ def _adjust(ctx, scr: Screening, use: list[int], obs: dict, obs_image, obs_targe
                 shape["mismatch"] = (shape["mismatch"] or "the images do not follow the detector model's shape") + (
                     "; still off after the reweighting: " + "; ".join(after["off"]))
         flags["shape"] = shape
-        # where the model was measured: weights beyond it are its extrapolation, said when they are many
-        flags["range"] = range_check(np.degrees(theta), dpx, ~res.rejected, load_model().measured_box())
+        # where the model was measured: the weights it gives beyond it are its extrapolation, said when they are many
+        flags["range"] = range_check(np.degrees(theta), dpx, ~res.rejected & ~flags["stated"].pop("usable"),  # model's
+                                     load_model().measured_box(), flags["clip"], ~res.rejected, flags["stated"].get("light"))
     if model_sigma is not None:
-        # sigma0 of an observation of the model's rms sigma: a few dots with large background bounds (near zero
-        # weight) would otherwise dominate the rms a priori sigma the bundle refers sigma0 to
+        # sigma0 of an observation of the noise's rms sigma, not of the rms weight (dots with huge bounds dominate it)
         used = ~res.rejected
         factor = res.sigma0_px**2 / mean_variance(res.obs_sigma_px[used])
         res.sigma0_px = float(np.sqrt(factor * np.mean(model_sigma[used] ** 2)))
@@ -513,7 +516,8 @@ def run_bundle(ctx) -> dict:
         "sigma0_px": res.sigma0_px,
         "observation_weights": (_weights_doc(job, res, groups, model_sigma, flags["bg_missing"])
                                 | _flag_counts(flags, res.rejected) | {"model_shape": flags.get("shape"),
-                                                                               "model_range": flags.get("range")}),
+                                                                               "model_range": flags.get("range"),
+                                                                               "dot_precision": flags.get("stated")}),
         "dof": res.dof,
         "converged": res.converged,
         "summary": res.summary,

@@ -40,6 +40,8 @@ class PredictedRays:
     bg_cov: np.ndarray | None = None  # (q, 2, 2) px^2, the detector's background bound on the render
     clipped_share: np.ndarray | None = None  # (q,) share of the dot's pixels at the sensor's ceiling
     ellipse: np.ndarray | None = None  # (q,) bool, the centre is the ellipse of the dot's contour (decision 0037)
+    cov: np.ndarray | None = None  # (q, 2, 2) px^2, the detector's covariance of the centre (decision 0048)
+    line: np.ndarray | None = None  # (q,) bool, the render's noise line was measured (cell.stages.dot_precision)
     method: str = "rendered"
     facts: dict = field(default_factory=dict)
 
@@ -55,10 +57,16 @@ def twin_camera(job):
     photometry = Photometry()
     if s.sim.dot_max_incidence_deg is not None:
         photometry = replace(photometry, max_incidence_rad=float(np.deg2rad(s.sim.dot_max_incidence_deg)))
-    noise = s.sim.noise if s.cell.backend == "sim" else 1.0
+    # the simulated cell's own sensor (noise, bit depth, gain) and exposure: the brightness of its dots, how many clip
+    # and how precise the rest are; a real camera's exposure and gain say nothing of the twin's light, which stays at
+    # the simulator's reference (its bit depth is kept)
+    sim = s.cell.backend == "sim"
     world = World(job.part, s.base_from_part(), s.flange_from_cam(), job.intrinsics, seed=TWIN_SEED)
-    return SimCamera(world, photometry=photometry, sensor=Sensor().with_noise_scale(noise),
-                     rng=np.random.default_rng(TWIN_SEED), coded_family=s.job.coded_family)
+    exposure = {"exposure_s": s.camera.exposure_s} if sim else {}
+    sensor = Sensor().with_noise_scale(s.sim.noise if sim else 1.0).with_camera(s.camera.pixel_format,
+                                                                                s.camera.gain_db if sim else None)
+    return SimCamera(world, photometry=photometry, sensor=sensor,
+                     rng=np.random.default_rng(TWIN_SEED), coded_family=s.job.coded_family, **exposure)
 
 
 #: the code the renders' measurement depends on: a change to any of them makes a cached result stale (every project
@@ -67,7 +75,7 @@ _SOURCES = ("calibration/dots.py", "calibration/dot_noise.py", "calibration/dot_
             "calibration/targets.py", "calibration/camera.py", "calibration/ringcodes.py", "calibration/errors.py",
             "planning/visibility.py", "planning/cache.py", "planning/stations.py", "sim_backend/coverage.py",
             "drivers/protocols.py", "sim_backend/sim_camera.py", "sim_backend/world.py", "cell/stages/imaging.py",
-            "cell/stages/surface_labels.py", "cell/stages/preanalysis.py")
+            "cell/stages/surface_labels.py", "cell/stages/preanalysis.py", "drivers/pixels.py")
 
 
 def _cache_key(job, poses: np.ndarray) -> str:
@@ -101,7 +109,8 @@ def cached_rendered_rays(job, part_from_cam: np.ndarray, cache_dir, progress=Non
     if path.exists():
         try:
             with np.load(path) as z:
-                r = PredictedRays(z["obs_image"], z["obs_target"], z["bg_cov"], z["clipped_share"], z["ellipse"])
+                r = PredictedRays(z["obs_image"], z["obs_target"], z["bg_cov"], z["clipped_share"], z["ellipse"],
+                                  z["cov"], z["line"])
                 r.facts = json.loads(str(z["facts"]))
             return r
         except (OSError, ValueError, KeyError):  # a torn or foreign file: measured again, rewritten
@@ -111,7 +120,7 @@ def cached_rendered_rays(job, part_from_cam: np.ndarray, cache_dir, progress=Non
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_suffix(f".{os.getpid()}.tmp.npz")
         np.savez(tmp, obs_image=r.obs_image, obs_target=r.obs_target, bg_cov=r.bg_cov,
-                 clipped_share=r.clipped_share, ellipse=r.ellipse, facts=json.dumps(r.facts))
+                 clipped_share=r.clipped_share, ellipse=r.ellipse, cov=r.cov, line=r.line, facts=json.dumps(r.facts))
         os.replace(tmp, path)
     except OSError:  # a read-only cache: measured every time
         pass
@@ -141,21 +150,24 @@ def rendered_rays(job, part_from_cam: np.ndarray, progress=None) -> PredictedRay
             local.surfaces = surface_labeller(job.spec.camera, job.part)  # as MEASURE: [camera] background_mask
         local.cam.rng = np.random.default_rng([TWIN_SEED, i])
         image, _ = local.cam.render(poses[i])
-        m, _ = measure_image(image, job.part, job.intrinsics, invert(poses[i]), local.occluder, detection=detection,
-                             coded_family=job.spec.job.coded_family, surfaces=local.surfaces)
+        m, counts = measure_image(image, job.part, job.intrinsics, invert(poses[i]), local.occluder,
+                                  detection=detection, coded_family=job.spec.job.coded_family, surfaces=local.surfaces)
         with lock:
             done[0] += 1
             if progress is not None:
                 progress("pre-analysis", done[0] / len(poses))
-        return m
+        lv = counts.get("noise_levels")
+        return m, lv is not None and float(lv[1]) != 0.0
 
     workers = max(1, min(2, os.cpu_count() or 1, len(poses)))
     with ThreadPoolExecutor(max_workers=workers) as ex:
         found = list(ex.map(one, range(len(poses))))
-    img_idx, tgt, bg, clip, ell = [], [], [], [], []
+    img_idx, tgt, bg, clip, ell, cov, line = [], [], [], [], [], [], []
     lost: dict[str, int] = {}
-    for i, m in enumerate(found):
+    for i, (m, measured) in enumerate(found):
         k = len(m.target)
+        cov.append(np.full((k, 2, 2), np.nan) if m.cov is None else np.asarray(m.cov, dtype=float).reshape(k, 2, 2))
+        line.append(np.full(k, measured))
         img_idx.append(np.full(k, i))
         tgt.append(np.asarray(m.target, dtype=int))
         bg.append(np.zeros((k, 2, 2)) if m.bg_cov is None else np.asarray(m.bg_cov, dtype=float).reshape(k, 2, 2))
@@ -165,7 +177,7 @@ def rendered_rays(job, part_from_cam: np.ndarray, progress=None) -> PredictedRay
             key = "shape unlike its ellipse" if why.startswith("shape") else why.split(":")[0].split("(")[0].strip()
             lost[key] = lost.get(key, 0) + 1
     r = PredictedRays(np.concatenate(img_idx).astype(int), np.concatenate(tgt).astype(int), np.concatenate(bg),
-                      np.concatenate(clip), np.concatenate(ell))
+                      np.concatenate(clip), np.concatenate(ell), np.concatenate(cov), np.concatenate(line))
     r.facts = {"images_rendered": len(poses), "rays": len(r.obs_target),
                "rays_with_background_bound": int(np.count_nonzero(np.trace(r.bg_cov, axis1=1, axis2=2) > 0)),
                "rays_clipped": int(np.count_nonzero(r.clipped_share > 0)), "dots_left_unnamed": lost}
@@ -232,6 +244,7 @@ def _adjust_exact(job, poses, img, tgt, uv, scr, rays: PredictedRays, order):
     from calibration.bundle import BundleOptions, bundle_adjust
     from calibration.bundle.coherent import scale_bar_gains
     from calibration.detector_model import observation_covariances
+    from cell.stages.dot_precision import noise_weights, rms_sigma, stated_usable
     from cell.stages.adjust import (_add_coherent_background, bundle_config, centroid_bounds_scaled, model_diameters,
                                     model_sigmas)
 
@@ -248,11 +261,17 @@ def _adjust_exact(job, poses, img, tgt, uv, scr, rays: PredictedRays, order):
         bg = centroid_bounds_scaled(bg, np.zeros(len(bg), dtype=bool) if rays.ellipse is None
                                     else rays.ellipse[order][sel])[0]
     clip = None if rays.clipped_share is None else rays.clipped_share[order][sel]
-    obs_sigma = sig if bg is None and clip is None else observation_covariances(
-        sig, bg, clipped_share=clip, diameter_px=model_diameters(job, poses, img, tgt, job.intrinsics.fx_px))
+    noise = sig  # as ADJUST: a centroid-centred dot's noise as the detector states it on the render (decision 0048)
+    if job.spec.camera.dot_precision == "stated" and rays.cov is not None:
+        ell = np.zeros(len(sig), dtype=bool) if rays.ellipse is None else rays.ellipse[order][sel]
+        ok, _ = stated_usable(rays.cov[order][sel], ell, rays.line[order][sel])
+        noise = noise_weights(sig, rays.cov[order][sel], ok)
+    obs_sigma = noise if bg is None and clip is None else observation_covariances(
+        noise, bg, clipped_share=clip, diameter_px=model_diameters(job, poses, img, tgt, job.intrinsics.fx_px))
     config = bundle_config(job, [j for j in range(len(job.scale_bars)) if j not in scr.bars_out])
     res = bundle_adjust(img, tgt, uv, job.intrinsics, poses, xyz,
-                        BundleOptions(sigma_px=float(np.sqrt(np.mean(sig**2))), a_posteriori=False, snooping=False),
+                        BundleOptions(sigma_px=float(np.sqrt(np.mean(rms_sigma(noise) ** 2))), a_posteriori=False,
+                                      snooping=False),
                         config, obs_sigma_px=obs_sigma)
     added: dict = {}
     if bg is not None:

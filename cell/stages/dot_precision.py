@@ -1,0 +1,115 @@
+"""Each dot's noise as the detector states it from its own image: the weights of ADJUST and of PLAN's pre-analysis.
+
+The detector propagates each pixel's noise, measured on the image's own dots as a line in the grey level (decision
+0047), into each centre's 2x2 covariance (``calibration.dots.Detections.cov``, observations.json ``cov_px2``). That
+statement follows what the detector model (``calibration/detector_model.py``, by incidence and dot size in pixels,
+measured once on the simulated camera at its reference light) cannot know: how bright the dots are (exposure, gain,
+the light, the dot's size at a given size in pixels), how noisy the sensor is, and the ellipse's own direction.
+
+Measured against the rendered truth (clean dots of the example, 12 views x 2 noise draws per condition, session
+script; decision 0048), the rms centre error over the rms stated sigma and over the model's a priori sigma:
+
+=====================================  =========  ===========
+condition                              stated     model
+=====================================  =========  ===========
+reference (exposure 2 ms, noise 1)     1.02       0.97
+a third of the light (0.6 ms)          1.08       1.95
+2.5 x the light (5 ms)                 0.98       0.62
+noise x 3                              0.98       0.93
+3 mm dots (12-22 px)                   0.80       0.58
+=====================================  =========  ===========
+
+It is ``[camera] dot_precision = "stated"``, not the default: at the reference light the model predicts the achieved
+precision better (the statement is about 27 % pessimistic on face-on dots), and the model's variance factor is the
+canary that says the light is unlike the model's (the statement absorbs it; :func:`stated_weights` gives the
+``light`` factor for that instead).
+
+A dot centred by the ellipse of its contour (clipped, next to an edge; decision 0037) keeps the model's sigma: its
+centre does not come from the propagated pixels, and its stated covariance is not its error (about 2x pessimistic in
+sigma). So does every dot of an image whose noise line could not be measured (too few dots: the image's one noise
+figure then stood for every pixel, which understates the noise on the dots' bright tops), and a covariance that is
+not a finite positive-definite matrix. Each such fallback is counted in bundle.json.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["SOURCES", "stated_covariances", "stated_usable", "noise_weights", "rms_sigma", "stated_weights"]
+
+#: ``[camera] dot_precision`` values
+SOURCES = ("stated", "model")
+
+
+def stated_usable(cov: np.ndarray, ellipse: np.ndarray, line_measured: np.ndarray) -> tuple[np.ndarray, dict]:
+    """Which observations can be weighted by their stated covariance ``cov: (q, 2, 2)`` px^2: centred by their
+    centroid (``ellipse: (q,)`` False), in an image whose noise line was measured (``line_measured: (q,)``), and
+    finite and positive definite. Returns ``(q,)`` bool and the counts of the others by reason."""
+    C = _symmetric(cov)
+    ell = np.asarray(ellipse, dtype=bool).reshape(-1)
+    line = np.asarray(line_measured, dtype=bool).reshape(-1)
+    finite = np.all(np.isfinite(C), axis=(1, 2))
+    Cf = np.where(finite[:, None, None], C, 1.0)
+    det = Cf[:, 0, 0] * Cf[:, 1, 1] - Cf[:, 0, 1] * Cf[:, 1, 0]
+    pd = finite & (Cf[:, 0, 0] > 0) & (Cf[:, 1, 1] > 0) & (det > 0)
+    ok = pd & ~ell & line
+    why = {"centred_by_ellipse": int(np.count_nonzero(ell)),
+           "noise_line_not_measured": int(np.count_nonzero(~ell & ~line)),
+           "not_positive_definite": int(np.count_nonzero(~ell & line & ~pd))}
+    return ok, why
+
+
+def stated_covariances(obs_doc: dict) -> tuple[np.ndarray, np.ndarray]:
+    """Each observation's stated covariance ``(q, 2, 2)`` px^2 in the order of
+    :func:`cell.stages.adjust.observation_arrays` (NaN where its image has none: a job measured before the
+    detector gave them), and ``(q,)`` bool whether its image's noise line was measured (observations.json
+    ``noise_levels`` with a non-zero slope; an image without the record: not measured)."""
+    C, line = [], []
+    for o in obs_doc["images"]:
+        k = len(o["ids"])
+        c = o.get("cov_px2")
+        arr = np.asarray(c, dtype=float).reshape(-1, 2, 2) if c is not None else None
+        C.append(arr if arr is not None and len(arr) == k else np.full((k, 2, 2), np.nan))
+        lv = o.get("noise_levels")
+        line.append(np.full(k, lv is not None and len(lv) == 2 and float(lv[1]) != 0.0))
+    if not C:
+        return np.zeros((0, 2, 2)), np.zeros(0, dtype=bool)
+    return np.concatenate(C), np.concatenate(line)
+
+
+def noise_weights(model_sigma: np.ndarray, stated: np.ndarray, usable: np.ndarray) -> np.ndarray:
+    """The covariance ``(q, 2, 2)`` px^2 each observation's noise is weighted with: its stated covariance where
+    ``usable``, else the detector model's ``model_sigma: (q,)`` on both coordinates."""
+    s = np.asarray(model_sigma, dtype=float).reshape(-1)
+    C = s[:, None, None] ** 2 * np.eye(2)
+    ok = np.asarray(usable, dtype=bool).reshape(-1)
+    C[ok] = _symmetric(stated)[ok]
+    return C
+
+
+def _symmetric(cov) -> np.ndarray:
+    """``(q, 2, 2)`` covariances made exactly symmetric (a record's rounding can leave the two off-diagonals apart)."""
+    C = np.asarray(cov, dtype=float).reshape(-1, 2, 2)
+    return 0.5 * (C + np.swapaxes(C, 1, 2))
+
+
+def rms_sigma(weights: np.ndarray) -> np.ndarray:
+    """One coordinate's sigma ``(q,)`` of sigmas ``(q,)`` or covariances ``(q, 2, 2)``: sqrt(trace / 2)."""
+    w = np.asarray(weights, dtype=float)
+    return w if w.ndim == 1 else np.sqrt(np.trace(w, axis1=1, axis2=2) / 2.0)
+
+
+def stated_weights(job, obs: dict, sel: np.ndarray, model_sigma: np.ndarray, ellipse: np.ndarray
+                   ) -> tuple[np.ndarray | None, dict]:
+    """ADJUST's noise covariance ``(q, 2, 2)`` of the observations ``sel: (Q,)`` picks out of observations.json
+    ``obs``: the detector's statement where it can stand, the model's ``model_sigma: (q,)`` elsewhere (``ellipse:
+    (Q,)`` the dots centred by their ellipse); None with ``[camera] dot_precision = "model"``. And what bundle.json
+    says of it, with ``usable`` ((q,) bool: weighted by the statement; the caller pops it)."""
+    if job.spec.camera.dot_precision != "stated":
+        return None, {"source": "model", "usable": np.zeros(len(model_sigma), dtype=bool)}
+    cov, line = stated_covariances(obs)
+    ok, why = stated_usable(cov[sel], np.asarray(ellipse, dtype=bool)[sel], line[sel])
+    C = noise_weights(model_sigma, cov[sel], ok)
+    # the images' light and noise against the model's measurement: the stated variance over the model's (median)
+    light = float(np.median(rms_sigma(C[ok]) ** 2 / np.asarray(model_sigma, dtype=float)[ok] ** 2)) if ok.any() else None
+    return C, {"source": "stated", "observations_stated": int(ok.sum()), "observations_by_model": why,
+               "light": light, "usable": ok}
