@@ -203,9 +203,9 @@ def test_deeply_clipped_dots_and_unlike_light_are_counted_and_warned():
     inc, d = rng.uniform(0, 75, 1000), rng.uniform(17, 35, 1000)
     used = np.ones(1000, bool)
     clip = np.zeros(1000)
-    clip[:280] = 0.75  # the most a generated part had at the reference exposure: 27.8 % deeply clipped
+    clip[:290] = 0.75  # the most a generated part had at the reference exposure: 29.0 % deeply clipped
     calm = range_check(inc, d, used, box, clip, used, light_factor=1.1)
-    assert calm["mismatch"] is None and calm["clipping"]["deeply_clipped"] == 280 and calm["light_factor"] == 1.1
+    assert calm["mismatch"] is None and calm["clipping"]["deeply_clipped"] == 290 and calm["light_factor"] == 1.1
     clip[:600] = 0.75
     clip[600:650] = DEEP_CLIP - 0.01  # just below: not deep
     bright = range_check(inc, d, used, box, clip, used)
