@@ -298,8 +298,8 @@ def observation_covariances(sigma_px: np.ndarray, background_cov: np.ndarray | N
                             model: DetectorModel | None = None, clipped_share: np.ndarray | None = None,
                             diameter_px: np.ndarray | None = None) -> np.ndarray:
     """A priori covariance of each observation ``(q, 2, 2)`` px^2: the model's ``sigma_px: (q,)`` on both
-    coordinates (or a ``(q, 2, 2)`` covariance of the dot's noise: the detector's statement, decision 0048) plus ``c_background^2`` times the detector's background bound ``background_cov: (q, 2, 2)``
-    (None: no bound, e.g. a job measured before the detector gave one), plus the saturation term for the clipped
+    coordinates (or a ``(q, 2, 2)`` covariance of the dot's noise: the detector's statement, decision 0048) plus
+    ``c_background^2`` times the detector's background bound ``background_cov: (q, 2, 2)`` (None: no bound, e.g. a job measured before the detector gave one), plus the saturation term for the clipped
     share of each dot's pixels ``clipped_share: (q,)`` (None: not known) and its diameter ``diameter_px: (q,)``
     (:func:`observation_diameters`; the model's saturation term grows with it)."""
     model = model or load_model()

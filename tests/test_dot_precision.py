@@ -42,6 +42,30 @@ def test_the_statement_weighs_centroid_dots_of_images_whose_noise_line_was_measu
     np.testing.assert_allclose(total[0] - C[0], load_model().c_background ** 2 * np.eye(2))
 
 
+def test_dots_whose_statement_could_not_be_made_are_a_fallback_said_when_many():
+    """Dots centred by their ellipse keep the model by design; dots of an image without a noise line are a fallback,
+    said (with the model-range warnings) when they are more than a tenth of the observations."""
+    from types import SimpleNamespace
+
+    from cell.stages.dot_precision import FALLBACK_SHARE_MAX, stated_weights
+    from cell.stages.model_shape import range_check
+
+    job = SimpleNamespace(spec=SimpleNamespace(camera=SimpleNamespace(dot_precision="stated")))
+    sel = np.ones(7, dtype=bool)
+    C, ok, doc = stated_weights(job, _doc(), sel, np.full(7, 0.02), np.zeros(7, dtype=bool))
+    assert C.shape == (7, 2, 2) and ok.sum() == 2 and doc["observations_stated"] == 2
+    assert 5 > FALLBACK_SHARE_MAX * 7 and "5 of 7 observations keep the detector model's sigma" in doc["fallback"]
+    box = (np.radians(80.0), 15.4, 38.9)
+    said = range_check(np.full(7, 30.0), np.full(7, 20.0), ~ok, box, np.zeros(7), sel, doc)["mismatch"]
+    assert doc["fallback"] in said
+    only_ellipses = {"images": [{"ids": ["A", "B"], "cov_px2": [np.eye(2) * 1e-4] * 2, "noise_levels": [0.1, 0.02]}]}
+    _, ok, doc = stated_weights(job, only_ellipses, np.ones(2, bool), np.full(2, 0.02), np.array([True, False]))
+    assert ok.tolist() == [False, True] and doc["fallback"] is None
+    job.spec.camera.dot_precision = "model"
+    C, ok, doc = stated_weights(job, _doc(), sel, np.full(7, 0.02), np.zeros(7, dtype=bool))
+    assert C is None and not ok.any() and doc == {"source": "model"}
+
+
 def test_a_record_rounded_apart_is_made_symmetric():
     cov = np.array([[[1e-4, 2.0000001e-5], [2e-5, 3e-4]]])
     ok, _ = stated_usable(cov, np.zeros(1, bool), np.ones(1, bool))

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from cell.record.report import render_html
-from cell.stages.adjust import VARIANCE_FACTOR_RANGE, model_mismatch
+from cell.stages.model_shape import VARIANCE_FACTOR_RANGE, model_mismatch
 from cell.record.runlog import read_messages
 from tests.jobutil import job_variant, run_cell
 

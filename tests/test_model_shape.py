@@ -204,7 +204,7 @@ def test_deeply_clipped_dots_and_unlike_light_are_counted_and_warned():
     used = np.ones(1000, bool)
     clip = np.zeros(1000)
     clip[:290] = 0.75  # the most a generated part had at the reference exposure: 29.0 % deeply clipped
-    calm = range_check(inc, d, used, box, clip, used, light_factor=1.1)
+    calm = range_check(inc, d, used, box, clip, used, {"light": 1.1, "fallback": None})
     assert calm["mismatch"] is None and calm["clipping"]["deeply_clipped"] == 290 and calm["light_factor"] == 1.1
     clip[:600] = 0.75
     clip[600:650] = DEEP_CLIP - 0.01  # just below: not deep
@@ -215,10 +215,16 @@ def test_deeply_clipped_dots_and_unlike_light_are_counted_and_warned():
     kept = used.copy()
     kept[:300] = False
     assert clipping_check(clip, kept)["deeply_clipped"] == 300
-    dim = range_check(inc, d, used, box, np.zeros(1000), used, light_factor=LIGHT_FACTOR_RANGE[1] * 1.5)
+    dim = range_check(inc, d, used, box, np.zeros(1000), used, {"light": LIGHT_FACTOR_RANGE[1] * 1.5})
     assert "dimmer or the sensor noisier" in dim["mismatch"]
-    glare = range_check(inc, d, used, box, np.zeros(1000), used, light_factor=LIGHT_FACTOR_RANGE[0] / 2)
+    glare = range_check(inc, d, used, box, np.zeros(1000), used, {"light": LIGHT_FACTOR_RANGE[0] / 2})
     assert "brighter or the sensor quieter" in glare["mismatch"]
+    # the variance factor's warning names what it is a factor of: the model's sigma, or the detector's statement
+    from cell.stages.model_shape import model_mismatch
+
+    assert "the detector model's image sigma" in model_mismatch(4.0) and "the model does not" in model_mismatch(4.0)
+    stated = model_mismatch(4.0, "stated")
+    assert "the detector's stated sigma" in stated and "the statement does not describe" in stated
 
 
 def _records(run) -> tuple[Path, list[str], dict, dict]:
@@ -261,3 +267,8 @@ def test_the_detectors_statement_weighs_the_dots_and_says_light_unlike_the_model
     assert "dimmer or the sensor noisier" in said and said in logged and f"WARNING {said}" in run.stderr
     assert report["uncertainty_budget"]["detector_model_range"] == said
     assert 0.75 <= report["predicted_over_achieved"]["median"] <= 1.25, report["predicted_over_achieved"]
+    # PLAN's pre-analysis weighed the renders' dots the same way, and plan.json says so
+    prediction = json.loads((folder / "plan.json").read_text())["prediction"]
+    planned = prediction["facts"]["dot_precision"]
+    assert planned["source"] == "stated" and planned["observations_stated"] > 0, planned
+    assert prediction["image_precision"].startswith("the detector's stated covariance")

@@ -21,7 +21,7 @@ from cell.record.jobfolder import atomic_write_bytes, atomic_write_json
 from cell.stages.dot_precision import rms_sigma, stated_weights
 from cell.stages.scalebars import (bar_name, bars_doc, protected_entries, say_bars, shape_reason, snooping_reason,
                                    test_reason)
-from cell.stages.model_shape import geometry_classes, range_check, reweighted, shape_check
+from cell.stages.model_shape import geometry_classes, model_mismatch, range_check, reweighted, shape_check
 from cell.stages.screen import Resection, Screening, resect, screen_network
 
 
@@ -191,10 +191,6 @@ def max_rejections(n_obs: int) -> int:
 #: a target whose sigma is this many times the median target's is not determined (two nearly parallel rays):
 #: its near-singular block spoils the whole covariance (one 1 m-deep target gave every target a 9 mm axis)
 WILD_SIGMA_FACTOR = 100.0
-#: the variance factor (a posteriori / detector model image variance) of images the model describes: 0.84-0.97 on 24
-#: generated parts (benchmarks/truth_partgen.py), 0.84 on the example; 14-21 with 0.03 px of jitter added to every
-#: dot ([sim] image_sigma_px). Outside this range the model does not describe the images (decision 0044)
-VARIANCE_FACTOR_RANGE = (0.5, 2.0)
 #: adjustments after dropping what the previous one could not use (targets behind a camera, wild targets)
 MAX_RETRIES = 4
 
@@ -225,7 +221,7 @@ def _adjust(ctx, scr: Screening, use: list[int], obs: dict, obs_image, obs_targe
         # the model's shape is checked once after the adjustment instead, below)
         obs_sigma = model_sigmas(job, ctx.backend, poses0, img, tgt, intr0.fx_px)
         # each centroid-centred dot's noise as the detector states it from its own image (decision 0048)
-        stated, flags["stated"] = stated_weights(job, obs, sel, obs_sigma, ellipse_centred(obs))
+        stated, usable, flags["stated"] = stated_weights(job, obs, sel, obs_sigma, ellipse_centred(obs))
         theta, dpx = observation_geometry(targets.xyz, targets.normals, poses0, img, tgt, intr0.fx_px,
                                           job.part.target_diameter_m)
         # a dot next to an edge or a step of the shading: the detector's background bound, its measured share
@@ -263,9 +259,9 @@ def _adjust(ctx, scr: Screening, use: list[int], obs: dict, obs_image, obs_targe
                 shape["mismatch"] = (shape["mismatch"] or "the images do not follow the detector model's shape") + (
                     "; still off after the reweighting: " + "; ".join(after["off"]))
         flags["shape"] = shape
-        # where the model was measured: the weights it gives beyond it are its extrapolation, said when they are many
-        flags["range"] = range_check(np.degrees(theta), dpx, ~res.rejected & ~flags["stated"].pop("usable"),  # model's
-                                     load_model().measured_box(), flags["clip"], ~res.rejected, flags["stated"].get("light"))
+        # where the model was measured (of the dots it weighs), how many dots clipped deeply, the light: said when off
+        flags["range"] = range_check(np.degrees(theta), dpx, ~res.rejected & ~usable, load_model().measured_box(),
+                                     flags["clip"], ~res.rejected, flags["stated"])
     if model_sigma is not None:
         # sigma0 of an observation of the noise's rms sigma, not of the rms weight (dots with huge bounds dominate it)
         used = ~res.rejected
@@ -616,24 +612,6 @@ def _flag_counts(flags: dict, rejected) -> dict:
                   "images_without_clipped_share": list(flags["clip_missing"])}
 
 
-def model_mismatch(variance_factor: float) -> str | None:
-    """What a variance factor outside :data:`VARIANCE_FACTOR_RANGE` says (None inside it): the images fit the
-    detector model's image sigma that many times worse (or better). The stated uncertainties follow the images
-    (a posteriori), the plan's prediction and the model do not."""
-    lo, hi = VARIANCE_FACTOR_RANGE
-    if not np.isfinite(variance_factor):
-        return f"variance factor {variance_factor}: the images' fit to the detector model is unknown"
-    if lo <= variance_factor <= hi:
-        return None
-    head = (f"the images fit {np.sqrt(variance_factor):.2f}x the detector model's image sigma (variance factor "
-            f"{variance_factor:.2f}, {lo:g}-{hi:g} expected)")
-    if variance_factor > hi:
-        return (head + ": the model does not describe these images (focus, vibration, exposure, the targets' print?); "
-                "the stated uncertainties follow the images, the plan's predicted sigma does not")
-    return (head + ": better than the model allows; check that the job's camera and [sim] settings are the ones that "
-            "took the images; the stated uncertainties were scaled down with them")
-
-
 def _weights_doc(job, res, groups, model_sigma=None, bg_missing=()) -> dict:
     """The a priori image sigmas the adjustment used: one per incidence class (estimated) or one for all.
 
@@ -650,7 +628,7 @@ def _weights_doc(job, res, groups, model_sigma=None, bg_missing=()) -> dict:
                 "a_priori_sigma_px": {"median": float(np.median(used)), "p90": float(np.quantile(used, 0.9)),
                                       "max": float(np.max(used))},
                 "variance_factor": (vf := float((res.sigma0_px / np.sqrt(np.mean(used**2))) ** 2)),
-                "model_mismatch": model_mismatch(vf)}
+                "model_mismatch": model_mismatch(vf, job.spec.camera.dot_precision)}
     if groups is None or vc is None:
         return {"method": "equal", "sigma_px": job.spec.camera.sigma_px}
     edges = (0.0,) + INCIDENCE_EDGES_DEG + (90.0,)

@@ -34,10 +34,13 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["SOURCES", "stated_covariances", "stated_usable", "noise_weights", "rms_sigma", "stated_weights"]
+__all__ = ["FALLBACK_SHARE_MAX", "SOURCES", "stated_covariances", "stated_usable", "noise_weights", "rms_sigma", "stated_weights"]
 
 #: ``[camera] dot_precision`` values
 SOURCES = ("stated", "model")
+#: more of the observations than this share falling back to the model (not by design: their statement could not be
+#: made) is said with the model-range warnings
+FALLBACK_SHARE_MAX = 0.1
 
 
 def stated_usable(cov: np.ndarray, ellipse: np.ndarray, line_measured: np.ndarray) -> tuple[np.ndarray, dict]:
@@ -99,17 +102,26 @@ def rms_sigma(weights: np.ndarray) -> np.ndarray:
 
 
 def stated_weights(job, obs: dict, sel: np.ndarray, model_sigma: np.ndarray, ellipse: np.ndarray
-                   ) -> tuple[np.ndarray | None, dict]:
+                   ) -> tuple[np.ndarray | None, np.ndarray, dict]:
     """ADJUST's noise covariance ``(q, 2, 2)`` of the observations ``sel: (Q,)`` picks out of observations.json
     ``obs``: the detector's statement where it can stand, the model's ``model_sigma: (q,)`` elsewhere (``ellipse:
-    (Q,)`` the dots centred by their ellipse); None with ``[camera] dot_precision = "model"``. And what bundle.json
-    says of it, with ``usable`` ((q,) bool: weighted by the statement; the caller pops it)."""
+    (Q,)`` the dots centred by their ellipse); None with ``[camera] dot_precision = "model"``. Also ``(q,)`` bool,
+    which are weighted by the statement, and what bundle.json says of it (with ``light``: the median of the stated
+    variance over the model's, the images' light and noise against the model's measurement; None when no dot has a
+    statement)."""
     if job.spec.camera.dot_precision != "stated":
-        return None, {"source": "model", "usable": np.zeros(len(model_sigma), dtype=bool)}
+        return None, np.zeros(len(model_sigma), dtype=bool), {"source": "model"}
     cov, line = stated_covariances(obs)
     ok, why = stated_usable(cov[sel], np.asarray(ellipse, dtype=bool)[sel], line[sel])
     C = noise_weights(model_sigma, cov[sel], ok)
-    # the images' light and noise against the model's measurement: the stated variance over the model's (median)
     light = float(np.median(rms_sigma(C[ok]) ** 2 / np.asarray(model_sigma, dtype=float)[ok] ** 2)) if ok.any() else None
-    return C, {"source": "stated", "observations_stated": int(ok.sum()), "observations_by_model": why,
-               "light": light, "usable": ok}
+    doc = {"source": "stated", "observations_stated": int(ok.sum()), "observations_by_model": why, "light": light,
+           "fallback": None}
+    # a dot centred by its ellipse keeps the model by design; one whose statement could not be made is a fallback
+    lost = why["noise_line_not_measured"] + why["not_positive_definite"]
+    if lost > FALLBACK_SHARE_MAX * max(len(ok), 1):
+        doc["fallback"] = (f"dot_precision = \"stated\": {lost} of {len(ok)} observations keep the detector model's "
+                           f"sigma ({why['noise_line_not_measured']} in images whose noise line could not be measured, "
+                           f"too few dots; {why['not_positive_definite']} whose covariance is not finite): their "
+                           "weights do not follow the light")
+    return C, ok, doc

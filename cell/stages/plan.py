@@ -176,8 +176,11 @@ def run(ctx) -> None:
         doc["prediction"] = {"method": "pre-analysis: the job's bundle adjustment (self-calibration, datum) on exact "
                                        "observations of the nominal targets from the planned stations",
                              "rays": pre_facts["rays_from"],
-                             "image_precision": "detector model (calibration/data/detector_precision.json), with the "
-                                                "background bounds and clipped shares of the renders where rendered",
+                             "image_precision": ("the detector's stated covariance of each centroid-centred dot on the "
+                                                 "renders, the detector model for the others (decision 0048; facts "
+                                                 "dot_precision)" if ctx.job.spec.camera.dot_precision == "stated"
+                                                 else "detector model (calibration/data/detector_precision.json)")
+                             + ", with the background bounds and clipped shares of the renders where rendered",
                              "facts": pre_facts}
         if pre_facts.get("scale_established") is False:  # ADJUST would fault with this plan's images
             msg = (f"plan: the renders of the plan do not establish the scale ({pre_facts.get('scale_reason')}): the "

@@ -261,11 +261,14 @@ def _adjust_exact(job, poses, img, tgt, uv, scr, rays: PredictedRays, order):
         bg = centroid_bounds_scaled(bg, np.zeros(len(bg), dtype=bool) if rays.ellipse is None
                                     else rays.ellipse[order][sel])[0]
     clip = None if rays.clipped_share is None else rays.clipped_share[order][sel]
-    noise = sig  # as ADJUST: a centroid-centred dot's noise as the detector states it on the render (decision 0048)
-    if job.spec.camera.dot_precision == "stated" and rays.cov is not None:
-        ell = np.zeros(len(sig), dtype=bool) if rays.ellipse is None else rays.ellipse[order][sel]
-        ok, _ = stated_usable(rays.cov[order][sel], ell, rays.line[order][sel])
-        noise = noise_weights(sig, rays.cov[order][sel], ok)
+    noise, stated = sig, None  # as ADJUST: a centroid-centred dot's noise as the detector states it (decision 0048)
+    if job.spec.camera.dot_precision == "stated":
+        stated = {"source": "model", "why": "no renders to state the dots' noise (geometric rays)"}
+        if rays.cov is not None:
+            ell = np.zeros(len(sig), dtype=bool) if rays.ellipse is None else rays.ellipse[order][sel]
+            ok, why = stated_usable(rays.cov[order][sel], ell, rays.line[order][sel])
+            noise = noise_weights(sig, rays.cov[order][sel], ok)
+            stated = {"source": "stated", "observations_stated": int(ok.sum()), "observations_by_model": why}
     obs_sigma = noise if bg is None and clip is None else observation_covariances(
         noise, bg, clipped_share=clip, diameter_px=model_diameters(job, poses, img, tgt, job.intrinsics.fx_px))
     config = bundle_config(job, [j for j in range(len(job.scale_bars)) if j not in scr.bars_out])
@@ -278,6 +281,8 @@ def _adjust_exact(job, poses, img, tgt, uv, scr, rays: PredictedRays, order):
         bars = config.scale_bars
         K = scale_bar_gains(res.covariance, res.points, bars, res.variance_factor)[0] if bars else None
         added = _add_coherent_background(res, bg, img, tgt, list(job.part.targets.ids), bars, K)
+    if stated is not None:  # plan.json says which dots the prediction weighed by the statement, and why not the rest
+        added["dot_precision"] = stated
     return res, added
 
 
@@ -319,6 +324,8 @@ def measurement_prediction(job, part_from_cam: np.ndarray, progress=None, cache_
         facts["scale_reason"] = added.pop("scale_reason")
     if "scale_bars_left_out" in added:
         facts["scale_bars_left_out"] = added.pop("scale_bars_left_out")
+    if "dot_precision" in added:
+        facts["dot_precision"] = added.pop("dot_precision")
     if added:
         facts["shared_misfit_targets"] = added.get("n_targets", 0)
         facts["scale_bar_ends"] = added.get("scale_bar_ends", [])
