@@ -79,6 +79,11 @@ class JobSection(_Strict):
                                   description="at least 6: an image is oriented from 6 or more targets")
     n_coded: int = Field(default=8, ge=0, le=250)
     target_diameter: float = Field(default=6.0, gt=0, description="retro dot diameter, job units")
+    target_thickness: float | None = Field(
+        default=None, ge=0, description="how far each target's face stands above the CAD surface, job units (adhesive "
+                                        "dots 0.1-0.3 mm, magnetic ones 1-2 mm; 0: flush). The cell measures the face's "
+                                        "centre and compares it with the CAD point lifted along its normal by this; "
+                                        "not given: 0, and said in the report of a real cell (decision 0049)")
     coded_size: float = Field(default=20.0, gt=0, description="ArUco marker side, job units")
     coded_family: Literal["aruco", "ring12", "ring14", "schneider12", "schneider14", "cct8", "cct12"] = Field(
         default="aruco", description="the coded targets the part carries: ArUco DICT_4X4_250 markers, or ring codes "
@@ -90,6 +95,13 @@ class JobSection(_Strict):
                                                 "their certificates are tested against each other (decision 0041)")
     number: str | None = Field(default=None, max_length=80, description="the part number (drawing), e.g. 'BR-1002'")
     revision: str | None = Field(default=None, max_length=40, description="the part's drawing revision")
+
+    @model_validator(mode="after")
+    def _thin_targets(self):
+        if self.target_thickness is not None and self.target_thickness >= self.target_diameter:
+            raise ValueError(f"target_thickness ({self.target_thickness}) must be below target_diameter "
+                             f"({self.target_diameter}): a target thicker than wide is a typo (units?)")
+        return self
 
     @model_validator(mode="after")
     def _targets_or_count(self):
@@ -345,6 +357,9 @@ class SimSection(_Strict):
                                              "stays put when `cell locate --write` updates [cell] base_from_part")
     dot_max_incidence_deg: float | None = Field(default=None, gt=0, le=90, description="glare: dots seen beyond this "
                                                 "incidence are washed out in the simulated images (the plan does not know)")
+    target_thickness: float | None = Field(default=None, ge=0, description="the simulated targets' true thickness, job "
+                                           "units, where it is not what [job] target_thickness says (a job that "
+                                           "mis-states it; default: as the job says)")
     fixture: list[Obstacle] = Field(default=[], description="boxes in the part frame (job units) that hide dots in the "
                                     "simulated images but are not in the part's CAD (the plan does not know them)")
     unreachable_stations: list[str] = Field(default=[], description="planned station ids whose move the simulated "
@@ -376,6 +391,8 @@ class JobSpec(_Strict):
         k = UNITS_TO_M[self.job.units]
         c = self.cell
         lengths = {"job.target_diameter": [self.job.target_diameter], "job.coded_size": [self.job.coded_size],
+                   "job.target_thickness": [self.job.target_thickness or 0.0],
+                   "sim.target_thickness": [self.sim.target_thickness or 0.0],
                    "camera.near": [self.camera.near], "camera.far": [self.camera.far],
                    "cell.base_from_part.xyz": c.base_from_part.xyz, "cell.flange_from_cam.xyz": c.flange_from_cam.xyz,
                    "cell.table_z": [c.table_z], "cell.camera_box": c.camera_box,

@@ -3,7 +3,7 @@
 Used by every stage and by the cell's own calibration jobs; the LOAD stage is :mod:`cell.stages.load`."""
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -28,6 +28,9 @@ class LoadedJob:
         tolerance_m: (n,) tolerance per target.
         scale_bars: ``(index_a, index_b, length_m, sigma_m)`` per scale bar of the job file (``[job] scale_bar`` or
             ``scale_bars``, in their order); empty without one.
+        target_thickness_m: how far the targets' faces stand above the CAD surface (``[job] target_thickness``). The
+            part's target positions are the faces' centres, the CAD points lifted along their normals by it: what
+            the camera sees and the cell measures. REPORT gives coordinates and deviations on the surface.
     """
 
     spec: JobSpec
@@ -38,6 +41,11 @@ class LoadedJob:
     deviations: np.ndarray
     tolerance_m: np.ndarray
     scale_bars: tuple[tuple[int, int, float, float], ...] = ()
+    target_thickness_m: float = 0.0
+
+    def surface_points(self, xyz: np.ndarray) -> np.ndarray:
+        """Target face centres ``xyz`` (n, 3), part frame, -> the CAD surface points under them."""
+        return np.asarray(xyz, dtype=float) - self.target_thickness_m * self.part.targets.normals
 
     def summary(self) -> dict:
         s = self.spec
@@ -49,6 +57,7 @@ class LoadedJob:
             "scale_bars": [{"a": self.part.targets.ids[a], "b": self.part.targets.ids[b], "length_m": L}
                            for a, b, L, _ in self.scale_bars],
             "sim_deviations": int((np.linalg.norm(self.deviations, axis=1) > 0).sum()),
+            "target_thickness_m": self.target_thickness_m,
         }
 
 
@@ -77,6 +86,9 @@ def load(job_path: str | Path, overrides: dict[str, str] | None = None) -> Loade
         coded_size_m=j.coded_size * s,
         tessellation_tolerance=j.tessellation_tolerance,
     )
+    thickness = (j.target_thickness or 0.0) * s
+    if thickness > 0:  # the camera sees the targets' faces: the part's targets are their centres from here on
+        part = replace(part, targets=replace(part.targets, xyz=part.targets.xyz + thickness * part.targets.normals))
     ids = part.targets.ids
     scale_bars = []
     index = part.targets.index()
@@ -109,6 +121,8 @@ def load(job_path: str | Path, overrides: dict[str, str] | None = None) -> Loade
     deviations = np.zeros((len(ids), 3))
     if spec.sim.deviations:
         deviations = load_deviations(resolve(folder, spec.sim.deviations), ids, s)
+    if spec.sim.target_thickness is not None:  # the simulated targets are not as thick as the job says
+        deviations = deviations + (spec.sim.target_thickness * s - thickness) * part.targets.normals
     tol = part.targets.tolerance_m.copy()
     tol[~np.isfinite(tol)] = spec.report.tolerance * s
     return LoadedJob(
@@ -120,4 +134,5 @@ def load(job_path: str | Path, overrides: dict[str, str] | None = None) -> Loade
         deviations=deviations,
         tolerance_m=tol,
         scale_bars=tuple(scale_bars),
+        target_thickness_m=thickness,
     )

@@ -222,12 +222,16 @@ def make_part_job(out: Path, rng: np.random.Generator, kind: str | None = None, 
     # bar its own draw. Drawn from a child stream: the part, its deviations and its plan are the same as without it.
     bar_sigma = float(bar_sigma_mm)
     draws = rng.spawn(1)[0].standard_normal(len(bars))
-    tables = [f'{{ a = "{ids[a]}", b = "{ids[b]}", length = {np.linalg.norm(xyz[a] - xyz[b]) + bar_sigma * z:.5f}, '
+    # the targets are adhesive dots 0.05-0.3 mm thick (decision 0049): the camera sees their faces, the job says how
+    # thick they are, and a bar's certificate is the length between its ends' faces. A child stream of its own.
+    thickness = round(float(rng.spawn(1)[0].uniform(0.05, 0.3)), 2)
+    face = xyz + thickness * nrm
+    tables = [f'{{ a = "{ids[a]}", b = "{ids[b]}", length = {np.linalg.norm(face[a] - face[b]) + bar_sigma * z:.5f}, '
               f'sigma = {bar_sigma} }}' for (a, b), z in zip(bars, draws)]
     line = f"scale_bar = {tables[0]}" if len(tables) == 1 else f"scale_bars = [{', '.join(tables)}]"
     text = re.sub(r"(?m)^scale_bar = .*$", lambda m: line, text)
     text = re.sub(r"(?m)^seed = 7$", f"seed = {int(rng.integers(1, 1000))}", text)
-    text = re.sub(r"(?m)^target_diameter = .*$", f"target_diameter = {dot}", text)
+    text = re.sub(r"(?m)^target_diameter = .*$", f"target_diameter = {dot}\ntarget_thickness = {thickness}", text)
     text = re.sub(r"(?m)^coded_size = .*$", f"coded_size = {coded_mm}", text)
     # a dot the viewing sphere cannot see min_rays times (a low side face, under a flange) is reported not measured:
     # the generator places dots anywhere on the outside, as a designer would

@@ -153,7 +153,9 @@ def given_certificate(report: dict, part) -> dict:
     if not bars:
         return {}
     with open(Path(part.job).parent / job["targets"], newline="") as f:
-        cad = {r["id"]: np.array([float(r["x"]), float(r["y"]), float(r["z"])]) for r in csv.DictReader(f)}
+        # a bar's true length is between its ends' faces: the CAD points lifted by the targets' thickness
+        th = float(job.get("target_thickness") or 0.0)
+        cad = {r["id"]: np.array([float(r[a]) + th * float(r["n" + a]) for a in "xyz"]) for r in csv.DictReader(f)}
     err_mm, sig_mm = [], []
     for bar in bars:
         ends = [cad[bar[k]] + np.asarray(part.deviations.get(bar[k], np.zeros(3))) for k in ("a", "b")]

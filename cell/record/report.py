@@ -259,6 +259,9 @@ def _alerts(doc: dict) -> str:
                    f"resection with the common interior orientation: {html.escape(listed)}</div>")
     for n in al.get("notes", []):
         out.append(f'<div class="warn">Alignment: {html.escape(n)}</div>')
+    th = doc.get("target_thickness") or {}
+    if th.get("note"):
+        out.append(f'<div class="warn" id="thickness-unstated">Targets: {html.escape(th["note"])}</div>')
     return "".join(out)
 
 
@@ -280,10 +283,15 @@ def _alignment_facts(doc: dict) -> dict:
 
 
 def _measure_facts(doc: dict) -> dict:
+    th = doc.get("target_thickness")
+    out = {} if th is None else {"Target thickness": (
+        f"{th['thickness_m'] * 1e3:.3g} mm, taken off along each target's CAD normal: coordinates are of the surface"
+        if th.get("thickness_m") else "0 (coordinates are of the targets' faces)")
+        + ("" if th.get("stated_in_job") else "; not given in the job")}
     dr = doc.get("identification_dropped")
     if dr is None:
-        return {}
-    return {"Named dots left unnamed (MEASURE)": f"{dr.get('n_dropped', 0)}" + (": " + ", ".join(
+        return out
+    return out | {"Named dots left unnamed (MEASURE)": f"{dr.get('n_dropped', 0)}" + (": " + ", ".join(
         f"{v} {k}" for k, v in dr["by_reason"].items()) if dr.get("by_reason") else "")}
 
 

@@ -202,6 +202,11 @@ def run(ctx) -> None:
 
         bar_rendered = [rendered_rays_note(d, [int(pred[1][k]) for k in bar[:2]])
                         for d, bar in zip(doc["scale_bars"], ctx.job.scale_bars)]
+    if ctx.job.target_thickness_m:  # plan.json's xyz is the CAD nominal (ARCHITECTURE.md), not the targets' faces
+        cad = ctx.job.surface_points(ctx.job.part.targets.xyz)
+        index = ctx.job.part.targets.index()
+        for t in doc["targets"]:
+            t["xyz"] = cad[index[t["id"]]].tolist()
     atomic_write_json(ctx.folder.file("plan.json"), doc)
     try:
         from planning.plot import plot_plan

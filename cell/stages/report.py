@@ -77,6 +77,22 @@ def alignment_doc(out: AlignmentOutcome, ids: list[str], spec) -> dict:
     return doc
 
 
+def thickness_doc(job, backend: str) -> dict:
+    """report.json ``target_thickness``: how far the targets' faces stood above the CAD surface, and whether the job
+    said so. A real cell whose job does not say it gets a note: its targets have a thickness, which then shows as a
+    deviation along every normal (decision 0049)."""
+    given = job.spec.job.target_thickness is not None
+    doc = {"thickness_m": job.target_thickness_m, "stated_in_job": given,
+           "compensation": "coordinates are of the CAD surface under each target: the measured face centre less the "
+                           "thickness along the target's CAD normal; deviations are the face's own"}
+    if not given and backend != "sim":
+        doc["note"] = (f"the job does not give [job] target_thickness: the cell measures the centre of each target's "
+                       f"face, which stands the target's thickness above the surface (adhesive dots 0.1-0.3 mm, "
+                       f"magnetic ones 1-2 mm), and takes it as a deviation along every normal; give it in "
+                       f"{job.spec.job.units} (0 for targets flush with the surface)")
+    return doc
+
+
 def _calibration_status(ctx) -> dict:
     """Whether the cell was within its reverification interval and passed (from the archive)."""
     from datetime import datetime, timezone
@@ -314,7 +330,8 @@ def write_report(ctx) -> tuple[str, list[str]]:
         raise CalibrationError(f"scale not established: {why}; {advice}")
     plan = json.loads(f.file("plan.json").read_text())
     ids = job.part.targets.ids
-    nominal = job.part.targets.xyz
+    # the cell measured the targets' faces; the report speaks of the CAD surface under them (deviations are the same)
+    nominal = job.surface_points(job.part.targets.xyz)
     measured = np.array([t["xyz"] for t in bundle["targets"]], dtype=float)
     cov = np.array([t["cov"] if t["cov"] is not None else np.full((3, 3), np.nan) for t in bundle["targets"]], dtype=float)
     with np.load(f.file("bundle_covariance.npz")) as z:
@@ -333,6 +350,7 @@ def write_report(ctx) -> tuple[str, list[str]]:
         ctx.log.log("warning", "alignment not trusted: " + "; ".join(outcome.reasons))
         ctx.say("  WARNING alignment not trusted: " + "; ".join(outcome.reasons))
     dev_norm = np.linalg.norm(al.deviation, axis=1)
+    surface = job.surface_points(al.aligned)
     if nb and Kd is None:  # an alignment that dropped the low-rank part: no share known
         ctx.log.log("warning", "uncertainty budget: the alignment did not carry the scale bar's gains; "
                                "cov_scale_bar not reported")
@@ -356,7 +374,7 @@ def write_report(ctx) -> tuple[str, list[str]]:
         if coded[j]:
             continue
         targets.append({
-            "id": tid, "kind": str(job.part.targets.kind[j]), "nominal": nominal[j], "measured": al.aligned[j],
+            "id": tid, "kind": str(job.part.targets.kind[j]), "nominal": nominal[j], "measured": surface[j],
             "cov": al.deviation_cov[j], "measured_cov": cov[j], "cov_scale_bar": cov_scale[j] if nb else None,
             # metres per metre of each used bar's certificate error, aligned frame (3 x b; bundle.json scale_bars
             # gain_column gives each bar's column); null for a target not measured or without the gains
@@ -387,6 +405,7 @@ def write_report(ctx) -> tuple[str, list[str]]:
         "sigma0_px": bundle["sigma0_px"],
         "datum": bundle["datum"],
         "alignment": alignment_doc(outcome, ids, job.spec.alignment),
+        "target_thickness": thickness_doc(job, ctx.backend),
         "intrinsics": bundle["intrinsics"],
         "n_observations": bundle["n_observations"],
         "n_rejected": bundle["n_rejected"],
@@ -455,10 +474,12 @@ def write_report(ctx) -> tuple[str, list[str]]:
 def run(ctx) -> None:
     """REPORT: alignment to CAD, deviations, decisions; report.json and report.html."""
     verdict, reasons = write_report(ctx)
-    note = (ctx.folder.read_json("report.json").get("predicted_over_achieved") or {}).get("note")
-    if note:  # the plan's prediction did not hold: said (issue 15)
-        ctx.log.log("warning", note)
-        ctx.say(f"  WARNING {note}")
+    doc = ctx.folder.read_json("report.json")
+    for note in ((doc.get("predicted_over_achieved") or {}).get("note"),  # the plan's prediction did not hold (issue 15)
+                 (doc.get("target_thickness") or {}).get("note")):  # a real cell's targets' thickness not given
+        if note:
+            ctx.log.log("warning", note)
+            ctx.say(f"  WARNING {note}")
     if verdict != "PASS" and reasons:
         msg = f"verdict {verdict}: " + "; ".join(reasons)
         if verdict in ("INCOMPLETE", "UNTRUSTED"):
