@@ -14,7 +14,10 @@ def _human_check(doc: dict, out) -> None:
     out.say(f"part   {p['name']}: {size} mm, {m['faces']} faces, watertight={m['watertight']}, "
             f"winding consistent={m['winding_consistent']}, degenerate faces={m['degenerate_faces']}")
     kinds = ", ".join(f"{v} {k}" for k, v in p["targets_by_kind"].items())
-    out.say(f"targets {p['targets']} ({kinds}), dot {p['target_diameter_m'] * 1000:.1f} mm, code {p['coded_size_m'] * 1000:.1f} mm")
+    th = doc.get("target_thickness_m")
+    thick = "" if th is None else f", {th * 1000:.2f} mm thick"
+    out.say(f"targets {p['targets']} ({kinds}), dot {p['target_diameter_m'] * 1000:.1f} mm{thick}, "
+            f"code {p['coded_size_m'] * 1000:.1f} mm")
     c = doc["camera"]
     out.say(f"camera {c['width']} x {c['height']} px, f = {c['fx_px']:.1f} px, sigma {c['sigma_px']} px")
     out.say(f"cell   {doc['cell']['robot']} ({doc['cell']['backend']}), {doc['cell']['obstacles']} obstacle(s)")

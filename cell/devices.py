@@ -80,7 +80,9 @@ def make_job_sim_cell(job: LoadedJob, seed_offset: int = 0):
     return make_sim_cell(job.part, s.base_from_part(), s.flange_from_cam(), job.intrinsics, robot=robot_model(job),
                          deviations=job.deviations, image_sigma_px=s.sim.image_sigma_px, seed=s.sim.seed + seed_offset,
                          sensor=Sensor().with_noise_scale(s.sim.noise).with_camera(s.camera.pixel_format,
-                                                                                    s.camera.gain_db),
+                                                                                    s.camera.gain_db)
+                         .with_depth_of_field(s.camera.near * s.scale, s.camera.far * s.scale,
+                                              s.sim.circle_of_confusion_px),
                          photometry=photometry,
                          fixture=_fixture_mesh(job),
                          motion=s.sim.motion, time_scale=s.sim.time_scale, true_flange_from_cam=true_ffc,

@@ -473,3 +473,37 @@ def test_first_hit_agrees_with_trimesh_ray_casting():
     np.testing.assert_array_equal(np.isfinite(dist), np.isfinite(ref))
     np.testing.assert_allclose(dist[np.isfinite(ref)], ref[np.isfinite(ref)], rtol=0, atol=1e-9)
     assert np.mean(tri[ray] == t) > 0.99  # a ray through a shared edge may name either triangle
+
+
+def _second_moment(img, uv, half):
+    """Intensity-weighted variance of a dot's image along u and v (px^2), background = the window border's median."""
+    u0, v0 = int(round(uv[0])) - half, int(round(uv[1])) - half
+    win = img[v0 : v0 + 2 * half + 1, u0 : u0 + 2 * half + 1].astype(float)
+    border = np.concatenate([win[0], win[-1], win[:, 0], win[:, -1]])
+    win = np.clip(win - np.median(border), 0.0, None)
+    vv, uu = np.mgrid[v0 : v0 + 2 * half + 1, u0 : u0 + 2 * half + 1]
+    c = np.array([(win * uu).sum(), (win * vv).sum()]) / win.sum()
+    return np.array([(win * (uu - c[0]) ** 2).sum(), (win * (vv - c[1]) ** 2).sum()]) / win.sum(), c
+
+
+def test_depth_of_field_defocuses_each_dot_by_its_depth_and_leaves_its_centre():
+    """A thin lens focused for 0.5-0.9 m with a 2 px blur circle at the limits: a dot at the focus (0.643 m, the
+    harmonic mean) renders as sharp as the lens's own blur; one at the near limit spreads by the blur circle's
+    variance, (2 / 4)^2 px^2 along each axis, and its centroid stays within 0.002 px; the job's key sets it."""
+    sensor = Sensor(noise=False).with_depth_of_field(0.5, 0.9, 2.0)
+    assert sensor.focus_m == pytest.approx(1 / (0.5 * (1 / 0.5 + 1 / 0.9)))
+    np.testing.assert_allclose(sensor.defocus_sigma_px(np.array([0.5, sensor.focus_m, 0.9])), [0.5, 0.0, 0.5])
+    part = _tilted_single_target(0.0)
+    sharp = SimCamera(World(part, np.eye(4), np.eye(4), INTR), sensor=Sensor(noise=False), photometry=DARK)
+    lens = SimCamera(World(part, np.eye(4), np.eye(4), INTR), sensor=sensor, photometry=DARK)
+    for dist, extra in ((sensor.focus_m, 0.0), (0.5, 0.5)):
+        part_from_cam = look_at(np.array([0, 0, dist]), np.array([-0.02, 0.01, 0.0]), up=(0, 1, 0))
+        a, truth = sharp.render(part_from_cam, quantise=False)
+        b, _ = lens.render(part_from_cam, quantise=False)
+        uv = np.array(truth["uv"][0])
+        (ma, ca), (mb, cb) = _second_moment(a, uv, 30), _second_moment(b, uv, 30)
+        np.testing.assert_allclose(mb - ma, extra**2, atol=0.01)
+        assert np.linalg.norm(cb - ca) < 0.002
+    with pytest.raises(InputError, match="depth of field"):
+        Sensor().with_depth_of_field(0.9, 0.5, 2.0)
+    assert Sensor().with_depth_of_field(0.5, 0.9, 0.0).defocus_px_m == 0.0

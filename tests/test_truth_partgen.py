@@ -232,6 +232,21 @@ def test_random_part_deviations_match_the_truth(tmp_path):
     for t in report["targets"]:
         if t["measured"][0] is not None:
             assert np.allclose(blocks[row[t["id"]]], t["cov"], rtol=1e-9, atol=1e-20), t["id"]
+    # the dots are 0.05-0.3 mm thick (tests/partgen.py): the cell measured their faces, the report speaks of the
+    # CAD surface under them, in report.json and in plan.json alike (decision 0049)
+    import csv
+    import tomllib
+
+    th = tomllib.loads(part.job.read_text())["job"]["target_thickness"]
+    assert report["target_thickness"]["thickness_m"] == pytest.approx(th * 1e-3) and th > 0
+    with (part.folder / "targets.csv").open(newline="") as f:
+        cad = {r["id"]: 1e-3 * np.array([float(r[a]) for a in "xyz"]) for r in csv.DictReader(f)}
+    plan = json.loads((Path(run.doc["folder"]) / "plan.json").read_text())
+    assert max(np.abs(np.asarray(t["xyz"]) - cad[t["id"]]).max() for t in plan["targets"]) < 1e-9
+    for t in report["targets"]:
+        assert np.abs(np.asarray(t["nominal"]) - cad[t["id"]]).max() < 1e-9, t["id"]
+        if t["measured"][0] is not None:
+            assert np.allclose(np.asarray(t["measured"]) - t["nominal"], t["deviation"], rtol=0, atol=1e-12), t["id"]
     odds = report_odds(report, Path(run.doc["folder"]), part, draws=500)
     print(f"odds that an exact statement misses a criterion here: {odds}")
     assert 0.0 <= odds["any"] < 0.5, odds  # the criteria are not a coin toss for an honest statement on this part

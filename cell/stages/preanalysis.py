@@ -65,6 +65,8 @@ def twin_camera(job):
     exposure = {"exposure_s": s.camera.exposure_s} if sim else {}
     sensor = Sensor().with_noise_scale(s.sim.noise if sim else 1.0).with_camera(s.camera.pixel_format,
                                                                                 s.camera.gain_db if sim else None)
+    # the lens's defocus at each dot's depth, from the job's depth of field (a real lens's as well as the simulator's)
+    sensor = sensor.with_depth_of_field(s.camera.near * s.scale, s.camera.far * s.scale, s.sim.circle_of_confusion_px)
     return SimCamera(world, photometry=photometry, sensor=sensor,
                      rng=np.random.default_rng(TWIN_SEED), coded_family=s.job.coded_family, **exposure)
 
@@ -92,6 +94,7 @@ def _cache_key(job, poses: np.ndarray) -> str:
     s = job.spec
     h.update(repr((list(t.ids), list(t.kind), part.target_diameter_m, part.coded_size_m, i.fx_px, i.fy_px, i.cx_px,
                    i.cy_px, i.width, i.height, i.k1, i.k2, i.k3, i.p1, i.p2, s.sim.noise, s.sim.dot_max_incidence_deg,
+                   s.sim.circle_of_confusion_px,
                    s.cell.backend, s.job.coded_family, repr(s.camera))).encode())
     root = Path(__file__).resolve().parents[2]
     for f in _SOURCES:
