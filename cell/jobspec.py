@@ -350,7 +350,7 @@ class SimSection(_Strict):
     motion: Literal["instant", "timed"] = "instant"
     time_scale: float = Field(default=1.0, gt=0, le=1000)
     noise: float = Field(default=1.0, ge=0, le=100, description="sensor noise scale (1 = nominal)")
-    circle_of_confusion_px: float = Field(default=0.0, ge=0, le=20, description="the simulated lens's blur circle at "
+    circle_of_confusion_px: float = Field(default=2.0, ge=0, le=20, description="the simulated lens's blur circle at "
                                           "the job's [camera] near and far (px): a thin lens focused between them "
                                           "defocuses each dot by its depth; 0: every depth as sharp (decision 0049)")
     light: bool = Field(default=False, description="the sim cell's light: the Gardasoft RT driver on its emulator")
