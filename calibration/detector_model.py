@@ -82,6 +82,23 @@ class DetectorModel:
     #: common (decision 0043: measured on clean dots against the rendered truth with the true poses,
     #: ``benchmarks/shared_floor.py``); 0: not in the model file, nothing added
     rho_all: float = 0.0
+    #: the blur term (decision 0049): a dot's image blurred beyond the blur the model was measured at
+    #: (``blur_reference_px2``, the optical variance along each axis, :func:`calibration.targets.blur_variances`)
+    #: scatters more, ``sigma^2 x (1 + c_blur (b - reference))`` for its measured blur variance ``b``, held within
+    #: ``blur_range_px2`` (where it was measured); 0: not in the model file, no term
+    c_blur: float = 0.0
+    blur_reference_px2: float = 0.0
+    blur_range_px2: tuple[float, float] | None = None
+
+    def blur_factor(self, blur_px2) -> np.ndarray:
+        """The factor ``(k,)`` on a dot's sigma for its measured blur variance ``blur_px2: (k,)`` px^2 (NaN: not
+        measured, e.g. a clipped dot: 1). A dot sharper than the reference keeps the model (no credit)."""
+        b = np.asarray(blur_px2, dtype=float)
+        if not self.c_blur:
+            return np.ones_like(b)
+        hi = self.blur_range_px2[1] if self.blur_range_px2 else np.inf
+        extra = np.clip(np.where(np.isfinite(b), b, self.blur_reference_px2), self.blur_reference_px2, hi)
+        return np.sqrt(1.0 + self.c_blur * (extra - self.blur_reference_px2))
 
     @property
     def shared_share(self) -> float:
@@ -134,6 +151,8 @@ class DetectorModel:
                 + (f"{self.rho_background:.2f}" if self.rho_background is not None else "1 (not measured)")
                 + " of the background misfit"
                 + (f" and {self.rho_all:.3f} of every observation's variance" if self.rho_all else "")
+                + (f"; x (1 + {self.c_blur:.2f} (b - {self.blur_reference_px2:.2f} px^2)) for a dot blurred by a "
+                   f"variance b" if self.c_blur else "")
                 + f" (version {self.version})")
 
     def to_dict(self) -> dict:
@@ -145,7 +164,10 @@ class DetectorModel:
                 **({"incidence_range_deg": list(self.incidence_range_deg)} if self.incidence_range_deg else {}),
                 **({"diameter_range_px": list(self.diameter_range_px)} if self.diameter_range_px else {}),
                 **({"rho_background": self.rho_background} if self.rho_background is not None else {}),
-                **({"rho_all": self.rho_all} if self.rho_all else {})}
+                **({"rho_all": self.rho_all} if self.rho_all else {}),
+                **({"c_blur_per_px2": self.c_blur, "blur_reference_px2": self.blur_reference_px2,
+                    "blur_range_px2": list(self.blur_range_px2) if self.blur_range_px2 else None}
+                   if self.c_blur else {})}
 
 
 def fit_model(incidence_deg: np.ndarray, diameter_px: np.ndarray, errors_px: np.ndarray,
@@ -260,11 +282,15 @@ def load_model(path: str | None = None) -> DetectorModel:
         rho_all = float(doc.get("rho_all", 0.0))
         if not 0.0 <= rho_all <= 1.0:
             raise ValueError(f"rho_all must be in [0, 1], got {rho_all}")
+        c_blur = float(doc.get("c_blur_per_px2", 0.0))
+        blur_range = tuple(float(v) for v in doc["blur_range_px2"]) if doc.get("blur_range_px2") else None
+        if c_blur < 0 or (blur_range is not None and not (len(blur_range) == 2 and blur_range[0] < blur_range[1])):
+            raise ValueError(f"c_blur_per_px2 must be >= 0 and blur_range_px2 [low, high], got {c_blur}, {blur_range}")
         return DetectorModel(float(doc["a_px"]), float(doc["b_px"]), float(doc["p"]), float(doc["q"]),
                              str(doc.get("version", "1")), float(doc.get("c_background", 0.0)),
                              float(doc.get("c_saturation_px", 0.0)), float(doc.get("k_saturation", 1.0)),
                              *ranges, None if rho is None else float(rho), float(doc.get("m_saturation", 0.0)),
-                             rho_all)
+                             rho_all, c_blur, float(doc.get("blur_reference_px2", 0.0)), blur_range)
     except (OSError, KeyError, ValueError, TypeError) as exc:
         raise CalibrationError(f"{p}: cannot read the detector precision model ({exc})") from None
 

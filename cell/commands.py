@@ -21,6 +21,8 @@ def _human_check(doc: dict, out) -> None:
     c = doc["camera"]
     out.say(f"camera {c['width']} x {c['height']} px, f = {c['fx_px']:.1f} px, sigma {c['sigma_px']} px")
     out.say(f"cell   {doc['cell']['robot']} ({doc['cell']['backend']}), {doc['cell']['obstacles']} obstacle(s)")
+    if doc.get("target_thickness_note"):
+        out.say(f"targets WARNING {doc['target_thickness_note']}")
     r = doc.get("measurability")
     if r and r["unmeasurable"]:
         for w in doc.get("warnings", []):
@@ -75,6 +77,11 @@ def check(args, out) -> int:
                 "image, 10 deg below the incidence limit): the scale rests on few rays; "
                 "choose ends the robot sees from more directions, or widen [planning] elevation_min_deg / "
                 "elevation_max_deg, incidence_max_deg")
+    from cell.stages.report import thickness_doc
+
+    note = thickness_doc(job, job.spec.cell.backend).get("note")
+    if note:  # a real cell's targets have a thickness: said before the job, as the report will say it after
+        doc["target_thickness_note"] = note
     if args.plan is not None:
         from cell.stages.validate import validate_plan_file
 

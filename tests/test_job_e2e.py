@@ -192,7 +192,7 @@ def test_measured_coordinates_agree_with_truth_within_stated_covariance(example)
           f"rms {rms * 1e6:.1f} um; achieved/predicted sigma median {np.median(ratio):.2f}")
 
 
-def test_each_images_pixel_noise_line_is_measured_and_recorded(example):
+def test_each_images_pixel_noise_line_and_each_dots_blur_are_measured_and_recorded(example):
     """observations.json records, per image, the pixel noise's line its centres' covariances propagated (decision
     0047): on the simulated sensor (10 000 e- full well, 8 bits) the variance grows by 255 / 10 000 grey levels^2 per
     grey level; the example's images each carry enough dots to measure it."""
@@ -201,6 +201,11 @@ def test_each_images_pixel_noise_line_is_measured_and_recorded(example):
     slopes = np.array([im["noise_levels"][1] for im in obs])
     assert np.all(slopes > 0), slopes
     assert abs(np.median(slopes) / (255 / 10_000) - 1.0) < 0.2, np.median(slopes)
+    # and each dot's blur (decision 0049): the lens's 0.7 px (0.49 px^2) and the defocus within the job's depth of
+    # field (a 2 px blur circle at near / far adds up to 0.25 px^2); a clipped dot's is not measured (null)
+    blur = np.array([np.nan if v is None else v for im in obs for v in im["blur_px2"]], dtype=float)
+    assert len(blur) == sum(len(im["ids"]) for im in obs)
+    assert 0.45 <= np.nanmedian(blur) <= 0.65 and np.nanpercentile(blur, 95) < 0.85, np.nanpercentile(blur, [5, 50, 95])
 
 
 def test_run_log_holds_every_transition_image_and_detection(example):

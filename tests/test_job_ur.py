@@ -105,6 +105,9 @@ def test_protective_stop_mid_job_faults_with_cause_and_resume_after_unlock_compl
     measured = {t["id"]: t for t in report["targets"] if None not in t["measured"]}
     failed = {i for i, t in measured.items() if not t["pass"]}
     assert failed >= beyond and report["job"]["backend"] == "ur"
+    # a real cell whose job does not give its targets' thickness is told, in the report and on the console
+    note = report["target_thickness"]["note"]
+    assert "[job] target_thickness" in note and f"WARNING {note}" in r.stderr
     for i in failed - beyond:  # a false alarm only where the uncertainty reaches the tolerance
         t = measured[i]
         assert t["deviation_norm_m"] - t["tolerance_m"] < 3 * t["achieved_sigma_m"], i

@@ -504,6 +504,15 @@ def test_depth_of_field_defocuses_each_dot_by_its_depth_and_leaves_its_centre():
         (ma, ca), (mb, cb) = _second_moment(a, uv, 30), _second_moment(b, uv, 30)
         np.testing.assert_allclose(mb - ma, extra**2, atol=0.01)
         assert np.linalg.norm(cb - ca) < 0.002
+    # the cell measures the blur from the dot's own image (its moments against its ellipse's; decision 0049): at the
+    # far limit the defocused dot shows the blur circle's variance more than the sharp one, within quantisation
+    from calibration.targets import DetectionOptions, blur_variances, detect_retro_targets, ellipse_moments
+
+    part_from_cam = look_at(np.array([0, 0, 0.9]), np.array([-0.02, 0.01, 0.0]), up=(0, 1, 0))
+    moments = ellipse_moments(INTR, invert(part_from_cam), part.targets.xyz, part.targets.normals, RADIUS)
+    b = [blur_variances(detect_retro_targets(c.render(part_from_cam)[0], DetectionOptions()).axes[:1], moments)[0]
+         for c in (sharp, lens)]
+    assert abs(b[1] - b[0] - 0.25) < 0.06, b
     with pytest.raises(InputError, match="depth of field"):
         Sensor().with_depth_of_field(0.9, 0.5, 2.0)
     assert Sensor().with_depth_of_field(0.5, 0.9, 0.0).defocus_px_m == 0.0

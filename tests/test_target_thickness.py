@@ -88,3 +88,15 @@ def test_a_real_cell_whose_job_does_not_say_the_thickness_is_told(tmp_path):
     assert 'id="thickness-unstated"' not in _alerts({"target_thickness": stated})
     assert _measure_facts({"target_thickness": stated})["Target thickness"].startswith("0.2 mm, taken off")
     assert _measure_facts({"target_thickness": unstated})["Target thickness"].endswith("not given in the job")
+
+
+def test_cell_check_tells_a_real_cell_before_the_job(tmp_path):
+    """``cell check`` on a job for the real robot without the key says what the report would say, before any image."""
+    from tests.jobutil import run_cell
+
+    real = run_cell("check", str(job_variant(tmp_path / "ur", {"cell": {"backend": "ur"}})))
+    assert real.code == 0 and "[job] target_thickness" in real.doc["target_thickness_note"]
+    stated = run_cell("check", str(job_variant(tmp_path / "ur2", {"cell": {"backend": "ur"},
+                                                                  "job": {"target_thickness": 0.2}})))
+    assert stated.code == 0 and "target_thickness_note" not in stated.doc
+    assert stated.doc["target_thickness_m"] == pytest.approx(0.2e-3)

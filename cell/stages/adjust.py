@@ -18,7 +18,7 @@ from calibration.errors import CalibrationError, ScaleNotEstablishedError
 from calibration.plausibility import check_adjustment
 from calibration.weights import INCIDENCE_EDGES_DEG, group_labels, incidence_angles, incidence_groups, mean_variance
 from cell.record.jobfolder import atomic_write_bytes, atomic_write_json
-from cell.stages.dot_precision import rms_sigma, stated_weights
+from cell.stages.dot_precision import blur_weights, observed_blur, rms_sigma, stated_weights
 from cell.stages.scalebars import (bar_name, bars_doc, protected_entries, say_bars, shape_reason, snooping_reason,
                                    test_reason)
 from cell.stages.model_shape import geometry_classes, model_mismatch, range_check, reweighted, shape_check
@@ -220,6 +220,8 @@ def _adjust(ctx, scr: Screening, use: list[int], obs: dict, obs_image, obs_targe
         # parts, a face-on class estimated at 0.11 px and 280 rejections; the model alone: 10 rejections, honest sigma;
         # the model's shape is checked once after the adjustment instead, below)
         obs_sigma = model_sigmas(job, ctx.backend, poses0, img, tgt, intr0.fx_px)
+        # a dot blurred beyond the model's blur (defocus, focus): its blur term, by the blur its image shows (0049)
+        obs_sigma, flags["blur"] = blur_weights(obs_sigma, observed_blur(obs)[sel])
         # each centroid-centred dot's noise as the detector states it from its own image (decision 0048)
         stated, usable, flags["stated"] = stated_weights(job, obs, sel, obs_sigma, ellipse_centred(obs))
         theta, dpx = observation_geometry(targets.xyz, targets.normals, poses0, img, tgt, intr0.fx_px,
@@ -262,6 +264,9 @@ def _adjust(ctx, scr: Screening, use: list[int], obs: dict, obs_image, obs_targe
         # where the model was measured (of the dots it weighs), how many dots clipped deeply, the light: said when off
         flags["range"] = range_check(np.degrees(theta), dpx, ~res.rejected & ~usable, load_model().measured_box(),
                                      flags["clip"], ~res.rejected, flags["stated"])
+        blur = flags["range"]["blur"] = flags.get("blur") or {}  # dots blurred beyond the blur term's range: said
+        if blur.get("warning"):
+            flags["range"]["mismatch"] = "; ".join(m for m in (flags["range"].get("mismatch"), blur["warning"]) if m)
     if model_sigma is not None:
         # sigma0 of an observation of the noise's rms sigma, not of the rms weight (dots with huge bounds dominate it)
         used = ~res.rejected
@@ -684,7 +689,9 @@ def run(ctx) -> None:
                 f"max {w['a_priori_sigma_px']['max']:.3f} px; variance factor {w['variance_factor']:.2f}; "
                 f"{w['observations_with_background_bound']} observation(s) next to an edge (background bound)"
                 + (f", {w['observations_clipped']} of clipped dots (saturation term)" if w.get("observations_clipped")
-                   else ""))
+                   else "")
+                + (f", {b['raised']} blurred beyond the model's (blur term, largest x{b['largest_factor']:.2f})"
+                   if (b := (w.get("model_range") or {}).get("blur") or {}).get("raised") else ""))
     w = doc["observation_weights"]
     for msg in (w.get("model_mismatch"), (w.get("model_shape") or {}).get("mismatch"),
                 (w.get("model_range") or {}).get("mismatch")):

@@ -34,7 +34,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["FALLBACK_SHARE_MAX", "SOURCES", "stated_covariances", "stated_usable", "noise_weights", "rms_sigma", "stated_weights"]
+__all__ = ["BLUR_BEYOND_SHARE_MAX", "FALLBACK_SHARE_MAX", "SOURCES", "blur_weights", "observed_blur", "stated_covariances", "stated_usable", "noise_weights", "rms_sigma", "stated_weights"]
 
 #: ``[camera] dot_precision`` values
 SOURCES = ("stated", "model")
@@ -125,3 +125,44 @@ def stated_weights(job, obs: dict, sel: np.ndarray, model_sigma: np.ndarray, ell
                            f"too few dots; {why['not_positive_definite']} whose covariance is not finite): their "
                            "weights do not follow the light")
     return C, ok, doc
+
+
+#: more than this share of the weighed observations blurred beyond where the model's blur term was measured: said
+BLUR_BEYOND_SHARE_MAX = 0.25
+
+
+def observed_blur(obs_doc: dict) -> np.ndarray:
+    """Each observed dot's blur variance (px^2, observations.json ``blur_px2``; decision 0049), ``(q,)`` in the order of
+    :func:`cell.stages.adjust.observation_arrays`; NaN where it was not measured (a clipped dot, an image measured
+    before the blur was): the model's sigma then stands unchanged."""
+    out = []
+    for o in obs_doc["images"]:
+        k = len(o["ids"])
+        b = o.get("blur_px2")
+        arr = np.array([np.nan if v is None else v for v in b], dtype=float) if b is not None else None
+        out.append(arr if arr is not None and len(arr) == k else np.full(k, np.nan))
+    return np.concatenate(out) if out else np.zeros(0)
+
+
+def blur_weights(sigma: np.ndarray, blur_px2: np.ndarray, model=None) -> tuple[np.ndarray, dict]:
+    """The detector model's sigma ``(q,)`` for each dot's measured blur (its blur term), and what bundle.json says of
+    it: how many dots it raised, the median blur, the largest factor, and how many were blurred beyond where the term
+    was measured (held at its edge there, and said when many)."""
+    from calibration.detector_model import load_model
+
+    model = model or load_model()
+    b = np.asarray(blur_px2, dtype=float)
+    f = model.blur_factor(b)
+    hi = model.blur_range_px2[1] if model.blur_range_px2 else np.inf
+    beyond = int(np.count_nonzero(np.isfinite(b) & (b > hi)))
+    doc = {"term": model.c_blur > 0, "measured": int(np.count_nonzero(np.isfinite(b))),
+           "median_blur_px2": float(np.nanmedian(b)) if np.isfinite(b).any() else None,
+           "raised": int(np.count_nonzero(f > 1.005)), "largest_factor": float(f.max()) if len(f) else 1.0,
+           "reference_px2": model.blur_reference_px2, "beyond_measured_range": beyond}
+    if model.c_blur and beyond > BLUR_BEYOND_SHARE_MAX * max(len(b), 1):
+        doc["warning"] = (f"{beyond} of {len(b)} observations are of dots blurred beyond {hi:.2f} px^2 (the blur the "
+                          f"detector model's blur term was measured to; median here {doc['median_blur_px2']:.2f} px^2): "
+                          "their sigma is held at the term's edge and may be optimistic; focus the lens, stop it down "
+                          "or narrow [camera] near / far, or weigh by the detector's own statement ([camera] "
+                          'dot_precision = "stated")')
+    return np.asarray(sigma, dtype=float) * f, doc

@@ -21,7 +21,8 @@ from calibration.dots import MIN_RING_PX
 from calibration.ringcodes import RING_FAMILIES, decode_ring_codes
 from calibration.errors import CalibrationError
 from calibration.targets import (DetectionOptions, detect_coded_targets, detect_dots, eccentricity_bias,
-                                 ellipse_moments, identify_targets, refine_pose_pnp, shape_ratios)
+                                 blur_variances, ellipse_moments, identify_targets, refine_pose_pnp,
+                                 shape_ratios)
 from cell.stages.surface_labels import SurfaceLabeller
 from planning.visibility import Occluder, VisibilityOptions, compute_visibility
 
@@ -100,6 +101,9 @@ class DotMeasurement:
         dropped: (target index, reason) of every dot that was named and then left unnamed (partly hidden,
             shape unlike its target's ellipse, the image's naming inconsistent); never silent.
         resection_median_px: median residual of the resection on the named dots (None: too few to check).
+        blur_px2: (k,) the optical blur each dot's image shows, a variance along each axis (px^2,
+            :func:`calibration.targets.blur_variances`: its second moments less its ellipse's and the pixel's; NaN
+            for a clipped dot, whose flat top says nothing of it); ADJUST's blur term (decision 0049); or None.
     """
 
     target: np.ndarray
@@ -113,6 +117,7 @@ class DotMeasurement:
     dropped: list = field(default_factory=list)
     resection_median_px: float | None = None
     ellipse: np.ndarray | None = None
+    blur_px2: np.ndarray | None = None
 
     @property
     def n_shape(self) -> int:
@@ -183,12 +188,18 @@ def name_dots(det_uv: np.ndarray, part, intr: Intrinsics, cam_from_part: np.ndar
             dropped += [(int(i), f"the image's naming is inconsistent: resection median residual {med:.1f} px > "
                                  f"{RESECTION_MEDIAN_PX} px") for i in tid]
             dots, tid, uv = dots[:0], tid[:0], uv[:0]
+    blur = None
+    if det_axes is not None:  # the blur each dot shows: its moments against its ellipse's (decision 0049)
+        blur = blur_variances(np.asarray(det_axes, dtype=float)[dots],
+                              ellipse_moments(intr, cam_from_part, t.xyz[tid], t.normals[tid], radius))
+        if det_clipped is not None:
+            blur[np.asarray(det_clipped, dtype=float)[dots] > 0] = np.nan
     return DotMeasurement(tid, uv, np.asarray(cam_from_part, dtype=float),
                           int((match < 0).sum()), int((~clear).sum()),
                           None if det_cov is None else np.asarray(det_cov)[dots],
                           None if det_bg_cov is None else np.asarray(det_bg_cov)[dots],
                           None if det_clipped is None else np.asarray(det_clipped, dtype=float)[dots], dropped, med,
-                          None if det_ellipse is None else np.asarray(det_ellipse, dtype=bool)[dots])
+                          None if det_ellipse is None else np.asarray(det_ellipse, dtype=bool)[dots], blur)
 
 
 def surface_labeller(camera, part) -> SurfaceLabeller | None:

@@ -64,6 +64,7 @@ def run(ctx, keep: bool = False) -> None:
         out.append({"station": im["station"], "image": im["image"], "ids": names, "uv": m.uv, "cov_px2": m.cov,
                     "bg_cov_px2": m.bg_cov, "clipped_share": m.clipped_share,
                     **({"ellipse_centre": m.ellipse} if m.ellipse is not None else {}),
+                    **({"blur_px2": m.blur_px2} if m.blur_px2 is not None else {}),
                     "n_unidentified": m.n_unidentified, "n_partly_hidden": m.n_partly_hidden,
                     "n_shape_rejected": m.n_shape, "dropped": dropped,
                     "resection_median_px": m.resection_median_px} | counts)

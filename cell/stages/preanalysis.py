@@ -42,6 +42,7 @@ class PredictedRays:
     ellipse: np.ndarray | None = None  # (q,) bool, the centre is the ellipse of the dot's contour (decision 0037)
     cov: np.ndarray | None = None  # (q, 2, 2) px^2, the detector's covariance of the centre (decision 0048)
     line: np.ndarray | None = None  # (q,) bool, the render's noise line was measured (cell.stages.dot_precision)
+    blur: np.ndarray | None = None  # (q,) px^2, the blur the dot's render shows (NaN: clipped; decision 0049)
     method: str = "rendered"
     facts: dict = field(default_factory=dict)
 
@@ -113,7 +114,7 @@ def cached_rendered_rays(job, part_from_cam: np.ndarray, cache_dir, progress=Non
         try:
             with np.load(path) as z:
                 r = PredictedRays(z["obs_image"], z["obs_target"], z["bg_cov"], z["clipped_share"], z["ellipse"],
-                                  z["cov"], z["line"])
+                                  z["cov"], z["line"], z["blur"])
                 r.facts = json.loads(str(z["facts"]))
             return r
         except (OSError, ValueError, KeyError):  # a torn or foreign file: measured again, rewritten
@@ -123,7 +124,8 @@ def cached_rendered_rays(job, part_from_cam: np.ndarray, cache_dir, progress=Non
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_suffix(f".{os.getpid()}.tmp.npz")
         np.savez(tmp, obs_image=r.obs_image, obs_target=r.obs_target, bg_cov=r.bg_cov,
-                 clipped_share=r.clipped_share, ellipse=r.ellipse, cov=r.cov, line=r.line, facts=json.dumps(r.facts))
+                 clipped_share=r.clipped_share, ellipse=r.ellipse, cov=r.cov, line=r.line, blur=r.blur,
+                 facts=json.dumps(r.facts))
         os.replace(tmp, path)
     except OSError:  # a read-only cache: measured every time
         pass
@@ -165,12 +167,13 @@ def rendered_rays(job, part_from_cam: np.ndarray, progress=None) -> PredictedRay
     workers = max(1, min(2, os.cpu_count() or 1, len(poses)))
     with ThreadPoolExecutor(max_workers=workers) as ex:
         found = list(ex.map(one, range(len(poses))))
-    img_idx, tgt, bg, clip, ell, cov, line = [], [], [], [], [], [], []
+    img_idx, tgt, bg, clip, ell, cov, line, blur = [], [], [], [], [], [], [], []
     lost: dict[str, int] = {}
     for i, (m, measured) in enumerate(found):
         k = len(m.target)
         cov.append(np.full((k, 2, 2), np.nan) if m.cov is None else np.asarray(m.cov, dtype=float).reshape(k, 2, 2))
         line.append(np.full(k, measured))
+        blur.append(np.full(k, np.nan) if m.blur_px2 is None else np.asarray(m.blur_px2, dtype=float).reshape(k))
         img_idx.append(np.full(k, i))
         tgt.append(np.asarray(m.target, dtype=int))
         bg.append(np.zeros((k, 2, 2)) if m.bg_cov is None else np.asarray(m.bg_cov, dtype=float).reshape(k, 2, 2))
@@ -180,7 +183,8 @@ def rendered_rays(job, part_from_cam: np.ndarray, progress=None) -> PredictedRay
             key = "shape unlike its ellipse" if why.startswith("shape") else why.split(":")[0].split("(")[0].strip()
             lost[key] = lost.get(key, 0) + 1
     r = PredictedRays(np.concatenate(img_idx).astype(int), np.concatenate(tgt).astype(int), np.concatenate(bg),
-                      np.concatenate(clip), np.concatenate(ell), np.concatenate(cov), np.concatenate(line))
+                      np.concatenate(clip), np.concatenate(ell), np.concatenate(cov), np.concatenate(line),
+                      np.concatenate(blur))
     r.facts = {"images_rendered": len(poses), "rays": len(r.obs_target),
                "rays_with_background_bound": int(np.count_nonzero(np.trace(r.bg_cov, axis1=1, axis2=2) > 0)),
                "rays_clipped": int(np.count_nonzero(r.clipped_share > 0)), "dots_left_unnamed": lost}
@@ -247,7 +251,7 @@ def _adjust_exact(job, poses, img, tgt, uv, scr, rays: PredictedRays, order):
     from calibration.bundle import BundleOptions, bundle_adjust
     from calibration.bundle.coherent import scale_bar_gains
     from calibration.detector_model import observation_covariances
-    from cell.stages.dot_precision import noise_weights, rms_sigma, stated_usable
+    from cell.stages.dot_precision import blur_weights, noise_weights, rms_sigma, stated_usable
     from cell.stages.adjust import (_add_coherent_background, bundle_config, centroid_bounds_scaled, model_diameters,
                                     model_sigmas)
 
@@ -259,6 +263,8 @@ def _adjust_exact(job, poses, img, tgt, uv, scr, rays: PredictedRays, order):
     poses = poses[kept]
     img, tgt, uv = new_index[img[sel]], tgt[sel], uv[sel]
     sig = model_sigmas(job, job.spec.cell.backend, poses, img, tgt, job.intrinsics.fx_px)  # as ADJUST weighs them
+    if rays.blur is not None:  # as ADJUST: the blur term, by the blur each dot's render shows (decision 0049)
+        sig = blur_weights(sig, rays.blur[order][sel])[0]
     bg = None if rays.bg_cov is None else rays.bg_cov[order][sel]
     if bg is not None:  # as ADJUST: a centroid-centred dot's bound at the centroid's share (decision 0037)
         bg = centroid_bounds_scaled(bg, np.zeros(len(bg), dtype=bool) if rays.ellipse is None
