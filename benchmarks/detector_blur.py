@@ -22,7 +22,6 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -37,20 +36,11 @@ from calibration.targets import blur_variances, detect_retro_targets, eccentrici
 
 def measure(coc_px: float, views: int, repeats: int, seed: int) -> np.ndarray:
     """Rows ``(view, e2, sigma_model^2, b)`` of the clean dots of ``views x repeats`` renders at blur circle ``coc_px``."""
-    from cell.devices import make_job_sim_cell
+    from benchmarks.detector_precision import JOB, sim_scene
     from cell.loadedjob import load
     from cell.stages.imaging import detection_options
-    from tests.jobutil import job_variant
 
-    with tempfile.TemporaryDirectory() as tmp:
-        job = load(job_variant(Path(tmp) / "job", {"sim": {"circle_of_confusion_px": coc_px}}))
-    sim = make_job_sim_cell(job)
-    cam, world, intr = sim.camera, sim.world, job.intrinsics
-    cam.rng = np.random.default_rng(seed)
-    xyz, nrm = world.true_xyz, world.normals
-    radius = job.part.target_diameter_m / 2
-    centre = xyz.mean(axis=0)
-    index = {t: i for i, t in enumerate(job.part.targets.ids)}
+    job, cam, intr, xyz, nrm, radius, centre, index = sim_scene(load(JOB), seed, coc_px)
     model = load_model()
     options = detection_options(job.spec.camera)
     rng = np.random.default_rng(seed)

@@ -51,6 +51,21 @@ INCIDENCE_EDGES = (0, 20, 35, 50, 60, 65, 70, 75, 80, 86)
 SIZE_EDGES = (0, 14, 18, 22, 30, 100)
 
 
+def sim_scene(job, seed: int, circle_of_confusion_px: float = 0.0):
+    """The job's simulated camera with a lens of the given depth of field (0, the model's conditions: the lens's own
+    0.7 px blur at every depth; decision 0049), its noise stream seeded; ``(job, camera, intrinsics, true xyz,
+    normals, dot radius, the targets' centre, id -> index)``."""
+    from dataclasses import replace
+
+    sim_section = job.spec.sim.model_copy(update={"circle_of_confusion_px": float(circle_of_confusion_px)})
+    job = replace(job, spec=job.spec.model_copy(update={"sim": sim_section}))
+    sim = make_job_sim_cell(job)
+    cam, world = sim.camera, sim.world
+    cam.rng = np.random.default_rng(seed)
+    return (job, cam, job.intrinsics, world.true_xyz, world.normals, job.part.target_diameter_m / 2,
+            world.true_xyz.mean(axis=0), {t: i for i, t in enumerate(job.part.targets.ids)})
+
+
 def collect(n_views: int, repeats: int, seed: int = 0, job_path: Path = JOB, mask: bool = False,
             distance_m: tuple[float, float] | str | None = (0.35, 0.7)) -> dict:
     """Rows of detected-minus-true centres (see the module's doc). ``mask``: each image is also detected with the
@@ -63,13 +78,7 @@ def collect(n_views: int, repeats: int, seed: int = 0, job_path: Path = JOB, mas
     if mask:
         from cell.stages.surface_labels import SurfaceLabeller
         labeller = SurfaceLabeller(job.part.mesh)
-    sim = make_job_sim_cell(job)
-    cam, world, intr = sim.camera, sim.world, job.intrinsics
-    cam.rng = np.random.default_rng(seed)
-    xyz, nrm = world.true_xyz, world.normals
-    radius = job.part.target_diameter_m / 2
-    centre = xyz.mean(axis=0)
-    index = {t: i for i, t in enumerate(job.part.targets.ids)}
+    job, cam, intr, xyz, nrm, radius, centre, index = sim_scene(job, seed)
     rng = np.random.default_rng(seed)
     poses = np.full((n_views, 4, 4), np.nan)
     sphere = planned = None

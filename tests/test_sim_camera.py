@@ -68,13 +68,18 @@ def _region_centroid(intr, cam_from_part, centre, normal, radius, n=20000):
     return np.array([((x + x1) * c).sum(), ((y + y1) * c).sum()]) / (3 * c.sum())
 
 
-def _centroid(img, uv, half):
-    """Intensity-weighted centroid in a window, background = median of the window's border."""
+def _window(img, uv, half):
+    """The window about ``uv`` less the median of its border (clipped at 0), and its pixels' (u, v) grids."""
     u0, v0 = int(round(uv[0])) - half, int(round(uv[1])) - half
     win = img[v0 : v0 + 2 * half + 1, u0 : u0 + 2 * half + 1].astype(float)
     border = np.concatenate([win[0], win[-1], win[:, 0], win[:, -1]])
-    win = np.clip(win - np.median(border), 0.0, None)
     vv, uu = np.mgrid[v0 : v0 + 2 * half + 1, u0 : u0 + 2 * half + 1]
+    return np.clip(win - np.median(border), 0.0, None), uu, vv
+
+
+def _centroid(img, uv, half):
+    """Intensity-weighted centroid in a window, background = median of the window's border."""
+    win, uu, vv = _window(img, uv, half)
     return np.array([(win * uu).sum(), (win * vv).sum()]) / win.sum()
 
 
@@ -477,11 +482,7 @@ def test_first_hit_agrees_with_trimesh_ray_casting():
 
 def _second_moment(img, uv, half):
     """Intensity-weighted variance of a dot's image along u and v (px^2), background = the window border's median."""
-    u0, v0 = int(round(uv[0])) - half, int(round(uv[1])) - half
-    win = img[v0 : v0 + 2 * half + 1, u0 : u0 + 2 * half + 1].astype(float)
-    border = np.concatenate([win[0], win[-1], win[:, 0], win[:, -1]])
-    win = np.clip(win - np.median(border), 0.0, None)
-    vv, uu = np.mgrid[v0 : v0 + 2 * half + 1, u0 : u0 + 2 * half + 1]
+    win, uu, vv = _window(img, uv, half)
     c = np.array([(win * uu).sum(), (win * vv).sum()]) / win.sum()
     return np.array([(win * (uu - c[0]) ** 2).sum(), (win * (vv - c[1]) ** 2).sum()]) / win.sum(), c
 
