@@ -135,6 +135,16 @@ def main(argv=None) -> int:
                             "without_term": round(float(q[m].mean()), 3), "with_term": round(float((q / f2)[m].mean()), 3)})
     out["classes"] = classes
     print(json.dumps(out, indent=1))
+    # a fit that cannot be trusted is never written as the model's term: a slope that is not clearly positive, a knee
+    # at the edge of its search (the data did not find it), or classes the term leaves more than 15 % apart
+    ref = classes[0]["with_term"] if classes else float("nan")
+    doubts = ([f"c = {c:.3f} +- {c_sigma:.3f} is not clearly positive"] if not c > 3 * c_sigma else []) \
+        + ([f"the knee {knee:.3f} px^2 lies at the edge of its search"] if knee >= b_ref + 0.79 else []) \
+        + ([f"with the term the classes still spread {[c_['with_term'] for c_ in classes]}"]
+           if not all(abs(c_["with_term"] / ref - 1) < 0.15 for c_ in classes) else [])
+    if doubts:
+        print("the fit is not trusted: " + "; ".join(doubts) + (": not written" if a.write else ""), file=sys.stderr)
+        return 1
     if a.write:
         doc = json.loads(DATA_PATH.read_text())
         doc.update({"c_blur_per_px2": c, "c_blur_sigma": c_sigma, "blur_reference_px2": knee, "blur_knee_sigma": knee_sigma,

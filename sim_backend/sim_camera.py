@@ -261,6 +261,9 @@ class _Visible:
     partial: np.ndarray  # (m,) bool: partly occluded
     occluded: np.ndarray  # indices of targets in view but fully hidden
     truncated: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=int))
+    # set as the targets are drawn: each one's pixel window (u0, v0, w, h) and its camera depth (m), for the defocus
+    windows: tuple | None = None
+    depth: np.ndarray | None = None
 
 
 class SimCamera:
@@ -401,7 +404,7 @@ class SimCamera:
         if self.sensor.blur_sigma_px > 0:
             img = cv2.GaussianBlur(img, (0, 0), self.sensor.blur_sigma_px, borderType=cv2.BORDER_REFLECT)
         if self.sensor.defocus_px_m > 0 and len(vis.index):
-            img = self._defocus(img, vis, cam_from_part, shift)
+            img = self._defocus(img, vis)
         uv = project(self.intr, cam_from_part, xyz[vis.index]) if len(vis.index) else np.zeros((0, 2))
         coded = self._coded[vis.index]
         corners_uv = {}
@@ -518,6 +521,7 @@ class SimCamera:
         level = ph.retro_level * illum * cos_inc**ph.falloff_exponent
         black = ph.marker_black_level * illum * cos_inc
         u0, v0, ww, hh = self._windows(idx, cam_from_part, shift)
+        vis.windows, vis.depth = (u0, v0, ww, hh), centre_c[:, 2]
         H, W = img.shape
         truncated = (u0 < 0) | (v0 < 0) | (u0 + ww > W) | (v0 + hh > H)
         vis.truncated = idx[truncated]
@@ -546,14 +550,12 @@ class SimCamera:
                         a, wh = a * vm, wh * vm
                     self._compose(img, u0[k], v0[k], a, wh, level[k], black[k])
 
-    def _defocus(self, img: np.ndarray, vis: _Visible, cam_from_part: np.ndarray, shift: np.ndarray) -> np.ndarray:
+    def _defocus(self, img: np.ndarray, vis: _Visible) -> np.ndarray:
         """Each target's window blurred further by the lens's defocus at the target's depth
         (:meth:`Sensor.defocus_sigma_px`; Gaussian blurs compose in quadrature). The window is the target's image with
         its ground around it, at about its depth; the part's shading elsewhere is smooth and keeps the lens's blur."""
-        idx = vis.index
-        depth = self.world.true_xyz[idx] @ cam_from_part[2, :3] + cam_from_part[2, 3]
-        extra = self.sensor.defocus_sigma_px(depth)
-        u0, v0, ww, hh = self._windows(idx, cam_from_part, shift)
+        extra = self.sensor.defocus_sigma_px(vis.depth)  # the windows and depths _draw_targets found
+        u0, v0, ww, hh = vis.windows
         out = img.copy()
         H, W = img.shape
         for k in np.flatnonzero(extra > 0.02):

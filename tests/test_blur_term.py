@@ -61,3 +61,20 @@ def test_blur_weights_count_and_say_dots_beyond_the_measured_range():
 def test_observed_blur_reads_observations_json_with_gaps():
     obs = {"images": [{"ids": ["a", "b"], "blur_px2": [0.6, None]}, {"ids": ["c"]}, {"ids": ["d"], "blur_px2": [0.7]}]}
     np.testing.assert_array_equal(observed_blur(obs), [0.6, np.nan, np.nan, 0.7])
+
+
+def test_many_dots_blurred_beyond_the_term_are_said_with_the_model_range():
+    """ADJUST hands blur_weights' account to range_check, which keeps it and says its warning with the other
+    conditions the model was not measured in (console, run log, bundle.json, report.json: the model-range path)."""
+    from cell.stages.model_shape import range_check
+
+    m = replace(load_model(), c_blur=0.5, blur_reference_px2=0.5, blur_range_px2=(0.5, 2.5))
+    rng = np.random.default_rng(5)
+    inc, d, used = rng.uniform(0, 75, 1000), rng.uniform(17, 35, 1000), np.ones(1000, bool)
+    box = (np.radians(80.0), 15.4, 38.9)
+    _, sharp = blur_weights(np.full(1000, 0.01), np.full(1000, 0.6), m)
+    calm = range_check(inc, d, used, box, blur=sharp)
+    assert calm["mismatch"] is None and calm["blur"]["measured"] == 1000
+    _, soft = blur_weights(np.full(1000, 0.01), np.full(1000, 3.0), m)
+    out = range_check(inc, d, used, box, blur=soft)
+    assert out["blur"]["beyond_measured_range"] == 1000 and soft["warning"] in out["mismatch"]

@@ -210,7 +210,7 @@ def _adjust(ctx, scr: Screening, use: list[int], obs: dict, obs_image, obs_targe
     targets = job.part.targets
     groups = None
     obs_sigma = model_sigma = None
-    flags = {"bg": None, "clip": None, "bg_missing": [], "clip_missing": []}
+    flags = {"bg": None, "clip": None, "bg_missing": [], "clip_missing": [], "blur": None}
     weights = job.spec.camera.observation_weights
     if weights == "incidence":  # from the Faugeras-Toscani poses: degrees suffice
         angles = incidence_angles(targets.xyz, targets.normals, poses0, img, tgt)
@@ -263,10 +263,7 @@ def _adjust(ctx, scr: Screening, use: list[int], obs: dict, obs_image, obs_targe
         flags["shape"] = shape
         # where the model was measured (of the dots it weighs), how many dots clipped deeply, the light: said when off
         flags["range"] = range_check(np.degrees(theta), dpx, ~res.rejected & ~usable, load_model().measured_box(),
-                                     flags["clip"], ~res.rejected, flags["stated"])
-        blur = flags["range"]["blur"] = flags.get("blur") or {}  # dots blurred beyond the blur term's range: said
-        if blur.get("warning"):
-            flags["range"]["mismatch"] = "; ".join(m for m in (flags["range"].get("mismatch"), blur["warning"]) if m)
+                                     flags["clip"], ~res.rejected, flags["stated"], flags["blur"])
     if model_sigma is not None:
         # sigma0 of an observation of the noise's rms sigma, not of the rms weight (dots with huge bounds dominate it)
         used = ~res.rejected

@@ -159,9 +159,11 @@ def name_dots(det_uv: np.ndarray, part, intr: Intrinsics, cam_from_part: np.ndar
     clear = rim_clear(occluder, t.xyz[match[dots]], t.normals[match[dots]], radius, eye)
     dropped = [(int(i), "partly hidden by an edge of the part (CAD)") for i in match[dots[~clear]]]
     dots = dots[clear]
+    blur_all = np.full(len(det_uv), np.nan)  # the blur each dot shows, per detection (decision 0049)
     if det_axes is not None and len(dots):
         tid = match[dots]
         pred = ellipse_moments(intr, cam_from_part, t.xyz[tid], t.normals[tid], radius)
+        blur_all[dots] = blur_variances(np.asarray(det_axes, dtype=float)[dots], pred)
         lo, hi = shape_ratios(np.asarray(det_axes, dtype=float)[dots], pred, BLUR_PX)
         ok = (lo >= SHAPE_MIN) & (hi <= SHAPE_MAX)
         dropped += [(int(i), f"shape {a:.2f}..{b:.2f} of its ellipse's (clipped, washed out or merged; "
@@ -189,9 +191,8 @@ def name_dots(det_uv: np.ndarray, part, intr: Intrinsics, cam_from_part: np.ndar
                                  f"{RESECTION_MEDIAN_PX} px") for i in tid]
             dots, tid, uv = dots[:0], tid[:0], uv[:0]
     blur = None
-    if det_axes is not None:  # the blur each dot shows: its moments against its ellipse's (decision 0049)
-        blur = blur_variances(np.asarray(det_axes, dtype=float)[dots],
-                              ellipse_moments(intr, cam_from_part, t.xyz[tid], t.normals[tid], radius))
+    if det_axes is not None:  # a clipped dot's flat top says nothing of its blur
+        blur = blur_all[dots]
         if det_clipped is not None:
             blur[np.asarray(det_clipped, dtype=float)[dots] > 0] = np.nan
     return DotMeasurement(tid, uv, np.asarray(cam_from_part, dtype=float),

@@ -139,7 +139,7 @@ def reweighted(weights: np.ndarray, classes: np.ndarray, factors) -> np.ndarray:
 
 def range_check(incidence_deg: np.ndarray, diameter_px: np.ndarray, used: np.ndarray, box: tuple[float, float, float],
                 clipped_share: np.ndarray | None = None, all_used: np.ndarray | None = None,
-                stated: dict | None = None) -> dict:
+                stated: dict | None = None, blur: dict | None = None) -> dict:
     """Where the observations ``used: (q,) bool`` lie against where the detector model was measured.
 
     ``box``: :meth:`calibration.detector_model.DetectorModel.measured_box` (largest incidence rad, smallest and
@@ -155,7 +155,9 @@ def range_check(incidence_deg: np.ndarray, diameter_px: np.ndarray, used: np.nda
     :func:`cell.stages.dot_precision.stated_weights` says: ``light``, the median of the detector's stated variance
     over the model's) the images' light and noise: outside :data:`LIGHT_FACTOR_RANGE` the dots are brighter or
     dimmer, or the sensor noisier, than where the model and its shares were measured. Its ``fallback`` (the
-    statement could not be made for many dots) is said with them.
+    statement could not be made for many dots) is said with them, and so is ``blur``'s ``warning`` (what
+    :func:`cell.stages.dot_precision.blur_weights` says: many dots blurred beyond where the model's blur term was
+    measured; kept as ``blur``).
     """
     inc = np.asarray(incidence_deg, dtype=float)[used]
     d = np.asarray(diameter_px, dtype=float)[used]
@@ -188,6 +190,9 @@ def range_check(incidence_deg: np.ndarray, diameter_px: np.ndarray, used: np.nda
     light_factor = (stated or {}).get("light")
     if (stated or {}).get("fallback"):
         said.append(stated["fallback"])
+    if blur is not None:
+        out["blur"] = blur
+        said += [blur["warning"]] if blur.get("warning") else []
     if light_factor is not None:
         lo, hi = LIGHT_FACTOR_RANGE
         out["light_factor"] = float(light_factor)
