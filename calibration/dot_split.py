@@ -119,7 +119,7 @@ def _concatenate(a: Detections, b: Detections) -> Detections:
         return b
     cat = {f: np.concatenate([getattr(a, f), getattr(b, f)]) for f in
            ("uv", "area_px", "peak", "flux", "background", "cov", "axes", "background_cov", "saturated", "ring_px",
-            "ellipse")}
+            "ellipse", "clip_bound")}
     return replace(a, **cat)
 
 

@@ -140,6 +140,10 @@ class Detections:
             (:func:`calibration.dot_noise.noise_levels`); what ``cov`` propagated. None: not measured.
         ellipse: (k,) bool, the centre is the ellipse fitted to the dot's half-level contour (``centre="ellipse"``,
             or ``"auto"`` for a clipped dot or one with a background misfit; decision 0037), not the centroid; or None.
+        clip_bound: (k, 2) px, how far a clipped dot's centre may be off for its unknown level: the contour follows
+            the ground behind the dot with a slope between 0.5 (just clipped) and 1 (far over the ceiling), the centre
+            is the one at :data:`CLIPPED_GROUND_SLOPE` and this is half the difference of the centres at 1 and 0.5
+            (decision 0050); zero for a dot not clipped or not centred by its ellipse; or None.
     """
 
     uv: np.ndarray
@@ -156,6 +160,7 @@ class Detections:
     ring_px: np.ndarray | None = None
     ellipse: np.ndarray | None = None
     noise_levels: tuple[float, float] | None = None
+    clip_bound: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.uv)
@@ -167,7 +172,8 @@ class Detections:
                        background_cov=None if self.background_cov is None else self.background_cov[keep],
                        saturated=None if self.saturated is None else self.saturated[keep],
                        ring_px=None if self.ring_px is None else self.ring_px[keep],
-                       ellipse=None if self.ellipse is None else self.ellipse[keep])
+                       ellipse=None if self.ellipse is None else self.ellipse[keep],
+                       clip_bound=None if self.clip_bound is None else self.clip_bound[keep])
 
 
 def to_grey(image: np.ndarray) -> np.ndarray:
@@ -283,6 +289,9 @@ def _tophat(image: np.ndarray, kernel: int) -> np.ndarray:
 
 #: ring pixels needed for a background plane and its misfit test (fewer: no slope, and no bound can be measured)
 MIN_RING_PX = 8
+#: the slope with which a clipped dot's half-level contour follows the ground behind it: the middle of 0.5 (a dot
+#: just clipped) and 1 (one far over the ceiling), whose level the image does not tell (decision 0050)
+CLIPPED_GROUND_SLOPE = 0.75
 
 
 def _ring_planes(lab: np.ndarray, dx: np.ndarray, dy: np.ndarray, val: np.ndarray, k: int, fallback: float,
@@ -709,6 +718,7 @@ def _measure(image: np.ndarray, o: DetectionOptions, surface: np.ndarray | None,
     pick = np.ones(k, dtype=bool) if o.centre == "ellipse" else (
         (n_sat > 0) | (misfit > 0) if o.centre == "auto" else np.zeros(k, dtype=bool))
     used_ellipse = np.zeros(k, dtype=bool)
+    clip_bound = np.zeros((k, 2))  # what a clipped dot's unknown level can move its centre by (px)
     fit = pick if agree_px is None else np.ones(k, dtype=bool)
     agree = np.ones(k, dtype=bool)
     if fit.any():
@@ -718,14 +728,25 @@ def _measure(image: np.ndarray, o: DetectionOptions, surface: np.ndarray | None,
         half_noise = np.sqrt(np.maximum(var0 + slope * 0.5 * (bg_local + top[1:]), 0.25 * noise**2))
 
         box = np.stack([x0[keep], y0[keep], w_box[keep], h_box[keep]], axis=1)
+        # a clipped dot hides the ground behind it as any dot does, but its level T is not its peak: the contour at
+        # half its peak covers 1 / (2 k) of a pixel (k = T / ceiling, both above the ground), and follows the ground
+        # with the slope 1 - 1 / (2 k), anywhere in 0.5-1 (decision 0050). The middle, and the half-difference of the
+        # centres at either end as the bound of what the unknown k moves the centre by
+        clipped = fit & (n_sat > 0)
+        ground = np.where(clipped, CLIPPED_GROUND_SLOPE, 0.5)
+        if clipped.any():
+            ends = [contour_ellipse_centres_in_boxes(image, labels, remap, clipped, box, coef, xc, yc, top[1:], half_noise,
+                                                     kept, ground=g)[0::2] for g in (0.5, 1.0)]
+            both = clipped & ends[0][1] & ends[1][1]
+            clip_bound[both] = 0.5 * (ends[1][0][both] - ends[0][0][both])
         if np.sum((box[fit, 2] + 6) * (box[fit, 3] + 6)) > 0.25 * image.size:  # blobs all over: the whole image at once
             blobs = remap if fit.all() else np.where(np.concatenate([[False], fit])[remap.astype(np.int64)], remap,
                                                      np.float32(0)).astype(np.float32)
             e_uv, e_cov, ok = contour_ellipse_centres(image, blobs[labels], k, coef, xc, yc, top[1:], half_noise, labels,
-                                                      kept)
+                                                      kept, ground=ground)
         else:  # a few (the clipped dots, those next to an edge; a split pass's parts): each in its own box
             e_uv, e_cov, ok = contour_ellipse_centres_in_boxes(image, labels, remap, fit, box, coef, xc, yc, top[1:],
-                                                               half_noise, kept)
+                                                               half_noise, kept, ground=ground)
         if agree_px is not None:
             agree = ok & (np.hypot(*(e_uv - uv).T) <= agree_px)
         used_ellipse = ok & pick
@@ -745,5 +766,5 @@ def _measure(image: np.ndarray, o: DetectionOptions, surface: np.ndarray | None,
     ring_px = np.bincount(lf, minlength=k + 1)[1:]
     return (Detections(uv[good], area[keep][good], peak[good], flux[good], bg_local[good], noise, cov[good],
                        o.polarity, axes[good], bcov[good], n_sat[good].astype(int), ring_px[good], used_ellipse[good],
-                       (float(var0), float(slope))),
+                       (float(var0), float(slope)), np.where(used_ellipse[:, None], clip_bound, 0.0)[good]),
             np.flatnonzero(keep)[good])

@@ -206,6 +206,15 @@ def test_each_images_pixel_noise_line_and_each_dots_blur_are_measured_and_record
     blur = np.array([np.nan if v is None else v for im in obs for v in im["blur_px2"]], dtype=float)
     assert len(blur) == sum(len(im["ids"]) for im in obs)
     assert 0.45 <= np.nanmedian(blur) <= 0.65 and np.nanpercentile(blur, 95) < 0.85, np.nanpercentile(blur, [5, 50, 95])
+    # and each clipped dot's bound for its unknown level (decision 0050): a clipped dot centred by its ellipse has
+    # one, every other dot none; ADJUST carries them, shared by a target's views
+    bound = np.array([b for im in obs for b in im["clip_bound_px"]], dtype=float).reshape(-1, 2)
+    clipped = np.array([c > 0 for im in obs for c in im["clipped_share"]])
+    ellipse = np.array([e for im in obs for e in im["ellipse_centre"]], dtype=bool)
+    has = np.linalg.norm(bound, axis=1) > 0
+    assert np.all(has <= (clipped & ellipse)) and has.sum() >= 0.9 * (clipped & ellipse).sum() > 0
+    level = json.loads((folder / "bundle.json").read_text())["coherent_background"]["clip_level"]
+    assert level["n_observations"] > 0 and 1.0 <= level["sigma_growth_median"] <= level["sigma_growth_max"] < 1.5, level
 
 
 def test_run_log_holds_every_transition_image_and_detection(example):

@@ -18,6 +18,7 @@ from calibration.errors import CalibrationError, ScaleNotEstablishedError
 from calibration.plausibility import check_adjustment
 from calibration.weights import INCIDENCE_EDGES_DEG, group_labels, incidence_angles, incidence_groups, mean_variance
 from cell.record.jobfolder import atomic_write_bytes, atomic_write_json
+from cell.stages.clip_level import clip_bounds, clip_covariances, clip_level_cov
 from cell.stages.dot_precision import blur_weights, observed_blur, rms_sigma, stated_weights
 from cell.stages.scalebars import (bar_name, bars_doc, protected_entries, say_bars, shape_reason, snooping_reason,
                                    test_reason)
@@ -238,9 +239,11 @@ def _adjust(ctx, scr: Screening, use: list[int], obs: dict, obs_image, obs_targe
                     "ellipse centre's)")
         # a dot the sensor clipped: the model's saturation term for the clipped share of its pixels (decision 0029)
         clip, has_clip = clipped_shares(obs)
+        flags["clip_cov"] = clip_covariances(clip_bounds(obs)[sel])  # a clipped dot's unknown level (decision 0050)
         if np.any(bg[sel]) or np.any(clip[sel] > 0) or stated is not None:
             model_sigma, obs_sigma = (obs_sigma if stated is None else rms_sigma(stated)), observation_covariances(
-                obs_sigma if stated is None else stated, bg[sel], clipped_share=clip[sel], diameter_px=dpx)
+                obs_sigma if stated is None else stated, bg[sel], clipped_share=clip[sel], diameter_px=dpx
+            ) + flags["clip_cov"]
         flags |= {"bg": bg[sel], "clip": clip[sel], "bg_centroid": centroid[sel],
                  "bg_missing": sorted({obs["images"][int(i)]["image"] for i in obs_image[sel & ~has_bg]}),
                  "clip_missing": sorted({obs["images"][int(i)]["image"] for i in obs_image[sel & ~has_clip]})}
@@ -272,9 +275,10 @@ def _adjust(ctx, scr: Screening, use: list[int], obs: dict, obs_image, obs_targe
     return res, (kept_images, sel, img, tgt, uv, groups, model_sigma, flags)
 
 
-def _add_coherent_background(res, bg: np.ndarray, img, tgt, ids: list[str], bars=(), K=None) -> dict:
-    """Add to each target's covariance the background misfit its views share (decision 0029), and what the scale
-    bars' ends' shares do to every target through the scale (``K``: :func:`scale_bar_gains`); what was added."""
+def _add_coherent_background(res, bg: np.ndarray, img, tgt, ids: list[str], bars=(), K=None, clip_cov=None) -> dict:
+    """Add to each target's covariance the background misfit its views share (decision 0029), the clip bounds they
+    share (``clip_cov``, decision 0050), and what the scale bars' ends' shares do to every target through the scale
+    (``K``: :func:`scale_bar_gains`); what was added."""
     bar_terms: list[dict] = []
     used = ~res.rejected
     model = load_model()
@@ -293,6 +297,8 @@ def _add_coherent_background(res, bg: np.ndarray, img, tgt, ids: list[str], bars
         floor = coherent_background_cov(res.intrinsics, res.cam_from_part, res.points, img[used], tgt[used], C, C,
                                         1.0, model.rho_all)
         extra = extra + floor
+    clip_extra, clip_doc = clip_level_cov(res, clip_cov, img, tgt)
+    extra = extra + clip_extra
     on = np.flatnonzero(np.trace(extra, axis1=1, axis2=2) > 0)
     before = np.trace(res.cov, axis1=1, axis2=2).copy()
     res.cov[on] += extra[on]
@@ -318,7 +324,7 @@ def _add_coherent_background(res, bg: np.ndarray, img, tgt, ids: list[str], bars
             "sigma_growth_median": float(np.median(grow)) if len(hit) else 1.0,
             "largest": [{"target": ids[int(hit[k])], "sigma_growth": float(grow[k]),
                          "added_sigma_m": float(np.sqrt(np.trace(bg_extra[hit[k]]) / 3))} for k in worst],
-            "shared_floor": {"rho_all": model.rho_all, "n_targets": int(len(fl)),
+            "clip_level": clip_doc, "shared_floor": {"rho_all": model.rho_all, "n_targets": int(len(fl)),
                              "sigma_growth_median": float(np.median(fgrow)) if len(fl) else 1.0,
                              "sigma_growth_max": float(np.max(fgrow)) if len(fl) else 1.0}}
 
@@ -470,7 +476,8 @@ def run_bundle(ctx) -> dict:
         K, K_sigma = scale_bar_gains(res.covariance, res.points, bars, res.variance_factor) if bars else (np.zeros((len(ids), 3, 0)), np.zeros(0))
         if bars:  # the certificates at their stated sigma: s0^2 scales what the images determined, not the bars
             res.cov, res.covariance = certificate_at_face_value(res.cov, res.covariance, K, K_sigma, res.variance_factor)
-        coherent = _add_coherent_background(res, flags["bg"], img, tgt, ids, bars, K) if model_sigma is not None else None
+        coherent = _add_coherent_background(res, flags["bg"], img, tgt, ids, bars, K, flags.get("clip_cov")) \
+            if model_sigma is not None else None
         v = np.zeros(len(bars))
         for e in (coherent or {}).get("scale_bar_ends", []):
             v[e["bar_index"]] = e["length_sigma_m"] ** 2
@@ -738,6 +745,11 @@ def run(ctx) -> None:
                    "(rho_background, version 4): taken as one, the conservative limit")
             ctx.log.log("info", msg)
             ctx.say(f"  {msg}")
+    cl = (cb or {}).get("clip_level") or {}
+    if cl.get("n_targets"):
+        ctx.say(f"  {cl['n_observations']} clipped dot(s) centred between the slopes their unknown level allows (bound "
+                f"{cl['bound_rms_px']:.4f} px rms, decision 0050): shared by their views, added to {cl['n_targets']} "
+                f"target(s) (sigma x{cl['sigma_growth_median']:.3f} median, x{cl['sigma_growth_max']:.2f} at most)")
     fl = (cb or {}).get("shared_floor") or {}
     if fl.get("n_targets"):
         ctx.say(f"  every dot's views share {fl['rho_all']:.4f} of its error (detector model rho_all, decision 0043): "

@@ -104,6 +104,8 @@ class DotMeasurement:
         blur_px2: (k,) the optical blur each dot's image shows, a variance along each axis (px^2,
             :func:`calibration.targets.blur_variances`: its second moments less its ellipse's and the pixel's; NaN
             for a clipped dot, whose flat top says nothing of it); ADJUST's blur term (decision 0049); or None.
+        clip_bound: (k, 2) px, how far a clipped dot's centre may be off for its unknown level (``Detections.clip_bound``,
+            decision 0050; zero for the others); ADJUST carries it in the statement; or None.
     """
 
     target: np.ndarray
@@ -118,6 +120,7 @@ class DotMeasurement:
     resection_median_px: float | None = None
     ellipse: np.ndarray | None = None
     blur_px2: np.ndarray | None = None
+    clip_bound: np.ndarray | None = None
 
     @property
     def n_shape(self) -> int:
@@ -130,10 +133,12 @@ def name_dots(det_uv: np.ndarray, part, intr: Intrinsics, cam_from_part: np.ndar
               coded_ids: np.ndarray | None = None, coded_uv: np.ndarray | None = None,
               det_cov: np.ndarray | None = None, det_bg_cov: np.ndarray | None = None,
               det_axes: np.ndarray | None = None, det_ring_px: np.ndarray | None = None,
-              det_clipped: np.ndarray | None = None, det_ellipse: np.ndarray | None = None) -> DotMeasurement:
+              det_clipped: np.ndarray | None = None, det_ellipse: np.ndarray | None = None,
+              det_clip_bound: np.ndarray | None = None) -> DotMeasurement:
     """Identify detected dot centres ``det_uv: (k, 2)`` with an approximate pose and measure them.
 
-    ``det_cov, det_bg_cov: (k, 2, 2)`` (px^2) travel with the centres they belong to. ``det_axes: (k, 2, 2)``
+    ``det_cov, det_bg_cov: (k, 2, 2)`` (px^2) and ``det_clip_bound: (k, 2)`` (px) travel with the centres they
+    belong to. ``det_axes: (k, 2, 2)``
     (px^2, ``Detections.axes``): each named dot's shape is checked against its target's ellipse
     (:data:`SHAPE_MIN`, :data:`SHAPE_MAX`) and dropped with the reason when it is not that ellipse; None: no
     shape check. ``det_ring_px: (k,)`` (``Detections.ring_px``): a named dot whose background ring had fewer than
@@ -200,7 +205,8 @@ def name_dots(det_uv: np.ndarray, part, intr: Intrinsics, cam_from_part: np.ndar
                           None if det_cov is None else np.asarray(det_cov)[dots],
                           None if det_bg_cov is None else np.asarray(det_bg_cov)[dots],
                           None if det_clipped is None else np.asarray(det_clipped, dtype=float)[dots], dropped, med,
-                          None if det_ellipse is None else np.asarray(det_ellipse, dtype=bool)[dots], blur)
+                          None if det_ellipse is None else np.asarray(det_ellipse, dtype=bool)[dots], blur,
+                          None if det_clip_bound is None else np.asarray(det_clip_bound, dtype=float).reshape(-1, 2)[dots])
 
 
 def surface_labeller(camera, part) -> SurfaceLabeller | None:
@@ -288,5 +294,6 @@ def _name_detections(image, det, part, intr, cam_from_part_approx, occluder, max
                   det_axes=det.axes[keep] if shape_check else None,
                   det_ring_px=None if det.ring_px is None else det.ring_px[keep],
                   det_clipped=None if det.saturated is None else (det.saturated / np.maximum(det.area_px, 1.0))[keep],
-                  det_ellipse=None if det.ellipse is None else det.ellipse[keep])
+                  det_ellipse=None if det.ellipse is None else det.ellipse[keep],
+                  det_clip_bound=None if det.clip_bound is None else det.clip_bound[keep])
     return m, {"n_dots": int(keep.sum()), "n_coded": int(known.sum())}

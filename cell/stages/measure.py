@@ -7,7 +7,9 @@ dots; ``s`` 0 where too few dots carried it and the image's one figure stood for
 ``bg_cov_px2`` (k, 2, 2:
 the detector's bound on each centre's error from a background that is not a plane, px^2,
 ``Detections.background_cov``; ADJUST adds its share to the image precision), ``clipped_share`` (k,),
-``ellipse_centre`` (k, bool: the centre is the ellipse of the dot's contour, not its centroid; decision 0037), counts,
+``ellipse_centre`` (k, bool: the centre is the ellipse of the dot's contour, not its centroid; decision 0037),
+``blur_px2`` (k: the blur each dot's image shows; decision 0049), ``clip_bound_px`` (k, 2: how far a clipped dot's
+centre may be off for its unknown level, zero for the others; ADJUST carries it; decision 0050), counts,
 ``background_mask`` (only when ``[camera] background_mask = "cad"``: "cad", or "none (...)" for an image measured
 unmasked because too few dots were named to label it from; docs/decisions/0035),
 ``dropped``: list of {``id``, ``reason``} (dots that were named and then left unnamed: partly hidden,
@@ -65,6 +67,7 @@ def run(ctx, keep: bool = False) -> None:
                     "bg_cov_px2": m.bg_cov, "clipped_share": m.clipped_share,
                     **({"ellipse_centre": m.ellipse} if m.ellipse is not None else {}),
                     **({"blur_px2": m.blur_px2} if m.blur_px2 is not None else {}),
+                    **({"clip_bound_px": m.clip_bound} if m.clip_bound is not None else {}),
                     "n_unidentified": m.n_unidentified, "n_partly_hidden": m.n_partly_hidden,
                     "n_shape_rejected": m.n_shape, "dropped": dropped,
                     "resection_median_px": m.resection_median_px} | counts)

@@ -211,10 +211,11 @@ def range_check(incidence_deg: np.ndarray, diameter_px: np.ndarray, used: np.nda
 def clipping_check(clipped_share: np.ndarray, used: np.ndarray) -> dict:
     """How many of the observations ``used: (q,) bool`` are of dots the sensor clipped over
     :data:`DEEP_CLIP` of their pixels (``clipped_share: (q,)``), and a warning (``mismatch``) when more than
-    :data:`DEEP_CLIP_SHARE_MAX` are: in an over-exposed image such a dot's centre errs along its normal's image by a
-    bias its views share (dots clipped over 70-80 % of their pixels: -0.0003 +- 0.0008 px at the reference exposure,
-    -0.0012 +- 0.0004 px at 2.5x it, -0.0043 +- 0.0006 px at 5x; decision 0048), which no view's weight carries: on
-    generated parts at 2.5x the exposure the statement was 1.2-1.3x optimistic."""
+    :data:`DEEP_CLIP_SHARE_MAX` are: the detector model (and its saturation term) was measured with 0-29 % such
+    observations. A clipped dot's level is unknown, and with it how its contour must follow the ground behind it:
+    the detector takes the middle and states the bound (decision 0050; before, its centre leaned towards the
+    darker ground by a bias its views share, and at 2.5x the exposure generated parts' statements were 1.2-1.3x
+    optimistic, decision 0048). The bound is carried; the model was still not measured there."""
     c = np.asarray(clipped_share, dtype=float)[np.asarray(used, dtype=bool)]
     deep = int(np.count_nonzero(c >= DEEP_CLIP))
     share = deep / len(c) if len(c) else 0.0
@@ -223,9 +224,9 @@ def clipping_check(clipped_share: np.ndarray, used: np.ndarray) -> dict:
     if share > DEEP_CLIP_SHARE_MAX:
         out["mismatch"] = (f"{100 * share:.0f} % of the observations are of dots the sensor clipped over "
                            f"{100 * DEEP_CLIP:.0f} % of their pixels (at the exposure the detector model was measured "
-                           "with: 0-29 %): over-exposed, their centres err along the dot's normal by a bias the views "
-                           "share, which the stated uncertainty does not carry; shorten the exposure or lower the gain "
-                           "or the light")
+                           "with: 0-29 %): over-exposed; each clipped dot's centre carries the bound its unknown level "
+                           "allows, but the detector model's saturation term was not measured there; shorten the "
+                           "exposure or lower the gain or the light")
     return out
 
 

@@ -43,6 +43,7 @@ class PredictedRays:
     cov: np.ndarray | None = None  # (q, 2, 2) px^2, the detector's covariance of the centre (decision 0048)
     line: np.ndarray | None = None  # (q,) bool, the render's noise line was measured (cell.stages.dot_precision)
     blur: np.ndarray | None = None  # (q,) px^2, the blur the dot's render shows (NaN: clipped; decision 0049)
+    clip_bound: np.ndarray | None = None  # (q, 2) px, a clipped dot's bound for its unknown level (decision 0050)
     method: str = "rendered"
     facts: dict = field(default_factory=dict)
 
@@ -114,7 +115,7 @@ def cached_rendered_rays(job, part_from_cam: np.ndarray, cache_dir, progress=Non
         try:
             with np.load(path) as z:
                 r = PredictedRays(z["obs_image"], z["obs_target"], z["bg_cov"], z["clipped_share"], z["ellipse"],
-                                  z["cov"], z["line"], z["blur"])
+                                  z["cov"], z["line"], z["blur"], z["clip_bound"])
                 r.facts = json.loads(str(z["facts"]))
             return r
         except (OSError, ValueError, KeyError):  # a torn or foreign file: measured again, rewritten
@@ -125,7 +126,7 @@ def cached_rendered_rays(job, part_from_cam: np.ndarray, cache_dir, progress=Non
         tmp = path.with_suffix(f".{os.getpid()}.tmp.npz")
         np.savez(tmp, obs_image=r.obs_image, obs_target=r.obs_target, bg_cov=r.bg_cov,
                  clipped_share=r.clipped_share, ellipse=r.ellipse, cov=r.cov, line=r.line, blur=r.blur,
-                 facts=json.dumps(r.facts))
+                 clip_bound=r.clip_bound, facts=json.dumps(r.facts))
         os.replace(tmp, path)
     except OSError:  # a read-only cache: measured every time
         pass
@@ -167,7 +168,7 @@ def rendered_rays(job, part_from_cam: np.ndarray, progress=None) -> PredictedRay
     workers = max(1, min(2, os.cpu_count() or 1, len(poses)))
     with ThreadPoolExecutor(max_workers=workers) as ex:
         found = list(ex.map(one, range(len(poses))))
-    img_idx, tgt, bg, clip, ell, cov, line, blur = [], [], [], [], [], [], [], []
+    img_idx, tgt, bg, clip, ell, cov, line, blur, cb = [], [], [], [], [], [], [], [], []
     lost: dict[str, int] = {}
     for i, (m, measured) in enumerate(found):
         k = len(m.target)
@@ -179,12 +180,13 @@ def rendered_rays(job, part_from_cam: np.ndarray, progress=None) -> PredictedRay
         bg.append(np.zeros((k, 2, 2)) if m.bg_cov is None else np.asarray(m.bg_cov, dtype=float).reshape(k, 2, 2))
         clip.append(np.zeros(k) if m.clipped_share is None else np.asarray(m.clipped_share, dtype=float).reshape(k))
         ell.append(np.zeros(k, dtype=bool) if m.ellipse is None else np.asarray(m.ellipse, dtype=bool).reshape(k))
+        cb.append(np.zeros((k, 2)) if m.clip_bound is None else np.asarray(m.clip_bound, dtype=float).reshape(k, 2))
         for _, why in m.dropped:
             key = "shape unlike its ellipse" if why.startswith("shape") else why.split(":")[0].split("(")[0].strip()
             lost[key] = lost.get(key, 0) + 1
     r = PredictedRays(np.concatenate(img_idx).astype(int), np.concatenate(tgt).astype(int), np.concatenate(bg),
                       np.concatenate(clip), np.concatenate(ell), np.concatenate(cov), np.concatenate(line),
-                      np.concatenate(blur))
+                      np.concatenate(blur), np.concatenate(cb))
     r.facts = {"images_rendered": len(poses), "rays": len(r.obs_target),
                "rays_with_background_bound": int(np.count_nonzero(np.trace(r.bg_cov, axis1=1, axis2=2) > 0)),
                "rays_clipped": int(np.count_nonzero(r.clipped_share > 0)), "dots_left_unnamed": lost}
@@ -254,6 +256,7 @@ def _adjust_exact(job, poses, img, tgt, uv, scr, rays: PredictedRays, order):
     from cell.stages.dot_precision import blur_weights, noise_weights, rms_sigma, stated_usable
     from cell.stages.adjust import (_add_coherent_background, bundle_config, centroid_bounds_scaled, model_diameters,
                                     model_sigmas)
+    from cell.stages.clip_level import clip_covariances
 
     xyz = job.part.targets.xyz
     kept = np.flatnonzero(scr.keep_images)
@@ -278,8 +281,11 @@ def _adjust_exact(job, poses, img, tgt, uv, scr, rays: PredictedRays, order):
             ok, why = stated_usable(rays.cov[order][sel], ell, rays.line[order][sel])
             noise = noise_weights(sig, rays.cov[order][sel], ok)
             stated = {"source": "stated", "observations_stated": int(ok.sum()), "observations_by_model": why}
+    # as ADJUST: a clipped dot's bound for its unknown level, in its weight and shared by its views (decision 0050)
+    clip_cov = None if rays.clip_bound is None else clip_covariances(rays.clip_bound[order][sel])
     obs_sigma = noise if bg is None and clip is None else observation_covariances(
-        noise, bg, clipped_share=clip, diameter_px=model_diameters(job, poses, img, tgt, job.intrinsics.fx_px))
+        noise, bg, clipped_share=clip, diameter_px=model_diameters(job, poses, img, tgt, job.intrinsics.fx_px)
+    ) + (0.0 if clip_cov is None else clip_cov)
     config = bundle_config(job, [j for j in range(len(job.scale_bars)) if j not in scr.bars_out])
     res = bundle_adjust(img, tgt, uv, job.intrinsics, poses, xyz,
                         BundleOptions(sigma_px=float(np.sqrt(np.mean(rms_sigma(noise) ** 2))), a_posteriori=False,
@@ -289,7 +295,7 @@ def _adjust_exact(job, poses, img, tgt, uv, scr, rays: PredictedRays, order):
     if bg is not None:
         bars = config.scale_bars
         K = scale_bar_gains(res.covariance, res.points, bars, res.variance_factor)[0] if bars else None
-        added = _add_coherent_background(res, bg, img, tgt, list(job.part.targets.ids), bars, K)
+        added = _add_coherent_background(res, bg, img, tgt, list(job.part.targets.ids), bars, K, clip_cov)
     if stated is not None:  # plan.json says which dots the prediction weighed by the statement, and why not the rest
         added["dot_precision"] = stated
     return res, added
