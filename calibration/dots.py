@@ -729,14 +729,14 @@ def _measure(image: np.ndarray, o: DetectionOptions, surface: np.ndarray | None,
 
         box = np.stack([x0[keep], y0[keep], w_box[keep], h_box[keep]], axis=1)
         # a clipped dot hides the ground behind it as any dot does, but its level T is not its peak: the contour at
-        # half its peak covers 1 / (2 k) of a pixel (k = T / ceiling, both above the ground), and follows the ground
-        # with the slope 1 - 1 / (2 k), anywhere in 0.5-1 (decision 0050). The middle, and the half-difference of the
-        # centres at either end as the bound of what the unknown k moves the centre by
+        # half its peak covers 1 / (2 k) of a pixel (k: T over the ceiling, both above the ground), and follows the
+        # ground with the slope 1 - 1 / (2 k), anywhere in 0.5-1 (decision 0050). The middle, and the half-difference
+        # of the centres at either end as the bound of what the unknown k moves the centre by
         clipped = fit & (n_sat > 0)
         ground = np.where(clipped, CLIPPED_GROUND_SLOPE, 0.5)
         if clipped.any():
-            ends = [contour_ellipse_centres_in_boxes(image, labels, remap, clipped, box, coef, xc, yc, top[1:], half_noise,
-                                                     kept, ground=g)[0::2] for g in (0.5, 1.0)]
+            ends = [contour_ellipse_centres_in_boxes(image, labels, remap, clipped, box, coef, xc, yc, top[1:],
+                                                     half_noise, kept, ground=g)[0::2] for g in (0.5, 1.0)]
             both = clipped & ends[0][1] & ends[1][1]
             clip_bound[both] = 0.5 * (ends[1][0][both] - ends[0][0][both])
         if np.sum((box[fit, 2] + 6) * (box[fit, 3] + 6)) > 0.25 * image.size:  # blobs all over: the whole image at once

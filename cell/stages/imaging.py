@@ -104,8 +104,8 @@ class DotMeasurement:
         blur_px2: (k,) the optical blur each dot's image shows, a variance along each axis (px^2,
             :func:`calibration.targets.blur_variances`: its second moments less its ellipse's and the pixel's; NaN
             for a clipped dot, whose flat top says nothing of it); ADJUST's blur term (decision 0049); or None.
-        clip_bound: (k, 2) px, how far a clipped dot's centre may be off for its unknown level (``Detections.clip_bound``,
-            decision 0050; zero for the others); ADJUST carries it in the statement; or None.
+        clip_bound: (k, 2) px, how far a clipped dot's centre may be off for its unknown level
+            (``Detections.clip_bound``, decision 0050; zero for the others); ADJUST carries it; or None.
     """
 
     target: np.ndarray
@@ -206,7 +206,8 @@ def name_dots(det_uv: np.ndarray, part, intr: Intrinsics, cam_from_part: np.ndar
                           None if det_bg_cov is None else np.asarray(det_bg_cov)[dots],
                           None if det_clipped is None else np.asarray(det_clipped, dtype=float)[dots], dropped, med,
                           None if det_ellipse is None else np.asarray(det_ellipse, dtype=bool)[dots], blur,
-                          None if det_clip_bound is None else np.asarray(det_clip_bound, dtype=float).reshape(-1, 2)[dots])
+                          None if det_clip_bound is None
+                          else np.asarray(det_clip_bound, dtype=float).reshape(-1, 2)[dots])
 
 
 def surface_labeller(camera, part) -> SurfaceLabeller | None:
