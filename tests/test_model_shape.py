@@ -156,13 +156,25 @@ def test_a_class_the_reweighting_cannot_mend_is_said_as_still_off():
     assert again["mismatch"] and again["off"] and again["classes"][5]["beyond_band"], again["classes"][5]
 
 
+def _truth_squares(job, report: dict) -> np.ndarray:
+    """Each measured target's squared Mahalanobis distance from the truth (CAD + the injected deviations, after a
+    rigid fit), in its stated covariance."""
+    from tests.jobutil import mahalanobis, rigid_fit, truth_xyz_m
+
+    ids, _, truth = truth_xyz_m(job)
+    index = {t: k for k, t in enumerate(ids)}
+    T = [t for t in report["targets"] if t.get("measured") and t["measured"][0] is not None]
+    measured = np.array([t["measured"] for t in T])
+    true = truth[[index[t["id"]] for t in T]]
+    fit = rigid_fit(measured, true)
+    return mahalanobis(measured @ fit[:3, :3].T + fit[:3, 3] - true, np.array([t["cov"] for t in T])) ** 2
+
+
 def test_dots_smaller_than_the_models_are_said_in_every_record_and_measured_honestly(tmp_path):
     """The example with 3 mm dots (10-21 px; the model was measured on 15-39 px): the model's extrapolation overstates
     their sigma (variance factor ~0.4) and the plan's prediction misses (predicted / achieved ~1.5). Both are said in
     every record, and the statement, which follows the images, holds against the truth."""
     from scipy.stats import chi2
-
-    from tests.jobutil import mahalanobis, rigid_fit, truth_xyz_m
 
     job = job_variant(tmp_path / "job", {"job": {"target_diameter": 3.0}})
     run = run_cell("run", str(job), "--archive", str(tmp_path / "archive"), timeout=900)
@@ -179,14 +191,8 @@ def test_dots_smaller_than_the_models_are_said_in_every_record_and_measured_hone
     html = (folder / "report.html").read_text()
     assert 'id="model-range"' in html and 'id="prediction-off"' in html
     # the truth: the measured coordinates against CAD + the injected deviations, in the stated covariance
-    ids, _, truth = truth_xyz_m(job)
-    index = {t: k for k, t in enumerate(ids)}
-    T = [t for t in report["targets"] if t.get("measured") and t["measured"][0] is not None]
-    measured = np.array([t["measured"] for t in T])
-    true = truth[[index[t["id"]] for t in T]]
-    fit = rigid_fit(measured, true)
-    m2 = mahalanobis(measured @ fit[:3, :3].T + fit[:3, 3] - true, np.array([t["cov"] for t in T])) ** 2
-    print(f"\n3 mm dots: {len(T)} targets, truth ratio {np.sqrt(m2.mean() / 3):.3f}, "
+    m2 = _truth_squares(job, report)
+    print(f"\n3 mm dots: {len(m2)} targets, truth ratio {np.sqrt(m2.mean() / 3):.3f}, "
           f"{np.mean(m2 <= chi2.ppf(0.99, 3)):.1%} within the 99 % ellipsoid; predicted / achieved {pa['median']:.2f}; "
           f"variance factor {report['uncertainty_budget']['variance_factor']:.2f}")
     assert 0.85 <= np.sqrt(m2.mean() / 3) <= 1.15, np.sqrt(m2.mean() / 3)
@@ -243,8 +249,6 @@ def test_an_over_exposed_job_is_said_in_every_record_and_its_statement_holds(tmp
     holds against the truth."""
     from scipy.stats import chi2
 
-    from tests.jobutil import mahalanobis, rigid_fit, truth_xyz_m
-
     job = job_variant(tmp_path / "job", {"camera": {"exposure_s": 0.01}})
     run = run_cell("run", str(job), "--archive", str(tmp_path / "archive"), timeout=900)
     assert run.code == 0, run.stderr[-3000:]
@@ -257,13 +261,7 @@ def test_an_over_exposed_job_is_said_in_every_record_and_its_statement_holds(tmp
     assert 'id="model-range"' in (folder / "report.html").read_text()
     level = json.loads((folder / "bundle.json").read_text())["coherent_background"]["clip_level"]
     assert level["n_observations"] > 0.5 * clipping["observations"] and level["sigma_growth_max"] > 1.01, level
-    ids, _, truth = truth_xyz_m(job)
-    index = {t: k for k, t in enumerate(ids)}
-    T = [t for t in report["targets"] if t.get("measured") and t["measured"][0] is not None]
-    measured = np.array([t["measured"] for t in T])
-    true = truth[[index[t["id"]] for t in T]]
-    fit = rigid_fit(measured, true)
-    m2 = mahalanobis(measured @ fit[:3, :3].T + fit[:3, 3] - true, np.array([t["cov"] for t in T])) ** 2
+    m2 = _truth_squares(job, report)
     ratio, inside = np.sqrt(m2.mean() / 3), np.mean(m2 <= chi2.ppf(0.99, 3))
     print(f"\n5x the exposure: truth ratio {ratio:.3f}, {inside:.1%} within the 99 % ellipsoid; clip level {level}")
     assert 0.85 <= ratio <= 1.15 and inside >= 0.97, (ratio, inside)
