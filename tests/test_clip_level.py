@@ -132,3 +132,16 @@ def test_the_views_of_a_target_share_its_clip_bound():
     # none at all: nothing added, said as none
     none, doc0 = clip_level_cov(res, clip_covariances(np.zeros((len(img), 2))), img, tgt)
     assert not np.any(none) and doc0 == {"n_observations": 0, "n_targets": 0}
+
+
+def test_the_report_says_what_the_clip_bounds_added():
+    from cell.record.report import _budget_facts
+
+    facts = _budget_facts({"uncertainty_budget": {"clip_level": {"n_observations": 1634, "bound_rms_px": 0.0148,
+                                                                 "bound_max_px": 0.34, "n_targets": 189,
+                                                                 "sigma_growth_median": 1.013,
+                                                                 "sigma_growth_max": 1.049}}})
+    line = facts["Stated beyond the detector model"]
+    assert "1634 clipped dot(s)' unknown level (0.0148 px rms)" in line and "x1.013 median" in line
+    assert "Stated beyond the detector model" not in _budget_facts(
+        {"uncertainty_budget": {"clip_level": {"n_observations": 0, "n_targets": 0}}})

@@ -321,6 +321,11 @@ def _budget_facts(doc: dict) -> dict:
         if b.get("shared_misfit_targets") else []
     if b.get("observations_clipped"):
         extra.append(f"{b['observations_clipped']} observation(s) of clipped (overexposed) dots")
+    if (b.get("clip_level") or {}).get("n_targets"):
+        c = b["clip_level"]
+        extra.append(f"the bound of {c['n_observations']} clipped dot(s)' unknown level ({c['bound_rms_px']:.4f} px rms), "
+                     f"shared by their views (sigma x{c['sigma_growth_median']:.3f} median, "
+                     f"x{c['sigma_growth_max']:.2f} at most)")
     if (b.get("shared_floor") or {}).get("n_targets"):
         f = b["shared_floor"]
         extra.append(f"a share {f['rho_all']:.4f} of every dot's error common to its views (sigma x"

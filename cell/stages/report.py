@@ -289,7 +289,7 @@ def _budget(cov_scale, dev_cov, use, bundle: dict, scale=None) -> dict:
     out.update(scale_sigma_ppm=None, scale_sigma_certificate_ppm=None)
     if scale is not None:
         out.update(scale_sigma_ppm=scale[0] * 1e6, scale_sigma_certificate_ppm=scale[1] * 1e6)
-    out.update(shared_floor=cb.get("shared_floor"))
+    out.update(shared_floor=cb.get("shared_floor"), clip_level=cb.get("clip_level"))
     out.update(shared_misfit_targets=cb.get("n_targets", 0), scale_bar_ends=cb.get("scale_bar_ends", []),
                observations_with_background_bound=w.get("observations_with_background_bound"),
                observations_clipped=w.get("observations_clipped"),
