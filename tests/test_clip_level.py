@@ -145,3 +145,25 @@ def test_the_report_says_what_the_clip_bounds_added():
     assert "1634 clipped dot(s)' unknown level (0.0148 px rms)" in line and "x1.013 median" in line
     assert "Stated beyond the detector model" not in _budget_facts(
         {"uncertainty_budget": {"clip_level": {"n_observations": 0, "n_targets": 0}}})
+
+
+def test_clipped_dots_without_a_bound_are_counted_and_said():
+    """An image measured before decision 0050 has clipped dots but no bounds: ADJUST counts them in bundle.json and
+    says on the console and in the run log that their sigma lacks the term."""
+    from cell.stages.adjust import _flag_counts
+    from cell.stages.clip_level import say_clip_level
+
+    # three clipped observations, one with its bound; one not clipped; the last clipped one rejected by the adjustment
+    cc = clip_covariances(np.array([[0.0, 0.0], [0.01, 0.0], [0.0, 0.0], [0.0, 0.0]]))
+    flags = {"bg": None, "clip": np.array([0.5, 0.7, 0.0, 0.8]), "clip_cov": cc, "clip_missing": []}
+    counts = _flag_counts(flags, np.array([False, False, False, True]))
+    assert counts["observations_clipped"] == 2 and counts["clipped_without_bound"] == 1
+    said, logged = [], []
+    ctx = SimpleNamespace(say=said.append, log=SimpleNamespace(log=lambda level, msg: logged.append((level, msg))))
+    say_clip_level(ctx, {"n_observations": 0, "n_targets": 0}, {"clipped_without_bound": 12})
+    assert logged and logged[0][0] == "warning" and "12 observation(s) of clipped dots carry no bound" in logged[0][1]
+    assert said == [f"  WARNING {logged[0][1]}"]
+    said.clear()
+    say_clip_level(ctx, {"n_observations": 5, "n_targets": 2, "bound_rms_px": 0.001, "sigma_growth_median": 1.0,
+                         "sigma_growth_max": 1.01}, {"clipped_without_bound": 0})
+    assert len(said) == 1 and "5 clipped dot(s) centred between the slopes" in said[0] and len(logged) == 1

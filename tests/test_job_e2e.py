@@ -216,6 +216,7 @@ def test_each_images_pixel_noise_line_and_each_dots_blur_are_measured_and_record
     level = json.loads((folder / "bundle.json").read_text())["coherent_background"]["clip_level"]
     assert level["n_observations"] > 0 and 1.0 <= level["sigma_growth_median"] <= level["sigma_growth_max"] < 1.5, level
     assert report["uncertainty_budget"]["clip_level"] == level
+    assert json.loads((folder / "bundle.json").read_text())["observation_weights"]["clipped_without_bound"] == 0
 
 
 def test_run_log_holds_every_transition_image_and_detection(example):

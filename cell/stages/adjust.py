@@ -18,7 +18,7 @@ from calibration.errors import CalibrationError, ScaleNotEstablishedError
 from calibration.plausibility import check_adjustment
 from calibration.weights import INCIDENCE_EDGES_DEG, group_labels, incidence_angles, incidence_groups, mean_variance
 from cell.record.jobfolder import atomic_write_bytes, atomic_write_json
-from cell.stages.clip_level import clip_bounds, clip_covariances, clip_level_cov
+from cell.stages.clip_level import clip_bounds, clip_covariances, clip_level_cov, say_clip_level
 from cell.stages.dot_precision import blur_weights, observed_blur, rms_sigma, stated_weights
 from cell.stages.scalebars import (bar_name, bars_doc, protected_entries, say_bars, shape_reason, snooping_reason,
                                    test_reason)
@@ -617,7 +617,13 @@ def _flag_counts(flags: dict, rejected) -> dict:
         out["background_bound_at_centroid_share"] = int(np.count_nonzero(flags["bg_centroid"][used]))
     if flags["clip"] is None:
         return out | {"observations_clipped": None, "images_without_clipped_share": []}
-    return out | {"observations_clipped": int(np.count_nonzero(flags["clip"][used] > 0)),
+    # clipped dots without a bound for their unknown level (an image measured before decision 0050, a dot centred by
+    # its centroid, an end's contour that could not be fitted): their statement lacks that term, said by the caller
+    clipped = np.asarray(flags["clip"]) > 0
+    cc = flags.get("clip_cov")
+    has = np.trace(cc, axis1=1, axis2=2) > 0 if cc is not None else np.zeros(len(clipped), dtype=bool)
+    return out | {"observations_clipped": int(np.count_nonzero(clipped[used])),
+                  "clipped_without_bound": int(np.count_nonzero((clipped & ~has)[used])),
                   "images_without_clipped_share": list(flags["clip_missing"])}
 
 
@@ -745,11 +751,7 @@ def run(ctx) -> None:
                    "(rho_background, version 4): taken as one, the conservative limit")
             ctx.log.log("info", msg)
             ctx.say(f"  {msg}")
-    cl = (cb or {}).get("clip_level") or {}
-    if cl.get("n_targets"):
-        ctx.say(f"  {cl['n_observations']} clipped dot(s) centred between the slopes their unknown level allows (bound "
-                f"{cl['bound_rms_px']:.4f} px rms, decision 0050): shared by their views, added to {cl['n_targets']} "
-                f"target(s) (sigma x{cl['sigma_growth_median']:.3f} median, x{cl['sigma_growth_max']:.2f} at most)")
+    say_clip_level(ctx, (cb or {}).get("clip_level") or {}, doc["observation_weights"])
     fl = (cb or {}).get("shared_floor") or {}
     if fl.get("n_targets"):
         ctx.say(f"  every dot's views share {fl['rho_all']:.4f} of its error (detector model rho_all, decision 0043): "

@@ -19,7 +19,7 @@ import numpy as np
 
 from calibration.bundle.coherent import coherent_background_cov
 
-__all__ = ["clip_bounds", "clip_covariances", "clip_level_cov"]
+__all__ = ["clip_bounds", "clip_covariances", "clip_level_cov", "say_clip_level"]
 
 
 def clip_bounds(obs_doc: dict) -> np.ndarray:
@@ -63,3 +63,21 @@ def clip_level_cov(res, clip_cov: np.ndarray | None, img: np.ndarray, tgt: np.nd
                    "bound_max_px": float(bound.max()), "n_targets": int(len(on)),
                    "sigma_growth_median": float(np.median(growth)) if len(on) else 1.0,
                    "sigma_growth_max": float(growth.max()) if len(on) else 1.0}
+
+
+def say_clip_level(ctx, level: dict, weights: dict) -> None:
+    """The console (and the run log for a warning): what the clip bounds added (bundle.json
+    ``coherent_background.clip_level``), and the clipped dots that carry none (bundle.json
+    ``observation_weights.clipped_without_bound``: an image measured before decision 0050, a dot centred by its
+    centroid, an end's contour that could not be fitted; their statement lacks the term, which is said)."""
+    nb = weights.get("clipped_without_bound") or 0
+    if nb:
+        msg = (f"{nb} observation(s) of clipped dots carry no bound for their unknown level (measured before decision "
+               "0050, centred by their centroid, or a contour that could not be fitted): their sigma lacks that term")
+        ctx.log.log("warning", msg)
+        ctx.say(f"  WARNING {msg}")
+    if level.get("n_targets"):
+        ctx.say(f"  {level['n_observations']} clipped dot(s) centred between the slopes their unknown level allows "
+                f"(bound {level['bound_rms_px']:.4f} px rms, decision 0050): shared by their views, added to "
+                f"{level['n_targets']} target(s) (sigma x{level['sigma_growth_median']:.3f} median, "
+                f"x{level['sigma_growth_max']:.2f} at most)")
