@@ -1,12 +1,12 @@
 """How a clipped dot's centre leans along the image of its normal, at an exposure, against the rendered truth.
 
 The simulated cell's camera renders the example part from random views (with its noise) at the job's exposure
-times ``--exposure-factor``; the detector centres every image twice: with clipped dots' contours following the
-ground behind them by 0.5 (as if just clipped: the baseline, the detector before decision 0050) and by the
-detector's :data:`calibration.dots.CLIPPED_GROUND_SLOPE`. Printed per class of the share of a dot's pixels the
-sensor clipped: the mean error along the image of the dot's normal (a lean the views of a target share), its
-standard error, and the rms bound the detector states for the unknown level (``Detections.clip_bound``); then the
-ratio of the deeply clipped dots' lean to the baseline's.
+times ``--exposure-factor``, and the detector centres each image. A clipped dot's centre is the middle of its
+contour's centres with the ground followed by 0.5 and by 1, and its ``Detections.clip_bound`` half their difference
+(decision 0050): the centre less the bound is the contour's at 0.5, as if just clipped, the detector before that
+decision and the baseline here. Printed per class of the share of a dot's pixels the sensor clipped: the mean error
+along the image of the dot's normal (a lean the views of a target share), its standard error, and the rms bound;
+then the ratio of the deeply clipped dots' lean to the baseline's.
 
     .venv/bin/python -m benchmarks.clip_bias [--exposure-factor 5] [--views 24] [--part-level 0.08] [--seed 0]
 
@@ -25,7 +25,6 @@ from scipy.spatial import cKDTree
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-import calibration.dots as dots  # noqa: E402
 from calibration.camera import invert, look_at, project  # noqa: E402
 from calibration.targets import DetectionOptions, detect_retro_targets, eccentricity_bias  # noqa: E402
 from cell.devices import make_job_sim_cell  # noqa: E402
@@ -49,8 +48,8 @@ def measure(exposure_factor: float, n_views: int, part_level: float | None, seed
     centre = xyz.mean(axis=0)
     index = {t: i for i, t in enumerate(job.part.targets.ids)}
     rng = np.random.default_rng(seed)
-    slopes = (0.5, dots.CLIPPED_GROUND_SLOPE)
-    rows: dict[float, list] = {s: [] for s in slopes}
+    variants = ("baseline", "now")
+    rows: dict[str, list] = {s: [] for s in variants}
     for _ in range(n_views):
         az, el = rng.uniform(0, 2 * np.pi), np.deg2rad(rng.uniform(8, 85))
         eye = centre + rng.uniform(0.35, 0.7) * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
@@ -63,20 +62,16 @@ def measure(exposure_factor: float, n_views: int, part_level: float | None, seed
         uv = project(intr, C, xyz[tid]) + eccentricity_bias(intr, C, xyz[tid], nrm[tid], radius)
         step = project(intr, C, xyz[tid] + 1e-3 * nrm[tid]) - project(intr, C, xyz[tid])
         normal = step / np.maximum(np.linalg.norm(step, axis=1, keepdims=True), 1e-12)
-        for s in slopes:
-            dots.CLIPPED_GROUND_SLOPE = s
-            try:
-                det = detect_retro_targets(img, DetectionOptions())
-            finally:
-                dots.CLIPPED_GROUND_SLOPE = slopes[1]
-            d, j = cKDTree(det.uv).query(uv)
-            ok = d < 1.0
-            along = np.einsum("ij,ij->i", det.uv[j[ok]] - uv[ok], normal[ok])
-            share = det.saturated[j[ok]] / np.maximum(det.area_px[j[ok]], 1)
-            bound = np.linalg.norm(det.clip_bound[j[ok]], axis=1)
-            rows[s].append(np.column_stack([share, along, bound]))
+        det = detect_retro_targets(img, DetectionOptions())
+        d, j = cKDTree(det.uv).query(uv)
+        ok = d < 1.0
+        share = det.saturated[j[ok]] / np.maximum(det.area_px[j[ok]], 1)
+        bound = det.clip_bound[j[ok]]
+        for s, found in (("baseline", det.uv[j[ok]] - bound), ("now", det.uv[j[ok]])):
+            along = np.einsum("ij,ij->i", found - uv[ok], normal[ok])
+            rows[s].append(np.column_stack([share, along, np.linalg.norm(bound, axis=1)]))
     out = {}
-    for s in slopes:
+    for s in variants:
         R = np.concatenate(rows[s])
         out[s] = []
         for lo, hi, name in CLASSES:
@@ -88,7 +83,7 @@ def measure(exposure_factor: float, n_views: int, part_level: float | None, seed
         deep = R[:, 0] >= 0.7
         out[s] = {"classes": out[s], "deep_lean_px": float(R[deep, 1].mean()) if deep.any() else float("nan"),
                   "deep_n": int(deep.sum())}
-    return {"slopes": slopes, "by_slope": out}
+    return {"variants": variants, "by_variant": out}
 
 
 def main(argv=None) -> int:
@@ -99,15 +94,15 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     a = ap.parse_args(argv)
     r = measure(a.exposure_factor, a.views, a.part_level, a.seed)
-    base, now = r["slopes"]
+    base, now = r["variants"]
     for s in (base, now):
-        tag = "baseline (the contour following the ground by 0.5)" if s == base else f"the detector ({s:g})"
+        tag = "baseline (the contour following the ground by 0.5)" if s == base else "the detector (decision 0050)"
         print(f"{tag}:")
-        for c in r["by_slope"][s]["classes"]:
+        for c in r["by_variant"][s]["classes"]:
             print(f"  {c['class']:16s} n {c['n']:5d}  lean along the normal {c['lean_px']:+.4f} +- {c['sem_px']:.4f} px"
                   f"  bound rms {c['bound_rms_px']:.4f} px")
-    lb, ln = r["by_slope"][base]["deep_lean_px"], r["by_slope"][now]["deep_lean_px"]
-    print(f"dots clipped over 70 % ({r['by_slope'][now]['deep_n']}): lean {ln:+.4f} px against the baseline's "
+    lb, ln = r["by_variant"][base]["deep_lean_px"], r["by_variant"][now]["deep_lean_px"]
+    print(f"dots clipped over 70 % ({r['by_variant'][now]['deep_n']}): lean {ln:+.4f} px against the baseline's "
           f"{lb:+.4f} px: ratio {ln / lb if lb else float('nan'):.2f}")
     return 0
 

@@ -140,10 +140,11 @@ class Detections:
             (:func:`calibration.dot_noise.noise_levels`); what ``cov`` propagated. None: not measured.
         ellipse: (k,) bool, the centre is the ellipse fitted to the dot's half-level contour (``centre="ellipse"``,
             or ``"auto"`` for a clipped dot or one with a background misfit; decision 0037), not the centroid; or None.
-        clip_bound: (k, 2) px, how far a clipped dot's centre may be off for its unknown level: the contour follows
-            the ground behind the dot with a slope between 0.5 (just clipped) and 1 (far over the ceiling), the centre
-            is the one at :data:`CLIPPED_GROUND_SLOPE` and this is half the difference of the centres at 1 and 0.5
-            (decision 0050); zero for a dot not clipped or not centred by its ellipse; or None.
+        clip_bound: (k, 2) px, how far a clipped dot's centre may be off for its unknown level: its contour must
+            follow the ground behind the dot with a slope between 0.5 (just clipped) and 1 (far over the ceiling), the
+            centre is the middle of the centres at those two and this is half their difference (decision 0050); zero
+            for a dot not clipped, not centred by its ellipse, or whose second contour could not be fitted (its centre
+            then the one at 0.5; ADJUST counts and says such dots); or None.
     """
 
     uv: np.ndarray
@@ -289,9 +290,6 @@ def _tophat(image: np.ndarray, kernel: int) -> np.ndarray:
 
 #: ring pixels needed for a background plane and its misfit test (fewer: no slope, and no bound can be measured)
 MIN_RING_PX = 8
-#: the slope with which a clipped dot's half-level contour follows the ground behind it: the middle of 0.5 (a dot
-#: just clipped) and 1 (one far over the ceiling), whose level the image does not tell (decision 0050)
-CLIPPED_GROUND_SLOPE = 0.75
 
 
 def _ring_planes(lab: np.ndarray, dx: np.ndarray, dy: np.ndarray, val: np.ndarray, k: int, fallback: float,
@@ -728,25 +726,26 @@ def _measure(image: np.ndarray, o: DetectionOptions, surface: np.ndarray | None,
         half_noise = np.sqrt(np.maximum(var0 + slope * 0.5 * (bg_local + top[1:]), 0.25 * noise**2))
 
         box = np.stack([x0[keep], y0[keep], w_box[keep], h_box[keep]], axis=1)
-        # a clipped dot hides the ground behind it as any dot does, but its level T is not its peak: the contour at
-        # half its peak covers 1 / (2 k) of a pixel (k: T over the ceiling, both above the ground), and follows the
-        # ground with the slope 1 - 1 / (2 k), anywhere in 0.5-1 (decision 0050). The middle, and the half-difference
-        # of the centres at either end as the bound of what the unknown k moves the centre by
-        clipped = fit & (n_sat > 0)
-        ground = np.where(clipped, CLIPPED_GROUND_SLOPE, 0.5)
-        if clipped.any():
-            ends = [contour_ellipse_centres_in_boxes(image, labels, remap, clipped, box, coef, xc, yc, top[1:],
-                                                     half_noise, kept, ground=g)[0::2] for g in (0.5, 1.0)]
-            both = clipped & ends[0][1] & ends[1][1]
-            clip_bound[both] = 0.5 * (ends[1][0][both] - ends[0][0][both])
         if np.sum((box[fit, 2] + 6) * (box[fit, 3] + 6)) > 0.25 * image.size:  # blobs all over: the whole image at once
             blobs = remap if fit.all() else np.where(np.concatenate([[False], fit])[remap.astype(np.int64)], remap,
                                                      np.float32(0)).astype(np.float32)
             e_uv, e_cov, ok = contour_ellipse_centres(image, blobs[labels], k, coef, xc, yc, top[1:], half_noise, labels,
-                                                      kept, ground=ground)
+                                                      kept)
         else:  # a few (the clipped dots, those next to an edge; a split pass's parts): each in its own box
             e_uv, e_cov, ok = contour_ellipse_centres_in_boxes(image, labels, remap, fit, box, coef, xc, yc, top[1:],
-                                                               half_noise, kept, ground=ground)
+                                                               half_noise, kept)
+        # a clipped dot hides the ground behind it as any dot does, but its level T is not its peak: the contour at
+        # half its peak covers 1 / (2 k) of a pixel (k: T over the ceiling, both above the ground), and must follow
+        # the ground with the slope 1 - 1 / (2 k), anywhere in 0.5-1 (decision 0050). The fit above took 0.5; with
+        # the fit at 1, the centre is their middle and half their difference the bound of what the unknown k moves
+        # it by (the centre moves linearly with the slope: within 1e-4 px of a fit at 0.75)
+        clipped = fit & ok & (n_sat > 0)
+        if clipped.any():
+            far, _, far_ok = contour_ellipse_centres_in_boxes(image, labels, remap, clipped, box, coef, xc, yc, top[1:],
+                                                              half_noise, kept, ground=1.0)
+            both = clipped & far_ok
+            clip_bound[both] = 0.5 * (far[both] - e_uv[both])
+            e_uv = e_uv + clip_bound
         if agree_px is not None:
             agree = ok & (np.hypot(*(e_uv - uv).T) <= agree_px)
         used_ellipse = ok & pick

@@ -5,7 +5,7 @@ A dot hides the ground behind it: its edge pixels read ``b (1 - a) + T a`` over 
 contour, whose level must follow the ground across the dot with the slope ``1 - 1 / (2 k)`` (``k``: the dot's
 level over the sensor's ceiling, both above the ground) for the contour to lie at one fraction of the dot all
 round. The image does not tell ``k`` (the clipped pixels are what would show it), so the detector takes the middle
-slope, 0.75, and states half the difference of the centres at the slopes' ends, 0.5 and 1, as the bound
+of the centres at the slopes' ends, 0.5 and 1, and states half their difference as the bound
 ``calibration.dots.Detections.clip_bound`` (observations.json ``clip_bound_px``).
 
 The error within that bound is taken as uniform: a covariance ``b b^T / 3`` per observation, added to its weight.
