@@ -25,6 +25,7 @@ import json
 import os
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -168,6 +169,8 @@ def main() -> None:
         base = baseline_scipy(base_img, det.noise)
         base_times.append(time.perf_counter() - t0)
     bd, bj, berr = _errors(uv, base)
+    with_outline = replace(opts, outline=True)  # what the cell's MEASURE runs (decision 0051)
+    out_times = [_timed(detect_dots, img, with_outline)[1] for _ in range(max(3, a.repeat // 2))]
     print(f"image {w}x{h} ({w * h / 1e6:.1f} MP), {len(uv)} targets, found {len(det)} "
           f"(unique matches {len(np.unique(j))})")
     sd = np.sqrt(np.concatenate([det.cov[:, 0, 0], det.cov[:, 1, 1]]))
@@ -190,6 +193,8 @@ def main() -> None:
           f"median {np.median(base_times) * 1e3:.1f} ms, found {len(base)}, centre std "
           f"({berr[bd < 1.0, 0].std():.4f}, {berr[bd < 1.0, 1].std():.4f}) px within 1 px of a target")
     print(f"ratio baseline / ours (best): {min(base_times) / min(times):.2f}x")
+    print(f"with every dot's outline fitted (MEASURE's check for chipped or stained targets, decision 0051): best "
+          f"{min(out_times) * 1e3:.1f} ms, {min(out_times) / min(times):.2f}x the detection alone")
     print("BENCHMARK " + json.dumps({
         "what": f"retro-target detection ({w * h / 1e6:.1f} MP, {len(uv)} targets)",
         "figure": f"{min(times) * 1e3:.1f} ms best, {np.median(times) * 1e3:.1f} ms median, CPU {min(cpu) * 1e3:.1f} ms "

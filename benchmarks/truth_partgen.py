@@ -163,7 +163,9 @@ def losses(folder: Path) -> dict:
             "achieved_max_um": 1e6 * report["achieved_sigma_max_m"],
             "unnamed": obs.get("dropped_by_reason", {}),
             "screened": {k: len(scr.get(k, [])) for k in ("dropped_observations", "dropped_targets", "dropped_images")},
-            "rejected": bundle["n_rejected"], "suspect": len(bundle.get("snooping", {}).get("suspect_targets", []))}
+            "rejected": bundle["n_rejected"], "suspect": len(bundle.get("snooping", {}).get("suspect_targets", [])),
+            # targets whose images are not a clean dot (decision 0051; the generated parts' dots are all whole)
+            "print_doubtful": [d["id"] for d in (bundle.get("target_print") or {}).get("doubtful", [])]}
 
 
 def main(argv=None) -> int:

@@ -117,9 +117,9 @@ def _concatenate(a: Detections, b: Detections) -> Detections:
         return a
     if len(a) == 0:
         return b
-    cat = {f: np.concatenate([getattr(a, f), getattr(b, f)]) for f in
-           ("uv", "area_px", "peak", "flux", "background", "cov", "axes", "background_cov", "saturated", "ring_px",
-            "ellipse", "clip_bound")}
+    cat = {f: None if getattr(a, f) is None or getattr(b, f) is None else np.concatenate([getattr(a, f), getattr(b, f)])
+           for f in ("uv", "area_px", "peak", "flux", "background", "cov", "axes", "background_cov", "saturated",
+                     "ring_px", "ellipse", "clip_bound", "outline", "centroid_shift", "centroid_shift_cov")}
     return replace(a, **cat)
 
 

@@ -79,6 +79,9 @@ class DetectionOptions:
         centre: "centroid" (intensity-weighted, decision 0007) or "ellipse" (ellipse fit to the half-level contour).
         cov_floor_px: added in quadrature to each centre's standard deviation (what noise propagation does
             not see: print, blur, compression); pixels.
+        outline: fit every dot's half-level contour (not only the dots centred by it) for its outline's misfit and
+            the centroid's check against it (``Detections.outline``, ``centroid_shift``; decision 0051). The cell's
+            MEASURE turns it on; it costs about 0.7x the detection's time (``benchmarks.bench_detection``).
     """
 
     polarity: str = "bright"
@@ -96,6 +99,7 @@ class DetectionOptions:
     background_kernel_px: int = 41
     centre: str = "auto"
     cov_floor_px: float = 0.005
+    outline: bool = False
 
     def __post_init__(self) -> None:
         if self.polarity not in POLARITIES:
@@ -145,6 +149,13 @@ class Detections:
             centre is the middle of the centres at those two and this is half their difference (decision 0050); zero
             for a dot not clipped, not centred by its ellipse, or whose second contour could not be fitted (its centre
             then the one at 0.5; ADJUST counts and says such dots); or None.
+        outline: (k, 4) each dot's half-level contour about its fitted ellipse, ``[chi2, n, rms_px, stray]``
+            (:func:`calibration.ellipse_fit.contour_ellipse_centres`): an ellipse's image leaves ``chi2`` about
+            ``n - 5``, a chipped edge more (decision 0051); NaN where the contour could not be fitted; None when
+            ``DetectionOptions.outline`` is off.
+        centroid_shift, centroid_shift_cov: (k, 2) px and (k, 2, 2) px^2, a centroid dot's centre less its contour's
+            ellipse centre, and the sum of their covariances: the two agree on an ellipse's image, a speck on the dot
+            moves the centroid only (decision 0051); NaN for a dot centred by its ellipse or not fitted; or None.
     """
 
     uv: np.ndarray
@@ -162,6 +173,9 @@ class Detections:
     ellipse: np.ndarray | None = None
     noise_levels: tuple[float, float] | None = None
     clip_bound: np.ndarray | None = None
+    outline: np.ndarray | None = None
+    centroid_shift: np.ndarray | None = None
+    centroid_shift_cov: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.uv)
@@ -174,7 +188,10 @@ class Detections:
                        saturated=None if self.saturated is None else self.saturated[keep],
                        ring_px=None if self.ring_px is None else self.ring_px[keep],
                        ellipse=None if self.ellipse is None else self.ellipse[keep],
-                       clip_bound=None if self.clip_bound is None else self.clip_bound[keep])
+                       clip_bound=None if self.clip_bound is None else self.clip_bound[keep],
+                       outline=None if self.outline is None else self.outline[keep],
+                       centroid_shift=None if self.centroid_shift is None else self.centroid_shift[keep],
+                       centroid_shift_cov=None if self.centroid_shift_cov is None else self.centroid_shift_cov[keep])
 
 
 def to_grey(image: np.ndarray) -> np.ndarray:
@@ -716,24 +733,22 @@ def _measure(image: np.ndarray, o: DetectionOptions, surface: np.ndarray | None,
     pick = np.ones(k, dtype=bool) if o.centre == "ellipse" else (
         (n_sat > 0) | (misfit > 0) if o.centre == "auto" else np.zeros(k, dtype=bool))
     used_ellipse = np.zeros(k, dtype=bool)
+    outline, shift, shift_cov = np.full((k, 4), np.nan), np.full((k, 2), np.nan), np.full((k, 2, 2), np.nan)
     clip_bound = np.zeros((k, 2))  # what a clipped dot's unknown level can move its centre by (px)
     fit = pick if agree_px is None else np.ones(k, dtype=bool)
     agree = np.ones(k, dtype=bool)
-    if fit.any():
-        from calibration.ellipse_fit import contour_ellipse_centres, contour_ellipse_centres_in_boxes
+    if k:
+        from calibration.ellipse_fit import contour_ellipses, contour_ellipse_centres_in_boxes
 
         # each contour's noise at its own level, halfway between the background and the peak
         half_noise = np.sqrt(np.maximum(var0 + slope * 0.5 * (bg_local + top[1:]), 0.25 * noise**2))
-
         box = np.stack([x0[keep], y0[keep], w_box[keep], h_box[keep]], axis=1)
-        if np.sum((box[fit, 2] + 6) * (box[fit, 3] + 6)) > 0.25 * image.size:  # blobs all over: the whole image at once
-            blobs = remap if fit.all() else np.where(np.concatenate([[False], fit])[remap.astype(np.int64)], remap,
-                                                     np.float32(0)).astype(np.float32)
-            e_uv, e_cov, ok = contour_ellipse_centres(image, blobs[labels], k, coef, xc, yc, top[1:], half_noise, labels,
-                                                      kept)
-        else:  # a few (the clipped dots, those next to an edge; a split pass's parts): each in its own box
-            e_uv, e_cov, ok = contour_ellipse_centres_in_boxes(image, labels, remap, fit, box, coef, xc, yc, top[1:],
-                                                               half_noise, kept)
+
+        def contours(sel):
+            return contour_ellipses(image, labels, remap, sel, box, coef, xc, yc, top[1:], half_noise, kept)
+
+        e_uv, e_cov, ok, outline = contours(fit) if fit.any() else (np.zeros((k, 2)), np.zeros((k, 2, 2)),
+                                                                     np.zeros(k, dtype=bool), outline)
         # a clipped dot hides the ground behind it as any dot does, but its level T is not its peak: the contour at
         # half its peak covers 1 / (2 k) of a pixel (k: T over the ceiling, both above the ground), and must follow
         # the ground with the slope 1 - 1 / (2 k), anywhere in 0.5-1 (decision 0050). The fit above took 0.5; with
@@ -741,14 +756,24 @@ def _measure(image: np.ndarray, o: DetectionOptions, surface: np.ndarray | None,
         # it by (the centre moves linearly with the slope: within 1e-4 px of a fit at 0.75)
         clipped = fit & ok & (n_sat > 0)
         if clipped.any():
-            far, _, far_ok = contour_ellipse_centres_in_boxes(image, labels, remap, clipped, box, coef, xc, yc, top[1:],
-                                                              half_noise, kept, ground=1.0)
+            far, _, far_ok, _ = contour_ellipse_centres_in_boxes(image, labels, remap, clipped, box, coef, xc, yc,
+                                                                 top[1:], half_noise, kept, ground=1.0)
             both = clipped & far_ok
             clip_bound[both] = 0.5 * (far[both] - e_uv[both])
             e_uv = e_uv + clip_bound
+        if o.outline and not fit.all():  # the others' contours too, for their outlines and the centroid's check
+            rest = contours(~fit)
+            e_uv, e_cov, ok = (np.where(np.reshape(fit, (-1,) + (1,) * (a.ndim - 1)), a, b)
+                               for a, b in zip((e_uv, e_cov, ok), rest[:3]))
+            outline = np.where(fit[:, None], outline, rest[3])
         if agree_px is not None:
             agree = ok & (np.hypot(*(e_uv - uv).T) <= agree_px)
         used_ellipse = ok & pick
+        # a centroid dot's two centres, by its light and by its edge, agree on an ellipse's image; a speck on the dot
+        # moves the first only (decision 0051). Their difference's covariance is taken as the sum (they share noise)
+        cdot = ok & ~pick
+        shift[cdot] = (uv - e_uv)[cdot]
+        shift_cov[cdot] = (cov + e_cov)[cdot]
         uv = np.where(used_ellipse[:, None], e_uv, uv)
         cov = np.where(used_ellipse[:, None, None], e_cov, cov)
     cov += o.cov_floor_px**2 * np.eye(2)
@@ -765,5 +790,7 @@ def _measure(image: np.ndarray, o: DetectionOptions, surface: np.ndarray | None,
     ring_px = np.bincount(lf, minlength=k + 1)[1:]
     return (Detections(uv[good], area[keep][good], peak[good], flux[good], bg_local[good], noise, cov[good],
                        o.polarity, axes[good], bcov[good], n_sat[good].astype(int), ring_px[good], used_ellipse[good],
-                       (float(var0), float(slope)), np.where(used_ellipse[:, None], clip_bound, 0.0)[good]),
+                       (float(var0), float(slope)), np.where(used_ellipse[:, None], clip_bound, 0.0)[good],
+                       outline[good] if o.outline else None, shift[good] if o.outline else None,
+                       shift_cov[good] if o.outline else None),
             np.flatnonzero(keep)[good])

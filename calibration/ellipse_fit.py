@@ -24,13 +24,15 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["contour_ellipse_centres", "contour_ellipse_centres_in_boxes"]
+__all__ = ["contour_ellipse_centres", "contour_ellipse_centres_in_boxes", "contour_ellipses", "STRAY_PX"]
+
+STRAY_PX = 1.0  # a contour point farther than this (or a fifth of the mean radius) from the conic is no edge point
 
 
 def contour_ellipse_centres(image: np.ndarray, lab: np.ndarray, k: int, coef: np.ndarray, xc: np.ndarray,
                             yc: np.ndarray, top: np.ndarray, noise, components: np.ndarray | None = None,
                             own: np.ndarray | None = None, ground=None
-                            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                            ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Ellipse centres of ``k`` blobs.
 
     Args:
@@ -48,53 +50,106 @@ def contour_ellipse_centres(image: np.ndarray, lab: np.ndarray, k: int, coef: np
             where ``top`` is the dot's own level; module docstring).
 
     Returns:
-        uv (k, 2), cov (k, 2, 2) px^2, ok (k,) bool (enough contour points and a real ellipse).
+        uv (k, 2), cov (k, 2, 2) px^2, ok (k,) bool (enough contour points and a real ellipse), and outline (k, 4):
+        each contour's misfit about its ellipse, ``[chi2, n, rms, stray]``: the squared distances from the conic
+        refitted without the strays (points farther than :data:`STRAY_PX` or a fifth of the mean radius from the first
+        conic) of the points whose pair crosses the edge within 60 deg of its normal, along their pairs' axes in their
+        own variances, summed (``chi2``: of the order of ``n - 5`` for an ellipse's image, about half that on the
+        simulated camera, whose contour noise the pairs' model overstates; decision 0051 judges it against the job's
+        own dots), the number ``n`` of those points, their distances' rms in px (along the normal) and the number of
+        strays; NaN where not ``ok``. The centre is the first conic's, strays and all, as before decision 0051.
     """
     import cv2
 
     grown = cv2.dilate(lab, cv2.getStructuringElement(cv2.MORPH_RECT, (5, 5)))
-    ys, xs = np.nonzero(grown)
-    L = grown[ys, xs].astype(np.int64)
-    img = image.astype(np.float64)
-
     slope = np.broadcast_to(np.asarray(0.5 if ground is None else ground, dtype=float), (k,))
+    rows, cols = np.flatnonzero(grown.any(axis=1)), np.flatnonzero(grown.any(axis=0))
+    if not len(rows):
+        return np.zeros((k, 2)), np.zeros((k, 2, 2)), np.zeros(k, dtype=bool), np.full((k, 4), np.nan)
+    # the pixel pairs, in image space over the grown blobs' bounding box (row-major, as np.nonzero orders them): each
+    # pixel of a blob's grown window with its right and its lower neighbour of the same window, neither of another
+    # blob; table lookups by the label (row 0: no blob) give each pixel its blob's plane and level
+    r0, c0 = rows[0], cols[0]
+    G = grown[r0:rows[-1] + 1, c0:cols[-1] + 1].astype(np.int64)
+    V = image[r0:rows[-1] + 1, c0:cols[-1] + 1]
+    mine = G > 0
+    if components is not None:  # neither pixel of another blob (the background is 0)
+        C = components[r0:rows[-1] + 1, c0:cols[-1] + 1]
+        mine &= (C == 0) | (C == np.concatenate([[0], own])[G])
 
-    def level(ll, x, y):
-        c = coef[ll - 1]
-        b0 = c[:, 0]
-        return 0.5 * (b0 + top[ll - 1]) + slope[ll - 1] * (c[:, 1] * (x - xc[ll - 1]) + c[:, 2] * (y - yc[ll - 1]))
+    def table(v):
+        return np.concatenate([[0.0], np.asarray(v, dtype=float)])
 
+    half_t, slope_t = table(0.5 * (coef[:, 0] + top)), table(slope)
+    gx_t, gy_t, xc_t, yc_t = table(coef[:, 1]), table(coef[:, 2]), table(xc), table(yc)
+    nz2_t = table(np.broadcast_to(np.asarray(noise, dtype=float) ** 2, (k,)))
     px, py, pl, pw, ax = [], [], [], [], []
     for ddx, ddy in ((1, 0), (0, 1)):
-        x2, y2 = xs + ddx, ys + ddy
-        inb = (x2 < image.shape[1]) & (y2 < image.shape[0])
-        x1, y1, l1, x2, y2 = xs[inb], ys[inb], L[inb], x2[inb], y2[inb]
-        same = grown[y2, x2].astype(np.int64) == l1
-        x1, y1, l1, x2, y2 = x1[same], y1[same], l1[same], x2[same], y2[same]
-        if components is not None:  # neither pixel of another blob (the background is 0)
-            c1, c2, mine = components[y1, x1], components[y2, x2], own[l1 - 1]
-            mine_only = ((c1 == 0) | (c1 == mine)) & ((c2 == 0) | (c2 == mine))
-            x1, y1, l1, x2, y2 = x1[mine_only], y1[mine_only], l1[mine_only], x2[mine_only], y2[mine_only]
-        f1 = img[y1, x1] - level(l1, x1 + 0.5 * ddx, y1 + 0.5 * ddy)
-        f2 = img[y2, x2] - level(l1, x1 + 0.5 * ddx, y1 + 0.5 * ddy)
+        h2, w2 = G.shape[0] - ddy, G.shape[1] - ddx
+        G1 = G[:h2, :w2]
+        pair = (G1 > 0) & (G1 == G[ddy:, ddx:]) & mine[:h2, :w2] & mine[ddy:, ddx:]
+        iy, ix = np.nonzero(pair)
+        l1 = G1[iy, ix]
+        x1, y1 = ix + c0, iy + r0
+        # the level at the pair's middle: halfway between the blob's plane and its peak, following the ground
+        lv = half_t[l1] + slope_t[l1] * (gx_t[l1] * ((x1 + 0.5 * ddx) - xc_t[l1])
+                                         + gy_t[l1] * ((y1 + 0.5 * ddy) - yc_t[l1]))
+        f1 = V[iy, ix].astype(np.float64) - lv
+        f2 = V[iy + ddy, ix + ddx].astype(np.float64) - lv
         cross = (f1 * f2 < 0)
         f1, f2, x1, y1, l1 = f1[cross], f2[cross], x1[cross], y1[cross], l1[cross]
         t = f1 / (f1 - f2)
         px.append(x1 + t * ddx)
         py.append(y1 + t * ddy)
         pl.append(l1)
-        nz2 = noise**2 if np.ndim(noise) == 0 else np.asarray(noise, dtype=float)[l1 - 1] ** 2
-        pw.append((f1 - f2) ** 2 / (2 * nz2))  # 1 / sigma^2 of the point along the pair's axis
+        pw.append((f1 - f2) ** 2 / (2 * nz2_t[l1]))  # 1 / sigma^2 of the point along the pair's axis
         ax.append(np.full(len(l1), ddx == 1))
     x, y, ll, w, along_x = map(np.concatenate, (px, py, pl, pw, ax))
     # centre the coordinates on each blob for conditioning
     x = x - xc[ll - 1]
     y = y - yc[ll - 1]
+    n = np.bincount(ll, minlength=k + 1)[1:]
+    sol, ok = _fit_conics(x, y, ll, k, np.ones(len(x)))
+    uv, ok = _centres(sol, ok, xc, yc)
+
+    def s(v):
+        return np.bincount(ll, weights=v, minlength=k + 1)[1:]
+
+    info_x = s(np.where(along_x, w, 0.0))
+    info_y = s(np.where(along_x, 0.0, w))
+    cov = np.zeros((k, 2, 2))
+    cov[:, 0, 0] = 2.0 / np.maximum(info_x, 1e-12)
+    cov[:, 1, 1] = 2.0 / np.maximum(info_y, 1e-12)
+    ok &= (info_x > 0) & (info_y > 0)
+    # the outline's misfit. A point farther than STRAY_PX (or a fifth of the ellipse's mean radius) from the fitted
+    # conic is no point of the dot's edge (the ground's own level crossing in the window, a neighbour's skirt): it is
+    # counted and left out, and the conic fitted again to the others. Each remaining point's distance from that conic
+    # along its pair's axis (where its noise is), in its own standard deviations: an ellipse's image leaves the
+    # noise, a chipped or stained edge more (decision 0051)
+    geo, _ = _distances(sol, x, y, ll, along_x)
+    reach = np.maximum(STRAY_PX, 0.2 * _mean_radius(sol))
+    inl = np.abs(geo) <= reach[ll - 1]
+    stray = n - s(inl.astype(float))
+    sol2, ok2 = _fit_conics(x, y, ll, k, inl.astype(float))
+    geo2, along = _distances(sol2, x, y, ll, along_x)
+    # a pair nearly along the edge places its point poorly (its step is the noise's): the points whose pair crosses the
+    # edge within 60 deg of its normal carry the misfit (every stretch of an edge has them, along x or along y)
+    inl &= np.abs(geo2) >= 0.5 * np.abs(along)
+    n_in = s(inl.astype(float))
+    outline = np.stack([s(np.where(inl, w * along * along, 0.0)), n_in,
+                        np.sqrt(s(np.where(inl, geo2 * geo2, 0.0)) / np.maximum(n_in, 1)), stray], axis=1)
+    outline[~(ok & ok2)] = np.nan
+    return uv, cov, ok, outline
+
+
+def _fit_conics(x: np.ndarray, y: np.ndarray, ll: np.ndarray, k: int, wt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares conics ``a x^2 + b xy + c y^2 + d x + e y + f = 0``, ``a + c = 1``, one per blob label ``ll``
+    (1..k) of the points ``x, y`` weighted ``wt``: (k, 5) ``[a, b, d, e, f]`` and (k,) bool solved."""
     F = np.stack([x * x - y * y, x * y, x, y, np.ones_like(x)], axis=1)
     rhs = -y * y
 
     def s(v):
-        return np.bincount(ll, weights=v, minlength=k + 1)[1:]
+        return np.bincount(ll, weights=v * wt, minlength=k + 1)[1:]
 
     A = np.empty((k, 5, 5))
     bvec = np.empty((k, 5))
@@ -102,34 +157,71 @@ def contour_ellipse_centres(image: np.ndarray, lab: np.ndarray, k: int, coef: np
         bvec[:, i] = s(F[:, i] * rhs)
         for j in range(i, 5):
             A[:, i, j] = A[:, j, i] = s(F[:, i] * F[:, j])
-    n = np.bincount(ll, minlength=k + 1)[1:]
-    ok = n >= 12
+    ok = s(np.ones_like(x)) >= 12
     ok[ok] &= np.abs(np.linalg.det(A[ok])) > 1e-12
     sol = np.zeros((k, 5))
     if np.any(ok):
         sol[ok] = np.linalg.solve(A[ok], bvec[ok][..., None])[..., 0]
+    return sol, ok
+
+
+def _centres(sol: np.ndarray, ok: np.ndarray, xc: np.ndarray, yc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each conic's centre (where its gradient vanishes) about its blob's reference point, and ``ok`` where it is an
+    ellipse."""
     a, b, d, e = sol[:, 0], sol[:, 1], sol[:, 2], sol[:, 3]
     c = 1.0 - a
     M = np.stack([np.stack([2 * a, b], -1), np.stack([b, 2 * c], -1)], -2)
-    det = 4 * a * c - b * b
-    ok &= det > 1e-9  # an ellipse
-    cen = np.zeros((k, 2))
+    ok = ok & (4 * a * c - b * b > 1e-9)  # an ellipse
+    cen = np.zeros((len(sol), 2))
     if np.any(ok):
         cen[ok] = -np.linalg.solve(M[ok], np.stack([d, e], -1)[ok][..., None])[..., 0]
-    uv = cen + np.stack([xc, yc], -1)
-    info_x = s(np.where(along_x, w, 0.0))
-    info_y = s(np.where(along_x, 0.0, w))
-    cov = np.zeros((k, 2, 2))
-    cov[:, 0, 0] = 2.0 / np.maximum(info_x, 1e-12)
-    cov[:, 1, 1] = 2.0 / np.maximum(info_y, 1e-12)
-    ok &= (info_x > 0) & (info_y > 0)
-    return uv, cov, ok
+    return cen + np.stack([xc, yc], -1), ok
+
+
+def _distances(sol: np.ndarray, x: np.ndarray, y: np.ndarray, ll: np.ndarray, along_x: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """Each point's distance from its blob's conic to first order: along the conic's normal, and along its pair's
+    axis (x where ``along_x``)."""
+    a, b, d, e, f = (sol[ll - 1, i] for i in range(5))
+    c = 1.0 - a
+    Q = a * x * x + b * x * y + c * y * y + d * x + e * y + f
+    gx, gy = 2 * a * x + b * y + d, b * x + 2 * c * y + e
+    g_axis = np.where(along_x, gx, gy)
+    return Q / np.maximum(np.hypot(gx, gy), 1e-12), Q / np.where(np.abs(g_axis) > 1e-9, g_axis, 1e-9)
+
+
+def _mean_radius(sol: np.ndarray) -> np.ndarray:
+    """(k,) the geometric mean of each conic's semi-axes (0 where it is no ellipse)."""
+    a, b, d, e, f = (sol[:, i] for i in range(5))
+    c = 1.0 - a
+    det = 4 * a * c - b * b
+    with np.errstate(divide="ignore", invalid="ignore"):
+        # the centred conic x^T M x = -f', f' = f - (a x0^2 + b x0 y0 + c y0^2); semi-axes^2 = -f' / eigenvalues
+        x0 = (b * e - 2 * c * d) / det
+        y0 = (b * d - 2 * a * e) / det
+        fc = f + 0.5 * (d * x0 + e * y0)
+        r2 = -fc / np.sqrt(np.maximum(a * c - 0.25 * b * b, 1e-18))
+    return np.where((det > 1e-9) & (r2 > 0), np.sqrt(np.maximum(r2, 0.0)), 0.0)
+
+
+def contour_ellipses(image: np.ndarray, labels: np.ndarray, remap: np.ndarray, sel: np.ndarray, box: np.ndarray,
+                     coef: np.ndarray, xc: np.ndarray, yc: np.ndarray, top: np.ndarray, noise, own_comp: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`contour_ellipse_centres` of the blobs ``sel`` (arguments as :func:`contour_ellipse_centres_in_boxes`):
+    on the whole image when their boxes cover over a quarter of it (blobs all over), else each in its own box (a few:
+    the clipped dots, those next to an edge, a split pass's parts)."""
+    k = len(sel)
+    if np.sum((box[sel, 2] + 6) * (box[sel, 3] + 6)) > 0.25 * image.size:
+        blobs = remap if sel.all() else np.where(np.concatenate([[False], sel])[remap.astype(np.int64)], remap,
+                                                 np.float32(0)).astype(np.float32)
+        return contour_ellipse_centres(image, blobs[labels], k, coef, xc, yc, top, noise, labels, own_comp)
+    return contour_ellipse_centres_in_boxes(image, labels, remap, sel, box, coef, xc, yc, top, noise, own_comp)
 
 
 def contour_ellipse_centres_in_boxes(image: np.ndarray, labels: np.ndarray, remap: np.ndarray, sel: np.ndarray,
                                      box: np.ndarray, coef: np.ndarray, xc: np.ndarray, yc: np.ndarray,
                                      top: np.ndarray, noise, own_comp: np.ndarray | None = None,
-                                     ground=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                                     ground=None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """:func:`contour_ellipse_centres` of the blobs ``sel: (k,) bool`` only, each in its own box: the boxes (each
     blob's bounding box ``box: (k, 4)`` x0, y0, w, h grown by 3 px, what the contour's 5 x 5 growth and its pixel pairs
     reach) are cut out, stacked into one small image with only their own blob labelled, and fitted at once. The same
@@ -139,13 +231,13 @@ def contour_ellipse_centres_in_boxes(image: np.ndarray, labels: np.ndarray, rema
     ``labels``: (h, w) component labels; ``remap``: (n,) float32, component label -> 1..k (0: not kept);
     ``own_comp``: (k,) each blob's component label (pairs with a pixel of another component are left out, as
     :func:`contour_ellipse_centres` does with them; None: kept). ``ground``: as there.
-    Returns uv (k, 2), cov (k, 2, 2), ok (k,) bool (False where not selected).
+    Returns uv (k, 2), cov (k, 2, 2), ok (k,) bool (False where not selected), outline (k, 4) (NaN there).
     """
     k = len(sel)
-    uv, cov, ok = np.zeros((k, 2)), np.zeros((k, 2, 2)), np.zeros(k, dtype=bool)
+    uv, cov, ok, outline = np.zeros((k, 2)), np.zeros((k, 2, 2)), np.zeros(k, dtype=bool), np.full((k, 4), np.nan)
     idx = np.flatnonzero(sel)
     if not len(idx):
-        return uv, cov, ok
+        return uv, cov, ok, outline
     H, W = image.shape
     g = 3
     bx0 = np.maximum(box[idx, 0] - g, 0).astype(int)
@@ -157,18 +249,22 @@ def contour_ellipse_centres_in_boxes(image: np.ndarray, labels: np.ndarray, rema
     mosaic = np.zeros((int(oy[-1] + hh[-1]), int((bx1 - bx0).max())), dtype=image.dtype)
     lab = np.zeros(mosaic.shape, dtype=np.float32)
     comp = np.zeros(mosaic.shape, dtype=labels.dtype)  # the components, as in the image (others' pixels excluded)
-    for j, q in enumerate(idx):
-        win = image[by0[j]:by1[j], bx0[j]:bx1[j]]
-        cw = labels[by0[j]:by1[j], bx0[j]:bx1[j]]
-        own = remap[cw] == q + 1
-        mosaic[oy[j]:oy[j] + hh[j], :win.shape[1]] = win
-        comp[oy[j]:oy[j] + hh[j], :win.shape[1]] = cw
-        lab[oy[j]:oy[j] + hh[j], :win.shape[1]][own] = q + 1
+    # every box's pixels at once: box j's pixel (r, c) is the image's (by0 + r, bx0 + c) and the mosaic's (oy + r, c)
+    ww = bx1 - bx0
+    size = hh * ww
+    j = np.repeat(np.arange(len(idx)), size)
+    local = np.arange(int(size.sum())) - np.repeat(np.cumsum(size) - size, size)
+    r, c = local // ww[j], local % ww[j]
+    iy, ix, my = by0[j] + r, bx0[j] + c, oy[j] + r
+    mosaic[my, c] = image[iy, ix]
+    cw = labels[iy, ix]
+    comp[my, c] = cw
+    lab[my, c] = np.where(remap[cw] == idx[j] + 1, (idx[j] + 1).astype(np.float32), np.float32(0))
     # the blobs' plane reference points moved with their boxes (the plane is in x - xc, y - yc: unchanged)
     sx, sy = np.zeros(k), np.zeros(k)
     sx[idx], sy[idx] = bx0, by0 - oy
     out = contour_ellipse_centres(mosaic, lab, k, coef, xc - sx, yc - sy, top, noise,
                                   None if own_comp is None else comp, own_comp, ground)
     uv[idx] = out[0][idx] + np.stack([sx[idx], sy[idx]], axis=1)
-    cov[idx], ok[idx] = out[1][idx], out[2][idx]
-    return uv, cov, ok
+    cov[idx], ok[idx], outline[idx] = out[1][idx], out[2][idx], out[3][idx]
+    return uv, cov, ok, outline

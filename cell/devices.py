@@ -4,6 +4,10 @@ The stages see only the Protocols of ``drivers.protocols``. With ``--backend ur`
 in tests, the robot is the real ur-rtde client talking to the loopback UR
 controller and the camera is the simulated one, following the pose the robot
 reports (so a whole job runs through the real driver path).
+
+The simulated cell carries the real part's unknowns: its deviations, a ``[sim] fixture`` and worn dots (``[sim]
+damaged_targets``, :func:`_target_damage`); PLAN's twin (``cell.stages.preanalysis.twin_camera``) renders the
+nominal part, without any of them.
 """
 from __future__ import annotations
 
@@ -62,6 +66,18 @@ def _fixture_mesh(job: LoadedJob):
     return trimesh.util.concatenate(boxes)
 
 
+def _target_damage(job: LoadedJob):
+    """``[sim] damaged_targets`` as the simulated world's :class:`~sim_backend.world.TargetDamage` (None: none)."""
+    if not job.damaged_targets:
+        return None
+    from sim_backend.world import TargetDamage
+
+    rows = job.damaged_targets
+    return TargetDamage.of(len(job.part.targets.ids), [i for i, _ in rows], [d.kind for _, d in rows],
+                           [d.lost for _, d in rows], [np.deg2rad(d.direction_deg) for _, d in rows],
+                           [d.offset for _, d in rows])
+
+
 def make_job_sim_cell(job: LoadedJob, seed_offset: int = 0):
     """The simulated cell of a job: the true part (CAD + deviations), its true placement and hand-eye.
 
@@ -84,7 +100,7 @@ def make_job_sim_cell(job: LoadedJob, seed_offset: int = 0):
                          .with_depth_of_field(s.camera.near * s.scale, s.camera.far * s.scale,
                                               s.sim.circle_of_confusion_px),
                          photometry=photometry,
-                         fixture=_fixture_mesh(job),
+                         fixture=_fixture_mesh(job), damage=_target_damage(job),
                          motion=s.sim.motion, time_scale=s.sim.time_scale, true_flange_from_cam=true_ffc,
                          true_base_from_part=true_bfp, coded_family=s.job.coded_family,
                          exposure_s=s.camera.exposure_s)

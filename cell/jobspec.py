@@ -11,6 +11,10 @@ Every number is checked here, at ``cell check``, never after the robot moved: fi
 two keys bound an interval (near < far, elevation min < max, workspace min < max,
 distance min < max). Keys that only a simulated device can honour are checked against the robot the job
 will drive (:func:`check_backend`): ``[sim] unreachable_stations`` with a real UR is refused here.
+
+``[sim] damaged_targets`` wears the coating of plain dots in the simulated images (an ``edge`` lost beyond a
+chord, a dark ``spot``; :class:`DamagedTarget`): its shares and the spot's place are checked here, one damage per
+dot; the ids against the part at LOAD (:func:`damaged_target_rows`, with the job's other target ids).
 """
 from __future__ import annotations
 
@@ -30,7 +34,7 @@ from calibration.errors import JobSpecError
 from drivers.pixels import BIT_DEPTH
 from planning.part import UNITS_TO_M
 
-__all__ = ["JobSpec", "Pose", "check_backend", "load_job", "pose_matrix"]
+__all__ = ["DamagedTarget", "JobSpec", "Pose", "check_backend", "damaged_target_rows", "load_job", "pose_matrix"]
 
 
 class _Strict(BaseModel):
@@ -342,6 +346,41 @@ class AlignmentSection(_Strict):
         return self
 
 
+class DamagedTarget(_Strict):
+    """One plain dot of the simulated part whose retro-reflective coating is damaged (``[sim] damaged_targets``)."""
+
+    id: str = Field(min_length=1, description="the dot's target id: a plain retro-reflective dot of the part (coded "
+                    "targets are not damaged)")
+    kind: Literal["edge", "spot"] = Field(description="edge: the coating is gone beyond a chord (a chipped rim); "
+                                          "spot: a dark round speck (dirt) sits inside the dot")
+    lost: float = Field(description="the share of the dot's area that no longer reflects, 0 < lost <= 0.5 (edge: the "
+                        "circular segment beyond the chord; spot: the speck, of radius sqrt(lost) dot radii)")
+    direction_deg: float = Field(default=0.0, ge=-360, le=360, description="in-plane direction from the dot's centre "
+                                 "to the lost side (edge) or to the speck's centre (spot), degrees from the target's "
+                                 "first in-plane axis e1 towards e2 (sim_backend.world.marker_axes)")
+    offset: float = Field(default=0.0, ge=0, lt=1, description="spot: the speck's centre from the dot's, in dot radii; "
+                          "the speck lies inside the dot: offset + sqrt(lost) <= 0.95 (edge: not used)")
+
+    @field_validator("lost")
+    @classmethod
+    def _share(cls, v):
+        if not 0 < v <= 0.5:
+            raise ValueError("the share of the dot's area that lost its coating must be 0 < lost <= 0.5")
+        return v
+
+    @model_validator(mode="after")
+    def _spot_inside(self):
+        if self.kind == "edge" and self.offset != 0:
+            raise ValueError(f"offset = {self.offset} places a spot; an edge's chord is set by lost and direction_deg "
+                             "alone: remove offset")
+        reach = self.offset + math.sqrt(self.lost)
+        if self.kind == "spot" and reach > 0.95 + 1e-12:
+            raise ValueError(f"the spot of {self.id} (lost = {self.lost}: radius {math.sqrt(self.lost):.3f} dot radii, "
+                             f"offset = {self.offset}) reaches {reach:.3f} dot radii from the centre: it must lie "
+                             "inside the dot (offset + sqrt(lost) <= 0.95)")
+        return self
+
+
 class SimSection(_Strict):
     image_sigma_px: float = Field(default=0.0, ge=0, le=10, description="an extra random offset per dot (pixels) on top of "
                                   "the rendered photon/read noise, blur and quantisation; 0 = physical")
@@ -368,6 +407,21 @@ class SimSection(_Strict):
     unreachable_stations: list[str] = Field(default=[], description="planned station ids whose move the simulated "
                                             "controller refuses at run time (the plan does not know): ACQUIRE "
                                             "skips them, the closed loop makes up for them")
+    damaged_targets: list[DamagedTarget] = Field(
+        default=[], description="plain dots whose retro-reflective coating is worn in the simulated images (the plan "
+                                "does not know): { id, kind = \"edge\" | \"spot\", lost, direction_deg, offset } each, "
+                                "the lost part showing the target's black backing (ids checked against the part at "
+                                "LOAD)")
+
+    @model_validator(mode="after")
+    def _one_damage_per_dot(self):
+        seen: dict[str, int] = {}
+        for i, d in enumerate(self.damaged_targets):
+            if d.id in seen:
+                raise ValueError(f"sim.damaged_targets[{i}].id = {d.id!r} is damaged already by "
+                                 f"sim.damaged_targets[{seen[d.id]}]: one damage per dot")
+            seen[d.id] = i
+        return self
 
 
 class JobSpec(_Strict):
@@ -508,6 +562,23 @@ def check_backend(spec: JobSpec, backend: str, path: str | Path) -> None:
 def resolve(folder: Path, rel: str) -> Path:
     p = Path(rel)
     return p if p.is_absolute() else folder / p
+
+
+def damaged_target_rows(spec: JobSpec, ids: list[str], kinds,
+                        path: str | Path) -> tuple[tuple[int, DamagedTarget], ...]:
+    """``[sim] damaged_targets`` with each dot's index among ``ids`` (the part's targets, of ``kinds``
+    ``"retro"``/``"coded"``); ``JobSpecError`` naming the key and the id for an unknown or a coded target."""
+    index = {t: i for i, t in enumerate(ids)}
+    rows = []
+    for i, d in enumerate(spec.sim.damaged_targets):
+        key = f"sim.damaged_targets[{i}].id"
+        if d.id not in index:
+            raise JobSpecError(f"{path}: {key} = {d.id!r} names a target the part does not have")
+        if str(kinds[index[d.id]]) == "coded":
+            raise JobSpecError(f"{path}: {key} = {d.id!r} is a coded target; only plain retro-reflective dots are "
+                               "rendered damaged")
+        rows.append((index[d.id], d))
+    return tuple(rows)
 
 
 def load_deviations(path: Path, ids: list[str], scale: float) -> np.ndarray:

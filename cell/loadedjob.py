@@ -1,6 +1,11 @@
 """The loaded job: the job file, the part (mesh + targets), the camera and the cell, checked together.
 
-Used by every stage and by the cell's own calibration jobs; the LOAD stage is :mod:`cell.stages.load`."""
+Used by every stage and by the cell's own calibration jobs; the LOAD stage is :mod:`cell.stages.load`.
+
+The simulated part's unknowns are resolved against the part here, with the job's other target ids: ``[sim]
+deviations`` (a displacement per target) and ``[sim] damaged_targets`` (worn dots: each one's index and its
+validated entry, refused when the id is unknown or names a coded target). Only the simulated cell gets them
+(:func:`cell.devices.make_job_sim_cell`); PLAN's twin renders the nominal part."""
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
@@ -10,7 +15,7 @@ import numpy as np
 
 from calibration.camera import Intrinsics
 from calibration.errors import CalibrationError, JobSpecError
-from cell.jobspec import JobSpec, load_deviations, load_job, resolve
+from cell.jobspec import DamagedTarget, JobSpec, damaged_target_rows, load_deviations, load_job, resolve
 from planning.part import Part, load_part
 
 
@@ -31,6 +36,8 @@ class LoadedJob:
         target_thickness_m: how far the targets' faces stand above the CAD surface (``[job] target_thickness``). The
             part's target positions are the faces' centres, the CAD points lifted along their normals by it: what
             the camera sees and the cell measures. REPORT gives coordinates and deviations on the surface.
+        damaged_targets: ``(index, entry)`` per ``[sim] damaged_targets`` entry: the worn dots of the simulated part
+            (the index among the part's targets); empty without any.
     """
 
     spec: JobSpec
@@ -42,6 +49,7 @@ class LoadedJob:
     tolerance_m: np.ndarray
     scale_bars: tuple[tuple[int, int, float, float], ...] = ()
     target_thickness_m: float = 0.0
+    damaged_targets: tuple[tuple[int, DamagedTarget], ...] = ()
 
     def surface_points(self, xyz: np.ndarray) -> np.ndarray:
         """Target face centres ``xyz`` (n, 3), part frame, -> the CAD surface points under them."""
@@ -57,6 +65,7 @@ class LoadedJob:
             "scale_bars": [{"a": self.part.targets.ids[a], "b": self.part.targets.ids[b], "length_m": L}
                            for a, b, L, _ in self.scale_bars],
             "sim_deviations": int((np.linalg.norm(self.deviations, axis=1) > 0).sum()),
+            "sim_damaged_targets": len(self.damaged_targets),
             "target_thickness_m": self.target_thickness_m,
         }
 
@@ -121,6 +130,7 @@ def load(job_path: str | Path, overrides: dict[str, str] | None = None) -> Loade
     deviations = np.zeros((len(ids), 3))
     if spec.sim.deviations:
         deviations = load_deviations(resolve(folder, spec.sim.deviations), ids, s)
+    damaged = damaged_target_rows(spec, ids, part.targets.kind, job_path)
     if spec.sim.target_thickness is not None:  # the simulated targets are not as thick as the job says
         deviations = deviations + (spec.sim.target_thickness * s - thickness) * part.targets.normals
     tol = part.targets.tolerance_m.copy()
@@ -135,4 +145,5 @@ def load(job_path: str | Path, overrides: dict[str, str] | None = None) -> Loade
         tolerance_m=tol,
         scale_bars=tuple(scale_bars),
         target_thickness_m=thickness,
+        damaged_targets=damaged,
     )

@@ -5,7 +5,14 @@
 * :func:`disc_coverage`, :func:`marker_coverage`, :func:`ring_coverage`: the fraction of each pixel
   of k windows covered by a disc, an ArUco marker patch or a ring-coded target, from every pixel
   corner's ray intersected with the target's plane; pixels a rim or cell edge crosses are
-  supersampled (``supersample`` x ``supersample``, n-rooks pattern).
+  supersampled (``supersample`` x ``supersample``, n-rooks pattern);
+* :func:`damaged_disc_coverage`: a disc whose retro-reflective coating is partly lost (a worn target): the
+  whole disc as :func:`disc_coverage` gives it, and the share of each pixel that still reflects. An ``edge``
+  loses the coating beyond a chord (a circular segment of the disc's area share ``lost``, on the side
+  ``direction``), a ``spot`` under a dark round speck (a disc of area ``lost`` times the dot's, its centre
+  ``offset`` radii from the dot's in direction ``direction``). Pixels the chord or the speck's rim crosses are
+  supersampled as rim pixels are, so the reflective area is exact (no aliasing bias in its centroid);
+  :func:`segment_angle` solves the chord for a share.
 
 Split from :mod:`sim_backend.sim_camera` (which re-exports these names) to keep both modules short.
 """
@@ -19,12 +26,14 @@ import numpy as np
 from calibration.camera import Intrinsics
 from calibration.errors import InputError
 
-__all__ = ["ARUCO_DICTIONARY", "UndistortionLattice", "aruco_texture", "disc_coverage", "marker_coverage",
-           "ring_coverage"]
+__all__ = ["ARUCO_DICTIONARY", "DAMAGE_EDGE", "DAMAGE_NONE", "DAMAGE_SPOT", "UndistortionLattice", "aruco_texture",
+           "damaged_disc_coverage", "disc_coverage", "marker_coverage", "ring_coverage", "segment_angle"]
 
 ARUCO_DICTIONARY = cv2.aruco.DICT_4X4_250
 _MARKER_CELLS = 6  # 4 data bits + 1 black border cell each side
 _QUIET_CELLS = 1  # white quiet zone around the marker, in cells
+#: how a dot's coating is damaged (``sim_backend.world.World.damage_kind``): intact, lost beyond a chord, under a speck
+DAMAGE_NONE, DAMAGE_EDGE, DAMAGE_SPOT = 0, 1, 2
 
 # --- pixel -> ray --------------------------------------------------------------
 
@@ -218,16 +227,116 @@ def disc_coverage(
     boundary = np.abs(rho - radius_m) <= half_diag if adaptive else np.ones_like(rho, dtype=bool)
     idx = np.nonzero(boundary)
     if len(idx[0]):
-        W = _subpixel_weights(supersample).astype(np.float32)
-        C = _corner_blocks(st, idx).astype(np.float32)
-        r2 = np.float32(radius_m * radius_m)
-        out = np.empty(len(idx[0]))
-        for a in range(0, len(out), 32768):
-            s = C[a : a + 32768, :, 0] @ W.T
-            t = C[a : a + 32768, :, 1] @ W.T
-            out[a : a + 32768] = np.mean(s * s + t * t <= r2, axis=1)
-        cov[idx] = out
+        cov[idx] = _supersampled(st, idx, radius_m, supersample)[0]
     return cov
+
+
+def _supersampled(st: np.ndarray, idx: tuple[np.ndarray, ...], radius_m: float, supersample: int, dark=None
+                  ) -> tuple[np.ndarray, np.ndarray | None]:
+    """The pixels ``idx = (k, i, j)`` sampled ``supersample`` x ``supersample`` (n-rooks, from their corners' plane
+    coordinates ``st``): the share of each inside the disc, and (``dark(s, t, k)`` given: where the coating is lost)
+    the share inside and not lost, else None."""
+    W = _subpixel_weights(supersample).astype(np.float32)
+    C = _corner_blocks(st, idx).astype(np.float32)
+    r2 = np.float32(radius_m * radius_m)
+    al = np.empty(len(idx[0]))
+    wh = np.empty(len(idx[0])) if dark is not None else None
+    for a in range(0, len(al), 32768):
+        sl = slice(a, a + 32768)
+        ss = C[sl, :, 0] @ W.T
+        tt = C[sl, :, 1] @ W.T
+        ins = ss * ss + tt * tt <= r2
+        al[sl] = np.mean(ins, axis=1)
+        if dark is not None:
+            wh[sl] = np.mean(ins & ~dark(ss.astype(float), tt.astype(float), idx[0][sl, None]), axis=1)
+    return al, wh
+
+
+def segment_angle(share: np.ndarray) -> np.ndarray:
+    """Central angle (rad) of the circular segment that holds ``share`` (0..1) of its disc's area, elementwise.
+
+    The segment cut off by a chord that subtends ``theta`` at the centre has the area share
+    ``(theta - sin theta) / (2 pi)``, increasing from 0 to 1 on ``[0, 2 pi]``; solved by bisection (60 halvings:
+    to the float's resolution). The chord lies ``cos(theta / 2)`` radii from the centre.
+    """
+    f = np.clip(np.asarray(share, dtype=float), 0.0, 1.0)
+    lo, hi = np.zeros_like(f), np.full_like(f, 2 * np.pi)
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        low = (mid - np.sin(mid)) < 2 * np.pi * f
+        lo, hi = np.where(low, mid, lo), np.where(low, hi, mid)
+    return 0.5 * (lo + hi)
+
+
+def damaged_disc_coverage(
+    lattice: UndistortionLattice,
+    u0: np.ndarray,
+    v0: np.ndarray,
+    h: int,
+    w: int,
+    centre_c: np.ndarray,
+    normal_c: np.ndarray,
+    e1_c: np.ndarray,
+    e2_c: np.ndarray,
+    radius_m: float,
+    kind: np.ndarray,
+    lost: np.ndarray,
+    direction_rad: np.ndarray,
+    offset: np.ndarray,
+    shift_px: np.ndarray,
+    supersample: int = 8,
+    adaptive: bool = True,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Coverage of k discs whose reflective coating is partly lost, for k windows of h x w pixels.
+
+    Args:
+        u0, v0, centre_c, normal_c, e1_c, e2_c, radius_m, shift_px: as :func:`disc_coverage`.
+        kind: (k,) int, :data:`DAMAGE_NONE`, :data:`DAMAGE_EDGE` or :data:`DAMAGE_SPOT`.
+        lost: (k,) share of the disc's area that does not reflect (edge: 0..1; spot: its speck, of radius
+            ``sqrt(lost) * radius_m``, lies inside the disc).
+        direction_rad: (k,) in-plane direction from the disc's centre to the lost side (edge) or to the speck's
+            centre (spot), from ``e1`` towards ``e2``.
+        offset: (k,) spot: its centre's distance from the disc's centre, in disc radii (edge: unused).
+    Returns:
+        alpha: (k, h, w) fraction of each pixel covered by the disc (as :func:`disc_coverage`).
+        white: (k, h, w) fraction covered by its part that still reflects.
+    """
+    st, centre, half_diag = _window_corners(lattice, u0, v0, h, w, shift_px, centre_c, e1_c, e2_c, normal_c)
+    k = len(u0)
+    kind = np.asarray(kind).reshape(k)
+    lost = np.asarray(lost, dtype=float).reshape(k)
+    phi = np.asarray(direction_rad, dtype=float).reshape(k)
+    dx, dy = np.cos(phi), np.sin(phi)
+    edge, spot = kind == DAMAGE_EDGE, kind == DAMAGE_SPOT
+    chord = np.where(edge, radius_m * np.cos(0.5 * segment_angle(np.where(edge, lost, 0.0))), np.inf)
+    q = np.where(spot, np.asarray(offset, dtype=float).reshape(k) * radius_m, 0.0)
+    qx, qy = q * dx, q * dy
+    r_spot = np.where(spot, np.sqrt(np.where(spot, lost, 0.0)) * radius_m, 0.0)
+
+    def dark(s: np.ndarray, t: np.ndarray, kk: np.ndarray) -> np.ndarray:
+        """Whether the in-plane points ``(s, t)`` of targets ``kk`` lie where the coating is lost."""
+        beyond = s * dx[kk] + t * dy[kk] > chord[kk]
+        ds, dt = s - qx[kk], t - qy[kk]
+        return beyond | (ds * ds + dt * dt < r_spot[kk] ** 2)
+
+    kk = np.arange(k)[:, None, None]
+    s, t = centre[..., 0], centre[..., 1]
+    rho = _norm2(centre)
+    inside = rho < radius_m
+    alpha = inside.astype(float)
+    white = (inside & ~dark(s, t, kk)).astype(float)
+    if adaptive:
+        near_rim = np.abs(rho - radius_m) <= half_diag
+        near_chord = (edge[kk] & (np.abs(s * dx[kk] + t * dy[kk] - chord[kk]) <= half_diag)
+                      & (rho <= radius_m + half_diag))
+        near_speck = spot[kk] & (np.abs(np.hypot(s - qx[kk], t - qy[kk]) - r_spot[kk]) <= half_diag)
+        boundary = near_rim | near_chord | near_speck
+    else:
+        boundary = np.ones_like(rho, dtype=bool)
+    idx = np.nonzero(boundary)
+    if len(idx[0]):
+        alpha[idx], white[idx] = _supersampled(st, idx, radius_m, supersample, dark)
+    return alpha, white
 
 
 def aruco_texture(code: int) -> np.ndarray:

@@ -1,4 +1,9 @@
-"""``make_sim_cell``: the one way to build a simulated cell (world, robot, camera, light)."""
+"""``make_sim_cell``: the one way to build a simulated cell (world, robot, camera, light).
+
+The part's unknowns (its deviations from CAD, a fixture the CAD lacks, worn dots: ``damage``) go into the
+:class:`World` built here and nowhere else: PLAN's twin (``cell.stages.preanalysis.twin_camera``) builds its own
+world of the nominal part.
+"""
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
@@ -9,7 +14,7 @@ import numpy as np
 from calibration.camera import Intrinsics
 from sim_backend.sim_camera import Photometry, RenderOptions, Sensor, SimCamera
 from sim_backend.sim_robot import RobotLimits, SimRobot
-from sim_backend.world import World
+from sim_backend.world import TargetDamage, World
 
 __all__ = ["SimCell", "make_sim_cell"]
 
@@ -56,6 +61,7 @@ def make_sim_cell(
     true_base_from_part: np.ndarray | None = None,
     light: Any = None,
     fixture: Any = None,
+    damage: TargetDamage | None = None,
     coded_family: str = "aruco",
     exposure_s: float = 0.002,
 ) -> SimCell:
@@ -74,6 +80,7 @@ def make_sim_cell(
         true_flange_from_cam, true_base_from_part: the world's real values (default nominal).
         light: any ``drivers.protocols.Light`` (e.g. the serial driver on the pty emulator), or None.
         fixture: a trimesh in the part frame that hides dots but is not in the CAD (see :class:`World`).
+        damage: worn coating of plain dots (:class:`~sim_backend.world.TargetDamage`); None: every dot intact.
         coded_family: how the coded targets look (``SimCamera``'s ``coded_family``).
         exposure_s: the camera's exposure time (the job's ``[camera] exposure_s``): the scene's brightness scales
             with it from the photometry's reference exposure (0.002 s), so a longer one clips more dots.
@@ -94,6 +101,7 @@ def make_sim_cell(
         true_flange_from_cam=true_flange_from_cam,
         seed=seed,
         fixture=fixture,
+        damage=damage,
     )
     sim_robot = SimRobot(
         world,

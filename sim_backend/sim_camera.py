@@ -10,6 +10,12 @@ What is rendered (all from the world's *true* state):
   undistortion and intersected with the disc's plane, pixels near the rim are
   supersampled (``supersample`` x ``supersample`` area coverage); bright, with a retro
   gain that falls off as ``cos(incidence) ** falloff_exponent``;
+* worn retro targets (the world's ``damage_kind`` etc., the job's ``[sim] damaged_targets``): a plain dot whose
+  coating is lost beyond a chord (``edge``) or under a dark speck (``spot``) shows the target's non-reflective
+  backing (``marker_black_level``) there: :func:`sim_backend.coverage.damaged_disc_coverage` gives the dot's
+  whole area (alpha) and its still reflective part (white), exact to the supersampling along the chord and the
+  speck's rim as along the dot's rim. Intact dots are drawn as before (bit for bit); coded targets are not
+  damaged;
 * coded targets: ArUco markers (``cv2.aruco.DICT_4X4_250``, 4x4 bits, one black border
   cell, one white quiet-zone cell around it) of side ``part.coded_size_m`` (black border's
   outer edge), axes as :func:`sim_backend.world.marker_axes`, textured by the same exact
@@ -48,6 +54,7 @@ from sim_backend.coverage import (  # noqa: F401  (re-exported: the kernels live
     UndistortionLattice,
     _plane_coords,
     aruco_texture,
+    damaged_disc_coverage,
     disc_coverage,
     marker_coverage,
     ring_coverage,
@@ -61,6 +68,7 @@ __all__ = [
     "RenderOptions",
     "UndistortionLattice",
     "aruco_texture",
+    "damaged_disc_coverage",
     "disc_coverage",
     "marker_coverage",
     "ring_coverage",
@@ -421,6 +429,7 @@ class SimCamera:
             "partial_ids": ids[vis.index[vis.partial]].tolist(),
             "occluded_ids": ids[vis.occluded].tolist(),
             "truncated_ids": ids[vis.truncated].tolist(),
+            "damaged_ids": ids[vis.index[self.world.damage_kind[vis.index] != 0]].tolist(),
             "marker_corners_uv": corners_uv,
         }
         if not quantise:
@@ -541,8 +550,18 @@ class SimCamera:
                     tex = np.stack([self._textures[int(c)] for c in np.asarray(w.part.targets.code)[idx[g]]])
                     alpha, white = marker_coverage(*args, float(w.part.coded_size_m), tex, shift[g], opt.supersample, opt.adaptive)
                 else:
-                    alpha = disc_coverage(*args, 0.5 * float(w.part.target_diameter_m), shift[g], opt.supersample, opt.adaptive)
+                    radius = 0.5 * float(w.part.target_diameter_m)
+                    alpha = disc_coverage(*args, radius, shift[g], opt.supersample, opt.adaptive)
                     white = alpha
+                    hurt = np.flatnonzero(w.damage_kind[idx[g]] != 0)
+                    if len(hurt):  # worn dots: their reflective part (intact ones keep the call above, bit for bit)
+                        gd, kd = g[hurt], idx[g[hurt]]
+                        ad, wd = damaged_disc_coverage(self.lattice, u0[gd], v0[gd], gh_, gw_, centre_c[gd], n_c[gd],
+                                                       e1_c[gd], e2_c[gd], radius, w.damage_kind[kd],
+                                                       w.damage_lost[kd], w.damage_dir_rad[kd], w.damage_offset[kd],
+                                                       shift[gd], opt.supersample, opt.adaptive)
+                        alpha, white = alpha.copy(), alpha.copy()
+                        alpha[hurt], white[hurt] = ad, wd
                 for j, k in enumerate(g):
                     a, wh = alpha[j], white[j]
                     if vis.partial[k]:

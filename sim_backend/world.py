@@ -21,10 +21,19 @@ Conventions fixed here (the measurement code must follow them, see ``marker_axes
   bottom-right, bottom-left of the marker image), are ``c + (-a, -a), (a, -a), (a, a),
   (-a, a)`` in ``(e1, e2)`` with ``a = coded_size_m / 2`` (the outer edge of the black
   border). The marker's centre (the target point) is the intersection of its diagonals.
+
+Worn targets: the world may hold damage to the coating of plain dots (:class:`TargetDamage`; the job's
+``[sim] damaged_targets``), one row per target in ``damage_kind`` (0 intact, 1 ``edge``: the coating lost beyond
+a chord, 2 ``spot``: a dark round speck on it), ``damage_lost`` (the share of the dot's area that no longer
+reflects), ``damage_dir_rad`` (in-plane direction from the dot's centre, from ``e1`` towards ``e2``, to the lost
+side or to the speck) and ``damage_offset`` (the speck's centre from the dot's, in dot radii). It is an unknown
+defect of the real part: the renderer draws it (:func:`sim_backend.coverage.damaged_disc_coverage`), nothing the
+cell plans or predicts with knows it (PLAN's twin builds its own world without it).
 """
 from __future__ import annotations
 
 import threading
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -32,7 +41,12 @@ import numpy as np
 from calibration.camera import Intrinsics, invert
 from calibration.errors import InputError
 
-__all__ = ["World", "marker_axes", "marker_corners"]
+__all__ = ["TargetDamage", "World", "marker_axes", "marker_corners"]
+
+#: the largest reach of a spot's rim from its dot's centre, in dot radii (``offset + sqrt(lost)``)
+SPOT_MAX_REACH = 0.95
+#: the largest share of a dot's area a damage may take
+DAMAGE_MAX_LOST = 0.5
 
 
 def marker_axes(normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -56,6 +70,77 @@ def marker_corners(centres: np.ndarray, normals: np.ndarray, side_m: float) -> n
     a = side_m / 2.0
     signs = np.array([[-1.0, -1.0], [1.0, -1.0], [1.0, 1.0], [-1.0, 1.0]])
     return c[:, None, :] + a * (signs[None, :, 0, None] * e1[:, None, :] + signs[None, :, 1, None] * e2[:, None, :])
+
+
+@dataclass(frozen=True)
+class TargetDamage:
+    """Damage to the retro-reflective coating of plain dots, one row per target of the part.
+
+    Attributes:
+        kind: (n,) int8, 0 intact, 1 edge (lost beyond a chord), 2 spot (under a dark round speck); the codes of
+            :data:`sim_backend.coverage.DAMAGE_EDGE` / ``DAMAGE_SPOT``.
+        lost: (n,) share of the dot's area that no longer reflects, 0 < lost <= 0.5 where damaged.
+        direction_rad: (n,) in-plane direction from the dot's centre to the lost side (edge) or to the speck's
+            centre (spot), radians from the target's ``e1`` towards ``e2`` (:func:`marker_axes`).
+        offset: (n,) spot: the speck's centre from the dot's, in dot radii; the speck (radius ``sqrt(lost)`` dot
+            radii) lies inside the dot: ``offset + sqrt(lost) <= 0.95``.
+    """
+
+    kind: np.ndarray
+    lost: np.ndarray
+    direction_rad: np.ndarray
+    offset: np.ndarray
+
+    @classmethod
+    def none(cls, n: int) -> "TargetDamage":
+        """No target damaged."""
+        return cls(np.zeros(n, dtype=np.int8), np.zeros(n), np.zeros(n), np.zeros(n))
+
+    @classmethod
+    def of(cls, n: int, index: Any, kind: Any, lost: Any, direction_rad: Any, offset: Any) -> "TargetDamage":
+        """``n`` targets, those at ``index: (m,)`` damaged as the (m,) rows ``kind`` (``"edge"``/``"spot"``),
+        ``lost``, ``direction_rad``, ``offset`` say."""
+        codes = {"edge": 1, "spot": 2}
+        unknown = sorted({str(k) for k in kind} - set(codes))
+        if unknown:
+            raise InputError(f"target damage: kind {unknown[0]!r} is neither 'edge' nor 'spot'")
+        d = cls.none(n)
+        index = np.asarray(index, dtype=np.int64).reshape(-1)
+        d.kind[index] = [codes[str(k)] for k in kind]
+        d.lost[index] = lost
+        d.direction_rad[index] = direction_rad
+        d.offset[index] = offset
+        return d
+
+    def checked(self, ids: Any, kinds: Any) -> "TargetDamage":
+        """This damage as validated arrays for the targets ``ids``, ``kinds`` (n,) (``"retro"``/``"coded"``);
+        ``InputError`` naming the first bad target."""
+        n = len(ids)
+        arrays = []
+        for name in ("kind", "lost", "direction_rad", "offset"):
+            a = np.asarray(getattr(self, name))
+            if a.shape != (n,) or not np.all(np.isfinite(a)):
+                raise InputError(f"target damage: {name} must be a finite ({n},) array (one row per target), "
+                                 f"got shape {a.shape}")
+            arrays.append(a)
+        kind, lost, direction, offset = (a.astype(float) for a in arrays)
+        hurt = kind != 0
+        reach = offset + np.sqrt(np.clip(lost, 0.0, None))
+        checks = (
+            (~np.isin(kind, (0, 1, 2)), lambda i: f"kind {kind[i]:g} is none of 0 (intact), 1 (edge), 2 (spot)"),
+            (hurt & (np.asarray(kinds) == "coded"), lambda i: "it is a coded target; only plain dots are damaged"),
+            (hurt & ~((lost > 0) & (lost <= DAMAGE_MAX_LOST)),
+             lambda i: f"lost {lost[i]} is outside 0 < lost <= {DAMAGE_MAX_LOST}"),
+            ((kind == 2) & ((reach > SPOT_MAX_REACH + 1e-12) | (offset < 0)),
+             lambda i: f"the spot reaches {reach[i]:.3f} dot radii from the centre (offset {offset[i]} + sqrt(lost "
+                       f"{lost[i]})): it must lie inside the dot (offset + sqrt(lost) <= {SPOT_MAX_REACH})"),
+        )
+        for bad, why in checks:
+            if bad.any():
+                i = int(np.flatnonzero(bad)[0])
+                raise InputError(f"target damage of {ids[i]}: {why(i)}")
+        return TargetDamage(kind.astype(np.int8), np.where(hurt, lost, 0.0), np.where(hurt, direction, 0.0),
+                            np.where(kind == 2, offset, 0.0))
 
 
 def _check_pose(T: Any, name: str) -> np.ndarray:
@@ -84,6 +169,8 @@ class World:
         fixture: a mesh in the part frame (metres) that is in the cell but not in the part's CAD: a
             clamp or a support that hides dots from some directions. Rays are cast against the part
             and the fixture together.
+        damage: worn coating of plain dots (:class:`TargetDamage`, one row per target); None: every dot intact.
+            Held as the arrays ``damage_kind`` (n,) int8, ``damage_lost``, ``damage_dir_rad``, ``damage_offset``.
         seed: seed of the world's random streams (each device takes its own child stream).
     """
 
@@ -99,6 +186,7 @@ class World:
         true_flange_from_cam: np.ndarray | None = None,
         seed: int = 0,
         fixture: Any = None,
+        damage: TargetDamage | None = None,
     ) -> None:
         self.part = part
         self.fixture = fixture
@@ -120,6 +208,11 @@ class World:
                 f"deviations must be a finite ({n}, 3) array in metres (one row per target), got {deviations.shape}"
             )
         self.deviations = deviations
+        damage = (TargetDamage.none(n) if damage is None else damage).checked(part.targets.ids, part.targets.kind)
+        self.damage_kind = damage.kind  # (n,) int8: 0 intact, 1 edge, 2 spot
+        self.damage_lost = damage.lost  # (n,) share of the dot's area that does not reflect
+        self.damage_dir_rad = damage.direction_rad  # (n,) from e1 towards e2
+        self.damage_offset = damage.offset  # (n,) spot centre from the dot's, in dot radii
         self._seeds = np.random.SeedSequence(seed)
         self.lock = threading.RLock()
         self.joints_rad = np.zeros(6)

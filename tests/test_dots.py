@@ -200,8 +200,10 @@ def test_a_job_camera_section_chooses_the_detector_settings():
     from cell.stages.imaging import detection_options
 
     o = detection_options(SimpleNamespace(polarity="dark", detection="photograph"))
-    assert o == DetectionOptions.for_real_images(polarity="dark")
-    assert detection_options(SimpleNamespace(polarity="bright", detection="cell")) == DetectionOptions()
+    assert o == DetectionOptions.for_real_images(polarity="dark", outline=True)
+    # the cell fits every dot's outline (decision 0051); the bare detector does not
+    assert detection_options(SimpleNamespace(polarity="bright", detection="cell")) == DetectionOptions(outline=True)
+    assert not DetectionOptions().outline
 
 
 def test_a_step_of_the_background_next_to_a_dot_is_bounded_in_its_background_covariance():

@@ -59,7 +59,8 @@ def test_a_part_with_suspect_or_undecided_targets_is_not_a_plain_pass():
     # a suspect target (data snooping could not verify its rays; REPORT makes it inconclusive): INCOMPLETE
     v, why = part_verdict(True, ok, ok, judged, ["conforming"] * 4 + ["inconclusive"], np.eye(5, dtype=bool)[4], ids)
     assert v == "INCOMPLETE" and why == ["1 target(s) suspect (their observations could not be verified by data "
-                                         "snooping): T4"]
+                                         "snooping, or their images are not a clean dot: report.json target_print): "
+                                         "T4"]
     # one within U of its tolerance (ISO 14253-1 cannot decide): INCOMPLETE, counted apart from the suspect ones
     dec = ["inconclusive", "conforming", "conforming", "conforming", "inconclusive"]
     v, why = part_verdict(True, ok, ok, judged, dec, np.eye(5, dtype=bool)[4], ids)

@@ -23,7 +23,8 @@ relative paths are relative to the cell file's folder):
   storage (a folder or ``s3://bucket/prefix``) every closed job is copied to.
 * ``[sim]``: as a job file's ``[sim]``, but the simulated cell's real hand-eye is stated absolutely
   (``flange_from_cam_true``: calibration rewrites ``flange_from_cam``, the truth stays); ``base_from_part_error``
-  is the artefacts' true placement error.
+  is the artefacts' true placement error. A part's unknowns (``deviations``, worn dots: ``damaged_targets``)
+  belong in a job file and are refused here.
 
 :func:`write_flange_from_cam` rewrites only the hand-eye lines of ``[cell]`` (comments and every
 other line kept byte for byte), validates the result, and replaces the file atomically.
@@ -137,6 +138,8 @@ class CellFile(_Strict):
     def _sim_has_no_deviations(self):
         if self.sim.deviations is not None:
             raise ValueError("sim.deviations belongs in a job file, not in a cell file")
+        if self.sim.damaged_targets:
+            raise ValueError("sim.damaged_targets belongs in a job file (worn dots of a part), not in a cell file")
         if self.sim.flange_from_cam_error is not None:
             raise ValueError("a cell file states the simulated hand-eye absolutely: use sim.flange_from_cam_true")
         return self

@@ -175,7 +175,9 @@ def _status(t: dict) -> str:
     if t["measured"][0] is None:
         return "NOT MEASURED"
     status = "PASS" if t["pass"] else "FAIL"
-    if t.get("suspect"):
+    if t.get("print_doubtful"):
+        status += f" (inconclusive: its images are not a clean dot: {t['print_doubtful']})"
+    elif t.get("suspect"):
         status += " (inconclusive: suspect, its observations could not be verified)"
     elif t.get("decision") == "inconclusive":
         status += " (inconclusive: within U of the tolerance)"
@@ -222,6 +224,12 @@ def _alerts(doc: dict) -> str:
     if sn.get("suspect_targets"):
         out.append(f'<div class="warn">Targets whose observations the blunder test could not verify (lost half of their rays, kept two or fewer after a rejection or a screening drop, or unlike their ellipse in most images; inconclusive): '
                    f'{html.escape(", ".join(sn["suspect_targets"]))}</div>')
+    printed = (doc.get("target_print") or {}).get("doubtful") or []
+    if printed:  # decision 0051
+        out.append('<div class="alert" id="print-alert">Targets whose images are not a clean dot (a chipped edge, a '
+                   "speck or stain): their centres are not the targets' and their deviations are not the part's; "
+                   "inconclusive, left out of the alignment. Clean or replace them: "
+                   f'{html.escape("; ".join(d["id"] + ": " + d["why"] for d in printed))}</div>')
     # what the images say of the detector model and the plan (decisions 0044, 0046, 0047): one note each
     budget, plan = doc.get("uncertainty_budget") or {}, doc.get("predicted_over_achieved") or {}
     for said, tag, head in ((budget.get("detector_model_mismatch"), "model-mismatch", "Image precision"),

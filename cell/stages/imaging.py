@@ -106,6 +106,10 @@ class DotMeasurement:
             for a clipped dot, whose flat top says nothing of it); ADJUST's blur term (decision 0049); or None.
         clip_bound: (k, 2) px, how far a clipped dot's centre may be off for its unknown level
             (``Detections.clip_bound``, decision 0050; zero for the others); ADJUST carries it; or None.
+        outline: (k, 2) ``[chi2, n]`` of each dot's contour about its ellipse (``Detections.outline``; NaN: not
+            fitted), and ``centroid_chi2`` (k,) its centroid's difference from that ellipse's centre in the
+            difference's covariance (NaN for a dot centred by its ellipse): what :mod:`cell.stages.outline` judges
+            a target's print by (decision 0051); or None.
     """
 
     target: np.ndarray
@@ -121,6 +125,8 @@ class DotMeasurement:
     ellipse: np.ndarray | None = None
     blur_px2: np.ndarray | None = None
     clip_bound: np.ndarray | None = None
+    outline: np.ndarray | None = None
+    centroid_chi2: np.ndarray | None = None
 
     @property
     def n_shape(self) -> int:
@@ -134,11 +140,12 @@ def name_dots(det_uv: np.ndarray, part, intr: Intrinsics, cam_from_part: np.ndar
               det_cov: np.ndarray | None = None, det_bg_cov: np.ndarray | None = None,
               det_axes: np.ndarray | None = None, det_ring_px: np.ndarray | None = None,
               det_clipped: np.ndarray | None = None, det_ellipse: np.ndarray | None = None,
-              det_clip_bound: np.ndarray | None = None) -> DotMeasurement:
+              det_clip_bound: np.ndarray | None = None, det_outline: np.ndarray | None = None,
+              det_shift: np.ndarray | None = None, det_shift_cov: np.ndarray | None = None) -> DotMeasurement:
     """Identify detected dot centres ``det_uv: (k, 2)`` with an approximate pose and measure them.
 
-    ``det_cov, det_bg_cov: (k, 2, 2)`` (px^2) and ``det_clip_bound: (k, 2)`` (px) travel with the centres they
-    belong to. ``det_axes: (k, 2, 2)``
+    ``det_cov, det_bg_cov: (k, 2, 2)`` (px^2), ``det_clip_bound: (k, 2)`` (px) and the outline's figures
+    (``Detections.outline``, ``centroid_shift``, ``centroid_shift_cov``) travel with the centres they belong to. ``det_axes: (k, 2, 2)``
     (px^2, ``Detections.axes``): each named dot's shape is checked against its target's ellipse
     (:data:`SHAPE_MIN`, :data:`SHAPE_MAX`) and dropped with the reason when it is not that ellipse; None: no
     shape check. ``det_ring_px: (k,)`` (``Detections.ring_px``): a named dot whose background ring had fewer than
@@ -200,6 +207,16 @@ def name_dots(det_uv: np.ndarray, part, intr: Intrinsics, cam_from_part: np.ndar
         blur = blur_all[dots]
         if det_clipped is not None:
             blur[np.asarray(det_clipped, dtype=float)[dots] > 0] = np.nan
+    outline = centroid_chi2 = None
+    if det_outline is not None:
+        outline = np.asarray(det_outline, dtype=float).reshape(-1, 4)[dots, :2]
+        centroid_chi2 = np.full(len(dots), np.nan)
+        if det_shift is not None and det_shift_cov is not None and len(dots):
+            sh = np.asarray(det_shift, dtype=float).reshape(-1, 2)[dots]
+            sc = np.asarray(det_shift_cov, dtype=float).reshape(-1, 2, 2)[dots]
+            fin = np.isfinite(sh).all(axis=1) & np.isfinite(sc).all(axis=(1, 2))
+            if fin.any():
+                centroid_chi2[fin] = np.einsum("ka,ka->k", sh[fin], np.linalg.solve(sc[fin], sh[fin][..., None])[..., 0])
     return DotMeasurement(tid, uv, np.asarray(cam_from_part, dtype=float),
                           int((match < 0).sum()), int((~clear).sum()),
                           None if det_cov is None else np.asarray(det_cov)[dots],
@@ -207,7 +224,7 @@ def name_dots(det_uv: np.ndarray, part, intr: Intrinsics, cam_from_part: np.ndar
                           None if det_clipped is None else np.asarray(det_clipped, dtype=float)[dots], dropped, med,
                           None if det_ellipse is None else np.asarray(det_ellipse, dtype=bool)[dots], blur,
                           None if det_clip_bound is None
-                          else np.asarray(det_clip_bound, dtype=float).reshape(-1, 2)[dots])
+                          else np.asarray(det_clip_bound, dtype=float).reshape(-1, 2)[dots], outline, centroid_chi2)
 
 
 def surface_labeller(camera, part) -> SurfaceLabeller | None:
@@ -216,11 +233,12 @@ def surface_labeller(camera, part) -> SurfaceLabeller | None:
 
 
 def detection_options(camera) -> DetectionOptions:
-    """The detector's options for a job's ``[camera]`` section (``polarity``, ``detection``)."""
+    """The detector's options for a job's ``[camera]`` section (``polarity``, ``detection``); every dot's outline is
+    fitted (``DetectionOptions.outline``: a chipped or stained target is found by it, decision 0051)."""
     polarity = getattr(camera, "polarity", "bright")
     if getattr(camera, "detection", "cell") == "photograph":
-        return DetectionOptions.for_real_images(polarity=polarity)
-    return DetectionOptions(polarity=polarity)
+        return DetectionOptions.for_real_images(polarity=polarity, outline=True)
+    return DetectionOptions(polarity=polarity, outline=True)
 
 
 def measure_image(image: np.ndarray, part, intr: Intrinsics, cam_from_part_approx: np.ndarray, occluder: Occluder, *,
@@ -296,5 +314,8 @@ def _name_detections(image, det, part, intr, cam_from_part_approx, occluder, max
                   det_ring_px=None if det.ring_px is None else det.ring_px[keep],
                   det_clipped=None if det.saturated is None else (det.saturated / np.maximum(det.area_px, 1.0))[keep],
                   det_ellipse=None if det.ellipse is None else det.ellipse[keep],
-                  det_clip_bound=None if det.clip_bound is None else det.clip_bound[keep])
+                  det_clip_bound=None if det.clip_bound is None else det.clip_bound[keep],
+                  det_outline=None if det.outline is None else det.outline[keep],
+                  det_shift=None if det.centroid_shift is None else det.centroid_shift[keep],
+                  det_shift_cov=None if det.centroid_shift_cov is None else det.centroid_shift_cov[keep])
     return m, {"n_dots": int(keep.sum()), "n_coded": int(known.sum())}

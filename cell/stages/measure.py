@@ -9,7 +9,9 @@ the detector's bound on each centre's error from a background that is not a plan
 ``Detections.background_cov``; ADJUST adds its share to the image precision), ``clipped_share`` (k,),
 ``ellipse_centre`` (k, bool: the centre is the ellipse of the dot's contour, not its centroid; decision 0037),
 ``blur_px2`` (k: the blur each dot's image shows; decision 0049), ``clip_bound_px`` (k, 2: how far a clipped dot's
-centre may be off for its unknown level, zero for the others; ADJUST carries it; decision 0050), counts,
+centre may be off for its unknown level, zero for the others; ADJUST carries it; decision 0050), ``outline`` (k, 2:
+``[chi2, n]`` of each dot's contour about its fitted ellipse) and ``centroid_chi2`` (k: its centroid against that
+ellipse's centre; null for a dot centred by its ellipse): a target's print is judged by them (decision 0051), counts,
 ``background_mask`` (only when ``[camera] background_mask = "cad"``: "cad", or "none (...)" for an image measured
 unmasked because too few dots were named to label it from; docs/decisions/0035),
 ``dropped``: list of {``id``, ``reason``} (dots that were named and then left unnamed: partly hidden,
@@ -68,6 +70,7 @@ def run(ctx, keep: bool = False) -> None:
                     **({"ellipse_centre": m.ellipse} if m.ellipse is not None else {}),
                     **({"blur_px2": m.blur_px2} if m.blur_px2 is not None else {}),
                     **({"clip_bound_px": m.clip_bound} if m.clip_bound is not None else {}),
+                    **({"outline": m.outline, "centroid_chi2": m.centroid_chi2} if m.outline is not None else {}),
                     "n_unidentified": m.n_unidentified, "n_partly_hidden": m.n_partly_hidden,
                     "n_shape_rejected": m.n_shape, "dropped": dropped,
                     "resection_median_px": m.resection_median_px} | counts)

@@ -166,7 +166,8 @@ def part_verdict(trusted: bool, ok: np.ndarray, passed: np.ndarray, judged: np.n
     if missing.any():
         reasons.append(some(missing, "not measured"))
     if (suspect & ~fail).any():
-        reasons.append(some(suspect & ~fail, "suspect (their observations could not be verified by data snooping)"))
+        reasons.append(some(suspect & ~fail, "suspect (their observations could not be verified by data snooping, or "
+                                             "their images are not a clean dot: report.json target_print)"))
     if (near & passed).any():
         reasons.append(some(near & passed, "within U of their tolerance (ISO 14253-1 cannot decide)"))
     if not trusted:
@@ -342,6 +343,7 @@ def write_report(ctx) -> tuple[str, list[str]]:
     tol = job.tolerance_m
     k = job.spec.report.sigma_factor
     suspect = set((bundle.get("snooping") or {}).get("suspect_targets") or [])
+    printed = {d["id"]: d["why"] for d in (bundle.get("target_print") or {}).get("doubtful", [])}  # decision 0051
     outcome, Kd = align_with_gains(job, measured, pc, K, ok, bundle["datum"], np.array([t in suspect for t in ids]))
     al = outcome.alignment
     if not outcome.trusted and job.spec.alignment.on_untrusted == "fault":
@@ -383,6 +385,7 @@ def write_report(ctx) -> tuple[str, list[str]]:
             "deviation_norm_m": dev_norm[j], "tolerance_m": tol[j], "pass": bool(passed[j]),
             "significance_sigma": level[j], "significant": bool(level[j] > k),
             "uncertainty_U_m": U[j], "decision": decision[j], "suspect": tid in suspect,
+            "print_doubtful": printed.get(tid),
             "predicted_sigma_m": predicted.get(tid, np.nan), "achieved_sigma_m": achieved[j], "n_images": n_img[j],
         })
     recs = list(f.records())
@@ -410,6 +413,7 @@ def write_report(ctx) -> tuple[str, list[str]]:
         "n_observations": bundle["n_observations"],
         "n_rejected": bundle["n_rejected"],
         "snooping": bundle.get("snooping"),
+        "target_print": bundle.get("target_print"),
         "solver_fallback": bundle.get("solver_fallback"),
         "orientation_fallbacks": [{"image": r["image"], "method": r["method"], "reason": r["fallback_reason"]}
                                   for r in f.read_json("calibration.json")["images"] if "fallback_reason" in r],

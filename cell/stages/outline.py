@@ -1,0 +1,132 @@
+"""A target's print: does each image of it show an ellipse, and does its light agree with its edge? (decision 0051)
+
+A retro-reflective dot wears: its coating chips at the edge, a speck of dirt or paint sits on it. The centre the
+detector finds is then the centre of what is left, off the target's true centre by the same amount on the part in
+every view. The bundle cannot see it (the rays agree), the blunder test cannot either, and the report would state
+the target to its full precision, off by up to a tenth of the dot's radius: a silent wrong number, and on a precise
+cell a deviation of many sigma that is the target's, not the part's.
+
+Two checks, from what MEASURE keeps per observation (observations.json ``outline`` and ``centroid_chi2``,
+:func:`calibration.dots.detect_dots` with ``outline`` on):
+
+* **outline**: the half-level contour about its fitted ellipse, ``chi2 / (n - 5)`` over the job's median for dots of
+  the same kind (clipped or not; the contour's noise model is not the same for both). An ellipse's image gives about
+  one, a chipped edge more.
+* **centroid**: a centroid dot's centre less its contour's ellipse centre, in their covariance (``centroid_chi2``),
+  over the job's median and times the median of chi-square(2): a speck inside the dot moves its light's centre and
+  not its edge.
+
+A target whose median over its views (:data:`MIN_VIEWS` or more) exceeds :data:`OUTLINE_LIMIT` or
+:data:`CENTROID_LIMIT` is doubtful: ADJUST reports it inconclusive (as a suspect of data snooping; report.json says why), the alignment
+leaves it out, and a scale bar with it at an end is left out. Both limits are relative to the job's own dots, so the
+image's noise, blur and exposure need no model; they presume that most of a job's targets are whole.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["OUTLINE_LIMIT", "CENTROID_LIMIT", "MIN_VIEWS", "outline_doubtful", "outline_reason", "outline_doc",
+           "checked_targets", "say_doubtful"]
+
+#: a target's median outline misfit over its views, in the job's median for its kind of dot, beyond which its print
+#: is doubtful (decision 0051: whole dots of the example stay below 1.7; a chipped edge of 1 % of the dot's area gives
+#: about 4 at a radius of 5 px)
+OUTLINE_LIMIT = 3.0
+#: the same for the centroid's disagreement with the edge's ellipse, scaled to chi-square(2) (median 1.39; 12 is its
+#: 0.25 % point, and the median of three views passes it once in 50 000 whole targets)
+CENTROID_LIMIT = 12.0
+#: a print is judged on at least this many views (the median of fewer is one odd view)
+MIN_VIEWS = 3
+_CHI2_2_MEDIAN = 2.0 * np.log(2.0)
+
+
+def _scores(obs: dict, index: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per observation: target index, outline ratio, centroid score (NaN where not measured)."""
+    tgt, oc, on, clip, cc = [], [], [], [], []
+    for im in obs["images"]:
+        if "outline" not in im:
+            continue
+        k = len(im["ids"])
+        ol = np.array([[np.nan, np.nan] if r is None else [np.nan if v is None else v for v in r]
+                       for r in im["outline"]], dtype=float).reshape(-1, 2)
+        tgt += [index[t] for t in im["ids"]]
+        oc.append(ol[:, 0])
+        on.append(ol[:, 1])
+        clip.append(np.asarray(im.get("clipped_share") or np.zeros(k), dtype=float) > 0)
+        cc.append(np.array([np.nan if v is None else v for v in im.get("centroid_chi2") or [None] * k], dtype=float))
+    if not tgt:
+        return np.zeros(0, dtype=int), np.zeros(0), np.zeros(0)
+    oc, on, clip, cc = (np.concatenate(a) for a in (oc, on, clip, cc))
+    z = oc / np.maximum(on - 5, 1)
+    ratio = np.full(len(z), np.nan)
+    for kind in (False, True):
+        m = (clip == kind) & np.isfinite(z)
+        if m.sum() >= 5:
+            ratio[m] = z[m] / max(float(np.median(z[m])), 1e-12)
+    fin = np.isfinite(cc)
+    score = np.full(len(cc), np.nan)
+    if fin.sum() >= 5:
+        score[fin] = cc[fin] / max(float(np.median(cc[fin])), 1e-12) * _CHI2_2_MEDIAN
+    return np.asarray(tgt, dtype=int), ratio, score
+
+
+def outline_doubtful(obs: dict, ids: list[str]) -> dict[int, dict]:
+    """Targets whose print is doubtful: {target index: {"views", "outline", "centroid", "why"}} (the medians over their
+    views, None with fewer than :data:`MIN_VIEWS`; observations.json records without the outline figures count
+    nothing)."""
+    index = {t: k for k, t in enumerate(ids)}
+    tgt, ratio, score = _scores(obs, index)
+    out: dict[int, dict] = {}
+    for t in np.unique(tgt):
+        r, c = ratio[tgt == t], score[tgt == t]
+        r, c = r[np.isfinite(r)], c[np.isfinite(c)]
+        mo = float(np.median(r)) if len(r) >= MIN_VIEWS else None
+        mc = float(np.median(c)) if len(c) >= MIN_VIEWS else None
+        why = []
+        if mo is not None and mo > OUTLINE_LIMIT:
+            why.append(f"its outline is not an ellipse ({mo:.1f}x the job's median misfit, the median over {len(r)} "
+                       f"images; > {OUTLINE_LIMIT:g}): a chipped or worn edge")
+        if mc is not None and mc > CENTROID_LIMIT:
+            why.append(f"its light's centre is off its edge's ({mc:.1f}, the median over {len(c)} images; "
+                       f"> {CENTROID_LIMIT:g}): a speck or stain on the dot")
+        if why:
+            out[int(t)] = {"views": int(np.sum(tgt == t)), "outline": mo, "centroid": mc, "why": "; ".join(why)}
+    return out
+
+
+def outline_reason(job, j: int, doubtful: dict) -> str | None:
+    """Why scale bar ``j`` is left out when an end's print is doubtful (None: it is not)."""
+    from cell.stages.scalebars import bar_name
+
+    ids = job.part.targets.ids
+    bad = [t for t in job.scale_bars[j][:2] if t in doubtful]
+    if not bad:
+        return None
+    return (f"scale bar {bar_name(job, j)}: " + "; ".join(f"{ids[int(t)]}: {doubtful[t]['why']}" for t in bad)
+            + " (its centre is not the target's: the bar's length would be wrong)")
+
+
+def outline_doc(doubtful: dict, ids: list[str], checked: int) -> dict:
+    """bundle.json ``target_print``: the targets checked, the limits and each doubtful target with why."""
+    return {"checked_targets": int(checked), "outline_limit": OUTLINE_LIMIT, "centroid_limit": CENTROID_LIMIT,
+            "doubtful": [{"id": ids[t]} | d for t, d in sorted(doubtful.items())]}
+
+
+def checked_targets(obs: dict) -> int:
+    """How many targets have the outline figures in :data:`MIN_VIEWS` images or more (the others are not judged)."""
+    n: dict[str, int] = {}
+    for im in obs["images"]:
+        if "outline" in im:
+            for t in im["ids"]:
+                n[t] = n.get(t, 0) + 1
+    return sum(1 for v in n.values() if v >= MIN_VIEWS)
+
+
+def say_doubtful(ctx, doubtful: dict, ids: list[str]) -> set[int]:
+    """Warn of each doubtful print (console and run log); returns the targets, to be reported inconclusive."""
+    if doubtful:
+        msg = ("targets whose images are not a clean dot, reported inconclusive and left out of the alignment: "
+               + "; ".join(f"{ids[t]} ({d['why']})" for t, d in sorted(doubtful.items())))
+        ctx.log.log("warning", msg)
+        ctx.say(f"  WARNING {msg}")
+    return set(doubtful)
