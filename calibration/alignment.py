@@ -287,7 +287,10 @@ def deviation_sigma_level(deviation: np.ndarray, cov: np.ndarray) -> np.ndarray:
     C = np.asarray(cov, dtype=float)
     out = np.full(len(d), np.nan)
     ok = np.all(np.isfinite(d), axis=1) & np.all(np.isfinite(C), axis=(1, 2))
-    m2 = np.einsum("na,na->n", d[ok], np.linalg.solve(C[ok], d[ok][..., None])[..., 0])
+    try:
+        m2 = np.einsum("na,na->n", d[ok], np.linalg.solve(C[ok], d[ok][..., None])[..., 0])
+    except np.linalg.LinAlgError:  # a fit target's covariance can be singular (a frame on few targets): its range
+        m2 = np.einsum("na,na->n", d[ok], np.einsum("nab,nb->na", np.linalg.pinv(C[ok], hermitian=True), d[ok]))
     p = chdtrc(3, m2)  # chi2.sf(m2, 3)
     out[ok] = -ndtri(np.clip(p, 1e-300, 1.0) / 2.0)  # norm.isf
     return out

@@ -242,6 +242,13 @@ def robust_best_fit(measured: np.ndarray, cov, nominal: np.ndarray, tolerance_m:
     cons = consensus_fit(measured, blocks, nominal, cand, rng)
     reasons: list[str] = []
     notes: list[str] = []
+    if cons.agree.sum() < max(3, min_fit):  # no placement brings enough targets to CAD: a fit over all, untrusted
+        al = align_to_cad(measured, cov, nominal, fit_mask=cand)
+        return AlignmentOutcome(al, "best_fit", cand.copy(), False, False, (
+            f"no rigid placement brings {max(3, min_fit)} targets to CAD within their stated sigma (the best brings "
+            f"{int(cons.agree.sum())}, {cons.agree_loose} within 3x): the part is not its CAD, its targets stand off "
+            "the surface by other than the job says (target thickness), or the stated precision is far too small; the "
+            "frame shown is a fit over every target",), (), float("nan"), 0, cons)
     mask = cons.agree.copy()
     seen = [mask.copy()]
     stable = False

@@ -148,3 +148,51 @@ def test_the_measurement_frame_is_trusted_only_when_fixtured():
     assert not out.trusted and out.reasons == ("free-network datum",)
     assert np.allclose(out.alignment.deviation, 1e-6)
     assert frame_alignment(nom, cov, nom, fixtured=True).trusted
+
+
+def _box_targets(rng, n_face=20):
+    """Targets on five faces of a 300 mm box (nominal, normals): faces look five ways."""
+    pts, nrm = [], []
+    for axis, sign in ((0, 1), (0, -1), (1, 1), (1, -1), (2, 1)):
+        p = rng.uniform(-0.15, 0.15, (n_face, 3))
+        p[:, axis] = 0.15 * sign
+        v = np.zeros(3)
+        v[axis] = sign
+        pts.append(p)
+        nrm.append(np.tile(v, (n_face, 1)))
+    return np.concatenate(pts), np.concatenate(nrm)
+
+
+def test_targets_standing_off_the_surface_untrust_the_frame_and_name_the_thickness():
+    # every target 0.2 mm off the CAD surface along its normal (a target thickness the job does not state): no rigid
+    # placement brings three targets within 3 sigma. Before, REPORT faulted with "a best fit needs at least 3 points".
+    from types import SimpleNamespace
+
+    from cell.stages.report import _standoff_hint
+
+    rng = np.random.default_rng(4)
+    nominal, normals = _box_targets(rng)
+    measured, cov = _measure(rng, nominal + 0.2e-3 * normals, sigma=2e-6)
+    cand = np.ones(len(nominal), dtype=bool)
+    out = robust_best_fit(measured, cov, nominal, TOL, 3.0, candidates=cand)
+    assert not out.trusted  # one face agrees (its offset is a translation): a minority
+    job = SimpleNamespace(part=SimpleNamespace(targets=SimpleNamespace(xyz=nominal, normals=normals)),
+                          spec=SimpleNamespace(job=SimpleNamespace(seed=0)), target_thickness_m=0.0)
+    hinted = _standoff_hint(job, measured, cov, TOL, 3.0, cand, out)
+    assert not hinted.trusted and len(hinted.reasons) == len(out.reasons) + 1
+    assert "+0.200 mm further off" in hinted.reasons[-1] and "likely 0.200 mm" in hinted.reasons[-1]
+    # where no three targets agree at all (the example's bracket with 0.2 mm not stated), an untrusted fit over every
+    # target, said as such, not an exception
+    m = len(nominal[::5])
+    few = robust_best_fit(measured[::5], PointCovariance.independent(np.tile(np.eye(3) * 4e-12, (m, 1, 1))),
+                          nominal[::5] + rng.normal(size=(m, 3)) * 1e-3, TOL, 3.0)
+    assert not few.trusted and "no rigid placement brings 6 targets" in few.reasons[0] and few.fit_mask.all()
+    # a part that is its CAD gets no such reason, and one with a real dent no hint of a thickness
+    ok_measured, ok_cov = _measure(rng, nominal, sigma=2e-6)
+    assert robust_best_fit(ok_measured, ok_cov, nominal, TOL, 3.0, candidates=cand).trusted
+    dented = nominal.copy()
+    dented[:60] += 0.2e-3 * normals[:60]  # three faces pushed out
+    d_measured, d_cov = _measure(rng, dented, sigma=2e-6)
+    d_out = robust_best_fit(d_measured, d_cov, nominal, TOL, 3.0, candidates=cand)
+    if not d_out.trusted:
+        assert not any("thickness" in r for r in _standoff_hint(job, d_measured, d_cov, TOL, 3.0, cand, d_out).reasons)

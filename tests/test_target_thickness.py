@@ -6,6 +6,7 @@ The whole chain on generated parts with 0.05-0.3 mm dots: tests/test_truth_partg
 from __future__ import annotations
 
 import csv
+from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
@@ -100,3 +101,22 @@ def test_cell_check_tells_a_real_cell_before_the_job(tmp_path):
                                                                   "job": {"target_thickness": 0.2}})))
     assert stated.code == 0 and "target_thickness_note" not in stated.doc
     assert stated.doc["target_thickness_m"] == pytest.approx(0.2e-3)
+
+
+def test_targets_thicker_than_the_job_says_untrust_the_frame_and_say_by_how_much(tmp_path):
+    # the job says no thickness, the simulated targets are 0.05 mm thick: every face stands off the surface the cell
+    # assumes. Before decision 0052 REPORT faulted with "internal error LinAlgError: Singular matrix".
+    import json
+
+    from tests.jobutil import run_cell
+
+    job = job_variant(tmp_path / "job", {"sim": {"target_thickness": 0.05}})
+    run = run_cell("run", str(job), "--archive", str(tmp_path / "archive"), timeout=900)
+    assert run.code == 0, run.stderr[-2000:]
+    report = json.loads((Path(run.doc["folder"]) / "report.json").read_text())
+    assert report["verdict"] == "UNTRUSTED" and not report["alignment"]["trusted"]
+    reasons = report["alignment"]["reasons"]
+    assert "stand off the surface" in reasons[0]
+    hint = next(r for r in reasons if "further off its CAD surface" in r)
+    said = float(hint.split("thickness is likely ")[1].split(" mm")[0])
+    assert abs(said - 0.05) < 0.01, hint

@@ -53,8 +53,68 @@ def align_measurement(job, measured: np.ndarray, pc: PointCovariance, ok: np.nda
         chosen = np.zeros(len(ok), dtype=bool)
         chosen[[index[t] for t in spec.targets]] = True
         cand = cand & chosen
-    return robust_best_fit(measured, pc, nominal, tol, k, candidates=cand,
-                           rng=np.random.default_rng(job.spec.job.seed))
+    out = robust_best_fit(measured, pc, nominal, tol, k, candidates=cand, rng=np.random.default_rng(job.spec.job.seed))
+    return out if out.trusted else _standoff_hint(job, measured, pc, tol, k, cand, out)
+
+
+def _standoff(X: np.ndarray, N: np.ndarray, n: np.ndarray) -> tuple[float, np.ndarray]:
+    """The common offset ``off`` along the normals ``n`` and the rigid placement that best bring the measured ``X`` to
+    ``N + off n`` (Gauss-Newton from the rigid best fit, least squares), and each target's residual length after."""
+    from scipy.spatial.transform import Rotation
+
+    from calibration.alignment import similarity_fit
+
+    _, R, t = similarity_fit(X, N)
+    off = 0.0
+    for _ in range(6):
+        Y = X @ R.T + t
+        r = Y - N - off * n
+        J = np.zeros((len(X), 3, 7))  # d(residual) / d(rotation vector, translation, offset)
+        J[:, 0, 1], J[:, 0, 2], J[:, 1, 0] = Y[:, 2], -Y[:, 1], -Y[:, 2]
+        J[:, 1, 2], J[:, 2, 0], J[:, 2, 1] = Y[:, 0], Y[:, 1], -Y[:, 0]
+        J[:, :, 3:6] = np.eye(3)
+        J[:, :, 6] = -n
+        p = np.linalg.lstsq(J.reshape(-1, 7), -r.reshape(-1), rcond=None)[0]
+        dR = Rotation.from_rotvec(p[:3]).as_matrix()
+        R, t, off = dR @ R, dR @ t + p[3:6], off + float(p[6])
+    return off, np.linalg.norm(X @ R.T + t - N - off * n, axis=1)
+
+
+def _standoff_hint(job, measured: np.ndarray, pc: PointCovariance, tol, k: float, cand: np.ndarray,
+                   out: AlignmentOutcome) -> AlignmentOutcome:
+    """An untrusted best fit, with a reason more when every target standing a common distance off the CAD surface
+    along its normal explains it: a mis-stated ``[job] target_thickness`` puts each target's face that far off the
+    surface the job assumes, which no rigid placement absorbs on a part whose faces look several ways (the example
+    with 0.2 mm not stated: no three targets agreed). The offset is estimated with the placement by least squares
+    over the candidates (twice: the second without those farther off than three times the median); the frame stays
+    untrusted (the numbers are the job's)."""
+    nominal, normals = job.part.targets.xyz, job.part.targets.normals
+    idx = np.flatnonzero(cand)
+    if len(idx) < 6:
+        return out
+    off, keep = 0.0, idx
+    for _ in range(2):
+        off, resid = _standoff(measured[keep], nominal[keep], normals[keep])
+        keep = keep[resid <= 3 * np.median(resid)]
+        if len(keep) < 6:
+            return out
+    from dataclasses import replace
+
+    from calibration.alignment import similarity_fit
+
+    # the scale bars' ends stand off their surfaces as well: the measurement's scale is off with them
+    scale = similarity_fit(measured[keep], nominal[keep] + off * normals[keep], with_scale=True)[0]
+    trial = robust_best_fit(measured * scale, pc, nominal + off * normals, tol, k, candidates=cand,
+                            rng=np.random.default_rng(job.spec.job.seed))
+    if not trial.trusted:
+        return out
+    said = job.target_thickness_m
+    hint = (f"with every target {off * 1e3:+.3f} mm further off its CAD surface along the normal (and the scale "
+            f"{(scale - 1) * 1e6:+.0f} ppm, the scale bars' ends standing off too), {int(trial.fit_mask.sum())} of "
+            f"{len(idx)} targets agree with CAD and the frame would be trusted: the targets' thickness is likely "
+            f"{(said + off) * 1e3:.3f} mm, not the {said * 1e3:.3f} mm the job says ([job] target_thickness), or the "
+            "whole surface is offset")
+    return replace(out, reasons=out.reasons + (hint,))
 
 
 def alignment_doc(out: AlignmentOutcome, ids: list[str], spec) -> dict:
