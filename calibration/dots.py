@@ -81,7 +81,7 @@ class DetectionOptions:
             not see: print, blur, compression); pixels.
         outline: fit every dot's half-level contour (not only the dots centred by it) for its outline's misfit and
             the centroid's check against it (``Detections.outline``, ``centroid_shift``; decision 0051). The cell's
-            MEASURE turns it on; it costs about 0.7x the detection's time (``benchmarks.bench_detection``).
+            MEASURE turns it on; it costs about half the detection's time again (``benchmarks.bench_detection``).
     """
 
     polarity: str = "bright"
