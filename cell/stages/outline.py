@@ -110,14 +110,11 @@ def outline_doubtful(obs: dict, ids: list[str]) -> dict[int, dict]:
 
 def outline_reason(job, j: int, doubtful: dict) -> str | None:
     """Why scale bar ``j`` is left out when an end's print is doubtful (None: it is not)."""
-    from cell.stages.scalebars import bar_name
+    from cell.stages.scalebars import end_reason
 
     ids = job.part.targets.ids
-    bad = [t for t in job.scale_bars[j][:2] if t in doubtful]
-    if not bad:
-        return None
-    return (f"scale bar {bar_name(job, j)}: " + "; ".join(f"{ids[int(t)]}: {doubtful[t]['why']}" for t in bad)
-            + " (its centre is not the target's: the bar's length would be wrong)")
+    return end_reason(job, j, doubtful, lambda t: f"{ids[int(t)]}: {doubtful[t]['why']}", "; ",
+                      " (its centre is not the target's: the bar's length would be wrong)")
 
 
 def outline_doc(doubtful: dict, ids: list[str], checked: int) -> dict:

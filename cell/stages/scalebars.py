@@ -31,15 +31,21 @@ def bar_name(job, j: int) -> str:
     return f"{ids[a]}-{ids[b]}"
 
 
-def shape_reason(job, j: int, doubtful: dict) -> str | None:
-    """Why bar ``j`` is left out when an end is unlike its ellipse in most images that found it (None: it is not)."""
-    ids = job.part.targets.ids
+def end_reason(job, j: int, doubtful: dict, why, sep: str = ", ", tail: str = "") -> str | None:
+    """Why bar ``j`` is left out when an end is in ``doubtful`` ({target index: ...}; ``why(target)`` says of one),
+    or None."""
     bad = [t for t in job.scale_bars[j][:2] if t in doubtful]
     if not bad:
         return None
-    return (f"scale bar {bar_name(job, j)}: " + ", ".join(
+    return f"scale bar {bar_name(job, j)}: " + sep.join(why(t) for t in bad) + tail
+
+
+def shape_reason(job, j: int, doubtful: dict) -> str | None:
+    """Why bar ``j`` is left out when an end is unlike its ellipse in most images that found it (None: it is not)."""
+    ids = job.part.targets.ids
+    return end_reason(job, j, doubtful, lambda t: (
         f"{ids[int(t)]} unlike its ellipse in {doubtful[t][0]} of the {sum(doubtful[t])} images that found it "
-        "(cut or crowded by an edge, clipped or washed out): the views kept cannot be trusted either" for t in bad))
+        "(cut or crowded by an edge, clipped or washed out): the views kept cannot be trusted either"))
 
 
 def snooping_reason(job, j: int, ends: dict[int, int], rejected_images: list[str]) -> str:
