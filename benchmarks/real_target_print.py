@@ -45,6 +45,7 @@ def _record(det, ids: list[str], index: np.ndarray) -> dict:
     sh, sc = det.centroid_shift[index], det.centroid_shift_cov[index]
     cc = np.full(len(index), np.nan)
     fin = np.isfinite(sh).all(axis=1) & np.isfinite(sc).all(axis=(1, 2))
+    fin[fin] &= np.linalg.det(sc[fin]) > 0
     cc[fin] = np.einsum("ka,ka->k", sh[fin], np.linalg.solve(sc[fin], sh[fin][..., None])[..., 0])
     return {"ids": ids, "outline": [[None if not np.isfinite(v) else float(v) for v in r] for r in ol],
             "centroid_chi2": [None if not np.isfinite(v) else float(v) for v in cc],

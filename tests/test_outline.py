@@ -48,6 +48,11 @@ def _render(rng, uv, radius, damage, level=0.7, bg=0.08, blur=0.7, ss=8, h=160, 
     return np.clip(np.round(e / FULL_WELL_E * 255), 0, 255).astype(np.uint8)
 
 
+def _grid(rng, n):
+    """``n`` dot centres 60-70 px apart, seven to a row, each off its grid point by up to half a pixel."""
+    return np.stack([40 + 60 * (np.arange(n) % 7), 40 + 70 * (np.arange(n) // 7)], axis=1) + rng.uniform(-0.5, 0.5, (n, 2))
+
+
 def _detect(img):
     return detect_dots(img, DetectionOptions(outline=True))
 
@@ -61,7 +66,7 @@ def _match(det, uv):
 def test_whole_dots_fit_their_ellipse_and_a_chipped_edge_does_not(radius):
     rng = np.random.default_rng(3)
     n = 24
-    uv = np.stack([40 + 60 * (np.arange(n) % 7), 40 + 70 * (np.arange(n) // 7)], axis=1) + rng.uniform(-0.5, 0.5, (n, 2))
+    uv = _grid(rng, n)
     chipped = {3: 0.01, 10: 0.02, 17: 0.05}
     damage = [("edge", chipped[i], rng.uniform(0, 2 * np.pi)) if i in chipped else None for i in range(n)]
     img = _render(rng, uv, radius, damage, h=320, w=460)
@@ -86,7 +91,7 @@ def test_whole_dots_fit_their_ellipse_and_a_chipped_edge_does_not(radius):
 def test_a_speck_inside_moves_the_centroid_off_the_edge_ellipse():
     rng = np.random.default_rng(5)
     n = 21
-    uv = np.stack([40 + 60 * (np.arange(n) % 7), 40 + 70 * (np.arange(n) // 7)], axis=1) + rng.uniform(-0.5, 0.5, (n, 2))
+    uv = _grid(rng, n)
     specks = {4: 0.02, 12: 0.04}
     damage = [("spot", specks[i], 1.0, 0.5) if i in specks else None for i in range(n)]
     det = _detect(_render(rng, uv, 8.0, damage, h=250, w=460))
@@ -107,7 +112,7 @@ def test_a_speck_showing_through_a_clipped_plateau_does_not_move_its_ellipse(lev
     # whose rim is no edge of the dot (before decision 0051 it pulled the centre 0.2-0.4 px towards the speck)
     rng = np.random.default_rng(7)
     n = 21
-    uv = np.stack([40 + 60 * (np.arange(n) % 7), 40 + 70 * (np.arange(n) // 7)], axis=1) + rng.uniform(-0.5, 0.5, (n, 2))
+    uv = _grid(rng, n)
     ang = rng.uniform(0, 2 * np.pi, n)
     damage = [("spot", 0.05, ang[i], 0.5) if i % 3 == 0 else None for i in range(n)]
     det = _detect(_render(rng, uv, 10.0, damage, level=level, h=250, w=460))

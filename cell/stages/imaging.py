@@ -145,8 +145,8 @@ def name_dots(det_uv: np.ndarray, part, intr: Intrinsics, cam_from_part: np.ndar
     """Identify detected dot centres ``det_uv: (k, 2)`` with an approximate pose and measure them.
 
     ``det_cov, det_bg_cov: (k, 2, 2)`` (px^2), ``det_clip_bound: (k, 2)`` (px) and the outline's figures
-    (``Detections.outline``, ``centroid_shift``, ``centroid_shift_cov``) travel with the centres they belong to. ``det_axes: (k, 2, 2)``
-    (px^2, ``Detections.axes``): each named dot's shape is checked against its target's ellipse
+    (``Detections.outline``, ``centroid_shift``, ``centroid_shift_cov``) travel with the centres they belong to.
+    ``det_axes: (k, 2, 2)`` (px^2, ``Detections.axes``): each named dot's shape is checked against its target's ellipse
     (:data:`SHAPE_MIN`, :data:`SHAPE_MAX`) and dropped with the reason when it is not that ellipse; None: no
     shape check. ``det_ring_px: (k,)`` (``Detections.ring_px``): a named dot whose background ring had fewer than
     :data:`calibration.dots.MIN_RING_PX` pixels is dropped with the reason: its centre's error from the background
@@ -215,8 +215,10 @@ def name_dots(det_uv: np.ndarray, part, intr: Intrinsics, cam_from_part: np.ndar
             sh = np.asarray(det_shift, dtype=float).reshape(-1, 2)[dots]
             sc = np.asarray(det_shift_cov, dtype=float).reshape(-1, 2, 2)[dots]
             fin = np.isfinite(sh).all(axis=1) & np.isfinite(sc).all(axis=(1, 2))
+            fin[fin] &= np.linalg.det(sc[fin]) > 0  # a covariance that says nothing gives no figure
             if fin.any():
-                centroid_chi2[fin] = np.einsum("ka,ka->k", sh[fin], np.linalg.solve(sc[fin], sh[fin][..., None])[..., 0])
+                centroid_chi2[fin] = np.einsum("ka,ka->k", sh[fin],
+                                               np.linalg.solve(sc[fin], sh[fin][..., None])[..., 0])
     return DotMeasurement(tid, uv, np.asarray(cam_from_part, dtype=float),
                           int((match < 0).sum()), int((~clear).sum()),
                           None if det_cov is None else np.asarray(det_cov)[dots],

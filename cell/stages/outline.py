@@ -17,11 +17,11 @@ Two checks, from what MEASURE keeps per observation (observations.json ``outline
   light's centre and not its edge.
 
 A target whose median over its views (:data:`MIN_VIEWS` or more) exceeds :data:`OUTLINE_LIMIT` or
-:data:`CENTROID_LIMIT` is doubtful: ADJUST reports it inconclusive (as a suspect of data snooping; report.json says why), the alignment
-leaves it out, and a scale bar with it at an end is left out. Both limits are relative to each image's own dots, so the
-image's noise, blur, focus, exposure and compression need no model (on photographs the contours' misfit was 11x the
-simulated camera's, and it changes from one photograph to the next); they presume that most of a job's targets are
-whole.
+:data:`CENTROID_LIMIT` is doubtful: ADJUST reports it inconclusive (as a suspect of data snooping; report.json says
+why), the alignment leaves it out, and a scale bar with it at an end is left out. Both limits are relative to each
+image's own dots, so the image's noise, blur, focus, exposure and compression need no model (on photographs the
+contours' misfit was 11x the simulated camera's, and it changes from one photograph to the next); they presume that
+most of an image's targets are whole.
 """
 from __future__ import annotations
 
