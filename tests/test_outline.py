@@ -220,3 +220,17 @@ def test_worn_targets_are_found_said_and_left_undecided(worn):
     assert 'id="print-alert"' in html_text and all(t in html_text for t in printed)
     logged = [m["message"] for t, m in read_messages(folder / "run.mcap") if t == "/log"]
     assert any("not a clean dot" in m and "T0120" in m for m in logged)
+
+
+def test_an_image_with_few_dots_is_judged_against_the_job_and_a_job_with_fewer_than_five_not_at_all():
+    from cell.stages.outline import MIN_IMAGE_DOTS, _scores
+
+    ids = [f"T{i:02d}" for i in range(MIN_IMAGE_DOTS + 4)]
+    index = {t: k for k, t in enumerate(ids)}
+    many = [(t, 55.0, 60, 1.0) for t in ids[:MIN_IMAGE_DOTS]]  # chi2 / (n - 5) = 1 each
+    few = [(t, 110.0, 60, 1.0) for t in ids[MIN_IMAGE_DOTS:]]  # 2 each, in an image of four dots
+    _, ratio, _ = _scores(_obs([many, few]), index)
+    assert np.allclose(ratio[:MIN_IMAGE_DOTS], 1.0)
+    assert np.allclose(ratio[MIN_IMAGE_DOTS:], 2.0)  # over the job's median (1), not its own image's (2)
+    _, ratio, score = _scores(_obs([few]), index)
+    assert np.isnan(ratio).all() and np.isnan(score).all()
