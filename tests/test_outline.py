@@ -156,6 +156,12 @@ def test_a_job_judges_each_target_against_its_own_dots():
     # records without the figures (measured before decision 0051) judge nothing; one view is not enough
     assert outline_doubtful({"images": [{"ids": ids, "clipped_share": [0] * 30}]}, ids) == {}
     assert outline_doubtful(_obs(rows[:2]), ids) == {}
+    # and the targets not judged are named, not passed over (a worn one among them would pass unseen)
+    from cell.stages.outline import outline_doc
+
+    assert outline_doc({}, ids, _obs(rows[:2]))["not_checked"] == sorted(ids)
+    doc = outline_doc(bad, ids, _obs(rows))
+    assert doc["checked_targets"] == len(ids) and doc["not_checked"] == []
 
 
 def test_a_chipped_scale_bar_end_leaves_its_bar_out():
@@ -202,6 +208,7 @@ def test_worn_targets_are_found_said_and_left_undecided(worn):
     assert "edge" in printed["T0010"]["why"] and "edge" in printed["T0070"]["why"]
     assert "speck" in printed["T0120"]["why"]
     assert report["target_print"]["checked_targets"] > 150
+    assert not set(report["target_print"]["not_checked"]) & set(printed)
     by_id = {t["id"]: t for t in report["targets"]}
     ids, nominal, truth = truth_xyz_m(job)
     true_dev = {i: truth[k] - nominal[k] for k, i in enumerate(ids)}

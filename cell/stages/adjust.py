@@ -23,7 +23,7 @@ from cell.stages.dot_precision import blur_weights, observed_blur, rms_sigma, st
 from cell.stages.scalebars import (bar_name, bars_doc, protected_entries, say_bars, shape_reason, snooping_reason,
                                    test_reason)
 from cell.stages.model_shape import geometry_classes, model_mismatch, range_check, reweighted, shape_check
-from cell.stages.outline import checked_targets, outline_doc, outline_doubtful, outline_reason, say_doubtful
+from cell.stages.outline import outline_doc, outline_doubtful, outline_reason, say_doubtful
 from cell.stages.screen import Resection, Screening, resect, screen_network
 
 
@@ -503,7 +503,7 @@ def run_bundle(ctx) -> dict:
         ctx.log.log("warning", "targets unlike their ellipse in most images that found them, reported inconclusive: "
                     + ", ".join(f"{ids[t]} ({doubtful[t][0]} of {sum(doubtful[t])})" for t in sorted(shaped)))
         suspect |= shaped
-    suspect |= say_doubtful(ctx, printed, ids)
+    suspect |= say_doubtful(ctx, printed, ids, obs)
     dt = time.perf_counter() - t0
     n_img = np.bincount(tgt[~res.rejected], minlength=len(ids))
     # each with the statistic it was rejected with and its degrees of freedom (1: a pair of rays, tested at the 1-dof
@@ -537,7 +537,7 @@ def run_bundle(ctx) -> dict:
         "screening": screening_doc(scr, obs, obs_image, obs_target, ids, attempt, rs, job),
         "scale_bars": bars_doc(job, use, scr.bars_out, test),
         "coherent_background": coherent,
-        "target_print": outline_doc(printed, ids, checked_targets(obs)),
+        "target_print": outline_doc(printed, ids, obs),
         # targets determined >10x worse than the median: out of the datum's minimum trace (calibration.bundle.covariance)
         "datum_left_out": [ids[int(t)] for t in (res.datum_left_out if res.datum_left_out is not None else [])],
         "snooping": res.snooping | {"suspect_targets": [ids[int(t)] for t in sorted(set(

@@ -28,7 +28,7 @@ from __future__ import annotations
 import numpy as np
 
 __all__ = ["OUTLINE_LIMIT", "CENTROID_LIMIT", "MIN_VIEWS", "outline_doubtful", "outline_reason", "outline_doc",
-           "checked_targets", "say_doubtful"]
+           "judged_targets", "say_doubtful"]
 
 #: a target's median outline misfit over its views, in the job's median for its kind of dot, beyond which its print
 #: is doubtful (decision 0051: whole dots of the example stay below 1.7; a chipped edge of 1 % of the dot's area gives
@@ -117,24 +117,35 @@ def outline_reason(job, j: int, doubtful: dict) -> str | None:
                       " (its centre is not the target's: the bar's length would be wrong)")
 
 
-def outline_doc(doubtful: dict, ids: list[str], checked: int) -> dict:
-    """bundle.json ``target_print``: the targets checked, the limits and each doubtful target with why."""
-    return {"checked_targets": int(checked), "outline_limit": OUTLINE_LIMIT, "centroid_limit": CENTROID_LIMIT,
-            "doubtful": [{"id": ids[t]} | d for t, d in sorted(doubtful.items())]}
+def outline_doc(doubtful: dict, ids: list[str], obs: dict) -> dict:
+    """bundle.json ``target_print``: how many targets were judged, those measured that were not (fewer than
+    :data:`MIN_VIEWS` views with the figures: a worn one among them would pass unseen), the limits and each doubtful
+    target with why."""
+    judged, unjudged = judged_targets(obs, ids)
+    return {"checked_targets": judged, "not_checked": unjudged, "outline_limit": OUTLINE_LIMIT,
+            "centroid_limit": CENTROID_LIMIT, "doubtful": [{"id": ids[t]} | d for t, d in sorted(doubtful.items())]}
 
 
-def checked_targets(obs: dict) -> int:
-    """How many targets have the outline figures in :data:`MIN_VIEWS` images or more (the others are not judged)."""
-    n: dict[str, int] = {}
-    for im in obs["images"]:
-        if "outline" in im:
-            for t in im["ids"]:
-                n[t] = n.get(t, 0) + 1
-    return sum(1 for v in n.values() if v >= MIN_VIEWS)
+def judged_targets(obs: dict, ids: list[str]) -> tuple[int, list[str]]:
+    """How many measured targets have an outline or a centroid figure in :data:`MIN_VIEWS` views or more, and the ids
+    of the measured ones that have not (not judged)."""
+    index = {t: k for k, t in enumerate(ids)}
+    tgt, ratio, score = _scores(obs, index)
+    judged = {ids[t] for t in np.unique(tgt)
+              if max(np.isfinite(ratio[tgt == t]).sum(), np.isfinite(score[tgt == t]).sum()) >= MIN_VIEWS}
+    measured = {t for im in obs["images"] for t in im["ids"]}
+    return len(judged), sorted(measured - judged)
 
 
-def say_doubtful(ctx, doubtful: dict, ids: list[str]) -> set[int]:
-    """Warn of each doubtful print (console and run log); returns the targets, to be reported inconclusive."""
+def say_doubtful(ctx, doubtful: dict, ids: list[str], obs: dict) -> set[int]:
+    """Warn of each doubtful print (console and run log), and say which measured targets were not judged; returns the
+    doubtful targets, to be reported inconclusive."""
+    unjudged = judged_targets(obs, ids)[1]
+    if unjudged:
+        msg = (f"{len(unjudged)} target(s) not checked for wear (fewer than {MIN_VIEWS} images with an outline "
+               f"figure): " + ", ".join(unjudged[:8]) + (" ..." if len(unjudged) > 8 else ""))
+        ctx.log.log("info", msg)
+        ctx.say(f"  {msg}")
     if doubtful:
         msg = ("targets whose images are not a clean dot, reported inconclusive and left out of the alignment: "
                + "; ".join(f"{ids[t]} ({d['why']})" for t, d in sorted(doubtful.items())))
