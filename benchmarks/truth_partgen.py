@@ -88,7 +88,11 @@ def one(work: Path, seed: int, misplaced: bool, search_weights: str | None = Non
            # dots the sensor clipped deeply, and the images' light against the model's (decision 0048)
            "deeply_clipped_share": (outside.get("clipping") or {}).get("share"),
            "light_factor": outside.get("light_factor"),
-           "prediction_said": bool(report["predicted_over_achieved"].get("note"))} | fig | losses(folder)
+           "prediction_said": bool(report["predicted_over_achieved"].get("note")),
+           # the part's scale against CAD over the targets that agree with it, and whether it was said (decision 0053)
+           "part_scale_ppm": (report["thermal"].get("part_scale") or {}).get("scale_ppm"),
+           "part_scale_z": (report["thermal"].get("part_scale") or {}).get("z"),
+           "scale_said": bool(report["thermal"].get("note"))} | fig | losses(folder)
     # how often this run's criteria would be missed were its statement exactly right (the targets' joint covariance)
     return row | {"meets": meets(row), "odds_of_a_miss": report_odds(report, folder, part)}
 

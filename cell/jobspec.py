@@ -34,7 +34,7 @@ from calibration.errors import JobSpecError
 from drivers.pixels import BIT_DEPTH
 from planning.part import UNITS_TO_M
 
-__all__ = ["DamagedTarget", "JobSpec", "Pose", "check_backend", "damaged_target_rows", "load_job", "pose_matrix"]
+__all__ = ["DamagedTarget", "JobSpec", "Pose", "ThermalSection", "check_backend", "damaged_target_rows", "load_job", "pose_matrix"]
 
 
 class _Strict(BaseModel):
@@ -61,6 +61,14 @@ class ScaleBar(_Strict):
     b: str
     length: float = Field(gt=0, description="calibrated length between a and b, job units")
     sigma: float = Field(default=0.0, ge=0, description="its standard uncertainty, job units")
+    cte_ppm_per_K: float | None = Field(
+        default=None, ge=-5, le=100, description="the bar's own coefficient of thermal expansion (carbon fibre 0-1, "
+                                                 "invar 1.2, steel 11.5): its certificate is at 20 C and [thermal] "
+                                                 "bars_C gives its temperature; not given: the ends sit on the part "
+                                                 "and expand with it (decision 0053)")
+    cte_sigma_ppm_per_K: float | None = Field(
+        default=None, ge=0, le=50, description="the standard uncertainty of cte_ppm_per_K (default 10 % of it, at "
+                                               "least 0.1)")
 
     @model_validator(mode="after")
     def _two_targets(self):
@@ -381,6 +389,22 @@ class DamagedTarget(_Strict):
         return self
 
 
+class ThermalSection(_Strict):
+    """The temperatures of the measurement (decision 0053): coordinates and deviations are reported at the ISO 1
+    reference of 20 C. Without the section they are at whatever temperature the part had, and said."""
+
+    part_C: float = Field(ge=-30, le=90, description="the part's temperature during the measurement, deg C (a contact "
+                                                     "probe on the part, soaked)")
+    part_sigma_K: float = Field(default=0.5, gt=0, le=20, description="its standard uncertainty, K")
+    part_cte_ppm_per_K: float = Field(ge=-5, le=100, description="the part's coefficient of thermal expansion, "
+                                                                 "ppm/K (aluminium 23.1, steel 11.5, titanium 8.6)")
+    part_cte_sigma_ppm_per_K: float | None = Field(default=None, ge=0, le=50, description="its standard uncertainty "
+                                                   "(default 10 % of it, at least 0.1)")
+    bars_C: float | None = Field(default=None, ge=-30, le=90, description="the temperature of the scale bars that have "
+                                 "their own cte_ppm_per_K, deg C (default: part_C)")
+    bars_sigma_K: float = Field(default=0.5, gt=0, le=20, description="its standard uncertainty, K")
+
+
 class SimSection(_Strict):
     image_sigma_px: float = Field(default=0.0, ge=0, le=10, description="an extra random offset per dot (pixels) on top of "
                                   "the rendered photon/read noise, blur and quantisation; 0 = physical")
@@ -407,6 +431,14 @@ class SimSection(_Strict):
     unreachable_stations: list[str] = Field(default=[], description="planned station ids whose move the simulated "
                                             "controller refuses at run time (the plan does not know): ACQUIRE "
                                             "skips them, the closed loop makes up for them")
+    part_C: float | None = Field(default=None, ge=-30, le=90, description="the simulated part's true temperature, "
+                                 "deg C: its targets expand about the part origin by part_cte_ppm_per_K from their "
+                                 "20 C places (default: [thermal] part_C, else 20: as CAD)")
+    part_cte_ppm_per_K: float | None = Field(default=None, ge=-5, le=100, description="the simulated part's true "
+                                             "expansion coefficient (default: [thermal] part_cte_ppm_per_K)")
+    bars_C: float | None = Field(default=None, ge=-30, le=90, description="the true temperature of the scale bars "
+                                 "with their own cte_ppm_per_K: their ends expand about the bar's middle (default: "
+                                 "[thermal] bars_C if given, else the simulated part_C)")
     damaged_targets: list[DamagedTarget] = Field(
         default=[], description="plain dots whose retro-reflective coating is worn in the simulated images (the plan "
                                 "does not know): { id, kind = \"edge\" | \"spot\", lost, direction_deg, offset } each, "
@@ -433,7 +465,19 @@ class JobSpec(_Strict):
     planning: PlanningSection = PlanningSection()
     report: ReportSection
     alignment: AlignmentSection = AlignmentSection()
+    thermal: ThermalSection | None = None
     sim: SimSection = SimSection()
+
+    @model_validator(mode="after")
+    def _thermal_needs(self):
+        if self.thermal is not None and not self.job.bars():
+            raise ValueError("[thermal] brings the measurement to 20 C through the scale bars' certificates: the job "
+                             "has no scale bar ([job] scale_bar or scale_bars)")
+        s = self.sim
+        if s.part_C is not None and s.part_cte_ppm_per_K is None and self.thermal is None:
+            raise ValueError("sim.part_C expands the simulated part: give sim.part_cte_ppm_per_K (or [thermal] "
+                             "part_cte_ppm_per_K)")
+        return self
 
     @model_validator(mode="after")
     def _same_weights(self):

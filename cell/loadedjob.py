@@ -16,6 +16,7 @@ import numpy as np
 from calibration.camera import Intrinsics
 from calibration.errors import CalibrationError, JobSpecError
 from cell.jobspec import DamagedTarget, JobSpec, damaged_target_rows, load_deviations, load_job, resolve
+from cell.thermal import bar_at_measurement, sim_expansion
 from planning.part import Part, load_part
 
 
@@ -29,10 +30,12 @@ class LoadedJob:
         folder: where its relative paths resolve.
         part: mesh and targets (metres, part frame).
         intrinsics: the nominal camera.
-        deviations: (n, 3) true displacement of each target for the simulated cell (metres).
+        deviations: (n, 3) true displacement of each target for the simulated cell (metres): ``[sim] deviations``,
+            a mis-stated thickness and the expansion at ``[sim] part_C`` / ``bars_C``.
         tolerance_m: (n,) tolerance per target.
         scale_bars: ``(index_a, index_b, length_m, sigma_m)`` per scale bar of the job file (``[job] scale_bar`` or
-            ``scale_bars``, in their order); empty without one.
+            ``scale_bars``, in their order); empty without one. A bar of its own material under ``[thermal]``: its
+            length at the bars' temperature in units of the part at 20 C (:func:`cell.thermal.bar_at_measurement`).
         target_thickness_m: how far the targets' faces stand above the CAD surface (``[job] target_thickness``). The
             part's target positions are the faces' centres, the CAD points lifted along their normals by it: what
             the camera sees and the cell measures. REPORT gives coordinates and deviations on the surface.
@@ -113,7 +116,8 @@ def load(job_path: str | Path, overrides: dict[str, str] | None = None) -> Loade
                 f"{job_path}: {key} length {bar.length} {j.units} differs from the CAD distance "
                 f"{nominal / s:.4f} {j.units} between {bar.a} and {bar.b} by more than 1%"
             )
-        scale_bars.append((a, b, length, bar.sigma * s))
+        # decision 0053: a bar of its own material at its length in units of the part at 20 C
+        scale_bars.append((a, b, *bar_at_measurement(spec, bar, length, bar.sigma * s)))
     al = spec.alignment
     named = [("alignment.targets", t) for t in (al.targets or [])] + [("alignment.rps", t) for t in (al.rps or {})]
     index = part.targets.index()
@@ -133,6 +137,8 @@ def load(job_path: str | Path, overrides: dict[str, str] | None = None) -> Loade
     damaged = damaged_target_rows(spec, ids, part.targets.kind, job_path)
     if spec.sim.target_thickness is not None:  # the simulated targets are not as thick as the job says
         deviations = deviations + (spec.sim.target_thickness * s - thickness) * part.targets.normals
+    # the simulated part and bars at their true temperatures (decision 0053)
+    deviations = deviations + sim_expansion(spec, part.targets.xyz + deviations, [bar[:2] for bar in scale_bars])
     tol = part.targets.tolerance_m.copy()
     tol[~np.isfinite(tol)] = spec.report.tolerance * s
     return LoadedJob(

@@ -270,6 +270,9 @@ def _alerts(doc: dict) -> str:
     th = doc.get("target_thickness") or {}
     if th.get("note"):
         out.append(f'<div class="warn" id="thickness-unstated">Targets: {html.escape(th["note"])}</div>')
+    tm = doc.get("thermal") or {}
+    if tm.get("note"):  # decision 0053: the part's size is not its CAD's
+        out.append(f'<div class="alert" id="scale-alert">Part scale: {html.escape(tm["note"])}</div>')
     return "".join(out)
 
 
@@ -296,6 +299,16 @@ def _measure_facts(doc: dict) -> dict:
         f"{th['thickness_m'] * 1e3:.3g} mm, taken off along each target's CAD normal: coordinates are of the surface"
         if th.get("thickness_m") else "0 (coordinates are of the targets' faces)")
         + ("" if th.get("stated_in_job") else "; not given in the job")}
+    tm = doc.get("thermal")
+    if tm is not None:  # decision 0053
+        ps = tm.get("part_scale")
+        said = (f"part {tm['part_C']:.1f} C +- {tm['part_sigma_K']:.1f} K at {tm['part_cte_ppm_per_K']:.1f} ppm/K, "
+                f"scale bars {tm['bars_C']:.1f} C; " if tm.get("stated_in_job") else "not given ([thermal]); ")
+        out["Temperature"] = said + tm["correction"]
+        if ps is not None:
+            out["Part scale against CAD"] = (f"{ps['scale_ppm']:+.1f} ppm +- {ps['sigma_ppm']:.1f} ppm over "
+                                             f"{ps['targets']} targets" + ("" if ps["significant"] else
+                                                                           " (not significant)"))
     dr = doc.get("identification_dropped")
     if dr is None:
         return out
@@ -315,6 +328,8 @@ def _budget_facts(doc: dict) -> dict:
     for d in doc.get("scale_bars") or []:  # each bar: its certificate, its test, used or left out (decision 0041)
         name = "-".join(d["bar"])
         cert = f"certificate {d['certificate_m'] * 1e3:.4f} mm +- {d['certificate_sigma_m'] * 1e6:.1f} um"
+        if d.get("certified_at_20C_m") is not None:  # decision 0053
+            cert += f" at the measurement (certified {d['certified_at_20C_m'] * 1e3:.4f} mm at 20 C)"
         if not d.get("used"):
             out[f"Scale bar {name}"] = f"{cert}; LEFT OUT: {d.get('left_out')}"
         elif d.get("normalised_residual") is not None:

@@ -69,7 +69,9 @@ def bars_doc(job, use: list[int], left: dict[int, str], test: BarTest | None) ->
     """bundle.json ``scale_bars``: per bar of the job, its certificate, whether the adjustment used it or why not,
     and the test (with two bars or more: the adjusted length, the residual, its sigma, the normalised residual,
     ``test`` "pass" / "fail"; with one: "not tested: one bar"); ``gain_column``: the bar's column of the gains
-    ``K`` (bundle_covariance.npz) and of report.json's ``scale_bar_gains`` (None: not used)."""
+    ``K`` (bundle_covariance.npz) and of report.json's ``scale_bar_gains`` (None: not used). ``certificate_m`` is the
+    length the adjustment took: a bar of its own material under ``[thermal]`` at the bars' temperature in units of
+    the part at 20 C, its certificate then in ``certified_at_20C_m`` (decision 0053)."""
     ids = job.part.targets.ids
     out = []
     for j, (a, b, length, sigma) in enumerate(job.scale_bars):
@@ -77,6 +79,10 @@ def bars_doc(job, use: list[int], left: dict[int, str], test: BarTest | None) ->
              "left_out": left.get(j),
              # the bar's column in bundle_covariance.npz K and report.json's targets' scale_bar_gains
              "gain_column": use.index(j) if j in use else None}
+        spec_bars = job.spec.job.bars()
+        bar = spec_bars[j][1] if j < len(spec_bars) else None
+        if job.spec.thermal is not None and bar is not None and bar.cte_ppm_per_K is not None:  # decision 0053
+            d.update(certified_at_20C_m=bar.length * job.spec.scale, cte_ppm_per_K=bar.cte_ppm_per_K)
         if j in use and test is not None:
             k = use.index(j)
             tested = bool(np.isfinite(test.sigma_m[k]))
