@@ -193,7 +193,7 @@ def thermal_doc(spec, bars_doc: list[dict], scale: dict | None) -> dict:
     if th is not None:
         s_p, sp = part_expansion(th)
         own = [(key, bar) for key, bar in spec.job.bars() if bar.cte_ppm_per_K is not None]
-        applied = s_p * 1e6 if own else 0.0
+        applied = s_p * 1e6 if own else None  # bars on the part: nothing to correct, a scale is the part's
         doc.update(part_C=th.part_C, part_sigma_K=th.part_sigma_K, part_cte_ppm_per_K=th.part_cte_ppm_per_K,
                    part_cte_sigma_ppm_per_K=cte_sigma(th.part_cte_ppm_per_K, th.part_cte_sigma_ppm_per_K),
                    bars_C=_bars_C(th), bars_sigma_K=th.bars_sigma_K, part_expansion_ppm=s_p * 1e6,

@@ -116,6 +116,9 @@ def test_the_scale_note_says_what_a_scale_means_for_the_job(tmp_path):
     assert "+139 ppm" in note and "+6.0 K from 20 C if aluminium" in note and "+12.1 K" in note
     assert "[thermal]" in note and "part_cte_ppm_per_K" in note and "+55 um over its 400 mm" in note
     assert "does not explain" in scale_note(_spec(tmp_path / "p", {}), scale, None)
+    on_part = _spec(tmp_path / "t", {"thermal": WARM})  # [thermal] with the bar on the part: nothing was corrected
+    assert "does not explain" in thermal_doc(on_part, [], scale)["note"]
+    assert "none needed" in thermal_doc(on_part, [], scale)["correction"]
     assert "after the correction to 20 C (-139 ppm" in scale_note(carbon, scale, 138.6)
     assert scale_note(carbon, scale | {"significant": False}, None) is None and scale_note(carbon, None, None) is None
     doc = thermal_doc(carbon, [{"bar": ["T0094", "T0100"], "certificate_m": 0.3573936}], scale)
