@@ -27,7 +27,7 @@ import numpy as np
 
 from calibration.alignment import PointCovariance
 
-__all__ = ["REFERENCE_C", "SCALE_Z", "agreeing", "bar_at_measurement", "cte_sigma", "part_scale", "scale_note", "shared_columns",
+__all__ = ["REFERENCE_C", "SCALE_Z", "agreeing", "bar_at_measurement", "cte_sigma", "own_bar_ends", "part_scale", "scale_note", "shared_columns",
            "sim_expansion", "thermal_doc"]
 
 #: ISO 1: the reference temperature of geometrical product specification, deg C.
@@ -101,6 +101,17 @@ def shared_columns(spec, K: np.ndarray, bars_doc: list[dict]) -> tuple[np.ndarra
     _, sp = part_expansion(th)
     return np.stack([part, temp], axis=2), np.array([sp ** 2, th.bars_sigma_K ** 2]), ["part_expansion",
                                                                                        "bars_temperature"]
+
+
+def own_bar_ends(job) -> np.ndarray:
+    """(n,) bool: the ends of the job's scale bars of their own material (``cte_ppm_per_K`` given). They are the bar's,
+    not the part's: a warm part moves under them by the difference of the expansions (23-32 um on the example 6 K
+    warm with a carbon bar), so they neither define the frame nor are judged against the part's tolerance."""
+    out = np.zeros(len(job.part.targets.ids), dtype=bool)
+    for (_, bar), (a, b, *_) in zip(job.spec.job.bars(), job.scale_bars):
+        if bar.cte_ppm_per_K is not None:
+            out[[a, b]] = True
+    return out
 
 
 def sim_expansion(spec, xyz: np.ndarray, bar_ends: list[tuple[int, int]]) -> np.ndarray:

@@ -305,6 +305,8 @@ def _measure_facts(doc: dict) -> dict:
         said = (f"part {tm['part_C']:.1f} C +- {tm['part_sigma_K']:.1f} K at {tm['part_cte_ppm_per_K']:.1f} ppm/K, "
                 f"scale bars {tm['bars_C']:.1f} C; " if tm.get("stated_in_job") else "not given ([thermal]); ")
         out["Temperature"] = said + tm["correction"]
+        if doc.get("scale_bar_ends"):
+            out["Scale bar ends (the bar's, not judged)"] = ", ".join(e["id"] for e in doc["scale_bar_ends"])
         if ps is not None:
             out["Part scale against CAD"] = (f"{ps['scale_ppm']:+.1f} ppm +- {ps['sigma_ppm']:.1f} ppm over "
                                              f"{ps['targets']} targets" + ("" if ps["significant"] else

@@ -14,7 +14,7 @@ from calibration.errors import CalibrationError
 from calibration.robust_alignment import AlignmentOutcome, frame_alignment, robust_best_fit, rps_align, rps_locks
 from cell.record import report as R
 from cell.record.jobfolder import atomic_write_bytes, atomic_write_json, utc_now
-from cell.thermal import agreeing, part_scale, shared_columns, thermal_doc
+from cell.thermal import agreeing, own_bar_ends, part_scale, shared_columns, thermal_doc
 
 DEVIATION_COVARIANCE = "deviation_covariance.npz"  # the deviations' joint covariance (report.json deviation_covariance)
 
@@ -40,7 +40,7 @@ def align_measurement(job, measured: np.ndarray, pc: PointCovariance, ok: np.nda
     nominal = job.part.targets.xyz
     tol = job.tolerance_m
     k = job.spec.report.sigma_factor
-    measurable = ok & (job.part.targets.kind != "coded")
+    measurable = ok & (job.part.targets.kind != "coded") & ~own_bar_ends(job)
     if spec.method == "rps":
         index = job.part.targets.index()
         return rps_align(measured, pc, nominal, rps_locks({index[t]: a for t, a in spec.rps.items()}), tol, k)
@@ -467,6 +467,7 @@ def write_report(ctx) -> tuple[str, list[str]]:
                  for t in plan["targets"]}
     achieved = np.sqrt(np.trace(cov, axis1=1, axis2=2))
     coded = job.part.targets.kind == "coded"  # identification aids: not measured, not judged
+    bar_end = own_bar_ends(job)  # the ends of a bar of its own material: the bar's, not the part's (decision 0053)
     passed = ok & (dev_norm <= tol)
     U, decision = conformance(al.deviation, al.deviation_cov, tol, ok)
     # a target whose observations snooping could not verify (bundle.json snooping.suspect_targets: it lost half of
@@ -475,7 +476,7 @@ def write_report(ctx) -> tuple[str, list[str]]:
     n_img = [t["n_images"] for t in bundle["targets"]]
     targets = []
     for j, tid in enumerate(ids):
-        if coded[j]:
+        if coded[j] or bar_end[j]:
             continue
         targets.append({
             "id": tid, "kind": str(job.part.targets.kind[j]), "nominal": nominal[j], "measured": surface[j],
@@ -496,7 +497,7 @@ def write_report(ctx) -> tuple[str, list[str]]:
     for r in recs:
         if r["event"] == "stage_done":
             times[r["stage"]] = times.get(r["stage"], 0.0) + r["duration_s"]
-    judged = ~coded
+    judged = ~coded & ~bar_end
     scale = measured_scale(job, outcome, ok & judged & ~np.isin(ids, list(suspect) + list(printed)))
     verdict, verdict_reasons = part_verdict(outcome.trusted, ok, passed, judged, decision,
                                             np.array([t in suspect for t in ids]), ids)
@@ -532,6 +533,9 @@ def write_report(ctx) -> tuple[str, list[str]]:
         "inconclusive": [ids[j] for j in np.flatnonzero(judged) if decision[j] == "inconclusive"],
         "suspect": [ids[j] for j in np.flatnonzero(judged & ok) if ids[j] in suspect],
         "coded_targets": [ids[j] for j in np.flatnonzero(coded)],
+        # measured, not judged: where the bar holds them, not where the part's surface is
+        "scale_bar_ends": [{"id": ids[j], "measured": al.aligned[j], "cov": al.deviation_cov[j]}
+                           for j in np.flatnonzero(bar_end)],
         "rejected_observations": bundle.get("rejected", []),
         "identification_dropped": identification_drops(f.read_json("observations.json")),
         "scale_bars": bundle.get("scale_bars") or [],
