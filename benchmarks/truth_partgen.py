@@ -42,7 +42,7 @@ from tests.test_truth_partgen import (FALSE_SIGNIFICANT_MAX, IN99_MIN, RATIO_BAN
 
 def one(work: Path, seed: int, misplaced: bool, search_weights: str | None = None,
         background_mask: str | None = None, bar_sigma_um: float = 1.0, n_bars: int = 4,
-        focal_length_mm: float | None = None, settings: tuple[str, ...] = ()) -> dict:
+        focal_length_mm: float | None = None, settings: tuple[str, ...] = (), warm: float | None = None) -> dict:
     part = make_part_job(work / f"job{seed}", np.random.default_rng(seed),
                          misplacement=(10.0, 5.0) if misplaced else None, bar_sigma_mm=1e-3 * bar_sigma_um,
                          n_bars=n_bars)
@@ -56,6 +56,7 @@ def one(work: Path, seed: int, misplaced: bool, search_weights: str | None = Non
         if n != 1:
             raise SystemExit(f"{part.job}: [camera] focal_length_mm not found once (found {n})")
         part.job.write_text(text)
+    thermal = warm_job(part.job, seed, warm) if warm is not None else None
     for setting in settings:  # --set table.key=value: a condition the detector model or the tests never saw
         name, _, value = setting.partition("=")
         table, _, key = name.strip().partition(".")
@@ -94,7 +95,31 @@ def one(work: Path, seed: int, misplaced: bool, search_weights: str | None = Non
            "part_scale_z": (report["thermal"].get("part_scale") or {}).get("z"),
            "scale_said": bool(report["thermal"].get("note"))} | fig | losses(folder)
     # how often this run's criteria would be missed were its statement exactly right (the targets' joint covariance)
+    if thermal is not None:
+        row["thermal_true"] = thermal
     return row | {"meets": meets(row), "odds_of_a_miss": report_odds(report, folder, part)}
+
+
+def warm_job(job: Path, seed: int, dt: float) -> dict:
+    """A generated job ``dt`` K above 20 C (decision 0053): an aluminium part (23.1 ppm/K), its scale bars carbon
+    (0.5 ppm/K) at half the rise, ``[thermal]`` stating both to 0.3 K and the coefficient's default 10 %. The true
+    temperatures and the part's true coefficient (``[sim]``) are drawn from those sigmas (a child stream of the
+    seed): a statement is honest only if what it says it does not know is realised. Returns the true values."""
+    rng = np.random.default_rng([seed, 53])
+    stated = {"part_C": 20 + dt, "part_sigma_K": 0.3, "part_cte_ppm_per_K": 23.1, "bars_C": 20 + dt / 2,
+              "bars_sigma_K": 0.3}
+    true = {"part_C": 20 + dt + 0.3 * rng.standard_normal(), "part_cte_ppm_per_K": 23.1 + 2.31 * rng.standard_normal(),
+            "bars_C": 20 + dt / 2 + 0.3 * rng.standard_normal()}
+    text, n = re.subn(r"(?m)^scale_bars? = .*$", lambda m: re.sub(r"(\bsigma = [^,}\s]+)", r"\1, cte_ppm_per_K = 0.5",
+                                                                    m.group(0)), job.read_text())
+    if n != 1:
+        raise SystemExit(f"{job}: [job] scale_bar(s) not found once (found {n})")
+    job.write_text(text)
+    for key, value in stated.items():
+        set_key(job, "thermal", key, repr(float(value)), raw=True)
+    for key, value in true.items():
+        set_key(job, "sim", key, repr(float(value)), raw=True)
+    return true
 
 
 def meets(r: dict) -> bool:
@@ -190,12 +215,14 @@ def main(argv=None) -> int:
     ap.add_argument("--set", action="append", default=[], metavar="TABLE.KEY=VALUE",
                     help="a job key of every generated job, VALUE as TOML (e.g. sim.noise=2, camera.exposure_s=0.001, "
                          "job.target_diameter=3.0); repeatable")
+    ap.add_argument("--warm", type=float, metavar="K", help="the parts K above 20 C (aluminium) with carbon scale bars, "
+                    "[thermal] stating both, the truth drawn from its sigmas (decision 0053)")
     a = ap.parse_args(argv)
     rows = []
     with tempfile.TemporaryDirectory(prefix="truth-partgen-") as tmp:
         for k in range(a.runs):
             r = one(Path(tmp), a.first_seed + k, a.misplaced, a.search_weights, a.background_mask, a.bar_sigma_um, a.bars,
-                    a.focal_length_mm, tuple(a.set))
+                    a.focal_length_mm, tuple(a.set), a.warm)
             rows.append(r)
             print(json.dumps(r), flush=True)
     ok = [r for r in rows if "error" not in r]

@@ -28,6 +28,7 @@ class Devices:
     camera: Camera
     light: Light | None = None
     world: object | None = None  # the simulated world, when there is one
+    thermometer: object | None = None  # the part's thermometer readout (drivers.thermometer), when the job reads it
     _closers: list = field(default_factory=list)
 
     def close(self) -> None:
@@ -124,7 +125,17 @@ def open_devices(job: LoadedJob, backend: str, *, seed_offset: int = 0) -> Devic
             light.emulator = emulator
             if s.cell.light_input is not None:  # the camera's strobe line wired to the controller's trigger input
                 sim.camera.strobe_out = lambda: emulator.controller.input_edge(s.cell.light_input)
-        d = Devices(robot=sim.robot, camera=sim.camera, light=light, world=sim.world, _closers=closers)
+        thermometer = None
+        if s.thermal is not None and s.thermal.part_C == "probe":  # the real driver on the emulated readout (a pty)
+            from cell.thermal import sim_part_C
+            from drivers.thermometer import FlukeReadout
+            from sim_backend.thermometer_emulator import ThermometerEmulator
+
+            probe = ThermometerEmulator(temperature_C=sim_part_C(s), seed=s.sim.seed + seed_offset).start()
+            closers.append(probe.stop)
+            thermometer = FlukeReadout(probe.port)
+        d = Devices(robot=sim.robot, camera=sim.camera, light=light, world=sim.world, thermometer=thermometer,
+                    _closers=closers)
     elif backend == "ur":
         from cell.setup import robot_model
         from drivers.ur import CellLimits, URRobot
@@ -162,10 +173,15 @@ def open_devices(job: LoadedJob, backend: str, *, seed_offset: int = 0) -> Devic
         light = None
         if s.cell.light_port:
             light = _gardasoft(s.cell.light_port, s.cell)
-        d = Devices(robot=robot, camera=camera, light=light, world=world)
+        thermometer = None
+        if s.cell.thermometer_port:
+            from drivers.thermometer import FlukeReadout
+
+            thermometer = FlukeReadout(s.cell.thermometer_port)
+        d = Devices(robot=robot, camera=camera, light=light, world=world, thermometer=thermometer)
     else:
         raise InputError(f"unknown backend {backend!r} (use sim or ur)")
-    for dev in (d.robot, d.camera, d.light):
+    for dev in (d.robot, d.camera, d.light, d.thermometer):
         if dev is not None:
             dev.connect()
             d._closers.append(dev.close)

@@ -224,6 +224,9 @@ class CellSection(_Strict):
     host: str = "127.0.0.1"
     light_port: str | None = Field(default=None, description="the Gardasoft RT light controller (real cell): a "
                                    "serial port, or tcp://HOST[:PORT]")
+    thermometer_port: str | None = Field(default=None, description="the part's thermometer readout (Fluke 1521/1522/"
+                                         "1504/1523/1524 protocol on RS-232, e.g. /dev/ttyUSB1) that [thermal] "
+                                         "part_C = \"probe\" reads (real cell)")
     light_channel: int = Field(default=1, ge=1, le=8, description="the light's output channel on the controller")
     light_input: int | None = Field(default=None, ge=1, le=8, description="controller trigger input wired to the "
                                     "camera's strobe line; None: the light is fired by a software trigger")
@@ -393,8 +396,10 @@ class ThermalSection(_Strict):
     """The temperatures of the measurement (decision 0053): coordinates and deviations are reported at the ISO 1
     reference of 20 C. Without the section they are at whatever temperature the part had, and said."""
 
-    part_C: float = Field(ge=-30, le=90, description="the part's temperature during the measurement, deg C (a contact "
-                                                     "probe on the part, soaked)")
+    part_C: float | Literal["probe"] = Field(description="the part's temperature during the measurement, deg C (a "
+                                             "contact probe on the part, soaked), or \"probe\": read from the "
+                                             "thermometer ([cell] thermometer_port; the simulated cell's own) at "
+                                             "the start and the end of ACQUIRE")
     part_sigma_K: float = Field(default=0.5, gt=0, le=20, description="its standard uncertainty, K")
     part_cte_ppm_per_K: float = Field(ge=-5, le=100, description="the part's coefficient of thermal expansion, "
                                                                  "ppm/K (aluminium 23.1, steel 11.5, titanium 8.6)")
@@ -403,6 +408,14 @@ class ThermalSection(_Strict):
     bars_C: float | None = Field(default=None, ge=-30, le=90, description="the temperature of the scale bars that have "
                                  "their own cte_ppm_per_K, deg C (default: part_C)")
     bars_sigma_K: float = Field(default=0.5, gt=0, le=20, description="its standard uncertainty, K")
+
+
+    @field_validator("part_C")
+    @classmethod
+    def _plausible_part(cls, v):
+        if v != "probe" and not -30 <= v <= 90:
+            raise ValueError(f"part_C = {v} deg C is no part in a measuring cell (-30..90); or \"probe\"")
+        return v
 
 
 class SimSection(_Strict):
@@ -473,6 +486,10 @@ class JobSpec(_Strict):
         if self.thermal is not None and not self.job.bars():
             raise ValueError("[thermal] brings the measurement to 20 C through the scale bars' certificates: the job "
                              "has no scale bar ([job] scale_bar or scale_bars)")
+        if self.thermal is not None and self.thermal.part_C == "probe" and self.cell.backend == "ur" \
+                and not self.cell.thermometer_port:
+            raise ValueError("[thermal] part_C = \"probe\" reads the part's thermometer: give [cell] thermometer_port "
+                             "(its serial port), or the temperature in deg C")
         s = self.sim
         if s.part_C is not None and s.part_cte_ppm_per_K is None and self.thermal is None:
             raise ValueError("sim.part_C expands the simulated part: give sim.part_cte_ppm_per_K (or [thermal] "

@@ -41,6 +41,8 @@ class LoadedJob:
             the camera sees and the cell measures. REPORT gives coordinates and deviations on the surface.
         damaged_targets: ``(index, entry)`` per ``[sim] damaged_targets`` entry: the worn dots of the simulated part
             (the index among the part's targets); empty without any.
+        probe: the part thermometer's readings (``[thermal] part_C = "probe"``) once ADJUST resolved them into
+            ``spec.thermal.part_C`` (:func:`cell.thermal.resolve_probe`); None before, or without a probe.
     """
 
     spec: JobSpec
@@ -53,6 +55,7 @@ class LoadedJob:
     scale_bars: tuple[tuple[int, int, float, float], ...] = ()
     target_thickness_m: float = 0.0
     damaged_targets: tuple[tuple[int, DamagedTarget], ...] = ()
+    probe: dict | None = None
 
     def surface_points(self, xyz: np.ndarray) -> np.ndarray:
         """Target face centres ``xyz`` (n, 3), part frame, -> the CAD surface points under them."""

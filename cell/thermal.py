@@ -26,8 +26,9 @@ from __future__ import annotations
 import numpy as np
 
 from calibration.alignment import PointCovariance
+from calibration.errors import CalibrationError, DriverError
 
-__all__ = ["REFERENCE_C", "SCALE_Z", "agreeing", "bar_at_measurement", "cte_sigma", "own_bar_ends", "part_scale", "scale_note", "shared_columns",
+__all__ = ["REFERENCE_C", "SCALE_Z", "agreeing", "bar_at_measurement", "cte_sigma", "own_bar_ends", "read_probe", "resolve_probe", "sim_part_C", "part_scale", "scale_note", "shared_columns",
            "sim_expansion", "thermal_doc"]
 
 #: ISO 1: the reference temperature of geometrical product specification, deg C.
@@ -42,6 +43,14 @@ MATERIALS = (("aluminium", 23.1), ("steel", 11.5))
 def cte_sigma(cte: float, given: float | None) -> float:
     """The standard uncertainty of an expansion coefficient, ppm/K: as given, else 10 % of it, at least 0.1."""
     return float(given) if given is not None else max(0.1 * abs(cte), 0.1)
+
+
+def sim_part_C(spec) -> float:
+    """The simulated part's true temperature: ``[sim] part_C``, else what ``[thermal]`` states, else 20 C."""
+    th = spec.thermal
+    if spec.sim.part_C is not None:
+        return spec.sim.part_C
+    return th.part_C if th is not None and th.part_C != "probe" else REFERENCE_C
 
 
 def _bars_C(th) -> float:
@@ -63,7 +72,7 @@ def bar_at_measurement(spec, bar, length_m: float, sigma_m: float) -> tuple[floa
     own material: ``L (1 + s_b) / (1 + s_p)``, and its coefficient's uncertainty ``L |T_b - 20| sigma_cte`` added to
     the certificate's in quadrature (the shared temperatures are REPORT's: :func:`shared_columns`)."""
     th = spec.thermal
-    if th is None or bar.cte_ppm_per_K is None:
+    if th is None or bar.cte_ppm_per_K is None or th.part_C == "probe":  # a probe's reading: at ADJUST (resolve_probe)
         return length_m, sigma_m
     dt = _bars_C(th) - REFERENCE_C
     s_b = bar.cte_ppm_per_K * 1e-6 * dt
@@ -119,7 +128,7 @@ def sim_expansion(spec, xyz: np.ndarray, bar_ends: list[tuple[int, int]]) -> np.
     temperatures (``[sim] part_C``, ``bars_C``): about the part's origin, and a bar of its own material's ends about
     its middle. Zeros at 20 C. ``bar_ends``: ``(a, b)`` per bar of ``spec.job.bars()``."""
     s, th = spec.sim, spec.thermal
-    part_C = s.part_C if s.part_C is not None else (th.part_C if th is not None else REFERENCE_C)
+    part_C = sim_part_C(spec)
     cte = s.part_cte_ppm_per_K if s.part_cte_ppm_per_K is not None else (th.part_cte_ppm_per_K if th else 0.0)
     bars_C = s.bars_C if s.bars_C is not None else (th.bars_C if th is not None and th.bars_C is not None else part_C)
     xyz = np.asarray(xyz, dtype=float)
@@ -151,6 +160,62 @@ def agreeing(deviation: np.ndarray, nominal: np.ndarray, blocks: np.ndarray, use
             break
         keep = new
     return keep
+
+
+#: readings averaged at each end of ACQUIRE (the readout's own noise is ~0.01 K; five average a loose contact's flicker)
+PROBE_READINGS = 5
+
+
+def read_probe(ctx, thermometer, when: str) -> None:
+    """ACQUIRE: the part's thermometer read (``[thermal] part_C = "probe"``) at the ``"start"`` or the ``"end"``,
+    journalled (``part_temperature``) and logged. A resumed job keeps the start it read. At the end, a change beyond
+    ``part_sigma_K`` since the start is said: the part was not soaked (:func:`resolve_probe` takes it into the
+    sigma). A probe that does not answer faults the job (the job asked for it): resume reads it again."""
+    th = ctx.job.spec.thermal
+    if th is None or th.part_C != "probe":
+        return
+    recs = [r for r in ctx.folder.records() if r["event"] == "part_temperature"]
+    if when == "start" and any(r["when"] == "start" for r in recs):
+        return
+    if thermometer is None:
+        raise DriverError("[thermal] part_C = \"probe\" but the cell has no thermometer ([cell] thermometer_port)")
+    mean, sd = thermometer.read_mean_C(PROBE_READINGS)
+    ctx.folder.append("part_temperature", when=when, C=mean, sd_K=sd, n=PROBE_READINGS, device=thermometer.name)
+    ctx.log.log("info", f"part temperature at the {when} of ACQUIRE: {mean:.3f} C ({thermometer.name})")
+    ctx.say(f"  part temperature ({when}): {mean:.2f} C")
+    start = next((r["C"] for r in recs if r["when"] == "start"), None)
+    if when == "end" and start is not None and abs(mean - start) > th.part_sigma_K:
+        msg = (f"the part's temperature changed by {mean - start:+.2f} K during ACQUIRE ({start:.2f} C at the start, "
+               f"{mean:.2f} C at the end): it was not soaked; its expansion is taken at the mean, the change in its "
+               "sigma")
+        ctx.log.log("warning", msg)
+        ctx.say(f"  WARNING {msg}")
+
+
+def resolve_probe(job, records: list[dict]):
+    """The job with ``[thermal] part_C = "probe"`` replaced by the readings ACQUIRE journalled: the mean of the start
+    and the end, its sigma ``sqrt(part_sigma_K^2 + change^2 / 12)`` (a steady drift between them), and the bars of
+    their own material at that temperature. Unchanged without a probe. ``CalibrationError`` when ACQUIRE read none."""
+    from dataclasses import replace
+
+    th = job.spec.thermal
+    if th is None or th.part_C != "probe":
+        return job
+    reads = [r for r in records if r["event"] == "part_temperature"]
+    start = next((r for r in reads if r["when"] == "start"), None)
+    end = next((r for r in reversed(reads) if r["when"] == "end"), None)
+    if start is None:
+        raise CalibrationError("[thermal] part_C = \"probe\": the journal has no reading of the part's thermometer "
+                               "(ACQUIRE reads it first); give part_C in deg C to adjust without it")
+    vals = [start["C"]] + ([end["C"]] if end is not None else [])
+    change = vals[-1] - vals[0]
+    spec = job.spec.model_copy(update={"thermal": th.model_copy(update={
+        "part_C": float(np.mean(vals)), "part_sigma_K": float(np.hypot(th.part_sigma_K, change / np.sqrt(12)))})})
+    k = spec.scale
+    bars = tuple((a, b, *bar_at_measurement(spec, bar, bar.length * k, bar.sigma * k))
+                 for (_, bar), (a, b, *_) in zip(spec.job.bars(), job.scale_bars))
+    return replace(job, spec=spec, scale_bars=bars, probe={"start_C": vals[0], "end_C": vals[-1] if end else None,
+                                                           "device": start.get("device"), "change_K": change})
 
 
 def part_scale(deviation: np.ndarray, nominal: np.ndarray, cov: PointCovariance, use: np.ndarray) -> dict | None:
@@ -195,11 +260,11 @@ def scale_note(spec, scale: dict | None, applied_ppm: float | None) -> str | Non
             "part_C and part_cte_ppm_per_K to report the part at 20 C, or the part is out of scale")
 
 
-def thermal_doc(spec, bars_doc: list[dict], scale: dict | None) -> dict:
+def thermal_doc(spec, bars_doc: list[dict], scale: dict | None, probe: dict | None = None) -> dict:
     """report.json ``thermal``: the temperatures the job gave, what the correction to 20 C did to each bar, the part's
     scale against CAD and, when significant, the note (:func:`scale_note`)."""
     th = spec.thermal
-    doc: dict = {"reference_C": REFERENCE_C, "stated_in_job": th is not None, "part_scale": scale}
+    doc: dict = {"reference_C": REFERENCE_C, "stated_in_job": th is not None, "part_scale": scale, "probe": probe}
     applied = None
     if th is not None:
         s_p, sp = part_expansion(th)

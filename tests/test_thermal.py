@@ -209,3 +209,57 @@ def test_a_warm_part_is_said_without_thermal_and_reported_at_20C_with_it(tmp_pat
     assert np.median(np.linalg.norm(err, axis=1)) < 3e-6
     assert np.mean(m ** 2 < 11.345) >= 0.97  # inside the 99 % ellipsoid
     assert 0.6 < np.sqrt(np.mean(m ** 2) / 3) < 1.15  # the shared 15 ppm of the temperatures is not realised here
+
+
+def test_a_probe_reading_becomes_the_parts_temperature_with_its_change_in_the_sigma(tmp_path):
+    """``part_C = "probe"``: LOAD leaves the certificates as they are; the journalled readings (start and end of
+    ACQUIRE) give the mean, a sigma with the change as a steady drift, and the bars at that temperature, as a job
+    stating the mean would. No reading: a clear error; no probe: the job as it is."""
+    from calibration.errors import CalibrationError
+    from cell.thermal import resolve_probe
+
+    probe = load(job_variant(tmp_path / "p", {"job": {"scale_bar": CARBON}, "thermal": WARM | {"part_C": "probe"},
+                                               "sim": {"part_C": 26.0}}))
+    assert probe.scale_bars[0][2] == pytest.approx(357.3936e-3, rel=1e-15)
+    recs = [{"event": "part_temperature", "when": "start", "C": 25.8, "device": "Fluke 1522 readout on /dev/pts/9"},
+            {"event": "station_done"}, {"event": "part_temperature", "when": "end", "C": 26.2}]
+    job = resolve_probe(probe, recs)
+    assert job.spec.thermal.part_C == pytest.approx(26.0)
+    assert job.spec.thermal.part_sigma_K == pytest.approx(np.hypot(0.5, 0.4 / np.sqrt(12)))
+    assert job.probe == {"start_C": 25.8, "end_C": 26.2, "device": "Fluke 1522 readout on /dev/pts/9",
+                         "change_K": pytest.approx(0.4)}
+    stated = load(job_variant(tmp_path / "s", {"job": {"scale_bar": CARBON}, "thermal": WARM}))
+    assert job.scale_bars[0][2] == pytest.approx(stated.scale_bars[0][2], rel=1e-12)
+    assert resolve_probe(job, recs) is job and resolve_probe(stated, recs) is stated
+    with pytest.raises(CalibrationError, match="no reading of the part's thermometer"):
+        resolve_probe(probe, recs[1:2])
+
+
+@pytest.mark.parametrize("changes, match", [
+    ({"thermal": WARM | {"part_C": "probe"}, "cell": {"backend": "ur"}}, r"thermometer_port"),
+    ({"thermal": WARM | {"part_C": "hot"}}, r"part_C"),
+])
+def test_a_probe_needs_a_thermometer_and_a_temperature_is_a_number(tmp_path, changes, match):
+    with pytest.raises(JobSpecError, match=match):
+        load(job_variant(tmp_path / "job", changes))
+
+
+def test_the_simulated_cells_thermometer_reads_the_warm_part_through_the_real_driver(tmp_path):
+    """The example 6 K warm with a carbon bar and ``part_C = "probe"``: ACQUIRE reads the emulated Fluke readout (a
+    pty) through the real driver at its start and end, the journal keeps both, and the report is of the part at
+    20 C with the probe's readings in it (no scale said, a trusted frame)."""
+    from tests.jobutil import records
+
+    job = job_variant(tmp_path / "job", {"job": {"scale_bar": CARBON}, "sim": WARM,
+                                         "thermal": WARM | {"part_C": "probe", "part_sigma_K": 0.3}})
+    run = run_cell("run", str(job), "--archive", str(tmp_path / "archive"), timeout=900)
+    assert run.code == 0, run.stderr[-2000:]
+    folder = Path(run.doc["folder"])
+    reads = [r for r in records(folder) if r["event"] == "part_temperature"]
+    assert [r["when"] for r in reads] == ["start", "end"]
+    assert all(abs(r["C"] - 26.0) < 0.05 and "Fluke" in r["device"] for r in reads)
+    rep = json.loads((folder / "report.json").read_text())
+    th = rep["thermal"]
+    assert abs(th["part_C"] - 26.0) < 0.05 and th["probe"]["start_C"] == reads[0]["C"]
+    assert "note" not in th and not th["part_scale"]["significant"] and rep["alignment"]["trusted"]
+    assert "part temperature (start)" in run.stderr

@@ -304,6 +304,10 @@ def _measure_facts(doc: dict) -> dict:
         ps = tm.get("part_scale")
         said = (f"part {tm['part_C']:.1f} C +- {tm['part_sigma_K']:.1f} K at {tm['part_cte_ppm_per_K']:.1f} ppm/K, "
                 f"scale bars {tm['bars_C']:.1f} C; " if tm.get("stated_in_job") else "not given ([thermal]); ")
+        pr = tm.get("probe")
+        if pr:
+            said += (f"read by {pr.get('device')}: {pr['start_C']:.2f} C at the start of the acquisition"
+                     + (f", {pr['end_C']:.2f} C at its end" if pr.get("end_C") is not None else "") + "; ")
         out["Temperature"] = said + tm["correction"]
         if doc.get("scale_bar_ends"):
             out["Scale bar ends (the bar's, not judged)"] = ", ".join(e["id"] for e in doc["scale_bar_ends"])

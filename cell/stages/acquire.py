@@ -8,6 +8,7 @@ import cv2
 import numpy as np
 
 from calibration.errors import DriverError, MoveRefusedError
+from cell.thermal import read_probe
 from cell.record.integrity import acquired
 from cell.record.jobfolder import atomic_write_bytes, atomic_write_json, sha256_file
 from cell.stages.exposure import ExposureTaker, FrameFault, wait_settled
@@ -53,6 +54,7 @@ def run(ctx) -> None:
         inject_unreachable(dev, ctx.job, ctx.backend, [s["joints"] for s in stations if s["id"] in unreachable])
     skipped = {r["station"]: r["reason"] for r in recs0 if r["event"] == "station_skipped"}
     c = ctx.job.spec.cell
+    read_probe(ctx, dev.thermometer, "start")  # [thermal] part_C = "probe" (decision 0053)
     (ctx.folder.path / "images").mkdir(exist_ok=True)
     cam = ctx.job.spec.camera
     light_by_line = dev.light is not None and c.light_input is not None
@@ -103,6 +105,7 @@ def run(ctx) -> None:
                           frame_id=rec.frame_id, trigger_host_s=rec.trigger_host_s, frame_host_s=rec.frame_host_s,
                           attempts=attempt)
     ctx.progress("acquire", 1.0)
+    read_probe(ctx, dev.thermometer, "end")
     recs = acquired(list(ctx.folder.records()))
     images = [{"station": s["id"], "order": s["order"], "image": recs[s["id"]]["image"],
                "sha256": recs[s["id"]]["sha256"], "joints": recs[s["id"]]["joints"],

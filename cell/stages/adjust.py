@@ -25,6 +25,7 @@ from cell.stages.scalebars import (bar_name, bars_doc, protected_entries, say_ba
 from cell.stages.model_shape import geometry_classes, model_mismatch, range_check, reweighted, shape_check
 from cell.stages.outline import outline_doc, outline_doubtful, outline_reason, say_doubtful
 from cell.stages.screen import Resection, Screening, resect, screen_network
+from cell.thermal import resolve_probe
 
 
 def observation_arrays(job, obs_doc: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -433,7 +434,7 @@ def run_bundle(ctx) -> dict:
     """Screen the network (:mod:`cell.stages.screen`), adjust what it kept, and drop what the adjustment shows
     it cannot use (a target that ends behind a camera, one that is not determined), each with its reason; with
     several scale bars, test their certificates against each other (:mod:`cell.stages.scalebars`)."""
-    job = ctx.job
+    job = ctx.job = resolve_probe(ctx.job, list(ctx.folder.records()))  # [thermal] part_C = "probe" (decision 0053)
     obs = json.loads(ctx.folder.file("observations.json").read_text())
     cal = json.loads(ctx.folder.file("calibration.json").read_text())
     obs_image, obs_target, obs_uv = observation_arrays(job, obs)

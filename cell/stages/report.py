@@ -14,7 +14,7 @@ from calibration.errors import CalibrationError
 from calibration.robust_alignment import AlignmentOutcome, frame_alignment, robust_best_fit, rps_align, rps_locks
 from cell.record import report as R
 from cell.record.jobfolder import atomic_write_bytes, atomic_write_json, utc_now
-from cell.thermal import agreeing, own_bar_ends, part_scale, shared_columns, thermal_doc
+from cell.thermal import agreeing, own_bar_ends, part_scale, resolve_probe, shared_columns, thermal_doc
 
 DEVIATION_COVARIANCE = "deviation_covariance.npz"  # the deviations' joint covariance (report.json deviation_covariance)
 
@@ -416,7 +416,7 @@ def _closed_loop(f) -> dict | None:
 
 
 def write_report(ctx) -> tuple[str, list[str]]:
-    job = ctx.job
+    job = ctx.job = resolve_probe(ctx.job, list(ctx.folder.records()))  # a resumed REPORT reads the probe again
     f = ctx.folder
     bundle = json.loads(f.file("bundle.json").read_text())
     sc = bundle.get("screening") or {}
@@ -438,6 +438,9 @@ def write_report(ctx) -> tuple[str, list[str]]:
     nb = len(K_sigma)
     # decision 0053: the part's and the bars' temperatures, shared by every own-material bar, in the covariance
     th_cols, th_w, _ = shared_columns(job.spec, K, bundle.get("scale_bars") or [])
+    # what the plan predicts is the measurement's (images, network, certificates): predicted / achieved compares it
+    # without the temperatures' shared scale, which the plan does not know
+    achieved = np.sqrt(np.trace(cov, axis1=1, axis2=2))
     if len(th_w):
         pc = append_columns(pc, th_cols, th_w)
         cov = cov + np.einsum("nar,r,nbr->nab", th_cols, th_w, th_cols)
@@ -465,7 +468,6 @@ def write_report(ctx) -> tuple[str, list[str]]:
     level = al.sigma_level()
     predicted = {t["id"]: (np.sqrt(np.trace(t["predicted_cov"])) if t["predicted_cov"] is not None else np.nan)
                  for t in plan["targets"]}
-    achieved = np.sqrt(np.trace(cov, axis1=1, axis2=2))
     coded = job.part.targets.kind == "coded"  # identification aids: not measured, not judged
     bar_end = own_bar_ends(job)  # the ends of a bar of its own material: the bar's, not the part's (decision 0053)
     passed = ok & (dev_norm <= tol)
@@ -513,7 +515,7 @@ def write_report(ctx) -> tuple[str, list[str]]:
         "datum": bundle["datum"],
         "alignment": alignment_doc(outcome, ids, job.spec.alignment),
         "target_thickness": thickness_doc(job, ctx.backend),
-        "thermal": thermal_doc(job.spec, bundle.get("scale_bars") or [], scale),
+        "thermal": thermal_doc(job.spec, bundle.get("scale_bars") or [], scale, job.probe),
         "intrinsics": bundle["intrinsics"],
         "n_observations": bundle["n_observations"],
         "n_rejected": bundle["n_rejected"],
