@@ -19,7 +19,7 @@ import numpy as np
 from calibration.errors import InputError
 from cell.jobspec import pose_matrix
 from cell.loadedjob import LoadedJob
-from drivers.protocols import Camera, Light, Robot
+from drivers.protocols import Camera, Light, Robot, Thermometer
 
 
 @dataclass
@@ -28,7 +28,7 @@ class Devices:
     camera: Camera
     light: Light | None = None
     world: object | None = None  # the simulated world, when there is one
-    thermometer: object | None = None  # the part's thermometer readout (drivers.thermometer), when the job reads it
+    thermometer: Thermometer | None = None  # the part's thermometer readout, when the job reads it (decision 0053)
     _closers: list = field(default_factory=list)
 
     def close(self) -> None:

@@ -224,8 +224,8 @@ class CellSection(_Strict):
     host: str = "127.0.0.1"
     light_port: str | None = Field(default=None, description="the Gardasoft RT light controller (real cell): a "
                                    "serial port, or tcp://HOST[:PORT]")
-    thermometer_port: str | None = Field(default=None, description="the part's thermometer readout (Fluke 1521/1522/"
-                                         "1504/1523/1524 protocol on RS-232, e.g. /dev/ttyUSB1) that [thermal] "
+    thermometer_port: str | None = Field(default=None, description="the part's thermometer readout (a Fluke/Hart 1521/"
+                                         "1522 handheld readout, or a 1504, on RS-232, e.g. /dev/ttyUSB1) that [thermal] "
                                          "part_C = \"probe\" reads (real cell)")
     light_channel: int = Field(default=1, ge=1, le=8, description="the light's output channel on the controller")
     light_input: int | None = Field(default=None, ge=1, le=8, description="controller trigger input wired to the "

@@ -122,3 +122,22 @@ class Light(Protocol):
     def arm(self, duration_s: float) -> None:
         """Pulse mode: one flash of ``duration_s`` per edge on the controller's trigger input (the camera's
         strobe line), so the light fires with the exposure itself."""
+
+
+@runtime_checkable
+class Thermometer(Protocol):
+    """The part's temperature readout (the real one is ``drivers.thermometer.FlukeReadout``): the cell states the part
+    at the ISO 1 reference of 20 C from it, so a reading is in deg C or an error, never a guess."""
+
+    @property
+    def name(self) -> str:
+        """What the journal and the report call it, with where it is (``Fluke 1522 readout on /dev/ttyUSB0``)."""
+
+    def connect(self) -> None:
+        """Open the port and identify the readout; raises ``NotConnectedError`` if it cannot."""
+
+    def close(self) -> None:
+        """Close the port; safe to call twice."""
+
+    def read_C(self) -> float:
+        """The current reading in deg C; raises ``DriverError`` on no reply, a garbled one, or a non-temperature."""

@@ -16,12 +16,13 @@ from __future__ import annotations
 
 import os
 import re
-import select
 import socket
 import threading
 import time
 import tty
 from dataclasses import dataclass, field
+
+from sim_backend.pty_lines import serve_lines
 
 FAULTS = (None, "no_reply", "garbled")
 MAX_PULSE_MS = ((100.0, 999.0), (200.0, 30.0), (300.0, 10.0), (500.0, 2.0), (1000.0, 1.0))
@@ -263,25 +264,7 @@ class GardasoftSerialEmulator(_Front):
             self._master = self._slave = -1
 
     def _serve(self) -> None:
-        buffer = b""
-        while not self._stop.is_set():
-            try:
-                ready, _, _ = select.select([self._master], [], [], 0.02)
-                if not ready:
-                    continue
-                chunk = os.read(self._master, 1024)
-            except (OSError, ValueError):
-                return
-            if not chunk:
-                return
-            lines, buffer = self._lines(buffer + chunk)
-            for line in lines:
-                reply = self.controller.execute(line)
-                if reply is not None:
-                    try:
-                        os.write(self._master, reply.encode("latin-1", "replace"))
-                    except OSError:
-                        return
+        serve_lines(self._master, self._stop, self._lines, self.controller.execute)
 
 
 class GardasoftTcpEmulator(_Front):
