@@ -265,3 +265,22 @@ def test_the_simulated_cells_thermometer_reads_the_warm_part_through_the_real_dr
     assert abs(th["part_C"] - 26.0) < 0.05 and th["probe"]["start_C"] == reads[0]["C"]
     assert "note" not in th and not th["part_scale"]["significant"] and rep["alignment"]["trusted"]
     assert "part temperature (start)" in run.stderr
+
+
+@pytest.mark.parametrize("changes, ppm, says", [
+    # 1.5 K warm: a trusted frame (the rigid fit left the far targets out as significant), the scale in every deviation
+    ({"job": {"scale_bar": CARBON}, "sim": {"part_C": 21.5, "part_cte_ppm_per_K": 23.1, "bars_C": 20.5}},
+     ((1 + 34.65e-6) / (1 + 0.25e-6) - 1) * 1e6, "if aluminium"),
+    # a certificate typed 0.1 mm short (357.2936 for 357.3936, within LOAD's 1 % check): the bar is on the part
+    ({"job": {"scale_bar": BAR | {"length": 357.2936}}}, (357.2936 / 357.3936 - 1) * 1e6, "a bar's certificate is off"),
+])
+def test_a_scale_the_frame_can_hide_is_said(tmp_path, changes, ppm, says):
+    """Before decision 0053 the first gave a trusted frame and a verdict with every far target 5-10 um off at a
+    stated 2 um, and nothing said; the second an untrusted frame whose reasons spoke of a part not in one piece."""
+    run = run_cell("run", str(job_variant(tmp_path / "job", changes)), "--archive", str(tmp_path / "archive"),
+                   timeout=900)
+    assert run.code == 0, run.stderr[-2000:]
+    rep = json.loads((Path(run.doc["folder"]) / "report.json").read_text())
+    sc = rep["thermal"]["part_scale"]
+    assert sc["significant"] and abs(sc["scale_ppm"] - ppm) < 4 * sc["sigma_ppm"] and sc["targets"] > 150
+    assert says in rep["thermal"]["note"] and rep["thermal"]["note"] in run.stderr
