@@ -192,15 +192,17 @@ def read_probe(ctx, thermometer, when: str) -> None:
         ctx.say(f"  WARNING {msg}")
 
 
-def resolve_probe(job, records: list[dict]):
+def resolve_probe(job, journal):
     """The job with ``[thermal] part_C = "probe"`` replaced by the readings ACQUIRE journalled: the mean of the start
     and the end, its sigma ``sqrt(part_sigma_K^2 + change^2 / 12)`` (a steady drift between them), and the bars of
-    their own material at that temperature. Unchanged without a probe. ``CalibrationError`` when ACQUIRE read none."""
+    their own material at that temperature. Unchanged without a probe (the journal is not read). ``journal``: the job
+    folder (its ``records()``) or the records. ``CalibrationError`` when ACQUIRE read none."""
     from dataclasses import replace
 
     th = job.spec.thermal
     if th is None or th.part_C != "probe":
         return job
+    records = journal.records() if hasattr(journal, "records") else journal
     reads = [r for r in records if r["event"] == "part_temperature"]
     start = next((r for r in reads if r["when"] == "start"), None)
     end = next((r for r in reversed(reads) if r["when"] == "end"), None)

@@ -434,7 +434,7 @@ def run_bundle(ctx) -> dict:
     """Screen the network (:mod:`cell.stages.screen`), adjust what it kept, and drop what the adjustment shows
     it cannot use (a target that ends behind a camera, one that is not determined), each with its reason; with
     several scale bars, test their certificates against each other (:mod:`cell.stages.scalebars`)."""
-    job = ctx.job = resolve_probe(ctx.job, list(ctx.folder.records()))  # [thermal] part_C = "probe" (decision 0053)
+    job = ctx.job = resolve_probe(ctx.job, ctx.folder)  # [thermal] part_C = "probe" (decision 0053)
     obs = json.loads(ctx.folder.file("observations.json").read_text())
     cal = json.loads(ctx.folder.file("calibration.json").read_text())
     obs_image, obs_target, obs_uv = observation_arrays(job, obs)

@@ -416,7 +416,7 @@ def _closed_loop(f) -> dict | None:
 
 
 def write_report(ctx) -> tuple[str, list[str]]:
-    job = ctx.job = resolve_probe(ctx.job, list(ctx.folder.records()))  # a resumed REPORT reads the probe again
+    job = ctx.job = resolve_probe(ctx.job, ctx.folder)  # a resumed REPORT reads the probe again
     f = ctx.folder
     bundle = json.loads(f.file("bundle.json").read_text())
     sc = bundle.get("screening") or {}
