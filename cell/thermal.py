@@ -142,20 +142,27 @@ def sim_expansion(spec, xyz: np.ndarray, bar_ends: list[tuple[int, int]]) -> np.
     return out
 
 
-def agreeing(deviation: np.ndarray, nominal: np.ndarray, blocks: np.ndarray, use: np.ndarray, k: float) -> np.ndarray:
-    """The targets of ``use`` that agree with one similarity of the part: three rounds of the best similarity (scale,
-    rotation, translation) of the deviated nominals onto the nominals over those kept, leaving out every target whose
-    residual is significant beyond ``k`` sigma in its block (a local deviation, not the part's scale)."""
+def agreeing(deviation: np.ndarray, nominal: np.ndarray, blocks: np.ndarray, use: np.ndarray, k: float,
+             start: np.ndarray | None = None) -> np.ndarray:
+    """The targets of ``use`` that agree with one similarity of the part (scale, rotation, translation of the
+    deviated nominals onto the nominals): from ``start`` (the alignment's own targets, when six or more of them are in
+    ``use``; else all of ``use``), up to five rounds of the best similarity over those kept, keeping every target of
+    ``use`` whose residual is within ``max(k, 3 x the median)`` sigma in its block. The median's bound keeps a first
+    fit that local deviations pulled (a part with 40 of 132 targets deviating within tolerance: residuals of 17 sigma
+    median) from leaving out every target at once; it falls to ``k`` as the fit comes clean."""
     from calibration.alignment import deviation_sigma_level, similarity_fit
 
     use = np.asarray(use, dtype=bool) & np.all(np.isfinite(deviation), axis=1)
     keep = use.copy()
-    for _ in range(3):
+    if start is not None and (np.asarray(start, dtype=bool) & use).sum() >= 6:
+        keep = np.asarray(start, dtype=bool) & use
+    for _ in range(5):
         if keep.sum() < 6:
             break
         s, R, t = similarity_fit(nominal[keep] + deviation[keep], nominal[keep], with_scale=True)
-        resid = np.where(use[:, None], s * (nominal + deviation) @ R.T + t - nominal, np.nan)
-        new = use & ~(deviation_sigma_level(resid, blocks) > k)
+        level = deviation_sigma_level(np.where(use[:, None], s * (nominal + deviation) @ R.T + t - nominal, np.nan),
+                                      blocks)
+        new = use & ~(level > max(k, 3 * float(np.nanmedian(level[keep]))))
         if np.array_equal(new, keep):
             break
         keep = new

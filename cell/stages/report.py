@@ -63,13 +63,15 @@ def align_measurement(job, measured: np.ndarray, pc: PointCovariance, ok: np.nda
 
 def measured_scale(job, outcome: AlignmentOutcome, use: np.ndarray) -> dict | None:
     """The part's scale against CAD (:func:`cell.thermal.part_scale`) over the targets of ``use`` within tolerance that
-    agree with one similarity of it (decision 0053). Not the best fit's own targets: a rigid fit leaves out the far
-    targets a scale moves most (1.5 K warm, 94 of 195 on the example), and with them most of what tells a scale."""
+    agree with one similarity of it (decision 0053), found from the alignment's own targets. Not those alone: a rigid
+    fit leaves out the far targets a scale moves most (1.5 K warm, 94 of 195 on the example), and with them most of
+    what tells a scale."""
     al = outcome.alignment
     nominal = job.part.targets.xyz
     start = use & (np.linalg.norm(al.deviation, axis=1) <= job.tolerance_m)
     return part_scale(al.deviation, nominal, al.deviation_covariance,
-                      agreeing(al.deviation, nominal, al.deviation_cov, start, job.spec.report.sigma_factor))
+                      agreeing(al.deviation, nominal, al.deviation_cov, start, job.spec.report.sigma_factor,
+                               outcome.fit_mask))
 
 
 def _scale_hint(job, measured: np.ndarray, pc: PointCovariance, tol, k: float, cand: np.ndarray,
