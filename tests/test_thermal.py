@@ -284,6 +284,7 @@ def test_a_scale_the_frame_can_hide_is_said(tmp_path, changes, ppm, says):
     sc = rep["thermal"]["part_scale"]
     assert sc["significant"] and abs(sc["scale_ppm"] - ppm) < 4 * sc["sigma_ppm"] and sc["targets"] > 150
     assert says in rep["thermal"]["note"] and rep["thermal"]["note"] in run.stderr
+    assert any("against its CAD" in r for r in rep["verdict_reasons"])
 
 
 def test_the_targets_that_agree_are_found_past_local_deviations_and_a_scale():

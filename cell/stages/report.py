@@ -505,6 +505,9 @@ def write_report(ctx) -> tuple[str, list[str]]:
     scale = measured_scale(job, outcome, ok & judged & ~np.isin(ids, list(suspect) + list(printed)))
     verdict, verdict_reasons = part_verdict(outcome.trusted, ok, passed, judged, decision,
                                             np.array([t in suspect for t in ids]), ids)
+    if scale is not None and scale["significant"] and verdict != "PASS":  # judged at the measurement's scale: said
+        verdict_reasons = list(verdict_reasons) + [f"the part measures {scale['scale_ppm']:+.0f} ppm against its CAD "
+                                                   "(report.json thermal.note)"]
     doc = {
         "job": {"id": f.job_id, "name": job.spec.job.name, "part": job.part.name, "seed": job.spec.job.seed,
                 "sim_seed": job.spec.sim.seed if ctx.backend == "sim" else None, "backend": ctx.backend,
