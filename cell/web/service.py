@@ -165,8 +165,10 @@ class Console:
         if folder is None:
             job_folder(self.root, job_id)  # NotFound for anything that is not a job
             raise NotFound(f"no job {job_id!r}")
-        live = live_state(folder)
+        # whether the process runs, asked BEFORE its journal is read: a job that writes DONE and exits between the two
+        # reads was shown FAULTED at its last stage, and the live view stopped there (seen under load in CI)
         running = s is not None and s.alive()
+        live = live_state(folder)
         if s is not None and not running and live["state"] not in ("DONE", "FAULTED", "ABORTED"):
             live["state"] = "FAULTED"
             live["reason"] = "; ".join(self.runner.log_lines(s, 2))
