@@ -187,6 +187,14 @@ def read_probe(ctx, thermometer, when: str) -> None:
     if thermometer is None:
         raise DriverError("[thermal] part_C = \"probe\" but the cell has no thermometer ([cell] thermometer_port)")
     mean, sd = thermometer.read_mean_C(PROBE_READINGS)
+    if not -30.0 <= mean <= 90.0:  # the job's own range for part_C: a probe off the part, or a wrong channel
+        raise DriverError(f"the part's thermometer ({thermometer.name}) reads {mean:.2f} C at the {when} of ACQUIRE: "
+                          "no part in a measuring cell is at that (-30..90 C); check that the probe is on the part")
+    if sd > th.part_sigma_K:  # a loose contact flickers: the mean is taken, its scatter said
+        msg = (f"the part's thermometer scattered by {sd:.2f} K over {PROBE_READINGS} readings at the {when} of ACQUIRE "
+               f"(more than part_sigma_K = {th.part_sigma_K} K): check the probe's contact")
+        ctx.log.log("warning", msg)
+        ctx.say(f"  WARNING {msg}")
     ctx.folder.append("part_temperature", when=when, C=mean, sd_K=sd, n=PROBE_READINGS, device=thermometer.name)
     ctx.log.log("info", f"part temperature at the {when} of ACQUIRE: {mean:.3f} C ({thermometer.name})")
     ctx.say(f"  part temperature ({when}): {mean:.2f} C")
@@ -274,6 +282,9 @@ def thermal_doc(spec, bars_doc: list[dict], scale: dict | None, probe: dict | No
     scale against CAD and, when significant, the note (:func:`scale_note`)."""
     th = spec.thermal
     doc: dict = {"reference_C": REFERENCE_C, "stated_in_job": th is not None, "part_scale": scale, "probe": probe}
+    if scale is None:  # said, not left blank: a part out of scale would pass unseen
+        doc["part_scale_not_estimated"] = ("fewer than six measured targets within tolerance agree with one "
+                                           "similarity of the part: its scale against CAD is not checked")
     applied = None
     if th is not None:
         s_p, sp = part_expansion(th)

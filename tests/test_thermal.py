@@ -128,6 +128,9 @@ def test_the_scale_note_says_what_a_scale_means_for_the_job(tmp_path):
     facts = _measure_facts({"thermal": doc})
     assert facts["Temperature"].startswith("not given") and "+138.6 ppm" in facts["Part scale against CAD"]
     assert 'id="scale-alert"' not in _alerts({"thermal": thermal_doc(carbon, [], scale | {"significant": False})})
+    unchecked = thermal_doc(carbon, [], None)  # no six targets agree: said, not left blank
+    assert "not checked" in unchecked["part_scale_not_estimated"]
+    assert _measure_facts({"thermal": unchecked})["Part scale against CAD"].startswith("NOT CHECKED")
 
 
 def test_the_shared_temperatures_are_two_columns_through_the_own_material_bars_gains(tmp_path):
@@ -307,3 +310,37 @@ def test_the_targets_that_agree_are_found_past_local_deviations_and_a_scale():
         assert not (keep & bad).any() and (keep & ~bad).sum() >= 105
         s = part_scale(d, x, _scale_cov(x, 2e-6), keep)
         assert abs(s["scale_ppm"] - 40) < 4 * s["sigma_ppm"]
+
+
+def test_a_probe_reading_off_any_part_faults_and_a_scattering_one_is_said(tmp_path):
+    """ACQUIRE's probe reading through the real driver on the emulated readout: 150 C (a probe off the part, a wrong
+    channel) faults before the robot moves, naming the reading; readings that scatter beyond part_sigma_K (a loose
+    contact) are journalled with a warning on the console and in the run log."""
+    from types import SimpleNamespace
+
+    from calibration.errors import DriverError
+    from cell.thermal import read_probe
+    from drivers.thermometer import FlukeReadout
+    from sim_backend.thermometer_emulator import ThermometerEmulator
+
+    job = load(job_variant(tmp_path / "p", {"job": {"scale_bar": CARBON}, "thermal": WARM | {"part_C": "probe",
+                                                                                            "part_sigma_K": 0.2}}))
+    journal, said, logged = [], [], []
+    ctx = SimpleNamespace(job=job, say=said.append, log=SimpleNamespace(log=lambda level, m: logged.append((level, m))),
+                          folder=SimpleNamespace(records=lambda: list(journal),
+                                                 append=lambda event, **f: journal.append({"event": event} | f)))
+    for true_C, noise_K in ((150.0, 0.005), (26.0, 1.0)):
+        with ThermometerEmulator(temperature_C=true_C, noise_K=noise_K, seed=3) as emu:
+            probe = FlukeReadout(emu.port)
+            probe.connect()
+            try:
+                if true_C > 90:
+                    with pytest.raises(DriverError, match="reads 150.0. C at the start.*probe is on the part"):
+                        read_probe(ctx, probe, "start")
+                    assert not journal
+                else:
+                    read_probe(ctx, probe, "start")
+            finally:
+                probe.close()
+    assert [r["when"] for r in journal] == ["start"] and journal[0]["sd_K"] > 0.2
+    assert any(level == "warning" and "scattered" in m for level, m in logged) and any("scattered" in m for m in said)

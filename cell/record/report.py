@@ -315,6 +315,8 @@ def _measure_facts(doc: dict) -> dict:
             out["Part scale against CAD"] = (f"{ps['scale_ppm']:+.1f} ppm +- {ps['sigma_ppm']:.1f} ppm over "
                                              f"{ps['targets']} targets" + ("" if ps["significant"] else
                                                                            " (not significant)"))
+        elif tm.get("part_scale_not_estimated"):
+            out["Part scale against CAD"] = "NOT CHECKED: " + tm["part_scale_not_estimated"]
     dr = doc.get("identification_dropped")
     if dr is None:
         return out

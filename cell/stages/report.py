@@ -596,7 +596,8 @@ def run(ctx) -> None:
     doc = ctx.folder.read_json("report.json")
     for note in ((doc.get("predicted_over_achieved") or {}).get("note"),  # the plan's prediction did not hold (issue 15)
                  (doc.get("target_thickness") or {}).get("note"),  # a real cell's targets' thickness not given
-                 (doc.get("thermal") or {}).get("note")):  # the part's size is not its CAD's (decision 0053)
+                 (doc.get("thermal") or {}).get("note"),  # the part's size is not its CAD's (decision 0053)
+                 (doc.get("thermal") or {}).get("part_scale_not_estimated")):
         if note:
             ctx.log.log("warning", note)
             ctx.say(f"  WARNING {note}")
