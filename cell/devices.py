@@ -94,7 +94,7 @@ def make_job_sim_cell(job: LoadedJob, seed_offset: int = 0):
     photometry = Photometry()
     if s.sim.dot_max_incidence_deg is not None:  # glare washes the dots out beyond this incidence
         photometry = replace(photometry, max_incidence_rad=float(np.deg2rad(s.sim.dot_max_incidence_deg)))
-    return make_sim_cell(job.part, s.base_from_part(), s.flange_from_cam(), job.intrinsics, robot=robot_model(job),
+    return make_sim_cell(job.part, s.base_from_part(), s.flange_from_cam(), s.true_intrinsics(), robot=robot_model(job),
                          deviations=job.deviations, image_sigma_px=s.sim.image_sigma_px, seed=s.sim.seed + seed_offset,
                          sensor=Sensor().with_noise_scale(s.sim.noise).with_camera(s.camera.pixel_format,
                                                                                     s.camera.gain_db)

@@ -169,7 +169,11 @@ class CameraSection(_Strict):
     exposure_s: float = Field(default=0.002, gt=0, le=10)
     frame_timeout_s: float = Field(default=2.0, gt=0, le=600, description="longest time from trigger to frame beyond the "
                                    "exposure; a later frame faults the station and it is retaken")
-    self_calibrate: bool = Field(default=True, description="refine focal length, principal point, radial distortion")
+    self_calibrate: bool = Field(default=True, description="refine the lens in the adjustment (lens_model's terms)")
+    lens_model: Literal["brown", "radial"] = Field(
+        default="brown", description="the terms of the lens the adjustment estimates: brown: fx, fy, cx, cy, radial k1, "
+                                     "k2, k3 and decentring p1, p2 (a real lens; decision 0054); radial: one focal "
+                                     "length, cx, cy, k1, k2 (a lens known to have no decentring)")
     polarity: Literal["bright", "dark", "auto"] = Field(
         default="bright", description="bright: retro-reflective dots; dark: printed dots on a light ground; auto: per image")
     detection: Literal["cell", "photograph"] = Field(
@@ -202,6 +206,10 @@ class CameraSection(_Strict):
         for key, value, size in (("cx_px", self.cx_px, self.width), ("cy_px", self.cy_px, self.height)):
             if value is not None and not 0 <= value <= size - 1:
                 raise ValueError(f"camera.{key} = {value} lies outside the image (0..{size - 1} px)")
+        held = [k for k in ("k3", "p1", "p2") if getattr(self, k)]
+        if self.lens_model == "radial" and self.self_calibrate and held:
+            raise ValueError(f"camera.{held[0]} = {getattr(self, held[0])} is a term the radial lens model does not "
+                             f"carry (k1, k2 only): the adjustment would drop it; set camera.lens_model = \"brown\"")
         return self
 
 
@@ -357,6 +365,23 @@ class AlignmentSection(_Strict):
         return self
 
 
+class SimLens(_Strict):
+    """The simulated camera's true lens where it is not the nominal one of ``[camera]`` (``[sim] lens``): a real lens
+    is never its data sheet. Each key given replaces the nominal value for the renderer only; PLAN and the adjustment's
+    start know the nominal lens."""
+
+    focal_length_mm: float | None = Field(default=None, gt=0, le=2000, description="the true focal length (mm)")
+    cx_px: float | None = Field(default=None, description="the true principal point (px)")
+    cy_px: float | None = None
+    aspect: float = Field(default=1.0, ge=0.9, le=1.1, description="fy / fx of the true lens (a sensor's pixel "
+                          "aspect, an affinity)")
+    k1: float | None = Field(default=None, ge=-10, le=10, description="true radial distortion")
+    k2: float | None = Field(default=None, ge=-100, le=100)
+    k3: float | None = Field(default=None, ge=-1000, le=1000)
+    p1: float | None = Field(default=None, ge=-1, le=1, description="true decentring distortion")
+    p2: float | None = Field(default=None, ge=-1, le=1)
+
+
 class DamagedTarget(_Strict):
     """One plain dot of the simulated part whose retro-reflective coating is damaged (``[sim] damaged_targets``)."""
 
@@ -452,6 +477,9 @@ class SimSection(_Strict):
     bars_C: float | None = Field(default=None, ge=-30, le=90, description="the true temperature of the scale bars "
                                  "with their own cte_ppm_per_K: their ends expand about the bar's middle (default: "
                                  "[thermal] bars_C if given, else the simulated part_C)")
+    lens: SimLens | None = Field(default=None, description="the simulated camera's true lens where it differs from "
+                                 "the nominal [camera] (focal_length_mm, cx_px, cy_px, aspect, k1, k2, k3, p1, p2): "
+                                 "the renderer uses it, the plan and the adjustment's start do not know it")
     damaged_targets: list[DamagedTarget] = Field(
         default=[], description="plain dots whose retro-reflective coating is worn in the simulated images (the plan "
                                 "does not know): { id, kind = \"edge\" | \"spot\", lost, direction_deg, offset } each, "
@@ -543,6 +571,17 @@ class JobSpec(_Strict):
             c.focal_length_mm * 1e-3, c.pixel_size_um * 1e-6, c.width, c.height,
             cx_px=c.cx_px, cy_px=c.cy_px, k1=c.k1, k2=c.k2, k3=c.k3, p1=c.p1, p2=c.p2,
         )
+
+    def true_intrinsics(self) -> Intrinsics:
+        """The simulated camera's lens: the nominal one with ``[sim] lens``'s keys in place of its own."""
+        c, t = self.camera, self.sim.lens
+        if t is None:
+            return self.intrinsics()
+        pick = lambda k: getattr(c, k) if getattr(t, k) is None else getattr(t, k)  # noqa: E731
+        f = c.focal_length_mm if t.focal_length_mm is None else t.focal_length_mm
+        return Intrinsics.from_focal_length(
+            f * 1e-3, c.pixel_size_um * 1e-6, c.width, c.height, cx_px=pick("cx_px"), cy_px=pick("cy_px"),
+            aspect=t.aspect, k1=pick("k1"), k2=pick("k2"), k3=pick("k3"), p1=pick("p1"), p2=pick("p2"))
 
     def base_from_part(self) -> np.ndarray:
         return pose_matrix(self.cell.base_from_part, self.scale)

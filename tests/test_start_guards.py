@@ -11,7 +11,8 @@ from calibration.camera import invert
 from calibration.errors import CalibrationError
 from calibration.faugeras_toscani import faugeras_toscani
 from cell.loadedjob import load
-from cell.stages.adjust import START_GROSS_SHARE, choose_start, observation_arrays
+from cell.stages.adjust import observation_arrays
+from cell.stages.lens import START_GROSS_SHARE, choose_start
 from cell.stages.calibrate import orient_image
 from jobutil import example_run
 

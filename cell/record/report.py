@@ -270,6 +270,11 @@ def _alerts(doc: dict) -> str:
     th = doc.get("target_thickness") or {}
     if th.get("note"):
         out.append(f'<div class="warn" id="thickness-unstated">Targets: {html.escape(th["note"])}</div>')
+    ln = doc.get("lens") or {}
+    if ln.get("note"):  # decision 0054: the images refute the radial lens model
+        out.append(f'<div class="alert" id="lens-alert">Lens: {html.escape(ln["note"])}</div>')
+    if ln.get("focal_note"):
+        out.append(f'<div class="warn" id="lens-focal">Lens: {html.escape(ln["focal_note"])}</div>')
     tm = doc.get("thermal") or {}
     if tm.get("note"):  # decision 0053: the part's size is not its CAD's
         out.append(f'<div class="alert" id="scale-alert">Part scale: {html.escape(tm["note"])}</div>')
@@ -317,6 +322,14 @@ def _measure_facts(doc: dict) -> dict:
                                                                            " (not significant)"))
         elif tm.get("part_scale_not_estimated"):
             out["Part scale against CAD"] = "NOT CHECKED: " + tm["part_scale_not_estimated"]
+    ln = doc.get("lens")
+    if ln and ln.get("focal_length_mm") is not None:  # decision 0054
+        f_sig = ln.get("focal_length_sigma_mm")
+        out["Lens"] = (f"{ln['model']} ({', '.join(ln['estimated']) or 'held at the nominal'}): principal distance "
+                       f"{ln['focal_length_mm']:.3f}" + (f" +- {f_sig:.4f}" if f_sig else "") + f" mm (nominal "
+                       f"{ln['nominal_focal_length_mm']:.3g}), principal point ({ln['principal_point_px'][0]:.1f}, "
+                       f"{ln['principal_point_px'][1]:.1f}) px, distortion at the corner "
+                       f"{ln['distortion_at_corner_px']:.1f} px")
     dr = doc.get("identification_dropped")
     if dr is None:
         return out

@@ -11,7 +11,6 @@ from calibration.bundle import BundleConfig, BundleOptions, ScaleBar, bundle_adj
 from calibration.bundle.bartest import bar_residual_test
 from calibration.bundle.coherent import certificate_at_face_value, coherent_background_cov, scale_bar_gains
 from calibration.bundle.covariance import append_columns
-from calibration.camera import Intrinsics
 from calibration.detector_model import (C_BACKGROUND_CENTROID, centroid_bound_scale, load_model, observation_covariances,
                                         observation_geometry, observation_sigmas)
 from calibration.errors import CalibrationError, ScaleNotEstablishedError
@@ -24,6 +23,7 @@ from cell.stages.scalebars import (bar_name, bars_doc, protected_entries, say_ba
                                    test_reason)
 from cell.stages.model_shape import geometry_classes, model_mismatch, range_check, reweighted, shape_check
 from cell.stages.outline import outline_doc, outline_doubtful, outline_reason, say_doubtful
+from cell.stages.lens import camera_model, choose_start, radial_check
 from cell.stages.screen import Resection, Screening, resect, screen_network
 from cell.thermal import resolve_probe
 
@@ -99,62 +99,6 @@ def clipped_shares(obs_doc: dict) -> tuple[np.ndarray, np.ndarray]:
     return np.concatenate(S), np.concatenate(has)
 
 
-def initial_intrinsics(job, cal_doc: dict) -> Intrinsics:
-    """Median of the per-image Faugeras-Toscani interior orientations (robust to a weak image)."""
-    nominal = job.intrinsics
-    if not job.spec.camera.self_calibrate:
-        return nominal
-    ft = [[r["alpha_u"], r["alpha_v"], r["u0"], r["v0"]] for r in cal_doc["images"] if "alpha_u" in r]
-    if not ft:  # every image refused by Faugeras-Toscani (calibration.json says so): the nominal lens
-        return nominal
-    a = np.median(ft, axis=0)
-    # the linear method has no distortion and little focal accuracy per image: keep it only if plausible
-    if abs(a[0] / nominal.fx_px - 1) > 0.1 or abs(a[2] - nominal.cx_px) > 0.1 * nominal.width:
-        return nominal
-    f = 0.5 * (a[0] + a[1])
-    return Intrinsics(f, f, a[2], a[3], nominal.width, nominal.height, k1=nominal.k1, k2=nominal.k2,
-                      pixel_size_m=nominal.pixel_size_m)
-
-
-#: a start whose screening takes more than this share of the observations as gross is tried against the nominal lens
-START_GROSS_SHARE = 0.10
-
-
-def choose_start(job, cal_doc: dict, obs_image: np.ndarray, obs_target: np.ndarray, obs_uv: np.ndarray,
-                 poses_all: np.ndarray, ids: list[str]) -> tuple[Intrinsics, Resection, Screening, dict]:
-    """The interior orientation the adjustment starts from, with the poses resected with it.
-
-    :func:`initial_intrinsics` (Faugeras-Toscani's median), unless its screening takes more than
-    :data:`START_GROSS_SHARE` of the observations as gross and the nominal lens's takes fewer: a wrong start makes
-    good rays disagree, and the screening would leave them out. Returns ``(intr0, resection, doc)``, ``doc`` for
-    bundle.json ``start``: which interior orientation and, for each tried, the share of observations screened gross.
-    The chosen start's screening is returned too: the adjustment's first round uses it (not screened twice).
-    """
-    nominal = job.intrinsics
-    pairs = [tuple(bar[:2]) for bar in job.scale_bars]
-
-    def tried(intr):
-        rs = resect(intr, poses_all, obs_image, job.part.targets.xyz[obs_target], obs_uv)
-        scr = screen_network(obs_image, obs_target, obs_uv, intr, rs.poses, len(ids), scale_pairs=pairs,
-                             drop_images=rs.left_out, ids=ids)
-        return rs, scr, len(scr.obs) / max(len(obs_uv), 1)
-
-    intr0 = initial_intrinsics(job, cal_doc)
-    rs, scr, gross = tried(intr0)
-    name = "nominal lens" if intr0 is nominal else "Faugeras-Toscani (median of the accepted images)"
-    doc = {"interior": name, "fx_px": float(intr0.fx_px), "gross_share": {name: gross}}
-    if intr0 is not nominal and gross > START_GROSS_SHARE:
-        rs_n, scr_n, gross_n = tried(nominal)
-        doc["gross_share"]["nominal lens"] = gross_n
-        if gross_n < gross:
-            doc |= {"interior": "nominal lens", "fx_px": float(nominal.fx_px),
-                    "reason": f"Faugeras-Toscani's interior orientation (fx {intr0.fx_px:.1f} px) left {gross:.0%} of "
-                              f"the observations gross in the screening, the nominal lens (fx {nominal.fx_px:.1f} px) "
-                              f"{gross_n:.0%}: the adjustment starts from the nominal lens"}
-            return nominal, rs_n, scr_n, doc
-    return intr0, rs, scr, doc
-
-
 def model_sigmas(job, backend: str, cam_from_part: np.ndarray, img: np.ndarray, tgt: np.ndarray,
                  fx_px: float) -> np.ndarray:
     """Each observation's sigma from the detector model (incidence, dot size; the simulated sensor's noise scale on
@@ -179,8 +123,7 @@ def bundle_config(job, use_bars=None) -> BundleConfig:
     keep = set(range(len(job.scale_bars)) if use_bars is None else use_bars)
     scale_bars = tuple(ScaleBar(a, b, length, max(sigma, 1e-7))
                        for j, (a, b, length, sigma) in enumerate(job.scale_bars) if j in keep)
-    sc = job.spec.camera.self_calibrate
-    return BundleConfig(camera_model="RADIAL" if sc else "PINHOLE", refine_focal_length=sc,
+    return BundleConfig(camera_model=camera_model(job), refine_focal_length=(sc := job.spec.camera.self_calibrate),
                         refine_principal_point=sc, refine_distortion=sc, scale_bars=scale_bars)
 
 
@@ -498,6 +441,12 @@ def run_bundle(ctx) -> dict:
         msg = f"{bars_out[use[worst]]}; bar left out, adjusting again with the other {len(use) - 1}"
         ctx.log.log("warning", f"adjustment: {msg}")
         ctx.say(f"  WARNING {msg}")
+    lens = {"model": job.spec.camera.lens_model if job.spec.camera.self_calibrate else "nominal (not calibrated)",
+            "camera_model": bundle_config(job, use).camera_model}
+    lens |= {"radial_check": radial_check(res, img, tgt, uv, BundleOptions(sigma_px=job.spec.camera.sigma_px), bundle_config(job, use))}
+    if (lens["radial_check"] or {}).get("note"):
+        ctx.log.log("warning", lens["radial_check"]["note"])
+        ctx.say(f"  WARNING {lens['radial_check']['note']}")
     suspect = _screened_suspects(scr, obs_target, tgt[~res.rejected], len(ids))
     shaped = {t for t in doubtful if np.any(tgt[~res.rejected] == t)}
     if shaped:  # the views kept share the cause that made most of its views unlike the target's ellipse
@@ -544,6 +493,7 @@ def run_bundle(ctx) -> dict:
         "snooping": res.snooping | {"suspect_targets": [ids[int(t)] for t in sorted(set(
                                         int(t) for t in res.snooping["suspect_targets"]) | suspect)],
                                     "protected": protected_entries(job, use, res.snooping["protected"])},
+        "lens": lens,
         "intrinsics": res.intrinsics.to_dict(),
         "intrinsics_refined": list(res.intrinsics_names),
         "intrinsics_sigma": np.sqrt(np.diag(res.intrinsics_cov)).tolist() if len(res.intrinsics_names) else [],

@@ -14,6 +14,7 @@ from calibration.errors import CalibrationError
 from calibration.robust_alignment import AlignmentOutcome, frame_alignment, robust_best_fit, rps_align, rps_locks
 from cell.record import report as R
 from cell.record.jobfolder import atomic_write_bytes, atomic_write_json, utc_now
+from cell.stages.lens import lens_doc
 from cell.thermal import agreeing, own_bar_ends, part_scale, resolve_probe, shared_columns, thermal_doc
 
 DEVIATION_COVARIANCE = "deviation_covariance.npz"  # the deviations' joint covariance (report.json deviation_covariance)
@@ -508,6 +509,11 @@ def write_report(ctx) -> tuple[str, list[str]]:
     if scale is not None and scale["significant"] and verdict != "PASS":  # judged at the measurement's scale: said
         verdict_reasons = list(verdict_reasons) + [f"the part measures {scale['scale_ppm']:+.0f} ppm against its CAD "
                                                    "(report.json thermal.note)"]
+    lens = lens_doc(job, bundle)
+    if lens["note"]:  # the images refute the radial lens model: the statement is not this lens's (decision 0054)
+        verdict_reasons = list(verdict_reasons) + ["the lens has terms its radial model does not carry: the targets' "
+                                                   "coordinates and uncertainties are off (report.json lens.note)"]
+        verdict = "INCOMPLETE" if verdict == "PASS" else verdict
     doc = {
         "job": {"id": f.job_id, "name": job.spec.job.name, "part": job.part.name, "seed": job.spec.job.seed,
                 "sim_seed": job.spec.sim.seed if ctx.backend == "sim" else None, "backend": ctx.backend,
@@ -522,6 +528,7 @@ def write_report(ctx) -> tuple[str, list[str]]:
         "target_thickness": thickness_doc(job, ctx.backend),
         "thermal": thermal_doc(job.spec, bundle.get("scale_bars") or [], scale, job.probe),
         "intrinsics": bundle["intrinsics"],
+        "lens": lens,
         "n_observations": bundle["n_observations"],
         "n_rejected": bundle["n_rejected"],
         "snooping": bundle.get("snooping"),
@@ -597,7 +604,8 @@ def run(ctx) -> None:
     for note in ((doc.get("predicted_over_achieved") or {}).get("note"),  # the plan's prediction did not hold (issue 15)
                  (doc.get("target_thickness") or {}).get("note"),  # a real cell's targets' thickness not given
                  (doc.get("thermal") or {}).get("note"),  # the part's size is not its CAD's (decision 0053)
-                 (doc.get("thermal") or {}).get("part_scale_not_estimated")):
+                 (doc.get("thermal") or {}).get("part_scale_not_estimated"),
+                 (doc.get("lens") or {}).get("focal_note")):  # said by ADJUST: lens.note
         if note:
             ctx.log.log("warning", note)
             ctx.say(f"  WARNING {note}")

@@ -1,0 +1,175 @@
+"""The lens: the interior orientation the adjustment starts from, and the camera model it estimates
+(decision 0054: a real lens is not its data sheet)."""
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from scipy.stats import chi2
+
+from calibration.alignment import similarity_fit
+from calibration.bundle import bundle_adjust
+from calibration.camera import Intrinsics
+from calibration.errors import CalibrationError
+from cell.stages.screen import Resection, Screening, resect, screen_network
+
+
+def initial_intrinsics(job, cal_doc: dict) -> Intrinsics:
+    """Median of the per-image Faugeras-Toscani interior orientations (robust to a weak image)."""
+    nominal = job.intrinsics
+    if not job.spec.camera.self_calibrate:
+        return nominal
+    ft = [[r["alpha_u"], r["alpha_v"], r["u0"], r["v0"]] for r in cal_doc["images"] if "alpha_u" in r]
+    if not ft:  # every image refused by Faugeras-Toscani (calibration.json says so): the nominal lens
+        return nominal
+    a = np.median(ft, axis=0)
+    # the linear method has no distortion and little focal accuracy per image: keep it only if plausible
+    if abs(a[0] / nominal.fx_px - 1) > 0.1 or abs(a[2] - nominal.cx_px) > 0.1 * nominal.width:
+        return nominal
+    f = 0.5 * (a[0] + a[1])
+    return replace(nominal, fx_px=f, fy_px=f * nominal.fy_px / nominal.fx_px, cx_px=a[2], cy_px=a[3])
+
+
+#: a start whose screening takes more than this share of the observations as gross is tried against the nominal lens
+START_GROSS_SHARE = 0.10
+
+
+def choose_start(job, cal_doc: dict, obs_image: np.ndarray, obs_target: np.ndarray, obs_uv: np.ndarray,
+                 poses_all: np.ndarray, ids: list[str]) -> tuple[Intrinsics, Resection, Screening, dict]:
+    """The interior orientation the adjustment starts from, with the poses resected with it.
+
+    :func:`initial_intrinsics` (Faugeras-Toscani's median), unless its screening takes more than
+    :data:`START_GROSS_SHARE` of the observations as gross and the nominal lens's takes fewer: a wrong start makes
+    good rays disagree, and the screening would leave them out. Returns ``(intr0, resection, doc)``, ``doc`` for
+    bundle.json ``start``: which interior orientation and, for each tried, the share of observations screened gross.
+    The chosen start's screening is returned too: the adjustment's first round uses it (not screened twice).
+    """
+    nominal = job.intrinsics
+    pairs = [tuple(bar[:2]) for bar in job.scale_bars]
+
+    def tried(intr):
+        rs = resect(intr, poses_all, obs_image, job.part.targets.xyz[obs_target], obs_uv)
+        scr = screen_network(obs_image, obs_target, obs_uv, intr, rs.poses, len(ids), scale_pairs=pairs,
+                             drop_images=rs.left_out, ids=ids)
+        return rs, scr, len(scr.obs) / max(len(obs_uv), 1)
+
+    intr0 = initial_intrinsics(job, cal_doc)
+    rs, scr, gross = tried(intr0)
+    name = "nominal lens" if intr0 is nominal else "Faugeras-Toscani (median of the accepted images)"
+    doc = {"interior": name, "fx_px": float(intr0.fx_px), "gross_share": {name: gross}}
+    if intr0 is not nominal and gross > START_GROSS_SHARE:
+        rs_n, scr_n, gross_n = tried(nominal)
+        doc["gross_share"]["nominal lens"] = gross_n
+        if gross_n < gross:
+            doc |= {"interior": "nominal lens", "fx_px": float(nominal.fx_px),
+                    "reason": f"Faugeras-Toscani's interior orientation (fx {intr0.fx_px:.1f} px) left {gross:.0%} of "
+                              f"the observations gross in the screening, the nominal lens (fx {nominal.fx_px:.1f} px) "
+                              f"{gross_n:.0%}: the adjustment starts from the nominal lens"}
+            return nominal, rs_n, scr_n, doc
+    return intr0, rs, scr, doc
+
+
+def camera_model(job) -> str:
+    """The bundle's camera model: ``[camera] lens_model`` when self-calibrating (brown: OPENCV_K3, radial: RADIAL);
+    without self-calibration the model that holds the nominal lens as it is (decision 0054)."""
+    c = job.spec.camera
+    if c.self_calibrate:
+        return "OPENCV_K3" if c.lens_model == "brown" else "RADIAL"
+    return "OPENCV_K3" if job.intrinsics.has_distortion or job.intrinsics.fx_px != job.intrinsics.fy_px else "PINHOLE"
+
+
+#: the brown terms a radial lens model leaves out (decision 0054)
+BROWN_EXTRA = ("fy - fx", "k3", "p1", "p2")
+#: they are said when jointly significant at this level (chi-square, four degrees of freedom)
+RADIAL_TEST_ALPHA = 1e-3
+
+
+def radial_check(res, img, tgt, uv, options, config) -> dict | None:
+    """With ``lens_model = "radial"``: does the lens have terms the radial model does not carry? One more adjustment
+    of the observations the radial one kept, with the brown model (no data snooping), and a joint test of the four
+    terms the radial model holds at zero (fy - fx, k3, p1, p2) on their covariance. Returns bundle.json's
+    ``lens.radial_check`` (None for any other model): the estimates, their sigmas, the statistic, and how far the
+    brown adjustment moves the targets (after a rigid fit of one onto the other), in um and in their own sigmas."""
+    if config.camera_model != "RADIAL" or not config.refine_distortion:
+        return None
+    keep = ~res.rejected
+    sig = None if res.obs_sigma_px is None else np.asarray(res.obs_sigma_px)[keep]
+    try:
+        brown = bundle_adjust(img[keep], tgt[keep], uv[keep], res.intrinsics, res.cam_from_part, res.points,
+                              replace(options, snooping=False), replace(config, camera_model="OPENCV_K3"),
+                              obs_sigma_px=sig)
+    except CalibrationError as e:  # the check could not run: said, not taken for a clean lens
+        return {"model": "radial", "tested": False, "reason": f"the brown adjustment failed: {e}"}
+    names = list(brown.intrinsics_names)
+    J = np.zeros((4, len(names)))
+    for row, terms in enumerate(({"fy": 1.0, "fx": -1.0}, {"k3": 1.0}, {"p1": 1.0}, {"p2": 1.0})):
+        for name, c in terms.items():
+            J[row, names.index(name)] = c
+    i = brown.intrinsics
+    est = np.array([i.fy_px - i.fx_px, i.k3, i.p1, i.p2])
+    cov = J @ brown.intrinsics_cov @ J.T
+    stat = float(est @ np.linalg.lstsq(cov, est, rcond=None)[0])
+    crit = float(chi2.isf(RADIAL_TEST_ALPHA, 4))
+    ok = np.isfinite(res.points).all(axis=1) & np.isfinite(brown.points).all(axis=1)
+    _, R, t = similarity_fit(brown.points[ok], res.points[ok])
+    moved = np.zeros(len(ok))
+    moved[ok] = np.linalg.norm(brown.points[ok] @ R.T + t - res.points[ok], axis=1)
+    m = np.zeros(len(ok))
+    d = brown.points[ok] @ R.T + t - res.points[ok]
+    m[ok] = np.sqrt(np.einsum("ni,nij,nj->n", d, np.linalg.pinv(res.cov[ok]), d))
+    doc = {"model": "radial", "tested": True, "terms": list(BROWN_EXTRA), "estimate": est.tolist(),
+           "sigma": np.sqrt(np.diag(cov)).tolist(), "statistic": stat, "critical": crit, "alpha": RADIAL_TEST_ALPHA,
+           "significant": bool(stat > crit), "targets_moved_max_m": float(moved.max()),
+           "targets_moved_median_m": float(np.median(moved[ok])), "targets_moved_max_sigma": float(m.max()),
+           "targets_moved_median_sigma": float(np.median(m[ok]))}
+    if doc["significant"]:
+        z = np.abs(est) / np.sqrt(np.diag(cov))
+        top = ", ".join(f"{n} {e:+.3g} ({k:.1f} sigma)" for n, e, k in zip(BROWN_EXTRA, est, z) if k > 3)
+        doc["note"] = (f"the lens has terms the radial model does not carry ({top or 'jointly'}; chi-square "
+                       f"{stat:.1f} > {crit:.1f}): with them the targets move by up to "
+                       f"{1e6 * doc['targets_moved_max_m']:.1f} um, {doc['targets_moved_max_sigma']:.1f} of their "
+                       "sigmas, so the coordinates and their uncertainty are not those of this lens; set [camera] "
+                       "lens_model = \"brown\" (the default)")
+    return doc
+
+
+#: a principal distance this far from the nominal focal length is said (focusing an 8 mm lens at 300-700 mm moves
+#: it by 1.2-2.7 %; a lens of another focal length is 25 % or more off: calibration.plausibility refuses it)
+FOCAL_NOTE = 0.05
+
+
+def lens_doc(job, bundle: dict) -> dict:
+    """report.json's ``lens``: the lens the adjustment estimated (or held), against the job's nominal one: the model
+    and its terms, the principal distance and point with their sigmas, the distortion terms, how far the distortion
+    moves the image's corner, the radial model's check (:func:`radial_check`); ``note``: a radial model the images
+    refute (the statement is not this lens's); ``focal_note``: a principal distance far from the nominal focal length."""
+    b = bundle.get("lens") or {}
+    intr = Intrinsics.from_dict(bundle["intrinsics"])
+    nominal = job.intrinsics
+    names = list(bundle.get("intrinsics_refined") or [])
+    sig = dict(zip(names, bundle.get("intrinsics_sigma") or []))
+    mm = (nominal.pixel_size_m or 0.0) * 1e3
+    f_sig = sig.get("fx", sig.get("f"))
+    corner = np.array([[-0.5 - intr.cx_px, -0.5 - intr.cy_px], [intr.width - 0.5 - intr.cx_px, -0.5 - intr.cy_px],
+                       [-0.5 - intr.cx_px, intr.height - 0.5 - intr.cy_px],
+                       [intr.width - 0.5 - intr.cx_px, intr.height - 0.5 - intr.cy_px]]) / [intr.fx_px, intr.fy_px]
+    shift = (intr.distort(corner) - corner) * [intr.fx_px, intr.fy_px]
+    doc = {"model": b.get("model"), "camera_model": b.get("camera_model"), "estimated": names,
+           "focal_length_mm": intr.fx_px * mm if mm else None, "focal_length_sigma_mm": f_sig * mm if mm and f_sig
+           else None, "nominal_focal_length_mm": nominal.fx_px * mm if mm else None,
+           "principal_distance_px": [intr.fx_px, intr.fy_px], "principal_point_px": [intr.cx_px, intr.cy_px],
+           "principal_point_sigma_px": [sig.get("cx"), sig.get("cy")],
+           "distortion": {k: getattr(intr, k) for k in ("k1", "k2", "k3", "p1", "p2")},
+           "distortion_sigma": {k: sig.get(k) for k in ("k1", "k2", "k3", "p1", "p2")},
+           "distortion_at_corner_px": float(np.max(np.linalg.norm(shift, axis=1))),
+           "radial_check": b.get("radial_check"), "note": None, "focal_note": None}
+    doc["note"] = (b.get("radial_check") or {}).get("note")  # the statement is not this lens's
+    off = intr.fx_px / nominal.fx_px - 1
+    if abs(off) > FOCAL_NOTE:  # said, not a fault: the measurement is the images' own
+        doc["focal_note"] = (f"the lens's principal distance is {intr.fx_px * mm:.3f} mm where [camera] "
+                             f"focal_length_mm says {nominal.fx_px * mm:.3g} ({100 * off:+.1f} %): is this the lens "
+                             "mounted, and focused as planned? The plan's visibility and prediction were made for the "
+                             "nominal lens" if mm else f"the lens's principal distance is {100 * off:+.1f} % off the "
+                             "nominal focal length")
+    return doc
