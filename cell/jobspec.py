@@ -370,9 +370,10 @@ class SimLens(_Strict):
     is never its data sheet. Each key given replaces the nominal value for the renderer only; PLAN and the adjustment's
     start know the nominal lens."""
 
-    focal_length_mm: float | None = Field(default=None, gt=0, le=2000, description="the true focal length (mm)")
-    cx_px: float | None = Field(default=None, description="the true principal point (px)")
-    cy_px: float | None = None
+    principal_distance_factor: float = Field(default=1.0, ge=0.8, le=1.25, description="the true principal distance "
+                                             "over [camera] focal_length_mm (a lens focused at d: 1 + f / (d - f))")
+    principal_point_offset_px: tuple[float, float] = Field(default=(0.0, 0.0), description="the true principal "
+                                                           "point minus the nominal one (px)")
     aspect: float = Field(default=1.0, ge=0.9, le=1.1, description="fy / fx of the true lens (a sensor's pixel "
                           "aspect, an affinity)")
     k1: float | None = Field(default=None, ge=-10, le=10, description="true radial distortion")
@@ -478,7 +479,8 @@ class SimSection(_Strict):
                                  "with their own cte_ppm_per_K: their ends expand about the bar's middle (default: "
                                  "[thermal] bars_C if given, else the simulated part_C)")
     lens: SimLens | None = Field(default=None, description="the simulated camera's true lens where it differs from "
-                                 "the nominal [camera] (focal_length_mm, cx_px, cy_px, aspect, k1, k2, k3, p1, p2): "
+                                 "the nominal [camera] (principal_distance_factor, principal_point_offset_px, aspect, k1, "
+                                 "k2, k3, p1, p2): "
                                  "the renderer uses it, the plan and the adjustment's start do not know it")
     damaged_targets: list[DamagedTarget] = Field(
         default=[], description="plain dots whose retro-reflective coating is worn in the simulated images (the plan "
@@ -577,10 +579,11 @@ class JobSpec(_Strict):
         c, t = self.camera, self.sim.lens
         if t is None:
             return self.intrinsics()
+        nominal = self.intrinsics()
         pick = lambda k: getattr(c, k) if getattr(t, k) is None else getattr(t, k)  # noqa: E731
-        f = c.focal_length_mm if t.focal_length_mm is None else t.focal_length_mm
         return Intrinsics.from_focal_length(
-            f * 1e-3, c.pixel_size_um * 1e-6, c.width, c.height, cx_px=pick("cx_px"), cy_px=pick("cy_px"),
+            c.focal_length_mm * t.principal_distance_factor * 1e-3, c.pixel_size_um * 1e-6, c.width, c.height,
+            cx_px=nominal.cx_px + t.principal_point_offset_px[0], cy_px=nominal.cy_px + t.principal_point_offset_px[1],
             aspect=t.aspect, k1=pick("k1"), k2=pick("k2"), k3=pick("k3"), p1=pick("p1"), p2=pick("p2"))
 
     def base_from_part(self) -> np.ndarray:

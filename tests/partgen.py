@@ -162,10 +162,27 @@ def _place_targets(rng, mesh: trimesh.Trimesh, solids: list, n: int, dot_mm: flo
     return pts[order], nrm[order], cp, cn
 
 
+def toml_inline(d: dict) -> str:
+    """A flat dict of numbers and lists of numbers as a TOML inline table."""
+    def one(v):
+        return "[" + ", ".join(f"{x:.6g}" for x in v) + "]" if isinstance(v, (list, tuple)) else f"{v:.6g}"
+    return "{ " + ", ".join(f"{k} = {one(v)}" for k, v in d.items()) + " }"
+
+
+def draw_lens(rng: np.random.Generator) -> dict:
+    """A real lens, as lens calibrations of machine-vision lenses find them
+    (decision 0054): the principal distance 1.6 % beyond the focal length (focused at about 500 mm) +- 0.5 %, the
+    principal point 15 px off the centre, barrel distortion with k2 and k3 of either sign, decentring of 2e-4."""
+    return {"principal_distance_factor": 1.016 + 0.005 * rng.standard_normal(),
+            "principal_point_offset_px": [15.0 * rng.standard_normal(), 15.0 * rng.standard_normal()],
+            "k1": rng.uniform(-0.12, 0.02), "k2": 0.08 * rng.standard_normal(), "k3": 0.04 * rng.standard_normal(),
+            "p1": 2e-4 * rng.standard_normal(), "p2": 2e-4 * rng.standard_normal()}
+
+
 def make_part_job(out: Path, rng: np.random.Generator, kind: str | None = None, n_targets: int | None = None,
                   deviating_share: float | None = None, five_sigma_m: float = 25e-6,
                   misplacement: tuple[float, float] | None = None, bar_sigma_mm: float = 0.001,
-                  n_bars: int = 4) -> GeneratedPart:
+                  n_bars: int = 4, real_lens: bool = True) -> GeneratedPart:
     """Write a random part's job folder into ``out``; returns what was made (with the injected truth).
 
     ``n_bars``: how many scale bars (:func:`_scale_bars`; one is written as ``[job] scale_bar``, more as
@@ -174,6 +191,9 @@ def make_part_job(out: Path, rng: np.random.Generator, kind: str | None = None, 
     of 1.00 +- 0.15 on either side however honest the statement (decisions 0041-0043).
     ``bar_sigma_mm``: each bar certificate's stated sigma; a certificate is off its bar's true length by a draw of
     it (the same standard normal draws for a seed whatever the sigma).
+
+    ``real_lens``: the simulated camera's lens is not the nominal one of ``[camera]`` (``[sim] lens``, drawn by
+    :func:`draw_lens` from a child stream; decision 0054).
 
     ``misplacement``: (mm, deg) by which the simulated part lies away from its nominal placement (shifted on
     the table, turned about the vertical; ``[sim] base_from_part_true``), for jobs that locate the part first.
@@ -238,6 +258,13 @@ def make_part_job(out: Path, rng: np.random.Generator, kind: str | None = None, 
     text = text.replace("[planning]\n", "[planning]\nn_candidates = 800\npopulation = 40\ngenerations = 40\n"
                         'unmeasurable = "report"\n', 1)
     text = re.sub(r"(?m)^seed = 11$", f"seed = {int(rng.integers(1, 1000))}", text)
+    if real_lens:  # a real lens is not its data sheet (decision 0054): a child stream of its own
+        lens = draw_lens(rng.spawn(1)[0])
+        text, n = re.subn(r"(?m)^lens = .*$", lambda m: f"lens = {toml_inline(lens)}", text)
+        if n == 0:
+            text = text.replace("[sim]\n", f"[sim]\nlens = {toml_inline(lens)}\n", 1)
+    else:  # the simulated lens is the nominal one
+        text = re.sub(r"(?m)^lens = .*\n", "", text)
     if misplacement is not None:  # the part lies shifted on the table and turned about the vertical
         mm, deg = misplacement
         m = re.search(r"(?m)^base_from_part = \{ xyz = \[([^\]]*)\], rpy_deg = \[([^\]]*)\] \}", text)
