@@ -202,10 +202,16 @@ def test_each_images_pixel_noise_line_and_each_dots_blur_are_measured_and_record
     assert np.all(slopes > 0), slopes
     assert abs(np.median(slopes) / (255 / 10_000) - 1.0) < 0.2, np.median(slopes)
     # and each dot's blur (decision 0049): the lens's 0.7 px (0.49 px^2) and the defocus within the job's depth of
-    # field (a 2 px blur circle at near / far adds up to 0.25 px^2); a clipped dot's is not measured (null)
+    # field (a 2 px blur circle at near / far adds up to 0.25 px^2); a clipped dot's is not measured (null). MEASURE
+    # records its moments; ADJUST measures the blur against the lens it found (decision 0054: against the nominal lens
+    # the example's real one read 0.84 px^2 in the middle of the image and -0.11 at its corners)
     blur = np.array([np.nan if v is None else v for im in obs for v in im["blur_px2"]], dtype=float)
-    assert len(blur) == sum(len(im["ids"]) for im in obs)
-    assert 0.45 <= np.nanmedian(blur) <= 0.65 and np.nanpercentile(blur, 95) < 0.85, np.nanpercentile(blur, [5, 50, 95])
+    moments = np.array([np.nan if v is None else v for im in obs for v in im["moments_px2"]], dtype=float)
+    assert len(blur) == len(moments) == sum(len(im["ids"]) for im in obs)
+    assert np.array_equal(np.isnan(blur), np.isnan(moments))
+    adjusted = json.loads((folder / "bundle.json").read_text())["observation_weights"]["model_range"]["blur"]
+    assert adjusted["against"] == "the adjusted lens" and adjusted["measured"] >= 0.8 * np.isfinite(blur).sum()
+    assert 0.45 <= adjusted["median_blur_px2"] <= 0.65 and adjusted["p5_p95_blur_px2"][1] < 0.85, adjusted
     # and each clipped dot's bound for its unknown level (decision 0050): a clipped dot centred by its ellipse has
     # one, every other dot none; ADJUST carries them, shared by a target's views
     bound = np.array([b for im in obs for b in im["clip_bound_px"]], dtype=float).reshape(-1, 2)
@@ -304,3 +310,21 @@ def test_resuming_a_finished_job_is_refused_and_changes_nothing(example):
     assert (folder / "journal.jsonl").read_bytes() == before
     res = run_cell("resume", "no-such-job", "--archive", str(folder.parent), "--yes")
     assert res.code == 2 and "no job 'no-such-job'" in res.stderr
+
+
+def test_the_lens_is_estimated_as_the_simulated_lens_is(example):
+    """The example's simulated lens is a real one (decision 0054: [sim] lens); the default brown model estimates each
+    of its terms within a few of their own sigmas, and report.json says the lens."""
+    job, folder, run, report = example
+    from cell.jobspec import load_job
+
+    true = load_job(job)[0].true_intrinsics()
+    lens = report["lens"]
+    assert lens["model"] == "brown" and lens["camera_model"] == "OPENCV_K3" and lens["note"] is None
+    bundle = json.loads((folder / "bundle.json").read_text())
+    est = dict(bundle["intrinsics"])
+    for name, sigma in zip(bundle["intrinsics_refined"], bundle["intrinsics_sigma"]):
+        key = {"fx": "fx_px", "fy": "fy_px", "cx": "cx_px", "cy": "cy_px"}.get(name, name)
+        z = (est[key] - getattr(true, key)) / sigma
+        assert abs(z) < 5, f"{name}: {est[key]:.6g} against the simulated {getattr(true, key):.6g} ({z:+.1f} sigma)"
+    assert lens["distortion_at_corner_px"] > 10

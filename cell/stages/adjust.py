@@ -23,7 +23,7 @@ from cell.stages.scalebars import (bar_name, bars_doc, protected_entries, say_ba
                                    test_reason)
 from cell.stages.model_shape import geometry_classes, model_mismatch, range_check, reweighted, shape_check
 from cell.stages.outline import outline_doc, outline_doubtful, outline_reason, say_doubtful
-from cell.stages.lens import camera_model, choose_start, radial_check
+from cell.stages.lens import LENS_BLUR_READJUST, camera_model, choose_start, lens_blur, radial_check
 from cell.stages.screen import Resection, Screening, resect, screen_network
 from cell.thermal import resolve_probe
 
@@ -161,13 +161,15 @@ def _adjust(ctx, scr: Screening, use: list[int], obs: dict, obs_image, obs_targe
     if weights == "incidence":  # from the Faugeras-Toscani poses: degrees suffice
         angles = incidence_angles(targets.xyz, targets.normals, poses0, img, tgt)
         groups = incidence_groups(angles, INCIDENCE_EDGES_DEG)
-    if weights == "model":  # the detector's precision by incidence and dot size; the variance factor scales it
+
+    def weigh(blur, say=True):  # the detector's precision by incidence and dot size; the variance factor scales it
+        model_sigma = None
         # (no iterated per-class variance components on top: with issue 21's batch snooping they ran away on generated
         # parts, a face-on class estimated at 0.11 px and 280 rejections; the model alone: 10 rejections, honest sigma;
         # the model's shape is checked once after the adjustment instead, below)
         obs_sigma = model_sigmas(job, ctx.backend, poses0, img, tgt, intr0.fx_px)
         # a dot blurred beyond the model's blur (defocus, focus): its blur term, by the blur its image shows (0049)
-        obs_sigma, flags["blur"] = blur_weights(obs_sigma, observed_blur(obs)[sel])
+        obs_sigma, flags["blur"] = blur_weights(obs_sigma, blur)
         # each centroid-centred dot's noise as the detector states it from its own image (decision 0048)
         stated, usable, flags["stated"] = stated_weights(job, obs, sel, obs_sigma, ellipse_centred(obs))
         theta, dpx = observation_geometry(targets.xyz, targets.normals, poses0, img, tgt, intr0.fx_px,
@@ -178,7 +180,7 @@ def _adjust(ctx, scr: Screening, use: list[int], obs: dict, obs_image, obs_targe
         # the model's c_background is the ellipse centre's: a dot with a bound centred by its centroid (a photograph's
         # detector, an ellipse fit that failed, a job measured before decision 0037) states the centroid's share
         bg, centroid = centroid_bounds_scaled(bg, ellipse_centred(obs))
-        if np.any(centroid[sel]):
+        if say and np.any(centroid[sel]):
             ctx.say(f"  {int(np.count_nonzero(centroid[sel]))} observations next to an edge centred by their centroid: "
                     f"their background bound weighed at the centroid's share ({C_BACKGROUND_CENTROID:g}, not the "
                     "ellipse centre's)")
@@ -189,11 +191,25 @@ def _adjust(ctx, scr: Screening, use: list[int], obs: dict, obs_image, obs_targe
             model_sigma, obs_sigma = (obs_sigma if stated is None else rms_sigma(stated)), observation_covariances(
                 obs_sigma if stated is None else stated, bg[sel], clipped_share=clip[sel], diameter_px=dpx
             ) + flags["clip_cov"]
-        flags |= {"bg": bg[sel], "clip": clip[sel], "bg_centroid": centroid[sel],
-                 "bg_missing": sorted({obs["images"][int(i)]["image"] for i in obs_image[sel & ~has_bg]}),
-                 "clip_missing": sorted({obs["images"][int(i)]["image"] for i in obs_image[sel & ~has_clip]})}
+        flags.update({"bg": bg[sel], "clip": clip[sel], "bg_centroid": centroid[sel],
+                      "bg_missing": sorted({obs["images"][int(i)]["image"] for i in obs_image[sel & ~has_bg]}),
+                      "clip_missing": sorted({obs["images"][int(i)]["image"] for i in obs_image[sel & ~has_clip]})})
+        return obs_sigma, model_sigma, theta, dpx, usable
+
+    if weights == "model":
+        obs_sigma, model_sigma, theta, dpx, usable = weigh(observed_blur(obs)[sel])
     res = bundle_adjust(img, tgt, uv, intr0, poses0, targets.xyz, options, config, obs_sigma_px=obs_sigma,
                         obs_group=groups)
+    if weights == "model" and (blur := lens_blur(job, obs, sel, img, tgt, res)) is not None:
+        # each dot's blur measured against the lens the adjustment found, not the nominal one (decision 0054): where
+        # it changes a weight, the adjustment is made again with it
+        before = rms_sigma(obs_sigma) if np.ndim(obs_sigma) == 3 else obs_sigma
+        obs_sigma, model_sigma, theta, dpx, usable = weigh(blur, say=False)
+        after = rms_sigma(obs_sigma) if np.ndim(obs_sigma) == 3 else obs_sigma
+        flags["blur"]["against"] = "the adjusted lens"
+        if np.max(np.abs(after / before - 1)) > LENS_BLUR_READJUST:
+            res = bundle_adjust(img, tgt, uv, intr0, poses0, targets.xyz, options, config, obs_sigma_px=obs_sigma,
+                                obs_group=groups)
     if weights == "model":  # does the model's shape (sigma by incidence and size) fit the images? (decision 0046)
         classes, desc = geometry_classes(np.degrees(theta), dpx)
         shape = shape_check(res.residuals, obs_sigma, res.redundancy, res.rejected, classes, desc)

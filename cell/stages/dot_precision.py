@@ -157,6 +157,7 @@ def blur_weights(sigma: np.ndarray, blur_px2: np.ndarray, model=None) -> tuple[n
     beyond = int(np.count_nonzero(np.isfinite(b) & (b > hi)))
     doc = {"term": model.c_blur > 0, "measured": int(np.count_nonzero(np.isfinite(b))),
            "median_blur_px2": float(np.nanmedian(b)) if np.isfinite(b).any() else None,
+           "p5_p95_blur_px2": [float(v) for v in np.nanpercentile(b, [5, 95])] if np.isfinite(b).any() else None,
            "raised": int(np.count_nonzero(f > 1.005)), "largest_factor": float(f.max()) if len(f) else 1.0,
            "reference_px2": model.blur_reference_px2, "beyond_measured_range": beyond}
     if model.c_blur and beyond > BLUR_BEYOND_SHARE_MAX * max(len(b), 1):

@@ -104,6 +104,8 @@ class DotMeasurement:
         blur_px2: (k,) the optical blur each dot's image shows, a variance along each axis (px^2,
             :func:`calibration.targets.blur_variances`: its second moments less its ellipse's and the pixel's; NaN
             for a clipped dot, whose flat top says nothing of it); ADJUST's blur term (decision 0049); or None.
+        moments_px2: (k,) half the trace of each dot's measured second moments (px^2; NaN for a clipped dot): ADJUST
+            measures the blur again against the lens it found (decision 0054); or None.
         clip_bound: (k, 2) px, how far a clipped dot's centre may be off for its unknown level
             (``Detections.clip_bound``, decision 0050; zero for the others); ADJUST carries it; or None.
         outline: (k, 2) ``[chi2, n]`` of each dot's contour about its ellipse (``Detections.outline``; NaN: not
@@ -127,6 +129,7 @@ class DotMeasurement:
     clip_bound: np.ndarray | None = None
     outline: np.ndarray | None = None
     centroid_chi2: np.ndarray | None = None
+    moments_px2: np.ndarray | None = None
 
     @property
     def n_shape(self) -> int:
@@ -202,11 +205,13 @@ def name_dots(det_uv: np.ndarray, part, intr: Intrinsics, cam_from_part: np.ndar
             dropped += [(int(i), f"the image's naming is inconsistent: resection median residual {med:.1f} px > "
                                  f"{RESECTION_MEDIAN_PX} px") for i in tid]
             dots, tid, uv = dots[:0], tid[:0], uv[:0]
-    blur = None
+    blur = moments = None
     if det_axes is not None:  # a clipped dot's flat top says nothing of its blur
         blur = blur_all[dots]
+        moments = 0.5 * np.trace(np.asarray(det_axes, dtype=float).reshape(-1, 2, 2)[dots], axis1=1, axis2=2)
         if det_clipped is not None:
             blur[np.asarray(det_clipped, dtype=float)[dots] > 0] = np.nan
+            moments[np.asarray(det_clipped, dtype=float)[dots] > 0] = np.nan
     outline = centroid_chi2 = None
     if det_outline is not None:
         outline = np.asarray(det_outline, dtype=float).reshape(-1, 4)[dots, :2]
@@ -226,7 +231,8 @@ def name_dots(det_uv: np.ndarray, part, intr: Intrinsics, cam_from_part: np.ndar
                           None if det_clipped is None else np.asarray(det_clipped, dtype=float)[dots], dropped, med,
                           None if det_ellipse is None else np.asarray(det_ellipse, dtype=bool)[dots], blur,
                           None if det_clip_bound is None
-                          else np.asarray(det_clip_bound, dtype=float).reshape(-1, 2)[dots], outline, centroid_chi2)
+                          else np.asarray(det_clip_bound, dtype=float).reshape(-1, 2)[dots], outline, centroid_chi2,
+                          moments)
 
 
 def surface_labeller(camera, part) -> SurfaceLabeller | None:

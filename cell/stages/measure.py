@@ -8,7 +8,8 @@ dots; ``s`` 0 where too few dots carried it and the image's one figure stood for
 the detector's bound on each centre's error from a background that is not a plane, px^2,
 ``Detections.background_cov``; ADJUST adds its share to the image precision), ``clipped_share`` (k,),
 ``ellipse_centre`` (k, bool: the centre is the ellipse of the dot's contour, not its centroid; decision 0037),
-``blur_px2`` (k: the blur each dot's image shows; decision 0049), ``clip_bound_px`` (k, 2: how far a clipped dot's
+``blur_px2`` (k: the blur each dot's image shows; decision 0049), ``moments_px2`` (k: half the trace of its second
+moments, from which ADJUST measures the blur again against the adjusted lens; decision 0054), ``clip_bound_px`` (k, 2: how far a clipped dot's
 centre may be off for its unknown level, zero for the others; ADJUST carries it; decision 0050), ``outline`` (k, 2:
 ``[chi2, n]`` of each dot's contour about its fitted ellipse) and ``centroid_chi2`` (k: its centroid against that
 ellipse's centre; null for a dot centred by its ellipse): a target's print is judged by them (decision 0051), counts,
@@ -69,6 +70,7 @@ def run(ctx, keep: bool = False) -> None:
                     "bg_cov_px2": m.bg_cov, "clipped_share": m.clipped_share,
                     **({"ellipse_centre": m.ellipse} if m.ellipse is not None else {}),
                     **({"blur_px2": m.blur_px2} if m.blur_px2 is not None else {}),
+                    **({"moments_px2": m.moments_px2} if m.moments_px2 is not None else {}),
                     **({"clip_bound_px": m.clip_bound} if m.clip_bound is not None else {}),
                     **({"outline": m.outline, "centroid_chi2": m.centroid_chi2} if m.outline is not None else {}),
                     "n_unidentified": m.n_unidentified, "n_partly_hidden": m.n_partly_hidden,
