@@ -42,6 +42,7 @@ def job_rows(part_job: Path, folder: Path) -> dict:
     from cell.devices import make_job_sim_cell
     from cell.loadedjob import load
     from cell.stages.adjust import model_sigmas
+    from cell.stages.lens import lens_eccentricity
 
     job = load(part_job)
     world = make_job_sim_cell(job).world
@@ -50,7 +51,8 @@ def job_rows(part_job: Path, folder: Path) -> dict:
     obs = json.loads((folder / "observations.json").read_text())
     rejected = {(r["image"], r["target"]) for r in json.loads((folder / "bundle.json").read_text())["rejected"]}
     index = {t: i for i, t in enumerate(job.part.targets.ids)}
-    intr = job.intrinsics
+    intr = job.spec.true_intrinsics()  # the simulated lens ([sim] lens, decision 0054), not the nominal one
+    f = np.diag([intr.fx_px, intr.fy_px])
     out: dict[str, list] = {k: [] for k in ("e", "C", "Jh", "J", "t", "v", "bound")}
     poses = np.zeros((len(obs["images"]), 4, 4))
     for k, im in enumerate(obs["images"]):
@@ -69,10 +71,16 @@ def job_rows(part_job: Path, folder: Path) -> dict:
         C = observation_covariances(s, bg, clipped_share=np.asarray(im["clipped_share"], dtype=float)[keep],
                                     diameter_px=intr.fx_px * job.part.target_diameter_m / dist)
         Jh, depth = unit_projection(np.repeat(cfp[None], len(t), axis=0), X[t])
-        out["e"].append(np.asarray(im["uv"], dtype=float)[keep] - project(intr, cfp, X[t]))
+        e = np.asarray(im["uv"], dtype=float)[keep] - project(intr, cfp, X[t])
+        if im.get("eccentricity_px") is not None:  # the centre's eccentricity through the true lens (decision 0054)
+            ell = np.asarray(im.get("ellipse_centre", [False] * len(im["ids"])), dtype=bool)[keep]
+            e += np.asarray(im["eccentricity_px"], dtype=float)[keep] - lens_eccentricity(
+                intr, cfp, X[t], job.part.targets.normals[t], job.part.target_diameter_m / 2, ell)
+        out["e"].append(e)
         out["C"].append(C)
         out["Jh"].append(Jh)
-        out["J"].append(Jh * (np.array([intr.fx_px, intr.fy_px])[None, :, None] / depth[:, None, None]))
+        pc = X[t] @ cfp[:3, :3].T + cfp[:3, 3]
+        out["J"].append(f @ intr.distortion_jacobian(pc[:, :2] / pc[:, 2:3]) @ Jh / depth[:, None, None])
         out["t"].append(t)
         out["v"].append(np.full(len(t), k))
         out["bound"].append(np.trace(bg, axis1=1, axis2=2) > 0)

@@ -23,7 +23,8 @@ from cell.stages.scalebars import (bar_name, bars_doc, protected_entries, say_ba
                                    test_reason)
 from cell.stages.model_shape import geometry_classes, model_mismatch, range_check, reweighted, shape_check
 from cell.stages.outline import outline_doc, outline_doubtful, outline_reason, say_doubtful
-from cell.stages.lens import LENS_BLUR_READJUST, camera_model, choose_start, lens_blur, radial_check
+from cell.stages.lens import (LENS_BLUR_READJUST, LENS_CENTRE_READJUST, camera_model, choose_start, lens_blur,
+                              lens_centres, radial_check)
 from cell.stages.screen import Resection, Screening, resect, screen_network
 from cell.thermal import resolve_probe
 
@@ -200,16 +201,26 @@ def _adjust(ctx, scr: Screening, use: list[int], obs: dict, obs_image, obs_targe
         obs_sigma, model_sigma, theta, dpx, usable = weigh(observed_blur(obs)[sel])
     res = bundle_adjust(img, tgt, uv, intr0, poses0, targets.xyz, options, config, obs_sigma_px=obs_sigma,
                         obs_group=groups)
+    # the lens the adjustment found, not the nominal one (decision 0054): each dot's centre with its eccentricity
+    # through that lens, and its blur against it; where either matters, the adjustment is made again with them
+    again, flags["lens"] = False, {}
+    before = res.obs_sigma_px if np.ndim(res.obs_sigma_px) == 1 else rms_sigma(res.obs_sigma_px)
+    if (corr := lens_centres(job, obs, sel, img, tgt, res, ellipse_centred(obs)[sel])) is not None:
+        moved = np.linalg.norm(corr, axis=1) / before
+        flags["lens"]["centres_moved_px"] = {"median": float(np.median(np.linalg.norm(corr, axis=1))),
+                                             "max": float(np.max(np.linalg.norm(corr, axis=1))),
+                                             "max_sigma": float(np.max(moved))}
+        if np.max(moved) > LENS_CENTRE_READJUST:
+            uv, again = uv + corr, True
     if weights == "model" and (blur := lens_blur(job, obs, sel, img, tgt, res)) is not None:
-        # each dot's blur measured against the lens the adjustment found, not the nominal one (decision 0054): where
-        # it changes a weight, the adjustment is made again with it
-        before = rms_sigma(obs_sigma) if np.ndim(obs_sigma) == 3 else obs_sigma
         obs_sigma, model_sigma, theta, dpx, usable = weigh(blur, say=False)
-        after = rms_sigma(obs_sigma) if np.ndim(obs_sigma) == 3 else obs_sigma
         flags["blur"]["against"] = "the adjusted lens"
-        if np.max(np.abs(after / before - 1)) > LENS_BLUR_READJUST:
-            res = bundle_adjust(img, tgt, uv, intr0, poses0, targets.xyz, options, config, obs_sigma_px=obs_sigma,
-                                obs_group=groups)
+        after = rms_sigma(obs_sigma) if np.ndim(obs_sigma) == 3 else obs_sigma
+        again |= bool(np.max(np.abs(after / before - 1)) > LENS_BLUR_READJUST)
+    if again:
+        flags["lens"]["adjusted_again"] = True
+        res = bundle_adjust(img, tgt, uv, intr0, poses0, targets.xyz, options, config, obs_sigma_px=obs_sigma,
+                            obs_group=groups)
     if weights == "model":  # does the model's shape (sigma by incidence and size) fit the images? (decision 0046)
         classes, desc = geometry_classes(np.degrees(theta), dpx)
         shape = shape_check(res.residuals, obs_sigma, res.redundancy, res.rejected, classes, desc)
@@ -458,7 +469,7 @@ def run_bundle(ctx) -> dict:
         ctx.log.log("warning", f"adjustment: {msg}")
         ctx.say(f"  WARNING {msg}")
     lens = {"model": job.spec.camera.lens_model if job.spec.camera.self_calibrate else "nominal (not calibrated)",
-            "camera_model": bundle_config(job, use).camera_model}
+            "camera_model": bundle_config(job, use).camera_model} | flags.get("lens", {})
     lens |= {"radial_check": radial_check(res, img, tgt, uv, BundleOptions(sigma_px=job.spec.camera.sigma_px), bundle_config(job, use))}
     if (lens["radial_check"] or {}).get("note"):
         ctx.log.log("warning", lens["radial_check"]["note"])

@@ -106,6 +106,8 @@ class DotMeasurement:
             for a clipped dot, whose flat top says nothing of it); ADJUST's blur term (decision 0049); or None.
         moments_px2: (k,) half the trace of each dot's measured second moments (px^2; NaN for a clipped dot): ADJUST
             measures the blur again against the lens it found (decision 0054); or None.
+        eccentricity_px: (k, 2) the eccentricity taken off each centre (the nominal lens at the robot's pose): ADJUST
+            takes it again with the lens it found, its distortion included (decision 0054).
         clip_bound: (k, 2) px, how far a clipped dot's centre may be off for its unknown level
             (``Detections.clip_bound``, decision 0050; zero for the others); ADJUST carries it; or None.
         outline: (k, 2) ``[chi2, n]`` of each dot's contour about its ellipse (``Detections.outline``; NaN: not
@@ -130,6 +132,7 @@ class DotMeasurement:
     outline: np.ndarray | None = None
     centroid_chi2: np.ndarray | None = None
     moments_px2: np.ndarray | None = None
+    eccentricity_px: np.ndarray | None = None
 
     @property
     def n_shape(self) -> int:
@@ -194,6 +197,7 @@ def name_dots(det_uv: np.ndarray, part, intr: Intrinsics, cam_from_part: np.ndar
     tid = match[dots]
     bias = eccentricity_bias(intr, cam_from_part, t.xyz[tid], t.normals[tid], radius)
     uv = det_uv[dots] - bias
+    keep = np.arange(len(dots))
     med = None
     if len(dots) >= RESECTION_MIN_DOTS:
         try:
@@ -204,7 +208,7 @@ def name_dots(det_uv: np.ndarray, part, intr: Intrinsics, cam_from_part: np.ndar
         if not med <= RESECTION_MEDIAN_PX:
             dropped += [(int(i), f"the image's naming is inconsistent: resection median residual {med:.1f} px > "
                                  f"{RESECTION_MEDIAN_PX} px") for i in tid]
-            dots, tid, uv = dots[:0], tid[:0], uv[:0]
+            dots, tid, uv, keep = dots[:0], tid[:0], uv[:0], keep[:0]
     blur = moments = None
     if det_axes is not None:  # a clipped dot's flat top says nothing of its blur
         blur = blur_all[dots]
@@ -232,7 +236,7 @@ def name_dots(det_uv: np.ndarray, part, intr: Intrinsics, cam_from_part: np.ndar
                           None if det_ellipse is None else np.asarray(det_ellipse, dtype=bool)[dots], blur,
                           None if det_clip_bound is None
                           else np.asarray(det_clip_bound, dtype=float).reshape(-1, 2)[dots], outline, centroid_chi2,
-                          moments)
+                          moments, bias[keep])
 
 
 def surface_labeller(camera, part) -> SurfaceLabeller | None:

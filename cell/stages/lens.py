@@ -224,3 +224,87 @@ def lens_blur(job, obs_doc: dict, sel: np.ndarray, img: np.ndarray, tgt: np.ndar
         J = f @ intr.distortion_jacobian(pc[:, :2] / pc[:, 2:3]) @ np.linalg.inv(f)
         out[k] = m[k] - 0.5 * np.trace(J @ P @ np.swapaxes(J, 1, 2), axis1=1, axis2=2) - PIXEL_VARIANCE_PX2
     return out
+
+
+#: a centre the adjusted lens moves by more than this share of its sigma makes the adjustment run again
+LENS_CENTRE_READJUST = 0.05
+
+
+def observed_eccentricity(obs_doc: dict) -> np.ndarray | None:
+    """The eccentricity MEASURE took off each centre (px, observations.json ``eccentricity_px``), ``(q, 2)`` in the
+    order of :func:`cell.stages.adjust.observation_arrays`; None when an image lacks it (measured before decision
+    0054: its centres stay as measured)."""
+    out = []
+    for o in obs_doc["images"]:
+        e = o.get("eccentricity_px")
+        if e is None or len(e) != len(o["ids"]):
+            return None
+        out.append(np.asarray(e, dtype=float).reshape(-1, 2))
+    return np.concatenate(out) if out else None
+
+
+def _through(intr: Intrinsics, uv: np.ndarray) -> np.ndarray:
+    """Pinhole pixel positions ``uv: (..., 2)`` of ``intr`` without distortion, through its distortion."""
+    f = np.array([intr.fx_px, intr.fy_px])
+    c = np.array([intr.cx_px, intr.cy_px])
+    return intr.distort((uv - c) / f) * f + c
+
+
+def lens_centres(job, obs_doc: dict, sel: np.ndarray, img: np.ndarray, tgt: np.ndarray, res,
+                 ellipse: np.ndarray) -> np.ndarray | None:
+    """What to add to each adjusted observation's centre ``(q, 2)`` px (for ``img, tgt``, the observations ``sel``
+    keeps): MEASURE's eccentricity (the nominal lens, the robot's pose, no distortion) given back and the
+    eccentricity through the lens, poses and targets the adjustment ``res`` found taken off.
+
+    Through a distorting lens a dot's centre is not the distorted image of its ellipse's centre: the distortion's
+    curvature moves a uniformly bright dot's centroid by ``1/2 D''[M]`` (``M`` its ellipse's second moments) and the
+    centre of the ellipse fitted to its contour (``ellipse``: True) by ``1/2 D''[2 M]``, and the ellipse's own
+    offset from the projected centre is stretched by the distortion's Jacobian. Evaluated exactly for a quadratic
+    distortion by the ellipse's axes (``D(c + a) + D(c - a) - 2 D(c)`` summed over its two scaled axes). On a
+    generated plate with k1 = -0.116, the targets intersected from their observations at the true poses and lens
+    were 2.2x their statement before (decision 0054). None without MEASURE's eccentricity."""
+    applied = observed_eccentricity(obs_doc)
+    if applied is None:
+        return None
+    applied = applied[sel]
+    out = np.zeros((len(tgt), 2))
+    t = job.part.targets
+    for i in np.unique(img):
+        k = np.flatnonzero((img == i) & np.isfinite(res.points[tgt]).all(axis=1))
+        if len(k):
+            out[k] = applied[k] - lens_eccentricity(res.intrinsics, res.cam_from_part[i], res.points[tgt[k]],
+                                                    t.normals[tgt[k]], job.part.target_diameter_m / 2, ellipse[k])
+    return out
+
+
+def lens_eccentricity(intr: Intrinsics, cam_from_part: np.ndarray, xyz: np.ndarray, normals: np.ndarray,
+                      radius_m: float, ellipse: np.ndarray) -> np.ndarray:
+    """Each dot's measured centre less the image of its target's centre through the lens ``intr``, ``(k, 2)`` px:
+    the eccentricity of :func:`calibration.targets.eccentricity_bias` with the distortion's stretch and curvature
+    (:func:`lens_centres`); ``ellipse: (k,)`` whether the centre is its contour's ellipse's, not its centroid."""
+    from calibration.targets import _disc_conics
+
+    H, C = _disc_conics(intr.without_distortion(), cam_from_part, xyz, normals, radius_m)
+    A, b = C[:, :2, :2], C[:, :2, 2]
+    centre = -np.linalg.solve(A, b[..., None])[..., 0]
+    s = np.einsum("ni,ni->n", b, np.linalg.solve(A, b[..., None])[..., 0]) - C[:, 2, 2]
+    M = s[:, None, None] * np.linalg.inv(A) / 4.0  # the ellipse's (area) second moments
+    Mw = M * np.where(ellipse, 2.0, 1.0)[:, None, None]  # the contour's are twice the area's
+    lam, V = np.linalg.eigh(Mw)
+    axes = V * np.sqrt(np.maximum(lam, 0.0))[:, None, :]  # columns: the scaled axes
+    D0 = _through(intr, centre)
+    curve = sum(_through(intr, centre + axes[:, :, j]) + _through(intr, centre - axes[:, :, j]) - 2 * D0
+                for j in range(2))
+    shift = 0.5 * curve
+    # a centroid is the mean over the dot's image, whose area element is det J of the pinhole ellipse's: the
+    # distortion's stretch weighs the side it enlarges (to second order J M grad ln det J; a contour has no area)
+    f = np.array([intr.fx_px, intr.fy_px])
+    x = (centre - np.array([intr.cx_px, intr.cy_px])) / f
+    h = 1e-4
+    grad = np.stack([(np.log(np.linalg.det(intr.distortion_jacobian(x + d)))
+                      - np.log(np.linalg.det(intr.distortion_jacobian(x - d)))) / (2 * h)
+                     for d in (np.array([h, 0.0]), np.array([0.0, h]))], axis=-1) / f
+    J = f[:, None] * intr.distortion_jacobian(x) / f[None, :]
+    area = np.einsum("nab,nbc,nc->na", J, M, grad)
+    shift[~ellipse] += area[~ellipse]
+    return D0 + shift - _through(intr, H[:, :2, 2] / H[:, 2:3, 2])

@@ -71,6 +71,7 @@ def run(ctx, keep: bool = False) -> None:
                     **({"ellipse_centre": m.ellipse} if m.ellipse is not None else {}),
                     **({"blur_px2": m.blur_px2} if m.blur_px2 is not None else {}),
                     **({"moments_px2": m.moments_px2} if m.moments_px2 is not None else {}),
+                    "eccentricity_px": m.eccentricity_px,
                     **({"clip_bound_px": m.clip_bound} if m.clip_bound is not None else {}),
                     **({"outline": m.outline, "centroid_chi2": m.centroid_chi2} if m.outline is not None else {}),
                     "n_unidentified": m.n_unidentified, "n_partly_hidden": m.n_partly_hidden,
