@@ -73,9 +73,8 @@ def job_rows(part_job: Path, folder: Path) -> dict:
         Jh, depth = unit_projection(np.repeat(cfp[None], len(t), axis=0), X[t])
         e = np.asarray(im["uv"], dtype=float)[keep] - project(intr, cfp, X[t])
         if im.get("eccentricity_px") is not None:  # the centre's eccentricity through the true lens (decision 0054)
-            ell = np.asarray(im.get("ellipse_centre", [False] * len(im["ids"])), dtype=bool)[keep]
             e += np.asarray(im["eccentricity_px"], dtype=float)[keep] - lens_eccentricity(
-                intr, cfp, X[t], job.part.targets.normals[t], job.part.target_diameter_m / 2, ell)
+                intr, cfp, X[t], job.part.targets.normals[t], job.part.target_diameter_m / 2)
         out["e"].append(e)
         out["C"].append(C)
         out["Jh"].append(Jh)

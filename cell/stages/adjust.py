@@ -205,7 +205,7 @@ def _adjust(ctx, scr: Screening, use: list[int], obs: dict, obs_image, obs_targe
     # through that lens, and its blur against it; where either matters, the adjustment is made again with them
     again, flags["lens"] = False, {}
     before = res.obs_sigma_px if np.ndim(res.obs_sigma_px) == 1 else rms_sigma(res.obs_sigma_px)
-    if (corr := lens_centres(job, obs, sel, img, tgt, res, ellipse_centred(obs)[sel])) is not None:
+    if (corr := lens_centres(job, obs, sel, img, tgt, res)) is not None:
         moved = np.linalg.norm(corr, axis=1) / before
         flags["lens"]["centres_moved_px"] = {"median": float(np.median(np.linalg.norm(corr, axis=1))),
                                              "max": float(np.max(np.linalg.norm(corr, axis=1))),

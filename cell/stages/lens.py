@@ -250,19 +250,17 @@ def _through(intr: Intrinsics, uv: np.ndarray) -> np.ndarray:
     return intr.distort((uv - c) / f) * f + c
 
 
-def lens_centres(job, obs_doc: dict, sel: np.ndarray, img: np.ndarray, tgt: np.ndarray, res,
-                 ellipse: np.ndarray) -> np.ndarray | None:
+def lens_centres(job, obs_doc: dict, sel: np.ndarray, img: np.ndarray, tgt: np.ndarray, res) -> np.ndarray | None:
     """What to add to each adjusted observation's centre ``(q, 2)`` px (for ``img, tgt``, the observations ``sel``
     keeps): MEASURE's eccentricity (the nominal lens, the robot's pose, no distortion) given back and the
     eccentricity through the lens, poses and targets the adjustment ``res`` found taken off.
 
     Through a distorting lens a dot's centre is not the distorted image of its ellipse's centre: the distortion's
-    curvature moves a uniformly bright dot's centroid by ``1/2 D''[M]`` (``M`` its ellipse's second moments) and the
-    centre of the ellipse fitted to its contour (``ellipse``: True) by ``1/2 D''[2 M]``, and the ellipse's own
-    offset from the projected centre is stretched by the distortion's Jacobian. Evaluated exactly for a quadratic
-    distortion by the ellipse's axes (``D(c + a) + D(c - a) - 2 D(c)`` summed over its two scaled axes). On a
-    generated plate with k1 = -0.116, the targets intersected from their observations at the true poses and lens
-    were 2.2x their statement before (decision 0054). None without MEASURE's eccentricity."""
+    curvature and the stretch of its area move a uniformly bright dot's centroid, and the centre of the ellipse fitted
+    to its contour alike, by ``D''[M] / 2 + J M grad ln det J`` (``M`` its ellipse's second moments;
+    :func:`lens_eccentricity`), and the ellipse's own offset from the projected centre is stretched by the
+    distortion's Jacobian. On a generated plate with k1 = -0.116, the targets intersected from their observations at
+    the true poses and lens were 2.2x their statement before (decision 0054). None without MEASURE's eccentricity."""
     applied = observed_eccentricity(obs_doc)
     if applied is None:
         return None
@@ -273,31 +271,31 @@ def lens_centres(job, obs_doc: dict, sel: np.ndarray, img: np.ndarray, tgt: np.n
         k = np.flatnonzero((img == i) & np.isfinite(res.points[tgt]).all(axis=1))
         if len(k):
             out[k] = applied[k] - lens_eccentricity(res.intrinsics, res.cam_from_part[i], res.points[tgt[k]],
-                                                    t.normals[tgt[k]], job.part.target_diameter_m / 2, ellipse[k])
+                                                    t.normals[tgt[k]], job.part.target_diameter_m / 2)
     return out
 
 
 def lens_eccentricity(intr: Intrinsics, cam_from_part: np.ndarray, xyz: np.ndarray, normals: np.ndarray,
-                      radius_m: float, ellipse: np.ndarray) -> np.ndarray:
+                      radius_m: float) -> np.ndarray:
     """Each dot's measured centre less the image of its target's centre through the lens ``intr``, ``(k, 2)`` px:
     the eccentricity of :func:`calibration.targets.eccentricity_bias` with the distortion's stretch and curvature
-    (:func:`lens_centres`); ``ellipse: (k,)`` whether the centre is its contour's ellipse's, not its centroid."""
+    (:func:`lens_centres`), for a centroid and a contour's ellipse alike."""
     from calibration.targets import _disc_conics
 
     H, C = _disc_conics(intr.without_distortion(), cam_from_part, xyz, normals, radius_m)
     A, b = C[:, :2, :2], C[:, :2, 2]
     centre = -np.linalg.solve(A, b[..., None])[..., 0]
     s = np.einsum("ni,ni->n", b, np.linalg.solve(A, b[..., None])[..., 0]) - C[:, 2, 2]
-    M = s[:, None, None] * np.linalg.inv(A) / 4.0  # the ellipse's (area) second moments
-    Mw = M * np.where(ellipse, 2.0, 1.0)[:, None, None]  # the contour's are twice the area's
-    lam, V = np.linalg.eigh(Mw)
+    M = s[:, None, None] * np.linalg.inv(A) / 4.0  # the ellipse's second moments
+    lam, V = np.linalg.eigh(M)
     axes = V * np.sqrt(np.maximum(lam, 0.0))[:, None, :]  # columns: the scaled axes
     D0 = _through(intr, centre)
     curve = sum(_through(intr, centre + axes[:, :, j]) + _through(intr, centre - axes[:, :, j]) - 2 * D0
                 for j in range(2))
-    shift = 0.5 * curve
     # a centroid is the mean over the dot's image, whose area element is det J of the pinhole ellipse's: the
-    # distortion's stretch weighs the side it enlarges (to second order J M grad ln det J; a contour has no area)
+    # distortion's stretch weighs the side it enlarges (to second order J M grad ln det J). The ellipse fitted to the
+    # dot's contour moves by the same to second order (the first harmonic of the rim's normal displacement: M grad
+    # tr J + D''[M] / 2), so one formula serves both (tests/test_lens.py checks both against the exact image)
     f = np.array([intr.fx_px, intr.fy_px])
     x = (centre - np.array([intr.cx_px, intr.cy_px])) / f
     h = 1e-4
@@ -305,6 +303,4 @@ def lens_eccentricity(intr: Intrinsics, cam_from_part: np.ndarray, xyz: np.ndarr
                       - np.log(np.linalg.det(intr.distortion_jacobian(x - d)))) / (2 * h)
                      for d in (np.array([h, 0.0]), np.array([0.0, h]))], axis=-1) / f
     J = f[:, None] * intr.distortion_jacobian(x) / f[None, :]
-    area = np.einsum("nab,nbc,nc->na", J, M, grad)
-    shift[~ellipse] += area[~ellipse]
-    return D0 + shift - _through(intr, H[:, :2, 2] / H[:, 2:3, 2])
+    return D0 + 0.5 * curve + np.einsum("nab,nbc,nc->na", J, M, grad) - _through(intr, H[:, :2, 2] / H[:, 2:3, 2])
