@@ -169,3 +169,25 @@ def test_a_dots_centre_through_a_distorting_lens_is_its_images(tilt_deg):
     assert worst_new < 2e-4, worst_new
     assert worst_old > 5 * worst_new, (worst_old, worst_new)
     print(f"\ntilt {tilt_deg} deg: through the lens {worst_new:.1e} px, pinhole eccentricity {worst_old:.1e} px")
+
+
+def test_a_lens_held_at_its_nominal_terms_keeps_its_distortion():
+    """``self_calibrate = false`` with a distorting nominal lens: the adjustment's model holds the lens as it is
+    (OPENCV_K3, nothing refined), not a pinhole that would refuse it or drop its terms."""
+    from types import SimpleNamespace
+
+    from cell.stages.lens import camera_model
+
+    lens = Intrinsics(fx_px=2400.0, fy_px=2400.0, cx_px=1230.0, cy_px=1015.0, width=2448, height=2048, k1=-0.06,
+                      k2=0.09, k3=-0.04, p1=1.5e-4, p2=-2.5e-4)
+    job = SimpleNamespace(spec=SimpleNamespace(camera=SimpleNamespace(self_calibrate=False, lens_model="brown")),
+                          intrinsics=lens)
+    assert camera_model(job) == "OPENCV_K3"
+    assert camera_model(SimpleNamespace(spec=job.spec, intrinsics=lens.without_distortion())) == "PINHOLE"
+    net = simulate_network(np.random.default_rng(5), n_targets=120, n_images=10, intrinsics=lens, sigma_px=0.03,
+                           distance_m=0.7)
+    d = np.linalg.norm(net.points[0] - net.points[1])
+    res = bundle_adjust(net.obs_image, net.obs_target, net.obs_uv, lens, net.cam_from_part, net.points,
+                        BundleOptions(sigma_px=0.03), BundleConfig(camera_model="OPENCV_K3",
+                                                                   scale_bars=(ScaleBar(0, 1, d, 1e-6),)))
+    assert res.intrinsics == lens and 0.7 < res.sigma0_px / 0.03 < 1.3, res.sigma0_px

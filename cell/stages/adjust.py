@@ -470,7 +470,8 @@ def run_bundle(ctx) -> dict:
         ctx.say(f"  WARNING {msg}")
     lens = {"model": job.spec.camera.lens_model if job.spec.camera.self_calibrate else "nominal (not calibrated)",
             "camera_model": bundle_config(job, use).camera_model} | flags.get("lens", {})
-    lens |= {"radial_check": radial_check(res, img, tgt, uv, BundleOptions(sigma_px=job.spec.camera.sigma_px), bundle_config(job, use))}
+    lens |= {"radial_check": radial_check(res, img, tgt, uv, BundleOptions(sigma_px=job.spec.camera.sigma_px),
+                                          bundle_config(job, use))}
     if (lens["radial_check"] or {}).get("note"):
         ctx.log.log("warning", lens["radial_check"]["note"])
         ctx.say(f"  WARNING {lens['radial_check']['note']}")

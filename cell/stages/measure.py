@@ -9,7 +9,8 @@ the detector's bound on each centre's error from a background that is not a plan
 ``Detections.background_cov``; ADJUST adds its share to the image precision), ``clipped_share`` (k,),
 ``ellipse_centre`` (k, bool: the centre is the ellipse of the dot's contour, not its centroid; decision 0037),
 ``blur_px2`` (k: the blur each dot's image shows; decision 0049), ``moments_px2`` (k: half the trace of its second
-moments, from which ADJUST measures the blur again against the adjusted lens; decision 0054), ``clip_bound_px`` (k, 2: how far a clipped dot's
+moments) and ``eccentricity_px`` (k, 2: the eccentricity taken off its centre), from which ADJUST takes the blur and
+the eccentricity again through the adjusted lens (decision 0054), ``clip_bound_px`` (k, 2: how far a clipped dot's
 centre may be off for its unknown level, zero for the others; ADJUST carries it; decision 0050), ``outline`` (k, 2:
 ``[chi2, n]`` of each dot's contour about its fitted ellipse) and ``centroid_chi2`` (k: its centroid against that
 ellipse's centre; null for a dot centred by its ellipse): a target's print is judged by them (decision 0051), counts,
