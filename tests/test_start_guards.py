@@ -14,11 +14,25 @@ from cell.loadedjob import load
 from cell.stages.adjust import observation_arrays
 from cell.stages.lens import START_GROSS_SHARE, choose_start
 from cell.stages.calibrate import orient_image
-from jobutil import example_run
+from pathlib import Path
+
+from jobutil import example_run, job_variant, run_cell
 
 
-def _images(tmp_path_factory):
-    job_path, folder, _ = example_run(tmp_path_factory)
+_NOMINAL: dict = {}
+
+
+def _images(tmp_path_factory, nominal_lens: bool = False):
+    if nominal_lens:  # the example with its nominal lens rendered (no [sim] lens), once per session
+        if "run" not in _NOMINAL:
+            base = tmp_path_factory.mktemp("nominal_lens")
+            job = job_variant(base / "job", {"sim": {"lens": None}})
+            _NOMINAL["run"] = (job, run_cell("run", str(job), "--archive", str(base / "archive"), timeout=400))
+        job_path, run = _NOMINAL["run"]
+        assert run.code == 0, run.stderr[-3000:]
+        folder = Path(run.doc["folder"])
+    else:
+        job_path, folder, _ = example_run(tmp_path_factory)
     job = load(job_path)
     obs = json.loads((folder / "observations.json").read_text())
     acq = {a["station"]: a for a in json.loads((folder / "acquisition.json").read_text())["images"]}
@@ -61,12 +75,14 @@ def test_targets_off_their_nominal_position_do_not_pull_faugeras_toscani_off(tmp
 
 def test_images_of_the_example_leave_out_only_its_deviating_targets(tmp_path_factory):
     """The example's part has six targets moved by 0.12-0.6 mm (deviations.csv): in every image Faugeras-Toscani
-    calibrates, and leaves out no point but theirs."""
+    calibrates, and leaves out no point but theirs. With the nominal lens rendered: the example's real lens
+    (decision 0054: [sim] lens) moves its outer points by up to 13 px, which the linear method does not model, and
+    it leaves those out too (up to 9 of an image's 99)."""
     import csv
 
     from cell.stages.calibrate import consistent_points
 
-    job, _, _, images = _images(tmp_path_factory)
+    job, _, _, images = _images(tmp_path_factory, nominal_lens=True)
     with open(job.path.parent / "deviations.csv", newline="") as f:
         moved = {r["id"] for r in csv.DictReader(f)}
     for xyz, uv, pose, ids in images:

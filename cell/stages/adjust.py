@@ -413,7 +413,8 @@ def run_bundle(ctx) -> dict:
     # poses that go with the common interior orientation: the screening's rays and the adjustment start from them
     # (Faugeras-Toscani's per-image poses, paired with the common interior orientation, are pixels off: on a thin
     # network with glare the adjustment started from them diverged, 100 targets behind a camera)
-    intr0, rs, first, start = choose_start(job, cal, obs_image, obs_target, obs_uv, poses_all, ids)
+    intr0, rs, first, start = choose_start(job, cal, obs_image, obs_target, obs_uv, poses_all, ids,
+                                           radial_named=any(o.get("naming_radial") for o in obs["images"]))
     if start.get("reason"):
         ctx.log.log("warning", start["reason"])
         ctx.say(f"  WARNING {start['reason']}")

@@ -11,12 +11,12 @@ targets identify the image and refine its pose; they are not measured (docs/deci
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
 
-from calibration.camera import Intrinsics, invert, project
+from calibration.camera import Intrinsics, invert, make_pose, project
 from calibration.dots import MIN_RING_PX
 from calibration.ringcodes import RING_FAMILIES, decode_ring_codes
 from calibration.errors import CalibrationError
@@ -108,6 +108,8 @@ class DotMeasurement:
             measures the blur again against the lens it found (decision 0054); or None.
         eccentricity_px: (k, 2) the eccentricity taken off each centre (the nominal lens at the robot's pose): ADJUST
             takes it again with the lens it found, its distortion included (decision 0054).
+        naming_radial: ``(k1, k2)`` of the radial lens the dots were named with, where the nominal one left the
+            image's outer dots off their projections (:func:`naming_radial`); None: the nominal lens.
         clip_bound: (k, 2) px, how far a clipped dot's centre may be off for its unknown level
             (``Detections.clip_bound``, decision 0050; zero for the others); ADJUST carries it; or None.
         outline: (k, 2) ``[chi2, n]`` of each dot's contour about its ellipse (``Detections.outline``; NaN: not
@@ -133,11 +135,51 @@ class DotMeasurement:
     centroid_chi2: np.ndarray | None = None
     moments_px2: np.ndarray | None = None
     eccentricity_px: np.ndarray | None = None
+    naming_radial: tuple[float, float] | None = None
 
     @property
     def n_shape(self) -> int:
         """Named dots dropped because their shape is not their target's ellipse."""
         return sum(1 for _, why in self.dropped if why.startswith("shape"))
+
+
+#: the nominal lens's median residual over an image's named dots above which a radial lens is fitted to them, and
+#: the share of it the fitted lens must leave for the dots to be named again with it
+NAMING_RADIAL_PX = 1.0
+NAMING_RADIAL_GAIN = 0.5
+
+
+def naming_radial(intr: Intrinsics, cam_from_part: np.ndarray, xyz: np.ndarray, det_uv: np.ndarray,
+                  match: np.ndarray, code: np.ndarray) -> Intrinsics | None:
+    """A radial lens (k1, k2 with the pose; the nominal lens's other terms) fitted robustly to an image's named dots
+    ``match`` (index into ``xyz`` per detection, -1: unnamed), or None when the nominal lens already fits them
+    (median residual at most :data:`NAMING_RADIAL_PX` after a resection), there are fewer than 15, or the fit does
+    not bring the median below :data:`NAMING_RADIAL_GAIN` of the nominal's."""
+    from scipy.optimize import least_squares
+
+    sel = np.flatnonzero((match >= 0) & (code[np.maximum(match, 0)] < 0))
+    if len(sel) < 15:
+        return None
+    X, uv = xyz[match[sel]], det_uv[sel]
+    try:
+        pose = refine_pose_pnp(intr, cam_from_part, X, uv)
+    except CalibrationError:
+        return None
+    before = float(np.median(np.linalg.norm(project(intr, pose, X) - uv, axis=1)))
+    if before <= NAMING_RADIAL_PX:
+        return None
+    rvec = cv2.Rodrigues(pose[:3, :3])[0].ravel()
+
+    def lens(p):
+        return replace(intr, k1=intr.k1 + p[6], k2=intr.k2 + p[7])
+
+    def resid(p):
+        T = make_pose(cv2.Rodrigues(p[:3])[0], p[3:6])
+        return (project(lens(p), T, X) - uv).ravel()
+
+    fit = least_squares(resid, np.r_[rvec, pose[:3, 3], 0.0, 0.0], loss="soft_l1", f_scale=2.0, x_scale="jac")
+    after = float(np.median(np.linalg.norm(fit.fun.reshape(-1, 2), axis=1)))
+    return lens(fit.x) if fit.success and after < NAMING_RADIAL_GAIN * before else None
 
 
 def name_dots(det_uv: np.ndarray, part, intr: Intrinsics, cam_from_part: np.ndarray, occluder: Occluder, *,
@@ -165,12 +207,21 @@ def name_dots(det_uv: np.ndarray, part, intr: Intrinsics, cam_from_part: np.ndar
     t = part.targets
     det_uv = np.asarray(det_uv, dtype=float).reshape(-1, 2)
     seeable = VisibilityOptions(margin_px=0.0, incidence_max_rad=incidence_max_rad, min_target_px=1.0)
-    in_view = compute_visibility(part, intr, invert(cam_from_part)[None], seeable, occluder=occluder)[0]
     with_codes = coded_ids is not None and len(coded_ids) > 0
-    cand = np.flatnonzero((in_view & (t.code < 0)) | ((t.code >= 0) if with_codes else False))
-    sub = identify_targets(det_uv, t.xyz[cand], t.code[cand], intr, cam_from_part, max_dist_px,
-                           coded_ids=coded_ids if with_codes else None, coded_uv=coded_uv if with_codes else None)
-    match = np.where(sub >= 0, cand[np.maximum(sub, 0)], -1)
+
+    def named(lens):
+        in_view = compute_visibility(part, lens, invert(cam_from_part)[None], seeable, occluder=occluder)[0]
+        cand = np.flatnonzero((in_view & (t.code < 0)) | ((t.code >= 0) if with_codes else False))
+        sub = identify_targets(det_uv, t.xyz[cand], t.code[cand], lens, cam_from_part, max_dist_px,
+                               coded_ids=coded_ids if with_codes else None, coded_uv=coded_uv if with_codes else None)
+        return np.where(sub >= 0, cand[np.maximum(sub, 0)], -1)
+
+    match = named(intr)
+    # a lens whose distortion the job does not state moves the image's outer dots off their projections: a radial
+    # lens fitted to this image's named dots names them again (decision 0054); MEASURE's centres do not depend on it
+    naming_lens = naming_radial(intr, cam_from_part, t.xyz, det_uv, match, t.code)
+    if naming_lens is not None:
+        intr, match = naming_lens, named(naming_lens)
     dots = np.flatnonzero((match >= 0) & (t.code[np.maximum(match, 0)] < 0))
     radius = part.target_diameter_m / 2
     eye = invert(cam_from_part)[:3, 3]
@@ -236,7 +287,7 @@ def name_dots(det_uv: np.ndarray, part, intr: Intrinsics, cam_from_part: np.ndar
                           None if det_ellipse is None else np.asarray(det_ellipse, dtype=bool)[dots], blur,
                           None if det_clip_bound is None
                           else np.asarray(det_clip_bound, dtype=float).reshape(-1, 2)[dots], outline, centroid_chi2,
-                          moments, bias[keep])
+                          moments, bias[keep], None if naming_lens is None else (naming_lens.k1, naming_lens.k2))
 
 
 def surface_labeller(camera, part) -> SurfaceLabeller | None:

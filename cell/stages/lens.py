@@ -36,7 +36,8 @@ START_GROSS_SHARE = 0.10
 
 
 def choose_start(job, cal_doc: dict, obs_image: np.ndarray, obs_target: np.ndarray, obs_uv: np.ndarray,
-                 poses_all: np.ndarray, ids: list[str]) -> tuple[Intrinsics, Resection, Screening, dict]:
+                 poses_all: np.ndarray, ids: list[str], radial_named: bool = False
+                 ) -> tuple[Intrinsics, Resection, Screening, dict]:
     """The interior orientation the adjustment starts from, with the poses resected with it.
 
     :func:`initial_intrinsics` (Faugeras-Toscani's median), unless its screening takes more than
@@ -44,6 +45,9 @@ def choose_start(job, cal_doc: dict, obs_image: np.ndarray, obs_target: np.ndarr
     good rays disagree, and the screening would leave them out. Returns ``(intr0, resection, doc)``, ``doc`` for
     bundle.json ``start``: which interior orientation and, for each tried, the share of observations screened gross.
     The chosen start's screening is returned too: the adjustment's first round uses it (not screened twice).
+    ``radial_named``: MEASURE named some images with a radial lens of their own (the job does not state the lens's
+    distortion): the start with k1, k2 fitted to every image (:func:`radial_start`) is tried too, and taken when
+    its screening takes fewer observations as gross (decision 0054).
     """
     nominal = job.intrinsics
     pairs = [tuple(bar[:2]) for bar in job.scale_bars]
@@ -66,8 +70,41 @@ def choose_start(job, cal_doc: dict, obs_image: np.ndarray, obs_target: np.ndarr
                     "reason": f"Faugeras-Toscani's interior orientation (fx {intr0.fx_px:.1f} px) left {gross:.0%} of "
                               f"the observations gross in the screening, the nominal lens (fx {nominal.fx_px:.1f} px) "
                               f"{gross_n:.0%}: the adjustment starts from the nominal lens"}
-            return nominal, rs_n, scr_n, doc
+            intr0, rs, scr, gross = nominal, rs_n, scr_n, gross_n
+    if radial_named:  # MEASURE named images with a radial lens of their own: the job's lens is not the camera's
+        lens = radial_start(intr0, rs, obs_image, job.part.targets.xyz[obs_target], obs_uv)
+        rs_r, scr_r, gross_r = tried(lens)
+        name = f"{doc['interior']} with a radial lens fitted to every image (k1 {lens.k1:+.4f}, k2 {lens.k2:+.4f})"
+        doc["gross_share"][name] = gross_r
+        if gross_r < gross:
+            doc |= {"interior": name, "fx_px": float(lens.fx_px), "reason": f"the job's lens left {gross:.0%} of the observations gross in the "
+                                                f"screening, the same with a radial lens fitted to the images "
+                                                f"{gross_r:.0%}: MEASURE named images with a radial lens of their "
+                                                "own, and the adjustment starts from it"}
+            return lens, rs_r, scr_r, doc
     return intr0, rs, scr, doc
+
+
+def radial_start(intr: Intrinsics, rs: Resection, obs_image: np.ndarray, xyz: np.ndarray, uv: np.ndarray,
+                 rounds: int = 2) -> Intrinsics:
+    """``intr`` with its principal distance, k1 and k2 fitted (robustly, soft L1 at 2 px) to every observation at the resected poses and the
+    targets' CAD places, the images resected again with it, ``rounds`` times (decision 0054): a start for a lens
+    whose distortion the job does not state, so that the screening does not take its outer dots for gross."""
+    from scipy.optimize import least_squares
+
+    from calibration.camera import project
+
+    poses = rs.poses
+    for _ in range(rounds):
+        def lens(k):
+            return replace(intr, fx_px=intr.fx_px * k[0], fy_px=intr.fy_px * k[0], k1=k[1], k2=k[2])
+
+        def resid(k):
+            return np.concatenate([(project(lens(k), poses[i], xyz[obs_image == i]) - uv[obs_image == i]).ravel()
+                                   for i in np.unique(obs_image)])
+        intr = lens(least_squares(resid, [1.0, intr.k1, intr.k2], loss="soft_l1", f_scale=2.0, x_scale="jac").x)
+        poses = resect(intr, poses, obs_image, xyz, uv).poses
+    return intr
 
 
 def camera_model(job) -> str:

@@ -73,6 +73,7 @@ def run(ctx, keep: bool = False) -> None:
                     **({"blur_px2": m.blur_px2} if m.blur_px2 is not None else {}),
                     **({"moments_px2": m.moments_px2} if m.moments_px2 is not None else {}),
                     "eccentricity_px": m.eccentricity_px,
+                    **({"naming_radial": list(m.naming_radial)} if m.naming_radial is not None else {}),
                     **({"clip_bound_px": m.clip_bound} if m.clip_bound is not None else {}),
                     **({"outline": m.outline, "centroid_chi2": m.centroid_chi2} if m.outline is not None else {}),
                     "n_unidentified": m.n_unidentified, "n_partly_hidden": m.n_partly_hidden,
@@ -99,6 +100,14 @@ def run(ctx, keep: bool = False) -> None:
         if kept:  # said, not silent: their weights are the centroid's (ADJUST), their centres the centroid's
             ctx.say(f"  {kept} clipped or edge dots kept their centroid: the ellipse fit of their contour failed")
             ctx.log.log("info", f"{kept} clipped or edge dots kept their centroid (ellipse fit failed; decision 0037)")
+    radial = [o["naming_radial"] for o in out if o.get("naming_radial")]
+    if radial:  # said: the job's lens is not the camera's (decision 0054)
+        k1 = np.median([r[0] for r in radial])
+        msg = (f"{len(radial)} of {len(out)} images named with a radial lens fitted to their own dots (median k1 "
+               f"{k1:+.3f}; [camera] k1 {job.spec.camera.k1:+.3f}): the nominal lens left their outer dots off their "
+               "projections. State the lens's distortion in [camera] (k1..p2, from a calibration); ADJUST estimates it")
+        ctx.say(f"  {msg}")
+        ctx.log.log("info", msg)
     other = {k: v for k, v in by_reason.items() if k != "partly hidden (CAD)"}
     if other:
         ctx.say("  named dots left unnamed rather than misnamed: " + ", ".join(f"{v} {k}" for k, v in other.items()))
