@@ -191,3 +191,33 @@ def test_a_lens_held_at_its_nominal_terms_keeps_its_distortion():
                         BundleOptions(sigma_px=0.03), BundleConfig(camera_model="OPENCV_K3",
                                                                    scale_bars=(ScaleBar(0, 1, d, 1e-6),)))
     assert res.intrinsics == lens and 0.7 < res.sigma0_px / 0.03 < 1.3, res.sigma0_px
+
+
+def test_an_image_is_named_with_a_radial_lens_of_its_own_where_the_nominal_leaves_its_outer_dots_off():
+    """MEASURE names dots by projecting the nominal lens; a real lens with k1 = -0.116 the job does not state moves the
+    outer dots by tens of pixels. naming_radial fits k1, k2 and the pose to the dots the nominal lens named, and the
+    fitted lens puts them within a pixel; a lens the nominal describes is left alone."""
+    from calibration.camera import invert, look_at, project
+    from cell.stages.imaging import naming_radial
+
+    rng = np.random.default_rng(7)
+    nominal = Intrinsics.from_focal_length(0.008, 3.45e-6, 2448, 2048)
+    true = replace(nominal, fx_px=nominal.fx_px * 1.02, fy_px=nominal.fx_px * 1.02, k1=-0.116, k2=0.047, k3=-0.017)
+    g = np.linspace(-0.3, 0.3, 19)
+    xyz = np.column_stack([*(a.ravel() for a in np.meshgrid(g, g)), rng.normal(0, 0.01, 361)])
+    cam = invert(look_at(np.array([0.02, -0.01, 0.5]), np.zeros(3), up=(0, 1, 0)))
+    uv = project(true, cam, xyz)
+    seen = np.flatnonzero(true.in_image(uv))
+    det = uv[seen] + rng.normal(0, 0.02, (len(seen), 2))
+    off = np.linalg.norm(project(nominal, cam, xyz[seen]) - det, axis=1)
+    assert off.max() > 30  # the nominal lens misses the outer dots by tens of pixels
+    match = np.where(off < 25, seen, -1)  # what the nominal lens could name: the inner ones
+    lens = naming_radial(nominal, cam, xyz, det, match, np.full(len(xyz), -1))
+    assert lens is not None and lens.k1 < -0.05
+    from calibration.targets import refine_pose_pnp
+
+    pose = refine_pose_pnp(lens, cam, xyz[seen], det)
+    assert np.median(np.linalg.norm(project(lens, pose, xyz[seen]) - det, axis=1)) < 1.0
+    # the nominal lens describes these: nothing fitted
+    det0 = project(nominal, cam, xyz[seen]) + rng.normal(0, 0.02, (len(seen), 2))
+    assert naming_radial(nominal, cam, xyz, det0, seen, np.full(len(xyz), -1)) is None
