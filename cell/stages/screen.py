@@ -295,3 +295,23 @@ def screen_network(obs_image: np.ndarray, obs_target: np.ndarray, obs_uv: np.nda
             s.scale_ok = False
             s.scale_reason = "; ".join(s.bars_out[j] for j in range(len(scale_pairs)))
     return s
+
+
+#: a screened observation within this of the adjusted network's projection is put back (data snooping then tests it)
+REINSTATE_PX = 0.5
+
+
+def reinstated(scr: Screening, obs_image, obs_target, obs_uv, new_index, res) -> np.ndarray:
+    """``(q,)`` bool: observations the screening dropped on their own (their image and target kept, the target
+    determined by the adjustment ``res``) whose residual to the adjusted network is below :data:`REINSTATE_PX`."""
+    q = np.array(sorted(scr.obs), dtype=int)
+    out = np.zeros(len(obs_image), dtype=bool)
+    if not len(q):
+        return out
+    q = q[scr.keep_images[obs_image[q]] & ~np.isin(obs_target[q], list(scr.targets))]
+    q = q[np.isfinite(res.points[obs_target[q]]).all(axis=1)]
+    for i in np.unique(new_index[obs_image[q]]):
+        k = q[new_index[obs_image[q]] == i]
+        r = np.linalg.norm(project(res.intrinsics, res.cam_from_part[i], res.points[obs_target[k]]) - obs_uv[k], axis=1)
+        out[k[r < REINSTATE_PX]] = True
+    return out
