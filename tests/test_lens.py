@@ -221,3 +221,30 @@ def test_an_image_is_named_with_a_radial_lens_of_its_own_where_the_nominal_leave
     # the nominal lens describes these: nothing fitted
     det0 = project(nominal, cam, xyz[seen]) + rng.normal(0, 0.02, (len(seen), 2))
     assert naming_radial(nominal, cam, xyz, det0, seen, np.full(len(xyz), -1)) is None
+
+
+def test_screened_observations_that_agree_with_the_adjusted_network_are_put_back():
+    """reinstated: an observation the screening dropped on its own comes back when the adjusted network projects its
+    target within REINSTATE_PX of it; not when it is far (a blunder), its target was dropped, or its image was."""
+    from types import SimpleNamespace
+
+    from calibration.camera import project
+    from cell.stages.screen import REINSTATE_PX, Screening, reinstated
+
+    net = simulate_network(np.random.default_rng(2), n_targets=40, n_images=4, sigma_px=0.02)
+    q = len(net.obs_image)
+    uv = net.obs_uv.copy()
+    idx = [np.flatnonzero(net.obs_image == i)[:2] for i in range(4)]
+    picks = {"far": idx[0][0], "near": idx[0][1], "target": idx[1][0], "image": idx[2][0]}
+    uv[picks["far"]] += [3.0, 0.0]
+    scr = Screening(keep_obs=np.ones(q, dtype=bool), keep_images=np.array([True, True, False, True]))
+    for k in picks.values():
+        scr.keep_obs[k] = False
+        scr.obs[int(k)] = "gross at the start"
+    scr.targets[int(net.obs_target[picks["target"]])] = "dropped"
+    res = SimpleNamespace(intrinsics=net.intrinsics, cam_from_part=net.cam_from_part, points=net.points)
+    back = reinstated(scr, net.obs_image, net.obs_target, uv, np.arange(4), res)
+    assert np.flatnonzero(back).tolist() == [picks["near"]]
+    r = np.linalg.norm(project(net.intrinsics, net.cam_from_part[0], net.points[net.obs_target[picks["near"]]][None])
+                       - uv[picks["near"]], axis=1)
+    assert r[0] < REINSTATE_PX
