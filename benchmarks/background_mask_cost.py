@@ -34,7 +34,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     a = ap.parse_args(argv)
     job = load(JOB)
-    sim = make_job_sim_cell(job)
+    sim = make_job_sim_cell(job, nominal_lens=True)  # truth: the nominal lens's projection
     sim.camera.rng = np.random.default_rng(a.seed)
     rng = np.random.default_rng(a.seed)
     centre = sim.world.true_xyz.mean(axis=0)

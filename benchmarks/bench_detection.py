@@ -67,7 +67,7 @@ def sim_views(n_views: int, repeat: int, before, rev: str) -> None:
     from cell.loadedjob import load
 
     job = load(Path(__file__).resolve().parents[1] / "examples" / "bracket" / "job.toml")
-    sim = make_job_sim_cell(job)
+    sim = make_job_sim_cell(job, nominal_lens=True)  # truth: the nominal lens's projection
     cam, world, intr = sim.camera, sim.world, job.intrinsics
     cam.rng = np.random.default_rng(0)
     xyz, nrm = world.true_xyz, world.normals

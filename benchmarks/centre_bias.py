@@ -32,7 +32,7 @@ JOB = Path(__file__).resolve().parents[1] / "examples" / "bracket" / "job.toml"
 def measure(part_level: float | None = None, kernel: int = 41, n_views: int = 12, centre_method: str = "centroid",
             real: bool = False) -> dict:
     job = load(JOB)
-    sim = make_job_sim_cell(job)
+    sim = make_job_sim_cell(job, nominal_lens=True)  # truth: the nominal lens's projection
     cam, world, intr = sim.camera, sim.world, job.intrinsics
     if part_level is not None:
         cam.photometry = dataclasses.replace(cam.photometry, part_level=part_level)

@@ -39,7 +39,7 @@ def measure(exposure_factor: float, n_views: int, part_level: float | None, seed
     base = load(job_variant(Path(tempfile.mkdtemp()) / "job"))
     job = load(job_variant(Path(tempfile.mkdtemp()) / "job",
                            {"camera": {"exposure_s": base.spec.camera.exposure_s * exposure_factor}}))
-    sim = make_job_sim_cell(job)
+    sim = make_job_sim_cell(job, nominal_lens=True)  # truth: the nominal lens's projection
     cam, world, intr = sim.camera, sim.world, job.intrinsics
     if part_level is not None:
         cam.photometry = dataclasses.replace(cam.photometry, part_level=part_level)

@@ -59,7 +59,7 @@ def sim_scene(job, seed: int, circle_of_confusion_px: float = 0.0):
 
     sim_section = job.spec.sim.model_copy(update={"circle_of_confusion_px": float(circle_of_confusion_px)})
     job = replace(job, spec=job.spec.model_copy(update={"sim": sim_section}))
-    sim = make_job_sim_cell(job)
+    sim = make_job_sim_cell(job, nominal_lens=True)  # truth: the nominal lens's projection
     cam, world = sim.camera, sim.world
     cam.rng = np.random.default_rng(seed)
     return (job, cam, job.intrinsics, world.true_xyz, world.normals, job.part.target_diameter_m / 2,

@@ -79,11 +79,13 @@ def _target_damage(job: LoadedJob):
                            [d.offset for _, d in rows])
 
 
-def make_job_sim_cell(job: LoadedJob, seed_offset: int = 0):
-    """The simulated cell of a job: the true part (CAD + deviations), its true placement and hand-eye.
+def make_job_sim_cell(job: LoadedJob, seed_offset: int = 0, nominal_lens: bool = False):
+    """The simulated cell of a job: the true part (CAD + deviations), its true placement and hand-eye, and its true
+    lens (``[sim] lens``; decision 0054).
 
     ``seed_offset`` is added to ``[sim] seed``: sessions that must not share their noise (the positions
-    of a reverification) pass different offsets.
+    of a reverification) pass different offsets. ``nominal_lens``: render the job's nominal lens instead (the
+    detector's truth tools, whose truth is the nominal lens's projection, as the detector model was measured).
     """
     from cell.setup import robot_model
     from sim_backend.factory import make_sim_cell
@@ -94,7 +96,8 @@ def make_job_sim_cell(job: LoadedJob, seed_offset: int = 0):
     photometry = Photometry()
     if s.sim.dot_max_incidence_deg is not None:  # glare washes the dots out beyond this incidence
         photometry = replace(photometry, max_incidence_rad=float(np.deg2rad(s.sim.dot_max_incidence_deg)))
-    return make_sim_cell(job.part, s.base_from_part(), s.flange_from_cam(), s.true_intrinsics(), robot=robot_model(job),
+    return make_sim_cell(job.part, s.base_from_part(), s.flange_from_cam(),
+                         s.intrinsics() if nominal_lens else s.true_intrinsics(), robot=robot_model(job),
                          deviations=job.deviations, image_sigma_px=s.sim.image_sigma_px, seed=s.sim.seed + seed_offset,
                          sensor=Sensor().with_noise_scale(s.sim.noise).with_camera(s.camera.pixel_format,
                                                                                     s.camera.gain_db)

@@ -81,7 +81,7 @@ def _errors(exposure_s: float, tmp_path, views: int = 3):
     from jobutil import job_variant
 
     job = load(job_variant(tmp_path / f"e{exposure_s}", {"camera": {"exposure_s": exposure_s}}))
-    sim = make_job_sim_cell(job)
+    sim = make_job_sim_cell(job, nominal_lens=True)  # truth: the nominal lens's projection
     cam, world, intr = sim.camera, sim.world, job.intrinsics
     cam.rng = np.random.default_rng(5)
     radius = job.part.target_diameter_m / 2

@@ -134,7 +134,7 @@ def test_measure_image_with_the_cad_mask_centres_an_edge_dot_of_the_example_clos
     # a lens without depth of field (decision 0049): this view and its thresholds were chosen for it; the defocus at
     # target 88's depth blurs the edge beside it too (the mask still helps there: 0.101 -> 0.062 px at a 2 px circle)
     job = load(job_variant(tmp_path / "job", {"sim": {"circle_of_confusion_px": 0.0}}))
-    sim = make_job_sim_cell(job)
+    sim = make_job_sim_cell(job, nominal_lens=True)  # truth: the nominal lens's projection
     part_from_cam = np.array([[0.83912308, 0.05066443, 0.54157693, -0.3504904],
                               [0.51792856, -0.37864008, -0.76706042, 0.55167762],
                               [0.16620006, 0.92415626, -0.34396619, 0.31677018], [0, 0, 0, 1.0]])
