@@ -116,7 +116,8 @@ def test_targets_thicker_than_the_job_says_untrust_the_frame_and_say_by_how_much
     report = json.loads((Path(run.doc["folder"]) / "report.json").read_text())
     assert report["verdict"] == "UNTRUSTED" and not report["alignment"]["trusted"]
     reasons = report["alignment"]["reasons"]
-    assert "stand off the surface" in reasons[0]
+    # the reason that estimates the thickness (with the example's real lens, decision 0054, the frame's first reason is
+    # the consensus it could not keep; before it, that the targets stand off the surface)
     hint = next(r for r in reasons if "further off its CAD surface" in r)
     said = float(hint.split("thickness is likely ")[1].split(" mm")[0])
     assert abs(said - 0.05) < 0.01, hint
