@@ -277,7 +277,8 @@ def test_a_misplaced_skin_is_located_by_its_coded_markers(tmp_path):
     10 mm / 5 deg misplacement within what it states, against the simulated truth."""
     import csv
 
-    part = make_part_job(tmp_path / "job", np.random.default_rng(100), "skin", misplacement=(10.0, 5.0))
+    part = make_part_job(tmp_path / "job", np.random.default_rng(100), "skin", misplacement=(10.0, 5.0),
+                         real_lens=False)  # cell locate holds the job's lens (decision 0054: not mended)
     with (part.folder / "targets.csv").open(newline="") as f:
         assert sum(r["kind"] == "coded" for r in csv.DictReader(f)) >= 6
     loc = run_cell("locate", str(part.job), "--write", timeout=600)
