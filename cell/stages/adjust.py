@@ -491,9 +491,11 @@ def run_bundle(ctx) -> dict:
             "camera_model": bundle_config(job, use).camera_model} | flags.get("lens", {})
     lens |= {"radial_check": radial_check(res, img, tgt, uv, BundleOptions(sigma_px=job.spec.camera.sigma_px),
                                           bundle_config(job, use))}
-    if (lens["radial_check"] or {}).get("note"):
-        ctx.log.log("warning", lens["radial_check"]["note"])
-        ctx.say(f"  WARNING {lens['radial_check']['note']}")
+    rc = lens["radial_check"] or {}
+    if rc.get("note") or rc.get("tested") is False:  # a check that could not run is said, not taken for a clean lens
+        said = rc.get("note") or f"the radial lens model could not be checked: {rc.get('reason')}"
+        ctx.log.log("warning", said)
+        ctx.say(f"  WARNING {said}")
     suspect = _screened_suspects(scr, obs_target, tgt[~res.rejected], len(ids))
     shaped = {t for t in doubtful if np.any(tgt[~res.rejected] == t)}
     if shaped:  # the views kept share the cause that made most of its views unlike the target's ellipse
