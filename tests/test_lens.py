@@ -212,11 +212,9 @@ def test_an_image_is_named_with_a_radial_lens_of_its_own_where_the_nominal_leave
     off = np.linalg.norm(project(nominal, cam, xyz[seen]) - det, axis=1)
     assert off.max() > 30  # the nominal lens misses the outer dots by tens of pixels
     match = np.where(off < 25, seen, -1)  # what the nominal lens could name: the inner ones
-    lens = naming_radial(nominal, cam, xyz, det, match, np.full(len(xyz), -1))
-    assert lens is not None and lens.k1 < -0.05
-    from calibration.targets import refine_pose_pnp
-
-    pose = refine_pose_pnp(lens, cam, xyz[seen], det)
+    got = naming_radial(nominal, cam, xyz, det, match, np.full(len(xyz), -1))
+    assert got is not None and got[0].k1 < -0.05
+    lens, pose = got  # the lens with the pose it was fitted with
     assert np.median(np.linalg.norm(project(lens, pose, xyz[seen]) - det, axis=1)) < 1.0
     # the nominal lens describes these: nothing fitted
     det0 = project(nominal, cam, xyz[seen]) + rng.normal(0, 0.02, (len(seen), 2))
@@ -248,3 +246,28 @@ def test_screened_observations_that_agree_with_the_adjusted_network_are_put_back
     r = np.linalg.norm(project(net.intrinsics, net.cam_from_part[0], net.points[net.obs_target[picks["near"]]][None])
                        - uv[picks["near"]], axis=1)
     assert r[0] < REINSTATE_PX
+
+
+def test_an_image_turned_off_the_robots_pose_is_named_from_the_pose_its_dots_show():
+    """A principal point 16.5 px off the data sheet's (or a hand-eye error) shifts every dot of an image by about as
+    much as the dots are apart: named at the robot's pose, dots pair with their neighbours' projections. The shift
+    the detections vote for turns the pose, and the dots are named from it; with no shift nothing is turned, and a
+    field of clutter gives no shift."""
+    from calibration.camera import invert, look_at, project
+    from cell.stages.imaging import common_shift, turned_by
+
+    rng = np.random.default_rng(3)
+    intr = Intrinsics.from_focal_length(0.008, 6.9e-6, 1224, 1024)
+    cam = invert(look_at(np.array([0.03, -0.02, 0.5]), np.zeros(3), up=(0, 1, 0)))
+    g = np.linspace(-0.12, 0.12, 13)  # dots 20 mm apart: about 46 px at this distance
+    xyz = np.column_stack([*(a.ravel() for a in np.meshgrid(g, g)), rng.normal(0, 0.005, 169)])
+    true = turned_by(intr, cam, np.array([16.5, -11.5]))
+    det = np.vstack([project(intr, true, xyz) + rng.normal(0, 0.05, (169, 2)), rng.uniform(0, 1000, (150, 2))])
+    proj = project(intr, cam, xyz)
+    shift = common_shift(proj, det)  # a turn shifts the field's edge a little more than its centre
+    assert shift is not None and np.allclose(shift, [16.5, -11.5], atol=0.8), shift
+    pose = turned_by(intr, cam, shift)
+    assert np.median(np.linalg.norm(project(intr, pose, xyz) - det[:169], axis=1)) < 0.5
+    # the robot's pose was right: no shift; clutter alone: no shift
+    assert common_shift(proj, proj + rng.normal(0, 0.05, proj.shape)) is None
+    assert common_shift(proj, rng.uniform(0, 1000, (150, 2))) is None

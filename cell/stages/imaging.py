@@ -110,6 +110,9 @@ class DotMeasurement:
             takes it again with the lens it found, its distortion included (decision 0054).
         naming_radial: ``(k1, k2)`` of the radial lens the dots were named with, where the nominal one left the
             image's outer dots off their projections (:func:`naming_radial`); None: the nominal lens.
+        named_turned_deg: how far (deg) the pose the dots were named from turned from the robot's, where the robot's
+            pose left them off their projections and a resection named them again (:func:`naming_radial`); None: the
+            robot's pose.
         clip_bound: (k, 2) px, how far a clipped dot's centre may be off for its unknown level
             (``Detections.clip_bound``, decision 0050; zero for the others); ADJUST carries it; or None.
         outline: (k, 2) ``[chi2, n]`` of each dot's contour about its ellipse (``Detections.outline``; NaN: not
@@ -136,6 +139,7 @@ class DotMeasurement:
     moments_px2: np.ndarray | None = None
     eccentricity_px: np.ndarray | None = None
     naming_radial: tuple[float, float] | None = None
+    named_turned_deg: float | None = None
 
     @property
     def n_shape(self) -> int:
@@ -149,37 +153,108 @@ NAMING_RADIAL_PX = 1.0
 NAMING_RADIAL_GAIN = 0.5
 
 
+#: how far (px) a detection may be from a projection to vote for the image's common shift, the votes' bin (px),
+#: and the shift (px) below which the robot's pose is kept for the naming
+SHIFT_REACH_PX = 60.0
+SHIFT_BIN_PX = 2.0
+SHIFT_MIN_PX = 2.0
+
+
+def common_shift(proj_uv: np.ndarray, det_uv: np.ndarray) -> np.ndarray | None:
+    """The shift (px, (2,)) that most of the projections ``proj_uv: (n, 2)`` need to land on detections
+    ``det_uv: (k, 2)``, or None when there is no clear one or it is below :data:`SHIFT_MIN_PX`.
+
+    Every detection-projection pair within :data:`SHIFT_REACH_PX` votes for its difference; the votes' densest
+    cell (:data:`SHIFT_BIN_PX`, 3x3 cells summed) wins when it holds at least 6 votes and a quarter of the
+    projections, and is refined by the mean of the votes within a cell of it. A principal point off the data
+    sheet's or a hand-eye error turns the whole image and shows as such a shift; the nearest-neighbour naming at
+    the robot's pose would pair dots with their neighbours' projections."""
+    if len(proj_uv) < 6 or len(det_uv) < 6:
+        return None
+    from scipy.spatial import cKDTree
+
+    pairs = cKDTree(proj_uv).query_ball_point(det_uv, SHIFT_REACH_PX)
+    d = [det_uv[i] - proj_uv[j] for i, js in enumerate(pairs) for j in js]
+    if len(d) < 6:
+        return None
+    d = np.asarray(d)
+    n = int(np.ceil(SHIFT_REACH_PX / SHIFT_BIN_PX))
+    h, _, _ = np.histogram2d(d[:, 0], d[:, 1], bins=2 * n + 1, range=[[-(n + 0.5) * SHIFT_BIN_PX,
+                                                                     (n + 0.5) * SHIFT_BIN_PX]] * 2)
+    k = np.ones((3, 3))
+    from scipy.signal import convolve2d
+
+    hs = convolve2d(h, k, mode="same")
+    a, b = np.unravel_index(int(np.argmax(hs)), hs.shape)
+    if hs[a, b] < max(6, 0.25 * len(proj_uv)):
+        return None
+    peak = (np.array([a, b]) - n) * SHIFT_BIN_PX
+    near = np.all(np.abs(d - peak) <= 1.5 * SHIFT_BIN_PX, axis=1)
+    shift = d[near].mean(axis=0)
+    return shift if np.linalg.norm(shift) >= SHIFT_MIN_PX else None
+
+
+def turned_by(intr: Intrinsics, cam_from_part: np.ndarray, shift: np.ndarray) -> np.ndarray:
+    """``cam_from_part`` turned about its projection centre so that the principal point's projection moves by
+    ``shift`` (px)."""
+    v = np.array([shift[0] / intr.fx_px, shift[1] / intr.fy_px, 1.0])
+    v /= np.linalg.norm(v)
+    axis = np.cross([0.0, 0.0, 1.0], v)
+    angle = np.arcsin(min(1.0, np.linalg.norm(axis)))
+    Rd = cv2.Rodrigues(axis / max(np.linalg.norm(axis), 1e-15) * angle)[0]
+    # a point on the principal ray is seen along v afterwards: the camera turned the other way
+    out = np.array(cam_from_part, dtype=float, copy=True)
+    out[:3, :3] = Rd @ out[:3, :3]
+    out[:3, 3] = Rd @ out[:3, 3]
+    return out
+
+
 def naming_radial(intr: Intrinsics, cam_from_part: np.ndarray, xyz: np.ndarray, det_uv: np.ndarray,
-                  match: np.ndarray, code: np.ndarray) -> Intrinsics | None:
-    """A radial lens (k1, k2 with the pose; the nominal lens's other terms) fitted robustly to an image's named dots
-    ``match`` (index into ``xyz`` per detection, -1: unnamed), or None when the nominal lens already fits them
-    (median residual at most :data:`NAMING_RADIAL_PX` after a resection), there are fewer than 15, or the fit does
-    not bring the median below :data:`NAMING_RADIAL_GAIN` of the nominal's."""
+                  match: np.ndarray, code: np.ndarray) -> tuple[Intrinsics, np.ndarray] | None:
+    """The lens and pose to name an image's dots again with, where the nominal lens at the robot's pose leaves its
+    named dots ``match`` (index into ``xyz`` per detection, -1: unnamed) off their projections; None when it does
+    not (median residual at most :data:`NAMING_RADIAL_PX`) or there are fewer than 15.
+
+    First the pose: a resection from the robot's pose, without the dots its start puts beyond 3 robust sigma
+    (a principal point off the data sheet's, or an arm's pose error, turn the whole image). If the nominal lens
+    at that pose fits the dots (median at most :data:`NAMING_RADIAL_PX`), ``(intr, pose)``. Otherwise a radial
+    lens (k1, k2 with the pose; the nominal lens's other terms), fitted robustly: ``(lens, pose)`` when it brings
+    the median below :data:`NAMING_RADIAL_GAIN` of the resected nominal's, else None. The lens is fitted with its
+    pose and used with it: a k1, k2 paired with another pose is not a lens."""
     from scipy.optimize import least_squares
 
     sel = np.flatnonzero((match >= 0) & (code[np.maximum(match, 0)] < 0))
     if len(sel) < 15:
         return None
     X, uv = xyz[match[sel]], det_uv[sel]
+    r = np.linalg.norm(project(intr, cam_from_part, X) - uv, axis=1)
+    if not float(np.median(r)) > NAMING_RADIAL_PX:
+        return None
+    pose = cam_from_part
     try:
-        pose = refine_pose_pnp(intr, cam_from_part, X, uv)
+        for _ in range(2):
+            good = r <= max(1.0, 3.0 * 1.4826 * np.median(r)) if np.all(np.isfinite(r)) else np.isfinite(r)
+            pose = refine_pose_pnp(intr, pose, X[good] if good.sum() >= 6 else X, uv[good] if good.sum() >= 6 else uv)
+            r = np.linalg.norm(project(intr, pose, X) - uv, axis=1)
     except CalibrationError:
         return None
-    before = float(np.median(np.linalg.norm(project(intr, pose, X) - uv, axis=1)))
+    before = float(np.median(r))
     if before <= NAMING_RADIAL_PX:
-        return None
+        return intr, pose
     rvec = cv2.Rodrigues(pose[:3, :3])[0].ravel()
 
     def lens(p):
         return replace(intr, k1=intr.k1 + p[6], k2=intr.k2 + p[7])
 
+    def pose_of(p):
+        return make_pose(cv2.Rodrigues(p[:3])[0], p[3:6])
+
     def resid(p):
-        T = make_pose(cv2.Rodrigues(p[:3])[0], p[3:6])
-        return (project(lens(p), T, X) - uv).ravel()
+        return (project(lens(p), pose_of(p), X) - uv).ravel()
 
     fit = least_squares(resid, np.r_[rvec, pose[:3, 3], 0.0, 0.0], loss="soft_l1", f_scale=2.0, x_scale="jac")
     after = float(np.median(np.linalg.norm(fit.fun.reshape(-1, 2), axis=1)))
-    return lens(fit.x) if fit.success and after < NAMING_RADIAL_GAIN * before else None
+    return (lens(fit.x), pose_of(fit.x)) if fit.success and after < NAMING_RADIAL_GAIN * before else None
 
 
 def name_dots(det_uv: np.ndarray, part, intr: Intrinsics, cam_from_part: np.ndarray, occluder: Occluder, *,
@@ -209,19 +284,38 @@ def name_dots(det_uv: np.ndarray, part, intr: Intrinsics, cam_from_part: np.ndar
     seeable = VisibilityOptions(margin_px=0.0, incidence_max_rad=incidence_max_rad, min_target_px=1.0)
     with_codes = coded_ids is not None and len(coded_ids) > 0
 
-    def named(lens):
-        in_view = compute_visibility(part, lens, invert(cam_from_part)[None], seeable, occluder=occluder)[0]
+    def named(lens, pose):
+        in_view = compute_visibility(part, lens, invert(pose)[None], seeable, occluder=occluder)[0]
         cand = np.flatnonzero((in_view & (t.code < 0)) | ((t.code >= 0) if with_codes else False))
-        sub = identify_targets(det_uv, t.xyz[cand], t.code[cand], lens, cam_from_part, max_dist_px,
+        sub = identify_targets(det_uv, t.xyz[cand], t.code[cand], lens, pose, max_dist_px,
                                coded_ids=coded_ids if with_codes else None, coded_uv=coded_uv if with_codes else None)
         return np.where(sub >= 0, cand[np.maximum(sub, 0)], -1)
 
-    match = named(intr)
-    # a lens whose distortion the job does not state moves the image's outer dots off their projections: a radial
-    # lens fitted to this image's named dots names them again (decision 0054); MEASURE's centres do not depend on it
-    naming_lens = naming_radial(intr, cam_from_part, t.xyz, det_uv, match, t.code)
-    if naming_lens is not None:
-        intr, match = naming_lens, named(naming_lens)
+    # the image's dots all off their projections by one shift (a principal point off the data sheet's, a hand-eye
+    # error): named from the pose turned by it, not paired with their neighbours' projections
+    start = cam_from_part
+    dots_all = np.flatnonzero(t.code < 0)
+    if len(dots_all):
+        in_view0 = compute_visibility(part, intr, invert(cam_from_part)[None], seeable, occluder=occluder)[0]
+        ids = np.flatnonzero(in_view0 & (t.code < 0))
+        shift = common_shift(project(intr, cam_from_part, t.xyz[ids]), det_uv) if len(ids) else None
+        if shift is not None:
+            start = turned_by(intr, cam_from_part, shift)
+    match = named(intr, start)
+    # a principal point off the data sheet's, or a lens whose distortion the job does not state, moves the image's
+    # dots off their projections: the pose resected from the named dots, and where that is not enough a radial lens
+    # fitted with it, name them again (decision 0054); MEASURE's centres do not depend on it
+    naming = naming_radial(intr, start, t.xyz, det_uv, match, t.code)
+    if naming is None and start is not cam_from_part:
+        naming = (intr, start)
+    naming_lens = turned = None
+    if naming is not None:
+        if naming[0] is not intr:
+            naming_lens = naming[0]
+        intr, name_pose = naming
+        match = named(intr, name_pose)
+        R = name_pose[:3, :3] @ np.asarray(cam_from_part, dtype=float)[:3, :3].T
+        turned = float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0))))
     dots = np.flatnonzero((match >= 0) & (t.code[np.maximum(match, 0)] < 0))
     radius = part.target_diameter_m / 2
     eye = invert(cam_from_part)[:3, 3]
@@ -287,7 +381,8 @@ def name_dots(det_uv: np.ndarray, part, intr: Intrinsics, cam_from_part: np.ndar
                           None if det_ellipse is None else np.asarray(det_ellipse, dtype=bool)[dots], blur,
                           None if det_clip_bound is None
                           else np.asarray(det_clip_bound, dtype=float).reshape(-1, 2)[dots], outline, centroid_chi2,
-                          moments, bias[keep], None if naming_lens is None else (naming_lens.k1, naming_lens.k2))
+                          moments, bias[keep], None if naming_lens is None else (naming_lens.k1, naming_lens.k2),
+                          turned)
 
 
 def surface_labeller(camera, part) -> SurfaceLabeller | None:

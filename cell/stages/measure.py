@@ -74,6 +74,7 @@ def run(ctx, keep: bool = False) -> None:
                     **({"moments_px2": m.moments_px2} if m.moments_px2 is not None else {}),
                     "eccentricity_px": m.eccentricity_px,
                     **({"naming_radial": list(m.naming_radial)} if m.naming_radial is not None else {}),
+                    **({"named_turned_deg": m.named_turned_deg} if m.named_turned_deg is not None else {}),
                     **({"clip_bound_px": m.clip_bound} if m.clip_bound is not None else {}),
                     **({"outline": m.outline, "centroid_chi2": m.centroid_chi2} if m.outline is not None else {}),
                     "n_unidentified": m.n_unidentified, "n_partly_hidden": m.n_partly_hidden,
@@ -106,6 +107,13 @@ def run(ctx, keep: bool = False) -> None:
         msg = (f"{len(radial)} of {len(out)} images named with a radial lens fitted to their own dots (median k1 "
                f"{k1:+.3f}; [camera] k1 {job.spec.camera.k1:+.3f}): the nominal lens left their outer dots off their "
                "projections. State the lens's distortion in [camera] (k1..p2, from a calibration); ADJUST estimates it")
+        ctx.say(f"  {msg}")
+        ctx.log.log("info", msg)
+    turned = [o["named_turned_deg"] for o in out if o.get("named_turned_deg") is not None]
+    if turned:  # said: the robot's pose, or the lens's principal point, is not what the job says
+        msg = (f"{len(turned)} of {len(out)} images named again from the pose their dots resect (turned "
+               f"{np.median(turned):.2f} deg median, {max(turned):.2f} at most from the robot's): at the robot's pose "
+               "the nominal lens left their dots over 1 px off (principal point or hand-eye off the job's)")
         ctx.say(f"  {msg}")
         ctx.log.log("info", msg)
     other = {k: v for k, v in by_reason.items() if k != "partly hidden (CAD)"}

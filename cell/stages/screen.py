@@ -117,7 +117,8 @@ def resect(intr: Intrinsics, poses: np.ndarray, obs_image: np.ndarray, xyz: np.n
 
     Faugeras-Toscani orients each image with its own interior orientation: its pose, paired with the common
     one, is off by pixels. A resection (PnP) on the image's named targets ``xyz: (q, 3)`` at ``uv: (q, 2)``,
-    twice, the second time without the observations beyond 3 robust sigma (1 px at least) of the first.
+    twice, each time without the observations beyond 3 robust sigma (1 px at least) of the pose before it (the
+    start's, then the first resection's): a few misnamed dots would pull a least-squares resection away.
     An image with fewer than 4 observations keeps its start (the screening leaves it out: too few to orient).
 
     Each resection is checked against its start (median residual of all the image's observations, pose change):
@@ -138,11 +139,18 @@ def resect(intr: Intrinsics, poses: np.ndarray, obs_image: np.ndarray, xyz: np.n
         start = out.poses[i]
         r0 = _median_residual(intr, start, xyz[q], uv[q])
         try:
-            T = refine_pose_pnp(intr, start, xyz[q], uv[q])
-            r = np.linalg.norm(uv[q] - project(intr, T, xyz[q]), axis=1)
-            good = r <= max(1.0, 3.0 * 1.4826 * np.median(r))
-            if good.sum() >= 6:
+            # the first pass without the observations its start already puts beyond 3 robust sigma: a few
+            # misnamed dots tens of pixels off would pull a least-squares resection off a start that fits
+            T, r = start, None
+            if np.isfinite(r0):
+                r = np.linalg.norm(uv[q] - project(intr, start, xyz[q]), axis=1)
+            for _ in range(2):
+                good = (np.ones(len(q), bool) if r is None or not np.all(np.isfinite(r))
+                        else r <= max(1.0, 3.0 * 1.4826 * np.median(r)))
+                if good.sum() < 6:
+                    good[:] = True
                 T = refine_pose_pnp(intr, T, xyz[q[good]], uv[q[good]])
+                r = np.linalg.norm(uv[q] - project(intr, T, xyz[q]), axis=1)
         except CalibrationError as exc:
             out.kept_start[i] = f"resection failed ({exc}); start pose kept (median residual {r0:.2f} px)"
             continue
