@@ -274,11 +274,11 @@ def test_a_misplaced_part_is_located_and_never_reported_quietly_wrong(tmp_path):
 
 def test_a_misplaced_skin_is_located_by_its_coded_markers(tmp_path):
     """A curved skin carries coded markers too (rigid plates touching it at their centre): ``cell locate`` finds a
-    10 mm / 5 deg misplacement within what it states, against the simulated truth."""
+    10 mm / 5 deg misplacement within what it states, against the simulated truth, through the part's drawn lens,
+    which the job does not state (the placement estimates the lens with it: decision 0055)."""
     import csv
 
-    part = make_part_job(tmp_path / "job", np.random.default_rng(100), "skin", misplacement=(10.0, 5.0),
-                         real_lens=False)  # cell locate holds the job's lens (decision 0054: not mended)
+    part = make_part_job(tmp_path / "job", np.random.default_rng(100), "skin", misplacement=(10.0, 5.0))
     with (part.folder / "targets.csv").open(newline="") as f:
         assert sum(r["kind"] == "coded" for r in csv.DictReader(f)) >= 6
     loc = run_cell("locate", str(part.job), "--write", timeout=600)

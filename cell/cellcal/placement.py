@@ -7,6 +7,8 @@ job's hand-eye held fixed. Used by ``cell locate`` (:mod:`cell.cellcal.locate`).
 from __future__ import annotations
 
 
+from dataclasses import replace
+
 import cv2
 import numpy as np
 
@@ -55,12 +57,13 @@ def estimate_part_placement(job: LoadedJob, devices, out, *, n_images: int = 4) 
     that see at least two coded markers. The placement comes first from the markers' corners
     (:func:`_placement_from_codes`), then the dots are identified with it and the placement is
     adjusted on every dot of every image (:func:`refine_hand_eye` with X fixed, Huber loss and
-    rejection); dots are named a second time with the adjusted placement.
+    rejection), then again with the lens's principal distance, principal point, k1 and k2
+    (:func:`placement_with_lens`); dots are named a second time with the adjusted placement and lens.
 
     Returns ``(base_from_part, summary)``; the summary has ``cov`` (6, 6) of ``xi = (omega, tau)``
     with ``true = Exp(xi) @ base_from_part`` (base frame, rad and m) from the image residuals,
     ``sigma_translation_m`` (3,) of the part origin and ``sigma_rotation_rad`` (3,) about the base
-    axes (that covariance plus the bound of a centring bias, :func:`_systematic_bound`), ``coded``
+    axes (that covariance plus the bound of a centring bias, :func:`placement_with_lens`), ``coded``
     (the marker stage) and the figures of the adjustment. The robot's readings and the hand-eye are
     taken as exact: their errors (tens of micrometres on a calibrated UR) come on top.
     """
@@ -81,10 +84,11 @@ def estimate_part_placement(job: LoadedJob, devices, out, *, n_images: int = 4) 
     occluder = Occluder(job.part.mesh)
     dots = [_free_dots(img, m[2]) for img, m in zip(images, markers)]
     Y, coded = _placement_from_codes(job, B, markers, dots, occluder)
+    lens = intr
     for _pass in range(2):
         img_idx, tgt_idx, uvs = [], [], []
         for i, (b, d) in enumerate(zip(B, dots)):
-            tid, uv = _identify_dots(job, d, invert(X) @ invert(b) @ Y, occluder)
+            tid, uv = _identify_dots(job, d, invert(X) @ invert(b) @ Y, occluder, lens)
             img_idx.append(np.full(len(tid), i))
             tgt_idx.append(tid)
             uvs.append(uv)
@@ -92,13 +96,25 @@ def estimate_part_placement(job: LoadedJob, devices, out, *, n_images: int = 4) 
         if len(tgt) < 12:
             raise CalibrationError(f"part placement: only {len(tgt)} dots identified in {len(B)} images (12 needed); "
                                    "check the light and that the part's targets file matches the part")
-        res = refine_hand_eye(intr, B, np.concatenate(img_idx), job.part.targets.xyz[tgt], np.concatenate(uvs), X, Y,
+        res = refine_hand_eye(lens, B, np.concatenate(img_idx), job.part.targets.xyz[tgt], np.concatenate(uvs), X, Y,
                               HandEyeOptions(sigma_px=job.spec.camera.sigma_px, fix_flange_from_cam=True))
-        Y = res.base_from_target
+        ok = ~res.rejected
+        fit = placement_with_lens(intr, lens, B, X, res.base_from_target, np.concatenate(img_idx)[ok],
+                                  job.part.targets.xyz[tgt[ok]], np.concatenate(uvs)[ok])
+        Y, lens = fit["base_from_part"], fit["lens"]
     out.progress("placement", 1.0)
-    cov = res.cov[6:, 6:]
-    sys_r, sys_t = _systematic_bound(intr, B, X, Y, np.concatenate(img_idx)[~res.rejected],
-                                     job.part.targets.xyz[tgt[~res.rejected]])
+    # the markers' views judged again with the lens and placement the dots found: the nominal lens alone leaves the
+    # corners of a view near the image's edge tens of pixels off, which is the lens, not a marker on the wrong target
+    v_img, v_xyz, v_uv = coded.pop("_views")
+    v_rms = np.array([np.sqrt(np.mean(np.sum((project(lens, invert(X) @ invert(B[i]) @ Y, p) - u) ** 2, axis=1)))
+                      for i, p, u in zip(v_img, v_xyz, v_uv)])
+    by_key = {(d["image"], d["target"]): d for d in coded["dropped"]}
+    coded["dropped_at_start"] = len(coded["dropped"])
+    coded["dropped"] = [by_key[(int(v_img[v]), t)] | {"rms_px": float(v_rms[v])}
+                        for v, t in enumerate(coded["views_target"])
+                        if (int(v_img[v]), t) in by_key and v_rms[v] >= PLACEMENT_MARKER_RMS_PX]
+    cov = fit["cov"]
+    sys_r, sys_t = fit["systematic_rotation_rad"], fit["systematic_translation_m"]
     J_origin = np.hstack([-_skew3(Y[:3, 3]), np.eye(3)])  # d(origin) = omega x origin + tau
     sig_t = np.sqrt(np.clip(np.diag(J_origin @ cov @ J_origin.T), 0.0, None) + sys_t**2)
     sig_r = np.sqrt(np.clip(np.diag(cov[:3, :3]), 0.0, None) + sys_r**2)
@@ -107,14 +123,19 @@ def estimate_part_placement(job: LoadedJob, devices, out, *, n_images: int = 4) 
     summary = {"base_from_part": Y, "cov": cov, "sigma_translation_m": sig_t, "sigma_rotation_rad": sig_r,
                "systematic_translation_m": sys_t, "systematic_rotation_rad": sys_r,
                "images": int(len(B)), "n_observations": int(len(tgt)), "n_rejected": int(res.rejected.sum()),
-               "sigma0_px": res.sigma0_px, "per_image_rms_px": res.per_image_rms_px,
+               "sigma0_px": fit["doc"]["sigma0_px"], "per_image_rms_px": res.per_image_rms_px,
                "change_from_nominal_m": dt, "change_from_nominal_rad": dr,
                "coded": coded | {"error_m": dt1, "error_rad": dr1}, "stations_part_from_cam": P,
-               "markers_not_planned": unseen}
+               "markers_not_planned": unseen, "lens": fit["doc"]}
     out.say(f"placement: {len(B)} images, {coded['n_markers']} marker views, {len(tgt)} dots "
-            f"({summary['n_rejected']} rejected), sigma0 {res.sigma0_px:.3f} px; the part is {dt * 1e3:.2f} mm, "
+            f"({summary['n_rejected']} rejected), sigma0 {summary['sigma0_px']:.3f} px; the part is {dt * 1e3:.2f} mm, "
             f"{np.rad2deg(dr):.3f} deg from the job's base_from_part (+- {np.linalg.norm(sig_t) * 1e6:.1f} um, "
             f"{np.rad2deg(np.linalg.norm(sig_r)) * 3600:.1f} arcsec)")
+    ld = fit["doc"]
+    out.say(f"placement: lens estimated with it (decision 0055): principal distance {ld['principal_distance_mm']:.4f} "
+            f"+- {ld['principal_distance_sigma_mm']:.4f} mm (job's {ld['nominal_principal_distance_mm']:.4f}), "
+            f"principal point {ld['principal_point_offset_px'][0]:+.1f}, {ld['principal_point_offset_px'][1]:+.1f} px "
+            f"off the job's, k1 {ld['k1']:+.4f}, k2 {ld['k2']:+.4f}")
     if coded["dropped"]:
         # a marker none of whose views fits the placement is not where the file says; a single view that does not
         # fit while the marker's other views do is a poor view (grazing, partly hidden), not a wrong file
@@ -132,22 +153,81 @@ def estimate_part_placement(job: LoadedJob, devices, out, *, n_images: int = 4) 
     return Y, summary
 
 
-def _systematic_bound(intr: Intrinsics, B: np.ndarray, X: np.ndarray, Y: np.ndarray, obs_image: np.ndarray,
-                      obs_xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Largest effect of a ``PLACEMENT_SYSTEMATIC_PX`` bias on every dot: ``(rotation (3,) rad, origin (3,) m)``.
+#: the lens terms estimated with the placement: the principal distance (fx, fy together), the principal point, k1, k2
+PLACEMENT_LENS_TERMS = ("f", "cx", "cy", "k1", "k2")
 
-    ``s0^2 (J^T J)^-1`` assumes independent centring errors, which average down with the number of
-    dots; a bias does not. With ``G = (J^T J)^-1 J^T`` the gain from each image coordinate to each
-    parameter, biases ``|b| <= s`` move a parameter by at most ``s * sum |G_row|``: that bound is
-    added (in quadrature) to the stated sigmas. Rotations about the base axes; the part origin's
-    position in the base frame.
+
+def _lens_of(start: Intrinsics, q: np.ndarray) -> Intrinsics:
+    """``start`` moved by ``q = (df/f, dcx, dcy, dk1, dk2)``; its aspect and other terms held."""
+    return replace(start, fx_px=start.fx_px * (1.0 + q[0]), fy_px=start.fy_px * (1.0 + q[0]),
+                   cx_px=start.cx_px + q[1], cy_px=start.cy_px + q[2], k1=start.k1 + q[3], k2=start.k2 + q[4])
+
+
+def placement_with_lens(nominal: Intrinsics, start: Intrinsics, B: np.ndarray, X: np.ndarray, Y: np.ndarray,
+                        obs_image: np.ndarray, obs_xyz: np.ndarray, obs_uv: np.ndarray) -> dict:
+    """The placement ``Y`` and the lens's :data:`PLACEMENT_LENS_TERMS` adjusted together on the named dots, with the
+    hand-eye ``X`` and the robot's poses ``B`` held (decision 0055).
+
+    A lens is not its data sheet: its principal distance scales the depth of every dot (0.75 % longer put the
+    part 4.8 mm off at a stated 20 um), and its distortion moves the outer dots. The robot's known motion between
+    the images fixes the depth by itself, so the principal distance, principal point, k1 and k2 are estimated
+    with the placement rather than assumed; their uncertainty enters the placement's.
+
+    Returns ``base_from_part``, ``lens``, ``cov`` (6, 6) of the placement's ``xi = (omega, tau)`` (the lens
+    marginalised; ``s0^2 (J^T J)^-1``), ``systematic_rotation_rad`` / ``systematic_translation_m`` (3,): the largest
+    effect of a ``PLACEMENT_SYSTEMATIC_PX`` bias on every dot (``s0^2 (J^T J)^-1`` assumes independent centring
+    errors, which average down with the number of dots; a bias does not: with ``G = (J^T J)^-1 J^T``, biases
+    ``|b| <= s`` move a parameter by at most ``s * sum |G_row|``), and ``doc`` (the lens found, with its sigmas).
     """
-    _, J = reprojection_jacobian(intr, B, X, Y, obs_image, obs_xyz)
-    Jy = J.reshape(-1, 12)[:, 6:]
-    G = np.linalg.solve(Jy.T @ Jy, Jy.T)  # (6, 2q)
-    G_origin = np.hstack([-_skew3(Y[:3, 3]), np.eye(3)]) @ G
-    s = PLACEMENT_SYSTEMATIC_PX
-    return s * np.abs(G[:3]).sum(axis=1), s * np.abs(G_origin).sum(axis=1)
+    from scipy.optimize import least_squares
+
+    from calibration.camera import exp_se3
+
+    def model(p):
+        Yp = exp_se3(p[:6]) @ Y
+        uv, _ = reprojection_jacobian(_lens_of(start, p[6:]), B, X, Yp, obs_image, obs_xyz, jacobian=False)
+        return uv
+
+    def resid(p):
+        return (model(p) - obs_uv).ravel()
+
+    scale = np.r_[np.full(3, 1e-4), np.full(3, 1e-4), 1e-4, 1.0, 1.0, 1e-3, 1e-3]
+    sol = least_squares(resid, np.zeros(11), x_scale=scale, diff_step=1e-7, loss="linear", xtol=1e-12, ftol=1e-12)
+    p = sol.x
+    J = np.empty((2 * len(obs_uv), 11))
+    for k in range(11):
+        h = np.zeros(11)
+        h[k] = scale[k] * 1e-2
+        J[:, k] = (resid(p + h) - resid(p - h)) / (2 * h[k])
+    r = resid(p)
+    dof = max(len(r) - 11, 1)
+    s0 = float(np.sqrt(r @ r / dof))
+    N = J.T @ J
+    try:
+        Q = np.linalg.inv(N)
+    except np.linalg.LinAlgError:
+        raise CalibrationError("part placement: the lens and the placement cannot be told apart from these images "
+                               "(singular normal equations); plan more overview stations") from None
+    Y1 = exp_se3(p[:6]) @ Y
+    # the tangent at Y1 is the tangent at Y to first order (p small); the origin's Jacobian is taken at Y1
+    G = Q @ J.T
+    G_origin = np.hstack([-_skew3(Y1[:3, 3]), np.eye(3)]) @ G[:6]
+    sb = PLACEMENT_SYSTEMATIC_PX
+    lens = _lens_of(start, p[6:])
+    sig = np.sqrt(np.clip(np.diag(Q), 0.0, None)) * s0
+    f_mm = float(lens.fx_px * nominal.pixel_size_m * 1e3) if nominal.pixel_size_m else float("nan")
+    f_mm_sigma = float(sig[6] * start.fx_px * nominal.pixel_size_m * 1e3) if nominal.pixel_size_m else float("nan")
+    doc = {"terms": list(PLACEMENT_LENS_TERMS),
+           "principal_distance_mm": f_mm, "principal_distance_sigma_mm": f_mm_sigma,
+           "nominal_principal_distance_mm": nominal.fx_px * nominal.pixel_size_m * 1e3 if nominal.pixel_size_m
+           else float("nan"),
+           "principal_point_offset_px": [float(lens.cx_px - nominal.cx_px), float(lens.cy_px - nominal.cy_px)],
+           "principal_point_sigma_px": [float(sig[7]), float(sig[8])],
+           "k1": float(lens.k1), "k1_sigma": float(sig[9]), "k2": float(lens.k2), "k2_sigma": float(sig[10]),
+           "sigma0_px": s0}
+    return {"base_from_part": Y1, "lens": lens, "cov": s0**2 * Q[:6, :6],
+            "systematic_rotation_rad": sb * np.abs(G[:3]).sum(axis=1),
+            "systematic_translation_m": sb * np.abs(G_origin).sum(axis=1), "doc": doc}
 
 
 def _skew3(v: np.ndarray) -> np.ndarray:
@@ -277,7 +357,8 @@ def _placement_from_codes(job: LoadedJob, B: np.ndarray, markers: list, dots: li
     return Y, {"base_from_part": Y, "n_markers": int(len(use)), "images": int(len(set(img[use].tolist()))),
                "sigma0_px": s0, "max_marker_rms_px": float(rms[use].max()), "dropped": dropped,
                "used_targets": sorted({t.ids[views[v][1]] for v in use.tolist()}),
-               "hypotheses": min(3, len(seeds)), "dots_found": int(score)}
+               "views_target": [t.ids[v[1]] for v in views],
+               "hypotheses": min(3, len(seeds)), "dots_found": int(score), "_views": (img, xyz, uv)}
 
 
 def _free_dots(img: np.ndarray, all_corners: np.ndarray) -> np.ndarray:
@@ -289,7 +370,7 @@ def _free_dots(img: np.ndarray, all_corners: np.ndarray) -> np.ndarray:
 
 
 def _identify_dots(job: LoadedJob, det_uv: np.ndarray, cam_from_part: np.ndarray,
-                   occluder: Occluder) -> tuple[np.ndarray, np.ndarray]:
+                   occluder: Occluder, lens: Intrinsics | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Name the dots ``det_uv: (k, 2)`` with the pose ``cam_from_part``; ``(target index (m,), uv (m, 2))``.
 
     Only dots in view from that pose are offered to the matcher (a hidden dot would steal a visible
@@ -298,7 +379,8 @@ def _identify_dots(job: LoadedJob, det_uv: np.ndarray, cam_from_part: np.ndarray
     are not measured; the centres are corrected for the eccentricity of the dot's ellipse.
     """
     t = job.part.targets
-    m = imaging.name_dots(det_uv, job.part, job.intrinsics, cam_from_part, occluder, max_dist_px=PLACEMENT_MATCH_PX)
+    m = imaging.name_dots(det_uv, job.part, lens or job.intrinsics, cam_from_part, occluder,
+                          max_dist_px=PLACEMENT_MATCH_PX)
     sight = invert(cam_from_part)[:3, 3] - t.xyz[m.target]
     cos_inc = np.sum(sight * t.normals[m.target], axis=1) / np.linalg.norm(sight, axis=1)
     steep = cos_inc >= np.cos(np.deg2rad(job.spec.planning.incidence_max_deg))
