@@ -304,7 +304,7 @@ def name_dots(det_uv: np.ndarray, part, intr: Intrinsics, cam_from_part: np.ndar
     match = named(intr, start)
     # a principal point off the data sheet's, or a lens whose distortion the job does not state, moves the image's
     # dots off their projections: the pose resected from the named dots, and where that is not enough a radial lens
-    # fitted with it, name them again (decision 0054); MEASURE's centres do not depend on it
+    # fitted with it, name them again (decisions 0054, 0055); MEASURE's centres do not depend on it
     naming = naming_radial(intr, start, t.xyz, det_uv, match, t.code)
     if naming is None and start is not cam_from_part:
         naming = (intr, start)
