@@ -394,6 +394,118 @@ def refine_hand_eye(intr: Intrinsics, base_from_flange: np.ndarray, obs_image: n
     )
 
 
+#: the lens terms :func:`refine_with_lens` can estimate, and the step (in their units) its numerical Jacobian takes:
+#: the principal distance (relative; fx and fy together), the principal point (px), the distortion terms
+LENS_TERMS = {"f": 1e-6, "cx": 1e-2, "cy": 1e-2, "k1": 1e-5, "k2": 1e-5, "k3": 1e-5, "p1": 1e-7, "p2": 1e-7}
+
+
+def lens_moved(start: Intrinsics, terms: tuple[str, ...], q: np.ndarray) -> Intrinsics:
+    """``start`` moved by ``q`` (one value per name in ``terms``: ``f`` relative, the others added)."""
+    from dataclasses import replace
+
+    ch = {}
+    for name, v in zip(terms, q):
+        if name == "f":
+            ch["fx_px"], ch["fy_px"] = start.fx_px * (1.0 + v), start.fy_px * (1.0 + v)
+        else:
+            key = {"cx": "cx_px", "cy": "cy_px"}.get(name, name)
+            ch[key] = getattr(start, key) + v
+    return replace(start, **ch)
+
+
+@dataclass
+class LensRefinement:
+    """X, Y and the lens adjusted together (:func:`refine_with_lens`).
+
+    Attributes:
+        flange_from_cam, base_from_target: (4, 4) X and Y; lens: the interior orientation found.
+        cov: (12 + L, 12 + L) covariance of ``(xi_X, xi_Y, lens terms)`` (``s0^2 (J^T J)^-1``; X's rows and columns
+            zero when X was held); gain: (12 + L, 2q) ``(J^T J)^-1 J^T`` (for bounds of a bias common to the dots).
+        terms: the lens terms' names; sigma0_px; dof.
+    """
+
+    flange_from_cam: np.ndarray
+    base_from_target: np.ndarray
+    lens: Intrinsics
+    cov: np.ndarray
+    gain: np.ndarray
+    terms: tuple
+    sigma0_px: float
+    dof: int
+
+    def lens_sigma(self) -> dict:
+        """Each lens term's sigma (``f`` relative, ``cx, cy`` px, the distortion terms as they are)."""
+        return {t: float(np.sqrt(max(self.cov[12 + k, 12 + k], 0.0))) for k, t in enumerate(self.terms)}
+
+
+def refine_with_lens(start: Intrinsics, base_from_flange: np.ndarray, obs_image: np.ndarray, obs_xyz: np.ndarray,
+                     obs_uv: np.ndarray, flange_from_cam0: np.ndarray, base_from_target0: np.ndarray,
+                     terms: tuple[str, ...] = ("f", "cx", "cy", "k1", "k2"), fix_flange_from_cam: bool = False
+                     ) -> LensRefinement:
+    """X, Y and the lens's ``terms`` (:data:`LENS_TERMS`) adjusted together on observations already screened (e.g.
+    by :func:`refine_hand_eye`, whose solution is a good start), least squares.
+
+    A lens is not its data sheet: held at it, its principal distance scales every depth and its distortion moves
+    the outer dots, and X and Y absorb both (decision 0055). The robot's known motion between the images fixes the
+    scale, so the lens is determined with them; its uncertainty enters theirs through the joint covariance.
+    """
+    obs_image = np.asarray(obs_image, dtype=int)
+    obs_xyz = np.asarray(obs_xyz, dtype=float).reshape(-1, 3)
+    obs_uv = np.asarray(obs_uv, dtype=float).reshape(-1, 2)
+    B = np.asarray(base_from_flange, dtype=float)
+    X0, Y0 = np.asarray(flange_from_cam0, dtype=float), np.asarray(base_from_target0, dtype=float)
+    terms = tuple(terms)
+    n_pose = 6 if fix_flange_from_cam else 12
+    n = n_pose + len(terms)
+    if 2 * len(obs_uv) <= n + 6:
+        raise CalibrationError(f"lens refinement: {len(obs_uv)} observations are too few for {n} unknowns")
+    steps = np.r_[np.full(n_pose, 1e-7), [LENS_TERMS[t] for t in terms]]
+
+    def split(p):
+        X, Y = _compose(X0, Y0, np.r_[np.zeros(6), p[:6]] if fix_flange_from_cam else p[:12], fix_flange_from_cam)
+        return X, Y, lens_moved(start, terms, p[n_pose:])
+
+    def resid(p):
+        X, Y, lens = split(p)
+        uv, _ = reprojection_jacobian(lens, B, X, Y, obs_image, obs_xyz, jacobian=False)
+        return (uv - obs_uv).ravel()
+
+    def jac(p):
+        X, Y, lens = split(p)
+        _, Jp = reprojection_jacobian(lens, B, X, Y, obs_image, obs_xyz)
+        Jp = Jp.reshape(-1, 12)[:, 6:] if fix_flange_from_cam else Jp.reshape(-1, 12)
+        Jl = np.empty((2 * len(obs_uv), len(terms)))
+        for k in range(len(terms)):
+            h = np.zeros(n)
+            h[n_pose + k] = steps[n_pose + k]
+            Jl[:, k] = (resid(p + h) - resid(p - h)) / (2 * steps[n_pose + k])
+        return np.hstack([Jp, Jl])
+
+    sol = least_squares(resid, np.zeros(n), jac=jac, method="trf", x_scale="jac", xtol=1e-12, ftol=1e-12,
+                        gtol=1e-12, max_nfev=50)
+    X, Y, lens = split(sol.x)
+    # covariance at the solution (the tangent there is the start's to first order: the steps are small)
+    J = jac(np.r_[sol.x])
+    r = resid(sol.x)
+    dof = int(len(r) - n)
+    s0 = float(np.sqrt(r @ r / max(dof, 1)))
+    d = np.sqrt(np.maximum(np.einsum("ij,ij->j", J, J), 1e-300))  # column scaling: a metre and a pixel differ
+    Js = J / d
+    try:
+        Qs = np.linalg.inv(Js.T @ Js)
+    except np.linalg.LinAlgError:
+        raise CalibrationError("lens refinement: singular normal equations; these stations cannot tell the lens from "
+                               "the poses (more stations, other distances and tilts)") from None
+    Q = Qs / np.outer(d, d)
+    G = Q @ J.T
+    cov = np.zeros((12 + len(terms), 12 + len(terms)))
+    gain = np.zeros((12 + len(terms), len(r)))
+    idx = np.r_[np.arange(6, 12), np.arange(12, 12 + len(terms))] if fix_flange_from_cam else np.arange(n)
+    cov[np.ix_(idx, idx)] = s0**2 * Q
+    gain[idx] = G
+    return LensRefinement(X, Y, lens, cov, gain, terms, s0, dof)
+
+
 # --- station choice ----------------------------------------------------------------------------
 
 

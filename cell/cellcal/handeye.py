@@ -10,7 +10,7 @@ from calibration.camera import invert
 from calibration.errors import CalibrationError, InputError, PlanningError
 from calibration.faugeras_toscani import faugeras_toscani
 from calibration.handeye import (HandEyeConditioning, HandEyeOptions, compare_methods, hand_eye_conditioning,
-                                 hand_eye_information, pose_error, refine_hand_eye)
+                                 hand_eye_information, pose_error, refine_hand_eye, refine_with_lens)
 from calibration.targets import refine_pose_pnp
 from cell.cellcal.common import (StationPlan, artefact_job, capture_at, measure_image, plan_stations, record_folder,
                                  save_image)
@@ -18,6 +18,12 @@ from cell.cellcal.cellfile import load_cell_file, write_flange_from_cam
 from cell.record.jobfolder import atomic_write_json, utc_now
 from cell.loadedjob import LoadedJob
 from planning.visibility import Occluder
+
+
+#: the lens terms the hand-eye estimates with X and Y (the artefact seen from many stations determines them all)
+HAND_EYE_LENS_TERMS = ("f", "cx", "cy", "k1", "k2", "k3", "p1", "p2")
+#: sigma0 beyond this many times the camera's sigma_px: the hand-eye is not written (the model does not fit)
+HAND_EYE_MAX_VARIANCE_RATIO = 3.0
 
 
 def plan_hand_eye_stations(job: LoadedJob, he, sigma_px: float, out) -> tuple[StationPlan, HandEyeConditioning, list]:
@@ -128,6 +134,17 @@ def run_hand_eye(cell_toml: Path, archive_root: Path, out, *, backend: str | Non
     best = sols[0]
     res = refine_hand_eye(intr, B, img_idx, job.part.targets.xyz[tgt_idx], uvs, best.flange_from_cam,
                           best.base_from_target, HandEyeOptions(sigma_px=cf.camera.sigma_px))
+    # the lens with them: held at the data sheet's, X absorbs its principal distance and distortion (decision 0055)
+    ok = ~res.rejected
+    fit = refine_with_lens(intr, B, img_idx[ok], job.part.targets.xyz[tgt_idx[ok]], uvs[ok], res.flange_from_cam,
+                           res.base_from_target, HAND_EYE_LENS_TERMS)
+    from cell.cellcal.placement import lens_doc
+
+    lens = lens_doc(intr, fit)
+    cov_x = fit.cov[:6, :6]
+    R = fit.flange_from_cam[:3, :3]
+    sig_t = np.sqrt(np.clip(np.diag(R @ cov_x[3:, 3:] @ R.T), 0, None))
+    sig_r = np.sqrt(np.clip(np.diag(R @ cov_x[:3, :3] @ R.T), 0, None))
     methods = []
     for s in sols:
         row = {"method": s.method, "flange_from_cam": s.flange_from_cam,
@@ -142,29 +159,47 @@ def run_hand_eye(cell_toml: Path, archive_root: Path, out, *, backend: str | Non
            "methods": methods, "methods_failed": failed, "start_method": best.method,
            "planning": {"stations_part_from_cam": sp.part_from_cam, "joints": sp.joints, "facts": sp.facts,
                         "conditioning": cond.to_dict(), "networks_tried": tried},
-           "flange_from_cam": res.flange_from_cam, "flange_from_cam_before": X0,
-           "base_from_artefact": res.base_from_target, "covariance": res.cov,
-           "sigma_translation_m": res.sigma_translation_m, "sigma_rotation_rad": res.sigma_rotation_rad,
-           "sigma0_px": res.sigma0_px, "n_rejected": int(res.rejected.sum()), "dof": res.dof,
+           "flange_from_cam": fit.flange_from_cam, "flange_from_cam_before": X0,
+           "base_from_artefact": fit.base_from_target, "covariance": fit.cov[:12, :12],
+           "covariance_with_lens": fit.cov, "lens": lens,
+           "sigma_translation_m": sig_t, "sigma_rotation_rad": sig_r,
+           "sigma0_px": fit.sigma0_px, "sigma0_px_nominal_lens": res.sigma0_px,
+           "n_rejected": int(res.rejected.sum()), "dof": fit.dof,
            "per_image_rms_px": res.per_image_rms_px, "refinement": res.history,
-           "change_translation_m": pose_error(res.flange_from_cam, X0)[0],
-           "change_rotation_rad": pose_error(res.flange_from_cam, X0)[1]}
+           "change_translation_m": pose_error(fit.flange_from_cam, X0)[0],
+           "change_rotation_rad": pose_error(fit.flange_from_cam, X0)[1]}
     if truth is not None:
-        dt, dr = pose_error(res.flange_from_cam, truth[0])
+        dt, dr = pose_error(fit.flange_from_cam, truth[0])
         doc["truth"] = {"flange_from_cam": truth[0], "error_translation_m": dt, "error_rotation_rad": dr,
-                        "placement_error_translation_m": pose_error(res.base_from_target, truth[1])[0]}
+                        "placement_error_translation_m": pose_error(fit.base_from_target, truth[1])[0]}
+    out.say(f"hand-eye: lens estimated with it: principal distance {lens['principal_distance_mm']:.4f} "
+            f"+- {lens['principal_distance_sigma_mm']:.4f} mm (the cell file's {lens['nominal_principal_distance_mm']:.4f}), "
+            f"principal point {lens['principal_point_offset_px'][0]:+.1f}, {lens['principal_point_offset_px'][1]:+.1f} px "
+            f"off the file's, k1 {lens['k1']:+.4f}; sigma0 {fit.sigma0_px:.3f} px (with the file's lens "
+            f"{res.sigma0_px:.3f})")
+    # the images must fit as well as the camera measures: a hand-eye from images its model does not explain is not
+    # written into the cell file (every job would inherit it)
+    if not fit.sigma0_px <= HAND_EYE_MAX_VARIANCE_RATIO * cf.camera.sigma_px:
+        why = (f"the images fit {fit.sigma0_px:.3f} px, beyond {HAND_EYE_MAX_VARIANCE_RATIO:g}x the camera's sigma_px "
+               f"{cf.camera.sigma_px:g} even with the lens estimated: the model does not explain them (a lens beyond "
+               "k3 and p1, p2, a moving artefact, a robot pose that is not the image's)")
+        doc["refused"] = why
+        atomic_write_json(rec.file("hand_eye.json"), doc)
+        rec.append("terminal", status="FAULTED", reason=why)
+        rec.write_manifest()
+        raise CalibrationError(f"hand-eye: not written to {cell_toml}: {why}; record {rec.job_id}")
     atomic_write_json(rec.file("hand_eye.json"), doc)
-    write_flange_from_cam(cell_toml, res.flange_from_cam, date, record=rec.job_id)
-    rec.append("cell_file_updated", flange_from_cam=res.flange_from_cam, date=date)
+    write_flange_from_cam(cell_toml, fit.flange_from_cam, date, record=rec.job_id)
+    rec.append("cell_file_updated", flange_from_cam=fit.flange_from_cam, date=date)
     rec.append("terminal", status="DONE", reason="")
     rec.write_manifest()
     summary = {"status": "ok", "record": rec.job_id, "folder": str(rec.path), "date": date,
-               "flange_from_cam": res.flange_from_cam, "sigma_translation_m": res.sigma_translation_m,
-               "sigma_rotation_rad": res.sigma_rotation_rad, "sigma0_px": res.sigma0_px,
+               "flange_from_cam": fit.flange_from_cam, "sigma_translation_m": sig_t,
+               "sigma_rotation_rad": sig_r, "sigma0_px": fit.sigma0_px, "lens": lens,
                "methods": methods, "methods_failed": failed, "images": int(len(B)), "truth": doc.get("truth"),
                "planned_conditioning": cond.to_dict()}
-    st, sr = np.linalg.norm(res.sigma_translation_m), np.rad2deg(np.linalg.norm(res.sigma_rotation_rad))
-    out.say(f"hand-eye: {len(B)} images, sigma0 {res.sigma0_px:.3f} px; flange_from_cam +- {st * 1e3:.3f} mm, "
+    st, sr = np.linalg.norm(sig_t), np.rad2deg(np.linalg.norm(sig_r))
+    out.say(f"hand-eye: {len(B)} images, sigma0 {fit.sigma0_px:.3f} px; flange_from_cam +- {st * 1e3:.3f} mm, "
             f"{sr:.4f} deg; written to {cell_toml} ({date})")
     return summary
 

@@ -7,14 +7,12 @@ job's hand-eye held fixed. Used by ``cell locate`` (:mod:`cell.cellcal.locate`).
 from __future__ import annotations
 
 
-from dataclasses import replace
-
 import cv2
 import numpy as np
 
 from calibration.camera import Intrinsics, invert, make_pose, project
 from calibration.errors import CalibrationError, InputError, ReachabilityError
-from calibration.handeye import (HandEyeOptions, pose_error, refine_hand_eye, reprojection_jacobian)
+from calibration.handeye import HandEyeOptions, pose_error, refine_hand_eye, refine_with_lens
 from calibration.targets import DetectionOptions, detect_coded_targets, detect_retro_targets
 from cell.stages import imaging
 from cell.cellcal.common import capture_at, plan_stations
@@ -157,77 +155,46 @@ def estimate_part_placement(job: LoadedJob, devices, out, *, n_images: int = 4) 
 PLACEMENT_LENS_TERMS = ("f", "cx", "cy", "k1", "k2")
 
 
-def _lens_of(start: Intrinsics, q: np.ndarray) -> Intrinsics:
-    """``start`` moved by ``q = (df/f, dcx, dcy, dk1, dk2)``; its aspect and other terms held."""
-    return replace(start, fx_px=start.fx_px * (1.0 + q[0]), fy_px=start.fy_px * (1.0 + q[0]),
-                   cx_px=start.cx_px + q[1], cy_px=start.cy_px + q[2], k1=start.k1 + q[3], k2=start.k2 + q[4])
-
-
 def placement_with_lens(nominal: Intrinsics, start: Intrinsics, B: np.ndarray, X: np.ndarray, Y: np.ndarray,
                         obs_image: np.ndarray, obs_xyz: np.ndarray, obs_uv: np.ndarray) -> dict:
     """The placement ``Y`` and the lens's :data:`PLACEMENT_LENS_TERMS` adjusted together on the named dots, with the
-    hand-eye ``X`` and the robot's poses ``B`` held (decision 0055).
+    hand-eye ``X`` and the robot's poses ``B`` held (:func:`calibration.handeye.refine_with_lens`; decision 0055).
 
     A lens is not its data sheet: its principal distance scales the depth of every dot (0.75 % longer put the
     part 4.8 mm off at a stated 20 um), and its distortion moves the outer dots. The robot's known motion between
-    the images fixes the depth by itself, so the principal distance, principal point, k1 and k2 are estimated
-    with the placement rather than assumed; their uncertainty enters the placement's.
+    the images fixes the depth by itself, so the lens is estimated with the placement rather than assumed.
 
     Returns ``base_from_part``, ``lens``, ``cov`` (6, 6) of the placement's ``xi = (omega, tau)`` (the lens
-    marginalised; ``s0^2 (J^T J)^-1``), ``systematic_rotation_rad`` / ``systematic_translation_m`` (3,): the largest
-    effect of a ``PLACEMENT_SYSTEMATIC_PX`` bias on every dot (``s0^2 (J^T J)^-1`` assumes independent centring
-    errors, which average down with the number of dots; a bias does not: with ``G = (J^T J)^-1 J^T``, biases
-    ``|b| <= s`` move a parameter by at most ``s * sum |G_row|``), and ``doc`` (the lens found, with its sigmas).
+    marginalised), ``systematic_rotation_rad`` / ``systematic_translation_m`` (3,): the largest effect of a
+    ``PLACEMENT_SYSTEMATIC_PX`` bias on every dot (``s0^2 (J^T J)^-1`` assumes independent centring errors, which
+    average down with the number of dots; a bias does not: with ``G = (J^T J)^-1 J^T``, biases ``|b| <= s`` move a
+    parameter by at most ``s * sum |G_row|``), and ``doc`` (the lens found, with its sigmas).
     """
-    from scipy.optimize import least_squares
-
-    from calibration.camera import exp_se3
-
-    def model(p):
-        Yp = exp_se3(p[:6]) @ Y
-        uv, _ = reprojection_jacobian(_lens_of(start, p[6:]), B, X, Yp, obs_image, obs_xyz, jacobian=False)
-        return uv
-
-    def resid(p):
-        return (model(p) - obs_uv).ravel()
-
-    scale = np.r_[np.full(3, 1e-4), np.full(3, 1e-4), 1e-4, 1.0, 1.0, 1e-3, 1e-3]
-    sol = least_squares(resid, np.zeros(11), x_scale=scale, diff_step=1e-7, loss="linear", xtol=1e-12, ftol=1e-12)
-    p = sol.x
-    J = np.empty((2 * len(obs_uv), 11))
-    for k in range(11):
-        h = np.zeros(11)
-        h[k] = scale[k] * 1e-2
-        J[:, k] = (resid(p + h) - resid(p - h)) / (2 * h[k])
-    r = resid(p)
-    dof = max(len(r) - 11, 1)
-    s0 = float(np.sqrt(r @ r / dof))
-    N = J.T @ J
-    try:
-        Q = np.linalg.inv(N)
-    except np.linalg.LinAlgError:
-        raise CalibrationError("part placement: the lens and the placement cannot be told apart from these images "
-                               "(singular normal equations); plan more overview stations") from None
-    Y1 = exp_se3(p[:6]) @ Y
-    # the tangent at Y1 is the tangent at Y to first order (p small); the origin's Jacobian is taken at Y1
-    G = Q @ J.T
-    G_origin = np.hstack([-_skew3(Y1[:3, 3]), np.eye(3)]) @ G[:6]
+    fit = refine_with_lens(start, B, obs_image, obs_xyz, obs_uv, X, Y, PLACEMENT_LENS_TERMS, fix_flange_from_cam=True)
+    Y1, lens = fit.base_from_target, fit.lens
+    G = fit.gain[6:12]
+    G_origin = np.hstack([-_skew3(Y1[:3, 3]), np.eye(3)]) @ G
     sb = PLACEMENT_SYSTEMATIC_PX
-    lens = _lens_of(start, p[6:])
-    sig = np.sqrt(np.clip(np.diag(Q), 0.0, None)) * s0
-    f_mm = float(lens.fx_px * nominal.pixel_size_m * 1e3) if nominal.pixel_size_m else float("nan")
-    f_mm_sigma = float(sig[6] * start.fx_px * nominal.pixel_size_m * 1e3) if nominal.pixel_size_m else float("nan")
-    doc = {"terms": list(PLACEMENT_LENS_TERMS),
-           "principal_distance_mm": f_mm, "principal_distance_sigma_mm": f_mm_sigma,
-           "nominal_principal_distance_mm": nominal.fx_px * nominal.pixel_size_m * 1e3 if nominal.pixel_size_m
-           else float("nan"),
-           "principal_point_offset_px": [float(lens.cx_px - nominal.cx_px), float(lens.cy_px - nominal.cy_px)],
-           "principal_point_sigma_px": [float(sig[7]), float(sig[8])],
-           "k1": float(lens.k1), "k1_sigma": float(sig[9]), "k2": float(lens.k2), "k2_sigma": float(sig[10]),
-           "sigma0_px": s0}
-    return {"base_from_part": Y1, "lens": lens, "cov": s0**2 * Q[:6, :6],
+    return {"base_from_part": Y1, "lens": lens, "cov": fit.cov[6:12, 6:12],
             "systematic_rotation_rad": sb * np.abs(G[:3]).sum(axis=1),
-            "systematic_translation_m": sb * np.abs(G_origin).sum(axis=1), "doc": doc}
+            "systematic_translation_m": sb * np.abs(G_origin).sum(axis=1), "doc": lens_doc(nominal, fit)}
+
+
+def lens_doc(nominal: Intrinsics, fit) -> dict:
+    """What a :class:`calibration.handeye.LensRefinement` found of the lens, against the ``nominal`` one: the
+    principal distance (mm) and principal point offset (px) with their sigmas, and each distortion term's."""
+    lens, sig = fit.lens, fit.lens_sigma()
+    mm = (nominal.pixel_size_m or float("nan")) * 1e3
+    doc = {"terms": list(fit.terms), "sigma0_px": fit.sigma0_px,
+           "principal_distance_mm": float(lens.fx_px * mm), "nominal_principal_distance_mm": float(nominal.fx_px * mm),
+           "principal_distance_sigma_mm": float(sig.get("f", 0.0) * lens.fx_px * mm),
+           "principal_point_offset_px": [float(lens.cx_px - nominal.cx_px), float(lens.cy_px - nominal.cy_px)],
+           "principal_point_sigma_px": [sig.get("cx", 0.0), sig.get("cy", 0.0)]}
+    for t in ("k1", "k2", "k3", "p1", "p2"):
+        doc[t] = float(getattr(lens, t))
+        if t in sig:
+            doc[f"{t}_sigma"] = sig[t]
+    return doc
 
 
 def _skew3(v: np.ndarray) -> np.ndarray:
