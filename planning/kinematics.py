@@ -141,7 +141,9 @@ class CollisionReport:
     Attributes:
         free: no pair is closer than the world's clearance.
         distance_m: smallest distance over all checked pairs (negative: penetration depth
-            estimate); inf when nothing was checked.
+            estimate); inf when nothing was checked. A part mesh of more than
+            :data:`HULL_STAND_IN_FACES` faces is measured through its convex hull where that is
+            more than :data:`PART_EXACT_WITHIN_M` beyond the clearance: there, a lower bound.
         pair: names of the closest pair ("wrist_3_link", "part").
     """
 
@@ -369,6 +371,17 @@ class _Scene:
     pair_names: list[tuple[str, str]]
     pool: pin.GeometryPool | None = None
     margin_pools: dict = field(default_factory=dict)  # security margin (m) -> GeometryPool
+    # the part's convex hull against the robot (a model of its own: its pairs must never count as collisions),
+    # and for each of its pairs the pair of the part's mesh it stands for (:meth:`RobotModel.check_collision`)
+    hull_gmodel: pin.GeometryModel | None = None
+    hull_gdata: pin.GeometryData | None = None
+    hull_pairs: tuple = ()
+
+
+#: a part mesh with more faces than this gets a convex-hull stand-in for its distances (a far mesh costs tens of ms)
+HULL_STAND_IN_FACES = 2000
+#: the part's exact distance is computed when its hull is nearer than this beyond the clearance
+PART_EXACT_WITHIN_M = 0.05
 
 
 class RobotModel:
@@ -588,6 +601,20 @@ class RobotModel:
         for req in gd.collisionRequests:
             req.security_margin = float(world.clearance_m)
         scene = _Scene(gmodel=gm, gdata=gd, pair_names=names)
+        if world.part_mesh is not None and len(world.part_mesh.faces) > HULL_STAND_IN_FACES:
+            # the hull contains the part: its distance is a lower bound of the part's, cheap at any range
+            hgm = pin.GeometryModel()
+            hull_id = hgm.addGeometryObject(pin.GeometryObject("part_hull", 0, _se3(world.base_from_part),
+                                                               _mesh_bvh(world.part_mesh.convex_hull)))
+            own = {}
+            for gid in robot_ids:
+                own[gid] = hgm.addGeometryObject(pin.GeometryObject(gm.geometryObjects[gid]))
+            hp = []
+            for k, (i, j) in enumerate(pairs):
+                if j == world_ids[0]:
+                    hgm.addCollisionPair(pin.CollisionPair(own[i], hull_id))
+                    hp.append(k)
+            scene.hull_gmodel, scene.hull_gdata, scene.hull_pairs = hgm, pin.GeometryData(hgm), tuple(hp)
         self._scenes[key] = scene
         return scene
 
@@ -596,8 +623,12 @@ class RobotModel:
         scene = self._scene(world)
         if not scene.pair_names:
             return CollisionReport(True, float("inf"), ("", ""))
-        pin.computeDistances(self.model, self.data, scene.gmodel, scene.gdata, np.asarray(q, dtype=float))
-        d = np.array([r.min_distance for r in scene.gdata.distanceResults])
+        q = np.asarray(q, dtype=float)
+        if scene.hull_gmodel is None:
+            pin.computeDistances(self.model, self.data, scene.gmodel, scene.gdata, q)
+            d = np.array([r.min_distance for r in scene.gdata.distanceResults])
+        else:
+            d = self._distances_with_hull(q, scene, world.clearance_m)
         # coal's distance between a shape and a mesh is only a lower bound once they
         # intersect: confirm with the collision test, which is exact
         k = int(np.argmin(d))
@@ -609,6 +640,21 @@ class RobotModel:
                 k = hits[0]
                 d[k] = min(d[k], 0.0)
         return CollisionReport(free=not collided, distance_m=float(d[k]), pair=scene.pair_names[k])
+
+    def _distances_with_hull(self, q: np.ndarray, scene: _Scene, clearance_m: float) -> np.ndarray:
+        """Every pair's distance at ``q``, the part's through its convex hull where that is farther than
+        :data:`PART_EXACT_WITHIN_M` beyond the clearance: a lower bound there (the hull contains the part), which
+        a conservative advancement may step by; nearer, the part's mesh itself."""
+        gm, gd = scene.gmodel, scene.gdata
+        pin.updateGeometryPlacements(self.model, self.data, gm, gd, q)
+        pin.updateGeometryPlacements(self.model, self.data, scene.hull_gmodel, scene.hull_gdata, q)
+        part = set(scene.hull_pairs)
+        d = np.array([np.inf if k in part else pin.computeDistance(gm, gd, k).min_distance
+                      for k in range(len(scene.pair_names))])
+        for hk, k in enumerate(scene.hull_pairs):
+            dh = pin.computeDistance(scene.hull_gmodel, scene.hull_gdata, hk).min_distance
+            d[k] = dh if dh >= clearance_m + PART_EXACT_WITHIN_M else pin.computeDistance(gm, gd, k).min_distance
+        return d
 
     def collision_free(self, q: np.ndarray, world: CollisionWorld) -> CollisionReport:
         """Collision check at q (6,): a CollisionReport, truthy when free (distance in .distance_m)."""

@@ -189,3 +189,34 @@ def test_batched_collision_check_agrees_with_single_checks():
     single = np.array([bool(robot.collision_free(qi, world)) for qi in q])
     np.testing.assert_array_equal(batch, single)
     assert 0 < batch.sum() < len(q)
+
+
+def test_a_dense_part_is_measured_through_its_hull_far_away_and_exactly_near(monkeypatch):
+    """A part of more than HULL_STAND_IN_FACES faces (a generated skin has 70 000: 39 ms a check, far links costing
+    most) is measured through its convex hull where that is more than PART_EXACT_WITHIN_M beyond the clearance: a
+    lower bound of the exact distance there, the exact distance nearer, and the same verdict everywhere. A concave
+    part (a bowl) puts links inside its hull: those take the exact distance."""
+    import planning.kinematics as kin
+
+    ball = trimesh.creation.icosphere(subdivisions=4, radius=0.25)
+    lower = ball.triangles_center[:, 2] < 0.0
+    bowl = ball.submesh([np.flatnonzero(lower)], append=True)  # the lower half: open, concave from above
+    assert len(bowl.faces) > kin.HULL_STAND_IN_FACES
+    pose = np.eye(4)
+    pose[:3, 3] = (0.45, 0.1, 0.35)
+    world = CollisionWorld(part_mesh=bowl, base_from_part=pose, table_z=0.0, clearance_m=0.005)
+    q = np.random.default_rng(5).uniform(-np.pi, np.pi, (120, 6))
+    hull = load_robot("ur5e")
+    got = [hull.check_collision(qi, world) for qi in q]
+    monkeypatch.setattr(kin, "HULL_STAND_IN_FACES", 10**9)
+    exact = load_robot("ur5e")
+    want = [exact.check_collision(qi, world) for qi in q]
+    assert [g.free for g in got] == [w.free for w in want]
+    assert 0 < sum(g.free for g in got) < len(q)
+    near = 0
+    for g, w in zip(got, want):
+        assert g.distance_m <= w.distance_m + 1e-9
+        if w.distance_m < world.clearance_m + kin.PART_EXACT_WITHIN_M or "part" not in w.pair:
+            near += "part" in w.pair
+            assert g.distance_m == pytest.approx(w.distance_m, abs=1e-6) and g.pair == w.pair  # penetration: 1e-7
+    assert near > 0
