@@ -97,6 +97,11 @@ def test_the_hand_eye_through_a_lens_the_cell_file_does_not_state_estimates_the_
     assert abs(lens["principal_distance_mm"] - 8.06) < 0.002 and s["sigma0_px"] < 0.03, lens
     assert np.allclose(lens["principal_point_offset_px"], [16.5, -11.5], atol=0.5)
     assert abs(lens["k1"] + 0.06) < 0.005 and abs(lens["p2"] + 2.5e-4) < 5e-5, lens
+    # the lens is written with the hand-eye, and the reverification measures through it: with the data sheet's
+    # lens the bar came out 4.1-5.0 mm short and the cell was failed with "recalibrate the hand-eye"
+    assert cf.cell.camera_lens is not None and abs(cf.cell.camera_lens.k1 + 0.06) < 0.005
+    rv = run_reverification(cell, tmp_path / "archive", _Out())
+    assert rv["passed"], rv["detail"]
     # a hand-eye whose images the model does not explain is refused, and the cell file keeps what it had
     (tmp_path / "b").mkdir()
     cell = _cell(tmp_path / "b", lens=REAL_LENS)

@@ -5,7 +5,8 @@ relative paths are relative to the cell file's folder):
 
 * ``[cell]``: as a job file's ``[cell]`` (robot, backend, host, obstacles, limits,
   ``flange_from_cam``) plus ``name``, ``units`` and, written by the hand-eye job,
-  ``flange_from_cam_date`` (ISO 8601, UTC) and ``flange_from_cam_record`` (its archive record).
+  ``flange_from_cam_date`` (ISO 8601, UTC), ``flange_from_cam_record`` (its archive record) and
+  ``camera_lens``, the lens estimated with it (the cell's own jobs use it in place of ``[camera]``'s data sheet).
   ``base_from_part`` has no meaning for a cell and is not allowed.
 * ``[camera]``: as a job file's ``[camera]``.
 * ``[hand_eye]``: the calibration artefact (mesh, targets, dot and marker size), its approximate
@@ -52,12 +53,29 @@ class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
 
+class CameraLens(_Strict):
+    """The lens the hand-eye was calibrated with (pixels; distortion in normalised coordinates), written with it."""
+
+    fx_px: float = Field(gt=0)
+    fy_px: float = Field(gt=0)
+    cx_px: float
+    cy_px: float
+    k1: float = 0.0
+    k2: float = 0.0
+    k3: float = 0.0
+    p1: float = 0.0
+    p2: float = 0.0
+
+
 class CellFileCell(CellSection):
     name: str = Field(min_length=1)
     units: Literal["m", "mm", "cm", "um", "in", "ft"] = "mm"
     base_from_part: None = None  # a cell has no part; jobs state where theirs is
     flange_from_cam_date: str | None = Field(default=None, description="when flange_from_cam was calibrated")
     flange_from_cam_record: str | None = Field(default=None, description="archive record of that calibration")
+    camera_lens: CameraLens | None = Field(
+        default=None, description="the lens estimated with flange_from_cam (written by the hand-eye job; the "
+        "cell's own jobs use it in place of [camera]'s data sheet, decision 0055)")
 
 
 class HandEyeSection(_Strict):
@@ -195,13 +213,15 @@ def _section_span(lines: list[str], name: str) -> tuple[int, int]:
     return start, end
 
 
-def write_flange_from_cam(path: str | Path, flange_from_cam: np.ndarray, date: str, record: str | None = None) -> CellFile:
-    """Write a calibrated hand-eye (4x4, metres) and its date into the cell file's ``[cell]``.
+def write_flange_from_cam(path: str | Path, flange_from_cam: np.ndarray, date: str, record: str | None = None,
+                          lens=None) -> CellFile:
+    """Write a calibrated hand-eye (4x4, metres) and its date into the cell file's ``[cell]``, with the lens
+    (:class:`calibration.camera.Intrinsics`) it was estimated with when given.
 
-    Only the lines ``flange_from_cam = ...``, ``flange_from_cam_date = ...`` and
-    ``flange_from_cam_record = ...`` are replaced (or added after ``flange_from_cam``); the
-    new text is validated before it atomically replaces the file, so a failure leaves the
-    old file. Returns the new, validated cell file.
+    Only the lines ``flange_from_cam = ...``, ``flange_from_cam_date = ...``,
+    ``flange_from_cam_record = ...`` and ``camera_lens = ...`` are replaced (or added after
+    ``flange_from_cam``); the new text is validated before it atomically replaces the file, so a
+    failure leaves the old file. Returns the new, validated cell file.
     """
     path = Path(path)
     cf, _ = load_cell_file(path)
@@ -213,16 +233,19 @@ def write_flange_from_cam(path: str | Path, flange_from_cam: np.ndarray, date: s
             "flange_from_cam_date": f'"{date}"'}
     if record is not None:
         keys["flange_from_cam_record"] = f'"{record}"'
+    if lens is not None:
+        keys["camera_lens"] = "{ " + ", ".join(f"{k} = {float(getattr(lens, k)):.9g}" for k in CameraLens.model_fields) + " }"
     found = {}
     for i in range(s + 1, e):
-        m = re.match(r"^(\s*)(flange_from_cam(?:_date|_record)?)\s*=(.*)$", lines[i])
+        m = re.match(r"^(\s*)(flange_from_cam(?:_date|_record)?|camera_lens)\s*=(.*)$", lines[i])
         if m and m.group(2) in keys:
             rest = m.group(3)
-            if m.group(2) == "flange_from_cam" and rest.count("{") != rest.count("}"):
-                raise JobSpecError(f"{path}:{i + 1}: [cell] flange_from_cam must be a one-line inline table to be "
+            table = m.group(2) in ("flange_from_cam", "camera_lens")
+            if table and rest.count("{") != rest.count("}"):
+                raise JobSpecError(f"{path}:{i + 1}: [cell] {m.group(2)} must be a one-line inline table to be "
                                    "rewritten; put it on one line")
             comment = ""
-            c = re.search(r"\}\s*(#.*)$" if m.group(2) == "flange_from_cam" else r"\"\s*(#.*)$", rest)
+            c = re.search(r"\}\s*(#.*)$" if table else r"\"\s*(#.*)$", rest)
             if c:
                 comment = "  " + c.group(1)
             lines[i] = f"{m.group(1)}{m.group(2)} = {keys[m.group(2)]}{comment}"
@@ -230,7 +253,7 @@ def write_flange_from_cam(path: str | Path, flange_from_cam: np.ndarray, date: s
     if "flange_from_cam" not in found:
         raise JobSpecError(f"{path}: [cell] has no flange_from_cam line to update")
     at = found["flange_from_cam"]
-    for k in ("flange_from_cam_date", "flange_from_cam_record"):
+    for k in ("flange_from_cam_date", "flange_from_cam_record", "camera_lens"):
         if k in keys and k not in found:
             at += 1
             lines.insert(at, f"{k} = {keys[k]}")

@@ -30,7 +30,7 @@ def artefact_job(cf: CellFile, folder: Path, cell_path: Path, *, name: str, mesh
     """A :class:`LoadedJob` whose part is a calibration artefact placed at ``placement`` (base frame)."""
     c = cf.cell
     cell = CellSection(**c.model_dump(exclude={"name", "units", "base_from_part", "flange_from_cam_date",
-                                               "flange_from_cam_record"}), base_from_part=placement)
+                                               "flange_from_cam_record", "camera_lens"}), base_from_part=placement)
     sim = cf.sim.model_dump(exclude={"flange_from_cam_true"})
     if cf.sim.flange_from_cam_true is not None:
         true_x = pose_matrix(cf.sim.flange_from_cam_true, cf.scale)
@@ -43,7 +43,10 @@ def artefact_job(cf: CellFile, folder: Path, cell_path: Path, *, name: str, mesh
     part = load_part(resolve(folder, mesh), c.units, targets_csv=resolve(folder, targets), name=name,
                      target_diameter_m=target_diameter * k, coded_size_m=coded_size * k)
     n = len(part.targets)
-    return LoadedJob(spec=spec, path=Path(cell_path), folder=folder, part=part, intrinsics=spec.intrinsics(),
+    intr = spec.intrinsics()
+    if c.camera_lens is not None:  # the lens the hand-eye was calibrated with, not the data sheet's (decision 0055)
+        intr = replace(intr, **c.camera_lens.model_dump())
+    return LoadedJob(spec=spec, path=Path(cell_path), folder=folder, part=part, intrinsics=intr,
                      deviations=np.zeros((n, 3)), tolerance_m=np.full(n, k))
 
 

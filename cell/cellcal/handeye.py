@@ -189,7 +189,7 @@ def run_hand_eye(cell_toml: Path, archive_root: Path, out, *, backend: str | Non
         rec.write_manifest()
         raise CalibrationError(f"hand-eye: not written to {cell_toml}: {why}; record {rec.job_id}")
     atomic_write_json(rec.file("hand_eye.json"), doc)
-    write_flange_from_cam(cell_toml, fit.flange_from_cam, date, record=rec.job_id)
+    write_flange_from_cam(cell_toml, fit.flange_from_cam, date, record=rec.job_id, lens=fit.lens)
     rec.append("cell_file_updated", flange_from_cam=fit.flange_from_cam, date=date)
     rec.append("terminal", status="DONE", reason="")
     rec.write_manifest()
@@ -200,7 +200,7 @@ def run_hand_eye(cell_toml: Path, archive_root: Path, out, *, backend: str | Non
                "planned_conditioning": cond.to_dict()}
     st, sr = np.linalg.norm(sig_t), np.rad2deg(np.linalg.norm(sig_r))
     out.say(f"hand-eye: {len(B)} images, sigma0 {fit.sigma0_px:.3f} px; flange_from_cam +- {st * 1e3:.3f} mm, "
-            f"{sr:.4f} deg; written to {cell_toml} ({date})")
+            f"{sr:.4f} deg; written to {cell_toml} ({date}), with the lens found ([cell] camera_lens)")
     return summary
 
 

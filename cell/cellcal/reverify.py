@@ -124,6 +124,11 @@ def run_reverification(cell_toml: Path, archive_root: Path, out, *, backend: str
     rec = record_folder(archive_root, cf.cell.name, "reverification")
     rec.append("created", kind="reverification", cell=cf.cell.name, cell_file=str(cell_toml), backend=backend)
     rows = []
+    lens = cf.cell.camera_lens
+    out.say("reverification: the lens " + (f"estimated with the hand-eye (record {cf.cell.flange_from_cam_record}; "
+                                           f"[cell] camera_lens, fx {lens.fx_px:.2f} px)" if lens is not None else
+                                           "of [camera] (its data sheet: no hand-eye lens in the cell file)"))
+    rec.append("note", text="lens: " + ("[cell] camera_lens" if lens is not None else "[camera]"))
     if operator is None and backend != "sim":
         operator = lambda message: ask_operator(out, message)  # noqa: E731
     for k, pose in enumerate(rv.positions):
