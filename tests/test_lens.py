@@ -294,3 +294,21 @@ def test_a_hand_eye_off_by_most_of_a_degree_is_named_from_the_pose_the_dots_show
     m = [float(mahalanobis((np.asarray(t["deviation"]) - dev[t["id"]])[None], np.asarray(t["cov"])[None])[0])
          for t in rep["targets"] if t["deviation"][0] is not None and not t["suspect"]]
     assert len(m) > 150 and 0.7 < np.sqrt(np.mean(np.square(m)) / 3) < 1.4
+
+
+def test_a_job_that_holds_its_data_sheet_lens_against_a_real_one_is_loud_not_faulted_by_the_start(tmp_path):
+    """``self_calibrate = false`` holds the job's lens as it is. Through the example's real lens MEASURE names images
+    with a radial lens of their own; that start is for self-calibration only (it had put a distorting start under
+    the pinhole model and faulted the job: "the PINHOLE model has no distortion"). Held, the lens fits at 0.6 px
+    and the report says the frame cannot be trusted."""
+    job = job_variant(tmp_path / "job", {"camera": {"self_calibrate": False}})
+    run = run_cell("run", str(job), "--archive", str(tmp_path / "archive"), timeout=600)
+    assert run.code == 0, run.stderr[-3000:]
+    folder = Path(run.doc["folder"])
+    bundle = json.loads((folder / "bundle.json").read_text())
+    assert bundle["lens"]["model"] == "nominal (not calibrated)" and "radial lens fitted" not in bundle["start"]["interior"]
+    assert bundle["sigma0_px"] > 0.1
+    # the variance factor's note names the held lens first
+    assert "self_calibrate = false" in bundle["observation_weights"]["model_mismatch"]
+    rep = json.loads((folder / "report.json").read_text())
+    assert rep["verdict"] == "UNTRUSTED" and not rep["alignment"]["trusted"]

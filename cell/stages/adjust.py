@@ -646,7 +646,7 @@ def _weights_doc(job, res, groups, model_sigma=None, bg_missing=()) -> dict:
                 "a_priori_sigma_px": {"median": float(np.median(used)), "p90": float(np.quantile(used, 0.9)),
                                       "max": float(np.max(used))},
                 "variance_factor": (vf := float((res.sigma0_px / np.sqrt(np.mean(used**2))) ** 2)),
-                "model_mismatch": model_mismatch(vf, job.spec.camera.dot_precision)}
+                "model_mismatch": model_mismatch(vf, job.spec.camera.dot_precision, not job.spec.camera.self_calibrate)}
     if groups is None or vc is None:
         return {"method": "equal", "sigma_px": job.spec.camera.sigma_px}
     edges = (0.0,) + INCIDENCE_EDGES_DEG + (90.0,)

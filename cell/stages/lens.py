@@ -71,7 +71,9 @@ def choose_start(job, cal_doc: dict, obs_image: np.ndarray, obs_target: np.ndarr
                               f"the observations gross in the screening, the nominal lens (fx {nominal.fx_px:.1f} px) "
                               f"{gross_n:.0%}: the adjustment starts from the nominal lens"}
             intr0, rs, scr, gross = nominal, rs_n, scr_n, gross_n
-    if radial_named:  # MEASURE named images with a radial lens of their own: the job's lens is not the camera's
+    # MEASURE named images with a radial lens of their own: the job's lens is not the camera's. Without
+    # self-calibration the job's lens is held as it is: no other start (the adjustment's fit says how it fits)
+    if radial_named and job.spec.camera.self_calibrate:
         lens = radial_start(intr0, rs, obs_image, job.part.targets.xyz[obs_target], obs_uv)
         rs_r, scr_r, gross_r = tried(lens)
         name = f"{doc['interior']} with a radial lens fitted to every image (k1 {lens.k1:+.4f}, k2 {lens.k2:+.4f})"

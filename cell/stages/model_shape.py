@@ -230,11 +230,12 @@ def clipping_check(clipped_share: np.ndarray, used: np.ndarray) -> dict:
     return out
 
 
-def model_mismatch(variance_factor: float, dot_precision: str = "model") -> str | None:
+def model_mismatch(variance_factor: float, dot_precision: str = "model", lens_held: bool = False) -> str | None:
     """What a variance factor outside :data:`VARIANCE_FACTOR_RANGE` says (None inside it): the images fit the a priori
     sigma (the detector model's; with ``[camera] dot_precision = "stated"`` the detector's own statement of each
     centroid dot's noise) that many times worse (or better). The stated uncertainties follow the images (a
-    posteriori), the plan's prediction and the a priori sigma do not."""
+    posteriori), the plan's prediction and the a priori sigma do not. ``lens_held``: the job holds its lens as it
+    states it (``[camera] self_calibrate = false``): a lens unlike its statement is named first."""
     basis, what = (("the detector's stated sigma", "the statement") if dot_precision == "stated"
                    else ("the detector model's image sigma", "the model"))
     lo, hi = VARIANCE_FACTOR_RANGE
@@ -245,7 +246,11 @@ def model_mismatch(variance_factor: float, dot_precision: str = "model") -> str 
     head = (f"the images fit {np.sqrt(variance_factor):.2f}x {basis} (variance factor {variance_factor:.2f}, "
             f"{lo:g}-{hi:g} expected)")
     if variance_factor > hi:
-        return (head + f": {what} does not describe these images (focus, vibration, exposure, the targets' print?); "
+        causes = "focus, vibration, exposure, the targets' print?"
+        if lens_held:
+            causes = ("the lens the job states and holds ([camera] self_calibrate = false) first: a real lens is not "
+                      "its data sheet; then focus, vibration, exposure, the targets' print")
+        return (head + f": {what} does not describe these images ({causes}); "
                 "the stated uncertainties follow the images, the plan's predicted sigma does not")
     return (head + f": better than {what} allows; check that the job's camera and [sim] settings are the ones that "
             "took the images; the stated uncertainties were scaled down with them")
