@@ -219,8 +219,9 @@ def naming_radial(intr: Intrinsics, cam_from_part: np.ndarray, xyz: np.ndarray, 
     (a principal point off the data sheet's, or an arm's pose error, turn the whole image). If the nominal lens
     at that pose fits the dots (median at most :data:`NAMING_RADIAL_PX`), ``(intr, pose)``. Otherwise a radial
     lens (k1, k2 with the pose; the nominal lens's other terms), fitted robustly: ``(lens, pose)`` when it brings
-    the median below :data:`NAMING_RADIAL_GAIN` of the resected nominal's, else None. The lens is fitted with its
-    pose and used with it: a k1, k2 paired with another pose is not a lens."""
+    the median below :data:`NAMING_RADIAL_GAIN` of the resected nominal's, else ``(intr, pose)`` when the resection
+    alone halved the robot's pose's median, else None. The lens is fitted with its pose and used with it: a k1, k2
+    paired with another pose is not a lens."""
     from scipy.optimize import least_squares
 
     sel = np.flatnonzero((match >= 0) & (code[np.maximum(match, 0)] < 0))
@@ -228,7 +229,8 @@ def naming_radial(intr: Intrinsics, cam_from_part: np.ndarray, xyz: np.ndarray, 
         return None
     X, uv = xyz[match[sel]], det_uv[sel]
     r = np.linalg.norm(project(intr, cam_from_part, X) - uv, axis=1)
-    if not float(np.median(r)) > NAMING_RADIAL_PX:
+    at_start = float(np.median(r))
+    if not at_start > NAMING_RADIAL_PX:
         return None
     pose = cam_from_part
     try:
@@ -254,7 +256,10 @@ def naming_radial(intr: Intrinsics, cam_from_part: np.ndarray, xyz: np.ndarray, 
 
     fit = least_squares(resid, np.r_[rvec, pose[:3, 3], 0.0, 0.0], loss="soft_l1", f_scale=2.0, x_scale="jac")
     after = float(np.median(np.linalg.norm(fit.fun.reshape(-1, 2), axis=1)))
-    return (lens(fit.x), pose_of(fit.x)) if fit.success and after < NAMING_RADIAL_GAIN * before else None
+    if fit.success and after < NAMING_RADIAL_GAIN * before:
+        return lens(fit.x), pose_of(fit.x)
+    # no radial lens helps: the resected pose alone, where it halved the robot's pose's median
+    return (intr, pose) if before < NAMING_RADIAL_GAIN * at_start else None
 
 
 def name_dots(det_uv: np.ndarray, part, intr: Intrinsics, cam_from_part: np.ndarray, occluder: Occluder, *,
