@@ -421,7 +421,8 @@ class LensRefinement:
         flange_from_cam, base_from_target: (4, 4) X and Y; lens: the interior orientation found.
         cov: (12 + L, 12 + L) covariance of ``(xi_X, xi_Y, lens terms)`` (``s0^2 (J^T J)^-1``; X's rows and columns
             zero when X was held); gain: (12 + L, 2q) ``(J^T J)^-1 J^T`` (for bounds of a bias common to the dots).
-        terms: the lens terms' names; sigma0_px; dof.
+        terms: the lens terms' names; sigma0_px; dof; converged: the solver met its tolerances (the caller says
+            and refuses what did not).
     """
 
     flange_from_cam: np.ndarray
@@ -432,6 +433,7 @@ class LensRefinement:
     terms: tuple
     sigma0_px: float
     dof: int
+    converged: bool = True
 
     def lens_sigma(self) -> dict:
         """Each lens term's sigma (``f`` relative, ``cx, cy`` px, the distortion terms as they are)."""
@@ -503,7 +505,7 @@ def refine_with_lens(start: Intrinsics, base_from_flange: np.ndarray, obs_image:
     idx = np.r_[np.arange(6, 12), np.arange(12, 12 + len(terms))] if fix_flange_from_cam else np.arange(n)
     cov[np.ix_(idx, idx)] = s0**2 * Q
     gain[idx] = G
-    return LensRefinement(X, Y, lens, cov, gain, terms, s0, dof)
+    return LensRefinement(X, Y, lens, cov, gain, terms, s0, dof, bool(sol.success))
 
 
 # --- station choice ----------------------------------------------------------------------------

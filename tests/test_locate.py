@@ -80,6 +80,7 @@ def test_locate_finds_a_part_15_mm_and_3_deg_off_within_half_a_millimetre_and_wr
     assert abs(lens["principal_distance_mm"] - 8.0 * 1.0075) < 0.005, lens
     assert np.allclose(lens["principal_point_offset_px"], [16.5, -11.5], atol=1.0), lens
     assert abs(lens["k1"] - (-0.06)) < 0.01, lens
+    assert s["warnings"] == [], s["warnings"]  # a fit the model explains, a lens the job's camera could have
     # sigma0 is the dots' image precision with the lens terms the placement does not estimate (k3, p1, p2): with
     # the physical simulator (no added jitter) the centres scatter by about 0.01 px (benchmarks/centre_bias)
     assert s["n_observations"] >= 100 and 0.004 < s["sigma0_px"] < 0.06
@@ -225,3 +226,15 @@ def test_too_few_markers_in_sight_is_an_error_naming_the_hidden_ones(tmp_path):
             estimate_part_placement(job, devices, _Out())
     finally:
         devices.close()
+
+
+def test_a_placement_from_images_its_model_does_not_explain_is_said():
+    """placement_doubts: an adjustment that did not converge, images fitting beyond 3x sigma_px, a principal distance
+    5 % off the job's: each is a WARNING in words; a good fit gives none."""
+    from cell.cellcal.placement import placement_doubts
+
+    good = {"converged": True, "sigma0_px": 0.04, "principal_distance_mm": 8.06, "nominal_principal_distance_mm": 8.0}
+    assert placement_doubts(good, 0.05) == []
+    bad = good | {"converged": False, "sigma0_px": 0.4, "principal_distance_mm": 8.6}
+    w = placement_doubts(bad, 0.05)
+    assert len(w) == 3 and "did not converge" in w[0] and "0.400 px" in w[1] and "+7.5 %" in w[2], w

@@ -179,10 +179,14 @@ def run_hand_eye(cell_toml: Path, archive_root: Path, out, *, backend: str | Non
             f"{res.sigma0_px:.3f})")
     # the images must fit as well as the camera measures: a hand-eye from images its model does not explain is not
     # written into the cell file (every job would inherit it)
-    if not fit.sigma0_px <= HAND_EYE_MAX_VARIANCE_RATIO * cf.camera.sigma_px:
+    why = None
+    if not fit.converged:
+        why = "its adjustment with the lens did not converge"
+    elif not fit.sigma0_px <= HAND_EYE_MAX_VARIANCE_RATIO * cf.camera.sigma_px:
         why = (f"the images fit {fit.sigma0_px:.3f} px, beyond {HAND_EYE_MAX_VARIANCE_RATIO:g}x the camera's sigma_px "
                f"{cf.camera.sigma_px:g} even with the lens estimated: the model does not explain them (a lens beyond "
                "k3 and p1, p2, a moving artefact, a robot pose that is not the image's)")
+    if why is not None:
         doc["refused"] = why
         atomic_write_json(rec.file("hand_eye.json"), doc)
         rec.append("terminal", status="FAULTED", reason=why)

@@ -143,7 +143,7 @@ def locate_part(job_path: Path, out, *, write: bool, backend: str | None = None,
                "images": s["images"], "n_observations": s["n_observations"], "n_rejected": s["n_rejected"],
                "sigma0_px": s["sigma0_px"],
                "coded": {key: v for key, v in s["coded"].items() if key != "base_from_part"},
-               "markers_not_planned": s["markers_not_planned"], "lens": s["lens"],
+               "markers_not_planned": s["markers_not_planned"], "lens": s["lens"], "warnings": s["warnings"],
                "written": False}
     if truth is not None:
         dt, dr = pose_error(Y, truth)

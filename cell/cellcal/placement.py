@@ -134,6 +134,9 @@ def estimate_part_placement(job: LoadedJob, devices, out, *, n_images: int = 4) 
             f"+- {ld['principal_distance_sigma_mm']:.4f} mm (job's {ld['nominal_principal_distance_mm']:.4f}), "
             f"principal point {ld['principal_point_offset_px'][0]:+.1f}, {ld['principal_point_offset_px'][1]:+.1f} px "
             f"off the job's, k1 {ld['k1']:+.4f}, k2 {ld['k2']:+.4f}")
+    summary["warnings"] = placement_doubts(ld, job.spec.camera.sigma_px)
+    for w in summary["warnings"]:
+        out.say(f"placement: WARNING: {w}")
     if coded["dropped"]:
         # a marker none of whose views fits the placement is not where the file says; a single view that does not
         # fit while the marker's other views do is a poor view (grazing, partly hidden), not a wrong file
@@ -180,12 +183,35 @@ def placement_with_lens(nominal: Intrinsics, start: Intrinsics, B: np.ndarray, X
             "systematic_translation_m": sb * np.abs(G_origin).sum(axis=1), "doc": lens_doc(nominal, fit)}
 
 
+#: the placement's image fit beyond this many times the camera's sigma_px, or its principal distance further than this
+#: share from the job's, is said: a placement from images its model does not explain, or a lens unlike any the job's
+#: camera could have (a wrong pixel size or focal length in [camera]), is not trusted quietly
+PLACEMENT_MAX_VARIANCE_RATIO = 3.0
+PLACEMENT_MAX_FOCAL_SHARE = 0.05
+
+
+def placement_doubts(doc: dict, sigma_px: float) -> list[str]:
+    """What makes the placement's adjustment (``doc``: :func:`lens_doc` with ``converged``) doubtful, in words."""
+    out = []
+    if not doc.get("converged", True):
+        out.append("the placement's adjustment with the lens did not converge: its placement is not trustworthy")
+    if not doc["sigma0_px"] <= PLACEMENT_MAX_VARIANCE_RATIO * sigma_px:
+        out.append(f"the images fit {doc['sigma0_px']:.3f} px, beyond {PLACEMENT_MAX_VARIANCE_RATIO:g}x [camera] "
+                   f"sigma_px {sigma_px:g} even with the lens estimated: the placement's stated uncertainty is "
+                   "optimistic (misnamed dots, a moving part, a lens beyond k1, k2)")
+    share = doc["principal_distance_mm"] / doc["nominal_principal_distance_mm"] - 1
+    if not abs(share) <= PLACEMENT_MAX_FOCAL_SHARE:
+        out.append(f"the principal distance found is {100 * share:+.1f} % off the job's: check [camera] "
+                   "focal_length_mm and pixel_size_um")
+    return out
+
+
 def lens_doc(nominal: Intrinsics, fit) -> dict:
     """What a :class:`calibration.handeye.LensRefinement` found of the lens, against the ``nominal`` one: the
     principal distance (mm) and principal point offset (px) with their sigmas, and each distortion term's."""
     lens, sig = fit.lens, fit.lens_sigma()
     mm = (nominal.pixel_size_m or float("nan")) * 1e3
-    doc = {"terms": list(fit.terms), "sigma0_px": fit.sigma0_px,
+    doc = {"terms": list(fit.terms), "sigma0_px": fit.sigma0_px, "converged": fit.converged,
            "principal_distance_mm": float(lens.fx_px * mm), "nominal_principal_distance_mm": float(nominal.fx_px * mm),
            "principal_distance_sigma_mm": float(sig.get("f", 0.0) * lens.fx_px * mm),
            "principal_point_offset_px": [float(lens.cx_px - nominal.cx_px), float(lens.cy_px - nominal.cy_px)],

@@ -289,8 +289,9 @@ def name_dots(det_uv: np.ndarray, part, intr: Intrinsics, cam_from_part: np.ndar
     seeable = VisibilityOptions(margin_px=0.0, incidence_max_rad=incidence_max_rad, min_target_px=1.0)
     with_codes = coded_ids is not None and len(coded_ids) > 0
 
-    def named(lens, pose):
-        in_view = compute_visibility(part, lens, invert(pose)[None], seeable, occluder=occluder)[0]
+    def named(lens, pose, in_view=None):
+        if in_view is None:
+            in_view = compute_visibility(part, lens, invert(pose)[None], seeable, occluder=occluder)[0]
         cand = np.flatnonzero((in_view & (t.code < 0)) | ((t.code >= 0) if with_codes else False))
         sub = identify_targets(det_uv, t.xyz[cand], t.code[cand], lens, pose, max_dist_px,
                                coded_ids=coded_ids if with_codes else None, coded_uv=coded_uv if with_codes else None)
@@ -299,14 +300,12 @@ def name_dots(det_uv: np.ndarray, part, intr: Intrinsics, cam_from_part: np.ndar
     # the image's dots all off their projections by one shift (a principal point off the data sheet's, a hand-eye
     # error): named from the pose turned by it, not paired with their neighbours' projections
     start = cam_from_part
-    dots_all = np.flatnonzero(t.code < 0)
-    if len(dots_all):
-        in_view0 = compute_visibility(part, intr, invert(cam_from_part)[None], seeable, occluder=occluder)[0]
-        ids = np.flatnonzero(in_view0 & (t.code < 0))
-        shift = common_shift(project(intr, cam_from_part, t.xyz[ids]), det_uv) if len(ids) else None
-        if shift is not None:
-            start = turned_by(intr, cam_from_part, shift)
-    match = named(intr, start)
+    in_view0 = compute_visibility(part, intr, invert(cam_from_part)[None], seeable, occluder=occluder)[0]
+    ids = np.flatnonzero(in_view0 & (t.code < 0))
+    shift = common_shift(project(intr, cam_from_part, t.xyz[ids]), det_uv) if len(ids) else None
+    if shift is not None:
+        start = turned_by(intr, cam_from_part, shift)
+    match = named(intr, start, in_view0 if start is cam_from_part else None)  # the robot's pose: seen once
     # a principal point off the data sheet's, or a lens whose distortion the job does not state, moves the image's
     # dots off their projections: the pose resected from the named dots, and where that is not enough a radial lens
     # fitted with it, name them again (decisions 0054, 0055); MEASURE's centres do not depend on it
