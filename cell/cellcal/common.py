@@ -97,7 +97,7 @@ def plan_stations(job: LoadedJob, k: int, *, min_rays: int, max_tilt_rad: float,
     ``unmeasurable_target_ids``) instead of failing it.
     """
     from planning.execution import MotionLimits, validate_plan
-    from planning.reachability import ReachabilityDB
+    from planning.reachability import ReachabilityDB, reachability_mask
     from planning.visibility import default_cache_dir
 
     from cell.setup import collision_world, robot_model
@@ -145,8 +145,9 @@ def plan_stations(job: LoadedJob, k: int, *, min_rays: int, max_tilt_rad: float,
     visible = np.concatenate([_seen_matrix(p) for p in plans])
     if roll_spread_rad > 0:
         vis_opts = VisibilityOptions(margin_px=margin_px, near_m=near, far_m=far, incidence_max_rad=float(incidence_max_rad))
+        reaches = lambda Q: reachability_mask(robot, Y, X, Q, world).reachable  # noqa: E731
         P, visible, facts["roll_spread_deg"] = _spread_rolls(part, job.intrinsics, P, visible, vis_opts, roll_spread_rad,
-                                                             min(min_rays, k), np.random.default_rng(seed))
+                                                             min(min_rays, k), np.random.default_rng(seed), reaches)
     ids = [f"{job.part.name}-{b}-{sid}" for b, p in enumerate(plans) for sid in p.station_ids]
     ep = validate_plan(robot, P, Y, X, world, MotionLimits(
         joint_speed_rad_s=c.max_joint_speed_rad_s, joint_accel_rad_s2=c.max_joint_accel_rad_s2, settle_s=c.settle_s),
@@ -156,27 +157,45 @@ def plan_stations(job: LoadedJob, k: int, *, min_rays: int, max_tilt_rad: float,
 
 
 def _spread_rolls(part, intr: Intrinsics, P: np.ndarray, visible: np.ndarray, vis_opts: VisibilityOptions,
-                  spread: float, min_rays: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, float]:
+                  spread: float, min_rays: int, rng: np.random.Generator,
+                  reaches=None) -> tuple[np.ndarray, np.ndarray, float]:
     """Turn the stations ``P: (k, 4, 4)`` about their optical axes by rolls spread over +-``spread``.
 
     Returns the rolled stations, what each measures, and the spread used (degrees): halved (up to
     three times, then none) while a target measured ``min_rays`` times before would be measured fewer.
+    ``reaches(Q) -> (k,) bool``: whether the robot reaches each rolled station without collision (IK and
+    the cell's collision world). A station it does not reach at its roll takes half the roll, a quarter,
+    then none (the planner's own station, which the robot reaches): a turn about the optical axis is a
+    different flange pose, and a roll chosen after the planning must not leave the robot's reach.
     """
     k = len(P)
     order = rng.permutation(k)
     need = np.minimum(visible.sum(axis=0), min_rays)
     for _ in range(4):
         roll = spread * np.linspace(-1.0, 1.0, k)[order]
-        c, s = np.cos(roll), np.sin(roll)
-        Rz = np.zeros((k, 3, 3))
-        Rz[:, 0, 0], Rz[:, 0, 1], Rz[:, 1, 0], Rz[:, 1, 1], Rz[:, 2, 2] = c, -s, s, c, 1.0
-        Q = P.copy()
-        Q[:, :3, :3] = P[:, :3, :3] @ Rz
+        Q = _rolled(P, roll)
+        if reaches is not None:
+            for f in (0.5, 0.25, 0.0):
+                bad = ~np.asarray(reaches(Q), dtype=bool)
+                if not bad.any():
+                    break
+                roll = np.where(bad, roll * f, roll)
+                Q = _rolled(P, roll)
         vis = compute_visibility(part, intr, Q, vis_opts)
         if np.all(vis.sum(axis=0) >= need):
             return Q, vis, float(np.rad2deg(spread))
         spread *= 0.5
     return P, visible, 0.0
+
+
+def _rolled(P: np.ndarray, roll: np.ndarray) -> np.ndarray:
+    """``P: (k, 4, 4)`` turned about each camera's optical axis (its z) by ``roll: (k,)`` radians."""
+    c, s = np.cos(roll), np.sin(roll)
+    Rz = np.zeros((len(P), 3, 3))
+    Rz[:, 0, 0], Rz[:, 0, 1], Rz[:, 1, 0], Rz[:, 1, 1], Rz[:, 2, 2] = c, -s, s, c, 1.0
+    Q = P.copy()
+    Q[:, :3, :3] = P[:, :3, :3] @ Rz
+    return Q
 
 
 def _seen_matrix(plan: NetworkPlan) -> np.ndarray:
