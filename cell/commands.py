@@ -21,6 +21,12 @@ def _human_check(doc: dict, out) -> None:
     c = doc["camera"]
     out.say(f"camera {c['width']} x {c['height']} px, f = {c['fx_px']:.1f} px, sigma {c['sigma_px']} px")
     out.say(f"cell   {doc['cell']['robot']} ({doc['cell']['backend']}), {doc['cell']['obstacles']} obstacle(s)")
+    if doc["cell"].get("taken_from_cell_file"):  # the cell's hand-eye and lens (decision 0056)
+        from cell.cellcal.jobcell import taken_line
+
+        taken = doc["cell"]["taken_from_cell_file"]
+        out.say(f"cell   {taken_line(taken)}" + ("" if taken["hand_eye"]["calibrated"] else
+                                                 ": WARNING run `cell calibrate hand-eye` first"))
     if doc.get("target_thickness_note"):
         out.say(f"targets WARNING {doc['target_thickness_note']}")
     r = doc.get("measurability")

@@ -78,9 +78,13 @@ def _copy_inputs(job: LoadedJob, folder: Path) -> dict:
         dst = folder / "inputs" / f"{key.replace('.', '_')}{src.suffix}"
         atomic_write_bytes(dst, src.read_bytes())
         mapping[key] = str(dst.relative_to(folder))
-    if s.cell.cell_file is not None:  # the live cell file (its calibration changes): referenced, not copied
+    if s.cell.cell_file is not None:
+        # the cell file as the job took it: a calibration run during the job (or before a resume) does not change
+        # the hand-eye and lens it measures with; the report's calibration status is judged against it (decision 0056)
         cf = Path(s.cell.cell_file)
-        mapping["cell.cell_file"] = str(cf if cf.is_absolute() else (job.folder / cf).resolve())
+        src = cf if cf.is_absolute() else (job.folder / cf).resolve()
+        atomic_write_bytes(folder / "inputs" / "cell_file.toml", src.read_bytes())
+        mapping["cell.cell_file"] = "inputs/cell_file.toml"
     atomic_write_json(folder / "inputs.json", mapping)
     return mapping
 
@@ -425,10 +429,16 @@ def _start_staged(job_path: Path, job: LoadedJob, archive: Archive, folder: JobF
     folder.append("created", name=job.spec.job.name, job_file=str(job_path), backend=backend or job.spec.cell.backend,
                   **info)
     _copy_inputs(job, incoming)
+    live_cell_file = job.cell["cell_file"] if job.cell is not None else None
     # the staged copy is what runs; messages name the operator's job file
     job = dataclasses.replace(load_from_folder(incoming), path=Path(job_path))
     runner = JobRunner(archive, folder, job, backend or job.spec.cell.backend, out, staged=True)
     out.say(f"job {job_id}  ({job.part.name}, {len(job.part.targets)} targets, backend {runner.backend})")
+    if job.cell is not None:  # which hand-eye and lens it measures with, and from which cell file (decision 0056)
+        from cell.cellcal.jobcell import taken_line
+
+        folder.append("cell_file_taken", **(job.cell | {"cell_file": "inputs/cell_file.toml", "source": live_cell_file}))
+        out.say("  " + taken_line(job.cell))
     return runner.run(State.LOAD)
 
 

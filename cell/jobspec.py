@@ -34,7 +34,7 @@ from calibration.errors import JobSpecError
 from drivers.pixels import BIT_DEPTH
 from planning.part import UNITS_TO_M
 
-__all__ = ["DamagedTarget", "JobSpec", "Pose", "ThermalSection", "check_backend", "damaged_target_rows", "load_job", "pose_matrix"]
+__all__ = ["DamagedTarget", "JobSpec", "Pose", "ThermalSection", "check_backend", "damaged_target_rows", "load_job", "read_job", "pose_matrix"]
 
 
 class _Strict(BaseModel):
@@ -239,9 +239,11 @@ class CellSection(_Strict):
     light_input: int | None = Field(default=None, ge=1, le=8, description="controller trigger input wired to the "
                                     "camera's strobe line; None: the light is fired by a software trigger")
     light_brightness_pct: float = Field(default=100.0, gt=0, le=1000, description="pulse brightness, % of rating")
-    cell_file: str | None = Field(default=None, description="the cell's CELL.toml: its calibration status goes in the report")
+    cell_file: str | None = Field(default=None, description="the cell's CELL.toml: the job measures with its calibrated "
+                                  "hand-eye and lens, and its calibration status goes in the report (decision 0056)")
     base_from_part: Pose
-    flange_from_cam: Pose
+    flange_from_cam: Pose | None = Field(default=None, description="the hand-eye; a job that names a cell_file takes "
+                                         "the cell's (and may leave this out)")
     table_z: float = 0.0
     obstacles: list[Obstacle] = []
     camera_box: tuple[float, float, float] = (80.0, 80.0, 120.0)
@@ -527,6 +529,13 @@ class JobSpec(_Strict):
         return self
 
     @model_validator(mode="after")
+    def _hand_eye_stated(self):
+        if self.cell.flange_from_cam is None and self.cell.cell_file is None:
+            raise ValueError("cell.flange_from_cam: give the hand-eye, or name the cell file whose calibrated hand-eye "
+                             "the job measures with (cell.cell_file)")
+        return self
+
+    @model_validator(mode="after")
     def _same_weights(self):
         if self.planning.search_weights == "model" and self.camera.observation_weights != "model":
             raise ValueError("planning.search_weights = 'model' needs camera.observation_weights = 'model' (the search "
@@ -542,7 +551,7 @@ class JobSpec(_Strict):
                    "job.target_thickness": [self.job.target_thickness or 0.0],
                    "sim.target_thickness": [self.sim.target_thickness or 0.0],
                    "camera.near": [self.camera.near], "camera.far": [self.camera.far],
-                   "cell.base_from_part.xyz": c.base_from_part.xyz, "cell.flange_from_cam.xyz": c.flange_from_cam.xyz,
+                   "cell.base_from_part.xyz": c.base_from_part.xyz, "cell.flange_from_cam.xyz": c.flange_from_cam.xyz if c.flange_from_cam else (),
                    "cell.table_z": [c.table_z], "cell.camera_box": c.camera_box,
                    "cell.workspace_min": c.workspace_min or (), "cell.workspace_max": c.workspace_max or (),
                    "report.tolerance": [self.report.tolerance],
@@ -615,12 +624,30 @@ def _format_validation_error(path: Path, err: ValidationError) -> str:
     return f"{path}: '{loc}': {msg}"
 
 
-def load_job(path: str | Path) -> tuple[JobSpec, Path]:
+def load_job(path: str | Path, overrides: dict[str, str] | None = None) -> tuple[JobSpec, Path]:
     """Read and validate a job file. Returns ``(spec, folder)`` where relative paths resolve.
+
+    ``overrides`` maps ``"section.key"`` to a replacement file path (an archived job points its mesh, targets,
+    deviations and cell file at its own copies). A job that names a cell file takes the cell's hand-eye
+    (:func:`cell.cellcal.jobcell.take_cell_file`).
 
     Raises:
         JobSpecError: one line naming the file and the problem.
     """
+    spec = read_job(path)
+    for key, value in (overrides or {}).items():
+        section, name = key.split(".")
+        sub = getattr(spec, section).model_copy(update={name: value})
+        spec = spec.model_copy(update={section: sub})
+    if spec.cell.cell_file is not None:  # the cell's calibrated hand-eye, checked against the job's (decision 0056)
+        from cell.cellcal.jobcell import take_cell_file
+
+        spec = take_cell_file(spec, Path(path))
+    return spec, Path(path).resolve().parent
+
+
+def read_job(path: str | Path) -> JobSpec:
+    """The job file, validated as it is written (:func:`load_job` is what a job runs with)."""
     path = Path(path)
     if not path.is_file():
         raise JobSpecError(f"{path}: job file not found")
@@ -633,7 +660,7 @@ def load_job(path: str | Path) -> tuple[JobSpec, Path]:
     except ValidationError as err:
         raise JobSpecError(_format_validation_error(path, err)) from None
     check_backend(spec, spec.cell.backend, path)
-    return spec, path.resolve().parent  # scale-bar ids are checked at LOAD, once the targets are known
+    return spec  # scale-bar ids are checked at LOAD, once the targets are known
 
 
 def is_loopback_host(host: str) -> bool:

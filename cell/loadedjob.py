@@ -29,7 +29,8 @@ class LoadedJob:
         path: the job file.
         folder: where its relative paths resolve.
         part: mesh and targets (metres, part frame).
-        intrinsics: the nominal camera.
+        intrinsics: the camera's lens the job starts from: the cell's (``[cell] camera_lens`` of the cell file the
+            job names, written by its hand-eye calibration), else the ``[camera]`` section's.
         deviations: (n, 3) true displacement of each target for the simulated cell (metres): ``[sim] deviations``,
             a mis-stated thickness and the expansion at ``[sim] part_C`` / ``bars_C``.
         tolerance_m: (n,) tolerance per target.
@@ -43,6 +44,8 @@ class LoadedJob:
             (the index among the part's targets); empty without any.
         probe: the part thermometer's readings (``[thermal] part_C = "probe"``) once ADJUST resolved them into
             ``spec.thermal.part_C`` (:func:`cell.thermal.resolve_probe`); None before, or without a probe.
+        cell: what the job took from the cell file it names (:func:`cell.cellcal.jobcell.cell_taken`: the file, its
+            sha256, the hand-eye's calibration date and record, the lens); None when it names none.
     """
 
     spec: JobSpec
@@ -56,6 +59,7 @@ class LoadedJob:
     target_thickness_m: float = 0.0
     damaged_targets: tuple[tuple[int, DamagedTarget], ...] = ()
     probe: dict | None = None
+    cell: dict | None = None
 
     def surface_points(self, xyz: np.ndarray) -> np.ndarray:
         """Target face centres ``xyz`` (n, 3), part frame, -> the CAD surface points under them."""
@@ -67,7 +71,8 @@ class LoadedJob:
             "job": {"name": s.job.name, "file": str(self.path), "units": s.job.units, "seed": s.job.seed},
             "part": self.part.summary(),
             "camera": self.intrinsics.to_dict() | {"sigma_px": s.camera.sigma_px},
-            "cell": {"robot": s.cell.robot, "backend": s.cell.backend, "obstacles": len(s.cell.obstacles)},
+            "cell": {"robot": s.cell.robot, "backend": s.cell.backend, "obstacles": len(s.cell.obstacles),
+                     "taken_from_cell_file": self.cell},
             "scale_bars": [{"a": self.part.targets.ids[a], "b": self.part.targets.ids[b], "length_m": L}
                            for a, b, L, _ in self.scale_bars],
             "sim_deviations": int((np.linalg.norm(self.deviations, axis=1) > 0).sum()),
@@ -82,11 +87,7 @@ def load(job_path: str | Path, overrides: dict[str, str] | None = None) -> Loade
     ``overrides`` maps ``"section.key"`` to a replacement file path (an archived job
     points its mesh, targets and deviations at its own copies).
     """
-    spec, folder = load_job(job_path)
-    for key, value in (overrides or {}).items():
-        section, name = key.split(".")
-        sub = getattr(spec, section).model_copy(update={name: value})
-        spec = spec.model_copy(update={section: sub})
+    spec, folder = load_job(job_path, overrides)
     s = spec.scale
     j = spec.job
     part = load_part(
@@ -144,12 +145,20 @@ def load(job_path: str | Path, overrides: dict[str, str] | None = None) -> Loade
     deviations = deviations + sim_expansion(spec, part.targets.xyz + deviations, [bar[:2] for bar in scale_bars])
     tol = part.targets.tolerance_m.copy()
     tol[~np.isfinite(tol)] = spec.report.tolerance * s
+    intrinsics, taken = spec.intrinsics(), None
+    if spec.cell.cell_file is not None:  # the lens calibrated with the cell's hand-eye (decision 0056)
+        from cell.cellcal.jobcell import cell_taken
+
+        taken = cell_taken(spec, Path(job_path))
+        if taken["lens"] is not None:
+            intrinsics = replace(intrinsics, **taken["lens"])
     return LoadedJob(
         spec=spec,
         path=Path(job_path),
         folder=folder,
         part=part,
-        intrinsics=spec.intrinsics(),
+        intrinsics=intrinsics,
+        cell=taken,
         deviations=deviations,
         tolerance_m=tol,
         scale_bars=tuple(scale_bars),

@@ -71,6 +71,7 @@ class CellFileCell(CellSection):
     name: str = Field(min_length=1)
     units: Literal["m", "mm", "cm", "um", "in", "ft"] = "mm"
     base_from_part: None = None  # a cell has no part; jobs state where theirs is
+    flange_from_cam: Pose
     flange_from_cam_date: str | None = Field(default=None, description="when flange_from_cam was calibrated")
     flange_from_cam_record: str | None = Field(default=None, description="archive record of that calibration")
     camera_lens: CameraLens | None = Field(

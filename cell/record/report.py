@@ -478,6 +478,7 @@ def render_html(doc: dict, figures: dict[str, str], interactive: str = "") -> st
         "Seed": j["seed"], "Started": j["started"],
         "Finished": j["finished"], "Images": doc["images"], "sigma0 [px]": f"{doc['sigma0_px']:.3f}",
         "Datum": doc.get("datum", ""), "Cell calibration": doc.get("cell_calibration", {}).get("status", "unknown"),
+        "Measured with": doc.get("cell_calibration", {}).get("measured_with", "\u2014"),
         **_alignment_facts(doc), **_measure_facts(doc), **_budget_facts(doc),
         "Versions": ", ".join(f"{k} {v}" for k, v in j["versions"].items()),
     }

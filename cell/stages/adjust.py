@@ -487,7 +487,8 @@ def run_bundle(ctx) -> dict:
         msg = f"{bars_out[use[worst]]}; bar left out, adjusting again with the other {len(use) - 1}"
         ctx.log.log("warning", f"adjustment: {msg}")
         ctx.say(f"  WARNING {msg}")
-    lens = {"model": job.spec.camera.lens_model if job.spec.camera.self_calibrate else "nominal (not calibrated)",
+    held = "held: the cell's, calibrated with its hand-eye" if (job.cell or {}).get("lens") else "nominal (not calibrated)"
+    lens = {"model": job.spec.camera.lens_model if job.spec.camera.self_calibrate else held,
             "camera_model": bundle_config(job, use).camera_model} | flags.get("lens", {})
     lens |= {"radial_check": radial_check(res, img, tgt, uv, BundleOptions(sigma_px=job.spec.camera.sigma_px),
                                           bundle_config(job, use))}

@@ -202,10 +202,19 @@ def _calibration_status(ctx) -> dict:
 
     cf = ctx.job.spec.cell.cell_file
     if cf is None:
-        return {"status": "not verified", "detail": "the job names no cell file ([cell] cell_file)"}
+        return {"status": "not verified", "detail": "the job names no cell file ([cell] cell_file)",
+                "measured_with": "the job file's hand-eye and [camera] lens"}
     archive_root = ctx.folder.path.parent
-    doc = calibration_status(archive_root, resolve(ctx.job.folder, cf), datetime.now(timezone.utc))
-    return {k: doc.get(k) for k in ("status", "detail", "last")}
+    snapshot = ctx.folder.path / "inputs" / "cell_file.toml"  # the cell file as the job took it (decision 0056)
+    path = snapshot if snapshot.is_file() else resolve(ctx.job.folder, cf)
+    doc = calibration_status(archive_root, path, datetime.now(timezone.utc))
+    out = {k: doc.get(k) for k in ("status", "detail", "last")}
+    if ctx.job.cell is not None:  # which hand-eye and lens the job measured with (decision 0056)
+        from cell.cellcal.jobcell import taken_line
+
+        out |= {"measured_with": taken_line(ctx.job.cell), "hand_eye": ctx.job.cell["hand_eye"],
+                "lens": ctx.job.cell["lens"], "cell_file_sha256": ctx.job.cell["sha256"]}
+    return out
 
 
 #: How each target's conformance is decided, stated in the report.

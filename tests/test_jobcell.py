@@ -1,0 +1,92 @@
+"""What a job takes from the cell file it names, and what it refuses (cell.cellcal.jobcell; decision 0056)."""
+from __future__ import annotations
+
+import re
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from calibration.errors import JobSpecError
+from calibration.handeye import pose_error
+from cell.cellcal.cellfile import load_cell_file, write_flange_from_cam
+from cell.jobspec import load_job, pose_matrix
+from cell.loadedjob import load
+from jobutil import job_variant, run_cell
+
+CELL = Path(__file__).resolve().parents[1] / "examples" / "cell"
+
+
+def _calibrated_cell(tmp_path: Path) -> Path:
+    """The example cell file as a hand-eye calibration leaves it: a hand-eye 1.2 mm / 0.5 deg off the drawing's,
+    with the lens it estimated (written by the cell's own writer, as ``cell calibrate hand-eye`` writes it)."""
+    from calibration.camera import Intrinsics
+
+    d = tmp_path / "cell"
+    d.mkdir()
+    for f in CELL.iterdir():
+        if f.suffix in (".toml", ".stl", ".csv"):
+            shutil.copy(f, d / f.name)
+    X = pose_matrix(load_cell_file(d / "cell.toml")[0].sim.flange_from_cam_true, 1e-3)
+    X[:3, 3] += [2e-6, -1e-6, 3e-6]
+    lens = Intrinsics(fx_px=2336.24, fy_px=2336.2, cx_px=1240.0, cy_px=1012.0, width=2448, height=2048,
+                      k1=-0.06, k2=0.09, k3=-0.04, p1=1.5e-4, p2=-2.5e-4)
+    write_flange_from_cam(d / "cell.toml", X, "2026-11-20T08:00:00+00:00", record="he-1", lens=lens)
+    return d / "cell.toml"
+
+
+def test_a_job_that_names_its_cell_file_takes_the_cells_hand_eye_lens_and_simulated_truth(tmp_path):
+    cell = _calibrated_cell(tmp_path)
+    cf, _ = load_cell_file(cell)
+    job = load(job_variant(tmp_path / "job", {"cell": {"cell_file": str(cell), "flange_from_cam": None}}))
+    dt, dr = pose_error(job.spec.flange_from_cam(), cf.flange_from_cam())
+    assert dt < 1e-9 and dr < 1e-9
+    lens = cf.cell.camera_lens
+    assert (job.intrinsics.fx_px, job.intrinsics.fy_px, job.intrinsics.cx_px, job.intrinsics.k1) == \
+        (lens.fx_px, lens.fy_px, lens.cx_px, lens.k1)
+    assert job.cell["hand_eye"] == {"calibrated": True, "date": "2026-11-20T08:00:00+00:00", "record": "he-1"}
+    # the simulated camera sits where the cell file's [sim] says, whatever the calibration found
+    s = job.spec
+    true_x = s.flange_from_cam() @ pose_matrix(s.sim.flange_from_cam_error, s.scale)
+    dt, dr = pose_error(true_x, pose_matrix(cf.sim.flange_from_cam_true, cf.scale))
+    assert dt < 1e-9 and dr < 1e-9
+    # a job that states the cell's hand-eye (as the cell file writes it) is the same job
+    text = cell.read_text()
+    same = re.search(r"(?m)^flange_from_cam = (.*)$", text).group(1)
+    again = load_job(job_variant(tmp_path / "same", {"cell": {"cell_file": str(cell)}},
+                                 text=(tmp_path / "job" / "job.toml").read_text().replace(
+                                     "[cell]\n", f"[cell]\nflange_from_cam = {same}\n", 1)))[0]
+    assert pose_error(again.flange_from_cam(), cf.flange_from_cam())[0] < 1e-9
+    # a job naming no cell file keeps its own hand-eye and the data sheet's lens
+    own = load(job_variant(tmp_path / "own"))
+    assert own.cell is None and own.intrinsics.k1 == 0.0 and np.allclose(own.spec.flange_from_cam()[:3, 3], [0, 0.04, 0.09])
+
+
+@pytest.mark.parametrize("changes, says", [
+    ({"cell": {"flange_from_cam": {"xyz": [0.0, 40.0, 90.0], "rpy_deg": [0.0, 0.0, 0.0]}}},
+     r"flange_from_cam differs from the cell's hand-eye \(calibrated 2026-11-20T08:00:00\+00:00\) by 2\.08\d+ mm and 0\.53\d+ "
+     r"deg; .*delete flange_from_cam from the job"),
+    ({"camera": {"k1": -0.05}}, r"\[camera\] states lens terms \(k1\) and the cell file has the lens calibrated"),
+    ({"camera": {"width": 2000}}, r"the job's camera is not the cell's: \[camera\] width = 2000 here, 2448 in the cell file"),
+    ({"cell": {"robot": "ur5e"}}, r"the job's robot 'ur5e' is not the cell's 'ur10e'"),
+    ({"sim": {"flange_from_cam_error": {"xyz": [0.0, 0.0, 1.0]}}}, r"the simulated hand-eye is stated twice"),
+    ({"cell": {"cell_file": "nowhere.toml"}}, r"\[cell\] cell_file: .*nowhere\.toml: cell file not found"),
+])
+def test_a_job_that_disagrees_with_its_cell_file_is_refused_with_one_line(tmp_path, changes, says):
+    cell = _calibrated_cell(tmp_path)
+    base = {"cell": {"cell_file": str(cell), "flange_from_cam": None}}
+    for section, kv in changes.items():
+        base.setdefault(section, {}).update(kv)
+    job = job_variant(tmp_path / "job", base)
+    with pytest.raises(JobSpecError, match=says) as e:
+        load(job)
+    assert "\n" not in str(e.value) and str(job) in str(e.value)
+
+
+def test_a_job_without_a_hand_eye_or_a_cell_file_is_refused(tmp_path):
+    job = job_variant(tmp_path / "job", {"cell": {"flange_from_cam": None}})
+    with pytest.raises(JobSpecError, match=r"cell\.flange_from_cam: give the hand-eye, or name the cell file"):
+        load_job(job)
+    run = run_cell("check", str(job))  # the operator's command: one line, exit 2, nothing else
+    assert run.code == 2 and "cell.flange_from_cam" in run.stderr and len(run.stderr.strip().splitlines()) == 1
