@@ -16,6 +16,7 @@ from cell.loadedjob import load
 from jobutil import job_variant, run_cell
 
 CELL = Path(__file__).resolve().parents[1] / "examples" / "cell"
+EXAMPLE = CELL.parent / "bracket"
 
 
 def _calibrated_cell(tmp_path: Path) -> Path:
@@ -34,6 +35,13 @@ def _calibrated_cell(tmp_path: Path) -> Path:
                       k1=-0.06, k2=0.09, k3=-0.04, p1=1.5e-4, p2=-2.5e-4)
     write_flange_from_cam(d / "cell.toml", X, "2026-11-20T08:00:00+00:00", record="he-1", lens=lens)
     return d / "cell.toml"
+
+
+def _fenceless() -> str:
+    """The example job's text without its (multi-line) obstacles: a job that leaves the cell's fixtures to the cell."""
+    text = re.sub(r"(?ms)^obstacles = \[\n.*?^\]\n", "", (EXAMPLE / "job.toml").read_text())
+    assert "fence" not in text
+    return text
 
 
 def test_a_job_that_names_its_cell_file_takes_the_cells_hand_eye_lens_and_simulated_truth(tmp_path):
@@ -58,6 +66,21 @@ def test_a_job_that_names_its_cell_file_takes_the_cells_hand_eye_lens_and_simula
                                  text=(tmp_path / "job" / "job.toml").read_text().replace(
                                      "[cell]\n", f"[cell]\nflange_from_cam = {same}\n", 1)))[0]
     assert pose_error(again.flange_from_cam(), cf.flange_from_cam())[0] < 1e-9
+    # the cell's fence, table and limits where the job leaves them out; in the job's units
+    fenceless = _fenceless()
+    bare = load_job(job_variant(tmp_path / "bare", {"cell": {"cell_file": str(cell), "flange_from_cam": None,
+                                                             "table_z": None, "robot": None}}, text=fenceless))[0]
+    assert bare.cell.robot == "ur10e" and [o.name for o in bare.cell.obstacles] == ["fence"]
+    from cell.cellcal.jobcell import take_cell_file
+
+    raw = job_variant(tmp_path / "metres", {"cell": {"cell_file": str(cell), "flange_from_cam": None}}, text=fenceless)
+    from cell.jobspec import read_job
+
+    spec = read_job(raw)
+    metres = take_cell_file(spec.model_copy(update={"job": spec.job.model_copy(update={"units": "m"})}), raw)
+    fence = metres.cell.obstacles[0]
+    assert np.allclose(fence.size, [0.04, 1.6, 1.2]) and np.allclose(fence.pose.xyz, [1.5, 0.0, 0.6])
+    assert np.allclose(metres.cell.flange_from_cam.xyz, np.asarray(cf.cell.flange_from_cam.xyz) * 1e-3)
     # a job naming no cell file keeps its own hand-eye and the data sheet's lens
     own = load(job_variant(tmp_path / "own"))
     assert own.cell is None and own.intrinsics.k1 == 0.0 and np.allclose(own.spec.flange_from_cam()[:3, 3], [0, 0.04, 0.09])
@@ -69,7 +92,9 @@ def test_a_job_that_names_its_cell_file_takes_the_cells_hand_eye_lens_and_simula
      r"deg; .*delete flange_from_cam from the job"),
     ({"camera": {"k1": -0.05}}, r"\[camera\] states lens terms \(k1\) and the cell file has the lens calibrated"),
     ({"camera": {"width": 2000}}, r"the job's camera is not the cell's: \[camera\] width = 2000 here, 2448 in the cell file"),
-    ({"cell": {"robot": "ur5e"}}, r"the job's robot 'ur5e' is not the cell's 'ur10e'"),
+    ({"cell": {"robot": "ur5e"}}, r"\[cell\] robot = ur5e here, ur10e in the cell file \(mm\); .*delete robot from the job"),
+    ({"cell": {"obstacles": []}}, r"\[cell\] obstacles = \[\] here, \[\{'name': 'fence', .*in the cell file"),
+    ({"cell": {"max_joint_speed_rad_s": 0.5}}, r"\[cell\] max_joint_speed_rad_s = 0.5 here, 1.0 in the cell file"),
     ({"sim": {"flange_from_cam_error": {"xyz": [0.0, 0.0, 1.0]}}}, r"the simulated hand-eye is stated twice"),
     ({"cell": {"cell_file": "nowhere.toml"}}, r"\[cell\] cell_file: .*nowhere\.toml: cell file not found"),
 ])
@@ -78,7 +103,7 @@ def test_a_job_that_disagrees_with_its_cell_file_is_refused_with_one_line(tmp_pa
     base = {"cell": {"cell_file": str(cell), "flange_from_cam": None}}
     for section, kv in changes.items():
         base.setdefault(section, {}).update(kv)
-    job = job_variant(tmp_path / "job", base)
+    job = job_variant(tmp_path / "job", base, text=_fenceless())
     with pytest.raises(JobSpecError, match=says) as e:
         load(job)
     assert "\n" not in str(e.value) and str(job) in str(e.value)

@@ -9,8 +9,12 @@ nothing would say so.
 * **The hand-eye**: the cell file's ``flange_from_cam``, in the job's units. A job may leave its own out;
   one that states it must state the cell's (within 1 um and 1e-4 deg: the cell file's rounding), else
   the job is refused and the line says by how much they differ.
-* **The robot and the camera** must be the cell's: ``robot``; ``[camera]`` ``width``, ``height``,
-  ``pixel_size_um`` and ``focal_length_mm``.
+* **The cell's other keys** (``robot``, ``table_z``, ``obstacles``, ``camera_box``, the workspace and elbow limits,
+  the speed and settling limits, ``retakes``, ``host``, the light's and the thermometer's ports): the cell file's,
+  in the job's units, where the job leaves them out; one the job states must be the cell's, else the job is refused
+  (a fence the cell file has and the job does not would be planned through). ``backend`` stays the job's (or the
+  command line's): which robot runs, the simulated one or the real one.
+* **The camera** must be the cell's: ``[camera]`` ``width``, ``height``, ``pixel_size_um`` and ``focal_length_mm``.
 * **The lens**: the cell's ``camera_lens`` when the hand-eye wrote one (the adjustment still refines it when
   ``self_calibrate``); a job that states lens terms of its own (``cx_px``, ``cy_px``, ``k1`` .. ``p2``) is
   then refused: two lenses for one camera.
@@ -39,6 +43,9 @@ __all__ = ["take_cell_file", "cell_taken", "HAND_EYE_AGREE_M", "HAND_EYE_AGREE_D
 HAND_EYE_AGREE_M = 1e-6
 HAND_EYE_AGREE_DEG = 1e-4
 _CAMERA_KEYS = ("width", "height", "pixel_size_um", "focal_length_mm")
+#: [cell] keys that belong to the job, not the cell (backend: which robot runs it, the simulated or the real one)
+_JOB_KEYS = ("base_from_part", "cell_file", "flange_from_cam", "backend")
+_LENGTH_KEYS = ("table_z", "camera_box", "workspace_min", "workspace_max", "obstacles")
 _LENS_KEYS = ("cx_px", "cy_px", "k1", "k2", "k3", "p1", "p2")
 
 
@@ -57,8 +64,18 @@ def take_cell_file(spec: JobSpec, job_path: Path) -> JobSpec:
         return spec
     cf, path = _read(spec, job_path)
     where = f"{job_path}: [cell] cell_file {path}"
-    if spec.cell.robot != cf.cell.robot:
-        raise JobSpecError(f"{where}: the job's robot {spec.cell.robot!r} is not the cell's {cf.cell.robot!r}")
+    k = cf.scale / spec.scale  # cell file units -> job units
+    taken = {}
+    for key in type(spec.cell).model_fields:
+        if key in _JOB_KEYS or key not in type(cf.cell).model_fields:
+            continue
+        cells = _in_units(key, getattr(cf.cell, key), k)
+        if key not in spec.cell.model_fields_set:
+            taken[key] = cells
+        elif not _close(getattr(spec.cell, key), cells):
+            raise JobSpecError(f"{where}: [cell] {key} = {_show(getattr(spec.cell, key))} here, {_show(cells)} in the "
+                               f"cell file ({spec.job.units}); a job that names the cell file works in the cell it "
+                               f"describes: delete {key} from the job, or correct the cell file")
     for key in _CAMERA_KEYS:
         mine, cells = getattr(spec.camera, key), getattr(cf.camera, key)
         if not np.isclose(float(mine), float(cells), rtol=1e-9, atol=0.0):
@@ -79,7 +96,7 @@ def take_cell_file(spec: JobSpec, job_path: Path) -> JobSpec:
             raise JobSpecError(f"{where}: [camera] states lens terms ({', '.join(stated)}) and the cell file has the "
                                f"lens calibrated with its hand-eye (its camera_lens, {when}); the job measures "
                                "through the cell's: delete them from the job")
-    cell = spec.cell.model_copy(update={"flange_from_cam": pose_from_matrix(X, spec.scale)})
+    cell = spec.cell.model_copy(update=taken | {"flange_from_cam": pose_from_matrix(X, spec.scale)})
     sim = spec.sim
     if cf.sim.flange_from_cam_true is not None:
         if sim.flange_from_cam_error is not None:
@@ -93,6 +110,46 @@ def take_cell_file(spec: JobSpec, job_path: Path) -> JobSpec:
                                "[sim] lens and the cell file's; delete the job's")
         sim = sim.model_copy(update={"lens": cf.sim.lens})
     return spec.model_copy(update={"cell": cell, "sim": sim})
+
+
+def _in_units(key: str, value, k: float):
+    """A cell file's ``[cell]`` value in the job's units (``k``: cell units -> job units)."""
+    if key not in _LENGTH_KEYS or value is None or k == 1.0:
+        return value
+    if key == "table_z":
+        return value * k
+    if key == "obstacles":
+        return [ob.model_copy(update={"size": tuple(v * k for v in ob.size),
+                                      "pose": ob.pose.model_copy(update={"xyz": tuple(v * k for v in ob.pose.xyz)})})
+                for ob in value]
+    return tuple(v * k for v in value)
+
+
+def _plain(v):
+    if hasattr(v, "model_dump"):
+        return _plain(v.model_dump())
+    if isinstance(v, dict):
+        return {key: _plain(x) for key, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_plain(x) for x in v]
+    return v
+
+
+def _close(a, b) -> bool:
+    """Equal, floats to 1e-9 relative (a unit conversion's rounding)."""
+    a, b = _plain(a), _plain(b)
+    if isinstance(a, dict) and isinstance(b, dict):
+        return a.keys() == b.keys() and all(_close(a[key], b[key]) for key in a)
+    if isinstance(a, list) and isinstance(b, list):
+        return len(a) == len(b) and all(_close(x, y) for x, y in zip(a, b))
+    if isinstance(a, (int, float)) and isinstance(b, (int, float)) and not isinstance(a, bool) and not isinstance(b, bool):
+        return bool(np.isclose(float(a), float(b), rtol=1e-9, atol=1e-12))
+    return a == b
+
+
+def _show(v) -> str:
+    text = str(_plain(v))
+    return text if len(text) <= 120 else text[:117] + "..."
 
 
 def cell_taken(spec: JobSpec, job_path: Path) -> dict | None:
