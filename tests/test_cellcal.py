@@ -148,7 +148,9 @@ def _a_job_of_the_cell_measures_through_its_calibration(tmp_path: Path, cell: Pa
     assert cal["status"] == "verified", cal  # the reverification above was made with this hand-eye
     assert cal["lens"]["k1"] == cf.cell.camera_lens.k1 and "hand-eye calibrated" in cal["measured_with"]
     assert rep["alignment"]["trusted"] and rep["verdict"] == "FAIL"  # the example's three real deviations
-    assert "Measured with" in (folder / "report.html").read_text()
+    html = (folder / "report.html").read_text()
+    assert "Measured with" in html and 'id="lens-held"' in html  # the held lens's uncertainty is not carried: said
+    assert "its own uncertainty is not in the targets' covariances" in rep["lens"]["held_note"]
     ids, nominal, truth = truth_xyz_m(job)
     dev = {i: truth[k] - nominal[k] for k, i in enumerate(ids)}
     m = [float(mahalanobis((np.asarray(t["deviation"]) - dev[t["id"]])[None], np.asarray(t["cov"])[None])[0])

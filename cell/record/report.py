@@ -275,6 +275,8 @@ def _alerts(doc: dict) -> str:
         out.append(f'<div class="alert" id="lens-alert">Lens: {html.escape(ln["note"])}</div>')
     if ln.get("focal_note"):
         out.append(f'<div class="warn" id="lens-focal">Lens: {html.escape(ln["focal_note"])}</div>')
+    if ln.get("held_note"):
+        out.append(f'<div class="warn" id="lens-held">Lens: {html.escape(ln["held_note"])}</div>')
     tm = doc.get("thermal") or {}
     if tm.get("note"):  # decision 0053: the part's size is not its CAD's
         out.append(f'<div class="alert" id="scale-alert">Part scale: {html.escape(tm["note"])}</div>')

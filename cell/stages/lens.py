@@ -204,10 +204,17 @@ def lens_doc(job, bundle: dict) -> dict:
            "distortion_at_corner_px": float(np.max(np.linalg.norm(shift, axis=1))),
            "radial_check": b.get("radial_check"), "note": None, "focal_note": None}
     doc["note"] = (b.get("radial_check") or {}).get("note")  # the statement is not this lens's
+    cells = bool((getattr(job, "cell", None) or {}).get("lens"))  # the job started from the cell's lens (decision 0056)
+    if cells and not names:
+        doc["held_note"] = ("the lens is held as the cell's hand-eye calibration estimated it ([cell] camera_lens of "
+                            "the cell file): its own uncertainty is not in the targets' covariances, which are "
+                            "optimistic by it (the example measured 1.19 times its statement; decision 0056); "
+                            "self_calibrate = true refines the lens on this job's images and carries it")
     off = intr.fx_px / nominal.fx_px - 1
     if abs(off) > FOCAL_NOTE:  # said, not a fault: the measurement is the images' own
-        doc["focal_note"] = (f"the lens's principal distance is {intr.fx_px * mm:.3f} mm where [camera] "
-                             f"focal_length_mm says {nominal.fx_px * mm:.3g} ({100 * off:+.1f} %): is this the lens "
+        says = "the cell's calibrated lens says" if cells else "[camera] focal_length_mm says"
+        doc["focal_note"] = (f"the lens's principal distance is {intr.fx_px * mm:.3f} mm where {says} "
+                             f"{nominal.fx_px * mm:.3g} ({100 * off:+.1f} %): is this the lens "
                              "mounted, and focused as planned? The plan's visibility and prediction were made for the "
                              "nominal lens" if mm else f"the lens's principal distance is {100 * off:+.1f} % off the "
                              "nominal focal length")

@@ -614,7 +614,8 @@ def run(ctx) -> None:
                  (doc.get("target_thickness") or {}).get("note"),  # a real cell's targets' thickness not given
                  (doc.get("thermal") or {}).get("note"),  # the part's size is not its CAD's (decision 0053)
                  (doc.get("thermal") or {}).get("part_scale_not_estimated"),
-                 (doc.get("lens") or {}).get("focal_note")):  # said by ADJUST: lens.note
+                 (doc.get("lens") or {}).get("focal_note"),  # said by ADJUST: lens.note
+                 (doc.get("lens") or {}).get("held_note")):  # the cell's lens held as exact (decision 0056)
         if note:
             ctx.log.log("warning", note)
             ctx.say(f"  WARNING {note}")
