@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
-from calibration.errors import AbortRequested, CellError, InputError, RecordError
+from calibration.errors import AbortRequested, CalibrationError, CellError, InputError, RecordError
 from cell.jobspec import check_backend
 from cell.loadedjob import LoadedJob, load
 from cell.record import integrity
@@ -389,6 +389,32 @@ def open_archive(job: LoadedJob, archive_root: Path, archive_url: str | None = N
     return Archive(root, resolve_url(archive_url, root, cf_url), push=os.environ.get("CELL_ARCHIVE_PUSH") or cf_push)
 
 
+def check_cell_calibration(job: LoadedJob, archive_root: Path, out) -> dict | None:
+    """The calibration status of the cell a job names (:func:`cell.cellcal.status.calibration_status`, the records in
+    ``archive_root``); None when it names none.
+
+    Its last reverification failed: the job is refused (``CalibrationError``, before anything is written): the cell
+    measures lengths beyond its maximum permissible error, and every part it measured would carry that. It measures
+    again once the hand-eye is calibrated anew (the failed reverification was made with another hand-eye) and
+    reverified (docs/bring-up.md). Expired, or never verified with this hand-eye: the job runs, and says so at the
+    start and in its report.
+    """
+    if job.cell is None:
+        return None
+    from datetime import datetime, timezone
+
+    from cell.cellcal.status import calibration_status
+
+    st = calibration_status(archive_root, job.cell["cell_file"], datetime.now(timezone.utc))
+    if st["status"] == "failed":
+        raise CalibrationError(f"{job.path}: cell {job.cell['cell']}: {st['detail']}: it measures beyond its maximum "
+                               "permissible error; calibrate the hand-eye again (cell calibrate hand-eye CELL.toml) and "
+                               "reverify (cell calibrate reverify CELL.toml) before measuring parts")
+    if st["status"] != "verified":
+        out.say(f"WARNING cell {job.cell['cell']} {st['status']}: {st['detail']}")
+    return st
+
+
 def start_job(job_path: Path, archive_root: Path, backend: str | None, out, *, serial: str | None = None,
               operator: str | None = None, cell_id: str | None = None, archive_url: str | None = None) -> JobResult:
     """``cell run``: LOAD (before anything is written), then the whole job.
@@ -403,6 +429,7 @@ def start_job(job_path: Path, archive_root: Path, backend: str | None, out, *, s
         check_backend(job.spec, backend, job_path)
     info = make_run_info(job.spec, serial, operator, cell_id)  # a bad serial fails here too
     root = check_archive_root(Path(archive_root), write=True).resolve()
+    check_cell_calibration(job, root, out)  # a cell whose reverification failed measures no part
     archive = open_archive(job, root, archive_url)
     stem = f"{info['cell_id']}-{job.spec.job.name}" if info["cell_id"] else job.spec.job.name
     job_id = new_job_id(stem)

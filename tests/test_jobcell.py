@@ -115,3 +115,46 @@ def test_a_job_without_a_hand_eye_or_a_cell_file_is_refused(tmp_path):
         load_job(job)
     run = run_cell("check", str(job))  # the operator's command: one line, exit 2, nothing else
     assert run.code == 2 and "cell.flange_from_cam" in run.stderr and len(run.stderr.strip().splitlines()) == 1
+
+
+def _reverification_record(archive: Path, cell: Path, passed: bool) -> None:
+    """A reverification of ``cell`` in ``archive`` (as cell calibrate reverify writes it), made now with its hand-eye."""
+    import json
+    from datetime import datetime, timezone
+
+    cf, _ = load_cell_file(cell)
+    now = datetime.now(timezone.utc).isoformat(timespec="milliseconds")
+    d = archive / "calibration" / f"{now[:19].replace(':', '-')}-{cf.cell.name}-reverification"
+    d.mkdir(parents=True)
+    (d / "reverification.json").write_text(json.dumps({
+        "cell": cf.cell.name, "finished": now, "passed": passed, "interval_days": 30.0, "max_abs_error_m": 2.1e-3,
+        "detail": "0 of 7 positions within E_MPE" if not passed else "7 of 7 positions within E_MPE",
+        "flange_from_cam": cf.flange_from_cam().tolist()}))
+
+
+def test_a_cell_whose_reverification_failed_measures_no_part_until_it_is_calibrated_again(tmp_path):
+    """docs/bring-up.md: "a failed reverification blocks jobs until the cell is calibrated again". It did not: the job
+    ran, and its report carried the status in one table row."""
+    from cell.job import check_cell_calibration
+    from jobutil import RecordingOutput, archive_entries, incoming_entries
+
+    cell = _calibrated_cell(tmp_path)
+    archive = tmp_path / "archive"
+    _reverification_record(archive, cell, passed=False)
+    job = job_variant(tmp_path / "job", {"cell": {"cell_file": str(cell), "flange_from_cam": None}}, text=_fenceless())
+    run = run_cell("run", str(job), "--archive", str(archive))
+    assert run.code == 1 and run.doc["status"] == "error", run.stderr[-2000:]
+    assert "last reverification" in run.doc["message"] and "failed" in run.doc["message"]
+    assert "cell calibrate hand-eye" in run.doc["message"] and "\n" not in run.doc["message"]
+    assert archive_entries(archive) <= {"calibration"} and not incoming_entries(archive)  # nothing written
+    # calibrated again: the failed reverification was made with another hand-eye; the job runs, and says so
+    X = load_cell_file(cell)[0].flange_from_cam()
+    X[2, 3] += 20e-6
+    write_flange_from_cam(cell, X, "2026-11-21T08:00:00+00:00", record="he-2")
+    out = RecordingOutput()
+    st = check_cell_calibration(load(job), archive, out)
+    assert st["status"] == "not verified" and "the hand-eye changed" in st["detail"]
+    assert any(ln.startswith("WARNING cell example-cell not verified") for ln in out.lines), out.lines
+    _reverification_record(archive, cell, passed=True)
+    out = RecordingOutput()
+    assert check_cell_calibration(load(job), archive, out)["status"] == "verified" and not out.lines

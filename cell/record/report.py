@@ -270,6 +270,10 @@ def _alerts(doc: dict) -> str:
     th = doc.get("target_thickness") or {}
     if th.get("note"):
         out.append(f'<div class="warn" id="thickness-unstated">Targets: {html.escape(th["note"])}</div>')
+    cal = doc.get("cell_calibration") or {}
+    if "hand_eye" in cal and cal.get("status") != "verified":  # the cell the job names was not verified for it
+        out.append(f'<div class="warn" id="cell-calibration">Cell calibration {html.escape(str(cal["status"]))}: '
+                   f'{html.escape(str(cal.get("detail") or ""))}</div>')
     ln = doc.get("lens") or {}
     if ln.get("note"):  # decision 0054: the images refute the radial lens model
         out.append(f'<div class="alert" id="lens-alert">Lens: {html.escape(ln["note"])}</div>')
