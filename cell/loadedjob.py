@@ -151,7 +151,7 @@ def load(job_path: str | Path, overrides: dict[str, str] | None = None) -> Loade
 
         taken = cell_taken(spec, Path(job_path))
         if taken["lens"] is not None:
-            intrinsics = replace(intrinsics, **taken["lens"])
+            intrinsics = replace(intrinsics, **{k: v for k, v in taken["lens"].items() if k != "cov"})
     return LoadedJob(
         spec=spec,
         path=Path(job_path),

@@ -158,3 +158,72 @@ def test_a_cell_whose_reverification_failed_measures_no_part_until_it_is_calibra
     _reverification_record(archive, cell, passed=True)
     out = RecordingOutput()
     assert check_cell_calibration(load(job), archive, out)["status"] == "verified" and not out.lines
+
+
+def test_the_cells_lens_covariance_is_read_checked_and_said_when_missing(tmp_path):
+    """A held lens without its covariance (a cell file written before decision 0056) is said in the report's lens;
+    one with it is carried (ADJUST, tests/test_cellcal.py). A covariance that is not one is refused."""
+    from calibration.camera import Intrinsics
+    from cell.stages.lens import lens_doc
+
+    cell = _calibrated_cell(tmp_path)
+    job = load(job_variant(tmp_path / "job", {"cell": {"cell_file": str(cell), "flange_from_cam": None},
+                                              "camera": {"self_calibrate": False}}, text=_fenceless()))
+    assert job.cell["lens"]["cov"] is None
+    bundle = {"lens": {"model": "held: the cell's, calibrated with its hand-eye"},
+              "intrinsics": job.intrinsics.to_dict(), "intrinsics_refined": [], "intrinsics_sigma": []}
+    assert "which states no covariance for it" in lens_doc(job, bundle)["held_note"]
+    bundle["lens"]["held_uncertainty"] = {"carried": True}
+    assert lens_doc(job, bundle).get("held_note") is None
+    # written with its covariance, read back as written
+    A = np.random.default_rng(3).normal(size=(9, 9)) * np.r_[0.01, 0.01, 0.03, 0.03, 1e-4, 1e-3, 4e-3, 4e-6, 4e-6]
+    cov = A @ A.T
+    X = load_cell_file(cell)[0].flange_from_cam()
+    lens = Intrinsics(fx_px=2336.24, fy_px=2336.2, cx_px=1240.0, cy_px=1012.0, width=2448, height=2048, k1=-0.06)
+    cf = write_flange_from_cam(cell, X, "2026-11-22T08:00:00+00:00", lens=lens, lens_cov=cov)
+    assert np.allclose(np.asarray(cf.cell.camera_lens.cov), cov, rtol=1e-10, atol=0.0)
+    assert np.allclose(np.asarray(load(job.path).cell["lens"]["cov"]), cov, rtol=1e-10, atol=0.0)
+    bad = cell.read_text().replace("cov = [[", "cov = [[-", 1)
+    cell.write_text(bad)
+    with pytest.raises(JobSpecError, match="camera_lens.cov must be a covariance"):
+        load_cell_file(cell)
+
+
+def test_the_held_lens_columns_are_the_networks_response_to_a_lens_error():
+    """``add_held_lens`` on a synthetic network (calibration.bundle.synthetic): the targets' move when the held lens
+    is off by ``e`` is ``sum_k a_k c_k`` of its columns, ``a = V^T e / sqrt(lambda)`` (linear propagation); and the
+    added covariance is the columns' sum of outer products (``S C_L S^T``)."""
+    from dataclasses import replace
+
+    from calibration.bundle import BundleConfig, BundleOptions, ScaleBar, bundle_adjust
+    from calibration.bundle.synthetic import simulate_network
+    from calibration.camera import Intrinsics
+    from cell.stages.shared_terms import LENS_FIELDS, add_held_lens
+
+    rng = np.random.default_rng(5)
+    lens = Intrinsics(fx_px=3000.0, fy_px=3000.0, cx_px=1230.0, cy_px=1015.0, width=2448, height=2048, k1=-0.06,
+                      k2=0.09, k3=-0.04, p1=1.5e-4, p2=-2.5e-4)
+    net = simulate_network(rng, n_targets=60, n_images=10, intrinsics=lens, sigma_px=0.01)
+    far = np.argmax(np.linalg.norm(net.points[:, None] - net.points[None], axis=2))
+    a, b = np.unravel_index(far, (60, 60))
+    config = BundleConfig(camera_model="OPENCV_K3", scale_bars=(ScaleBar(int(a), int(b),
+                          float(np.linalg.norm(net.points[a] - net.points[b])), 1e-6),))
+    opts = BundleOptions(sigma_px=0.01, max_rejections=0)
+    res = bundle_adjust(net.obs_image, net.obs_target, net.obs_uv, lens, net.cam_from_part, net.points, opts, config)
+    A = rng.normal(size=(9, 9)) * np.r_[0.03, 0.03, 0.03, 0.03, 1e-4, 1e-3, 4e-3, 4e-6, 4e-6][:, None] / 3  # as a hand-eye's
+    A[1] = A[0]  # fx and fy move together (one principal distance), as the hand-eye estimates them
+    cov = A @ A.T
+    before = res.cov.copy()
+    doc = add_held_lens(res, net.obs_image, net.obs_target, net.obs_uv, config, 0.01, cov)
+    assert doc["carried"] and doc["axes"] == 8 and doc["sigma_growth_median"] > 1.0
+    cols = res.covariance.U[:, :, -doc["axes"]:]
+    assert np.allclose(res.cov - before, np.einsum("nak,nbk->nab", cols, cols), rtol=1e-9, atol=1e-20)
+    lam, V = np.linalg.eigh(cov)
+    keep = lam > lam.max() * 1e-12
+    for _ in range(2):  # a lens error drawn from the covariance: the network's response is the columns' combination
+        e = A @ rng.normal(size=9)
+        off = replace(lens, **{f: getattr(lens, f) + d for f, d in zip(LENS_FIELDS, e)})
+        moved = bundle_adjust(net.obs_image, net.obs_target, net.obs_uv, off, res.cam_from_part, res.points, opts,
+                              config).points - res.points
+        predicted = cols @ ((V[:, keep].T @ e) / np.sqrt(lam[keep]))
+        assert np.linalg.norm(moved - predicted) < 0.03 * np.linalg.norm(moved), (moved, predicted)

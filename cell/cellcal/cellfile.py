@@ -38,7 +38,7 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 from scipy.spatial.transform import Rotation
 
 from calibration.errors import JobSpecError
@@ -65,6 +65,26 @@ class CameraLens(_Strict):
     k3: float = 0.0
     p1: float = 0.0
     p2: float = 0.0
+    cov: tuple[tuple[float, ...], ...] | None = Field(
+        default=None, description="covariance of the nine terms above, in their order (px^2 for fx_px .. cy_px): the "
+        "lens's uncertainty from the hand-eye calibration; a job that holds the lens carries it (decision 0056)")
+
+    @field_validator("cov")
+    @classmethod
+    def _covariance(cls, v):
+        if v is None:
+            return v
+        C = np.asarray(v, dtype=float)
+        if C.shape != (9, 9) or not np.isfinite(C).all():
+            raise ValueError(f"camera_lens.cov must be 9 x 9 finite numbers (fx_px .. p2), got shape {C.shape}")
+        d = np.sqrt(np.clip(np.diag(C), 1e-300, None))
+        R = C / np.outer(d, d)  # its correlations: the terms' scales differ by 10 orders
+        if (np.diag(C) < 0).any() or not np.allclose(R, R.T, atol=1e-9) or np.linalg.eigvalsh(0.5 * (R + R.T)).min() < -1e-6:
+            raise ValueError("camera_lens.cov must be a covariance: symmetric and positive semi-definite")
+        return v
+
+
+LENS_KEYS = ("fx_px", "fy_px", "cx_px", "cy_px", "k1", "k2", "k3", "p1", "p2")
 
 
 class CellFileCell(CellSection):
@@ -215,9 +235,10 @@ def _section_span(lines: list[str], name: str) -> tuple[int, int]:
 
 
 def write_flange_from_cam(path: str | Path, flange_from_cam: np.ndarray, date: str, record: str | None = None,
-                          lens=None) -> CellFile:
+                          lens=None, lens_cov=None) -> CellFile:
     """Write a calibrated hand-eye (4x4, metres) and its date into the cell file's ``[cell]``, with the lens
-    (:class:`calibration.camera.Intrinsics`) it was estimated with when given.
+    (:class:`calibration.camera.Intrinsics`) it was estimated with when given, and that lens's covariance ``lens_cov``
+    (9 x 9 over :data:`LENS_KEYS`).
 
     Only the lines ``flange_from_cam = ...``, ``flange_from_cam_date = ...``,
     ``flange_from_cam_record = ...`` and ``camera_lens = ...`` are replaced (or added after
@@ -235,7 +256,11 @@ def write_flange_from_cam(path: str | Path, flange_from_cam: np.ndarray, date: s
     if record is not None:
         keys["flange_from_cam_record"] = f'"{record}"'
     if lens is not None:
-        keys["camera_lens"] = "{ " + ", ".join(f"{k} = {float(getattr(lens, k)):.9g}" for k in CameraLens.model_fields) + " }"
+        terms = [f"{k} = {float(getattr(lens, k)):.9g}" for k in LENS_KEYS]
+        if lens_cov is not None:  # the lens's uncertainty with it (decision 0056)
+            terms.append("cov = [" + ", ".join("[" + ", ".join(f"{float(x):.12g}" for x in row) + "]"
+                                               for row in np.asarray(lens_cov, dtype=float)) + "]")
+        keys["camera_lens"] = "{ " + ", ".join(terms) + " }"
     found = {}
     for i in range(s + 1, e):
         m = re.match(r"^(\s*)(flange_from_cam(?:_date|_record)?|camera_lens)\s*=(.*)$", lines[i])

@@ -45,7 +45,7 @@ def artefact_job(cf: CellFile, folder: Path, cell_path: Path, *, name: str, mesh
     n = len(part.targets)
     intr = spec.intrinsics()
     if c.camera_lens is not None:  # the lens the hand-eye was calibrated with, not the data sheet's (decision 0055)
-        intr = replace(intr, **c.camera_lens.model_dump())
+        intr = replace(intr, **c.camera_lens.model_dump(exclude={"cov"}))
     return LoadedJob(spec=spec, path=Path(cell_path), folder=folder, part=part, intrinsics=intr,
                      deviations=np.zeros((n, 3)), tolerance_m=np.full(n, k))
 

@@ -193,7 +193,8 @@ def run_hand_eye(cell_toml: Path, archive_root: Path, out, *, backend: str | Non
         rec.write_manifest()
         raise CalibrationError(f"hand-eye: not written to {cell_toml}: {why}; record {rec.job_id}")
     atomic_write_json(rec.file("hand_eye.json"), doc)
-    write_flange_from_cam(cell_toml, fit.flange_from_cam, date, record=rec.job_id, lens=fit.lens)
+    write_flange_from_cam(cell_toml, fit.flange_from_cam, date, record=rec.job_id, lens=fit.lens,
+                          lens_cov=lens_covariance(intr, fit))
     rec.append("cell_file_updated", flange_from_cam=fit.flange_from_cam, date=date)
     rec.append("terminal", status="DONE", reason="")
     rec.write_manifest()
@@ -206,6 +207,22 @@ def run_hand_eye(cell_toml: Path, archive_root: Path, out, *, backend: str | Non
     out.say(f"hand-eye: {len(B)} images, sigma0 {fit.sigma0_px:.3f} px; flange_from_cam +- {st * 1e3:.3f} mm, "
             f"{sr:.4f} deg; written to {cell_toml} ({date}), with the lens found ([cell] camera_lens)")
     return summary
+
+
+def lens_covariance(start, fit) -> np.ndarray:
+    """The covariance of the lens ``fit`` found (9 x 9 over the cell file's ``camera_lens`` fields, fx_px .. p2) from
+    its terms' (``fit.terms``: ``f`` relative to ``start``'s focal length, the others added; X and Y marginalised)."""
+    from cell.cellcal.cellfile import LENS_KEYS
+
+    n = len(fit.cov) - len(fit.terms)
+    J = np.zeros((len(LENS_KEYS), len(fit.terms)))
+    for j, t in enumerate(fit.terms):
+        if t == "f":
+            J[0, j], J[1, j] = start.fx_px, start.fy_px
+        else:
+            J[LENS_KEYS.index({"cx": "cx_px", "cy": "cy_px"}.get(t, t)), j] = 1.0
+    C = J @ fit.cov[n:, n:] @ J.T
+    return 0.5 * (C + C.T)
 
 
 # --- reverification (VDI/VDE 2634 part 1) --------------------------------------------------------------------

@@ -9,16 +9,16 @@ import numpy as np
 
 from calibration.bundle import BundleConfig, BundleOptions, ScaleBar, bundle_adjust
 from calibration.bundle.bartest import bar_residual_test
-from calibration.bundle.coherent import certificate_at_face_value, coherent_background_cov, scale_bar_gains
-from calibration.bundle.covariance import append_columns
+from calibration.bundle.coherent import certificate_at_face_value, scale_bar_gains
 from calibration.detector_model import (C_BACKGROUND_CENTROID, centroid_bound_scale, load_model, observation_covariances,
                                         observation_geometry, observation_sigmas)
 from calibration.errors import CalibrationError, ScaleNotEstablishedError
 from calibration.plausibility import check_adjustment
 from calibration.weights import INCIDENCE_EDGES_DEG, group_labels, incidence_angles, incidence_groups, mean_variance
 from cell.record.jobfolder import atomic_write_bytes, atomic_write_json
-from cell.stages.clip_level import clip_bounds, clip_covariances, clip_level_cov, say_clip_level
+from cell.stages.clip_level import clip_bounds, clip_covariances, say_clip_level
 from cell.stages.dot_precision import blur_weights, observed_blur, rms_sigma, stated_weights
+from cell.stages.shared_terms import add_coherent_background as _add_coherent_background, add_held_lens
 from cell.stages.scalebars import (bar_name, bars_doc, protected_entries, say_bars, shape_reason, snooping_reason,
                                    test_reason)
 from cell.stages.model_shape import geometry_classes, model_mismatch, range_check, reweighted, shape_check
@@ -265,60 +265,6 @@ def _adjust(ctx, scr: Screening, use: list[int], obs: dict, obs_image, obs_targe
     return res, (kept_images, sel, img, tgt, uv, groups, model_sigma, flags)
 
 
-def _add_coherent_background(res, bg: np.ndarray, img, tgt, ids: list[str], bars=(), K=None, clip_cov=None) -> dict:
-    """Add to each target's covariance the background misfit its views share (decision 0029), the clip bounds they
-    share (``clip_cov``, decision 0050), and what the scale bars' ends' shares do to every target through the scale
-    (``K``: :func:`scale_bar_gains`); what was added."""
-    bar_terms: list[dict] = []
-    used = ~res.rejected
-    model = load_model()
-    c, share = model.c_background, model.shared_share  # the share the views have in common (decision 0032)
-    extra = coherent_background_cov(res.intrinsics, res.cam_from_part, res.points, img[used], tgt[used],
-                                    res.obs_sigma_px[used], bg[used], c, share)
-    hit = np.flatnonzero(np.trace(extra, axis1=1, axis2=2) > 0)
-    bg_extra = extra
-    # every dot's views also share a small part of its whole error (decision 0043: the detector's deterministic
-    # response to the dot's own geometry, which more views do not average away): the model's rho_all of the
-    # covariance each observation was weighted with, through the same cross terms
-    floor = np.zeros_like(extra)
-    if model.rho_all > 0:
-        C = np.asarray(res.obs_sigma_px, dtype=float)[used]
-        C = C[:, None, None] ** 2 * np.eye(2) if C.ndim == 1 else C
-        floor = coherent_background_cov(res.intrinsics, res.cam_from_part, res.points, img[used], tgt[used], C, C,
-                                        1.0, model.rho_all)
-        extra = extra + floor
-    clip_extra, clip_doc = clip_level_cov(res, clip_cov, img, tgt)
-    extra = extra + clip_extra
-    on = np.flatnonzero(np.trace(extra, axis1=1, axis2=2) > 0)
-    before = np.trace(res.cov, axis1=1, axis2=2).copy()
-    res.cov[on] += extra[on]
-    res.covariance.D[on] += extra[on]
-    # a scale bar's end with a shared misfit errs the bar's measured length, and every target follows the scale:
-    # the ends' extra along the bar, through the gains (rank one per bar, into the covariance's low-rank part;
-    # the extra carries the share, so the bar's term scales with it too)
-    for j, bar in enumerate(bars):
-        u = res.points[bar.target_a] - res.points[bar.target_b]
-        u = u / np.linalg.norm(u)
-        v = float(u @ (extra[bar.target_a] + extra[bar.target_b]) @ u)
-        if v > 0:
-            k = np.nan_to_num(K[:, :, j])  # NaN only for targets the adjustment did not determine
-            res.cov += v * np.einsum("na,nb->nab", k, k)
-            res.covariance = append_columns(res.covariance, k[:, :, None], [v])
-            bar_terms.append({"bar": [ids[bar.target_a], ids[bar.target_b]], "bar_index": j,
-                              "length_sigma_m": float(np.sqrt(v))})
-    grow = np.sqrt(np.trace(res.cov[hit], axis1=1, axis2=2) / np.maximum(np.trace(res.cov[hit] - bg_extra[hit], axis1=1, axis2=2), 1e-300))
-    worst = np.argsort(-grow)[:5]
-    fl = np.flatnonzero(np.trace(floor, axis1=1, axis2=2) > 0)
-    fgrow = np.sqrt((before[fl] + np.trace(floor[fl], axis1=1, axis2=2)) / np.maximum(before[fl], 1e-300))
-    return {"share": share, "share_measured": model.rho_background is not None, "c_background": c, "n_targets": int(len(hit)), "scale_bar_ends": bar_terms,
-            "sigma_growth_median": float(np.median(grow)) if len(hit) else 1.0,
-            "largest": [{"target": ids[int(hit[k])], "sigma_growth": float(grow[k]),
-                         "added_sigma_m": float(np.sqrt(np.trace(bg_extra[hit[k]]) / 3))} for k in worst],
-            "clip_level": clip_doc, "shared_floor": {"rho_all": model.rho_all, "n_targets": int(len(fl)),
-                             "sigma_growth_median": float(np.median(fgrow)) if len(fl) else 1.0,
-                             "sigma_growth_max": float(np.max(fgrow)) if len(fl) else 1.0}}
-
-
 def _wild_targets(res) -> tuple[np.ndarray, np.ndarray, float]:
     """Targets whose sigma exceeds :data:`WILD_SIGMA_FACTOR` times the median target's: (indices, sigmas, median)."""
     tr = np.trace(res.cov, axis1=1, axis2=2)
@@ -490,6 +436,13 @@ def run_bundle(ctx) -> dict:
     held = "held: the cell's, calibrated with its hand-eye" if (job.cell or {}).get("lens") else "nominal (not calibrated)"
     lens = {"model": job.spec.camera.lens_model if job.spec.camera.self_calibrate else held,
             "camera_model": bundle_config(job, use).camera_model} | flags.get("lens", {})
+    if not job.spec.camera.self_calibrate and ((job.cell or {}).get("lens") or {}).get("cov") is not None:
+        # the cell's lens is held: its uncertainty from the hand-eye calibration, through the network (decision 0056)
+        lens["held_uncertainty"] = add_held_lens(res, img, tgt, uv, bundle_config(job, use), job.spec.camera.sigma_px,
+                                                 job.cell["lens"]["cov"])
+        ctx.say(f"  the held lens's uncertainty (the cell's hand-eye calibration) carried into every target: sigma "
+                f"x{lens['held_uncertainty']['sigma_growth_median']:.2f} median, "
+                f"x{lens['held_uncertainty']['sigma_growth_max']:.2f} at most")
     lens |= {"radial_check": radial_check(res, img, tgt, uv, BundleOptions(sigma_px=job.spec.camera.sigma_px),
                                           bundle_config(job, use))}
     rc = lens["radial_check"] or {}

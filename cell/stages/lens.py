@@ -205,11 +205,13 @@ def lens_doc(job, bundle: dict) -> dict:
            "radial_check": b.get("radial_check"), "note": None, "focal_note": None}
     doc["note"] = (b.get("radial_check") or {}).get("note")  # the statement is not this lens's
     cells = bool((getattr(job, "cell", None) or {}).get("lens"))  # the job started from the cell's lens (decision 0056)
-    if cells and not names:
+    doc["held_uncertainty"] = b.get("held_uncertainty")  # the held lens's covariance carried (decision 0056)
+    if cells and not names and not (b.get("held_uncertainty") or {}).get("carried"):
         doc["held_note"] = ("the lens is held as the cell's hand-eye calibration estimated it ([cell] camera_lens of "
-                            "the cell file): its own uncertainty is not in the targets' covariances, which are "
-                            "optimistic by it (the example measured 1.19 times its statement; decision 0056); "
-                            "self_calibrate = true refines the lens on this job's images and carries it")
+                            "the cell file), which states no covariance for it: its own uncertainty is not in the "
+                            "targets' covariances, which are optimistic by it (the example measured 1.19 times its "
+                            "statement; decision 0056); calibrate the hand-eye again (its lens is then written with "
+                            "its covariance), or set self_calibrate = true to refine the lens on this job's images")
     off = intr.fx_px / nominal.fx_px - 1
     if abs(off) > FOCAL_NOTE:  # said, not a fault: the measurement is the images' own
         says = "the cell's calibrated lens says" if cells else "[camera] focal_length_mm says"

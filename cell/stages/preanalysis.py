@@ -298,6 +298,12 @@ def _adjust_exact(job, poses, img, tgt, uv, scr, rays: PredictedRays, order):
         added = _add_coherent_background(res, bg, img, tgt, list(job.part.targets.ids), bars, K, clip_cov)
     if stated is not None:  # plan.json says which dots the prediction weighed by the statement, and why not the rest
         added["dot_precision"] = stated
+    lens = (getattr(job, "cell", None) or {}).get("lens") or {}
+    if not job.spec.camera.self_calibrate and lens.get("cov") is not None:  # as ADJUST: the held lens's uncertainty
+        from cell.stages.shared_terms import add_held_lens
+
+        added["held_lens"] = add_held_lens(res, img, tgt, uv, config, float(np.sqrt(np.mean(rms_sigma(noise) ** 2))),
+                                           lens["cov"])
     return res, added
 
 
