@@ -193,6 +193,7 @@ def test_adjust_adds_the_shared_misfit_scaled_by_the_measured_share(monkeypatch)
     from types import SimpleNamespace
 
     import cell.stages.adjust as adjust
+    import cell.stages.shared_terms as shared_terms
     from calibration.alignment import PointCovariance
     from calibration.bundle import ScaleBar
     from calibration.detector_model import DetectorModel
@@ -209,7 +210,7 @@ def test_adjust_adds_the_shared_misfit_scaled_by_the_measured_share(monkeypatch)
     added = {}
     for rho in (None, 0.4, 1.0):
         model = DetectorModel(0.004, 0.003, 1.5, 2.4, "4", 0.27, rho_background=rho)
-        monkeypatch.setattr(adjust, "load_model", lambda m=model: m)
+        monkeypatch.setattr(shared_terms, "load_model", lambda m=model: m)
         cov0 = np.array([np.eye(3) * 1e-12] * n)
         res = SimpleNamespace(intrinsics=INTR, cam_from_part=poses, points=X.copy(), rejected=np.zeros(len(img), bool),
                               obs_sigma_px=np.full(len(img), 0.006), cov=cov0.copy(),
@@ -257,6 +258,7 @@ def test_one_function_appends_columns_to_the_low_rank_covariance_for_adjust_and_
     from types import SimpleNamespace
 
     import cell.stages.adjust as adjust
+    import cell.stages.shared_terms as shared_terms
     from calibration.alignment import PointCovariance
     from calibration.bundle import ScaleBar
     from calibration.bundle.covariance import append_columns
@@ -288,7 +290,7 @@ def test_one_function_appends_columns_to_the_low_rank_covariance_for_adjust_and_
     bg = np.array([np.diag(rng.uniform(0.05, 0.2, 2) ** 2) for _ in img])
     bars = (ScaleBar(1, 2, float(np.linalg.norm(X[1] - X[2])), 2e-6),)
     model = DetectorModel(0.004, 0.003, 1.5, 2.4, "4", 0.27, rho_background=0.6)
-    monkeypatch.setattr(adjust, "load_model", lambda: model)
+    monkeypatch.setattr(shared_terms, "load_model", lambda: model)
     D_added = pc.D + coherent_background_cov(INTR, poses, X, img, tgt, np.full(len(img), 0.006), bg, 0.27, 0.6)
     res = SimpleNamespace(intrinsics=INTR, cam_from_part=poses, points=X, rejected=np.zeros(len(img), bool),
                           obs_sigma_px=np.full(len(img), 0.006), cov=pc.blocks(),
