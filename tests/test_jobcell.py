@@ -71,6 +71,14 @@ def test_a_job_that_names_its_cell_file_takes_the_cells_hand_eye_lens_and_simula
     bare = load_job(job_variant(tmp_path / "bare", {"cell": {"cell_file": str(cell), "flange_from_cam": None,
                                                              "table_z": None, "robot": None}}, text=fenceless))[0]
     assert bare.cell.robot == "ur10e" and [o.name for o in bare.cell.obstacles] == ["fence"]
+    # this part's fixture is added to the cell's fence; a job may move slower than the cell allows, not faster
+    fixture = load_job(job_variant(tmp_path / "fixture", {"cell": {
+        "cell_file": str(cell), "flange_from_cam": None, "max_joint_speed_rad_s": 0.5, "retakes": 4,
+        "obstacles": [{"name": "clamp", "size": [50.0, 50.0, 80.0], "pose": {"xyz": [600.0, 120.0, 40.0]}},
+                      {"name": "fence", "size": [40.0, 1600.0, 1200.0], "pose": {"xyz": [1500.0, 0.0, 600.0]}}]}},
+        text=fenceless))[0]
+    assert [o.name for o in fixture.cell.obstacles] == ["fence", "clamp"]
+    assert fixture.cell.max_joint_speed_rad_s == 0.5 and fixture.cell.retakes == 4
     from cell.cellcal.jobcell import take_cell_file
 
     raw = job_variant(tmp_path / "metres", {"cell": {"cell_file": str(cell), "flange_from_cam": None}}, text=fenceless)
@@ -93,8 +101,10 @@ def test_a_job_that_names_its_cell_file_takes_the_cells_hand_eye_lens_and_simula
     ({"camera": {"k1": -0.05}}, r"\[camera\] states lens terms \(k1\) and the cell file has the lens calibrated"),
     ({"camera": {"width": 2000}}, r"the job's camera is not the cell's: \[camera\] width = 2000 here, 2448 in the cell file"),
     ({"cell": {"robot": "ur5e"}}, r"\[cell\] robot = ur5e here, ur10e in the cell file \(mm\); .*delete robot from the job"),
-    ({"cell": {"obstacles": []}}, r"\[cell\] obstacles = \[\] here, \[\{'name': 'fence', .*in the cell file"),
-    ({"cell": {"max_joint_speed_rad_s": 0.5}}, r"\[cell\] max_joint_speed_rad_s = 0.5 here, 1.0 in the cell file"),
+    ({"cell": {"obstacles": [{"name": "fence", "size": [40.0, 1600.0, 1200.0], "pose": {"xyz": [1400.0, 0.0, 600.0]}}]}},
+     r"\[cell\] obstacles: 'fence' = .*1400\.0.* here, .*1500\.0.* in the cell file \(mm\)"),
+    ({"cell": {"max_joint_speed_rad_s": 1.5}}, r"\[cell\] max_joint_speed_rad_s = 1.5 here is beyond the cell's 1.0"),
+    ({"cell": {"table_z": 5.0}}, r"\[cell\] table_z = 5.0 here, 0.0 in the cell file \(mm\)"),
     ({"sim": {"flange_from_cam_error": {"xyz": [0.0, 0.0, 1.0]}}}, r"the simulated hand-eye is stated twice"),
     ({"cell": {"cell_file": "nowhere.toml"}}, r"\[cell\] cell_file: .*nowhere\.toml: cell file not found"),
 ])

@@ -10,10 +10,13 @@ nothing would say so.
   one that states it must state the cell's (within 1 um and 1e-4 deg: the cell file's rounding), else
   the job is refused and the line says by how much they differ.
 * **The cell's other keys** (``robot``, ``table_z``, ``obstacles``, ``camera_box``, the workspace and elbow limits,
-  the speed and settling limits, ``retakes``, ``host``, the light's and the thermometer's ports): the cell file's,
-  in the job's units, where the job leaves them out; one the job states must be the cell's, else the job is refused
-  (a fence the cell file has and the job does not would be planned through). ``backend`` stays the job's (or the
-  command line's): which robot runs, the simulated one or the real one.
+  the speed limits, ``host``, the light's and the thermometer's ports): the cell file's, in the job's units, where
+  the job leaves them out; one the job states must be the cell's, else the job is refused (a fence the cell file has
+  and the job does not would be planned through). Three exceptions: the job's ``obstacles`` are added to the cell's
+  (a part's fixture; one named as a cell's obstacle must be that obstacle); the speed and acceleration limits and
+  ``elbow_limit_deg`` may be stricter than the cell's, not looser; and the settling keys and ``retakes`` are the
+  job's where it states them. ``backend`` stays the job's (or the command line's): which robot runs, the simulated
+  one or the real one.
 * **The camera** must be the cell's: ``[camera]`` ``width``, ``height``, ``pixel_size_um`` and ``focal_length_mm``.
 * **The lens**: the cell's ``camera_lens`` when the hand-eye wrote one (the adjustment still refines it when
   ``self_calibrate``); a job that states lens terms of its own (``cx_px``, ``cy_px``, ``k1`` .. ``p2``) is
@@ -46,6 +49,11 @@ _CAMERA_KEYS = ("width", "height", "pixel_size_um", "focal_length_mm")
 #: [cell] keys that belong to the job, not the cell (backend: which robot runs it, the simulated or the real one)
 _JOB_KEYS = ("base_from_part", "cell_file", "flange_from_cam", "backend")
 _LENGTH_KEYS = ("table_z", "camera_box", "workspace_min", "workspace_max", "obstacles")
+#: limits a job may tighten below the cell's (slower, less bent), never raise
+_STRICTER = ("max_joint_speed_rad_s", "max_joint_accel_rad_s2", "max_tcp_speed_m_s", "max_tcp_accel_m_s2",
+             "elbow_limit_deg")
+#: how this job waits for the arm and retakes a frame: its own where it states them, else the cell's
+_JOBS_OWN = ("settle_s", "settle_speed_rad_s", "settle_timeout_s", "retakes")
 _LENS_KEYS = ("cx_px", "cy_px", "k1", "k2", "k3", "p1", "p2")
 
 
@@ -70,9 +78,17 @@ def take_cell_file(spec: JobSpec, job_path: Path) -> JobSpec:
         if key in _JOB_KEYS or key not in type(cf.cell).model_fields:
             continue
         cells = _in_units(key, getattr(cf.cell, key), k)
-        if key not in spec.cell.model_fields_set:
-            taken[key] = cells
-        elif not _close(getattr(spec.cell, key), cells):
+        mine = getattr(spec.cell, key)
+        if key not in spec.cell.model_fields_set or key in _JOBS_OWN:
+            taken[key] = cells if key not in spec.cell.model_fields_set else mine
+        elif key == "obstacles":  # the cell's, and this part's own (its fixture) under names the cell does not use
+            taken[key] = cells + _own_obstacles(mine, cells, where, spec.job.units)
+        elif key in _STRICTER and mine <= cells:  # a job may move slower and bend less than the cell allows
+            taken[key] = mine
+        elif key in _STRICTER:
+            raise JobSpecError(f"{where}: [cell] {key} = {mine} here is beyond the cell's {cells}: a job may keep "
+                               f"below the cell's limits, not above them; lower {key} to at most {cells}")
+        elif not _close(mine, cells):
             raise JobSpecError(f"{where}: [cell] {key} = {_show(getattr(spec.cell, key))} here, {_show(cells)} in the "
                                f"cell file ({spec.job.units}); a job that names the cell file works in the cell it "
                                f"describes: delete {key} from the job, or correct the cell file")
@@ -110,6 +126,20 @@ def take_cell_file(spec: JobSpec, job_path: Path) -> JobSpec:
                                "[sim] lens and the cell file's; delete the job's")
         sim = sim.model_copy(update={"lens": cf.sim.lens})
     return spec.model_copy(update={"cell": cell, "sim": sim})
+
+
+def _own_obstacles(mine: list, cells: list, where: str, units: str) -> list:
+    """The job's obstacles that the cell does not have (its fixture); one named as the cell's must be the cell's."""
+    by_name = {ob.name: ob for ob in cells}
+    own = []
+    for ob in mine:
+        if ob.name not in by_name:
+            own.append(ob)
+        elif not _close(ob, by_name[ob.name]):
+            raise JobSpecError(f"{where}: [cell] obstacles: {ob.name!r} = {_show(ob)} here, {_show(by_name[ob.name])} "
+                               f"in the cell file ({units}); delete it from the job (the cell's is used), or name "
+                               "this part's own obstacle otherwise")
+    return own
 
 
 def _in_units(key: str, value, k: float):
