@@ -147,6 +147,8 @@ def build_parser() -> argparse.ArgumentParser:
     c = sub.add_parser("check", parents=[common], help="validate a job (and a plan: dry run)")
     c.add_argument("job", type=Path)
     c.add_argument("--plan", type=Path, help="plan.json to validate against the robot and the cell")
+    c.add_argument("--archive", type=Path, default=Path("archive"),
+                   help="where the cell's calibration records are (a job naming a cell file: its calibration status)")
     c.set_defaults(func=cmd_check)
 
     c = sub.add_parser("plan", parents=[common], help="design the camera network only")

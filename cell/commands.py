@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 from calibration.errors import CellError
 
@@ -27,6 +28,8 @@ def _human_check(doc: dict, out) -> None:
         taken = doc["cell"]["taken_from_cell_file"]
         out.say(f"cell   {taken_line(taken)}" + ("" if taken["hand_eye"]["calibrated"] else
                                                  ": WARNING run `cell calibrate hand-eye` first"))
+        if (doc.get("cell_calibration") or {}).get("status") == "verified":
+            out.say(f"cell   calibration verified: {doc['cell_calibration']['detail']}")
     if doc.get("target_thickness_note"):
         out.say(f"targets WARNING {doc['target_thickness_note']}")
     r = doc.get("measurability")
@@ -52,6 +55,11 @@ def check(args, out) -> int:
 
     job = load(args.job)
     doc = {"status": "ok"} | job.summary()
+    if job.cell is not None:  # as `cell run` judges it: a cell whose reverification failed measures no part
+        from cell.job import check_cell_calibration
+
+        st = check_cell_calibration(job, getattr(args, "archive", None) or Path("archive"), out)
+        doc["cell_calibration"] = {k: st.get(k) for k in ("status", "detail")}
     from calibration.errors import JobSpecError
     from cell.stages.plan import unmeasurable_targets
 

@@ -157,6 +157,8 @@ def test_a_cell_whose_reverification_failed_measures_no_part_until_it_is_calibra
     assert "last reverification" in run.doc["message"] and "failed" in run.doc["message"]
     assert "cell calibrate hand-eye" in run.doc["message"] and "\n" not in run.doc["message"]
     assert archive_entries(archive) <= {"calibration"} and not incoming_entries(archive)  # nothing written
+    checked = run_cell("check", str(job), "--archive", str(archive))  # said before the run, as the run says it
+    assert checked.code == 1 and "last reverification" in checked.doc["message"]
     # calibrated again: the failed reverification was made with another hand-eye; the job runs, and says so
     X = load_cell_file(cell)[0].flange_from_cam()
     X[2, 3] += 20e-6
