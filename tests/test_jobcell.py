@@ -74,11 +74,13 @@ def test_a_job_that_names_its_cell_file_takes_the_cells_hand_eye_lens_and_simula
     # this part's fixture is added to the cell's fence; a job may move slower than the cell allows, not faster
     fixture = load_job(job_variant(tmp_path / "fixture", {"cell": {
         "cell_file": str(cell), "flange_from_cam": None, "max_joint_speed_rad_s": 0.5, "retakes": 4,
+        "light_brightness_pct": 150.0,
         "obstacles": [{"name": "clamp", "size": [50.0, 50.0, 80.0], "pose": {"xyz": [600.0, 120.0, 40.0]}},
                       {"name": "fence", "size": [40.0, 1600.0, 1200.0], "pose": {"xyz": [1500.0, 0.0, 600.0]}}]}},
         text=fenceless))[0]
     assert [o.name for o in fixture.cell.obstacles] == ["fence", "clamp"]
     assert fixture.cell.max_joint_speed_rad_s == 0.5 and fixture.cell.retakes == 4
+    assert fixture.cell.light_brightness_pct == 150.0
     from cell.cellcal.jobcell import take_cell_file
 
     raw = job_variant(tmp_path / "metres", {"cell": {"cell_file": str(cell), "flange_from_cam": None}}, text=fenceless)

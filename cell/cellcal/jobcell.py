@@ -14,8 +14,8 @@ nothing would say so.
   the job leaves them out; one the job states must be the cell's, else the job is refused (a fence the cell file has
   and the job does not would be planned through). Three exceptions: the job's ``obstacles`` are added to the cell's
   (a part's fixture; one named as a cell's obstacle must be that obstacle); the speed and acceleration limits and
-  ``elbow_limit_deg`` may be stricter than the cell's, not looser; and the settling keys and ``retakes`` are the
-  job's where it states them. ``backend`` stays the job's (or the command line's): which robot runs, the simulated
+  ``elbow_limit_deg`` may be stricter than the cell's, not looser; and the settling keys, ``retakes`` and the light's
+  ``light_brightness_pct`` (a dark part needs more light) are the job's where it states them. ``backend`` stays the job's (or the command line's): which robot runs, the simulated
   one or the real one.
 * **The camera** must be the cell's: ``[camera]`` ``width``, ``height``, ``pixel_size_um`` and ``focal_length_mm``.
 * **The lens**: the cell's ``camera_lens`` when the hand-eye wrote one (the adjustment still refines it when
@@ -52,8 +52,8 @@ _LENGTH_KEYS = ("table_z", "camera_box", "workspace_min", "workspace_max", "obst
 #: limits a job may tighten below the cell's (slower, less bent), never raise
 _STRICTER = ("max_joint_speed_rad_s", "max_joint_accel_rad_s2", "max_tcp_speed_m_s", "max_tcp_accel_m_s2",
              "elbow_limit_deg")
-#: how this job waits for the arm and retakes a frame: its own where it states them, else the cell's
-_JOBS_OWN = ("settle_s", "settle_speed_rad_s", "settle_timeout_s", "retakes")
+#: how this job waits for the arm, retakes a frame and lights its part: its own where it states them, else the cell's
+_JOBS_OWN = ("settle_s", "settle_speed_rad_s", "settle_timeout_s", "retakes", "light_brightness_pct")
 _LENS_KEYS = ("cx_px", "cy_px", "k1", "k2", "k3", "p1", "p2")
 
 
