@@ -186,7 +186,7 @@ def test_the_cells_lens_covariance_is_read_checked_and_said_when_missing(tmp_pat
     assert job.cell["lens"]["cov"] is None
     bundle = {"lens": {"model": "held: the cell's, calibrated with its hand-eye"},
               "intrinsics": job.intrinsics.to_dict(), "intrinsics_refined": [], "intrinsics_sigma": []}
-    assert "which states no covariance for it" in lens_doc(job, bundle)["held_note"]
+    assert "(the cell file states no covariance for it)" in lens_doc(job, bundle)["held_note"]
     bundle["lens"]["held_uncertainty"] = {"carried": True}
     assert lens_doc(job, bundle).get("held_note") is None
     # written with its covariance, read back as written
@@ -241,3 +241,21 @@ def test_the_held_lens_columns_are_the_networks_response_to_a_lens_error():
                               config).points - res.points
         predicted = cols @ ((V[:, keep].T @ e) / np.sqrt(lam[keep]))
         assert np.linalg.norm(moved - predicted) < 0.03 * np.linalg.norm(moved), (moved, predicted)
+    # a re-adjustment that does not converge carries nothing and says why (reached through a monkeypatch: the
+    # synthetic network converges from a one-sigma lens move)
+    import cell.stages.shared_terms as shared_terms
+    from cell.stages.shared_terms import held_lens_line
+
+    def stuck(*a, **k):
+        r = bundle_adjust(*a, **k)
+        r.converged, r.summary = False, "stopped at its iteration limit"
+        return r
+
+    before = res.cov.copy()
+    shared_terms.bundle_adjust, real = stuck, shared_terms.bundle_adjust
+    try:
+        doc = add_held_lens(res, net.obs_image, net.obs_target, net.obs_uv, config, 0.01, cov)
+    finally:
+        shared_terms.bundle_adjust = real
+    assert not doc["carried"] and "did not converge (stopped at its iteration limit)" in doc["why"]
+    assert np.array_equal(res.cov, before) and "was not carried" in held_lens_line(doc)

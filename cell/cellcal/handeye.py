@@ -180,8 +180,11 @@ def run_hand_eye(cell_toml: Path, archive_root: Path, out, *, backend: str | Non
     # the images must fit as well as the camera measures: a hand-eye from images its model does not explain is not
     # written into the cell file (every job would inherit it)
     why = None
+    lens_cov = lens_covariance(intr, fit)
     if not fit.converged:
         why = "its adjustment with the lens did not converge"
+    elif not (np.isfinite(lens_cov).all() and np.linalg.eigvalsh(lens_cov).min() >= -1e-9 * np.abs(lens_cov).max()):
+        why = "the lens found with it has no finite covariance: these stations do not determine its terms"
     elif not fit.sigma0_px <= HAND_EYE_MAX_VARIANCE_RATIO * cf.camera.sigma_px:
         why = (f"the images fit {fit.sigma0_px:.3f} px, beyond {HAND_EYE_MAX_VARIANCE_RATIO:g}x the camera's sigma_px "
                f"{cf.camera.sigma_px:g} even with the lens estimated: the model does not explain them (a lens beyond "
@@ -194,7 +197,7 @@ def run_hand_eye(cell_toml: Path, archive_root: Path, out, *, backend: str | Non
         raise CalibrationError(f"hand-eye: not written to {cell_toml}: {why}; record {rec.job_id}")
     atomic_write_json(rec.file("hand_eye.json"), doc)
     write_flange_from_cam(cell_toml, fit.flange_from_cam, date, record=rec.job_id, lens=fit.lens,
-                          lens_cov=lens_covariance(intr, fit))
+                          lens_cov=lens_cov)
     rec.append("cell_file_updated", flange_from_cam=fit.flange_from_cam, date=date)
     rec.append("terminal", status="DONE", reason="")
     rec.write_manifest()

@@ -18,7 +18,8 @@ from calibration.weights import INCIDENCE_EDGES_DEG, group_labels, incidence_ang
 from cell.record.jobfolder import atomic_write_bytes, atomic_write_json
 from cell.stages.clip_level import clip_bounds, clip_covariances, say_clip_level
 from cell.stages.dot_precision import blur_weights, observed_blur, rms_sigma, stated_weights
-from cell.stages.shared_terms import add_coherent_background as _add_coherent_background, add_held_lens
+from cell.stages.shared_terms import (add_coherent_background as _add_coherent_background, add_held_lens,
+                                     held_lens_line, holds_cell_lens)
 from cell.stages.scalebars import (bar_name, bars_doc, protected_entries, say_bars, shape_reason, snooping_reason,
                                    test_reason)
 from cell.stages.model_shape import geometry_classes, model_mismatch, range_check, reweighted, shape_check
@@ -415,6 +416,8 @@ def run_bundle(ctx) -> dict:
             res.cov, res.covariance = certificate_at_face_value(res.cov, res.covariance, K, K_sigma, res.variance_factor)
         coherent = _add_coherent_background(res, flags["bg"], img, tgt, ids, bars, K, flags.get("clip_cov")) \
             if model_sigma is not None else None
+        held_lens = add_held_lens(res, img, tgt, uv, bundle_config(job, use), job.spec.camera.sigma_px,
+                                  job.cell["lens"]["cov"]) if holds_cell_lens(job) else None  # before the bars' test
         v = np.zeros(len(bars))
         for e in (coherent or {}).get("scale_bar_ends", []):
             v[e["bar_index"]] = e["length_sigma_m"] ** 2
@@ -436,13 +439,9 @@ def run_bundle(ctx) -> dict:
     held = "held: the cell's, calibrated with its hand-eye" if (job.cell or {}).get("lens") else "nominal (not calibrated)"
     lens = {"model": job.spec.camera.lens_model if job.spec.camera.self_calibrate else held,
             "camera_model": bundle_config(job, use).camera_model} | flags.get("lens", {})
-    if not job.spec.camera.self_calibrate and ((job.cell or {}).get("lens") or {}).get("cov") is not None:
-        # the cell's lens is held: its uncertainty from the hand-eye calibration, through the network (decision 0056)
-        lens["held_uncertainty"] = add_held_lens(res, img, tgt, uv, bundle_config(job, use), job.spec.camera.sigma_px,
-                                                 job.cell["lens"]["cov"])
-        ctx.say(f"  the held lens's uncertainty (the cell's hand-eye calibration) carried into every target: sigma "
-                f"x{lens['held_uncertainty']['sigma_growth_median']:.2f} median, "
-                f"x{lens['held_uncertainty']['sigma_growth_max']:.2f} at most")
+    if held_lens is not None:  # the cell's lens held: its uncertainty from the hand-eye, through the network (0056)
+        lens["held_uncertainty"] = held_lens
+        ctx.say(f"  {held_lens_line(held_lens)}" if held_lens["carried"] else f"  WARNING {held_lens_line(held_lens)}")
     lens |= {"radial_check": radial_check(res, img, tgt, uv, BundleOptions(sigma_px=job.spec.camera.sigma_px),
                                           bundle_config(job, use))}
     rc = lens["radial_check"] or {}

@@ -206,12 +206,14 @@ def lens_doc(job, bundle: dict) -> dict:
     doc["note"] = (b.get("radial_check") or {}).get("note")  # the statement is not this lens's
     cells = bool((getattr(job, "cell", None) or {}).get("lens"))  # the job started from the cell's lens (decision 0056)
     doc["held_uncertainty"] = b.get("held_uncertainty")  # the held lens's covariance carried (decision 0056)
-    if cells and not names and not (b.get("held_uncertainty") or {}).get("carried"):
-        doc["held_note"] = ("the lens is held as the cell's hand-eye calibration estimated it ([cell] camera_lens of "
-                            "the cell file), which states no covariance for it: its own uncertainty is not in the "
-                            "targets' covariances, which are optimistic by it (the example measured 1.19 times its "
-                            "statement; decision 0056); calibrate the hand-eye again (its lens is then written with "
-                            "its covariance), or set self_calibrate = true to refine the lens on this job's images")
+    held = b.get("held_uncertainty") or {}
+    if cells and not names and not held.get("carried"):
+        why = held.get("why") or "the cell file states no covariance for it"
+        doc["held_note"] = (f"the lens is held as the cell's hand-eye calibration estimated it ([cell] camera_lens of "
+                            f"the cell file), and its own uncertainty is not in the targets' covariances ({why}): they "
+                            "are optimistic by it (decision 0056); calibrate the hand-eye again (its lens is then "
+                            "written with its covariance), or set self_calibrate = true to refine the lens on this "
+                            "job's images")
     off = intr.fx_px / nominal.fx_px - 1
     if abs(off) > FOCAL_NOTE:  # said, not a fault: the measurement is the images' own
         says = "the cell's calibrated lens says" if cells else "[camera] focal_length_mm says"

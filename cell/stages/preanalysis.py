@@ -287,10 +287,9 @@ def _adjust_exact(job, poses, img, tgt, uv, scr, rays: PredictedRays, order):
         noise, bg, clipped_share=clip, diameter_px=model_diameters(job, poses, img, tgt, job.intrinsics.fx_px)
     ) + (0.0 if clip_cov is None else clip_cov)
     config = bundle_config(job, [j for j in range(len(job.scale_bars)) if j not in scr.bars_out])
+    sigma_px = float(np.sqrt(np.mean(rms_sigma(noise) ** 2)))
     res = bundle_adjust(img, tgt, uv, job.intrinsics, poses, xyz,
-                        BundleOptions(sigma_px=float(np.sqrt(np.mean(rms_sigma(noise) ** 2))), a_posteriori=False,
-                                      snooping=False),
-                        config, obs_sigma_px=obs_sigma)
+                        BundleOptions(sigma_px=sigma_px, a_posteriori=False, snooping=False), config, obs_sigma_px=obs_sigma)
     added: dict = {}
     if bg is not None:
         bars = config.scale_bars
@@ -298,12 +297,10 @@ def _adjust_exact(job, poses, img, tgt, uv, scr, rays: PredictedRays, order):
         added = _add_coherent_background(res, bg, img, tgt, list(job.part.targets.ids), bars, K, clip_cov)
     if stated is not None:  # plan.json says which dots the prediction weighed by the statement, and why not the rest
         added["dot_precision"] = stated
-    lens = (getattr(job, "cell", None) or {}).get("lens") or {}
-    if not job.spec.camera.self_calibrate and lens.get("cov") is not None:  # as ADJUST: the held lens's uncertainty
-        from cell.stages.shared_terms import add_held_lens
+    from cell.stages.shared_terms import add_held_lens, holds_cell_lens
 
-        added["held_lens"] = add_held_lens(res, img, tgt, uv, config, float(np.sqrt(np.mean(rms_sigma(noise) ** 2))),
-                                           lens["cov"])
+    if holds_cell_lens(job):  # as ADJUST: the held lens's uncertainty
+        added["held_lens"] = add_held_lens(res, img, tgt, uv, config, sigma_px, job.cell["lens"]["cov"])
     return res, added
 
 

@@ -19,10 +19,14 @@ from calibration.bundle import BundleOptions, bundle_adjust
 from calibration.bundle.coherent import coherent_background_cov
 from calibration.bundle.covariance import append_columns
 from calibration.detector_model import load_model
+from cell.cellcal.cellfile import LENS_KEYS as LENS_FIELDS  # the cell file's camera_lens fields, in cov's order
 from cell.stages.clip_level import clip_level_cov
 
-#: the cell file's ``camera_lens`` fields, in the order of its ``cov``
-LENS_FIELDS = ("fx_px", "fy_px", "cx_px", "cy_px", "k1", "k2", "k3", "p1", "p2")
+
+def holds_cell_lens(job) -> bool:
+    """The job holds the cell's lens (``self_calibrate = false``) and the cell file states its covariance."""
+    lens = (getattr(job, "cell", None) or {}).get("lens") or {}
+    return not job.spec.camera.self_calibrate and lens.get("cov") is not None
 
 
 def add_coherent_background(res, bg: np.ndarray, img, tgt, ids: list[str], bars=(), K=None, clip_cov=None) -> dict:
@@ -85,7 +89,8 @@ def add_held_lens(res, img: np.ndarray, tgt: np.ndarray, uv: np.ndarray, config,
 
     ``img, tgt, uv``: the adjustment's observations (all of them; the rejected stay out); ``config``: its
     configuration (the lens held, the datum). Returns what was added: the axes used, each one's largest target move,
-    and how much the targets' sigmas grew.
+    and how much the targets' sigmas grew. Nothing is added (``carried`` False, ``why``) when a re-adjustment does not
+    converge or moves a target by a non-finite amount: a term from it would be a number nobody could trust.
     """
     C = np.asarray(lens_cov, dtype=float)
     lam, V = np.linalg.eigh(0.5 * (C + C.T))
@@ -99,11 +104,17 @@ def add_held_lens(res, img: np.ndarray, tgt: np.ndarray, uv: np.ndarray, config,
         lens = replace(res.intrinsics, **{f: getattr(res.intrinsics, f) + d for f, d in zip(LENS_FIELDS, step)})
         r = bundle_adjust(img[used], tgt[used], uv[used], lens, res.cam_from_part, base,
                           BundleOptions(sigma_px=sigma_px, max_rejections=0), config, obs_sigma_px=sig)
+        determined = np.isfinite(base).all(axis=1)
+        if not r.converged or not np.isfinite(r.points[determined]).all():
+            return {"carried": False, "axes": int(len(axes)), "largest_move_m": moved, "sigma_growth_median": 1.0,
+                    "sigma_growth_max": 1.0, "why": f"the adjustment at the lens moved along axis {int(k)} did not "
+                    f"converge ({r.summary})"}
         d = np.where(np.isfinite(r.points - base), r.points - base, 0.0)
         cols.append(d)
         moved.append(float(np.max(np.linalg.norm(d, axis=1))))
     if not cols:  # a covariance of zeros: nothing to carry
-        return {"carried": False, "axes": 0, "largest_move_m": [], "sigma_growth_median": 1.0, "sigma_growth_max": 1.0}
+        return {"carried": False, "axes": 0, "largest_move_m": [], "sigma_growth_median": 1.0, "sigma_growth_max": 1.0,
+                "why": "the cell file's lens covariance is zero"}
     cols = np.stack(cols, axis=2)  # (n, 3, axes)
     extra = np.einsum("nak,nbk->nab", cols, cols)
     ok = np.isfinite(np.trace(res.cov, axis1=1, axis2=2))
@@ -113,3 +124,12 @@ def add_held_lens(res, img: np.ndarray, tgt: np.ndarray, uv: np.ndarray, config,
     grow = np.sqrt((before + np.trace(extra[ok], axis1=1, axis2=2)) / np.maximum(before, 1e-300))
     return {"carried": True, "axes": int(len(axes)), "largest_move_m": moved,
             "sigma_growth_median": float(np.median(grow)), "sigma_growth_max": float(np.max(grow))}
+
+
+def held_lens_line(doc: dict) -> str:
+    """One line for the console and the log: the held lens's uncertainty carried, or why it was not."""
+    if doc["carried"]:
+        return (f"the held lens's uncertainty (the cell's hand-eye calibration) carried into every target: sigma "
+                f"x{doc['sigma_growth_median']:.2f} median, x{doc['sigma_growth_max']:.2f} at most")
+    return (f"the held lens's uncertainty was not carried ({doc['why']}): the targets' covariances leave it out and "
+            "are optimistic by it")
