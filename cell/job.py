@@ -538,6 +538,8 @@ def _resume_locked(job_id: str, archive: Archive, folder: JobFolder, out, operat
     done = integrity.finished_stages(recs)
     start = next((s for s in STAGES if s.value not in done), None)
     died_after_last_stage = start is None and last_state == State.REPORT and not found
+    to_move = bool(found.stations) or (start is not None and STAGES.index(start) <= STAGES.index(State.ACQUIRE))
+    cell_lines = _cell_on_resume(folder, recs, archive.root, to_move, job_id)  # refuses before anything is written
     torn = folder.drop_torn_tail()  # a record the killed session was writing: it never counted
     if not terminal_seen and not died_after_last_stage:
         # a session killed without a terminal record: record how it ended before going on, in the order a
@@ -548,6 +550,9 @@ def _resume_locked(job_id: str, archive: Archive, folder: JobFolder, out, operat
                       reason=f"{last_state.value}: the process ended without a terminal record (killed or crashed)")
         last_state = State.FAULTED
     folder.append("resumed", stage=start.value if start else "DONE", **({"operator": operator} if operator else {}))
+    for line in cell_lines:
+        folder.append("note", text=line)
+        out.say(f"  WARNING {line}")
     partial = folder.remove_partial_files()
     if partial:
         folder.append("note", text=f"removed {len(partial)} partial file(s) of an interrupted write: {', '.join(partial)}")
@@ -587,6 +592,39 @@ def _resume_locked(job_id: str, archive: Archive, folder: JobFolder, out, operat
         return JobResult(job_id, status, runner.folder.path, unrecorded)
     out.say(f"job {job_id}: resuming at {start.value}")
     return runner.run(start, resumed_from=last_state)
+
+
+def _cell_on_resume(folder: JobFolder, recs: list[dict], archive_root: Path, to_move: bool, job_id: str) -> list[str]:
+    """The cell's calibration judged again when a job that names its cell file resumes (decision 0057).
+
+    The job keeps the cell file it took (``inputs/cell_file.toml``: its hand-eye and lens), so what counts is that
+    calibration's status now: a reverification made with it that failed since the job started refuses a resume
+    that would still take images (``CalibrationError``, before anything is written); one that only computes is let
+    through with a warning (its report states the status). A live cell file that changed since the job took it is
+    said: the job goes on with the calibration it started with. Returns the warnings."""
+    taken = next((r for r in recs if r["event"] == "cell_file_taken"), None)
+    snapshot = folder.path / "inputs" / "cell_file.toml"
+    if taken is None or not snapshot.is_file():
+        return []
+    import hashlib
+    from datetime import datetime, timezone
+
+    from cell.cellcal.status import calibration_status
+
+    lines = []
+    st = calibration_status(archive_root, snapshot, datetime.now(timezone.utc))
+    if st["status"] == "failed":
+        if to_move:
+            raise CalibrationError(f"{job_id}: cell {taken.get('cell')}: {st['detail']} (with the hand-eye this job "
+                                   "measures with): the job is not resumed and nothing was changed; its images so far "
+                                   "are kept. Calibrate the hand-eye again and reverify, then start the part again")
+        lines.append(f"cell {taken.get('cell')}: {st['detail']}; the job only computes from images already taken, "
+                     "and its report states the status")
+    source = Path(str(taken.get("source") or ""))
+    if taken.get("source") and source.is_file() and hashlib.sha256(source.read_bytes()).hexdigest() != taken["sha256"]:
+        lines.append(f"the cell file {source} changed since this job took it (sha256 {taken['sha256'][:12]}...); "
+                     "the job goes on with the hand-eye and lens it started with (inputs/cell_file.toml)")
+    return lines
 
 
 def _close_finished(job_id: str, archive: Archive, folder: JobFolder, recs: list[dict], terminal_seen: bool,

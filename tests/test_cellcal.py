@@ -161,6 +161,42 @@ def _a_job_of_the_cell_measures_through_its_calibration(tmp_path: Path, cell: Pa
          for t in rep["targets"] if t["deviation"][0] is not None and not t["suspect"]]
     # without the lens's covariance 1.19 (optimistic); with it 0.83 on this calibration's one lens (decision 0056)
     assert len(m) > 150 and 0.7 < np.sqrt(np.mean(np.square(m)) / 3) < 1.4
+    _a_resume_judges_the_cells_calibration_again(tmp_path, folder, cell)
+
+
+def _a_resume_judges_the_cells_calibration_again(tmp_path: Path, finished: Path, cell: Path) -> None:
+    """A resumed job keeps the cell file it took; a reverification of that calibration that failed since the job
+    started refuses a resume that would take images, and a live cell file changed since is said (decision 0057)."""
+    import importlib.util
+    import json
+
+    from jobutil import records, run_cell
+
+    spec = importlib.util.spec_from_file_location("faultutil", Path(__file__).parent / "faults" / "faultutil.py")
+    fu = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(fu)
+    archive = tmp_path / "archive-resume"
+    folder = fu.copy_job(finished, archive)
+    fu.kill_during_acquire(folder, 5)
+    cf, _ = load_cell_file(folder / "inputs" / "cell_file.toml")
+    _fake_record(archive, cf.cell.name, False, "2099-01-01T00:00:00+00:00", cf.flange_from_cam())
+    before = fu.snapshot(folder)
+    run = run_cell("resume", folder.name, "--archive", str(archive), "--yes")
+    assert run.code == 1 and "failed" in run.doc["message"] and "not resumed" in run.doc["message"], run.stderr
+    assert "\n" not in run.doc["message"] and fu.snapshot(folder) == before  # nothing written
+    # a job that has its images computes on, saying so; and a cell file recalibrated since is said
+    folder = fu.copy_job(finished, tmp_path / "archive-resume2")
+    fu.cut_journal(folder, lambda r, i: not (r["event"] == "state" and r["to"] == "REPORT"))
+    _fake_record(folder.parent, cf.cell.name, False, "2099-01-01T00:00:00+00:00", cf.flange_from_cam())
+    X = cf.flange_from_cam()
+    X[2, 3] += 30e-6
+    write_flange_from_cam(cell, X, "2026-11-25T08:00:00+00:00", record="he-later")
+    run = run_cell("resume", folder.name, "--archive", str(folder.parent), "--yes")
+    assert run.code == 0 and run.doc["status"] == "DONE", run.stderr[-2000:]
+    assert "WARNING cell" in run.stderr and "changed since this job took it" in run.stderr, run.stderr
+    notes = [r["text"] for r in records(folder) if r["event"] == "note"]
+    assert any("changed since this job took it" in t for t in notes), notes
+    assert json.loads((folder / "report.json").read_text())["cell_calibration"]["status"] == "failed"
 
 
 @pytest.mark.slow
