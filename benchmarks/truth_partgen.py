@@ -19,6 +19,8 @@ probability of at least as many (``p_at_least_as_many_misses``; small: the state
     .venv/bin/python -m benchmarks.truth_partgen [--runs 6] [--first-seed 100] [--misplaced] [--json out.json]
         [--focal-length-mm 12]    (another lens than the detector model's: decision 0046)
         [--set sim.noise=2 --set camera.exposure_s=0.001 ...]    (any job key, its value as TOML)
+        [--cell-calibrated]    (the plant's procedure: the cell's hand-eye calibrated first, with its lens, and the
+                                job measures through both, holding the lens; decision 0057)
 """
 from __future__ import annotations
 
@@ -42,7 +44,8 @@ from tests.test_truth_partgen import (FALSE_SIGNIFICANT_MAX, IN99_MIN, RATIO_BAN
 
 def one(work: Path, seed: int, misplaced: bool, search_weights: str | None = None,
         background_mask: str | None = None, bar_sigma_um: float = 1.0, n_bars: int = 4,
-        focal_length_mm: float | None = None, settings: tuple[str, ...] = (), warm: float | None = None) -> dict:
+        focal_length_mm: float | None = None, settings: tuple[str, ...] = (), warm: float | None = None,
+        cell_calibrated: bool = False) -> dict:
     part = make_part_job(work / f"job{seed}", np.random.default_rng(seed),
                          misplacement=(10.0, 5.0) if misplaced else None, bar_sigma_mm=1e-3 * bar_sigma_um,
                          n_bars=n_bars)
@@ -64,6 +67,11 @@ def one(work: Path, seed: int, misplaced: bool, search_weights: str | None = Non
             raise SystemExit(f"--set {setting!r}: expected table.key=value (value as TOML: 3.0, \"cad\", [1, 2])")
         set_key(part.job, table, key, value.strip(), raw=True)
     t0 = time.perf_counter()
+    hand_eye = None
+    if cell_calibrated:
+        hand_eye = calibrate_cell(work, part.job, seed)
+        if "error" in hand_eye:
+            return {"seed": seed, "kind": part.kind, "error": hand_eye["error"]}
     if misplaced:
         loc = run_cell("locate", str(part.job), "--write", timeout=900)
         if loc.code != 0:
@@ -97,7 +105,47 @@ def one(work: Path, seed: int, misplaced: bool, search_weights: str | None = Non
     # how often this run's criteria would be missed were its statement exactly right (the targets' joint covariance)
     if thermal is not None:
         row["thermal_true"] = thermal
+    if hand_eye is not None:
+        held = json.loads((folder / "bundle.json").read_text())["lens"].get("held_uncertainty") or {}
+        row["hand_eye"] = hand_eye | {"lens_carried": held.get("carried"),
+                                      "sigma_growth_median": held.get("sigma_growth_median")}
     return row | {"meets": meets(row), "odds_of_a_miss": report_odds(report, folder, part)}
+
+
+CELL = Path(__file__).resolve().parents[1] / "examples" / "cell"
+
+
+def calibrate_cell(work: Path, job: Path, seed: int) -> dict:
+    """The plant's procedure (docs/bring-up.md) for a generated job (decision 0057): the example cell's file (the
+    generated jobs' cell) with the job's simulated lens as the cell's camera's, its hand-eye calibrated with the lens
+    (``cell calibrate hand-eye``, the cell's [sim] seed the run's); then the job names that cell file, leaves out its
+    own hand-eye and [sim] lens, and holds the cell's lens (``self_calibrate = false``), carrying its covariance.
+    Returns the hand-eye's figures against the simulated truth, or ``{"error": ...}``."""
+    d = work / f"cell{seed}"
+    d.mkdir()
+    for f in CELL.iterdir():
+        if f.suffix in (".toml", ".stl", ".csv"):
+            (d / f.name).write_bytes(f.read_bytes())
+    text = job.read_text()
+    lens = re.search(r"(?m)^lens = (.*)$", text)
+    cell = d / "cell.toml"
+    ctext = cell.read_text().replace("\n[sim]\n", "\n[sim]\n" + (f"lens = {lens.group(1)}\n" if lens else ""), 1)
+    ctext, n = re.subn(r"(?ms)(^\[sim\]\n.*?^seed = )\d+", lambda m: m.group(1) + str(seed), ctext, count=1)
+    if n != 1:
+        raise SystemExit(f"{cell}: [sim] seed not found")
+    cell.write_text(ctext)
+    he = run_cell("calibrate", "hand-eye", str(cell), "--archive", str(work / "archive"), timeout=900)
+    if he.code != 0:
+        return {"error": "hand-eye: " + he.stderr.strip().splitlines()[-1]}
+    text = re.sub(r"(?m)^lens = .*\n", "", text)
+    text = re.sub(r"(?m)^flange_from_cam = .*\n", "", text)
+    job.write_text(text)
+    set_key(job, "cell", "cell_file", str(cell))
+    set_key(job, "camera", "self_calibrate", "false", raw=True)
+    truth = he.doc.get("truth") or {}
+    return {"sigma0_px": he.doc["sigma0_px"], "sigma_translation_um": [1e6 * v for v in he.doc["sigma_translation_m"]],
+            "error_translation_um": 1e6 * truth["error_translation_m"] if truth else None,
+            "principal_distance_mm": he.doc["lens"]["principal_distance_mm"]}
 
 
 def warm_job(job: Path, seed: int, dt: float) -> dict:
@@ -217,12 +265,14 @@ def main(argv=None) -> int:
                          "job.target_diameter=3.0); repeatable")
     ap.add_argument("--warm", type=float, metavar="K", help="the parts K above 20 C (aluminium) with carbon scale bars, "
                     "[thermal] stating both, the truth drawn from its sigmas (decision 0053)")
+    ap.add_argument("--cell-calibrated", action="store_true", help="calibrate the cell's hand-eye and lens first and "
+                    "let each job measure through them, holding the lens (decision 0057)")
     a = ap.parse_args(argv)
     rows = []
     with tempfile.TemporaryDirectory(prefix="truth-partgen-") as tmp:
         for k in range(a.runs):
             r = one(Path(tmp), a.first_seed + k, a.misplaced, a.search_weights, a.background_mask, a.bar_sigma_um, a.bars,
-                    a.focal_length_mm, tuple(a.set), a.warm)
+                    a.focal_length_mm, tuple(a.set), a.warm, a.cell_calibrated)
             rows.append(r)
             print(json.dumps(r), flush=True)
     ok = [r for r in rows if "error" not in r]

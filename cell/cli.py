@@ -194,6 +194,8 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--camera", type=Path, help="camera: CAMERA.toml to start from (default: EXIF)")
     c.add_argument("--units", default="mm", choices=sorted(UNITS), help="camera: units of the layout (default mm)")
     c.add_argument("--out", type=Path, help="camera: the calibrated CAMERA.toml to write")
+    c.add_argument("--control", type=Path, help="camera: control.csv: id,x,y,z[,sigma] of the field's certified "
+                   "targets (sigma 0 or absent: held fixed); a flat field needs them")
     c.add_argument("--archive", type=Path, default=Path("archive"))
     c.add_argument("--backend", choices=["sim", "ur"], help="override the cell file's backend")
     c.add_argument("--yes", action="store_true", help="confirm moving the robot without asking")

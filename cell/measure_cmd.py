@@ -25,6 +25,7 @@ Lengths in the layout and control files are in ``--units`` (mm by default); outp
 from __future__ import annotations
 
 import csv
+import json
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -215,13 +216,24 @@ def measure_folder(folder: Path, cam: CameraFile, targets: Targets, *, control: 
     res = bundle_adjust(obs_image, obs_target, obs_uv, start, poses, targets.xyz.copy(),
                         BundleOptions(sigma_px=cam.sigma_px), config)
     if not res.converged:
-        raise CalibrationError("measure: the bundle adjustment did not converge; check the identification (cell detect --png)")
+        hint = ("check the identification (cell detect --png)" if not (self_cal and control is None and
+                                                                     flat < 0.02 * extent) else
+                "a flat field with the camera self-calibrated and no coordinates held is weak: give the field's "
+                "coordinates as control (--control control.csv, e.g. its certificate), or check the identification "
+                "(cell detect --png)")
+        raise CalibrationError(f"measure: the bundle adjustment did not converge; {hint}")
     n_rays = np.bincount(obs_target[~res.rejected], minlength=len(targets.ids))
     say(f"bundle: {len(obs_uv)} observations in {len(used)} images, sigma0 {res.sigma0_px:.4f} px, "
         f"{int(res.rejected.sum())} rejected, datum {res.datum}")
     names = list(res.intrinsics_names)
     sd = np.sqrt(np.diag(res.intrinsics_cov)) if len(names) else np.zeros(0)
     ri = res.intrinsics
+    # what the answer is worth (decision 0057): one camera setting in every image, the bundle's own signals
+    from cell.measure_trust import doubts
+
+    said = doubts(res, cam.sigma_px, list(images), used)
+    for d in said:
+        say(("UNTRUSTED " if d["untrusted"] else "WARNING ") + d["text"])
     doc = {
         "images": [{"name": im.name, "dots": int(len(im.uv)), "identified": int(np.sum(im.target >= 0)) if im.target is not None else 0,
                     "used": any(im is u for u in used), "note": im.note} for im in images],
@@ -237,10 +249,17 @@ def measure_folder(folder: Path, cam: CameraFile, targets: Targets, *, control: 
                                                                 map(float, zhang.std))), "rms_px": zhang.rms_px},
         "sigma0_px": float(res.sigma0_px), "datum": res.datum, "observations": int(len(obs_uv)),
         "rejected": int(res.rejected.sum()), "flatness_m": flat,
+        "converged": bool(res.converged), "solver_fallback": res.solver_fallback,
+        "snooping": {k: res.snooping.get(k) for k in ("complete", "stopped", "n_rejected", "suspect_targets",
+                                                      "diverged", "handed_over", "protected") if k in res.snooping},
+        "variance_factor": float((res.sigma0_px / cam.sigma_px) ** 2),
+        "doubts": said, "trusted": not any(d["untrusted"] for d in said),
+        "coded_not_judged": [targets.ids[i] for i in np.flatnonzero(targets.kind == "coded") if n_rays[i] < 2],
         "targets": [{"id": targets.ids[i], "xyz": res.points[i].tolist(), "cov": res.cov[i].tolist(),
                      "sigma_m": float(np.sqrt(np.trace(res.cov[i]))), "rays": int(n_rays[i])}
                     for i in range(len(targets.ids)) if n_rays[i] >= 2 and np.all(np.isfinite(res.points[i]))],
     }
+    doc["snooping"]["suspect_targets"] = [targets.ids[i] for i in doc["snooping"].get("suspect_targets") or []]
     doc["_observations"] = (obs_image, obs_target, obs_uv, res.residuals, res.rejected, [im.name for im in used])
     return doc
 
@@ -268,18 +287,48 @@ def report_doc(doc: dict, targets: Targets, tolerance_m: float, job_id: str, nam
                      "achieved_sigma_m": m["sigma_m"], "n_images": m["rays"]})
     fit = [t["id"] for t in doc["targets"]]
     dev = np.array([r["deviation_norm_m"] for r in rows if r["deviation_norm_m"] is not None])
+    verdict, reasons = _verdict(doc, targets, rows)
+    al_trusted = bool(doc["datum"] == "control" or len(fit) >= 4)
+    said = doc.get("doubts") or []
+    sn = dict(doc.get("snooping") or {})
     return {
         "job": {"id": job_id, "name": name, "seed": 0, "status": "DONE", "started": started, "finished": finished,
                 "versions": {"python": platform.python_version(), "numpy": np.__version__, "opencv": cv2.__version__},
                 "part": name},
         "images": sum(im["used"] for im in doc["images"]), "sigma0_px": doc["sigma0_px"], "datum": doc["datum"],
-        "verdict": "PASS" if all(r["pass"] for r in rows) else "FAIL", "targets": rows,
+        "verdict": verdict if al_trusted else "UNTRUSTED", "verdict_reasons": reasons, "targets": rows,
         "alignment": {"method": "control" if doc["datum"] == "control" else "free network on the layout (inner constraints)",
                       "targets_in_fit": fit, "rms_m": float(np.sqrt(np.mean(dev**2))) if len(dev) else None,
-                      "trusted": bool(doc["datum"] == "control" or len(fit) >= 4)},
+                      "trusted": al_trusted, "reasons": [] if al_trusted else ["fewer than 4 targets measured"]},
+        # what the measurement says of itself (decision 0057): report.html shows each
+        "measurement_trusted": bool(doc.get("trusted", True)),
+        "untrusted_reasons": [d["text"] for d in said if d["untrusted"]],
+        "snooping": sn, "solver_fallback": doc.get("solver_fallback"),
+        "uncertainty_budget": {"variance_factor": doc.get("variance_factor"),
+                               "detector_model_mismatch": next((d["text"] for d in said
+                                                                if d["kind"] == "variance_factor"), None)},
+        "left_out": {"images": [{"image": im["name"], "station": "photograph", "reason": im["note"] or
+                                 "fewer than 6 targets identified"} for im in doc["images"] if not im["used"]]},
         "part": {"number": None, "revision": None, "serial": None}, "operator": None, "cell_id": None,
         "camera": doc["camera"], "stage_times_s": doc.get("stage_times_s", {}),
     }
+
+
+def _verdict(doc: dict, targets: Targets, rows: list[dict]) -> tuple[str, list[str]]:
+    """The verdict as a job's (:func:`cell.stages.report.part_verdict`): coded markers that orient the images and
+    were not measured (ArUco) are not judged; targets data snooping could not verify are suspect; a measurement
+    whose own checks failed (:mod:`cell.measure_trust`) is UNTRUSTED, with why first."""
+    from cell.stages.report import part_verdict
+
+    ok = np.array([r["deviation_norm_m"] is not None for r in rows], dtype=bool)
+    judged = (targets.kind != "coded") | ok
+    passed = np.array([bool(r["pass"]) for r in rows], dtype=bool)
+    suspect = np.isin(targets.ids, (doc.get("snooping") or {}).get("suspect_targets") or [])
+    verdict, reasons = part_verdict(True, ok, passed, judged, [None] * len(rows), suspect, list(targets.ids))
+    bad = [d["text"] for d in doc.get("doubts") or [] if d["untrusted"]]
+    if bad:
+        return "UNTRUSTED", bad + list(reasons)
+    return verdict, list(reasons)
 
 
 def _write_outputs(out_dir: Path, doc: dict, targets: Targets, report: dict) -> None:
@@ -311,6 +360,8 @@ def _archive(archive: Path, out_dir: Path, job_id: str, name: str) -> Path:
     folder.mkdir(parents=True, exist_ok=False)
     jf = JobFolder(folder)
     jf.append("created", name=name, source="cell measure", out=str(out_dir))
+    for d in json.loads((out_dir / "measure.json").read_text()).get("doubts") or []:  # said in the journal too
+        jf.append("note", text=("UNTRUSTED " if d["untrusted"] else "WARNING ") + d["text"])
     for f in ("measure.json", "observations.csv", "report.json", "report.html"):
         shutil.copy2(out_dir / f, folder / f)
     jf.append("state", **{"from": "MEASURE", "to": "DONE"})
@@ -359,8 +410,15 @@ def calibrate_camera_command(args, out) -> int:
     targets = _load_layout(args)
     if args.out is None or Path(args.out).suffix != ".toml":
         raise InputError("cell calibrate camera: --out CAMERA_OUT.toml is needed")
-    doc = measure_folder(args.images, cam, targets, self_calibrate=True, say=out.say)
+    control = load_control(args.control, targets, args.units) if getattr(args, "control", None) else None
+    doc = measure_folder(args.images, cam, targets, control=control, self_calibrate=True, say=out.say)
     doc.pop("_observations")
+    # a camera file is what later measurements hold: one the images do not vouch for is not written (decision 0057)
+    why = [d["text"] for d in doc["doubts"] if d["untrusted"]]
+    if not np.isfinite(doc["sigma0_px"]) and not why:
+        why.append(f"sigma0 {doc['sigma0_px']}: the images' fit is unknown")
+    if why:
+        raise CalibrationError(f"cell calibrate camera: not written to {args.out}: {'; '.join(why)}")
     c = doc["camera"]
     sig = c["sigma"]
     new = cam.model_copy(update={"fx_px": c["fx_px"], "fy_px": c["fy_px"], "cx_px": c["cx_px"], "cy_px": c["cy_px"],
@@ -369,7 +427,8 @@ def calibrate_camera_command(args, out) -> int:
     comments = {k: f"+- {sig[n]:.3g}" for k, n in (("fx_px", "fx"), ("fy_px", "fy"), ("cx_px", "cx"), ("cy_px", "cy"),
                                                    ("k1", "k1"), ("k2", "k2"), ("k3", "k3"), ("p1", "p1"), ("p2", "p2"))
                 if n in sig}
-    text = f"# cell calibrate camera: {len(doc['images'])} images, sigma0 {doc['sigma0_px']:.4f} px\n" + camera_toml(new, comments)
+    text = (f"# cell calibrate camera: {len(doc['images'])} images, sigma0 {doc['sigma0_px']:.4f} px\n"
+            + "".join(f"# WARNING {d['text']}\n" for d in doc["doubts"]) + camera_toml(new, comments))
     from cell.record.jobfolder import atomic_write_bytes
 
     atomic_write_bytes(Path(args.out), text.encode())

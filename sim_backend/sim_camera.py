@@ -586,6 +586,8 @@ class SimCamera:
             blurred = _blur_by_variance(img[b0:b1, a0:a1], float(extra[k]) ** 2)
             c0, d0 = max(u0[k] - pad, 0), max(v0[k] - pad, 0)  # write: the window and the blur's reach
             c1, d1 = min(u0[k] + ww[k] + pad, W), min(v0[k] + hh[k] + pad, H)
+            if c1 <= c0 or d1 <= d0:  # a window off the image's top or left edge but for its blur's reach: a negative
+                continue  # end would count from the image's other side (a generated plate's dot did, at v0 = -27)
             out[d0:d1, c0:c1] = blurred[d0 - b0 : d1 - b0, c0 - a0 : c1 - a0]
         return out
 

@@ -260,8 +260,8 @@ def make_part_job(out: Path, rng: np.random.Generator, kind: str | None = None, 
     text = re.sub(r"(?m)^seed = 11$", f"seed = {int(rng.integers(1, 1000))}", text)
     if real_lens:  # a real lens is not its data sheet (decision 0054): a child stream of its own
         lens = draw_lens(rng.spawn(1)[0])
-        text, n = re.subn(r"(?m)^lens = .*$", lambda m: f"lens = {toml_inline(lens)}", text)
-        if n == 0:
+        text, found = re.subn(r"(?m)^lens = .*$", lambda m: f"lens = {toml_inline(lens)}", text)
+        if found == 0:
             text = text.replace("[sim]\n", f"[sim]\nlens = {toml_inline(lens)}\n", 1)
     else:  # the simulated lens is the nominal one
         text = re.sub(r"(?m)^lens = .*\n", "", text)

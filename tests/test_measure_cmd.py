@@ -114,3 +114,59 @@ def test_measure_without_a_layout_or_focal_length_says_what_is_missing(photograp
     assert main(["measure", str(folder), "--layout", str(layout), "--out", str(tmp_path / "o")]) == 2
     assert "focal length" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
+
+
+def test_measure_says_what_it_left_out_and_a_calibration_the_images_refute_is_not_written(photographs, tmp_path,
+                                                                                          capsys):
+    """An outside check fed ``cell measure`` real photographs unlike ours: images it could not orient were dropped
+    without a word, data snooping stopped at its cap with observations still failing, and the camera it calibrated
+    from them was written as if sound. Each is now said, in the console, measure.json, report.json and report.html
+    (decision 0057); a measurement whose blunder test stopped before the end is UNTRUSTED, and ``cell calibrate
+    camera`` writes no camera file from it."""
+    import shutil
+
+    folder, layout, camera, truth = photographs
+    mixed = tmp_path / "photos"
+    shutil.copytree(folder, mixed)
+    blank = np.full((1024, 1280), 40, np.uint8)  # a frame of something else: no target, nothing to orient
+    cv2.imwrite(str(mixed / "img9.png"), blank)
+    marker = tmp_path / "layout.csv"  # and a marker the images never show: it orients nothing, and is not judged
+    marker.write_text(layout.read_text() + "M1,300.0,300.0,0.0,0,0,1,coded,,247\n")
+    out = tmp_path / "out"
+    assert main(["measure", str(mixed), "--camera", str(camera), "--layout", str(marker), "--out", str(out),
+                 "--tolerance", "2.0", "--json"]) == 0
+    cap = capsys.readouterr()
+    doc = json.loads(cap.out)
+    assert "WARNING 1 of 7 image(s) not used: img9.png" in cap.err, cap.err
+    assert "images" in [d["kind"] for d in doc["doubts"]] and doc["trusted"]
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["left_out"]["images"][0]["image"] == "img9.png" and rep["verdict"] == "PASS", rep["verdict_reasons"]
+    assert 'id="left-out"' in (out / "report.html").read_text()
+    # a layout the images refute (the field 6 % longer in y, every target held as control): every observation misfits,
+    # so data snooping (against the a posteriori variance) fails none; the fit, 2.6 px, says it
+    t = [ln.split(",") for ln in layout.read_text().splitlines()[1:]]
+    control = tmp_path / "control.csv"
+    control.write_text("id,x,y,z\n" + "".join(f"{r[0]},{r[1]},{float(r[2]) * 1.06:.4f},{r[3]}\n" for r in t))
+    out2 = tmp_path / "out2"
+    assert main(["measure", str(folder), "--camera", str(camera), "--layout", str(layout), "--control", str(control),
+                 "--out", str(out2), "--json"]) == 0
+    cap = capsys.readouterr()
+    doc = json.loads(cap.out)
+    assert not doc["trusted"] and doc["verdict"] == "UNTRUSTED", (cap.err, doc["sigma0_px"])
+    assert "UNTRUSTED the images fit" in cap.err and "a layout whose spacing or shape is wrong" in cap.err
+    rep = json.loads((out2 / "report.json").read_text())
+    assert rep["verdict"] == "UNTRUSTED" and rep["verdict_reasons"][0].startswith("the images fit")
+    assert 'id="measurement-alert"' in (out2 / "report.html").read_text()
+    cal = tmp_path / "cal.toml"
+    assert main(["calibrate", "camera", str(folder), "--camera", str(camera), "--layout", str(layout), "--control",
+                 str(control), "--out", str(cal)]) == 1
+    err = capsys.readouterr().err
+    assert "not written" in err and "the images fit" in err and not cal.exists()
+    # held to the field's true coordinates (its certificate: the sheet's bow in them), the calibration is written
+    good = tmp_path / "control_ok.csv"
+    good.write_text("id,x,y,z\n" + "".join(f"{r[0]},{x * 1e3:.4f},{y * 1e3:.4f},{z * 1e3:.4f}\n"
+                                           for r, (x, y, z) in zip(t, truth)))
+    assert main(["calibrate", "camera", str(folder), "--camera", str(camera), "--layout", str(layout), "--control",
+                 str(good), "--out", str(cal)]) == 0, capsys.readouterr().err
+    fx = float(cal.read_text().split("fx_px = ")[1].split()[0])
+    assert abs(fx - TRUE.fx_px) < 3.0

@@ -517,3 +517,18 @@ def test_depth_of_field_defocuses_each_dot_by_its_depth_and_leaves_its_centre():
     with pytest.raises(InputError, match="depth of field"):
         Sensor().with_depth_of_field(0.9, 0.5, 2.0)
     assert Sensor().with_depth_of_field(0.5, 0.9, 0.0).defocus_px_m == 0.0
+
+
+def test_defocus_of_a_window_just_off_the_top_edge_leaves_the_image_alone():
+    """A dot's window above the image but for the blur's reach (a generated plate's dot at v0 = -27 px): the write's
+    end was negative, counted from the image's other side, and the job faulted in ACQUIRE with a broadcast error."""
+    from types import SimpleNamespace
+
+    sensor = Sensor(noise=False).with_depth_of_field(0.5, 0.9, 2.0)
+    cam = SimCamera(World(_tilted_single_target(0.0), np.eye(4), np.eye(4), INTR), sensor=sensor, photometry=DARK)
+    img = np.random.default_rng(3).uniform(0, 200, (INTR.height, INTR.width)).astype(np.float32)
+    vis = SimpleNamespace(depth=np.array([0.5, 0.5]), windows=(np.array([100, INTR.width - 3]), np.array([-28, 40]),
+                                                                 np.array([31, 31]), np.array([24, 24])))
+    out = cam._defocus(img, vis)  # pad 3: the first window's write ends at -1, its read at 2
+    assert out.shape == img.shape and np.array_equal(out[:, :INTR.width - 10], img[:, :INTR.width - 10])
+    assert not np.array_equal(out[35:70, INTR.width - 6:], img[35:70, INTR.width - 6:])  # the other one is blurred

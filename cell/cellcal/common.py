@@ -208,8 +208,9 @@ def _seen_matrix(plan: NetworkPlan) -> np.ndarray:
 
 
 def measure_image(img: np.ndarray, part, intr: Intrinsics, cam_from_part_approx: np.ndarray,
-                  occluder: Occluder) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Dots measured in one image: ``(target index (k,), uv (k, 2) eccentricity-corrected, cam_from_part used)``.
+                  occluder: Occluder) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Dots measured in one image: ``(target index (k,), uv (k, 2) eccentricity-corrected, cam_from_part used,
+    the eccentricity taken off (k, 2) px)``.
 
     :func:`cell.stages.imaging.measure_image` from the approximate pose; with six dots or more the pose is
     refined by PnP on them and the dots are named and measured again from it.
@@ -218,7 +219,23 @@ def measure_image(img: np.ndarray, part, intr: Intrinsics, cam_from_part_approx:
     if len(m.target) >= 6:
         pose = refine_pose_pnp(intr, m.cam_from_part, part.targets.xyz[m.target], m.uv)
         m, _ = imaging.measure_image(img, part, intr, pose, occluder)
-    return m.target, m.uv, m.cam_from_part
+    ecc = m.eccentricity_px if m.eccentricity_px is not None else np.zeros((len(m.target), 2))
+    return m.target, m.uv, m.cam_from_part, np.asarray(ecc, dtype=float).reshape(-1, 2)
+
+
+def centres_through_lens(lens: Intrinsics, cam_from_target: np.ndarray, obs_image: np.ndarray, xyz: np.ndarray,
+                         normals: np.ndarray, radius_m: float, uv: np.ndarray, applied: np.ndarray) -> np.ndarray:
+    """Measured centres ``uv (q, 2)`` with the eccentricity MEASURE took off (``applied``: the data sheet's pinhole
+    lens) given back and the eccentricity through ``lens`` at the poses ``cam_from_target (m, 4, 4)`` taken off
+    (:func:`cell.stages.lens.lens_eccentricity`: a distorting lens moves a dot's centre further, by its curvature
+    over the dot; decision 0057). ``obs_image (q,)`` indexes the poses; ``xyz, normals (q, 3)`` each observation's."""
+    from cell.stages.lens import lens_eccentricity
+
+    out = np.asarray(uv, dtype=float) + np.asarray(applied, dtype=float)
+    for i in np.unique(obs_image):
+        k = np.flatnonzero(obs_image == i)
+        out[k] -= lens_eccentricity(lens, cam_from_target[i], xyz[k], normals[k], radius_m)
+    return out
 
 
 def capture_at(devices, q: np.ndarray, c, exposure_s: float = 0.002,

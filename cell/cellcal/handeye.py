@@ -12,8 +12,8 @@ from calibration.faugeras_toscani import faugeras_toscani
 from calibration.handeye import (HandEyeConditioning, HandEyeOptions, compare_methods, hand_eye_conditioning,
                                  hand_eye_information, pose_error, refine_hand_eye, refine_with_lens)
 from calibration.targets import refine_pose_pnp
-from cell.cellcal.common import (StationPlan, artefact_job, capture_at, measure_image, plan_stations, record_folder,
-                                 save_image)
+from cell.cellcal.common import (StationPlan, artefact_job, capture_at, centres_through_lens, measure_image,
+                                 plan_stations, record_folder, save_image)
 from cell.cellcal.cellfile import load_cell_file, write_flange_from_cam
 from cell.record.jobfolder import atomic_write_json, utc_now
 from cell.loadedjob import LoadedJob
@@ -93,7 +93,7 @@ def run_hand_eye(cell_toml: Path, archive_root: Path, out, *, backend: str | Non
     truth = None
     if backend == "sim":
         truth = (devices.world.true_flange_from_cam.copy(), devices.world.true_base_from_part.copy())
-    B, A, img_idx, tgt_idx, uvs, per_image = [], [], [], [], [], []
+    B, A, img_idx, tgt_idx, uvs, eccs, per_image = [], [], [], [], [], [], []
     try:
         for i, q in enumerate(joints):
             out.progress("hand-eye acquire", i / len(joints))
@@ -101,7 +101,7 @@ def run_hand_eye(cell_toml: Path, archive_root: Path, out, *, backend: str | Non
             name = f"images/{i:04d}.png"
             save_image(rec, name, img)
             approx = invert(X0) @ invert(bff) @ Y0
-            tid, uv, pose = measure_image(img, job.part, intr, approx, occluder)
+            tid, uv, pose, ecc = measure_image(img, job.part, intr, approx, occluder)
             ft_ok = len(tid) >= 8
             if ft_ok:
                 try:
@@ -122,6 +122,7 @@ def run_hand_eye(cell_toml: Path, archive_root: Path, out, *, backend: str | Non
             img_idx.append(np.full(len(tid), k))
             tgt_idx.append(tid)
             uvs.append(uv)
+            eccs.append(ecc)
         out.progress("hand-eye acquire", 1.0)
     finally:
         devices.close()
@@ -129,7 +130,8 @@ def run_hand_eye(cell_toml: Path, archive_root: Path, out, *, backend: str | Non
         raise CalibrationError(f"hand-eye: only {len(B)} images measured the artefact (need 4); check the light and "
                                f"the artefact's placement in {cell_toml} [hand_eye] placement")
     B, A = np.array(B), np.array(A)
-    img_idx, tgt_idx, uvs = np.concatenate(img_idx), np.concatenate(tgt_idx), np.concatenate(uvs)
+    img_idx, tgt_idx, uvs, eccs = (np.concatenate(img_idx), np.concatenate(tgt_idx), np.concatenate(uvs),
+                                   np.concatenate(eccs))
     sols, failed = compare_methods(B, A)
     best = sols[0]
     res = refine_hand_eye(intr, B, img_idx, job.part.targets.xyz[tgt_idx], uvs, best.flange_from_cam,
@@ -138,6 +140,16 @@ def run_hand_eye(cell_toml: Path, archive_root: Path, out, *, backend: str | Non
     ok = ~res.rejected
     fit = refine_with_lens(intr, B, img_idx[ok], job.part.targets.xyz[tgt_idx[ok]], uvs[ok], res.flange_from_cam,
                            res.base_from_target, HAND_EYE_LENS_TERMS)
+    # the centres through the lens found: MEASURE took off each dot's eccentricity for the data sheet's pinhole lens,
+    # and a distorting lens moves a dot's centre further, by its curvature over the dot (decision 0057); once more
+    # with the centres MEASURE would have given through this lens
+    t = job.part.targets
+    C = np.array([invert(fit.flange_from_cam) @ invert(b) @ fit.base_from_target for b in B])
+    uvs_lens = centres_through_lens(fit.lens, C, img_idx, t.xyz[tgt_idx], t.normals[tgt_idx],
+                                    job.part.target_diameter_m / 2, uvs, eccs)
+    relensed_px = float(np.sqrt(np.mean(np.sum((uvs_lens - uvs) ** 2, axis=1))))
+    fit = refine_with_lens(intr, B, img_idx[ok], job.part.targets.xyz[tgt_idx[ok]], uvs_lens[ok], fit.flange_from_cam,
+                           fit.base_from_target, HAND_EYE_LENS_TERMS)
     from cell.cellcal.placement import lens_doc
 
     lens = lens_doc(intr, fit)
@@ -164,6 +176,7 @@ def run_hand_eye(cell_toml: Path, archive_root: Path, out, *, backend: str | Non
            "covariance_with_lens": fit.cov, "lens": lens,
            "sigma_translation_m": sig_t, "sigma_rotation_rad": sig_r,
            "sigma0_px": fit.sigma0_px, "sigma0_px_nominal_lens": res.sigma0_px,
+           "centres_through_lens_rms_px": relensed_px,
            "n_rejected": int(res.rejected.sum()), "dof": fit.dof,
            "per_image_rms_px": res.per_image_rms_px, "refinement": res.history,
            "change_translation_m": pose_error(fit.flange_from_cam, X0)[0],

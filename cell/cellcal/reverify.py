@@ -8,8 +8,8 @@ import numpy as np
 
 from calibration.camera import Intrinsics, invert, project, project_with_jacobians
 from calibration.errors import AbortRequested, CalibrationError, InputError
-from cell.cellcal.common import (artefact_job, ask_operator, capture_at, measure_image, plan_stations,
-                                 record_folder, save_image)
+from cell.cellcal.common import (artefact_job, ask_operator, capture_at, centres_through_lens, measure_image,
+                                 plan_stations, record_folder, save_image)
 from cell.cellcal.cellfile import CellFile, load_cell_file
 from cell.record.jobfolder import JobFolder, atomic_write_json, utc_now
 from cell.jobspec import Pose
@@ -67,7 +67,11 @@ def _measure_position(cf: CellFile, folder: Path, cell_toml: Path, k: int, pose:
             img, bff = capture_at(devices, q, job.spec.cell)
             name = f"images/p{k}_{i:02d}.png"
             save_image(rec, name, img)
-            tid, uv, pose_i = measure_image(img, job.part, intr, invert(X) @ invert(bff) @ Y0, occluder)
+            tid, uv, pose_i, ecc = measure_image(img, job.part, intr, invert(X) @ invert(bff) @ Y0, occluder)
+            if intr.has_distortion and len(tid):  # the centres through the cell's lens (decision 0057)
+                t = job.part.targets
+                uv = centres_through_lens(intr, pose_i[None], np.zeros(len(tid), dtype=int), t.xyz[tid],
+                                          t.normals[tid], job.part.target_diameter_m / 2, uv, ecc)
             for t, u in zip(tid, uv):
                 if t in seen:
                     seen[t].append((invert(X) @ invert(bff), u, invert(bff @ X) @ np.eye(4), pose_i))

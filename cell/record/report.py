@@ -213,6 +213,9 @@ def _alerts(doc: dict) -> str:
         out.append(f'<div class="alert" id="alignment-alert">ALIGNMENT NOT TRUSTED: '
                    f'{html.escape("; ".join(al.get("reasons", [])))}. The deviations below are in a frame that '
                    "cannot be relied on.</div>")
+    if doc.get("untrusted_reasons"):  # a measurement of photographs whose own checks failed (decision 0057)
+        out.append('<div class="alert" id="measurement-alert">MEASUREMENT NOT TRUSTED: '
+                   f'{html.escape("; ".join(doc["untrusted_reasons"]))}</div>')
     sn = doc.get("snooping") or {}
     if sn and not sn.get("complete", True):
         out.append(f'<div class="alert" id="snooping-alert">Blunder test stopped before the end: '
