@@ -2,8 +2,8 @@
 
 :func:`detect_dots` takes a grey or colour image (uint8, or uint16 holding 10-16 bits), bright
 dots on a dark background (retro-reflective targets lit by a ring flash) or dark dots on a light
-one (a printed sheet); ``polarity="auto"`` decides per image on a 4x reduced copy, which also
-gives the typical dot size that the background kernel then adapts to.
+one (a printed sheet); ``polarity="auto"`` decides per image (:mod:`calibration.polarity`); a 4x
+reduced copy gives the typical dot size that the background kernel then adapts to.
 
 1. The background is removed by a top-hat (image minus its morphological opening) with a square
    kernel larger than the dots; the noise is the MAD of differences of pixels two apart.
@@ -519,10 +519,10 @@ def detect_dots(image: np.ndarray, options: DetectionOptions | None = None, labe
         raise CalibrationError(f"detect_dots: surface labels of shape {np.shape(labels)} for an image of {grey.shape}")
     polarity, kernel, window = o.polarity, o.background_kernel_px, o.local_window
     if polarity == "auto" or kernel == 0 or (window == 0 and o.local_fraction > 0):
-        cand = ("bright", "dark") if polarity == "auto" else (polarity,)
-        surveys = {p: _survey(grey if p == "bright" else _invert(grey), o) for p in cand}
-        polarity = max(cand, key=lambda p: surveys[p][0])
-        _, d, d_big = surveys[polarity]
+        if polarity == "auto":  # by the blobs that stand out from their ground, not by a plain count of blobs
+            from calibration.polarity import choose_polarity
+            polarity = choose_polarity(grey, o.threshold_sigma).polarity
+        _, d, d_big = _survey(grey if polarity == "bright" else _invert(grey), o)  # the dots' sizes
         if kernel == 0:  # holds the largest dots
             kernel = 41 if d == 0 else int(np.clip(2 * round(0.75 * d_big + 5) + 1, 15, 401))
         if window == 0:

@@ -215,14 +215,17 @@ def decode_ring_codes(image: np.ndarray, det: Detections, family: str, *, min_cl
     my = pts[..., 1].astype(np.float32).reshape(k, -1)
     smp = cv2.remap(work, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan)
     smp = smp.reshape(k, len(radii), M).astype(np.float64)
+    # a dot whose rings reach past the image's edge (samples NaN there) carries no code it can be read by: it is
+    # left out below, and its samples are zeroed so that no maximum is taken over an empty (all-NaN) set
+    finite = np.isfinite(smp).all(axis=(1, 2))
+    smp[~finite] = 0.0
     ring = 0.5 * (smp[:, 0] + smp[:, 1])  # (k, M)
     gap, quiet = smp[:, 2], smp[:, 3]
     bg, peak = det.background[:, None], det.peak[:, None]
     level = bg + 0.5 * peak
     on = ring > level
-    finite = np.isfinite(smp).all(axis=(1, 2))
-    contrast = (np.nanmax(ring, axis=1) - np.nanmax(gap, axis=1)) / np.maximum(det.peak, 1e-9)  # set sectors vs the gap
-    ground = (np.nanmax(gap, axis=1) < level[:, 0]) & (np.nanmax(quiet, axis=1) < level[:, 0])
+    contrast = (ring.max(axis=1) - gap.max(axis=1)) / np.maximum(det.peak, 1e-9)  # set sectors vs the gap
+    ground = (gap.max(axis=1) < level[:, 0]) & (quiet.max(axis=1) < level[:, 0])
     # best phase: the offset of sector boundaries (in samples) whose sectors are cleanest
     best_clean = np.zeros(k)
     best_bits = np.zeros((k, n), dtype=np.int64)
