@@ -234,6 +234,10 @@ def _open_archive(args):
     root = args.archive
     if root is None:  # a sqlite:/// url names its folder; otherwise ./archive
         root = Path(url[len("sqlite:///"):]).parent if url.startswith("sqlite:///") else Path("archive")
+    if args.action == "verify" and not Path(root).is_dir():  # a typo must not verify an empty
+        from calibration.errors import InputError  # archive it creates (an outside check: "index matches", exit 0)
+
+        raise InputError(f"{root}: no archive folder here; give --archive the folder that holds the jobs")
     return Archive(check_archive_root(root, write=False), url, push=args.to or os.environ.get("CELL_ARCHIVE_PUSH"))
 
 

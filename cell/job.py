@@ -516,6 +516,9 @@ def _resume_locked(job_id: str, archive: Archive, folder: JobFolder, out, operat
                           f"what the job did (its files: 'cell archive verify {job_id}')")
     if not recs:
         raise RecordError(f"{folder.path / 'journal.jsonl'}: empty; this folder holds no job to resume")
+    if (cut := integrity.journal_against_manifest(folder)) is not None:
+        raise RecordError(f"{cut}; the job is not resumed and nothing was changed: restore the journal from a copy "
+                          f"(its files: 'cell archive verify {job_id}')")
     try:
         states = [State(r["to"]) for r in recs if r["event"] == "state"]
     except (KeyError, ValueError) as exc:
@@ -679,6 +682,8 @@ def repair_job(archive: Archive, job_id: str) -> str:
             raise RecordError(f"{damage}; nothing was repaired: a damaged journal cannot vouch for any file")
         if not recs:
             raise RecordError(f"{folder.path / 'journal.jsonl'}: empty; this folder holds no job")
+        if (cut := integrity.journal_against_manifest(folder)) is not None:
+            raise RecordError(f"{cut}; nothing was repaired: restore the journal from a copy")
         manifest_problem = [p for p in folder.verify_manifest() if "no manifest" in p or p.startswith(MANIFEST)]
         ended = recs[-1]["event"] == "terminal"
         if ended and not manifest_problem and folder.path.parent.name != ".incoming":

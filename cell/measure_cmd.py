@@ -86,10 +86,14 @@ def load_control(path: str | Path, targets: Targets, units: str) -> ControlPoint
             try:
                 xyz.append([float(row[c]) * scale for c in ("x", "y", "z")])
                 sig.append(float(row["sigma"]) * scale if row.get("sigma") else 0.0)
-            except ValueError as e:
+            except (ValueError, TypeError) as e:
                 raise InputError(f"{path}:{lineno}: {e}") from None
+            if not (np.all(np.isfinite(xyz[-1])) and np.isfinite(sig[-1])):
+                raise InputError(f"{path}:{lineno}: control point {row['id']!r}: coordinates and sigma must be finite")
             if sig[-1] < 0:
                 raise InputError(f"{path}:{lineno}: negative sigma")
+            if index[row["id"]] in idx:
+                raise InputError(f"{path}:{lineno}: control point {row['id']!r} is given twice")
             idx.append(index[row["id"]])
     if len(idx) < 3:
         raise InputError(f"{path}: {len(idx)} control points; the datum needs at least 3")
@@ -139,6 +143,7 @@ def _identify(im: _Image, t: Targets, intr: Intrinsics) -> None:
     xyz = t.xyz[[p[0] for p in pairs]]
     uv = np.array([p[1] for p in pairs], dtype=float)
     dist = np.asarray(intr.dist_coeffs, dtype=np.float64)
+    ok = False
     if len(pairs) >= 5:  # a misread code (a single set sector is the easiest to fake) must not pull the pose
         ok, rvec, tvec, inl = cv2.solvePnPRansac(xyz, uv, intr.K, dist, iterationsCount=300,
                                                  reprojectionError=max(8.0, 0.03 * intr.width), confidence=0.999)
@@ -370,10 +375,20 @@ def _archive(archive: Path, out_dir: Path, job_id: str, name: str) -> Path:
     return folder
 
 
+#: a layout whose extent in metres lies outside this range is not a photogrammetric field in the units given
+LAYOUT_EXTENT_M = (0.005, 50.0)
+
+
 def _load_layout(args) -> Targets:
     if args.layout is None:
         raise InputError("--layout targets.csv is needed: the targets' nominal coordinates and codes")
-    return load_targets(args.layout, args.units)
+    t = load_targets(args.layout, args.units)
+    extent = float(np.ptp(t.xyz, axis=0).max()) if len(t.xyz) else 0.0
+    lo, hi = LAYOUT_EXTENT_M
+    if not lo <= extent <= hi:  # --units m for a layout in mm measured a field 1000x too large, and said nothing
+        raise InputError(f"{args.layout}: the layout spans {extent:g} m in --units {args.units}: not a field a camera "
+                         f"measures ({lo:g}-{hi:g} m); are its coordinates in another unit? (--units)")
+    return t
 
 
 def measure_command(args, out) -> int:

@@ -113,6 +113,9 @@ def test_measure_without_a_layout_or_focal_length_says_what_is_missing(photograp
     assert "--layout" in capsys.readouterr().err
     assert main(["measure", str(folder), "--layout", str(layout), "--out", str(tmp_path / "o")]) == 2
     assert "focal length" in capsys.readouterr().err
+    # a layout in mm read as metres spans 240 m: refused, not measured 1000x too large (an outside check's slip)
+    assert main(["measure", str(folder), "--layout", str(layout), "--units", "m", "--out", str(tmp_path / "o")]) == 2
+    assert "another unit" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
 
 
@@ -170,3 +173,20 @@ def test_measure_says_what_it_left_out_and_a_calibration_the_images_refute_is_no
                  str(good), "--out", str(cal)]) == 0, capsys.readouterr().err
     fx = float(cal.read_text().split("fx_px = ")[1].split()[0])
     assert abs(fx - TRUE.fx_px) < 3.0
+
+
+def test_an_image_with_exactly_four_known_codes_is_oriented():
+    """Four known codes orient an image (the minimum); an outside check's image with exactly four crashed
+    ``cell measure`` with an internal UnboundLocalError."""
+    from calibration.camera import invert, project
+    from cell.measure_cmd import _Image, _identify
+
+    t = _field().targets
+    pose = invert(look_at(np.array([0.1, -0.2, 0.5]), np.zeros(3), roll_rad=0.2))
+    uv = project(TRUE, pose, t.xyz)
+    code = np.where(t.code >= 0, t.code, -1)
+    code[np.flatnonzero(code >= 0)[4:]] = -1  # four codes read, the other coded dots not
+    im = _Image("four.png", uv, code, np.zeros(0, int), np.zeros((0, 2)))
+    _identify(im, t, TRUE)
+    assert im.pose is not None and np.sum(im.target >= 0) > 40, im.note
+    np.testing.assert_allclose(im.pose, pose, atol=1e-6)

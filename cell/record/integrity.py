@@ -141,3 +141,33 @@ def check_stored(folder: JobFolder, recs: list[dict], *, decode_images: bool = T
         elif sha256_file(p) not in ok:
             found.files[rel] = ("changed since it was stored (sha256 differs from the journal)", stage)
     return found
+
+
+def journal_against_manifest(folder: JobFolder) -> str | None:
+    """What is wrong with the journal against the manifest that last closed the job (None: nothing, or no manifest).
+
+    A closed job's manifest holds its journal's sha256 and length. A journal shorter than that, or whose first
+    bytes are not those, lost or changed records after the job closed: cut at a line boundary it still reads whole,
+    and a resume or a repair would take the job for one that never finished (an outside check: a resume drove a DONE
+    job again and overwrote its images). A journal that only grew (records appended after the close) is whole."""
+    import hashlib
+    import json as _json
+
+    from cell.record.jobfolder import MANIFEST
+
+    p = folder.path / MANIFEST
+    if not p.is_file():
+        return None
+    try:
+        meta = _json.loads(p.read_text(encoding="utf-8"))["files"]["journal.jsonl"]
+        want, n = str(meta["sha256"]), int(meta["bytes"])
+    except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError):
+        return None  # a damaged manifest is verify's to say; it vouches for nothing here
+    data = (folder.path / "journal.jsonl").read_bytes() if (folder.path / "journal.jsonl").is_file() else b""
+    if len(data) < n:
+        return (f"{folder.path / 'journal.jsonl'}: {len(data)} bytes, shorter than the {n} the job's manifest recorded "
+                "when it closed: records were lost after the close")
+    if hashlib.sha256(data[:n]).hexdigest() != want:
+        return (f"{folder.path / 'journal.jsonl'}: its first {n} bytes differ from the journal the job's manifest "
+                "recorded when it closed: records were changed after the close")
+    return None

@@ -316,3 +316,57 @@ def test_archive_that_is_a_file_or_read_only_is_one_line(tmp_path, capsys):
             os.system(f"umount {ro}")
         else:
             ro.chmod(0o755)
+
+
+def test_a_closed_job_whose_journal_lost_its_last_records_is_neither_resumed_nor_repaired(finished, tmp_path, capsys):
+    """An outside check cut a closed job's journal at a line boundary (it still reads whole): ``cell resume`` took it
+    for a job killed during ACQUIRE, drove the robot again, overwrote images 0015-0023 and the results, and rewrote
+    the manifest, which then vouched for it; ``--repair`` made it "FAULTED (resumable)". The manifest that closed
+    the job holds the journal's length and sha256: a shorter journal is damage, named, and nothing changes."""
+    archive = tmp_path / "archive"
+    folder = copy_job(finished, archive)
+    lines = (folder / "journal.jsonl").read_bytes().splitlines(keepends=True)
+    for keep in (42, len(lines) - 1):  # half the journal; only its terminal record
+        (folder / "journal.jsonl").write_bytes(b"".join(lines[:keep]))
+        before = snapshot(folder)
+        code, doc, err = cell(capsys, "resume", folder.name, "--archive", str(archive), "--yes")
+        msg = one_line(err)
+        assert code == 1 and doc["error"] == "RecordError" and "shorter than" in msg and "not resumed" in msg, msg
+        code, doc, err = cell(capsys, "archive", "verify", folder.name, "--archive", str(archive), "--repair")
+        assert code == 1 and "nothing was repaired" in one_line(err)
+        assert snapshot(folder) == before
+    (folder / "journal.jsonl").write_bytes(b"".join(lines))
+    code, _, err = cell(capsys, "resume", folder.name, "--archive", str(archive), "--yes")
+    assert code == 2 and "already DONE" in one_line(err)
+
+
+def test_verifying_the_whole_archive_compares_the_index_values_and_each_folder_with_its_manifest(finished, tmp_path,
+                                                                                                   capsys):
+    """An outside check set a job's verdict in the index to PASS (the folder says FAIL) and moved a target's
+    measured x by 1 mm there; ``cell archive verify`` (no id) said "index matches the folders", exit 0, as it did for
+    a changed report.json. It compares the values now, and each folder with its manifest; an archive folder that
+    does not exist is bad input, not an empty archive created and found intact."""
+    import sqlite3
+
+    archive = tmp_path / "archive"
+    folder = copy_job(finished, archive)
+    code, doc, _ = cell(capsys, "archive", "verify", "--archive", str(archive))
+    assert code == 1 and "not in the index" in doc["problems"][0]  # a copied folder: sync first
+    assert cell(capsys, "archive", "sync", "--archive", str(archive))[0] == 0
+    code, doc, _ = cell(capsys, "archive", "verify", "--archive", str(archive))
+    assert code == 0 and doc["intact"], doc
+    db = sqlite3.connect(archive / "index.sqlite")
+    verdict = db.execute("select verdict from jobs").fetchone()[0]
+    db.execute("update jobs set verdict = 'PASS'")
+    db.execute("update targets set measured_x = measured_x + 0.001 where target_id = 'T0001'")
+    db.commit()
+    db.close()
+    code, doc, _ = cell(capsys, "archive", "verify", "--archive", str(archive))
+    said = " ".join(doc["problems"])
+    assert code == 1 and f"index says verdict PASS, the report {verdict}" in said and "T0001" in said, said
+    report = folder / "report.json"
+    report.write_text(report.read_text().replace(f'"verdict": "{verdict}"', '"verdict": "PASS"'))
+    code, doc, _ = cell(capsys, "archive", "verify", "--archive", str(archive))
+    assert code == 1 and any("report.json" in p for p in doc["problems"]), doc["problems"]
+    code, _, err = cell(capsys, "archive", "verify", "--archive", str(tmp_path / "archvie"))
+    assert code == 2 and "no archive folder" in one_line(err) and not (tmp_path / "archvie").exists()

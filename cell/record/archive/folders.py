@@ -290,6 +290,10 @@ class Archive:
                 problems.append(f"{job_id}: index row claims {have['targets']} targets, holds {have['target_rows']}")
             elif have["target_rows"] != len(rec.targets):
                 problems.append(f"{job_id}: report has {len(rec.targets)} targets, the index {have['target_rows']}")
+            elif rec.targets:  # the values, not only the counts (an outside check changed a verdict and a coordinate)
+                problems += _values_differ(job_id, have, rec, self.index.job_targets(job_id))
+            # the folder against its own manifest: a changed report, image or input is a problem here too
+            problems += [f"{job_id}: {p}" for p in JobFolder(d).verify_manifest() if "no manifest" not in p]
         for job_id, have in state.items():
             if job_id not in folders:
                 problems.append(f"{job_id}: in the index but no folder in {self.root}")
@@ -383,3 +387,41 @@ class Archive:
         problems += [f"station {sid}: {why}" for sid, why in found.stations.items()]
         problems += [f"{rel}: {why} (per the journal)" for rel, (why, _) in found.files.items()]
         return list(dict.fromkeys(problems))
+
+
+def _values_differ(job_id: str, have: dict, rec, rows: list[dict]) -> list[str]:
+    """Where the index's row and target rows of ``job_id`` say other than the folder's record ``rec`` (what
+    :func:`job_record` reads from report.json): the verdict, the count of failed targets, each target's values."""
+    out = []
+    if have.get("verdict") != rec.verdict:
+        out.append(f"{job_id}: index says verdict {have.get('verdict')}, the report {rec.verdict}")
+    if have.get("failed") is not None and rec.failed is not None and have["failed"] != rec.failed:
+        out.append(f"{job_id}: index says {have['failed']} failed target(s), the report {rec.failed}")
+    mine = {r["target_id"]: r for r in rec.targets}
+    bad = []
+    for t in rows:
+        r = mine.get(t["id"])
+        if r is None:
+            bad.append(t["id"])
+            continue
+        pairs = [(t[p], [r[f"{p}_{a}"] for a in "xyz"]) for p in ("nominal", "measured", "deviation")]
+        pairs += [(t[k], r[c]) for k, c in (("deviation_norm_m", "deviation_norm_m"), ("tolerance_m", "tolerance_m"),
+                                            ("uncertainty_U_m", "uncertainty_u_m"))]
+        same = all(_same(a, b) for a, b in pairs) and t["decision"] == r["decision"] and t["pass"] == r["passed"]
+        if not same:
+            bad.append(t["id"])
+    if bad:
+        out.append(f"{job_id}: index values differ from the report at {len(bad)} target(s): {', '.join(bad[:6])}"
+                   + (" ..." if len(bad) > 6 else ""))
+    return out
+
+
+def _same(a, b) -> bool:
+    """Equal as the index stores them (None, or floats within a relative 1e-9)."""
+    if isinstance(a, list) or isinstance(b, list):
+        a = a if isinstance(a, list) else [None] * 3
+        b = b if isinstance(b, list) else [None] * 3
+        return all(_same(x, y) for x, y in zip(a, b))
+    if a is None or b is None:
+        return a is None and b is None
+    return abs(float(a) - float(b)) <= 1e-9 * max(abs(float(a)), abs(float(b)), 1e-300)

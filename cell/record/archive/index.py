@@ -348,12 +348,13 @@ class ArchiveIndex:
         ``target_rows`` (the rows present): what ``cell archive verify`` compares with the folders."""
         n = (sa.select(targets.c.job_id, sa.func.count().label("n")).group_by(targets.c.job_id).subquery())
         stmt = (sa.select(jobs.c.id, jobs.c.status, jobs.c.manifest_sha256, jobs.c.targets, jobs.c.folder,
-                          jobs.c.origin, n.c.n)
+                          jobs.c.origin, jobs.c.verdict, jobs.c.failed, n.c.n)
                 .outerjoin(n, n.c.job_id == jobs.c.id))
         if origin is not None:
             stmt = stmt.where(jobs.c.origin == origin)
         return {r.id: {"status": r.status, "manifest_sha256": r.manifest_sha256, "targets": r.targets,
-                       "target_rows": int(r.n or 0), "folder": r.folder, "origin": r.origin}
+                       "target_rows": int(r.n or 0), "folder": r.folder, "origin": r.origin, "verdict": r.verdict,
+                       "failed": r.failed}
                 for r in self._read(stmt)}
 
     def bulk_load(self, job_rows: Iterable[dict], target_rows: Iterable[dict]) -> None:
