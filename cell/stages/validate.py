@@ -34,8 +34,39 @@ def validate_plan_file(job: LoadedJob, path: Path) -> dict:
         raise InputError(f"{path}: plan file not found") from None
     except json.JSONDecodeError as exc:
         raise InputError(f"{path}: not valid JSON ({exc})") from None
+    plan_is_this_jobs(job, plan, path)
     _, summary = validate_plan_doc(job, plan)
     return summary
+
+
+def plan_is_this_jobs(job: LoadedJob, plan: dict, path) -> None:
+    """Refuse (``InputError``, one line) a plan made for another camera or another part: its stations would be
+    reachable and the check OK (an outside check), and the images would not be the ones it planned."""
+    import numpy as np
+
+    cam, intr = plan.get("camera"), job.intrinsics
+    if isinstance(cam, dict):
+        for key in ("width", "height", "fx_px", "fy_px", "cx_px", "cy_px"):
+            mine, theirs = float(getattr(intr, key)), cam.get(key)
+            if not isinstance(theirs, (int, float)) or not np.isclose(float(theirs), mine, rtol=1e-6, atol=1e-6):
+                raise InputError(f"{path}: planned for another camera ({key} {theirs} there, {mine:g} in "
+                                 f"{job.path}'s [camera]): plan the job again (cell plan)")
+    tl = plan.get("targets")
+    if isinstance(tl, list):
+        t = job.part.targets
+        index = t.index()
+        have = {str(x.get("id")): x.get("xyz") for x in tl if isinstance(x, dict)}
+        if set(have) != set(index):
+            miss, extra = sorted(set(index) - set(have)), sorted(set(have) - set(index))
+            raise InputError(f"{path}: planned for other targets ({len(miss)} of the job's missing: "
+                             f"{', '.join(miss[:4])}{' ...' if len(miss) > 4 else ''}; {len(extra)} not the job's: "
+                             f"{', '.join(extra[:4])}{' ...' if len(extra) > 4 else ''}): plan the job again")
+        moved = [i for i, x in have.items() if not (isinstance(x, list) and len(x) == 3 and
+                                                    np.allclose(x, t.xyz[index[i]], atol=1e-6))]
+        if moved:
+            raise InputError(f"{path}: planned for another part: {len(moved)} target(s) elsewhere than in "
+                             f"{job.path}'s targets ({', '.join(moved[:4])}{' ...' if len(moved) > 4 else ''}): plan "
+                             "the job again")
 
 
 def run(ctx) -> None:

@@ -68,12 +68,22 @@ def _rotz(deg: float) -> np.ndarray:
     return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
 
 
-@pytest.mark.parametrize("damage", ["duplicate id", "mirrored rotation", "scaled rotation", "non-finite pose"])
+@pytest.mark.parametrize("damage", ["duplicate id", "mirrored rotation", "scaled rotation", "non-finite pose",
+                                    "another camera", "another part", "other targets"])
 def test_hand_edited_plan_is_refused_by_check(damage, tmp_path, tmp_path_factory, capsys):
     _, folder, _ = example_run(tmp_path_factory)
     plan = json.loads((folder / "plan.json").read_text())
     st = plan["stations"]
-    if damage == "duplicate id":
+    if damage == "another camera":  # reachable all the same: check said OK (an outside check; decision 0057)
+        plan["camera"]["fx_px"] = 1000.0
+        expected = "planned for another camera (fx_px 1000.0 there"
+    elif damage == "another part":
+        plan["targets"][5]["xyz"][0] += 0.01
+        expected = "planned for another part: 1 target(s)"
+    elif damage == "other targets":
+        plan["targets"] = plan["targets"][:-10]
+        expected = "planned for other targets (10 of the job's missing"
+    elif damage == "duplicate id":
         st[3]["id"] = st[1]["id"]
         expected = f"station id {st[1]['id']!r} appears twice"
     else:
