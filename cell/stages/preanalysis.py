@@ -217,6 +217,9 @@ def adjust_prediction(job, part_from_cam: np.ndarray, rays: PredictedRays) -> tu
 
     poses = np.array([invert(T) for T in part_from_cam])
     xyz = job.part.targets.xyz
+    if len(rays.obs_image) == 0:  # e.g. [sim] dot_max_incidence_deg = 1: an internal AttributeError before
+        raise CalibrationError("pre-analysis: the plan's simulated images show no dot the detector measures (the "
+                               "light, the exposure, the [sim] settings?): nothing to predict from")
     order = np.lexsort((rays.obs_target, rays.obs_image))  # image by image, as the bundle groups them
     img, tgt = rays.obs_image[order], rays.obs_target[order]
     uv = np.zeros((len(img), 2))

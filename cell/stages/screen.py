@@ -68,6 +68,8 @@ def _rays(intr: Intrinsics, poses: np.ndarray, obs_image: np.ndarray, uv: np.nda
     """Camera centres (q, 3) and unit ray directions (q, 3) in the part frame of observations ``uv: (q, 2)``."""
     import cv2
 
+    if len(uv) == 0:  # cv2 returns None for no points
+        return np.zeros((0, 3)), np.zeros((0, 3))
     norm = cv2.undistortPoints(np.ascontiguousarray(uv, dtype=np.float64).reshape(-1, 1, 2), intr.K,
                                intr.dist_coeffs).reshape(-1, 2)
     d_cam = np.concatenate([norm, np.ones((len(norm), 1))], axis=1)
