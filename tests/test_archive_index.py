@@ -343,5 +343,7 @@ def test_a_folder_the_index_cannot_read_is_named_and_the_others_go_on(tmp_path):
     assert row["status"] == "DONE" and row["verdict"] is None and "report.json damaged" in row["problem"]
     assert a.index.job_targets("job-1") == [] and len(a.index.job_targets("job-2")) == 3
     v = a.verify_index()
-    assert v["intact"] and [p for p in v["damaged"] if "job-1" in p] and len(v["damaged"]) == 1
+    assert [p for p in v["damaged"] if "job-1" in p] and len(v["damaged"]) == 1
+    # and its report is not the one its manifest closed the job with: a problem, whatever else reads (decision 0057)
+    assert not v["intact"] and all(p.startswith("job-1: ") and "report.json" in p for p in v["problems"]), v
     a.close()

@@ -111,6 +111,22 @@ def test_a_prediction_without_renders_says_so(example, monkeypatch):
     assert np.all(rays[retro] >= 0) and rays.sum() == facts["rays"]
 
 
+def test_renders_that_show_no_dot_stop_the_plan_before_the_robot_moves(example, monkeypatch):
+    """An outside check's job (``[sim] dot_max_incidence_deg = 1``: no dot renders) faulted PLAN with an internal
+    AttributeError; then, predicted from the geometry instead, it drove the robot through 24 stations for images
+    that measured nothing. A twin that sees no dot stops the plan (decision 0057)."""
+    from calibration.errors import PlanningError
+
+    job_path, folder = example
+    job = load(job_path)
+    plan = json.loads((folder / "plan.json").read_text())
+    poses = np.array([s["part_from_cam"] for s in plan["stations"]])
+    empty = PA.PredictedRays(np.zeros(0, int), np.zeros(0, int), np.zeros((0, 2, 2)), np.zeros(0))
+    monkeypatch.setattr(PA, "rendered_rays", lambda *args, **kw: empty)
+    with pytest.raises(PlanningError, match="show no dot the detector measures"):
+        PA.measurement_prediction(job, poses)
+
+
 def test_renders_that_lose_a_bar_end_say_the_scale_is_not_established(example, monkeypatch):
     """A plan whose renders do not name a scale bar's end: the prediction is a free network's and says so (PLAN warns
     from ``scale_established``), and the end gets no prediction rather than another method's figure."""

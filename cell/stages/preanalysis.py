@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from calibration.camera import invert, project
-from calibration.errors import CalibrationError
+from calibration.errors import CalibrationError, PlanningError
 
 #: the twin's noise stream: fixed, so a plan's prediction does not change between runs of the same job
 TWIN_SEED = 20260
@@ -219,7 +219,7 @@ def adjust_prediction(job, part_from_cam: np.ndarray, rays: PredictedRays) -> tu
     xyz = job.part.targets.xyz
     if len(rays.obs_image) == 0:  # e.g. [sim] dot_max_incidence_deg = 1: an internal AttributeError before
         raise CalibrationError("pre-analysis: the plan's simulated images show no dot the detector measures (the "
-                               "light, the exposure, the [sim] settings?): nothing to predict from")
+                               "light, the exposure, the simulated cell's settings?): nothing to predict from")
     order = np.lexsort((rays.obs_target, rays.obs_image))  # image by image, as the bundle groups them
     img, tgt = rays.obs_image[order], rays.obs_target[order]
     uv = np.zeros((len(img), 2))
@@ -320,6 +320,10 @@ def measurement_prediction(job, part_from_cam: np.ndarray, progress=None, cache_
     except (CalibrationError, ValueError, MemoryError) as e:  # a render or a measurement that cannot run
         fallback = f"the renders could not be measured ({e}); rays from the geometric visibility, no image terms"
         rays = geometric_rays(job, part_from_cam)
+    if rays.method == "rendered" and len(rays.obs_image) == 0:  # a plan whose images will show nothing to measure
+        raise PlanningError("pre-analysis: the plan's simulated images show no dot the detector measures (the light, "
+                            "the exposure, the simulated cell's settings?); the robot is not moved for images that measure "
+                            "nothing")
     try:
         cov, added = adjust_prediction(job, part_from_cam, rays)
     except CalibrationError:
