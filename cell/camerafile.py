@@ -28,7 +28,7 @@ import tomllib
 from pathlib import Path
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from calibration.errors import InputError
 
@@ -37,27 +37,49 @@ __all__ = ["CameraFile", "load_camera_file", "camera_toml", "CODED_FAMILIES"]
 CODED_FAMILIES = ("aruco", "ring12", "ring14", "schneider12", "schneider14", "cct8", "cct12")
 
 
+#: a focal length in pixels: at most this (a 2000 mm lens on 2 um pixels), and at least the image's width over
+#: :data:`MIN_FX_OVER_WIDTH`'s inverse (a field of view beyond 157 deg is no lens the model describes)
+MAX_FX_PX = 1e6
+MIN_FX_OVER_WIDTH = 0.1
+#: fy / fx of a sensor's pixels (as a job's [sim] lens aspect)
+ASPECT_RANGE = (0.9, 1.1)
+
+
 class CameraFile(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False, strict=True)  # "1" is no number
 
     polarity: Literal["auto", "bright", "dark"] = "auto"
     coded_family: Literal["aruco", "ring12", "ring14", "schneider12", "schneider14", "cct8", "cct12"] = "schneider14"
-    fx_px: float | None = Field(default=None, gt=0)
-    fy_px: float | None = Field(default=None, gt=0)
+    fx_px: float | None = Field(default=None, gt=0, le=MAX_FX_PX)
+    fy_px: float | None = Field(default=None, gt=0, le=MAX_FX_PX)
     focal_length_mm: float | None = Field(default=None, gt=0, le=2000)
     pixel_size_um: float | None = Field(default=None, gt=0, le=100)
     width: int | None = Field(default=None, gt=0, le=100_000)
     height: int | None = Field(default=None, gt=0, le=100_000)
-    cx_px: float | None = None
-    cy_px: float | None = None
-    k1: float = 0.0
-    k2: float = 0.0
-    k3: float = 0.0
-    p1: float = 0.0
-    p2: float = 0.0
-    sigma_px: float = Field(default=0.1, gt=0)
+    cx_px: float | None = Field(default=None, ge=0, le=100_000)
+    cy_px: float | None = Field(default=None, ge=0, le=100_000)
+    k1: float = Field(default=0.0, ge=-10, le=10)  # the ranges of a job file's [camera]
+    k2: float = Field(default=0.0, ge=-100, le=100)
+    k3: float = Field(default=0.0, ge=-1000, le=1000)
+    p1: float = Field(default=0.0, ge=-1, le=1)
+    p2: float = Field(default=0.0, ge=-1, le=1)
+    sigma_px: float = Field(default=0.1, gt=0, le=10)
     self_calibrate: bool = True
     radial: Literal[2, 3] = 3
+
+    @model_validator(mode="after")
+    def _plausible_lens(self):
+        for key, value, size in (("cx_px", self.cx_px, self.width), ("cy_px", self.cy_px, self.height)):
+            if value is not None and size is not None and not value <= size - 1:
+                raise ValueError(f"{key} = {value} lies outside the image (0..{size - 1} px)")
+        if self.fx_px is not None and self.width is not None and self.fx_px < MIN_FX_OVER_WIDTH * self.width:
+            raise ValueError(f"fx_px = {self.fx_px} is below a tenth of the image's width ({self.width} px): a field of "
+                             "view no lens of this model has; is it in mm?")
+        if self.fx_px is not None and self.fy_px is not None \
+                and not ASPECT_RANGE[0] <= self.fy_px / self.fx_px <= ASPECT_RANGE[1]:
+            raise ValueError(f"fy_px / fx_px = {self.fy_px / self.fx_px:.4g}, outside {ASPECT_RANGE[0]}..{ASPECT_RANGE[1]}: "
+                             "a sensor's pixels are square to within a few per cent")
+        return self
 
 
 def load_camera_file(path: str | Path | None) -> CameraFile:
@@ -66,7 +88,7 @@ def load_camera_file(path: str | Path | None) -> CameraFile:
         return CameraFile()
     path = Path(path)
     try:
-        doc = tomllib.loads(path.read_text())
+        doc = tomllib.loads(path.read_text(encoding="utf-8-sig"))
     except FileNotFoundError:
         raise InputError(f"{path}: camera file not found") from None
     except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as e:
@@ -79,7 +101,8 @@ def load_camera_file(path: str | Path | None) -> CameraFile:
     except ValidationError as e:
         err = e.errors()[0]
         key = ".".join(str(x) for x in err["loc"])
-        raise InputError(f"{path}: [camera] {key}: {err['msg']}") from None
+        msg = err["msg"].removeprefix("Value error, ")
+        raise InputError(f"{path}: [camera] {key + ': ' if key else ''}{msg}") from None
 
 
 def camera_toml(cam: CameraFile, comments: dict[str, str] | None = None) -> str:

@@ -104,17 +104,34 @@ def check(args, out) -> int:
     return 0
 
 
+def _check_writable(what: str, path: Path) -> None:
+    """InputError (one line) when ``path`` cannot become a file: a folder, under a file, or in a folder not writable."""
+    import os
+
+    from calibration.errors import InputError
+
+    if path.is_dir():
+        raise InputError(f"{path}: {what} names a folder; give a file name (e.g. {path / 'plan.json'})")
+    parent = next((a for a in path.absolute().parents if a.exists()), None)
+    if parent is not None and not parent.is_dir():
+        raise InputError(f"{path}: {what}: {parent} is a file, not a folder")
+    if parent is not None and not os.access(parent, os.W_OK | os.X_OK):
+        raise InputError(f"{path}: {what}: the folder {parent} is not writable")
+
+
 def plan(args, out) -> int:
     from cell.record.jobfolder import atomic_write_json
     from cell.loadedjob import load
     from cell.stages.plan import make_plan
 
+    png = args.png or args.out.with_suffix(".png")
+    for what, path in (("--out", args.out), ("--png", png)):  # before planning: nothing written when they cannot be
+        _check_writable(what, Path(path))
     job = load(args.job)
     out.say(f"planning {job.part.name}: {len(job.part.targets)} targets, mode {job.spec.planning.mode}")
     p, facts = make_plan(job, progress=out.progress, lower_bound=True if args.bound else None)
     doc = p.to_plan_dict() | {"databases": facts}
     atomic_write_json(args.out, doc)
-    png = args.png or args.out.with_suffix(".png")
     from planning.plot import plot_plan
 
     plot_plan(job.part, p, png)

@@ -18,6 +18,7 @@ decision 0004).
 """
 from __future__ import annotations
 
+import warnings
 from dataclasses import replace
 from pathlib import Path
 
@@ -41,6 +42,9 @@ ARUCO_SIGMA_PX = 0.3
 IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".jpg", ".jpeg", ".bmp", ".pgm", ".ppm")
 #: the smallest image side the detector takes (calibration.dots.to_grey's limit)
 MIN_SIDE_PX = 8
+#: the largest image read, pixels: above the largest metric cameras (151 MP) and refused from its header before decoding
+#: (a PNG's header can claim 10^10 pixels in a few hundred bytes)
+MAX_IMAGE_PIXELS = 160_000_000
 #: a dot whose rim (dark dots: where it meets the ground) or top (bright dots) has at least this share of its pixels at
 #: the image's saturation level is heavily clipped: on 15 over-exposed photographs (gain 2.5, clipped; rim shares
 #: 0.84-0.99) such dots were 0.21 px rms off (0.15 px per axis) against stated sds of 0.01-0.03 px, and neither the
@@ -58,6 +62,7 @@ def read_image(path: str | Path) -> np.ndarray:
     path = Path(path)
     if not path.is_file():
         raise InputError(f"{path}: image not found")
+    _refuse_by_header(path)
     img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if img is None:
         raise InputError(f"{path}: not an image OpenCV can read (PNG, TIFF, JPEG, ...)")
@@ -69,6 +74,62 @@ def read_image(path: str | Path) -> np.ndarray:
         raise InputError(f"{path}: {img.shape[1]}x{img.shape[0]} pixels; detection needs at least "
                          f"{MIN_SIDE_PX}x{MIN_SIDE_PX}")
     return img
+
+
+def _refuse_by_header(path: Path) -> None:
+    """InputError when the file's header claims more than :data:`MAX_IMAGE_PIXELS` (refused before decoding: OpenCV
+    would stop at its own limit with an assertion, or allocate it) or a JPEG stops before its end-of-image marker
+    (libjpeg decodes the missing rows as grey and only warns, so the detector would find dots that are not there)."""
+    from PIL import Image, UnidentifiedImageError
+
+    size = None
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+            with Image.open(path) as im:
+                size, fmt = im.size, im.format
+    except Image.DecompressionBombError:
+        raise InputError(f"{path}: its header claims more than {2 * Image.MAX_IMAGE_PIXELS / 1e6:.0f} megapixels; "
+                         f"refused before decoding (detection takes at most {MAX_IMAGE_PIXELS / 1e6:.0f})") from None
+    except (UnidentifiedImageError, OSError, ValueError, SyntaxError):
+        return  # not for Pillow: OpenCV says whether it can read it
+    if size[0] * size[1] > MAX_IMAGE_PIXELS:
+        raise InputError(f"{path}: its header claims {size[0]}x{size[1]} pixels ({size[0] * size[1] / 1e6:.0f} "
+                         f"megapixels); refused before decoding (detection takes at most {MAX_IMAGE_PIXELS / 1e6:.0f})")
+    if fmt == "JPEG" and not _jpeg_reaches_eoi(path.read_bytes()):
+        raise InputError(f"{path}: a truncated JPEG (the file ends before its end-of-image marker: a copy or "
+                         f"transfer cut short); its missing rows would be read as grey")
+
+
+def _jpeg_reaches_eoi(data: bytes) -> bool:
+    """Whether a JPEG's markers, walked from SOI through every segment and entropy-coded scan, reach EOI (FFD9).
+    Bytes after EOI (some cameras append data) are allowed; an EOI inside an EXIF thumbnail does not count."""
+    pos, n = 2, len(data)
+    while pos + 4 <= n:
+        if data[pos] != 0xFF:
+            return False
+        marker = data[pos + 1]
+        if marker == 0xFF:  # fill byte
+            pos += 1
+            continue
+        if marker == 0xD9:
+            return True
+        if marker in (0x01, *range(0xD0, 0xD8)):  # no length
+            pos += 2
+            continue
+        pos += 2 + int.from_bytes(data[pos + 2:pos + 4], "big")
+        if marker != 0xDA:
+            continue
+        while True:  # entropy-coded data: FF00 is a stuffed FF, FFD0-D7 restart markers, FFFF fill
+            pos = data.find(b"\xff", pos)
+            if pos < 0 or pos + 1 >= n:
+                return False
+            nxt = data[pos + 1]
+            if nxt == 0x00 or 0xD0 <= nxt <= 0xD7 or nxt == 0xFF:
+                pos += 1 if nxt == 0xFF else 2
+                continue
+            break
+    return pos + 1 < n and data[pos] == 0xFF and data[pos + 1] == 0xD9
 
 
 def detection_options(cam: CameraFile) -> DetectionOptions:

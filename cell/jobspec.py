@@ -18,9 +18,9 @@ dot; the ids against the part at LOAD (:func:`damaged_target_rows`, with the job
 """
 from __future__ import annotations
 
-import csv
 import ipaddress
 import math
+import re
 import tomllib
 from pathlib import Path
 from typing import Literal
@@ -32,17 +32,36 @@ from scipy.spatial.transform import Rotation
 from calibration.camera import Intrinsics, make_pose
 from calibration.errors import JobSpecError
 from drivers.pixels import BIT_DEPTH
-from planning.part import UNITS_TO_M
+from planning.part import UNITS_TO_M, load_deviations  # noqa: F401 (the [sim] deviations CSV: read there)
 
 __all__ = ["DamagedTarget", "JobSpec", "Pose", "ThermalSection", "check_backend", "damaged_target_rows", "load_job", "read_job", "pose_matrix"]
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+    """Strict types: a number written as a string ("16"), a bool as 1 or "yes", an integer count as 16.0 is refused,
+    not coerced (an int stands for a float). A TOML array is a tuple's value: those fields say ``strict=False``, their
+    items stay strict."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False, strict=True)
 
 
 #: Largest plausible length in a job file, metres (the cell, its obstacles, a part's placement).
 MAX_LENGTH_M = 100.0
+#: the physical sizes, mm, of the length keys a file may leave out; in the file's own units when it does
+DEFAULT_DOT_DIAMETER_MM = 6.0
+DEFAULT_CODED_SIZE_MM = 20.0
+DEFAULT_CAMERA_BOX_MM = (80.0, 80.0, 120.0)
+
+
+def fill_unit_defaults(section: BaseModel, units: str, defaults_mm: dict[str, float | tuple[float, ...]]) -> None:
+    """Set each key of ``defaults_mm`` that ``section`` was not given to that physical size in ``units`` (a job in
+    metres gets a 0.12 m camera box, not a 120 m one). For a model validator of a frozen section: the keys stay out
+    of ``model_fields_set`` (the file did not state them). In mm the values are the defaults exactly."""
+    k = 1e-3 / UNITS_TO_M[units]
+    for key, mm in defaults_mm.items():
+        if key not in section.model_fields_set:
+            value = tuple(v * k for v in mm) if isinstance(mm, tuple) else mm * k
+            object.__setattr__(section, key, value)
 
 
 class Pose(_Strict):
@@ -52,8 +71,8 @@ class Pose(_Strict):
     ``R = Rz(yaw) @ Ry(pitch) @ Rx(roll)``.
     """
 
-    xyz: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    rpy_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    xyz: tuple[float, float, float] = Field(default=(0.0, 0.0, 0.0), strict=False)
+    rpy_deg: tuple[float, float, float] = Field(default=(0.0, 0.0, 0.0), strict=False)
 
 
 class ScaleBar(_Strict):
@@ -90,13 +109,15 @@ class JobSection(_Strict):
     n_targets: int | None = Field(default=None, ge=6, le=100_000,
                                   description="at least 6: an image is oriented from 6 or more targets")
     n_coded: int = Field(default=8, ge=0, le=250)
-    target_diameter: float = Field(default=6.0, gt=0, description="retro dot diameter, job units")
+    target_diameter: float = Field(default=DEFAULT_DOT_DIAMETER_MM, gt=0,
+                                   description="retro dot diameter, job units (default 6 mm)")
     target_thickness: float | None = Field(
         default=None, ge=0, description="how far each target's face stands above the CAD surface, job units (adhesive "
                                         "dots 0.1-0.3 mm, magnetic ones 1-2 mm; 0: flush). The cell measures the face's "
                                         "centre and compares it with the CAD point lifted along its normal by this; "
                                         "not given: 0, and said in the report of a real cell (decision 0049)")
-    coded_size: float = Field(default=20.0, gt=0, description="ArUco marker side, job units")
+    coded_size: float = Field(default=DEFAULT_CODED_SIZE_MM, gt=0, description="ArUco marker side, job units "
+                                                                                "(default 20 mm)")
     coded_family: Literal["aruco", "ring12", "ring14", "schneider12", "schneider14", "cct8", "cct12"] = Field(
         default="aruco", description="the coded targets the part carries: ArUco DICT_4X4_250 markers, or ring codes "
                                      "(a centre dot of target_diameter in a coded ring; calibration.ringcodes)")
@@ -107,6 +128,12 @@ class JobSection(_Strict):
                                                 "their certificates are tested against each other (decision 0041)")
     number: str | None = Field(default=None, max_length=80, description="the part number (drawing), e.g. 'BR-1002'")
     revision: str | None = Field(default=None, max_length=40, description="the part's drawing revision")
+
+    @model_validator(mode="after")
+    def _physical_defaults(self):  # first: the checks below compare them
+        fill_unit_defaults(self, self.units, {"target_diameter": DEFAULT_DOT_DIAMETER_MM,
+                                              "coded_size": DEFAULT_CODED_SIZE_MM})
+        return self
 
     @model_validator(mode="after")
     def _thin_targets(self):
@@ -215,7 +242,7 @@ class CameraSection(_Strict):
 
 class Obstacle(_Strict):
     name: str
-    size: tuple[float, float, float]
+    size: tuple[float, float, float] = Field(strict=False)
     pose: Pose = Pose()
 
     @field_validator("size")
@@ -246,7 +273,8 @@ class CellSection(_Strict):
                                          "the cell's (and may leave this out)")
     table_z: float = 0.0
     obstacles: list[Obstacle] = []
-    camera_box: tuple[float, float, float] = (80.0, 80.0, 120.0)
+    camera_box: tuple[float, float, float] = Field(default=DEFAULT_CAMERA_BOX_MM, strict=False, description="the camera's "
+                                                   "collision box, job units (default 80 x 80 x 120 mm)")
     max_joint_speed_rad_s: float = Field(default=1.0, gt=0, le=3.2)
     max_joint_accel_rad_s2: float = Field(default=1.5, gt=0, le=40)
     max_tcp_speed_m_s: float = Field(default=0.25, gt=0, le=1.0)
@@ -257,8 +285,10 @@ class CellSection(_Strict):
     settle_timeout_s: float = Field(default=10.0, gt=0, le=600)
     retakes: int = Field(default=2, ge=0, le=10, description="retakes of a station whose frame came late, twice "
                          "or never, before the job faults")
-    workspace_min: tuple[float, float, float] | None = Field(default=None, description="flange box, base frame, job units")
-    workspace_max: tuple[float, float, float] | None = Field(default=None, description="default: the robot's reach")
+    workspace_min: tuple[float, float, float] | None = Field(default=None, strict=False,
+                                                            description="flange box, base frame, job units")
+    workspace_max: tuple[float, float, float] | None = Field(default=None, strict=False,
+                                                            description="default: the robot's reach")
     elbow_limit_deg: float = Field(default=180.0, gt=0, le=360)
 
     @field_validator("camera_box")
@@ -337,6 +367,10 @@ class ReportSection(_Strict):
     sigma_factor: float = Field(default=3.0, gt=0, le=100, description="deviation significant beyond k sigma")
 
 
+#: the fewest targets a rigid best fit takes (calibration.robust_alignment): three points not on one line
+MIN_FIT_TARGETS = 3
+
+
 class AlignmentSection(_Strict):
     """How the measured targets are brought into the part frame (the report's deviations are in it)."""
 
@@ -352,6 +386,20 @@ class AlignmentSection(_Strict):
     on_untrusted: Literal["flag", "fault"] = Field(
         default="flag", description="an alignment that cannot be trusted: flag (report marked 'alignment not "
                                     "trusted' in red, verdict UNTRUSTED) or fault the job")
+
+    @field_validator("targets")
+    @classmethod
+    def _enough_to_fit(cls, v):
+        if v is None:
+            return v
+        twice = sorted({t for t in v if v.count(t) > 1})
+        if twice:
+            raise ValueError(f"names {twice[0]!r} twice")
+        if len(v) < MIN_FIT_TARGETS:
+            raise ValueError(f"names {len(v)} target(s) ({', '.join(v) or 'none'}); a best fit needs at least "
+                             f"{MIN_FIT_TARGETS}, not on one line, to fix the part's frame (leave 'targets' out to fit "
+                             "over every target)")
+        return v
 
     @model_validator(mode="after")
     def _rps_needs_datum(self):
@@ -374,7 +422,7 @@ class SimLens(_Strict):
 
     principal_distance_factor: float = Field(default=1.0, ge=0.8, le=1.25, description="the true principal distance "
                                              "over [camera] focal_length_mm (a lens focused at d: 1 + f / (d - f))")
-    principal_point_offset_px: tuple[float, float] = Field(default=(0.0, 0.0), description="the true principal "
+    principal_point_offset_px: tuple[float, float] = Field(default=(0.0, 0.0), strict=False, description="the true principal "
                                                            "point minus the nominal one (px)")
     aspect: float = Field(default=1.0, ge=0.9, le=1.1, description="fy / fx of the true lens (a sensor's pixel "
                           "aspect, an affinity)")
@@ -514,6 +562,34 @@ class JobSpec(_Strict):
     sim: SimSection = SimSection()
 
     @model_validator(mode="after")
+    def _physical_defaults(self):  # first: the length checks below see them
+        fill_unit_defaults(self.cell, self.job.units, {"camera_box": DEFAULT_CAMERA_BOX_MM})
+        return self
+
+    @model_validator(mode="after")
+    def _unreachable_stations_planned(self):
+        """``[sim] unreachable_stations`` must name stations a plan of this job can have: ``S001``.. (the planner's,
+        with those added for the scale bars) and ``L<round>-<k>`` (the closed loop's); another id refuses nothing."""
+        ids = self.sim.unreachable_stations
+        if not ids:
+            return self
+        from planning.scalebar import MAX_BAR_STATIONS
+
+        p = self.planning
+        n_s = (p.max_stations if p.mode == "cheapest" else p.n_stations) + MAX_BAR_STATIONS * len(self.job.bars())
+        rounds, per_round = p.closed_loop_rounds, p.closed_loop_max_stations
+        for sid in ids:
+            if ids.count(sid) > 1:
+                raise ValueError(f"sim.unreachable_stations names {sid!r} twice")
+            planned = re.fullmatch(r"S(\d{3,})", sid)
+            loop = re.fullmatch(r"L(\d+)-(\d{2,})", sid)
+            if not (planned and 1 <= int(planned[1]) <= n_s
+                    or loop and 1 <= int(loop[1]) <= rounds and 1 <= int(loop[2]) <= per_round):
+                raise ValueError(f"sim.unreachable_stations names {sid!r}, a station no plan of this job has: planned "
+                                 f"ones are S001..S{n_s:03d}, the closed loop's L1-01..L{rounds}-{per_round:02d}")
+        return self
+
+    @model_validator(mode="after")
     def _thermal_needs(self):
         if self.thermal is not None and not self.job.bars():
             raise ValueError("[thermal] brings the measurement to 20 C through the scale bars' certificates: the job "
@@ -610,8 +686,10 @@ def pose_matrix(pose: Pose, scale: float) -> np.ndarray:
 
 def _format_validation_error(path: Path, err: ValidationError) -> str:
     e = err.errors()[0]
-    loc = "".join(f"[{x}]" if isinstance(x, int) else f".{x}" for x in e["loc"]).lstrip(".") or "(top level)"
+    loc = "".join(f"[{x}]" if isinstance(x, int) else f".{x}" for x in e["loc"]).lstrip(".")
     kind = e["type"]
+    if not loc:  # a check across sections: its message names the keys
+        return f"{path}: {e['msg'].removeprefix('Value error, ')}"
     if kind == "extra_forbidden":
         return f"{path}: unknown key '{loc}'"
     if kind == "missing":
@@ -619,6 +697,9 @@ def _format_validation_error(path: Path, err: ValidationError) -> str:
     if kind == "literal_error":
         return f"{path}: '{loc}' = {e.get('input')!r}: {e['msg']}"
     msg = e["msg"].removeprefix("Value error, ")
+    if kind in ("int_type", "float_type", "bool_type") and isinstance(e.get("input"), (str, int, float)):
+        msg += {"int_type": " (a whole number, unquoted)", "float_type": " (a number, unquoted)",
+                "bool_type": " (true or false, unquoted)"}[kind]
     if "input" in e and not isinstance(e["input"], dict):
         return f"{path}: '{loc}' = {e['input']!r}: {msg}"
     return f"{path}: '{loc}': {msg}"
@@ -652,7 +733,7 @@ def read_job(path: str | Path) -> JobSpec:
     if not path.is_file():
         raise JobSpecError(f"{path}: job file not found")
     try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
+        data = tomllib.loads(path.read_text(encoding="utf-8-sig"))  # a BOM (Windows editors) is not TOML: dropped
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise JobSpecError(f"{path}: not valid TOML ({exc})") from None
     try:
@@ -709,27 +790,3 @@ def damaged_target_rows(spec: JobSpec, ids: list[str], kinds,
                                "rendered damaged")
         rows.append((index[d.id], d))
     return tuple(rows)
-
-
-def load_deviations(path: Path, ids: list[str], scale: float) -> np.ndarray:
-    """Read the ``[sim] deviations`` CSV ``id,dx,dy,dz`` (job units) -> (n, 3) metres aligned with ``ids``."""
-    if not path.is_file():
-        raise JobSpecError(f"{path}: deviations file not found")
-    index = {t: i for i, t in enumerate(ids)}
-    out = np.zeros((len(ids), 3))
-    with path.open(newline="") as f:
-        reader = csv.DictReader(f)
-        need = ("id", "dx", "dy", "dz")
-        if not reader.fieldnames or any(c not in reader.fieldnames for c in need):
-            raise JobSpecError(f"{path}: deviations CSV needs columns id,dx,dy,dz")
-        for lineno, row in enumerate(reader, 2):
-            if row["id"] not in index:
-                raise JobSpecError(f"{path}:{lineno}: unknown target id {row['id']!r}")
-            try:
-                d = [float(row[c]) for c in ("dx", "dy", "dz")]
-            except ValueError as exc:
-                raise JobSpecError(f"{path}:{lineno}: {exc}") from None
-            if not all(math.isfinite(v) for v in d):
-                raise JobSpecError(f"{path}:{lineno}: non-finite deviation")
-            out[index[row["id"]]] = np.asarray(d) * scale
-    return out

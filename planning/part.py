@@ -174,6 +174,68 @@ def _check_text(path: Path, data: bytes, suffix: str) -> None:
         raise PartError(f"{path}:{line}: not a text {suffix[1:].upper()} file (a NUL byte); is it the right file?")
 
 
+def _check_declared_counts(path: Path, data: bytes, suffix: str) -> None:
+    """ASCII PLY and OFF: the file must hold as many vertices and faces as its header declares (trimesh reads a
+    truncated one as the part's first few faces). Records are counted as written, before any polygon is
+    triangulated (a quad is one face here, two triangles in the mesh)."""
+    if suffix == ".ply":
+        end = data.find(b"end_header")
+        if end < 0 or b"format ascii" not in data[:end]:
+            return
+        elements: list[tuple[str, int, list[bool]]] = []  # name, count, per property: is it a list
+        for line in data[:end].decode("utf-8", "replace").splitlines():
+            tok = line.split()
+            if len(tok) >= 3 and tok[0] == "element":
+                try:
+                    elements.append((tok[1], int(tok[2]), []))
+                except ValueError:
+                    raise PartError(f"{path}: PLY header line {line.strip()!r}: the count is not an integer") from None
+            elif len(tok) >= 2 and tok[0] == "property" and elements:
+                elements[-1][2].append(tok[1] == "list")
+        body = data[data.find(b"\n", end) + 1:].split()
+        pos = 0
+        for name, count, props in elements:
+            for i in range(count):
+                for is_list in props:
+                    if is_list:
+                        try:
+                            pos += 1 + int(float(body[pos]))
+                        except (IndexError, ValueError):
+                            pos = len(body) + 1
+                    else:
+                        pos += 1
+                if pos > len(body):
+                    _fewer(path, name, count, i)
+        return
+    lines = [ln.split("#")[0].split() for ln in data.decode("utf-8", "replace").splitlines()]
+    lines = [t for t in lines if t]
+    if not lines or not lines[0][0].upper().endswith("OFF") or "BINARY" in (t.upper() for t in lines[0]):
+        return
+    head = lines[0][1:] or (lines[1] if len(lines) > 1 else [])
+    rest = lines[1:] if lines[0][1:] else lines[2:]
+    try:
+        n_v, n_f = int(head[0]), int(head[1])
+    except (IndexError, ValueError):
+        raise PartError(f"{path}: OFF header without its vertex and face counts") from None
+    if len(rest) < n_v:
+        _fewer(path, "vertex", n_v, len(rest))
+    faces = rest[n_v:n_v + n_f]
+    held = len(faces)
+    if faces:
+        try:
+            held -= len(faces[-1]) < 1 + int(faces[-1][0])  # the last line cut short
+        except ValueError:
+            held -= 1
+    if held < n_f:
+        _fewer(path, "face", n_f, held)
+
+
+def _fewer(path: Path, element: str, declared: int, held: int) -> None:
+    plural = {"vertex": "vertices", "face": "faces"}.get(element, f"{element} records")
+    raise PartError(f"{path}: the file holds fewer {plural} than its header declares ({held} of {declared}): "
+                    "truncated or corrupt")
+
+
 def _check_obj_indices(path: Path, text: str) -> None:
     """OBJ: face indices are 1-based (or negative); 0 or out of range is an error."""
     n_v = 0
@@ -251,6 +313,8 @@ def _load_mesh(path: Path, units: str, suffix: str, tessellation_tolerance: floa
         _check_text(path, data, suffix)
     if suffix == ".obj":
         _check_obj_indices(path, data.decode("latin-1"))
+    if suffix in (".ply", ".off"):
+        _check_declared_counts(path, data, suffix)
     _check_raw_vertices(path, data, suffix)
     try:
         loaded = trimesh.load(str(path), force="mesh", process=False)
@@ -369,6 +433,46 @@ def load_targets(path: str | Path, units: str, max_targets: int = MAX_TARGETS) -
         tolerance_m=arr[:, 6].copy(),
         code=np.array(code, dtype=int),
     )
+
+
+def load_deviations(path: Path, ids: list[str], scale: float) -> np.ndarray:
+    """Read the ``[sim] deviations`` CSV ``id,dx,dy,dz`` (job units) -> (n, 3) metres aligned with ``ids``.
+    A row short of a field, an id given twice or a bad number is refused naming ``file:line``."""
+    if not path.is_file():
+        raise PartError(f"{path}: deviations file not found")
+    index = {t: i for i, t in enumerate(ids)}
+    out = np.zeros((len(ids), 3))
+    seen: dict[str, int] = {}
+    need = ("id", "dx", "dy", "dz")
+    try:
+        with path.open(newline="", encoding="utf-8-sig") as f:  # a BOM (spreadsheets write one) is not a column name
+            reader = csv.DictReader(f)
+            if not reader.fieldnames or any(c not in reader.fieldnames for c in need):
+                raise PartError(f"{path}:1: deviations CSV needs columns id,dx,dy,dz; its header is "
+                                   f"{','.join(reader.fieldnames or [])!r}")
+            for row in reader:
+                lineno = reader.line_num
+                if None in row or any(row[c] is None for c in need):
+                    got = len([v for k, v in row.items() if k is not None and v is not None]) + len(row.get(None, []))
+                    raise PartError(f"{path}:{lineno}: {got} field(s); a row is {len(reader.fieldnames)} "
+                                       f"({','.join(reader.fieldnames)})")
+                tid = row["id"]
+                if tid not in index:
+                    raise PartError(f"{path}:{lineno}: unknown target id {tid!r}")
+                if tid in seen:
+                    raise PartError(f"{path}:{lineno}: target {tid!r} again (first on line {seen[tid]}); one "
+                                       "deviation per target")
+                seen[tid] = lineno
+                try:
+                    d = [float(row[c]) for c in ("dx", "dy", "dz")]
+                except ValueError as exc:
+                    raise PartError(f"{path}:{lineno}: {exc}") from None
+                if not all(math.isfinite(v) for v in d):
+                    raise PartError(f"{path}:{lineno}: non-finite deviation")
+                out[index[tid]] = np.asarray(d) * scale
+    except UnicodeDecodeError as exc:
+        raise PartError(f"{path}: not a UTF-8 text CSV ({exc.reason} at byte {exc.start})") from None
+    return out
 
 
 def check_targets(mesh: trimesh.Trimesh, targets: Targets, source: str = "targets", *,

@@ -35,22 +35,27 @@ from __future__ import annotations
 import re
 import tomllib
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, Strict, ValidationError, field_validator, model_validator
 from scipy.spatial.transform import Rotation
 
 from calibration.errors import JobSpecError
 from cell.record.jobfolder import atomic_write_bytes
-from cell.jobspec import CameraSection, CellSection, Pose, SimSection, _format_validation_error, pose_matrix
+from cell.jobspec import (DEFAULT_CAMERA_BOX_MM, DEFAULT_CODED_SIZE_MM, CameraSection, CellSection, Pose, SimSection,
+                          _format_validation_error, fill_unit_defaults, pose_matrix)
 from planning.part import UNITS_TO_M
 
 __all__ = ["CellFile", "load_cell_file", "write_flange_from_cam", "pose_from_matrix"]
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False, strict=True)  # as a job file's
+
+
+#: the calibration artefacts' dot diameter, mm, where [hand_eye] or [reverification] leaves it out
+ARTEFACT_DOT_DIAMETER_MM = 5.0
 
 
 class CameraLens(_Strict):
@@ -60,13 +65,13 @@ class CameraLens(_Strict):
     fy_px: float = Field(gt=0)
     cx_px: float
     cy_px: float
-    k1: float = 0.0
-    k2: float = 0.0
-    k3: float = 0.0
-    p1: float = 0.0
-    p2: float = 0.0
-    cov: tuple[tuple[float, ...], ...] | None = Field(
-        default=None, description="covariance of the nine terms above, in their order (px^2 for fx_px .. cy_px): the "
+    k1: float = Field(default=0.0, ge=-10, le=10)  # the ranges of a job file's [camera]
+    k2: float = Field(default=0.0, ge=-100, le=100)
+    k3: float = Field(default=0.0, ge=-1000, le=1000)
+    p1: float = Field(default=0.0, ge=-1, le=1)
+    p2: float = Field(default=0.0, ge=-1, le=1)
+    cov: tuple[Annotated[tuple[float, ...], Strict(False)], ...] | None = Field(
+        default=None, strict=False, description="covariance of the nine terms above, in their order (px^2 for fx_px .. cy_px): the "
         "lens's uncertainty from the hand-eye calibration; a job that holds the lens carries it (decision 0056)")
 
     @field_validator("cov")
@@ -85,6 +90,10 @@ class CameraLens(_Strict):
 
 
 LENS_KEYS = ("fx_px", "fy_px", "cx_px", "cy_px", "k1", "k2", "k3", "p1", "p2")
+#: a calibrated principal distance over the data sheet's (focal_length_mm / pixel_size_um), and fy over fx: the
+#: ranges of a job's [sim] lens (principal_distance_factor, aspect); outside, the lens is another camera's or a typo
+FX_OVER_NOMINAL = (0.8, 1.25)
+ASPECT_RANGE = (0.9, 1.1)
 
 
 class CellFileCell(CellSection):
@@ -102,8 +111,8 @@ class CellFileCell(CellSection):
 class HandEyeSection(_Strict):
     mesh: str
     targets: str
-    target_diameter: float = Field(default=5.0, gt=0)
-    coded_size: float = Field(default=20.0, gt=0)
+    target_diameter: float = Field(default=ARTEFACT_DOT_DIAMETER_MM, gt=0, description="file units (default 5 mm)")
+    coded_size: float = Field(default=DEFAULT_CODED_SIZE_MM, gt=0, description="file units (default 20 mm)")
     placement: Pose = Field(description="approximate base_from_artefact, file units")
     n_stations: int = Field(default=14, ge=4, le=60)
     min_rays: int = Field(default=3, ge=2, description="fewest stations that must measure every dot (planner)")
@@ -118,7 +127,7 @@ class HandEyeSection(_Strict):
     min_weakest_rotation_deg: float = Field(default=10.0, ge=0, lt=180, description="required rotation of the "
                                             "stations' motions about their least-excited direction")
     max_plans: int = Field(default=4, ge=1, le=20, description="planned networks (seeds) tried for the conditioning")
-    seed: int = 0
+    seed: int = Field(default=0, ge=0, lt=2**62, description="random seed (a non-negative integer)")
 
     @model_validator(mode="after")
     def _rays_fit(self):
@@ -134,8 +143,8 @@ class ReverificationSection(_Strict):
     b: str
     length: float = Field(gt=0, description="calibrated distance a-b, file units")
     sigma: float = Field(default=0.0, ge=0)
-    target_diameter: float = Field(default=5.0, gt=0)
-    coded_size: float = Field(default=20.0, gt=0)
+    target_diameter: float = Field(default=ARTEFACT_DOT_DIAMETER_MM, gt=0, description="file units (default 5 mm)")
+    coded_size: float = Field(default=DEFAULT_CODED_SIZE_MM, gt=0, description="file units (default 20 mm)")
     positions: list[Pose] = Field(min_length=1, description="base_from_bar in each position, file units")
     stations_per_position: int = Field(default=5, ge=2, le=30, description="planned stations, each sees a and b")
     n_candidates: int = Field(default=300, ge=20, le=20_000, description="candidate stations of the planner")
@@ -144,7 +153,7 @@ class ReverificationSection(_Strict):
     max_permissible_error: float = Field(gt=0, description="E_MPE constant term, file units")
     max_permissible_error_per_length: float = Field(default=0.0, ge=0, description="E_MPE term per unit length")
     interval_days: float = Field(default=30.0, gt=0)
-    seed: int = 0
+    seed: int = Field(default=0, ge=0, lt=2**62, description="random seed (a non-negative integer)")
 
 
 class CellSimSection(SimSection):
@@ -174,6 +183,37 @@ class CellFile(_Strict):
     archive: ArchiveSection = ArchiveSection()
 
     @model_validator(mode="after")
+    def _physical_defaults(self):  # the keys left out are physical sizes, in the file's units (as a job's)
+        fill_unit_defaults(self.cell, self.cell.units, {"camera_box": DEFAULT_CAMERA_BOX_MM})
+        for section in (self.hand_eye, self.reverification):
+            if section is not None:
+                fill_unit_defaults(section, self.cell.units, {"target_diameter": ARTEFACT_DOT_DIAMETER_MM,
+                                                              "coded_size": DEFAULT_CODED_SIZE_MM})
+        return self
+
+    @model_validator(mode="after")
+    def _lens_of_this_camera(self):
+        lens, cam = self.cell.camera_lens, self.camera
+        if lens is None:
+            return self
+        for key, value, size in (("cx_px", lens.cx_px, cam.width), ("cy_px", lens.cy_px, cam.height)):
+            if not 0 <= value <= size - 1:
+                raise ValueError(f"cell.camera_lens.{key} = {value} lies outside the image (0..{size - 1} px of "
+                                 "[camera])")
+        nominal = cam.focal_length_mm / cam.pixel_size_um * 1e3
+        lo, hi = FX_OVER_NOMINAL
+        for key in ("fx_px", "fy_px"):
+            value = getattr(lens, key)
+            if not lo <= value / nominal <= hi:
+                raise ValueError(f"cell.camera_lens.{key} = {value} is {value / nominal:.3g} times the data sheet's "
+                                 f"{nominal:.1f} px ([camera] focal_length_mm / pixel_size_um), outside {lo}..{hi}: "
+                                 "another camera's lens, or not in pixels")
+        if not ASPECT_RANGE[0] <= lens.fy_px / lens.fx_px <= ASPECT_RANGE[1]:
+            raise ValueError(f"cell.camera_lens fy_px / fx_px = {lens.fy_px / lens.fx_px:.4g}, outside "
+                             f"{ASPECT_RANGE[0]}..{ASPECT_RANGE[1]}: a sensor's pixels are square within a few per cent")
+        return self
+
+    @model_validator(mode="after")
     def _sim_has_no_deviations(self):
         if self.sim.deviations is not None:
             raise ValueError("sim.deviations belongs in a job file, not in a cell file")
@@ -201,7 +241,7 @@ def load_cell_file(path: str | Path) -> tuple[CellFile, Path]:
     if not path.is_file():
         raise JobSpecError(f"{path}: cell file not found")
     try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
+        data = tomllib.loads(path.read_text(encoding="utf-8-sig"))
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise JobSpecError(f"{path}: not valid TOML ({exc})") from None
     try:
@@ -247,7 +287,7 @@ def write_flange_from_cam(path: str | Path, flange_from_cam: np.ndarray, date: s
     """
     path = Path(path)
     cf, _ = load_cell_file(path)
-    text = path.read_text(encoding="utf-8")
+    text = path.read_text(encoding="utf-8-sig")
     nl = "\r\n" if "\r\n" in text else "\n"
     lines = text.splitlines()
     s, e = _section_span(lines, "cell")
