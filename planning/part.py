@@ -606,6 +606,10 @@ def load_part(
 ) -> Part:
     """Load and check a part: mesh plus targets (from a CSV, or ``n_targets`` sampled with ``seed``)."""
     mesh = load_mesh(mesh_path, units, tessellation_tolerance)
+    if mesh.is_watertight and mesh.volume < 0:  # every face turned inward (the targets' normals were blamed)
+        raise PartError(f"{mesh_path}: the mesh is inside out (a closed surface whose faces point inward: volume "
+                        f"{mesh.volume:.3g} m^3); export it with outward normals, or fix it (e.g. trimesh's "
+                        "fix_normals)")
     if targets_csv is not None:
         targets = load_targets(targets_csv, units)
         source = str(targets_csv)

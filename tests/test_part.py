@@ -170,3 +170,14 @@ def test_load_part_from_csv_converts_units(tmp_path, bracket):
     part = load_part(tmp_path / "b.stl", "mm", targets_csv=tmp_path / "t.csv")
     np.testing.assert_allclose(part.targets.xyz, t.xyz, atol=1e-9)
     assert part.summary()["targets"] == 10
+
+
+def test_inside_out_mesh_is_named_not_its_targets(tmp_path, bracket):
+    """A closed mesh whose faces all point inward: the outside check's message blamed the targets ("200 target
+    normal(s) point into the part"); the mesh is named (decision 0057)."""
+    m = bracket.copy()
+    m.apply_scale(1000.0)
+    m.invert()
+    m.export(tmp_path / "inverted.stl")
+    with pytest.raises(PartError, match="inverted.stl: the mesh is inside out"):
+        load_part(tmp_path / "inverted.stl", "mm", n_targets=20, seed=1)
