@@ -19,6 +19,9 @@ from cell.jobspec import DamagedTarget, JobSpec, damaged_target_rows, load_devia
 from cell.thermal import bar_at_measurement, sim_expansion
 from planning.part import Part, load_part
 
+#: a target's tolerance beyond this share of the part's largest extent is taken for one in another unit
+TOLERANCE_MAX_SHARE = 0.25
+
 
 @dataclass
 class LoadedJob:
@@ -145,6 +148,14 @@ def load(job_path: str | Path, overrides: dict[str, str] | None = None) -> Loade
     deviations = deviations + sim_expansion(spec, part.targets.xyz + deviations, [bar[:2] for bar in scale_bars])
     tol = part.targets.tolerance_m.copy()
     tol[~np.isfinite(tol)] = spec.report.tolerance * s
+    size = float(np.max(part.mesh.extents))
+    wide = np.flatnonzero(tol > TOLERANCE_MAX_SHARE * size)
+    if len(wide):  # 250 meant in um, read in mm: the part PASSed with 0.4-0.6 mm deviations (an outside check)
+        j = int(wide[0])
+        raise JobSpecError(f"{job_path}: target {part.targets.ids[j]}'s tolerance {tol[j] / s:g} {spec.job.units} is "
+                           f"{tol[j] / size:.0%} of the part's size ({size / s:g} {spec.job.units}; {len(wide)} such "
+                           f"target(s)): a tolerance in another unit? ([report] tolerance, the targets file's "
+                           "tolerance column)")
     intrinsics, taken = spec.intrinsics(), None
     if spec.cell.cell_file is not None:  # the lens calibrated with the cell's hand-eye (decision 0056)
         from cell.cellcal.jobcell import cell_taken

@@ -118,6 +118,8 @@ JOB_CASES = {
     "tolerance as a string": ({"report": {"tolerance": "0.25"}}, "report.tolerance"),
     "bool as a string": ({"camera": {"self_calibrate": "yes"}}, "camera.self_calibrate"),
     "bool as 1": ({"camera": {"self_calibrate": 1}}, "camera.self_calibrate"),
+    # 250 meant in um, read in mm: the part PASSed with 0.4-0.6 mm deviations (decision 0057)
+    "tolerance in another unit": ({"report": {"tolerance": 250.0}}, "a tolerance in another unit?"),
 }
 
 
