@@ -234,9 +234,9 @@ def measure_folder(folder: Path, cam: CameraFile, targets: Targets, *, control: 
     sd = np.sqrt(np.diag(res.intrinsics_cov)) if len(names) else np.zeros(0)
     ri = res.intrinsics
     # what the answer is worth (decision 0057): one camera setting in every image, the bundle's own signals
-    from cell.measure_trust import doubts
+    from cell.measure_trust import doubts, exif_settings
 
-    said = doubts(res, cam.sigma_px, list(images), used)
+    said = doubts(res, cam.sigma_px, list(images), used, exif_settings(files))
     for d in said:
         say(("UNTRUSTED " if d["untrusted"] else "WARNING ") + d["text"])
     doc = {

@@ -13,9 +13,11 @@ into a camera that fits every image a little worse, and reported ``converged`` w
   fails none: a 6 % wrong layout held as control fit 2.6 px with nothing rejected), make the measurement UNTRUSTED
   and refuse a camera calibration.
 
-Tried and left out: each image's own focal length against the others' (an F test of the network adjusted with and
-without a focal length per image) told 5 zoomed images among 10 (F 305) but also flagged the clean set (F 56): a
-printed sheet on cardboard is not its flat layout, and each image's focal length absorbs the difference.
+Photographs whose EXIF names more than one camera or focal length make it UNTRUSTED too (:func:`exif_doubt`). Tried
+and left out: each image's own focal length against the others' (an F test of the network adjusted with and without
+a focal length per image) told 5 zoomed images among 10 (F 305) but also flagged the clean set (F 56): a printed
+sheet on cardboard is not its flat layout, and each image's focal length absorbs the difference. A folder of two
+zoom settings without EXIF is only warned by its variance factor.
 """
 from __future__ import annotations
 
@@ -23,17 +25,45 @@ import numpy as np
 
 from cell.stages.model_shape import VARIANCE_FACTOR_RANGE
 
-__all__ = ["doubts", "CALIBRATION_MAX_SIGMA_RATIO"]
+__all__ = ["doubts", "exif_settings", "exif_doubt", "CALIBRATION_MAX_SIGMA_RATIO"]
 
 #: a measurement whose images fit beyond this many times the camera file's sigma_px is UNTRUSTED, and ``cell calibrate
 #: camera`` writes no camera from them (as the hand-eye)
 CALIBRATION_MAX_SIGMA_RATIO = 3.0
 
 
-def doubts(res, sigma_px: float, images: list, used: list) -> list[dict]:
+def exif_settings(files: list) -> dict:
+    """The camera settings the photographs' EXIF states, ``{(make, model, focal_mm): [names]}`` (files without a
+    focal length in their EXIF are left out). More than one key: the folder mixes cameras or zoom settings."""
+    from calibration.planar import exif_camera
+
+    out: dict = {}
+    for f in files:
+        ex = exif_camera(f)
+        if ex is not None:
+            out.setdefault((ex.make, ex.model, round(float(ex.focal_mm), 2)), []).append(f.name)
+    return out
+
+
+def exif_doubt(settings: dict) -> dict | None:
+    """An untrusted doubt when the EXIF of the photographs names more than one camera or focal length: one
+    interior orientation cannot describe them, and a self-calibrating bundle takes a compromise for a camera (an
+    outside check: 5 images of another zoom among 10 gave fx 570.5 +- 1.7 px for 542.4, with nothing failing)."""
+    if len(settings) < 2:
+        return None
+    said = "; ".join(f"{(mk + ' ' + md).strip() or 'camera'} at {f:g} mm: {len(n)} image(s) ({', '.join(n[:3])}"
+                     f"{' ...' if len(n) > 3 else ''})" for (mk, md, f), n in sorted(settings.items()))
+    return {"kind": "cameras", "untrusted": True,
+            "text": f"the photographs' EXIF names {len(settings)} camera settings ({said}): one camera setting per "
+                    "folder"}
+
+
+def doubts(res, sigma_px: float, images: list, used: list, settings: dict | None = None) -> list[dict]:
     """What makes the measurement doubtful, each ``{"kind", "untrusted": bool, "text"}``: ``untrusted`` ones make a
-    measurement UNTRUSTED and refuse a camera calibration; the others are said."""
+    measurement UNTRUSTED and refuse a camera calibration; the others are said. ``settings``: :func:`exif_settings`."""
     out = []
+    if settings and (d := exif_doubt(settings)) is not None:
+        out.append(d)
     left = [im for im in images if not any(im is u for u in used)]
     if left:
         out.append({"kind": "images", "untrusted": False,

@@ -190,3 +190,28 @@ def test_an_image_with_exactly_four_known_codes_is_oriented():
     _identify(im, t, TRUE)
     assert im.pose is not None and np.sum(im.target >= 0) > 40, im.note
     np.testing.assert_allclose(im.pose, pose, atol=1e-6)
+
+
+def test_photographs_whose_exif_names_two_focal_lengths_are_not_one_camera(photographs, tmp_path, capsys):
+    """Images of two zoom settings in one folder: the self-calibrating bundle takes a compromise for a camera and
+    nothing fails (an outside check: fx 570.5 +- 1.7 px for 542.4). Their EXIF says so: UNTRUSTED, and no camera file
+    is written from them (decision 0057)."""
+    from PIL import Image
+
+    folder, layout, camera, _ = photographs
+    mixed = tmp_path / "photos"
+    mixed.mkdir()
+    for k, p in enumerate(sorted(folder.glob("*.png"))):
+        exif = Image.Exif()
+        exif[271], exif[272] = "Maker", "Model 1"
+        exif[0x8769] = {37386: 8.0 if k < 4 else 12.0}  # FocalLength, mm
+        Image.open(p).save(mixed / p.name, exif=exif)
+    out = tmp_path / "out"
+    assert main(["measure", str(mixed), "--camera", str(camera), "--layout", str(layout), "--out", str(out),
+                 "--json"]) == 0
+    cap = capsys.readouterr()
+    doc = json.loads(cap.out)
+    assert doc["verdict"] == "UNTRUSTED" and "EXIF names 2 camera settings" in cap.err, cap.err
+    assert main(["calibrate", "camera", str(mixed), "--camera", str(camera), "--layout", str(layout), "--out",
+                 str(tmp_path / "cal.toml")]) == 1
+    assert "not written" in capsys.readouterr().err and not (tmp_path / "cal.toml").exists()
