@@ -79,7 +79,8 @@ _SOURCES = ("calibration/dots.py", "calibration/dot_noise.py", "calibration/dot_
             "calibration/targets.py", "calibration/camera.py", "calibration/ringcodes.py", "calibration/errors.py",
             "planning/visibility.py", "planning/cache.py", "planning/stations.py", "sim_backend/coverage.py",
             "drivers/protocols.py", "sim_backend/sim_camera.py", "sim_backend/world.py", "cell/stages/imaging.py",
-            "cell/stages/surface_labels.py", "cell/stages/preanalysis.py", "drivers/pixels.py")
+            "cell/stages/surface_labels.py", "cell/stages/preanalysis.py", "drivers/pixels.py",
+            "calibration/polarity.py")
 
 
 def _cache_key(job, poses: np.ndarray) -> str:
