@@ -14,6 +14,10 @@ def _human_check(doc: dict, out) -> None:
     out.say(f"job    {doc['job']['name']}  ({doc['job']['file']}, units {doc['job']['units']}, seed {doc['job']['seed']})")
     out.say(f"part   {p['name']}: {size} mm, {m['faces']} faces, watertight={m['watertight']}, "
             f"winding consistent={m['winding_consistent']}, degenerate faces={m['degenerate_faces']}")
+    if not m["watertight"]:
+        out.say(f"part   WARNING the mesh is open: {m['boundary_edges']} edges with one face, in {m['boundary_loops']} "
+                "border(s). A sheet has its borders; a solid must have none, else rays pass through its openings and "
+                "the plan counts targets as seen through the part: repair the mesh or export it closed")
     kinds = ", ".join(f"{v} {k}" for k, v in p["targets_by_kind"].items())
     th = doc.get("target_thickness_m")
     thick = "" if th is None else f", {th * 1000:.2f} mm thick"
@@ -76,11 +80,18 @@ def check(args, out) -> int:
                    f"{', '.join(hit)}: "
                    + ("the scale cannot be established" if len(hit) == len(bars) else "those bars cannot be used")
                    if on_bar else ""))
+        none = reach.get("buried") or []
+        if none:  # no placement of the part helps these: say what does
+            size = max(doc["part"]["size_m"]) * 1000
+            what += (f"; {len(none)} of them ({', '.join(none[:3])}{', ...' if len(none) > 3 else ''}) are covered by "
+                     "the part's own surface along their normal: check that they lie on the surface with outward "
+                     f"normals and that the units are right (the part is {size:.1f} mm across in {doc['job']['units']})")
         if job.spec.planning.unmeasurable != "report":
-            raise JobSpecError(
-                f"{job.path}: {what}: lower [planning] min_rays, raise [planning] incidence_max_deg, widen [planning] "
-                "elevation_min_deg / elevation_max_deg, move the part ([cell] base_from_part), or set [planning] "
-                'unmeasurable = "report" to measure the others and report these not measured')
+            act = ("correct the targets file or the units" if len(none) == len(bad) else
+                   "lower [planning] min_rays, raise [planning] incidence_max_deg, widen [planning] elevation_min_deg / "
+                   "elevation_max_deg, move the part ([cell] base_from_part)")
+            raise JobSpecError(f'{job.path}: {what}: {act}, or set [planning] unmeasurable = "report" to measure the '
+                               "others and report these not measured")
         doc["warnings"] = [f"{what}: they will be reported not measured ([planning] unmeasurable = \"report\")"]
     for bar in bars:
         weak = [f"{t} ({n})" for t, n in zip(bar["ends"], bar["candidates"]) if n < bar["rays_min"]]

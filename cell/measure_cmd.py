@@ -75,10 +75,16 @@ def load_control(path: str | Path, targets: Targets, units: str) -> ControlPoint
     scale = UNITS_TO_M[units]
     index = targets.index() if callable(getattr(targets, "index", None)) else {t: i for i, t in enumerate(targets.ids)}
     idx, xyz, sig = [], [], []
-    with path.open(newline="") as f:
+    with path.open(newline="", encoding="utf-8-sig") as f:
         reader = csv.DictReader(f)
-        if not {"id", "x", "y", "z"} <= set(c.strip() for c in reader.fieldnames or []):
+        names = [c.strip() for c in reader.fieldnames or []]
+        if not {"id", "x", "y", "z"} <= set(names):
             raise InputError(f"{path}: control CSV needs columns id,x,y,z[,sigma]")
+        odd = sorted({c for c in names if c not in ("id", "x", "y", "z", "sigma", "note", "comment")}
+                     | {c for c in names if names.count(c) > 1})
+        if odd:  # a misspelt sigma would hold the point fixed without a word
+            raise InputError(f"{path}:1: column(s) {', '.join(odd)} unknown or given twice; the columns are "
+                             "id,x,y,z[,sigma] (and note, comment)")
         for lineno, row in enumerate(reader, 2):
             row = {k.strip(): (v or "").strip() for k, v in row.items() if k is not None}
             if row["id"] not in index:

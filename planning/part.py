@@ -130,7 +130,17 @@ def mesh_health(mesh: trimesh.Trimesh) -> dict:
         "area_m2": float(mesh.area),
         "volume_m3": float(mesh.volume) if mesh.is_watertight else None,
         "degenerate_faces": int((mesh.area_faces <= 1e-18).sum()),
-    }
+    } | _openings(mesh)
+
+
+def _openings(mesh: trimesh.Trimesh) -> dict:
+    """Edges with one face (an open mesh's border) and the loops they make. A sheet has one loop per border;
+    a solid with faces missing has openings the ray tracing sees through."""
+    if mesh.is_watertight:
+        return {"boundary_edges": 0, "boundary_loops": 0}
+    edges = mesh.edges_sorted[trimesh.grouping.group_rows(mesh.edges_sorted, require_count=1)]
+    loops = trimesh.graph.connected_components(edges, min_len=1) if len(edges) else []
+    return {"boundary_edges": int(len(edges)), "boundary_loops": int(len(loops))}
 
 
 # --- mesh -------------------------------------------------------------------
@@ -355,6 +365,26 @@ def _checked(path: Path, mesh: trimesh.Trimesh, scale: float, units: str) -> tri
 _REQUIRED = ("id", "x", "y", "z", "nx", "ny", "nz")
 
 
+_OPTIONAL = ("kind", "tolerance", "code")
+_FREE = ("note", "comment", "description")  # columns of the user's own, read by no one
+
+
+def _columns(path: Path, header: list[str]) -> dict[str, int]:
+    """Column name -> index. A name twice, or one the cell does not know, is refused: a misspelt
+    ``tolerence`` read as no tolerance at all would judge every target against the job's default."""
+    col: dict[str, int] = {}
+    for i, c in enumerate(header):
+        if not c:
+            continue
+        if c in col:
+            raise PartError(f"{path}:1: column {c!r} twice (columns {col[c] + 1} and {i + 1})")
+        if c not in _REQUIRED + _OPTIONAL + _FREE:
+            raise PartError(f"{path}:1: unknown column {c!r}; the columns are {','.join(_REQUIRED + _OPTIONAL)} "
+                            f"(and {', '.join(_FREE)} for text of your own)")
+        col[c] = i
+    return col
+
+
 def load_targets(path: str | Path, units: str, max_targets: int = MAX_TARGETS) -> Targets:
     """Read ``id,x,y,z,nx,ny,nz[,kind][,tolerance][,code]`` (lengths in ``units``).
 
@@ -378,7 +408,7 @@ def load_targets(path: str | Path, units: str, max_targets: int = MAX_TARGETS) -
             missing = [c for c in _REQUIRED if c not in header]
             if missing:
                 raise PartError(f"{path}: targets CSV lacks column(s) {', '.join(missing)} (needs id,x,y,z,nx,ny,nz)")
-            col = {c: header.index(c) for c in header if c}
+            col = _columns(path, header)
             i_id = col["id"]
             i_num = [col[c] for c in ("x", "y", "z", "nx", "ny", "nz")]
             i_kind, i_tol, i_code = col.get("kind"), col.get("tolerance"), col.get("code")
@@ -388,6 +418,9 @@ def load_targets(path: str | Path, units: str, max_targets: int = MAX_TARGETS) -
                     continue  # a blank line
                 if len(ids) >= max_targets:
                     raise PartError(f"{path}:{lineno}: more than {max_targets} targets (the most a job can hold)")
+                if len(row) > width and any(v.strip() for v in row[width:]):
+                    raise PartError(f"{path}:{lineno}: {len(row)} fields; the header has {width} "
+                                    "(a comma inside a value, or a column without a name?)")
                 if len(row) < width:
                     row = row + [""] * (width - len(row))
                 try:
@@ -410,6 +443,8 @@ def load_targets(path: str | Path, units: str, max_targets: int = MAX_TARGETS) -
                 tid = row[i_id].strip()
                 if not tid:
                     raise PartError(f"{path}:{lineno}: empty target id")
+                if not tid.isprintable():
+                    raise PartError(f"{path}:{lineno}: target id {tid!r} holds a control character")
                 if k == "coded" and c < 0:
                     raise PartError(f"{path}:{lineno}: coded target {tid!r} needs a 'code' (ArUco id)")
                 ids.append(tid)

@@ -247,3 +247,38 @@ def test_cli_check_and_run_refuse_sim_unreachable_stations_for_a_real_ur_before_
     assert "192.168.10.20" in lines[0] and "Traceback" not in r.stderr
     assert not archive.exists() or not any(archive.rglob("journal.jsonl"))  # no job folder, nothing journalled
     assert {q.name for q in job_dir.iterdir()} == set(before)
+
+
+def test_cli_check_says_a_solid_with_faces_missing_is_open(job_dir):
+    """A solid with faces missing passed check quietly; its openings let the plan's rays through the part."""
+    import trimesh
+
+    mesh = trimesh.load(job_dir / "bracket.stl")
+    bottom = np.flatnonzero(mesh.face_normals[:, 2] < -0.99)[:2]  # underneath: no target sits there
+    trimesh.Trimesh(mesh.vertices, np.delete(mesh.faces, bottom, axis=0)).export(job_dir / "bracket.stl")
+    r = _cli("check", job_dir / "job.toml", "--json")
+    assert r.returncode == 0, r.stderr
+    m = json.loads(r.stdout)["part"]["mesh"]
+    assert not m["watertight"] and m["boundary_loops"] >= 1 and m["boundary_edges"] >= 3
+    assert "WARNING the mesh is open" in r.stderr and f"{m['boundary_edges']} edges with one face" in r.stderr
+
+
+def test_cli_check_says_targets_no_station_sees_are_the_parts_not_the_cells(job_dir):
+    """Targets sunk 0.5 mm under the surface were met with "move the part": no placement helps them."""
+    import csv
+
+    p = job_dir / "targets.csv"
+    with p.open(newline="") as f:
+        rows = list(csv.reader(f))
+    h = rows[0]
+    sunk = [r for r in rows[1:] if r[h.index("kind")] == "retro"][:4]
+    for r in sunk:
+        for a in "xyz":
+            r[h.index(a)] = str(float(r[h.index(a)]) - 0.5 * float(r[h.index("n" + a)]))
+    with p.open("w", newline="") as f:
+        csv.writer(f).writerows(rows)
+    r = _cli("check", job_dir / "job.toml")
+    line = [ln for ln in r.stderr.splitlines() if ln.strip()]
+    assert r.returncode == 2 and len(line) == 1, r.stderr
+    assert "4 of them" in line[0] and "covered by the part's own surface" in line[0] and sunk[0][0] in line[0]
+    assert "correct the targets file or the units" in line[0] and "move the part" not in line[0]

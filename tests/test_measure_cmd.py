@@ -215,3 +215,19 @@ def test_photographs_whose_exif_names_two_focal_lengths_are_not_one_camera(photo
     assert main(["calibrate", "camera", str(mixed), "--camera", str(camera), "--layout", str(layout), "--out",
                  str(tmp_path / "cal.toml")]) == 1
     assert "not written" in capsys.readouterr().err and not (tmp_path / "cal.toml").exists()
+
+
+def test_a_control_file_with_a_misspelt_sigma_is_refused_not_held_fixed(tmp_path):
+    """``sgima`` read as no sigma would hold every control point truly fixed, without a word."""
+    from cell.errors import InputError
+    from cell.measure_cmd import load_control
+
+    t = _field().targets
+    rows = "".join(f"{i},{x * 1e3:.3f},{y * 1e3:.3f},{z * 1e3:.3f},0.05\n" for i, (x, y, z) in zip(t.ids[:4], t.xyz[:4]))
+    bad = tmp_path / "bad.csv"
+    bad.write_text("id,x,y,z,sgima\n" + rows)
+    with pytest.raises(InputError, match="sgima unknown or given twice"):
+        load_control(bad, t, "mm")
+    good = tmp_path / "good.csv"
+    good.write_text("\ufeffid,x,y,z,sigma\n" + rows)  # a spreadsheet's byte-order mark is not a column
+    assert np.allclose(load_control(good, t, "mm").sigma_m, 5e-5)

@@ -127,6 +127,23 @@ def test_targets_csv_missing_column(tmp_path):
         load_targets(p, "m")
 
 
+@pytest.mark.parametrize("header, row, match", [
+    ("id,x,y,z,nx,ny,nz,tolerence", ["T1", 0, 0, 0.03, 0, 0, 1, 0.001], "unknown column 'tolerence'"),
+    ("id,x,y,z,nx,ny,nz,x", ["T1", 0, 0, 0.03, 0, 0, 1, 5], "column 'x' twice"),
+    ("id,x,y,z,nx,ny,nz", ["T1", 0, 0, 0.03, 0, 0, 1, 0.001], "8 fields; the header has 7"),
+    ("id,x,y,z,nx,ny,nz", ["T\x001", 0, 0, 0.03, 0, 0, 1], "control character"),
+])
+def test_targets_csv_a_column_misspelt_twice_or_extra_or_a_control_character_is_refused(tmp_path, header, row, match):
+    """A misspelt tolerance column read as none would judge every target by the job's default, quietly."""
+    p = tmp_path / "t.csv"
+    row = [r.encode().decode("unicode_escape") if isinstance(r, str) else r for r in row]
+    _write_targets(p, [row], header=header)
+    with pytest.raises(PartError, match=match):
+        load_targets(p, "m")
+    _write_targets(p, [["T1", 0, 0, 0.03, 0, 0, 1, "left flange"]], header="id,x,y,z,nx,ny,nz,note")
+    assert load_targets(p, "m").ids == ["T1"]
+
+
 def test_targets_off_the_surface_duplicates_and_inward_normals(bracket):
     rng = np.random.default_rng(3)
     t = sample_targets(bracket, 20, rng)

@@ -119,7 +119,8 @@ def unmeasurable_targets(job: LoadedJob, cache_dir: Path | None = None) -> dict:
     ids = job.part.targets.ids
     out = {"min_rays": int(opts.min_rays), "candidates": len(reach.reachable),
            "reachable": int(reach.reachable.sum()), "unmeasurable": [ids[j] for j in bad],
-           "rays": {ids[j]: int(rays[j]) for j in bad}}
+           "rays": {ids[j]: int(rays[j]) for j in bad},
+           "buried": _buried(job, bad, vis_opts.ray_offset_m)}
     if job.scale_bars:  # the bars' ends need more rays than any target, and sure ones (planning/scalebar.py)
         from planning.scalebar import RAYS_FACTOR, trusted_views
 
@@ -132,6 +133,20 @@ def unmeasurable_targets(job: LoadedJob, cache_dir: Path | None = None) -> dict:
             out["scale_bars"].append({"ends": [ids[k] for k in e], "candidates": [int(k) for k in sure],
                                       "rays_min": RAYS_FACTOR * int(opts.min_rays)})
     return out
+
+
+def _buried(job: LoadedJob, which: np.ndarray, offset_m: float) -> list[str]:
+    """Of the targets ``which``, those the part's own surface covers within two dot diameters along their normal:
+    under the surface or facing into the part (a wrong targets file or unit), which no placement or limit mends."""
+    if not len(which):
+        return []
+    from planning.visibility import Occluder
+
+    t = job.part.targets
+    xyz, n = t.xyz[which], t.normals[which]
+    reach = offset_m + 2 * job.part.target_diameter_m
+    hit = Occluder(job.part.mesh, backend=planner_options(job).backend).occluded(xyz + offset_m * n, xyz + reach * n)
+    return [t.ids[j] for j, h in zip(which, hit) if h]
 
 
 def run(ctx) -> None:
