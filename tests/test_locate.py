@@ -184,6 +184,11 @@ def test_writing_base_from_part_keeps_every_other_byte_and_rejects_a_multi_line_
     with pytest.raises(JobSpecError, match="one line"):
         write_base_from_part(job_path, Y)
     assert job_path.read_bytes() == dotted.encode()
+    # `cell locate --write` says so before the robot moves (it said so after the images, an outside check found)
+    out = _Out()
+    with pytest.raises(JobSpecError, match="one line"):
+        locate_part(job_path, out, write=True)
+    assert not any("planning at least" in ln for ln in out.lines) and job_path.read_bytes() == dotted.encode()
 
 
 def _with_markers_underneath(job_path: Path, codes: dict[str, int]) -> None:

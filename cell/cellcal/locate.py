@@ -40,12 +40,13 @@ def format_pose(base_from_part: np.ndarray, scale: float) -> str:
     return f"{{ xyz = [{xyz}], rpy_deg = [{', '.join(f'{v:.7f}' for v in rpy)}] }}"
 
 
-def write_base_from_part(job_path: Path, base_from_part: np.ndarray) -> JobSpec:
+def write_base_from_part(job_path: Path, base_from_part: np.ndarray, *, dry_run: bool = False) -> JobSpec:
     """Rewrite the ``[cell] base_from_part = {...}`` line of ``job_path``; every other byte is kept.
 
     The key must be a one-line inline table (a trailing comment is kept). The new text is parsed and
     validated as a job file and its pose compared with ``base_from_part`` (within 1 um, 1e-6 rad)
-    before it atomically replaces the file. Returns the new, validated spec.
+    before it atomically replaces the file (``dry_run``: not written; ``cell locate --write`` tries the job's own
+    placement so before the robot moves). Returns the new, validated spec.
 
     Raises:
         JobSpecError: the file has no such line in ``[cell]``, it spans several lines, or the new text
@@ -91,7 +92,8 @@ def write_base_from_part(job_path: Path, base_from_part: np.ndarray) -> JobSpec:
     if np.abs(got[:3, 3] - want[:3, 3]).max() > 1e-6 or np.abs(got[:3, :3] - want[:3, :3]).max() > 1e-6:
         raise JobSpecError(f"{job_path}: the rewritten base_from_part does not read back as the estimate; "
                            "the file was left as it was")
-    atomic_write_bytes(job_path, new_text.encode("utf-8"))
+    if not dry_run:
+        atomic_write_bytes(job_path, new_text.encode("utf-8"))
     return new_spec
 
 
@@ -115,6 +117,8 @@ def locate_part(job_path: Path, out, *, write: bool, backend: str | None = None,
     backend = backend or job.spec.cell.backend
     k = job.spec.scale
     units = job.spec.job.units
+    if write:  # a file whose base_from_part cannot be rewritten is said before the robot moves, not after
+        write_base_from_part(job_path, job.spec.base_from_part(), dry_run=True)
     out.say(f"locate: {job.spec.job.name}: planning at least {n_images} overview images of the coded markers "
             f"around the nominal placement ({backend})")
     devices = open_devices(job, backend)
