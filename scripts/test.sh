@@ -12,8 +12,17 @@ if [ "${#need[@]}" -gt 0 ] && [ "$(id -u)" = 0 ] && command -v apt-get >/dev/nul
   (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "${need[@]}" >/dev/null) \
     || echo "setup: could not install ${need[*]}; the tests that need them will be skipped, saying why" >&2
 fi
+# One pytest worker per core (pytest-xdist; docs/decisions/0058): the jobs the tests run are mostly one thread each,
+# so two workers on CI's two cores halve the suite's time. Each worker keeps numpy's BLAS to one thread, or the two
+# would oversubscribe the cores. CELL_TEST_WORKERS=0 runs the suite in this one process.
+workers=${CELL_TEST_WORKERS:-$(nproc 2>/dev/null || echo 1)}
+par=()
+if [ "$workers" -gt 0 ]; then
+  par=(-n "$workers" --dist load)
+  export OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1
+fi
 set +e
-.venv/bin/python -m pytest "$@"
+.venv/bin/python -m pytest "${par[@]}" "$@"
 rc=$?
 set -e
 if [ "$rc" -eq 5 ]; then
