@@ -243,6 +243,10 @@ def measure_folder(folder: Path, cam: CameraFile, targets: Targets, *, control: 
     from cell.measure_trust import doubts, exif_settings
 
     said = doubts(res, cam.sigma_px, list(images), used, exif_settings(files))
+    if self_cal:  # what the network lacks for a self-calibration
+        from cell.measure_trust import geometry_doubts
+
+        said += geometry_doubts(res.cam_from_part, targets.xyz)
     for d in said:
         say(("UNTRUSTED " if d["untrusted"] else "WARNING ") + d["text"])
     doc = {

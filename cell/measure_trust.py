@@ -25,7 +25,14 @@ import numpy as np
 
 from cell.stages.model_shape import VARIANCE_FACTOR_RANGE
 
-__all__ = ["doubts", "exif_settings", "exif_doubt", "CALIBRATION_MAX_SIGMA_RATIO"]
+__all__ = ["doubts", "exif_settings", "exif_doubt", "geometry_doubts", "CALIBRATION_MAX_SIGMA_RATIO"]
+
+#: a camera calibrated from fewer images is said (not untrusted): each image's orientation takes six of the few
+#: images' degrees of freedom, and what the layout and the lens model get wrong goes into the interior orientation
+MIN_SELF_CALIBRATION_IMAGES = 5
+#: the images' roll about their optical axis must span this much (degrees) for the principal point and the
+#: decentring to be told from the orientations (Fraser 1997, "Digital camera self-calibration": rolled images)
+MIN_ROLL_SPAN_DEG = 60.0
 
 #: a measurement whose images fit beyond this many times the camera file's sigma_px is UNTRUSTED, and ``cell calibrate
 #: camera`` writes no camera from them (as the hand-eye)
@@ -91,4 +98,38 @@ def doubts(res, sigma_px: float, images: list, used: list, settings: dict | None
                                "layout whose spacing or shape is wrong, over-exposed or blurred dots, a lens beyond "
                                "the camera model); the stated uncertainties follow the fit, a systematic error does "
                                "not" if vf > hi else "better than the camera file states: its sigma_px is pessimistic")})
+    return out
+
+
+def roll_span_deg(cam_from_part: np.ndarray, xyz: np.ndarray) -> float:
+    """How far the images' rolls about their optical axes spread, degrees (0..180): the angle the layout's longest
+    axis makes in each image, taken as a line (modulo 180), and the span is 180 less the widest gap between them."""
+    c = xyz - xyz.mean(axis=0)
+    axis = np.linalg.svd(c, full_matrices=False)[2][0]
+    d = np.einsum("nij,j->ni", np.asarray(cam_from_part)[:, :3, :3], axis)
+    ang = np.sort(np.mod(np.degrees(np.arctan2(d[:, 0], d[:, 1])), 180.0))
+    if len(ang) < 2:
+        return 0.0
+    gaps = np.diff(np.concatenate([ang, ang[:1] + 180.0]))
+    return float(180.0 - gaps.max())
+
+
+def geometry_doubts(cam_from_part: np.ndarray, xyz: np.ndarray) -> list[dict]:
+    """What a self-calibration's network lacks, said (not untrusted): too few images, no rolled image. The stated
+    uncertainties of the interior orientation hold only if the model does; such a network has no redundancy to show
+    it does not (an outside check: 3 of 15 photographs stated a principal point 7 sigma from the 15's, as OpenCV
+    did on the same images)."""
+    out = []
+    n = len(cam_from_part)
+    if n < MIN_SELF_CALIBRATION_IMAGES:
+        out.append({"kind": "network", "untrusted": False,
+                    "text": f"the camera is calibrated from {n} image(s), fewer than {MIN_SELF_CALIBRATION_IMAGES}: "
+                            "its interior orientation takes up what the layout and the lens model get wrong, beyond "
+                            "its stated uncertainty; take more images, convergent and rolled"})
+    span = roll_span_deg(cam_from_part, xyz)
+    if n >= 2 and span < MIN_ROLL_SPAN_DEG:
+        out.append({"kind": "roll", "untrusted": False,
+                    "text": f"the images' rolls about their optical axes span {span:.0f} deg (under "
+                            f"{MIN_ROLL_SPAN_DEG:.0f}): the principal point and the decentring are told from the "
+                            "orientations by rolled images; take some rolled by 90 deg"})
     return out

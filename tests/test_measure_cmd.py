@@ -231,3 +231,26 @@ def test_a_control_file_with_a_misspelt_sigma_is_refused_not_held_fixed(tmp_path
     good = tmp_path / "good.csv"
     good.write_text("\ufeffid,x,y,z,sigma\n" + rows)  # a spreadsheet's byte-order mark is not a column
     assert np.allclose(load_control(good, t, "mm").sigma_m, 5e-5)
+
+
+def test_a_self_calibration_from_few_or_unrolled_images_is_said():
+    """Three images, or images all held the same way up, cannot tell the principal point from the orientations
+    (an outside check: 3 of 15 photographs stated it 7 sigma off); said, with what to do."""
+    from calibration.camera import invert
+    from cell.measure_trust import geometry_doubts, roll_span_deg
+
+    xyz = _field().targets.xyz
+    # from one side of the field, each camera held the same way up (a tripod moved along a line): the layout's axes
+    # turn in the images only as far as the views converge
+    eyes = [np.array([x, -0.3, 0.5]) for x in np.linspace(-0.1, 0.1, 6)]
+
+    def poses(rolls):
+        return np.array([invert(look_at(e, np.zeros(3), roll_rad=r)) for e, r in zip(eyes, rolls)])
+
+    rolled = poses(np.deg2rad([0, 90, 0, 90, 45, 0]))
+    level = poses(np.deg2rad([0, 5, -5, 10, 0, 3]))
+    assert roll_span_deg(rolled, xyz) > 80 and roll_span_deg(level, xyz) < 40
+    assert geometry_doubts(rolled, xyz) == []
+    said = geometry_doubts(level[:3], xyz)
+    assert [d["kind"] for d in said] == ["network", "roll"] and not any(d["untrusted"] for d in said)
+    assert "from 3 image(s)" in said[0]["text"] and "rolled by 90 deg" in said[1]["text"]
