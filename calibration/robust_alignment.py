@@ -34,7 +34,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.special import chdtr, chdtri, gammaincinv, ndtr  # scipy.stats' own kernels, without its import
 
-from calibration.alignment import Alignment, align_to_cad, similarity_fit, transformed_alignment
+from calibration.alignment import (Alignment, align_to_cad, deviation_sigma_level, similarity_fit,
+                                   transformed_alignment)
 from calibration.camera import skew
 from calibration.errors import CalibrationError
 
@@ -47,6 +48,14 @@ __all__ = [
     "rps_locks",
     "frame_alignment",
 ]
+
+#: a rival placement held by at least this share of the best one's targets is said (half of them: not trusted)
+RIVAL_NOTE_SHARE = 0.2
+#: an RPS frame that moves some target from the robust best fit by more than this share of its tolerance is not
+#: trusted: the datum targets disagree with the rest of the part by a good part of what is being judged
+RPS_SHIFT_TOLERANCE_SHARE = 0.5
+#: an RPS frame whose locked coordinates miss their nominals by more than this after the iterations did not converge
+RPS_LOCK_RESIDUAL_M = 1e-6
 
 #: chi-square (3 dof) bound of a target agreeing with a hypothesis in the consensus (99.9 %)
 CHI2_AGREE = float(2.0 * gammaincinv(1.5, 0.999))  # chi2.ppf(0.999, 3)
@@ -132,18 +141,23 @@ def _kabsch_batch(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndar
     return R, md - np.einsum("hab,hb->ha", R, ms)
 
 
-def _m2(measured: np.ndarray, nominal: np.ndarray, cinv: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+def _m2(measured: np.ndarray, nominal: np.ndarray, cinv: np.ndarray, R: np.ndarray, t: np.ndarray,
+        s: np.ndarray | None = None) -> np.ndarray:
     """Squared Mahalanobis distance of every target under every hypothesis, ``(h, n)``.
 
-    The residual is taken in the measurement's frame, ``x - R^T (nominal - t)``, where ``cinv`` lives.
+    The residual is taken in the measurement's frame, ``x - R^T (nominal - t) / s``, where ``cinv`` lives
+    (``s``: (h,) scales of similarity hypotheses, default 1).
     """
     back = np.einsum("hba,hnb->hna", R, nominal[None] - t[:, None, :])
+    if s is not None:
+        back = back / np.asarray(s, dtype=float)[:, None, None]
     r = measured[None] - back
     return np.einsum("hna,nab,hnb->hn", r, cinv, r)
 
 
 def consensus_fit(measured: np.ndarray, cov_blocks: np.ndarray, nominal: np.ndarray, candidates: np.ndarray,
-                  rng: np.random.Generator, n_hypotheses: int = 400, loose: float = 3.0) -> Consensus:
+                  rng: np.random.Generator, n_hypotheses: int = 400, loose: float = 3.0,
+                  with_scale: bool = False) -> Consensus:
     """High-breakdown rigid fit by consensus over minimal subsets (see the module docstring).
 
     Args:
@@ -154,6 +168,7 @@ def consensus_fit(measured: np.ndarray, cov_blocks: np.ndarray, nominal: np.ndar
             1 - 1e-23 when half the targets agree).
         loose: a minimal subset's own fit error grows away from it: a target agrees with a hypothesis
             within ``loose`` times its stated sigma (99.9 % chi-square bound); the refinement then tightens it.
+        with_scale: similarity hypotheses (each triple's own scale), for a measurement whose scale is not its own.
     """
     idx = np.flatnonzero(candidates)
     if len(idx) < 3:
@@ -170,30 +185,35 @@ def consensus_fit(measured: np.ndarray, cov_blocks: np.ndarray, nominal: np.ndar
     trip = trip[good][:n_hypotheses]
     if len(trip) == 0:
         raise CalibrationError("alignment: the measured targets lie on one line; no rigid fit is possible")
-    R, t = _kabsch_batch(X[trip], N[trip])
+    sc = np.ones(len(trip))
+    if with_scale:  # each triple's own scale: the spread of its nominals over that of its measurements
+        Xt, Nt = X[trip], N[trip]
+        sc = np.sqrt(np.sum((Nt - Nt.mean(axis=1, keepdims=True)) ** 2, axis=(1, 2))
+                     / np.sum((Xt - Xt.mean(axis=1, keepdims=True)) ** 2, axis=(1, 2)))
+    R, t = _kabsch_batch(X[trip] * sc[:, None, None], N[trip])
     bound = CHI2_AGREE * loose**2
-    m2 = _m2(X, N, cinv, R, t)
+    m2 = _m2(X, N, cinv, R, t, sc)
     score = np.sum(np.minimum(m2, bound), axis=1)  # MSAC: agreeing targets count by how well they agree
     best = int(np.argmin(score))
     agree = m2[best] < bound
-    Rb, tb = R[best], t[best]
+    Rb, tb, sb = R[best], t[best], sc[best]
     for loosen in (loose, 1.0, 1.0):  # local optimisation: refit on the agreeing set, tighten the bound
         if agree.sum() < 3:
             break
-        _, Rb, tb = similarity_fit(X[agree], N[agree])
-        m2b = _m2(X, N, cinv, Rb[None], tb[None])[0]
+        sb, Rb, tb = similarity_fit(X[agree], N[agree], with_scale=with_scale)
+        m2b = _m2(X, N, cinv, Rb[None], tb[None], [sb])[0]
         new = m2b < CHI2_AGREE * loosen**2
         if new.sum() < 3:
             break
         agree = new
     # a rival: a hypothesis whose agreeing set (same loose bound) mostly lies outside the best one's
     sets = m2 < bound
-    best_sets = _m2(X, N, cinv, Rb[None], tb[None])[0] < bound
+    best_sets = _m2(X, N, cinv, Rb[None], tb[None], [sb])[0] < bound
     overlap = (sets & best_sets[None]).sum(axis=1)
     size = sets.sum(axis=1)
     rival = int(np.max(np.where(overlap < 0.5 * size, size, 0))) if len(size) else 0
     best_loose = int(best_sets.sum())
-    m2b = _m2(X, N, cinv, Rb[None], tb[None])[0]
+    m2b = _m2(X, N, cinv, Rb[None], tb[None], [sb])[0]
     factor = float(np.sqrt(np.median(m2b[agree]) / (2.0 * gammaincinv(1.5, 0.5)))) if agree.any() else float("nan")
     full = np.zeros(len(measured), dtype=bool)
     full[idx[agree]] = True
@@ -216,7 +236,8 @@ def _spans(points: np.ndarray) -> bool:
 
 def robust_best_fit(measured: np.ndarray, cov, nominal: np.ndarray, tolerance_m: np.ndarray, k: float,
                     candidates: np.ndarray | None = None, rng: np.random.Generator | None = None,
-                    max_iterations: int = 10, min_fit: int = 6, max_residual_ratio: float = 2.0) -> AlignmentOutcome:
+                    max_iterations: int = 10, min_fit: int = 6, max_residual_ratio: float = 2.0,
+                    with_scale: bool = False) -> AlignmentOutcome:
     """Best fit to CAD over the targets that agree with it: consensus start, bounded exclusion, verdict.
 
     Args:
@@ -231,6 +252,8 @@ def robust_best_fit(measured: np.ndarray, cov, nominal: np.ndarray, tolerance_m:
         max_iterations: refits of the exclusion before it is declared not stable.
         min_fit: fewest targets a trusted fit rests on.
         max_residual_ratio: fit residuals larger than this times their stated sigma are not trusted.
+        with_scale: also fit a scale (a free network whose scale is the layout's own, as ``cell measure``'s): the
+            consensus draws similarity hypotheses, the exclusion fits a similarity on the targets it keeps.
     """
     measured = np.asarray(measured, dtype=float)
     nominal = np.asarray(nominal, dtype=float)
@@ -239,11 +262,11 @@ def robust_best_fit(measured: np.ndarray, cov, nominal: np.ndarray, tolerance_m:
     cand = finite if candidates is None else (np.asarray(candidates, dtype=bool) & finite)
     rng = rng if rng is not None else np.random.default_rng(20261122)
     blocks = _measured_blocks(cov, len(measured))
-    cons = consensus_fit(measured, blocks, nominal, cand, rng)
+    cons = consensus_fit(measured, blocks, nominal, cand, rng, with_scale=with_scale)
     reasons: list[str] = []
     notes: list[str] = []
     if cons.agree.sum() < max(3, min_fit):  # no placement brings enough targets to CAD: a fit over all, untrusted
-        al = align_to_cad(measured, cov, nominal, fit_mask=cand)
+        al = align_to_cad(measured, cov, nominal, fit_mask=cand, with_scale=with_scale)
         return AlignmentOutcome(al, "best_fit", cand.copy(), False, False, (
             f"no rigid placement brings {max(3, min_fit)} targets to CAD within their stated sigma (the best brings "
             f"{int(cons.agree.sum())}, {cons.agree_loose} within 3x): the part is not its CAD, its targets stand off "
@@ -255,7 +278,7 @@ def robust_best_fit(measured: np.ndarray, cov, nominal: np.ndarray, tolerance_m:
     it = 0
     while it < max_iterations:
         it += 1
-        al = align_to_cad(measured, cov, nominal, fit_mask=mask)
+        al = align_to_cad(measured, cov, nominal, fit_mask=mask, with_scale=with_scale)
         level = al.sigma_level()
         dev = np.linalg.norm(al.deviation, axis=1)
         new = cand & (dev <= tol) & ~(level > k)
@@ -272,7 +295,7 @@ def robust_best_fit(measured: np.ndarray, cov, nominal: np.ndarray, tolerance_m:
         seen.append(new.copy())
         mask = new
     if not stable:
-        al = align_to_cad(measured, cov, nominal, fit_mask=mask)
+        al = align_to_cad(measured, cov, nominal, fit_mask=mask, with_scale=with_scale)
     if not stable and not reasons:
         reasons.append(f"the set of fit targets did not settle in {it} refits")
     n_fit, n_cand = int(mask.sum()), int(cand.sum())
@@ -285,6 +308,10 @@ def robust_best_fit(measured: np.ndarray, cov, nominal: np.ndarray, tolerance_m:
     if cons.rival >= 0.5 * cons.agree_loose:
         reasons.append(f"ambiguous: another placement agrees with {cons.rival} targets "
                        f"(the best with {cons.agree_loose}, within {3:g}x their stated sigma); is the part in one piece?")
+    elif cons.rival >= max(min_fit, RIVAL_NOTE_SHARE * cons.agree_loose):
+        notes.append(f"another placement agrees with {cons.rival} targets (the best with {cons.agree_loose}, within "
+                     f"{3:g}x their stated sigma): a group of targets moved together (a bent flange, a loose insert); "
+                     "the frame is the majority's")
     d = al.deviation[mask]
     C = al.deviation_cov[mask]
     m2 = np.einsum("na,na->n", d, np.linalg.solve(C, d[..., None])[..., 0]) if n_fit else np.array([])
@@ -354,6 +381,7 @@ def rps_align(measured: np.ndarray, cov, nominal: np.ndarray, locks: list[tuple[
     else:
         start = robust_best_fit(measured, cov, nominal, np.inf if tolerance_m is None else tolerance_m, k)
         R, t = start.alignment.part_from_measured[:3, :3], start.alignment.part_from_measured[:3, 3]
+    converged = False
     for _ in range(iterations):  # Gauss-Newton on r_l = e_l . (R x_i + t - nominal_i)
         y = measured[ti] @ R.T + t
         r = np.einsum("la,la->l", E, y - nominal[ti])
@@ -365,7 +393,10 @@ def rps_align(measured: np.ndarray, cov, nominal: np.ndarray, locks: list[tuple[
         dR = _rotvec(step[3:])
         R, t = dR @ R, dR @ t + step[:3]
         if np.linalg.norm(step) < 1e-13:
+            converged = True
             break
+    y = measured[ti] @ R.T + t
+    lock_residual = np.abs(np.einsum("la,la->l", E, y - nominal[ti]))
     finite = np.all(np.isfinite(measured), axis=1) & np.all(np.isfinite(nominal), axis=1)
     pos = {int(i): p for p, i in enumerate(np.flatnonzero(finite))}
 
@@ -379,6 +410,11 @@ def rps_align(measured: np.ndarray, cov, nominal: np.ndarray, locks: list[tuple[
 
     al = transformed_alignment(measured, cov, nominal, 1.0, R, t, datum, rms_mask=np.isin(np.arange(len(measured)), ti))
     reasons, notes = [], []
+    if not converged or (len(locks) == 6 and lock_residual.max() > RPS_LOCK_RESIDUAL_M):
+        worst = int(np.argmax(lock_residual))
+        reasons.append(f"the RPS locks did not converge in {iterations} iterations (lock {worst + 1}, on target "
+                       f"{int(ti[worst])}, {lock_residual[worst] * 1e6:.1f} um from its nominal): the datum targets fix "
+                       "the part weakly (two targets locking one axis that are close across it?)")
     if tolerance_m is not None:
         ref = robust_best_fit(measured, cov, nominal, tolerance_m, k)
         tol = np.broadcast_to(np.asarray(tolerance_m, dtype=float), (len(measured),))
@@ -387,8 +423,26 @@ def rps_align(measured: np.ndarray, cov, nominal: np.ndarray, locks: list[tuple[
         if bad:
             reasons.append(f"datum target(s) {bad} deviate beyond their tolerance in a best fit: "
                            "the RPS frame is shifted by a bad datum")
-        notes.append(f"RPS frame vs robust best fit: largest shift of a target "
-                     f"{np.nanmax(np.linalg.norm(al.aligned - ref.alignment.aligned, axis=1)) * 1e6:.1f} um")
+        diff = al.aligned - ref.alignment.aligned
+        shift = np.linalg.norm(diff, axis=1)
+        share = np.where(np.isfinite(shift) & (tol > 0), shift / np.where(tol > 0, tol, 1.0), 0.0)
+        notes.append(f"RPS frame vs robust best fit: largest shift of a target {np.nanmax(shift) * 1e6:.1f} um")
+        # the shift against its own uncertainty (the two frames' covariances added: on the safe side, as the best
+        # fit's is the smaller): a shift within it is the datums' noise, which the RPS covariance states. The datum
+        # targets themselves are left out: their locked coordinates have no variance in the RPS frame
+        Cd = np.nan_to_num(al.deviation_cov + ref.alignment.deviation_cov) + 1e-30 * np.eye(3)
+        level = np.where(np.isfinite(shift), deviation_sigma_level(np.nan_to_num(diff), Cd), 0.0)
+        share = np.where((level > k) & ~np.isin(np.arange(len(shift)), uniq), share, 0.0)
+        if not bad and ref.trusted and share.max() > RPS_SHIFT_TOLERANCE_SHARE:
+            j = int(np.argmax(share))
+            off = {int(i): float(np.linalg.norm(ref.alignment.deviation[i])) for i in uniq}
+            worst = sorted(off, key=lambda i: -off[i])[:2]
+            reasons.append(
+                f"the RPS frame moves target {j} by {shift[j] * 1e6:.0f} um from the best fit, "
+                f"{share[j]:.0%} of its tolerance: the datum targets disagree with the rest of the part (in a best "
+                f"fit target {worst[0]} deviates {off[worst[0]] * 1e6:.0f} um"
+                + (f", target {worst[1]} {off[worst[1]] * 1e6:.0f} um" if len(worst) > 1 else "")
+                + "); the deviations are relative to the datums as RPS defines them, not to the part's best fit")
     mask = np.zeros(len(measured), dtype=bool)
     mask[uniq] = True
     return AlignmentOutcome(al, "rps", mask, not reasons, True, tuple(reasons), tuple(notes))

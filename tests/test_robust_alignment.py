@@ -196,3 +196,47 @@ def test_targets_standing_off_the_surface_untrust_the_frame_and_name_the_thickne
     d_out = robust_best_fit(d_measured, d_cov, nominal, TOL, 3.0, candidates=cand)
     assert not d_out.trusted  # two faces agree against three: ambiguous
     assert not any("thickness" in r for r in _standoff_hint(job, d_measured, d_cov, TOL, 3.0, cand, d_out).reasons)
+
+
+def test_rps_a_datum_within_its_tolerance_that_tilts_the_frame_is_not_trusted():
+    """An outside check: one primary datum 0.22 mm high (within its 0.25 mm tolerance) tilted the RPS frame; 111 good
+    targets were reported beyond tolerance, with the frame trusted and only a note saying how far it moved."""
+    rng = np.random.default_rng(12)
+    nom = _panel(rng, 120)
+    a, b, c = int(np.argmin(nom[:, 0] + nom[:, 1])), int(np.argmax(nom[:, 0])), int(np.argmax(nom[:, 1]))
+    rest = [i for i in range(len(nom)) if i not in (a, b, c)]
+    locks = rps_locks({a: "z", b: "z", c: "z", rest[0]: "x", rest[1]: "x", rest[2]: "y"})
+    clean, cov = _measure(rng, nom)
+    out = rps_align(clean, cov, nom, locks, np.full(len(nom), TOL))
+    assert out.trusted, out.reasons
+    dev = np.zeros_like(nom)
+    dev[a, 2] = 0.22e-3
+    high, cov = _measure(rng, nom + dev)
+    out = rps_align(high, cov, nom, locks, np.full(len(nom), TOL))
+    assert not out.trusted and "moves target" in out.reasons[0] and f"target {a} deviates 2" in out.reasons[0]
+
+
+def test_rps_locks_that_do_not_converge_are_not_trusted():
+    """Two x-locks 50 mm apart along x but 0.5 mm across: the rank test passes, Gauss-Newton stopped with the locks
+    up to 1.9 mm off and deviations of 42 mm on a part without any, trusted (an outside check)."""
+    rng = np.random.default_rng(16)
+    nom = np.c_[rng.uniform(-.15, .15, 60), rng.uniform(-.1, .1, 60), rng.uniform(0, .05, 60)]
+    nom[:6] = [[-0.12, -0.08, 0.05], [0.12, -0.08, 0.05], [0.0, 0.08, 0.05], [-0.15, 0.0, 0.02],
+               [-0.10, 0.0005, 0.02], [0.1, -0.1, 0.02]]
+    meas = nom + rng.normal(size=nom.shape) * SIGMA
+    cov = np.tile(np.eye(3) * SIGMA**2, (60, 1, 1))
+    out = rps_align(meas, cov, nom, rps_locks({0: "z", 1: "z", 2: "z", 3: "x", 4: "x", 5: "y"}), np.full(60, TOL))
+    locked = np.abs([(out.alignment.aligned[i] - nom[i]) @ e for i, e in rps_locks({3: "x", 4: "x"})])
+    assert locked.max() > 1e-4  # the case: no exact solution reached
+    assert not out.trusted and "did not converge" in out.reasons[0]
+
+
+def test_a_rigid_group_of_a_third_of_the_targets_is_said_not_silently_outvoted():
+    rng = np.random.default_rng(7)
+    nom = _panel(rng, 60)
+    dev = np.zeros_like(nom)
+    dev[:18] = [300e-6, 400e-6, 0.0]  # an insert moved as one
+    meas, cov = _measure(rng, nom + dev)
+    out = robust_best_fit(meas, cov, nom, np.full(len(nom), 1e-3), 3.0)
+    assert out.trusted and not out.fit_mask[:18].any()
+    assert any("another placement agrees with 18 targets" in n for n in out.notes), out.notes
