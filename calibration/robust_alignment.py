@@ -349,7 +349,8 @@ def rps_locks(datum: dict[int, str]) -> list[tuple[int, np.ndarray]]:
 
 
 def rps_align(measured: np.ndarray, cov, nominal: np.ndarray, locks: list[tuple[int, np.ndarray]],
-              tolerance_m: np.ndarray | None = None, k: float = 3.0, iterations: int = 20) -> AlignmentOutcome:
+              tolerance_m: np.ndarray | None = None, k: float = 3.0, iterations: int = 20,
+              ids: list[str] | None = None) -> AlignmentOutcome:
     """RPS / 3-2-1 alignment: the locked coordinates of the datum targets equal their nominals.
 
     Args:
@@ -359,6 +360,7 @@ def rps_align(measured: np.ndarray, cov, nominal: np.ndarray, locks: list[tuple[
             the tertiary). More than 6: least squares on the locked coordinates.
         tolerance_m, k: for the check of the datum targets against a robust best fit (a datum target that is
             itself out of tolerance shifts the whole frame: not trusted).
+        ids: the targets' names, for the messages (default: their indices).
 
     The covariance is the S-transformation that holds the locked coordinates: ``H`` has, for lock ``l`` on
     target ``i``, the axis ``e_l`` in row block ``i``, column ``l``.
@@ -381,6 +383,9 @@ def rps_align(measured: np.ndarray, cov, nominal: np.ndarray, locks: list[tuple[
     else:
         start = robust_best_fit(measured, cov, nominal, np.inf if tolerance_m is None else tolerance_m, k)
         R, t = start.alignment.part_from_measured[:3, :3], start.alignment.part_from_measured[:3, 3]
+    def name(i: int) -> str:
+        return str(ids[i]) if ids is not None else str(i)
+
     converged = False
     for _ in range(iterations):  # Gauss-Newton on r_l = e_l . (R x_i + t - nominal_i)
         y = measured[ti] @ R.T + t
@@ -413,15 +418,15 @@ def rps_align(measured: np.ndarray, cov, nominal: np.ndarray, locks: list[tuple[
     if not converged or (len(locks) == 6 and lock_residual.max() > RPS_LOCK_RESIDUAL_M):
         worst = int(np.argmax(lock_residual))
         reasons.append(f"the RPS locks did not converge in {iterations} iterations (lock {worst + 1}, on target "
-                       f"{int(ti[worst])}, {lock_residual[worst] * 1e6:.1f} um from its nominal): the datum targets fix "
+                       f"{name(int(ti[worst]))}, {lock_residual[worst] * 1e6:.1f} um from its nominal): the datum targets fix "
                        "the part weakly (two targets locking one axis that are close across it?)")
     if tolerance_m is not None:
         ref = robust_best_fit(measured, cov, nominal, tolerance_m, k)
         tol = np.broadcast_to(np.asarray(tolerance_m, dtype=float), (len(measured),))
-        bad = [int(i) for i in uniq if not ref.fit_mask[i]
+        bad = [name(int(i)) for i in uniq if not ref.fit_mask[i]
                and np.linalg.norm(ref.alignment.deviation[i]) > tol[i]]
         if bad:
-            reasons.append(f"datum target(s) {bad} deviate beyond their tolerance in a best fit: "
+            reasons.append(f"datum target(s) {', '.join(bad)} deviate beyond their tolerance in a best fit: "
                            "the RPS frame is shifted by a bad datum")
         diff = al.aligned - ref.alignment.aligned
         shift = np.linalg.norm(diff, axis=1)
@@ -438,10 +443,10 @@ def rps_align(measured: np.ndarray, cov, nominal: np.ndarray, locks: list[tuple[
             off = {int(i): float(np.linalg.norm(ref.alignment.deviation[i])) for i in uniq}
             worst = sorted(off, key=lambda i: -off[i])[:2]
             reasons.append(
-                f"the RPS frame moves target {j} by {shift[j] * 1e6:.0f} um from the best fit, "
+                f"the RPS frame moves target {name(j)} by {shift[j] * 1e6:.0f} um from the best fit, "
                 f"{share[j]:.0%} of its tolerance: the datum targets disagree with the rest of the part (in a best "
-                f"fit target {worst[0]} deviates {off[worst[0]] * 1e6:.0f} um"
-                + (f", target {worst[1]} {off[worst[1]] * 1e6:.0f} um" if len(worst) > 1 else "")
+                f"fit target {name(worst[0])} deviates {off[worst[0]] * 1e6:.0f} um"
+                + (f", target {name(worst[1])} {off[worst[1]] * 1e6:.0f} um" if len(worst) > 1 else "")
                 + "); the deviations are relative to the datums as RPS defines them, not to the part's best fit")
     mask = np.zeros(len(measured), dtype=bool)
     mask[uniq] = True

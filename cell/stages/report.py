@@ -44,7 +44,8 @@ def align_measurement(job, measured: np.ndarray, pc: PointCovariance, ok: np.nda
     measurable = ok & (job.part.targets.kind != "coded") & ~own_bar_ends(job)
     if spec.method == "rps":
         index = job.part.targets.index()
-        return rps_align(measured, pc, nominal, rps_locks({index[t]: a for t, a in spec.rps.items()}), tol, k)
+        return rps_align(measured, pc, nominal, rps_locks({index[t]: a for t, a in spec.rps.items()}), tol, k,
+                         ids=list(job.part.targets.ids))
     if spec.method == "bundle_frame":
         return frame_alignment(measured, pc, nominal, fixtured=datum == "control",
                                why=f"the bundle's datum is '{datum}' (inner constraints on the CAD nominals), not a "
