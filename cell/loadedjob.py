@@ -18,6 +18,7 @@ from calibration.errors import CalibrationError, JobSpecError
 from cell.jobspec import DamagedTarget, JobSpec, damaged_target_rows, load_deviations, load_job, resolve
 from cell.thermal import bar_at_measurement, sim_expansion
 from planning.part import Part, load_part
+from planning.symmetry import symmetry_summary
 
 #: a target's tolerance beyond this share of the part's largest extent is taken for one in another unit
 TOLERANCE_MAX_SHARE = 0.25
@@ -69,10 +70,12 @@ class LoadedJob:
         return np.asarray(xyz, dtype=float) - self.target_thickness_m * self.part.targets.normals
 
     def summary(self) -> dict:
-        s = self.spec
+        s, t = self.spec, self.part.targets
         return {
             "job": {"name": s.job.name, "file": str(self.path), "units": s.job.units, "seed": s.job.seed},
-            "part": self.part.summary(),
+            # decision 0058b: a layout that maps onto itself names every dot as its neighbour when the part is placed
+            # one step off, and no image can tell
+            "part": self.part.summary() | {"symmetry": symmetry_summary(t.xyz, t.normals, t.code)},
             "camera": self.intrinsics.to_dict() | {"sigma_px": s.camera.sigma_px},
             "cell": {"robot": s.cell.robot, "backend": s.cell.backend, "obstacles": len(s.cell.obstacles),
                      "taken_from_cell_file": self.cell},
