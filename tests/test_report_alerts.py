@@ -116,7 +116,7 @@ def test_a_plan_whose_prediction_did_not_hold_is_said():
     from cell.stages.report import PREDICTION_BAND, _predicted_over_achieved
 
     def targets(ratio):
-        return [{"predicted_sigma_m": ratio * 5e-6, "achieved_sigma_m": 5e-6} for _ in range(10)]
+        return [{"predicted_sigma_m": ratio * 5e-6, "achieved_sigma_images_m": 5e-6} for _ in range(10)]
 
     held = _predicted_over_achieved(targets(1.1))
     assert held["note"] is None and held["band"] == list(PREDICTION_BAND)

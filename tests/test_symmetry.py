@@ -3,7 +3,9 @@ pitch, placed one pitch turned, has every dot named as its neighbour and no imag
 before the job (``cell check``, LOAD), and a coded target off the axis takes it back."""
 from __future__ import annotations
 
+import json
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -254,3 +256,16 @@ def test_load_writes_the_symmetry_into_part_json_the_journal_and_the_run_log(tmp
     assert len(rec) == 1 and rec[0]["warning"] == part["symmetry"]["warning"]
     assert ctx.log.lines == [("warning", "load: " + part["symmetry"]["warning"])]
     assert said == ["  WARNING " + part["symmetry"]["warning"]]
+
+
+def test_the_disc_placed_one_step_off_is_reported_with_its_symmetry(tmp_path):
+    """The outside tester's case end to end: the dots are named as their neighbours (nothing in the images can tell);
+    the report says why its names rest on the placement, in report.json and report.html."""
+    job = disc_job(tmp_path / "disc")
+    r = run_cell("run", str(job), "--archive", str(tmp_path / "archive"), "--yes", timeout=900)
+    assert r.code == 0, r.stderr[-2000:]
+    folder = Path(r.doc["folder"])
+    rep = json.loads((folder / "report.json").read_text())
+    assert "30.0 deg" in rep["layout_symmetry"]["warning"] and "coded markers" in rep["layout_symmetry"]["warning"]
+    assert 'id="symmetry-alert"' in (folder / "report.html").read_text()
+    assert rep["layout_symmetry"]["warning"] in r.stderr

@@ -115,6 +115,8 @@ def test_targets_thicker_than_the_job_says_untrust_the_frame_and_say_by_how_much
     assert run.code == 0, run.stderr[-2000:]
     report = json.loads((Path(run.doc["folder"]) / "report.json").read_text())
     assert report["verdict"] == "UNTRUSTED" and not report["alignment"]["trusted"]
+    # no target is decided in a frame that cannot be trusted (an outside check found exports of confident PASS / FAIL)
+    assert {t["decision"] for t in report["targets"]} <= {"undecided", None}
     reasons = report["alignment"]["reasons"]
     # the reason that estimates the thickness (with the example's real lens, decision 0054, the frame's first reason is
     # the consensus it could not keep; before it, that the targets stand off the surface)

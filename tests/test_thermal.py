@@ -204,6 +204,12 @@ def test_a_warm_part_is_said_without_thermal_and_reported_at_20C_with_it(tmp_pat
     assert rep["predicted_over_achieved"].get("note") is None and 0.75 < rep["predicted_over_achieved"]["median"] < 1.3
     assert rep["alignment"]["trusted"] and rep["verdict"] == "FAIL"
     assert "the part measures" not in run.stderr
+    # a target's sigma is its stated covariance's, the temperatures' part included (an outside check: 1.7 um shown for
+    # 9.2); the images' own, which the plan predicts, is kept apart
+    for t in rep["targets"]:
+        if t["measured"][0] is not None:
+            assert t["achieved_sigma_m"] == pytest.approx(np.sqrt(np.trace(np.asarray(t["cov"]))), rel=0.1)
+            assert np.isfinite(t["achieved_sigma_images_m"]) and t["achieved_sigma_images_m"] > 0
     # the carbon bar's ends are the bar's: measured, not judged, and where the bar holds them (~25 um off the places
     # of the part at 20 C under them)
     assert {e["id"] for e in rep["scale_bar_ends"]} == {"T0094", "T0100"}

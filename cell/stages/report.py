@@ -221,7 +221,8 @@ def _calibration_status(ctx) -> dict:
 #: How each target's conformance is decided, stated in the report.
 DECISION_RULE = ("ISO 14253-1: conforming if |d| + U <= tolerance, nonconforming if |d| - U > tolerance, "
                  "else inconclusive; U = 2 sigma of the deviation along its direction (k = 2). 'pass' is |d| <= tolerance. "
-                 "A suspect target (its observations could not be verified by data snooping) is inconclusive.")
+                 "A suspect target (its observations could not be verified by data snooping) is inconclusive. "
+                 "Every measured target is undecided when the alignment to CAD is not trusted.")
 
 
 def conformance(deviation: np.ndarray, deviation_cov: np.ndarray, tol: np.ndarray, ok: np.ndarray,
@@ -297,9 +298,9 @@ PREDICTION_BAND = (0.75, 1.25)
 def _predicted_over_achieved(targets: list[dict]) -> dict:
     """Predicted / achieved sigma over the measured targets: median, and the 10 / 90 % quantiles; ``note``: what a
     median outside :data:`PREDICTION_BAND` means (None inside it)."""
-    r = np.array([t["predicted_sigma_m"] / t["achieved_sigma_m"] for t in targets
-                  if np.isfinite(t["predicted_sigma_m"]) and np.isfinite(t["achieved_sigma_m"])
-                  and t["achieved_sigma_m"] > 0])
+    a = "achieved_sigma_images_m"  # the plan predicts the images' precision, without the temperatures' shared part
+    r = np.array([t["predicted_sigma_m"] / t[a] for t in targets
+                  if np.isfinite(t["predicted_sigma_m"]) and np.isfinite(t[a]) and t[a] > 0])
     if not len(r):
         return {"median": None, "p10": None, "p90": None, "n": 0, "band": list(PREDICTION_BAND), "note": None}
     m = float(np.median(r))
@@ -453,7 +454,7 @@ def write_report(ctx) -> tuple[str, list[str]]:
     th_cols, th_w, _ = shared_columns(job.spec, K, bundle.get("scale_bars") or [])
     # what the plan predicts is the measurement's (images, network, certificates): predicted / achieved compares it
     # without the temperatures' shared scale, which the plan does not know
-    achieved = np.sqrt(np.trace(cov, axis1=1, axis2=2))
+    achieved_images = np.sqrt(np.trace(cov, axis1=1, axis2=2))
     if len(th_w):
         pc = append_columns(pc, th_cols, th_w)
         cov = cov + np.einsum("nar,r,nbr->nab", th_cols, th_w, th_cols)
@@ -470,6 +471,10 @@ def write_report(ctx) -> tuple[str, list[str]]:
         ctx.log.log("warning", "alignment not trusted: " + "; ".join(outcome.reasons))
         ctx.say("  WARNING alignment not trusted: " + "; ".join(outcome.reasons))
     dev_norm = np.linalg.norm(al.deviation, axis=1)
+    # a target's sigma, as every record shows it: of its measured covariance with the temperatures' shared part (an
+    # outside check: with [thermal] and an own-material bar the HTML, CSV and index showed 1.7 um for 9.2); without
+    # [thermal] the same as before (the closed loop's requirement is on it)
+    achieved = np.sqrt(np.trace(cov, axis1=1, axis2=2))
     surface = job.surface_points(al.aligned)
     if nb and Kd is None:  # an alignment that dropped the low-rank part: no share known
         ctx.log.log("warning", "uncertainty budget: the alignment did not carry the scale bar's gains; "
@@ -488,6 +493,8 @@ def write_report(ctx) -> tuple[str, list[str]]:
     # a target whose observations snooping could not verify (bundle.json snooping.suspect_targets: it lost half of
     # its rays as blunders, or lost any and kept two or fewer) cannot be decided on: its measurement may be wrong
     decision = ["inconclusive" if d is not None and tid in suspect else d for d, tid in zip(decision, ids)]
+    if not outcome.trusted:  # no target is decided in a frame that cannot be trusted: every export reads the decision
+        decision = ["undecided" if d is not None else d for d in decision]
     n_img = [t["n_images"] for t in bundle["targets"]]
     targets = []
     for j, tid in enumerate(ids):
@@ -504,7 +511,8 @@ def write_report(ctx) -> tuple[str, list[str]]:
             "significance_sigma": level[j], "significant": bool(level[j] > k),
             "uncertainty_U_m": U[j], "decision": decision[j], "suspect": tid in suspect,
             "print_doubtful": printed.get(tid),
-            "predicted_sigma_m": predicted.get(tid, np.nan), "achieved_sigma_m": achieved[j], "n_images": n_img[j],
+            "predicted_sigma_m": predicted.get(tid, np.nan), "achieved_sigma_m": achieved[j],
+            "achieved_sigma_images_m": achieved_images[j], "n_images": n_img[j],
         })
     recs = list(f.records())
     started = next((r["t"] for r in recs if r["event"] == "created"), recs[0]["t"])
@@ -530,6 +538,9 @@ def write_report(ctx) -> tuple[str, list[str]]:
                 "status": "DONE", "started": started, "finished": utc_now(), "versions": _versions()},
         "verdict": verdict,
         "verdict_reasons": verdict_reasons,
+        # LOAD found the targets' layout mapping onto itself (decision 0058): the naming rests on the placement
+        "layout_symmetry": next(({"warning": r["warning"], "symmetries": r.get("symmetries")} for r in recs
+                                 if r["event"] == "layout_symmetry"), None),
         **_run_info(f.path),
         "images": len(bundle["images"]),
         "sigma0_px": bundle["sigma0_px"],
@@ -583,7 +594,8 @@ def write_report(ctx) -> tuple[str, list[str]]:
         "deviations": R.figure_deviations(job.part.mesh, nominal[judged], np.nan_to_num(dev_norm[judged], nan=np.inf),
                                           tol[judged], passed[judged]),
         "ellipsoids": R.figure_ellipsoids(job.part.mesh, al.aligned[ok], cov[ok]),
-        "sigma": R.figure_sigma(np.array([t["predicted_sigma_m"] for t in targets], dtype=float), achieved[judged]),
+        "sigma": R.figure_sigma(np.array([t["predicted_sigma_m"] for t in targets], dtype=float),
+                                achieved_images[judged]),
         "residuals": R.figure_residuals(np.asarray(bundle["residuals_px"], dtype=float), rejected_mask(bundle)),
     }
     from cell.record import figures3d as F3
