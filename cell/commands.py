@@ -302,8 +302,11 @@ def _archive_action(a, args, out) -> int:
             rows = a.index.list_jobs(**filters, limit=args.limit, offset=args.offset,
                                      newest_first=args.limit is not None)
             total = a.index.count_jobs(**filters)
+            missing = a.index.not_measured_counts([r["id"] for r in rows if r.get("targets") is not None])
             for r in rows:
                 r["staged"] = False
+                # failed: measured and beyond tolerance; not measured apart (a target not measured did not fail)
+                r["not_measured"] = missing.get(r["id"], 0) if r.get("targets") is not None else None
                 if r.get("problem") is None:
                     r.pop("problem", None)
             if args.offset == 0 and not any(v is not None for v in filters.values()):
@@ -316,6 +319,7 @@ def _archive_action(a, args, out) -> int:
                                         else "")
                 out.say(f"{r['id']:<40} {status:<9} {r.get('verdict') or '':<10} "
                         f"{(r.get('failed') if r.get('failed') is not None else ''):>4} failed of {r.get('targets') or '?'}"
+                        + (f", {r['not_measured']} not measured" if r.get("not_measured") else "")
                         + (f"  ! {r['problem']}" if r.get("problem") else ""))
             if not d["jobs"]:
                 out.say(f"no jobs in {d['archive']}")
@@ -334,20 +338,35 @@ def _archive_action(a, args, out) -> int:
             if row is None:
                 raise InputError(f"{a.index.url}: no job {job_id!r} in the archive (see 'cell archive list')")
             tl = a.index.job_targets(job_id)
+            # failed: measured and beyond tolerance (an index row of a target not measured has no deviation)
             doc = {"id": job_id, "folder": row["folder"], "origin": row["origin"], "verdict": row["verdict"],
-                   "sigma0_px": row["sigma0_px"], "targets": len(tl), "failed": [t["id"] for t in tl if t["pass"] is False],
+                   "sigma0_px": row["sigma0_px"], "targets": len(tl),
+                   "failed": [t["id"] for t in tl if t["deviation_norm_m"] is not None and t["pass"] is False],
+                   "not_measured": [t["id"] for t in tl if t["deviation_norm_m"] is None],
+                   "undecided": [t["id"] for t in tl if t["deviation_norm_m"] is not None
+                                 and (t["decision"] in ("inconclusive", "undecided") or row["verdict"] == "UNTRUSTED")],
                    "index": row}
         out.result(doc, lambda d: out.say(json.dumps(d, indent=1, default=str)))
         return 0
     if args.action == "compare":
         doc = a.compare(args.ids)
         def human(d):
+            if d.get("note"):
+                out.say(f"WARNING {d['note']}")
             out.say(f"part {d['part']}: {len(d['targets'])} targets in {len(d['jobs'])} jobs; "
                     f"{len(d['drifting'])} drift beyond 3 sigma: {', '.join(d['drifting'][:20])}")
+            if d.get("not_measured"):
+                out.say(f"{len(d['not_measured'])} target(s) not measured in every job (no drift where the first or "
+                        "last did not measure it): " + "; ".join(f"{m['id']} in {', '.join(m['jobs'])}"
+                                                                for m in d["not_measured"][:10])
+                        + (" ..." if len(d["not_measured"]) > 10 else ""))
             for r in d["targets"]:
-                if r["drift_significant"] or not all(r["pass"]):
-                    out.say(f"  {r['id']:<8} |d| um " + " ".join(f"{v * 1e6:7.1f}" for v in r["deviation_norm_m"])
-                            + f"  drift {r['drift_m'] * 1e6:.1f} um")
+                if r["drift_significant"] or any(p is False for p in r["pass"]) or None in r["pass"]:
+                    drift = "--" if r["drift_m"] is None else f"{r['drift_m'] * 1e6:.1f} um"
+                    if r.get("drift_sigma_m") is not None:
+                        drift += f" (sigma {r['drift_sigma_m'] * 1e6:.1f} um)"
+                    out.say(f"  {r['id']:<8} |d| um " + " ".join("   --  " if v is None else f"{v * 1e6:7.1f}"
+                                                                 for v in r["deviation_norm_m"]) + f"  drift {drift}")
         out.result(doc, human)
         return 0
     if args.action == "verify":

@@ -49,13 +49,19 @@ def test_qif_results_validate_against_the_qif3_schema_and_carry_the_report(schem
     assert names == [t["id"] for t in rep["targets"]]
     measured = [t for t in rep["targets"] if t["measured"][0] is not None]
     feats = doc.findall(f".//{Q}MeasuredFeatures/{Q}PointFeatureMeasurement")
-    chars = doc.findall(f".//{Q}CharacteristicMeasurements/{Q}PositionCharacteristicMeasurement")
+    every = doc.findall(f".//{Q}CharacteristicMeasurements/{Q}PositionCharacteristicMeasurement")
+    # every characteristic has its status; the one not measured says so (NOT_ANALYZED) and has no value
+    assert len(every) == len(rep["targets"])
+    assert every[2].find(f"{Q}Status/{Q}CharacteristicStatusEnum").text == "NOT_ANALYZED"
+    assert every[2].find(f"{Q}Value") is None
+    chars = every[:2] + every[3:]
     assert len(feats) == len(chars) == len(measured) == len(rep["targets"]) - 1
     for t, f, c in zip(measured, feats, chars):
         xyz = [float(v) for v in f.find(f"{Q}Location").text.split()]
         assert xyz == pytest.approx([v * 1000 for v in t["measured"]], abs=1e-6)
         assert float(c.find(f"{Q}Value").text) == pytest.approx(2 * t["deviation_norm_m"] * 1000, abs=1e-6)
-        assert c.find(f"{Q}Status/{Q}CharacteristicStatusEnum").text == ("PASS" if t["pass"] else "FAIL")
+        want = {"conforming": "PASS", "nonconforming": "FAIL"}.get(t["decision"], "INDETERMINATE")
+        assert c.find(f"{Q}Status/{Q}CharacteristicStatusEnum").text == want
     tol = {float(e.text) for e in doc.iter(f"{Q}ToleranceValue")}
     assert sorted(tol) == pytest.approx([0.2])  # 2 x 0.1 mm: the report's |d| <= tolerance as a spherical zone
     all_ids = [e.get("id") for e in doc.iter() if e.get("id")]

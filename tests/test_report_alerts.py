@@ -82,8 +82,9 @@ def test_the_banner_counts_suspect_targets_apart_from_those_within_u_of_the_tole
                verdict_reasons=["1 target(s) suspect (...): T1",
                                 "2 target(s) within U of their tolerance (...): T2, T3"])
     html = render_html(doc, {})
-    assert ("INCOMPLETE: 4 of 4 targets within tolerance; 1 suspect (observations not verified by the blunder test); "
-            "2 too close to their tolerance") in html
+    # the three undecided ones are not within tolerance: the measurement did not decide them
+    assert ("INCOMPLETE: 1 of 4 targets within tolerance, 3 undecided or inconclusive; 1 suspect (observations not "
+            "verified by the blunder test); 2 too close to their tolerance") in html
     assert 'id="verdict-reasons"' in html and "T2, T3" in html
 
 

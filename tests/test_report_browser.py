@@ -79,8 +79,10 @@ def test_report_renders_in_a_headless_browser_with_verdict_targets_and_figures(r
     # the verdict, as report.json has it, with the count of targets within tolerance
     assert "verdict" in dom.by_id, "no #verdict element in the rendered report"
     verdict = dom.by_id["verdict"]["text"].strip()
-    n_pass = sum(t["pass"] for t in doc["targets"])
-    assert verdict.startswith(doc["verdict"]) and f"{n_pass} of {len(doc['targets'])}" in verdict, verdict
+    from cell.record.decisions import counts, trusted
+
+    n_within = counts(doc["targets"], trusted(doc))["within"]  # within tolerance and decided
+    assert verdict.startswith(doc["verdict"]) and f"{n_within} of {len(doc['targets'])}" in verdict, verdict
     # the targets table: a header and one row per judged target
     assert dom.by_id.get("targets", {}).get("tag") == "table", "no #targets table in the rendered report"
     assert dom.rows["targets"] == len(doc["targets"]) + 1

@@ -37,7 +37,7 @@ def test_3d_views_label_every_target_and_embed_plotly():
     fig = F3.deviations_3d(mesh, xyz, ["T1", "T2", "T3"], np.array([10e-6, 300e-6, np.nan]),
                            np.full(3, 250e-6), np.array([True, False, False]))
     text = fig["data"][1]["text"]
-    assert text[0].startswith("T1: |d| 10.0 um / tol 250 um PASS") and "FAIL" in text[1] and "not measured" in text[2]
+    assert text[0].startswith("T1: |d| 10.0 um / tol 250.0 um PASS") and "FAIL" in text[1] and "not measured" in text[2]
     assert fig["data"][2]["name"] == "out of tolerance" and len(fig["data"][2]["x"]) == 2
     html = F3.html_block({"deviations": fig})
     assert 'id="fig3d-deviations"' in html and "DecompressionStream" in html and len(html) > 1_000_000

@@ -76,7 +76,7 @@ def deviations_3d(mesh, nominal: np.ndarray, ids: list[str], dev_norm: np.ndarra
     """Targets on the part coloured by |deviation| / tolerance; hover: id, |d|, tolerance, pass/fail."""
     p = np.asarray(nominal) * 1000
     ratio = np.clip(np.nan_to_num(np.asarray(dev_norm) / np.asarray(tol), nan=2.0, posinf=2.0), 0, 2)
-    text = [f"{i}: |d| {'not measured' if not np.isfinite(d) else f'{d * 1e6:.1f} um'} / tol {t * 1e6:.0f} um "
+    text = [f"{i}: |d| {'not measured' if not np.isfinite(d) else f'{d * 1e6:.1f} um'} / tol {t * 1e6:.1f} um "
             f"{'PASS' if ok else 'FAIL'}" for i, d, t, ok in zip(ids, dev_norm, tol, passed)]
     bad = ~np.asarray(passed, dtype=bool)
     traces = [_mesh_trace(mesh, 0.18),

@@ -3,8 +3,13 @@
 Each judged target is a point feature (nominal, item, measurement at its aligned measured position)
 with a position characteristic: a spherical tolerance zone of diameter 2 x tolerance around the nominal
 (the report's pass rule |d| <= tolerance), measured value 2 |d| (the diameter of the smallest zone
-centred on the nominal that holds the measured point). The part number and revision are the Product's
-Part (ModelNumber, Version); the serial number is the ActualComponent's SerialNumber. Lengths in mm
+centred on the nominal that holds the measured point). The characteristic's status is the report's decision
+(ISO 14253-1), not ``pass``: conforming PASS, nonconforming FAIL, inconclusive (within U of the tolerance, a
+suspect or doubtful measurement) and undecided (the alignment to CAD not trusted; every measured target of a
+report whose alignment is not trusted or whose verdict is UNTRUSTED) INDETERMINATE; a target not
+measured has a characteristic measurement with status NOT_ANALYZED and no value (CharacteristicStatusEnumType
+has no NOT_MEASURED). A report without decisions (older) falls back to ``pass``. The part number and revision
+are the Product's Part (ModelNumber, Version); the serial number is the ActualComponent's SerialNumber. Lengths in mm
 (FileUnits). The schema is public (the QIF community repository on GitHub); tests/test_qif.py checks
 the document against it when the schema set is given (QIF_XSD_DIR), and its ids and references always.
 """
@@ -13,12 +18,41 @@ from __future__ import annotations
 import uuid
 import xml.etree.ElementTree as ET
 
+from cell.record.decisions import UNDECIDED
+from cell.record.decisions import trusted as frame_trusted
+
 NS = "http://qifstandards.org/xsd/qif3"
 _MM = 1000.0
 
 
 def _fmt(v: float) -> str:
     return f"{v:.6f}".rstrip("0").rstrip(".") if v == v else "0"
+
+
+def _time(t: str) -> str:
+    """An ISO 8601 time as xs:dateTime, its UTC offset kept (a time without one is local to nobody)."""
+    from datetime import datetime
+
+    try:
+        d = datetime.fromisoformat(t)
+    except ValueError:
+        return t[:19]
+    return d.isoformat(timespec="milliseconds" if d.microsecond else "seconds")
+
+
+def characteristic_status(t: dict, trusted: bool = True) -> str:
+    """The QIF 3 CharacteristicStatusEnum of a report.json target (see the module docstring); ``trusted`` False
+    (the report's alignment not trusted, or its verdict UNTRUSTED): no measured target is decided."""
+    if t["measured"][0] is None:
+        return "NOT_ANALYZED"
+    d = t.get("decision")
+    if not trusted or d in UNDECIDED or t.get("suspect") or t.get("print_doubtful"):
+        return "INDETERMINATE"
+    if d == "conforming":
+        return "PASS"
+    if d == "nonconforming":
+        return "FAIL"
+    return "PASS" if t["pass"] else "FAIL"  # a report written before decisions
 
 
 class _Ids:
@@ -50,7 +84,7 @@ def qif_results(report: dict, job_id: str) -> bytes:
     root = ET.Element("QIFDocument", {"xmlns": NS, "versionQIF": "3.0.0", "idMax": "0"})
     _sub(root, "QPId", str(uuid.uuid5(uuid.NAMESPACE_URL, f"inspection-cell/{job_id}")))
     version = _sub(root, "Version")
-    _sub(version, "TimeCreated", (report["job"].get("finished") or report["job"]["started"])[:19])
+    _sub(version, "TimeCreated", _time(report["job"].get("finished") or report["job"]["started"]))
     header = _sub(root, "Header")
     app = _sub(header, "Application")
     _sub(app, "Name", "inspection-cell (robotic photogrammetric inspection)")
@@ -128,6 +162,7 @@ def qif_results(report: dict, job_id: str) -> bytes:
     results = _sub(root, "Results")
     mr = _sub(_sub(results, "MeasurementResultsSet", n=1), "MeasurementResults", id=ids())
     measured = [(t, iid, ci) for (t, iid), ci in zip(rows, char_item) if t["measured"][0] is not None]
+    judged = [(t, iid, ci) for (t, iid), ci in zip(rows, char_item)]
     mf = _sub(mr, "MeasuredFeatures", n=len(measured))
     meas_of = {}
     for t, iid, _ci in measured:
@@ -135,13 +170,16 @@ def qif_results(report: dict, job_id: str) -> bytes:
         _sub(m, "FeatureItemId", iid)
         _sub(m, "Location", " ".join(_fmt(v * _MM) for v in t["measured"]))
         meas_of[iid] = m.get("id")
-    cms = _sub(_sub(mr, "MeasuredCharacteristics"), "CharacteristicMeasurements", n=len(measured))
-    for t, iid, ci in measured:
+    # every characteristic has its status; one not measured has no feature measurement and no value
+    cms = _sub(_sub(mr, "MeasuredCharacteristics"), "CharacteristicMeasurements", n=len(judged))
+    trusted = frame_trusted(report)
+    for t, iid, ci in judged:
         m = _sub(cms, "PositionCharacteristicMeasurement", id=ids())
-        _sub(_sub(m, "Status"), "CharacteristicStatusEnum", "PASS" if t["pass"] else "FAIL")
+        _sub(_sub(m, "Status"), "CharacteristicStatusEnum", characteristic_status(t, trusted))
         _sub(m, "CharacteristicItemId", ci)
-        _list(m, "FeatureMeasurementIds", [meas_of[iid]])
-        _sub(m, "Value", _fmt(2 * t["deviation_norm_m"] * _MM))
+        if iid in meas_of:
+            _list(m, "FeatureMeasurementIds", [meas_of[iid]])
+            _sub(m, "Value", _fmt(2 * t["deviation_norm_m"] * _MM))
     status = {"PASS": "PASS", "FAIL": "FAIL"}.get(report.get("verdict"), "UNKNOWN")
     _sub(_sub(mr, "InspectionStatus"), "InspectionStatusEnum", status)
     comp = ids()

@@ -20,6 +20,7 @@ matplotlib.use("Agg")
 from matplotlib.figure import Figure  # noqa: E402  (not pyplot: its import is ~0.3-0.5 s of a job)
 from mpl_toolkits.mplot3d.art3d import Line3DCollection, Poly3DCollection  # noqa: E402
 
+from cell.record.decisions import counts, trusted  # noqa: E402
 from planning.plot import figure_png  # noqa: E402
 
 
@@ -181,7 +182,25 @@ def _status(t: dict) -> str:
         status += " (inconclusive: suspect, its observations could not be verified)"
     elif t.get("decision") == "inconclusive":
         status += " (inconclusive: within U of the tolerance)"
+    elif t.get("decision") == "undecided":
+        status += " (undecided: the alignment to CAD is not trusted)"
     return status
+
+
+def _headline(doc: dict) -> str:
+    """The verdict line's counts: within tolerance and decided; beyond it (measured); within but not decided
+    (inconclusive, undecided, suspect or doubtful); not measured. A target not measured is not beyond its
+    tolerance, and an undecided one is not within it (:mod:`cell.record.decisions`)."""
+    c = counts(doc["targets"], trusted(doc))
+    out = f"{c['within']} of {len(doc['targets'])} targets within tolerance"
+    if c["beyond"]:
+        out += f", {c['beyond']} beyond it" + (f" ({c['beyond_undecided']} of them undecided or inconclusive)"
+                                               if c["beyond_undecided"] else "")
+    if c["undecided"]:
+        out += f", {c['undecided']} undecided or inconclusive"
+    if c["not_measured"]:
+        out += f", {c['not_measured']} not measured"
+    return out
 
 
 def _inconclusive(doc: dict) -> str:
@@ -458,7 +477,6 @@ def render_html(doc: dict, figures: dict[str, str], interactive: str = "") -> st
     """The self-contained HTML report (``interactive``: the 3-D section of :mod:`cell.record.figures3d`)."""
     j = doc["job"]
     verdict = doc["verdict"]
-    n_fail = sum(not t["pass"] for t in doc["targets"])
     rows = []
     ordered = sorted(doc["targets"], key=lambda t: (t["pass"], -(t["deviation_norm_m"] or 0)))
     # every target that fails, is undecided or was not measured is listed; the others up to TABLE_ROWS in all
@@ -496,14 +514,15 @@ def render_html(doc: dict, figures: dict[str, str], interactive: str = "") -> st
 <html lang="en"><head><meta charset="utf-8"><title>Inspection report {html.escape(j['id'])}</title>
 <style>{_CSS}</style></head><body>
 <h1>Inspection report: {html.escape(j['name'])}</h1>
-<div class="verdict {verdict}" id="verdict">{verdict}: {len(doc['targets']) - n_fail} of {len(doc['targets'])} targets within tolerance{_inconclusive(doc)}</div>
+<div class="verdict {verdict}" id="verdict">{verdict}: {_headline(doc)}{_inconclusive(doc)}</div>
 {_verdict_reasons(doc)}{_alerts(doc)}
 <h2>Job</h2><table class="kv">{kv}</table>
 <h2>Figures</h2><div class="figs">{figs}</div>
 {_rejected_table(doc)}{_dropped_table(doc)}
 <h2>Targets</h2>
-<table id="targets"><tr><th>id</th><th>x [mm]</th><th>y [mm]</th><th>z [mm]</th><th>dx [um]</th><th>dy [um]</th>
-<th>dz [um]</th><th>|d| [um]</th><th>tol [um]</th><th>U (k=2) [um]</th><th>sigma [um]</th><th>predicted [um]</th><th>images</th><th></th></tr>
+<table id="targets"><tr><th>id</th><th>measured x [mm]</th><th>measured y [mm]</th><th>measured z [mm]</th>
+<th>dx [um]</th><th>dy [um]</th><th>dz [um]</th><th>|d| [um]</th><th>tol [um]</th><th>U (k=2) [um]</th>
+<th>sigma [um]</th><th>predicted [um]</th><th>images</th><th></th></tr>
 {''.join(rows)}</table>
 {f'<p id="more-targets">{more} more targets within tolerance (smaller deviations) are not listed here: report.json has every target.</p>' if more else ''}
 {_closed_loop_html(doc)}<h2>Time per stage</h2><table class="kv">{stages}</table>

@@ -17,6 +17,8 @@ from pathlib import Path
 
 from calibration.errors import InputError
 from cell.jobspec import load_job
+from cell.record.decisions import measured, undecided
+from cell.record.decisions import trusted as frame_trusted
 from cell.record.jobfolder import JobFolder, atomic_write_bytes
 from cell.record.runinfo import clean_serial
 from cell.web.runner import Busy, CellRunner, live_state, operator_advice
@@ -193,6 +195,15 @@ class Console:
 
     # --- exports ------------------------------------------------------------------------
     def report_csv(self, job_id: str) -> str:
+        """One row per target; the coordinates are the CAD nominal's (``nominal_*_mm``), the deviation measured.
+
+        ``pass`` is ``yes``/``no`` (|d| within / beyond the tolerance) only where the measurement decides: where
+        the decision is inconclusive (within U of the tolerance, a suspect or doubtful measurement) or undecided
+        (the alignment to CAD not trusted, or any UNTRUSTED verdict) it is left EMPTY, as it is for a target not
+        measured. Empty rather than the decision word: a column a spreadsheet filters on yes/no keeps two values
+        and a blank, and the word is in ``decision`` next to it. ``verdict`` (the part's) and ``alignment_trusted`` (``yes``/``no``)
+        close every row, after the columns the file always had.
+        """
         rep = self.view.report(job_id)
         if rep is None:
             raise NotFound(f"{job_id} has no report (not DONE)")
@@ -201,16 +212,22 @@ class Console:
         w = csv.writer(buf)
         w.writerow(["job_id", "part_number", "revision", "serial", "target", "nominal_x_mm", "nominal_y_mm",
                     "nominal_z_mm", "dx_um", "dy_um", "dz_um", "deviation_um", "tolerance_um", "U_k2_um",
-                    "sigma_um", "pass", "decision"])
+                    "sigma_um", "pass", "decision", "verdict", "alignment_trusted"])
 
         def f(v, k):
             return "" if v is None else f"{v * k:.4f}"
 
+        verdict = rep.get("verdict") or ""
+        trusted = (rep.get("alignment") or {}).get("trusted")
+        trusted = "" if trusted is None else ("yes" if trusted else "no")
+        frame = frame_trusted(rep)
         for t in rep["targets"]:
+            decided = measured(t) and not undecided(t, frame)
             w.writerow([job_id, part.get("number") or "", part.get("revision") or "", part.get("serial") or "", t["id"],
                         *(f(v, 1e3) for v in t["nominal"]), *(f(v, 1e6) for v in t["deviation"]),
                         f(t["deviation_norm_m"], 1e6), f(t["tolerance_m"], 1e6), f(t.get("uncertainty_U_m"), 1e6),
-                        f(t.get("achieved_sigma_m"), 1e6), "yes" if t["pass"] else "no", t.get("decision") or ""])
+                        f(t.get("achieved_sigma_m"), 1e6), ("yes" if t["pass"] else "no") if decided else "",
+                        t.get("decision") or "", verdict, trusted])
         return buf.getvalue()
 
     def report_pdf(self, job_id: str) -> bytes:
@@ -244,36 +261,54 @@ def default_baseline(n: int) -> int:
 
 
 def trend(view: ArchiveView, part: str, target: str, axis: str = "norm", baseline: int | None = None) -> dict:
-    """A target's trend over serial parts with its I-MR analysis (the API's trend document)."""
+    """A target's trend over serial parts with its I-MR analysis (the API's trend document).
+
+    ``points`` holds every measurement; those with ``excluded`` (a job UNTRUSTED, a decision that does not decide:
+    :meth:`ArchiveView.target_trend`) are shown but left out of the centre, limits, rules and Cp/Cpk, which are of
+    the ``n_used`` others (``baseline``: the first k of those). ``moving_range`` and a violation's ``index`` are per
+    point of ``points`` (an excluded point has no moving range; the next used point's is to the used one before).
+    """
     from cell.web.spc import analyse
 
     t = view.target_trend(part, target, axis)
-    vals = [p["value_m"] for p in t["points"]]
+    used = [i for i, p in enumerate(t["points"]) if not p.get("excluded")]
+    vals = [t["points"][i]["value_m"] for i in used]
+    n_excl = len(t["points"]) - len(used)
     if len(vals) < 2:
-        raise InputError(f"target {target!r} of part {part!r} has {len(vals)} measurement(s): a trend needs two")
+        raise InputError(f"target {target!r} of part {part!r} has {len(vals)} measurement(s) a trend can use"
+                         + (f" ({n_excl} left out: alignment not trusted, or a decision that does not decide)"
+                            if n_excl else "") + ": a trend needs two")
     if baseline is None:
         baseline = default_baseline(len(vals))
     if not 2 <= baseline <= len(vals):
         raise InputError(f"baseline {baseline}: between 2 and {len(vals)} parts")
     a = analyse(vals, t["lsl"], t["usl"], baseline)
     for v in a["violations"]:
+        v["index"] = used[v["index"]]
         v["serial"] = t["points"][v["index"]]["serial"]
         v["job_id"] = t["points"][v["index"]]["job_id"]
+    mr: list = [None] * len(t["points"])
+    for k, i in enumerate(used):
+        mr[i] = a["moving_range"][k]
+    a["moving_range"] = mr
     return t | {k: a[k] for k in ("center", "sigma_within", "ucl", "lcl", "mr_bar", "mr_ucl", "baseline",
-                                  "moving_range", "violations", "capability", "cp", "cpk")}
+                                  "moving_range", "violations", "capability", "cp", "cpk")} | {
+        "n_used": len(used), "n_excluded": n_excl}
 
 
 def trend_csv(doc: dict) -> str:
     buf = io.StringIO()
     w = csv.writer(buf)
     w.writerow(["part", "target", "axis", "n", "serial", "job_id", "finished", "value_um", "deviation_um",
-                "moving_range_um", "center_um", "ucl_um", "lcl_um", "lsl_um", "usl_um", "rules"])
+                "moving_range_um", "center_um", "ucl_um", "lcl_um", "lsl_um", "usl_um", "rules", "tolerance_um",
+                "excluded"])
     um = lambda v: "" if v is None else f"{v * 1e6:.3f}"  # noqa: E731
     for i, p in enumerate(doc["points"]):
         rules = " ".join(sorted({v["rule"] for v in doc["violations"] if v["index"] == i}))
         w.writerow([doc["part"], doc["target"], doc["axis"], i + 1, p["serial"] or "", p["job_id"], p["finished"],
                     um(p["value_m"]), um(p["deviation_norm_m"]), um(doc["moving_range"][i]), um(doc["center"]),
-                    um(doc["ucl"]), um(doc["lcl"]), um(doc["lsl"]), um(doc["usl"]), rules])
+                    um(doc["ucl"]), um(doc["lcl"]), um(doc["lsl"]), um(doc["usl"]), rules, um(p.get("tolerance_m")),
+                    p.get("excluded") or ""])
     return buf.getvalue()
 
 

@@ -14,10 +14,9 @@ import re
 from datetime import datetime, timedelta, timezone
 from pathlib import Path
 
-import numpy as np
-
 from calibration.errors import InputError
 from cell.record.archive import Archive, IndexUnavailable
+from cell.record.decisions import beyond, exclusion, measured, trusted, undecided
 from cell.record.jobfolder import JobFolder
 from cell.record.runinfo import read_run_info
 
@@ -166,7 +165,11 @@ class ArchiveView:
         if rep is not None:
             doc |= {"verdict": rep.get("verdict"), "name": rep["job"].get("name"), "part_name": rep["job"].get("part"),
                     "finished": rep["job"].get("finished"), "targets": len(rep["targets"]),
-                    "failed": [t["id"] for t in rep["targets"] if not t["pass"]], "sigma0_px": rep.get("sigma0_px")}
+                    "failed": [t["id"] for t in rep["targets"] if beyond(t)],  # measured and beyond tolerance
+                    "not_measured": [t["id"] for t in rep["targets"] if not measured(t)],
+                    "undecided": [t["id"] for t in rep["targets"] if undecided(t, trusted(rep))],
+                    "alignment_trusted": (rep.get("alignment") or {}).get("trusted"),
+                    "sigma0_px": rep.get("sigma0_px")}
         return doc
 
     # --- trends ----------------------------------------------------------------------
@@ -190,6 +193,12 @@ class ArchiveView:
         in the part frame, two-sided: -tolerance..+tolerance). ``value_m`` is the charted value; for a
         group it is the group's worst per part (largest |d|, or the component farthest from zero), with
         ``target`` naming which one. One index query per target (and part name), no folder read.
+
+        Every measurement is a point, but not every point is a statistic's: a point of a job whose verdict is
+        UNTRUSTED (the alignment to CAD) or whose decision does not decide (inconclusive: within U of the
+        tolerance, suspect or doubtful; undecided) has ``excluded`` saying why (None for the others), and the
+        control limits, Cp/Cpk and rules leave it out (:func:`cell.web.service.trend`). ``tolerance_m`` (the
+        USL) is the newest job's tolerance; each point carries its own.
         """
         if axis not in ("norm", "x", "y", "z"):
             raise InputError(f"axis {axis!r}: norm, x, y or z")
@@ -211,23 +220,29 @@ class ArchiveView:
         # a part where the group was not all measured is no point of the trend
         jobs = set.intersection(*(set(d) for d in per_target)) if per_target else set()
         order = sorted(jobs, key=lambda j: (per_target[0][j]["finished"] or "", j))
-        pts, tols = [], []
+        pts = []
         for jid in order:
             cand = []
             for tid, d in zip(members, per_target):
                 t = d[jid]
                 v = t["deviation_norm_m"] if axis == "norm" else t["deviation"]["xyz".index(axis)]
                 cand.append((abs(v) / t["tolerance_m"], v, t, tid))
+            tols = [c[2]["tolerance_m"] for c in cand]
+            if len(group) > 1 and (max(tols) - min(tols)) > 1e-12:
+                raise InputError(f"the targets {target!r} have different tolerances in {jid}: a group trend needs one "
+                                 "tolerance")
             _, v, t, tid = max(cand, key=lambda c: c[0])
+            # a group's worst is only known when every member's decision decides
+            why = next((f"{c[3]}: {w}" if len(group) > 1 else w for c in cand
+                        if (w := exclusion({"deviation_norm_m": c[2]["deviation_norm_m"], "decision": c[2]["decision"]},
+                                           done[jid].get("verdict"))) is not None), None)
             pts.append({"job_id": jid, "serial": t["serial"] or done[jid].get("serial"), "finished": _utc_ms(t["finished"]),
                         "deviation_norm_m": t["deviation_norm_m"], "value_m": v, "sigma_m": t["sigma_m"],
-                        "pass": t["pass"], "target": tid})
-            tols.append(t["tolerance_m"])
+                        "pass": t["pass"], "target": tid, "tolerance_m": t["tolerance_m"], "decision": t["decision"],
+                        "verdict": done[jid].get("verdict"), "excluded": why})
         if not pts:
             raise NotFound(f"no measurement of target {target!r} in the finished jobs of part {part!r}")
-        tol = float(np.median(tols))
-        if len(group) > 1 and (max(tols) - min(tols)) > 1e-12:
-            raise InputError(f"the targets {target!r} have different tolerances: a group trend needs one tolerance")
+        tol = float(pts[-1]["tolerance_m"])  # the newest job's: a tolerance changed by the drawing applies from then
         lsl, usl = (None, tol) if axis == "norm" else (-tol, tol)
         return {"part": part, "target": target, "group": group, "axis": axis, "points": pts, "tolerance_m": tol,
                 "lsl": lsl, "usl": usl}

@@ -20,6 +20,7 @@ from cell.record.archive.ids import INCOMING, JOB_ID_PATTERN, resolve_job_id
 from cell.record.archive.index import ArchiveIndex, IndexConflict, IndexUnavailable
 from cell.record.archive.outbox import Outbox
 from cell.record.archive.records import job_record, manifest_sha256
+from cell.record.decisions import beyond, measured, trusted, undecided
 from cell.record.jobfolder import JOURNAL, JobFolder
 
 
@@ -252,7 +253,9 @@ class Archive:
             if rec.problem:
                 problems.append(f"{d.name}: {rec.problem}")
             if (have is None or have["manifest_sha256"] != rec.manifest_sha256 or have["status"] != rec.status
-                    or (have["targets"] or 0) != have["target_rows"]):
+                    or (have["targets"] or 0) != have["target_rows"]
+                    or (have["failed"] is not None and rec.failed is not None and have["failed"] != rec.failed)):
+                # (a failed count of before not-measured targets were told apart from failed ones is stale too)
                 self.index.index_job(rec)
                 indexed.append(d.name)
         pushed = self.drain_pushes()
@@ -336,13 +339,24 @@ class Archive:
             try:
                 r = json.loads(rep.read_text(encoding="utf-8"))
                 doc |= {"job": r["job"], "verdict": r.get("verdict"), "sigma0_px": r.get("sigma0_px"),
-                        "targets": len(r["targets"]), "failed": [t["id"] for t in r["targets"] if not t["pass"]]}
+                        "targets": len(r["targets"]), "failed": [t["id"] for t in r["targets"] if beyond(t)],
+                        "not_measured": [t["id"] for t in r["targets"] if not measured(t)],
+                        "undecided": [t["id"] for t in r["targets"] if undecided(t, trusted(r))]}
             except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError, AttributeError) as exc:
                 doc["problem"] = f"report.json damaged ({type(exc).__name__}: {exc})"
         return doc
 
     def compare(self, ids: list[str]) -> dict:
-        """Deviation trends of the same part over several jobs: per target, the deviation norm in each job."""
+        """Deviation trends of the same part over several jobs: per target, the deviation norm in each job.
+
+        The drift is the first job's measured point to the last's; it is significant beyond 3 sigma of the drift
+        along its own direction u, sigma = sqrt(u^T (C_first + C_last) u) from both reports' ``cov`` (each job's
+        own uncertainty, not one job's). A target not measured in the first or the last job has no drift
+        (``drift_m`` None; listed in ``not_measured`` with the jobs that did not measure it). ``untrusted``: the
+        jobs whose alignment to CAD is not trusted or whose verdict is UNTRUSTED (their deviations, and a drift
+        from or to them, are in a frame that cannot be relied on; ``note`` says so): a drift from or to such a job
+        is given but not judged (``drift_significant`` None, not in ``drifting``).
+        """
         if len(ids) < 2:
             raise InputError("cell archive compare needs at least two job ids")
         reports = []
@@ -360,19 +374,42 @@ class Archive:
         parts = {r["job"].get("part") for r in reports}
         if len(parts) > 1:
             raise InputError(f"cell archive compare: the jobs inspect different parts ({', '.join(map(str, parts))})")
+        untrusted = []
+        for j, r in zip(ids, reports):
+            al = r.get("alignment") or {}
+            if not trusted(r):
+                untrusted.append({"job_id": j, "verdict": r.get("verdict"), "alignment_trusted": al.get("trusted"),
+                                  "reasons": list(al.get("reasons") or r.get("verdict_reasons") or [])})
+        untrusted_ids = {u["job_id"] for u in untrusted}
         common = set.intersection(*({t["id"] for t in r["targets"]} for r in reports))
-        rows = []
+        by_id = [{t["id"]: t for t in r["targets"]} for r in reports]
+        rows, not_measured = [], []
         for tid in sorted(common):
-            dev = [next(t for t in r["targets"] if t["id"] == tid) for r in reports]
-            norms = [d["deviation_norm_m"] for d in dev]
-            sig = [d["achieved_sigma_m"] for d in dev]
-            change = np.asarray(dev[-1]["measured"]) - np.asarray(dev[0]["measured"])
-            sig_change = float(np.hypot(sig[0], sig[-1]))
-            rows.append({"id": tid, "deviation_norm_m": norms, "pass": [d["pass"] for d in dev],
-                         "drift_m": float(np.linalg.norm(change)),
-                         "drift_significant": bool(np.linalg.norm(change) > 3 * sig_change)})
+            dev = [b[tid] for b in by_id]
+            missing = [j for j, d in zip(ids, dev) if not measured(d)]
+            if missing:
+                not_measured.append({"id": tid, "jobs": missing})
+            row = {"id": tid, "deviation_norm_m": [d["deviation_norm_m"] for d in dev],
+                   "pass": [d["pass"] if measured(d) else None for d in dev],
+                   "decision": [d.get("decision") for d in dev],
+                   "tolerance_m": [d.get("tolerance_m") for d in dev],
+                   "drift_m": None, "drift_sigma_m": None, "drift_significant": None}
+            if measured(dev[0]) and measured(dev[-1]):
+                change = np.asarray(dev[-1]["measured"], dtype=float) - np.asarray(dev[0]["measured"], dtype=float)
+                drift = float(np.linalg.norm(change))
+                sig = _drift_sigma(change, dev[0], dev[-1])
+                judged = sig is not None and not (untrusted_ids & {ids[0], ids[-1]})
+                row |= {"drift_m": drift, "drift_sigma_m": sig,
+                        "drift_significant": bool(drift > 3 * sig) if judged else None}
+            rows.append(row)
+        note = None
+        if untrusted:
+            note = (f"alignment to CAD not trusted in {', '.join(u['job_id'] for u in untrusted)}: its deviations "
+                    "and a drift from or to it are in a frame that cannot be relied on"
+                    + ("; no drift is judged (drift_significant None)" if untrusted_ids & {ids[0], ids[-1]} else ""))
         return {"jobs": ids, "part": parts.pop(), "targets": rows,
-                "drifting": [r["id"] for r in rows if r["drift_significant"]]}
+                "drifting": [r["id"] for r in rows if r["drift_significant"]],
+                "not_measured": not_measured, "untrusted": untrusted, "note": note}
 
     def verify(self, job_id: str) -> list[str]:
         """Problems of the job's folder against its manifest and its journal (empty: intact)."""
@@ -387,6 +424,31 @@ class Archive:
         problems += [f"station {sid}: {why}" for sid, why in found.stations.items()]
         problems += [f"{rel}: {why} (per the journal)" for rel, (why, _) in found.files.items()]
         return list(dict.fromkeys(problems))
+
+
+def _drift_sigma(change: np.ndarray, a: dict, b: dict) -> float | None:
+    """The standard deviation of the drift ``change`` (b's measured point minus a's) along its direction:
+    sqrt(u^T (C_a + C_b) u), u = change / |change| (the largest axis of C_a + C_b for no change); a report without
+    a finite ``cov`` falls back to its ``achieved_sigma_m`` / sqrt(3) per axis (None when neither is known)."""
+    covs = []
+    for t in (a, b):
+        c = t.get("cov")
+        try:
+            c = np.asarray(c, dtype=float)
+        except (TypeError, ValueError):
+            c = None
+        if c is None or c.shape != (3, 3) or not np.isfinite(c).all():
+            s = t.get("achieved_sigma_m")
+            if s is None or not np.isfinite(s):
+                return None
+            c = np.eye(3) * s ** 2 / 3
+        covs.append(c)
+    C = covs[0] + covs[1]
+    n = float(np.linalg.norm(change))
+    if n > 0:
+        u = change / n
+        return float(np.sqrt(max(u @ C @ u, 0.0)))
+    return float(np.sqrt(max(np.linalg.eigvalsh(C)[-1], 0.0)))
 
 
 def _values_differ(job_id: str, have: dict, rec, rows: list[dict]) -> list[str]:

@@ -255,6 +255,20 @@ class ArchiveIndex:
         stmt = sa.select(targets).where(targets.c.job_id == job_id).order_by(targets.c.target_id)
         return [_target_dict(r) for r in self._read(stmt)]
 
+    def not_measured_counts(self, job_ids: list[str]) -> dict[str, int]:
+        """Per job id of ``job_ids``: how many of its target rows were not measured (no deviation), in one
+        GROUP BY query; a job all of whose targets were measured is absent (0)."""
+        if not job_ids:
+            return {}
+        t = targets.c
+        out = {}
+        ids = list(dict.fromkeys(job_ids))
+        for k in range(0, len(ids), 500):  # bounded IN lists
+            stmt = (sa.select(t.job_id, sa.func.count()).where(t.job_id.in_(ids[k:k + 500]),
+                                                               t.deviation_norm_m.is_(None)).group_by(t.job_id))
+            out |= {r[0]: int(r[1]) for r in self._read(stmt)}
+        return out
+
     def target_trend(self, part: str, target_id: str, *, since=None, until=None, limit: int | None = None) -> list[dict]:
         """One target of a part over every job that measured it, oldest first: a trend is one query.
 

@@ -15,6 +15,7 @@ from pathlib import Path
 
 from calibration.errors import InputError
 from cell.record.archive.tables import COV_INDEX, COV_KEYS
+from cell.record.decisions import beyond, measured
 from cell.record.jobfolder import MANIFEST, JobFolder
 from cell.record.runinfo import read_run_info
 
@@ -75,7 +76,8 @@ class JobRecord:
     sigma0_px: float | None = None
     manifest_sha256: str | None = None
     targets: list[dict] = field(default_factory=list)
-    failed: int | None = None
+    failed: int | None = None  # measured and beyond tolerance (cell.record.decisions.beyond)
+    not_measured: int | None = None  # not in the jobs table: counted from the target rows where a count is shown
     problem: str | None = None  # what in the folder could not be read (indexed as far as it reads)
 
     def job_row(self) -> dict:
@@ -149,7 +151,9 @@ def job_record(folder: Path, origin: str) -> JobRecord:
             rec.finished = finished
             rec.sigma0_px = doc.get("sigma0_px")
             rec.targets = rows
-            rec.failed = sum(1 for t in tl if not t.get("pass"))
+            # failed: measured and beyond tolerance; a target not measured did not fail (``not_measured``)
+            rec.failed = sum(1 for t in tl if beyond(t))
+            rec.not_measured = sum(1 for t in tl if not measured(t))
     rec.problem = "; ".join(problems) or None
     return rec
 
