@@ -206,9 +206,11 @@ def test_a_target_not_measured_is_not_counted_failed_by_the_archive_the_console_
     view = ArchiveView(root)
     try:
         got = view.get_job(jid)
+        listed = {r["id"]: r for r in view.list_jobs()}  # the console's list (GET /api/jobs)
     finally:
         view.close()
     assert got["failed"] == ["T04"] and got["not_measured"] == ["T03"] and got["alignment_trusted"] is True
+    assert listed[jid]["failed"] == 1 and listed[jid]["not_measured"] == 1 and listed[ids[0]]["not_measured"] == 0
     assert main(["archive", "list", "--archive", str(root)]) == 0
     line = next(x for x in capsys.readouterr().err.splitlines() if x.startswith(jid))
     assert "1 failed of 6, 1 not measured" in line, line

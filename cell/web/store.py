@@ -141,8 +141,11 @@ class ArchiveView:
                     break
                 offset += self.PAGE
             rows = rows[:limit]
+        # failed (the index's count) is measured and beyond tolerance; the targets not measured are counted apart
+        missing = self.index.not_measured_counts([r["id"] for r in rows if r.get("targets") is not None])
         for r in rows:
             r.pop("folder", None)
+            r["not_measured"] = missing.get(r["id"], 0) if r.get("targets") is not None else None
         return rows
 
     def report(self, job_id: str) -> dict | None:
