@@ -232,6 +232,9 @@ def _alerts(doc: dict) -> str:
         out.append(f'<div class="alert" id="alignment-alert">ALIGNMENT NOT TRUSTED: '
                    f'{html.escape("; ".join(al.get("reasons", [])))}. The deviations below are in a frame that '
                    "cannot be relied on.</div>")
+    if (doc.get("layout_symmetry") or {}).get("warning"):  # the dots' names rest on the placement (decision 0058)
+        out.append(f'<div class="warn" id="symmetry-alert">Target layout: '
+                   f'{html.escape(doc["layout_symmetry"]["warning"])}</div>')
     if doc.get("untrusted_reasons"):  # a measurement of photographs whose own checks failed (decision 0057)
         out.append('<div class="alert" id="measurement-alert">MEASUREMENT NOT TRUSTED: '
                    f'{html.escape("; ".join(doc["untrusted_reasons"]))}</div>')
