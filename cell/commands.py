@@ -18,7 +18,7 @@ def _human_check(doc: dict, out) -> None:
         out.say(f"part   WARNING the mesh is open: {m['boundary_edges']} edges with one face, in {m['boundary_loops']} "
                 "border(s). A sheet has its borders; a solid must have none, else rays pass through its openings and "
                 "the plan counts targets as seen through the part: repair the mesh or export it closed")
-    if (p.get("symmetry") or {}).get("warning"):  # decision 0058b: a placement one step off names dots wrongly
+    if (p.get("symmetry") or {}).get("warning"):  # decision 0058: a placement one step off names dots wrongly
         out.say(f"targets WARNING {p['symmetry']['warning']}")
     kinds = ", ".join(f"{v} {k}" for k, v in p["targets_by_kind"].items())
     th = doc.get("target_thickness_m")

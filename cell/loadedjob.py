@@ -73,7 +73,7 @@ class LoadedJob:
         s, t = self.spec, self.part.targets
         return {
             "job": {"name": s.job.name, "file": str(self.path), "units": s.job.units, "seed": s.job.seed},
-            # decision 0058b: a layout that maps onto itself names every dot as its neighbour when the part is placed
+            # decision 0058: a layout that maps onto itself names every dot as its neighbour when the part is placed
             # one step off, and no image can tell
             "part": self.part.summary() | {"symmetry": symmetry_summary(t.xyz, t.normals, t.code)},
             "camera": self.intrinsics.to_dict() | {"sigma_px": s.camera.sigma_px},

@@ -4,7 +4,7 @@ Plain dots are named by projecting the nominal targets from the job's placement 
 onto itself under a rigid motion (a disc of dots in rings of equal pitch, a regular grid), a part placed off by that
 motion has its dots named as their neighbours, and nothing in the images can tell: every dot lands where a nominal
 one is expected, and the alignment fits as well as the truth. Only the layout can warn, before the job; coded targets
-(unique codes) break the symmetry, since a code names its target whatever the placement (decision 0058b).
+(unique codes) break the symmetry, since a code names its target whatever the placement (decision 0058).
 
 :func:`layout_symmetries` finds the proper motions (rotations and translations, screws; no reflections, not the
 identity) that carry at least ``min_share`` of the targets onto targets of the same label (-1 for plain dots, the
@@ -259,7 +259,7 @@ def layout_symmetries(xyz: np.ndarray, normals: np.ndarray, labels: np.ndarray, 
     carry, and the ``MAX_RESULTS`` kept counted on all targets with a k-d tree.
 
     Cost and caps: about O(n log n). On 2 shared cores a 400-target layout takes 0.01-0.3 s, 20 000 targets
-    0.06-0.9 s (decision 0058b). Large layouts are capped and subsampled: at most ``MAX_IMAGES`` images of the
+    0.06-0.9 s (decision 0058). Large layouts are capped and subsampled: at most ``MAX_IMAGES`` images of the
     distinctive target, ``SAMPLE`` targets (and as many coded ones) in the first check, ``MAX_VERIFIED`` refits, on
     ``CHECK_MAX`` targets of a larger layout (the returned counts are on all). So a partial symmetry that does not
     fix the centroid and carries every target further than its ``LOCAL_NEIGHBOURS`` nearest (a grid shifted by

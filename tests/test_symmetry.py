@@ -1,4 +1,4 @@
-"""The symmetries of a target layout (planning/symmetry.py, decision 0058b): a disc of plain dots in rings of equal
+"""The symmetries of a target layout (planning/symmetry.py, decision 0058): a disc of plain dots in rings of equal
 pitch, placed one pitch turned, has every dot named as its neighbour and no image can tell; the layout says so
 before the job (``cell check``, LOAD), and a coded target off the axis takes it back."""
 from __future__ import annotations
@@ -119,7 +119,7 @@ def test_400_targets_in_well_under_a_second_and_20000_without_hanging():
     t0 = time.perf_counter()
     found = layout_symmetries(*big)
     elapsed = time.perf_counter() - t0
-    assert elapsed < 10.0, elapsed  # 0.4 s measured (decision 0058b); generous for a shared machine
+    assert elapsed < 10.0, elapsed  # 0.4 s measured (decision 0058); generous for a shared machine
     assert found[0]["slide_m"] == pytest.approx(0.010) and found[0]["moved"] == 141 * 140
     assert {90.0, 180.0} <= set(_turns(s for s in found if s["share"] == 1.0))
 

@@ -1,6 +1,6 @@
 """LOAD: the job file, its part (mesh and targets, checked), camera and deviations were loaded and checked
 before the job folder existed (:func:`cell.loadedjob.load`); the stage records the part's summary, and says when the
-targets' layout maps onto itself (decision 0058b: a part placed one step off would have its dots named as their
+targets' layout maps onto itself (decision 0058: a part placed one step off would have its dots named as their
 neighbours, and no image can tell)."""
 from __future__ import annotations
 

@@ -3,11 +3,12 @@ from __future__ import annotations
 
 import json
 
+import anyio.to_thread
 from fastapi import APIRouter, Depends, HTTPException, Request
 from fastapi.responses import JSONResponse, Response
 from pydantic import BaseModel, Field
 
-from cell.web.deps import Caller, caller, role
+from cell.web.deps import COOKIE, Caller, bearer, caller, log_in, role
 from cell.web.service import trend, trend_csv
 from cell.web.users import ROLES
 
@@ -26,26 +27,39 @@ class Token(BaseModel):
 
 @router.post("/token", response_model=Token)
 async def token(request: Request):
-    """Form or JSON {username, password} -> {token} for ``Authorization: Bearer``."""
+    """Form or JSON {username, password} -> {token} for ``Authorization: Bearer``.
+
+    The body is at most ``app.LOGIN_BODY_MAX`` bytes (413 beyond); the password check runs off the event loop."""
     if request.headers.get("content-type", "").startswith("application/json"):
         try:
             body = await request.json()
         except ValueError:
             raise HTTPException(400, "body: not JSON") from None
+        if not isinstance(body, dict):
+            raise HTTPException(400, "body: a JSON object {username, password}")
     else:
         body = dict(await request.form())
     name, password = str(body.get("username", "")), str(body.get("password", ""))
-    users = request.app.state.users
-    client = request.client.host if request.client else ""
-    wait = users.throttled(f"user:{name}", f"client:{client}")
-    if wait > 0:
-        raise HTTPException(429, f"too many failed logins: try again in {wait:.0f} s", headers={"Retry-After": str(int(wait) + 1)})
-    user = users.authenticate(name, password, client)
+    user = await log_in(request, name, password)
     if user is None:
         raise HTTPException(401, "wrong user name or password")
-    secret, _ = users.open_session(user, "api")
-    users.audit(user.name, "token issued")
-    return Token(token=secret, user=user.name, role=user.role)
+    users = request.app.state.users
+
+    def issue() -> str:
+        secret, _ = users.open_session(user, "api")
+        users.audit(user.name, "token issued")
+        return secret
+
+    return Token(token=await anyio.to_thread.run_sync(issue), user=user.name, role=user.role)
+
+
+@router.post("/logout")
+def logout(request: Request, c: Caller = Depends(caller)):
+    """End the presented bearer token (or the browser session) now, not when it expires."""
+    users = request.app.state.users
+    users.close_session(bearer(request) or request.cookies.get(COOKIE, ""))
+    users.audit(c.user.name, "token revoked" if c.via == "token" else "log out")
+    return {"revoked": c.via}
 
 
 class StartJob(BaseModel):

@@ -19,6 +19,39 @@ from cell.web.store import NotFound
 from cell.web.users import UserStore
 
 TEMPLATES = Path(__file__).parent / "templates"
+#: the routes that read a body before anyone is authenticated, and the most they read (bytes): beyond it, 413
+LOGIN_ROUTES = ("/login", "/api/token")
+LOGIN_BODY_MAX = 64 * 1024
+
+
+class BodyLimit:
+    """ASGI middleware: a request to ``paths`` whose body is over ``limit`` bytes is refused with 413, by its
+    Content-Length before a byte is read, else (chunked) as soon as the bytes read pass the limit. Only the
+    login routes: every other route reads its body after authenticating the caller."""
+
+    def __init__(self, app, paths: tuple[str, ...], limit: int):
+        self.app, self.paths, self.limit = app, paths, limit
+
+    async def __call__(self, scope, receive, send):
+        if scope["type"] != "http" or scope["path"] not in self.paths:
+            return await self.app(scope, receive, send)
+        too_big = StarletteHTTPException(413, f"request body: more than {self.limit} bytes")
+        length = dict(scope["headers"]).get(b"content-length")
+        declared = int(length) if length is not None and length.isdigit() else None
+        seen = 0
+
+        async def limited():
+            nonlocal seen
+            if declared is not None and declared > self.limit:
+                raise too_big
+            msg = await receive()
+            if msg["type"] == "http.request":
+                seen += len(msg.get("body", b""))
+                if seen > self.limit:
+                    raise too_big
+            return msg
+
+        await self.app(scope, limited, send)
 
 
 def _wants_html(request: Request) -> bool:
@@ -42,6 +75,7 @@ def create_app(config: Config) -> FastAPI:
 
     @asynccontextmanager
     async def lifespan(app: FastAPI):
+        app.state.hash_limiter = None  # made anew on this event loop at first use (deps.hash_limiter)
         console.view.refresh()
         yield
         try:
@@ -86,10 +120,14 @@ def create_app(config: Config) -> FastAPI:
         r.headers.setdefault("X-Content-Type-Options", "nosniff")
         r.headers.setdefault("X-Frame-Options", "DENY")
         r.headers.setdefault("Referrer-Policy", "same-origin")
+        # pages and JSON hold the archive's data and the session's CSRF token: no copy in any cache (the static
+        # assets set their own, private, Cache-Control)
+        r.headers.setdefault("Cache-Control", "no-store")
         if config.tls:
             r.headers.setdefault("Strict-Transport-Security", "max-age=31536000")
         return r
 
+    app.add_middleware(BodyLimit, paths=LOGIN_ROUTES, limit=LOGIN_BODY_MAX)
     return app
 
 

@@ -5,9 +5,15 @@ import hmac
 from dataclasses import dataclass
 from pathlib import Path
 
+import anyio
+import anyio.to_thread
 from fastapi import Depends, HTTPException, Request
 
-from cell.web.users import User, UserStore
+from cell.web.users import MAX_PASSWORD_CHARS, Throttled, User, UserStore
+
+#: password checks (argon2id: ~0.15 s of CPU and 64 MiB each) running at once; the others queue. Their own
+#: threads: a flood of logins neither blocks the event loop nor takes the thread pool the other routes run in.
+HASHERS = 2
 
 COOKIE = "cell_session"
 
@@ -41,13 +47,48 @@ def store(request: Request) -> UserStore:
     return request.app.state.users
 
 
+def bearer(request: Request) -> str | None:
+    """The bearer token the request presents, if any."""
+    auth = request.headers.get("authorization", "")
+    return auth[7:].strip() if auth.lower().startswith("bearer ") else None
+
+
+def hash_limiter(app) -> anyio.CapacityLimiter:
+    """The app's limiter for password checks (made anew at each start: a limiter belongs to its event loop)."""
+    lim = getattr(app.state, "hash_limiter", None)
+    if lim is None:
+        lim = app.state.hash_limiter = anyio.CapacityLimiter(HASHERS)
+    return lim
+
+
+async def log_in(request: Request, name: str, password: str) -> User | None:
+    """The user if ``password`` is theirs, else None; 413 for an over-long password (not hashed), 429 while the name
+    or the client is throttled. The attempt is counted before the password is checked (atomically: see
+    ``UserStore.begin_login``); the SQLite and argon2 work runs in threads, never on the event loop."""
+    if len(password) > MAX_PASSWORD_CHARS:
+        raise HTTPException(413, f"password: longer than {MAX_PASSWORD_CHARS} characters")
+    users: UserStore = request.app.state.users
+    client = request.client.host if request.client else ""
+    try:
+        attempt = await anyio.to_thread.run_sync(users.begin_login, name, client)
+    except Throttled as e:
+        raise HTTPException(429, str(e), headers={"Retry-After": str(int(e.wait_s) + 1)}) from None
+    user = None
+    try:
+        user = await anyio.to_thread.run_sync(users.check_password, name, password,
+                                              limiter=hash_limiter(request.app))
+    finally:
+        await anyio.to_thread.run_sync(users.end_login, attempt, user is not None)
+    return user
+
+
 async def caller(request: Request) -> Caller:
     """The authenticated caller, or 401. A state-changing request with the session cookie needs the
     session's CSRF token (form field ``csrf`` for pages, header ``X-CSRF-Token`` for scripts)."""
     users: UserStore = request.app.state.users
-    auth = request.headers.get("authorization", "")
-    if auth.lower().startswith("bearer "):
-        found = users.session(auth[7:].strip(), "api")
+    token = bearer(request)
+    if token is not None:
+        found = users.session(token, "api")
         if found is None:
             raise Unauthorized("invalid or expired token")
         return Caller(found[0], None, "token")

@@ -4,10 +4,11 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import anyio.to_thread
 from fastapi import APIRouter, Depends, Form, HTTPException, Request
 from fastapi.responses import FileResponse, HTMLResponse, RedirectResponse, Response
 
-from cell.web.deps import COOKIE, Caller, caller, role
+from cell.web.deps import COOKIE, Caller, bearer, caller, log_in, role
 from cell.web.service import latest_image_jpeg, trend
 from cell.web.store import job_folder, reverifications
 from cell.web.users import ROLES
@@ -16,9 +17,9 @@ router = APIRouter()
 STATIC = Path(__file__).parent / "static"
 
 
-def _render(request: Request, name: str, c: Caller | None, status_code: int = 200, **ctx) -> HTMLResponse:
+def _render(request: Request, template: str, c: Caller | None, status_code: int = 200, /, **ctx) -> HTMLResponse:
     t = request.app.state.templates
-    return t.TemplateResponse(request, name, {"me": c.user if c else None, "csrf": c.csrf if c else "",
+    return t.TemplateResponse(request, template, {"me": c.user if c else None, "csrf": c.csrf if c else "",
                                               "running": request.app.state.console.running() if c else None, **ctx},
                               status_code=status_code)
 
@@ -33,25 +34,44 @@ def _script_json(doc) -> str:
             .replace("&", "\\u0026"))
 
 
+#: the only messages a page shows from its ``?msg=`` (a code the console itself puts in its redirects): any other
+#: text in the URL is ignored, so a link cannot make the console say what its sender wants
+MESSAGES = {
+    "login": {"logged-out": "You are logged out.", "expired": "Your session has ended: log in again."},
+    "console": {},
+    "program": {"saved": "Saved."},
+}
+
+
+def _message(page: str, code: str) -> str:
+    return MESSAGES[page].get(code, "")
+
+
 # --- login ---------------------------------------------------------------------------------
 @router.get("/login", response_class=HTMLResponse)
 def login_page(request: Request, msg: str = ""):
-    return _render(request, "login.html", None, msg=msg[:200])
+    return _render(request, "login.html", None, msg=_message("login", msg))
 
 
 @router.post("/login")
-def login(request: Request, username: str = Form(""), password: str = Form("")):
-    users = request.app.state.users
-    client = request.client.host if request.client else ""
-    wait = users.throttled(f"user:{username}", f"client:{client}")
-    if wait > 0:
-        return _render(request, "login.html", None, status_code=429,
-                       msg=f"Too many failed attempts: wait {wait:.0f} s and try again.")
-    user = users.authenticate(username, password, client)
+async def login(request: Request, username: str = Form(""), password: str = Form("")):
+    try:
+        user = await log_in(request, username, password)
+    except HTTPException as e:
+        if e.status_code != 429:
+            raise
+        wait = int(e.headers["Retry-After"])
+        return _render(request, "login.html", None, 429, msg=f"Too many failed attempts: wait {wait} s and try again.")
     if user is None:
-        return _render(request, "login.html", None, status_code=401, msg="Wrong user name or password.")
-    secret, _ = users.open_session(user, "session")
-    users.audit(user.name, "log in")
+        return _render(request, "login.html", None, 401, msg="Wrong user name or password.")
+    users = request.app.state.users
+
+    def open_session() -> str:
+        secret, _ = users.open_session(user, "session")
+        users.audit(user.name, "log in")
+        return secret
+
+    secret = await anyio.to_thread.run_sync(open_session)
     r = RedirectResponse("/", status_code=303)
     r.set_cookie(COOKIE, secret, httponly=True, samesite="strict", secure=request.app.state.config.tls, path="/")
     return r
@@ -59,9 +79,10 @@ def login(request: Request, username: str = Form(""), password: str = Form("")):
 
 @router.post("/logout")
 def logout(request: Request, c: Caller = Depends(caller)):
-    request.app.state.users.close_session(request.cookies.get(COOKIE, ""))
-    request.app.state.users.audit(c.user.name, "log out")
-    r = RedirectResponse("/login", status_code=303)
+    """Ends the session, or the bearer token the request presents (it would otherwise stay valid for 30 days)."""
+    request.app.state.users.close_session(bearer(request) or request.cookies.get(COOKIE, ""))
+    request.app.state.users.audit(c.user.name, "token revoked" if c.via == "token" else "log out")
+    r = RedirectResponse("/login?msg=logged-out", status_code=303)
     r.delete_cookie(COOKIE, path="/")
     return r
 
@@ -84,7 +105,7 @@ def static(name: str, c: Caller = Depends(caller)):
 def console_page(request: Request, c: Caller = Depends(caller), msg: str = "", program: str = ""):
     con = _console(request)
     recent = con.view.list_jobs(limit=8)
-    return _render(request, "console.html", c, programs=sorted(con.programs()), recent=recent, msg=msg[:300],
+    return _render(request, "console.html", c, programs=sorted(con.programs()), recent=recent, msg=_message("console", msg),
                    chosen=program, programs_dir=str(con.programs_dir))
 
 
@@ -201,7 +222,7 @@ def programs_page(request: Request, c: Caller = Depends(role("engineer"))):
 @router.get("/programs/{name}", response_class=HTMLResponse)
 def program_page(request: Request, name: str, c: Caller = Depends(role("engineer")), msg: str = ""):
     text = _console(request).program(name).read_text(encoding="utf-8")
-    return _render(request, "program.html", c, name=name, text=text, msg=msg[:300])
+    return _render(request, "program.html", c, name=name, text=text, msg=_message("program", msg))
 
 
 @router.post("/programs/{name}")

@@ -109,7 +109,9 @@ class CellRunner:
                     return job_id
         return None
 
-    def _spawn(self, args: list[str], user: str, kind: str) -> Session:
+    def _spawn(self, args: list[str], user: str, kind: str, positional: tuple[str, ...] = ()) -> Session:
+        """``cell ARGS --archive ROOT --json -- POSITIONAL``: every value from a user goes as ``--option=value`` or
+        after ``--``, so one that starts with ``-`` (a serial ``-12A``) is a value, never an option."""
         self._n += 1
         stem = f"{time.strftime('%Y%m%dT%H%M%S')}-{os.getpid()}-{self._n}"
         err, out = self.work / f"{stem}.err", self.work / f"{stem}.json"
@@ -120,19 +122,19 @@ class CellRunner:
             # the process list (CELL_ARCHIVE_URL ranks with --archive-url, above the cell file's url)
             env["CELL_ARCHIVE_URL"] = self.archive_url
         with open(err, "wb") as fe, open(out, "wb") as fo:
-            proc = subprocess.Popen([*_cell_command(), *args, "--archive", str(self.root), "--json"],
+            proc = subprocess.Popen([*_cell_command(), *args, f"--archive={self.root}", "--json", "--", *positional],
                                     stdout=fo, stderr=fe, stdin=subprocess.DEVNULL, env=env, start_new_session=True)
         return Session(proc, user, kind, err, out)
 
     def start(self, program: Path, serial: str | None, user: str) -> Session:
         with self._lock:
             self._refuse_if_busy()
-            args = ["run", str(program), "--operator", user]
+            args = ["run", f"--operator={user}"]
             if serial:
-                args += ["--serial", serial]
+                args += [f"--serial={serial}"]
             if self.cell_id:
-                args += ["--cell-id", self.cell_id]
-            s = self._spawn(args, user, "run")
+                args += [f"--cell-id={self.cell_id}"]
+            s = self._spawn(args, user, "run", (str(program),))
             s.program, s.serial = str(program), serial
             self.current = s
         return s
@@ -140,7 +142,7 @@ class CellRunner:
     def resume(self, job_id: str, user: str) -> Session:
         with self._lock:
             self._refuse_if_busy()
-            s = self._spawn(["resume", job_id, "--yes", "--operator", user], user, "resume")
+            s = self._spawn(["resume", "--yes", f"--operator={user}"], user, "resume", (job_id,))
             s.job_id = job_id
             self.current = s
         return s

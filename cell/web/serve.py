@@ -9,7 +9,14 @@ from pathlib import Path
 from calibration.errors import InputError
 
 
+#: the address(es) of a reverse proxy in front of the console, comma-separated: only then is X-Forwarded-For read
+PROXY_ENV = "CELL_TRUSTED_PROXY"
+
+
 def serve(args, out) -> int:
+    """Serve the console. A client's address (the login throttle's per-client key) is the TCP peer's:
+    X-Forwarded-For is ignored (uvicorn would trust it from 127.0.0.1, so anything on this computer, or a proxy on it
+    that passes the header through, could claim any address), unless ``$CELL_TRUSTED_PROXY`` names the proxy."""
     import uvicorn
 
     from cell.web.app import create_app
@@ -34,8 +41,12 @@ def serve(args, out) -> int:
     scheme = "https" if tls else "http"
     out.say(f"console on {scheme}://{args.host}:{args.port}/  (archive {cfg.archive}, index "
             f"{url.split('@')[-1]}, programs {cfg.programs})")
+    proxy = os.environ.get(PROXY_ENV, "").strip()
+    if proxy:
+        out.say(f"behind a proxy at {proxy}: its X-Forwarded-For names the client")
     uvicorn.run(app, host=args.host, port=args.port, ssl_certfile=args.certfile, ssl_keyfile=args.keyfile,
-                log_level="warning", access_log=False, server_header=False)
+                log_level="warning", access_log=False, server_header=False,
+                proxy_headers=bool(proxy), forwarded_allow_ips=proxy or None)
     return 0
 
 

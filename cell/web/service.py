@@ -108,7 +108,10 @@ class Console:
         if job_id is None:
             s.proc.wait(timeout=60)
             doc = self.runner.result(s) or {}
-            raise InputError(doc.get("message") or "; ".join(self.runner.log_lines(s, 3)) or "the job did not start")
+            lines = self.runner.log_lines(s, 3)
+            if any(ln.startswith("usage:") or ": error: " in ln for ln in lines) and not doc.get("message"):
+                lines = []  # the command line refused (argparse): its usage text is the console's business, not the client's
+            raise InputError(doc.get("message") or "; ".join(lines) or "the job did not start")
         self.audit(user, "start", job_id, f"program {program}, serial {serial or '-'}")
         return job_id
 
@@ -223,11 +226,12 @@ class Console:
         frame = frame_trusted(rep)
         for t in rep["targets"]:
             decided = measured(t) and not undecided(t, frame)
-            w.writerow([job_id, part.get("number") or "", part.get("revision") or "", part.get("serial") or "", t["id"],
+            w.writerow([csv_text(job_id), csv_text(part.get("number") or ""), csv_text(part.get("revision") or ""),
+                        csv_text(part.get("serial") or ""), csv_text(t["id"]),
                         *(f(v, 1e3) for v in t["nominal"]), *(f(v, 1e6) for v in t["deviation"]),
                         f(t["deviation_norm_m"], 1e6), f(t["tolerance_m"], 1e6), f(t.get("uncertainty_U_m"), 1e6),
                         f(t.get("achieved_sigma_m"), 1e6), ("yes" if t["pass"] else "no") if decided else "",
-                        t.get("decision") or "", verdict, trusted])
+                        csv_text(t.get("decision") or ""), csv_text(verdict), trusted])
         return buf.getvalue()
 
     def report_pdf(self, job_id: str) -> bytes:
@@ -296,6 +300,15 @@ def trend(view: ArchiveView, part: str, target: str, axis: str = "norm", baselin
         "n_used": len(used), "n_excluded": n_excl}
 
 
+def csv_text(v):
+    """A text cell for a CSV a spreadsheet opens: one that starts with ``= + - @``, a tab or a CR would be read as a
+    formula (a serial ``=HYPERLINK(...)``), so it gets a leading ``'`` (OWASP's CSV injection advice). Only for the
+    text columns: the numbers are written by the exporters themselves, and a negative number stays a number."""
+    if isinstance(v, str) and v[:1] in ("=", "+", "-", "@", "\t", "\r"):
+        return "'" + v
+    return v
+
+
 def trend_csv(doc: dict) -> str:
     buf = io.StringIO()
     w = csv.writer(buf)
@@ -305,10 +318,11 @@ def trend_csv(doc: dict) -> str:
     um = lambda v: "" if v is None else f"{v * 1e6:.3f}"  # noqa: E731
     for i, p in enumerate(doc["points"]):
         rules = " ".join(sorted({v["rule"] for v in doc["violations"] if v["index"] == i}))
-        w.writerow([doc["part"], doc["target"], doc["axis"], i + 1, p["serial"] or "", p["job_id"], p["finished"],
+        w.writerow([csv_text(doc["part"]), csv_text(doc["target"]), csv_text(doc["axis"]), i + 1, csv_text(p["serial"] or ""),
+                    csv_text(p["job_id"]), csv_text(p["finished"]),
                     um(p["value_m"]), um(p["deviation_norm_m"]), um(doc["moving_range"][i]), um(doc["center"]),
                     um(doc["ucl"]), um(doc["lcl"]), um(doc["lsl"]), um(doc["usl"]), rules, um(p.get("tolerance_m")),
-                    p.get("excluded") or ""])
+                    csv_text(p.get("excluded") or "")])
     return buf.getvalue()
 
 

@@ -24,9 +24,13 @@ ROLES = ("operator", "engineer", "admin")
 RANK = {r: k for k, r in enumerate(ROLES)}
 SESSION_S = 12 * 3600
 TOKEN_S = 30 * 24 * 3600
-#: login throttling: after this many failures for one name (or one client) within the window, wait
+#: login throttling: after this many failed attempts for one user name within the window, wait
 MAX_FAILURES = 5
+#: ... or from one client address (more room: operators behind one shared address must not lock each other out)
+MAX_CLIENT_FAILURES = 20
 WINDOW_S = 300.0
+#: a longer password is refused before it is hashed (argon2 hashes whatever it is given)
+MAX_PASSWORD_CHARS = 1024
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS users (name TEXT PRIMARY KEY, role TEXT NOT NULL, hash TEXT NOT NULL, created REAL NOT NULL,
@@ -37,6 +41,14 @@ CREATE TABLE IF NOT EXISTS failures (key TEXT NOT NULL, t REAL NOT NULL);
 CREATE TABLE IF NOT EXISTS audit (t TEXT NOT NULL, user TEXT NOT NULL, action TEXT NOT NULL, job_id TEXT,
                                   detail TEXT);
 """
+
+
+class Throttled(Exception):
+    """Too many failed logins for this name or client: a control-flow signal (HTTP 429), not a fault."""
+
+    def __init__(self, wait_s: float):
+        super().__init__(f"too many failed logins: try again in {wait_s:.0f} s")
+        self.wait_s = wait_s
 
 
 @dataclass(frozen=True)
@@ -82,8 +94,8 @@ class UserStore:
         name = check_name(name)
         if role not in ROLES:
             raise InputError(f"role {role!r}: one of {', '.join(ROLES)}")
-        if len(password) < 8:
-            raise InputError("the password needs at least 8 characters")
+        if not 8 <= len(password) <= MAX_PASSWORD_CHARS:
+            raise InputError(f"the password needs 8 to {MAX_PASSWORD_CHARS} characters")
         h = self._ph.hash(password)
         with self._db() as con:
             exists = con.execute("SELECT 1 FROM users WHERE name=?", (name,)).fetchone()
@@ -111,20 +123,50 @@ class UserStore:
         return User(*row) if row else None
 
     # --- login --------------------------------------------------------------
-    def throttled(self, *keys: str) -> float:
-        """Seconds to wait before another login attempt for any of ``keys`` (0 when allowed)."""
-        now = time.time()
-        with self._db() as con:
-            con.execute("DELETE FROM failures WHERE t < ?", (now - WINDOW_S,))
-            wait = 0.0
-            for k in keys:
-                ts = [t for (t,) in con.execute("SELECT t FROM failures WHERE key=? ORDER BY t", (k,))]
-                if len(ts) >= MAX_FAILURES:
-                    wait = max(wait, ts[-MAX_FAILURES] + WINDOW_S - now)
-        return wait
+    def begin_login(self, name: str, client: str = "") -> tuple[int, ...]:
+        """Count one login attempt for ``name`` and ``client`` *before* its password is checked.
 
-    def authenticate(self, name: str, password: str, client: str = "") -> User | None:
-        """The user if the password is right; None otherwise (the failure counts towards throttling)."""
+        Check and count are one transaction (``BEGIN IMMEDIATE``: concurrent attempts, from this process or
+        another, queue for it), so however many arrive at once, at most the limit are ever evaluated. Raises
+        :class:`Throttled` when the name has :data:`MAX_FAILURES` or the client :data:`MAX_CLIENT_FAILURES`
+        attempts in the last :data:`WINDOW_S`; else returns the attempt's rows for :meth:`end_login`.
+        """
+        keys = ((f"user:{name}", MAX_FAILURES), (f"client:{client}", MAX_CLIENT_FAILURES))
+        now = time.time()
+        con = sqlite3.connect(self.path, timeout=30, isolation_level=None)
+        try:
+            con.execute("BEGIN IMMEDIATE")
+            try:
+                con.execute("DELETE FROM failures WHERE t < ?", (now - WINDOW_S,))
+                wait = None
+                for key, limit in keys:
+                    ts = [t for (t,) in con.execute("SELECT t FROM failures WHERE key=? ORDER BY t", (key,))]
+                    if len(ts) >= limit:
+                        wait = max(wait or 0.0, ts[-limit] + WINDOW_S - now, 1.0)
+                rows = () if wait is not None else tuple(
+                    con.execute("INSERT INTO failures (key, t) VALUES (?, ?)", (key, now)).lastrowid for key, _ in keys)
+                con.execute("COMMIT")
+            except BaseException:
+                if con.in_transaction:
+                    con.execute("ROLLBACK")
+                raise
+        finally:
+            con.close()
+        if wait is not None:
+            raise Throttled(wait)
+        return rows
+
+    def end_login(self, attempt: tuple[int, ...], ok: bool) -> None:
+        """A right password uncounts its attempt; a wrong one stays counted as a failure."""
+        if ok and attempt:
+            with self._db() as con:
+                con.executemany("DELETE FROM failures WHERE rowid=?", [(r,) for r in attempt])
+
+    def check_password(self, name: str, password: str) -> User | None:
+        """The user if the password is right, else None; argon2 (blocking, ~0.15 s and 64 MiB: keep it off an
+        event loop). A password longer than :data:`MAX_PASSWORD_CHARS` is wrong without being hashed."""
+        if len(password) > MAX_PASSWORD_CHARS:
+            return None
         with self._db() as con:
             row = con.execute("SELECT name, role, hash FROM users WHERE name=? AND disabled=0", (name,)).fetchone()
         ok = False
@@ -139,14 +181,22 @@ class UserStore:
             except (VerificationError, InvalidHashError):
                 pass
         if not ok:
-            with self._db() as con:
-                con.executemany("INSERT INTO failures (key, t) VALUES (?, ?)",
-                                [(f"user:{name}", time.time()), (f"client:{client}", time.time())])
             return None
         if self._ph.check_needs_rehash(row[2]):
             with self._db() as con:
                 con.execute("UPDATE users SET hash=? WHERE name=?", (self._ph.hash(password), name))
         return User(row[0], row[1])
+
+    def authenticate(self, name: str, password: str, client: str = "") -> User | None:
+        """The user if the password is right; None otherwise (the attempt counts towards throttling).
+        Raises :class:`Throttled` without checking the password when the name or the client is at its limit."""
+        attempt = self.begin_login(name, client)
+        user = None
+        try:
+            user = self.check_password(name, password)
+        finally:
+            self.end_login(attempt, user is not None)
+        return user
 
     _dummy_hash: str | None = None
 
