@@ -114,6 +114,10 @@ def create_app(config: Config) -> FastAPI:
         msg = "; ".join(f"{'.'.join(str(x) for x in e['loc'])}: {e['msg']}" for e in exc.errors())
         return _error(request, 422, msg)
 
+    # inside the headers middleware (added before it): its 413, raised where the route reads the body, is answered
+    # by the exception handlers like any other error
+    app.add_middleware(BodyLimit, paths=LOGIN_ROUTES, limit=LOGIN_BODY_MAX)
+
     @app.middleware("http")
     async def headers(request: Request, call_next):
         r = await call_next(request)
@@ -127,7 +131,6 @@ def create_app(config: Config) -> FastAPI:
             r.headers.setdefault("Strict-Transport-Security", "max-age=31536000")
         return r
 
-    app.add_middleware(BodyLimit, paths=LOGIN_ROUTES, limit=LOGIN_BODY_MAX)
     return app
 
 

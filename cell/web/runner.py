@@ -110,7 +110,7 @@ class CellRunner:
         return None
 
     def _spawn(self, args: list[str], user: str, kind: str, positional: tuple[str, ...] = ()) -> Session:
-        """``cell ARGS --archive ROOT --json -- POSITIONAL``: every value from a user goes as ``--option=value`` or
+        """``cell ARGS --archive ROOT --json -- POSITIONAL`` (ROOT is absolute): every value from a user goes as ``--option=value`` or
         after ``--``, so one that starts with ``-`` (a serial ``-12A``) is a value, never an option."""
         self._n += 1
         stem = f"{time.strftime('%Y%m%dT%H%M%S')}-{os.getpid()}-{self._n}"
@@ -122,7 +122,7 @@ class CellRunner:
             # the process list (CELL_ARCHIVE_URL ranks with --archive-url, above the cell file's url)
             env["CELL_ARCHIVE_URL"] = self.archive_url
         with open(err, "wb") as fe, open(out, "wb") as fo:
-            proc = subprocess.Popen([*_cell_command(), *args, f"--archive={self.root}", "--json", "--", *positional],
+            proc = subprocess.Popen([*_cell_command(), *args, "--archive", str(self.root), "--json", "--", *positional],
                                     stdout=fo, stderr=fe, stdin=subprocess.DEVNULL, env=env, start_new_session=True)
         return Session(proc, user, kind, err, out)
 
