@@ -251,6 +251,7 @@ def test_authenticated_pages_and_json_are_not_cached(app, site):
                     f"/api/jobs/{ids[0]}/report.csv"):
             r = c.get(url)
             assert r.status_code == 200 and r.headers.get("cache-control") == "no-store", (url, r.headers)
+            assert "frame-ancestors 'none'" in r.headers["content-security-policy"]
 
 
 # --- 9. revoking a token -----------------------------------------------------------------------------------------

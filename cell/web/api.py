@@ -3,12 +3,11 @@ from __future__ import annotations
 
 import json
 
-import anyio.to_thread
 from fastapi import APIRouter, Depends, HTTPException, Request
 from fastapi.responses import JSONResponse, Response
 from pydantic import BaseModel, Field
 
-from cell.web.deps import COOKIE, Caller, bearer, caller, log_in, role
+from cell.web.deps import COOKIE, Caller, bearer, caller, log_in, login_work, role
 from cell.web.service import trend, trend_csv
 from cell.web.users import ROLES
 
@@ -50,7 +49,7 @@ async def token(request: Request):
         users.audit(user.name, "token issued")
         return secret
 
-    return Token(token=await anyio.to_thread.run_sync(issue), user=user.name, role=user.role)
+    return Token(token=await login_work(request.app, issue), user=user.name, role=user.role)
 
 
 @router.post("/logout")

@@ -22,6 +22,13 @@ TEMPLATES = Path(__file__).parent / "templates"
 #: the routes that read a body before anyone is authenticated, and the most they read (bytes): beyond it, 413
 LOGIN_ROUTES = ("/login", "/api/token")
 LOGIN_BODY_MAX = 64 * 1024
+#: what a page may load: only from the console itself (no other site, no framing, forms post only here). Inline
+#: scripts stay allowed ('unsafe-inline': the pages and report.html carry theirs), as does eval (plotly's 3-D views
+#: compile their WebGL code at run time), so this limits where a page loads from and sends to, not script injection
+#: (the templates' escaping does that).
+CSP = ("default-src 'self'; script-src 'self' 'unsafe-inline' 'unsafe-eval' blob:; style-src 'self' 'unsafe-inline'; "
+       "img-src 'self' data: blob:; font-src 'self' data:; connect-src 'self' data: blob:; worker-src 'self' blob:; "
+       "object-src 'none'; base-uri 'none'; form-action 'self'; frame-ancestors 'none'")
 
 
 class BodyLimit:
@@ -75,7 +82,7 @@ def create_app(config: Config) -> FastAPI:
 
     @asynccontextmanager
     async def lifespan(app: FastAPI):
-        app.state.hash_limiter = None  # made anew on this event loop at first use (deps.hash_limiter)
+        app.state.login_limiters = None  # made anew on this event loop at first use (deps.login_limiters)
         console.view.refresh()
         yield
         try:
@@ -127,6 +134,7 @@ def create_app(config: Config) -> FastAPI:
         # pages and JSON hold the archive's data and the session's CSRF token: no copy in any cache (the static
         # assets set their own, private, Cache-Control)
         r.headers.setdefault("Cache-Control", "no-store")
+        r.headers.setdefault("Content-Security-Policy", CSP)
         if config.tls:
             r.headers.setdefault("Strict-Transport-Security", "max-age=31536000")
         return r

@@ -11,9 +11,12 @@ from fastapi import Depends, HTTPException, Request
 
 from cell.web.users import MAX_PASSWORD_CHARS, Throttled, User, UserStore
 
-#: password checks (argon2id: ~0.15 s of CPU and 64 MiB each) running at once; the others queue. Their own
-#: threads: a flood of logins neither blocks the event loop nor takes the thread pool the other routes run in.
-HASHERS = 2
+#: password checks (argon2id: ~0.15 s of CPU and 64 MiB each, its four lanes in threads of their own) running at
+#: once; the others queue. One: a flood of logins then takes about one core, never the whole computer
+HASHERS = 1
+#: threads for the logins' SQLite bookkeeping (count, uncount, open the session): their own few, so a flood of logins
+#: never takes the thread pool the other routes (an operator's Abort) run in
+LOGIN_THREADS = 4
 
 COOKIE = "cell_session"
 
@@ -53,12 +56,18 @@ def bearer(request: Request) -> str | None:
     return auth[7:].strip() if auth.lower().startswith("bearer ") else None
 
 
-def hash_limiter(app) -> anyio.CapacityLimiter:
-    """The app's limiter for password checks (made anew at each start: a limiter belongs to its event loop)."""
-    lim = getattr(app.state, "hash_limiter", None)
-    if lim is None:
-        lim = app.state.hash_limiter = anyio.CapacityLimiter(HASHERS)
-    return lim
+def login_limiters(app) -> tuple[anyio.CapacityLimiter, anyio.CapacityLimiter]:
+    """The app's limiters for the logins' bookkeeping and their password checks (made anew at each start: a limiter
+    belongs to its event loop)."""
+    lims = getattr(app.state, "login_limiters", None)
+    if lims is None:
+        lims = app.state.login_limiters = (anyio.CapacityLimiter(LOGIN_THREADS), anyio.CapacityLimiter(HASHERS))
+    return lims
+
+
+async def login_work(app, fn, *args):
+    """``fn(*args)`` in one of the logins' own threads (SQLite: quick, but it may wait for a lock)."""
+    return await anyio.to_thread.run_sync(fn, *args, limiter=login_limiters(app)[0])
 
 
 async def log_in(request: Request, name: str, password: str) -> User | None:
@@ -70,15 +79,15 @@ async def log_in(request: Request, name: str, password: str) -> User | None:
     users: UserStore = request.app.state.users
     client = request.client.host if request.client else ""
     try:
-        attempt = await anyio.to_thread.run_sync(users.begin_login, name, client)
+        attempt = await login_work(request.app, users.begin_login, name, client)
     except Throttled as e:
         raise HTTPException(429, str(e), headers={"Retry-After": str(int(e.wait_s) + 1)}) from None
     user = None
     try:
         user = await anyio.to_thread.run_sync(users.check_password, name, password,
-                                              limiter=hash_limiter(request.app))
+                                              limiter=login_limiters(request.app)[1])
     finally:
-        await anyio.to_thread.run_sync(users.end_login, attempt, user is not None)
+        await login_work(request.app, users.end_login, attempt, user is not None)
     return user
 
 

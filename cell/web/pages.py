@@ -4,11 +4,10 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-import anyio.to_thread
 from fastapi import APIRouter, Depends, Form, HTTPException, Request
 from fastapi.responses import FileResponse, HTMLResponse, RedirectResponse, Response
 
-from cell.web.deps import COOKIE, Caller, bearer, caller, log_in, role
+from cell.web.deps import COOKIE, Caller, bearer, caller, log_in, login_work, role
 from cell.web.service import latest_image_jpeg, trend
 from cell.web.store import job_folder, reverifications
 from cell.web.users import ROLES
@@ -71,7 +70,7 @@ async def login(request: Request, username: str = Form(""), password: str = Form
         users.audit(user.name, "log in")
         return secret
 
-    secret = await anyio.to_thread.run_sync(open_session)
+    secret = await login_work(request.app, open_session)
     r = RedirectResponse("/", status_code=303)
     r.set_cookie(COOKIE, secret, httponly=True, samesite="strict", secure=request.app.state.config.tls, path="/")
     return r
