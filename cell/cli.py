@@ -242,7 +242,8 @@ def build_parser() -> argparse.ArgumentParser:
     c.set_defaults(func=cmd_archive)
 
     c = sub.add_parser("serve", parents=[common], help="the web console (operator screen, archive, JSON API)")
-    c.add_argument("--host", default="127.0.0.1", help="address to listen on (default: this computer only)")
+    c.add_argument("--host", default="127.0.0.1", help="address to listen on (default: this computer only). "
+                   "X-Forwarded-For is not trusted unless CELL_TRUSTED_PROXY names the reverse proxy's address")
     c.add_argument("--port", type=int, default=8765)
     c.add_argument("--archive", type=Path, default=Path("archive"))
     c.add_argument("--programs", type=Path, default=Path("programs"),
