@@ -1,4 +1,4 @@
-"""The console's hardening after the outside security test (docs/decisions/0058c-console-hardening.md): a login flood
+"""The console's hardening after the outside security test (docs/decisions/0058-console-hardening.md): a login flood
 does not freeze the console, login bodies and passwords are bounded before hashing, the throttle cannot be raced or
 dodged with X-Forwarded-For, exports do not carry spreadsheet formulas, a serial may start with '-', the program page
 opens, pages show no attacker text, nothing authenticated is cached, and an API token can be revoked."""

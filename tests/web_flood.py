@@ -1,4 +1,4 @@
-"""Abort latency under a flood of bad logins (docs/decisions/0058c): python tests/web_flood.py REPO [N]: serves REPO's console on a seeded archive."""
+"""Abort latency under a flood of bad logins (docs/decisions/0058): python tests/web_flood.py REPO [N]: serves REPO's console on a seeded archive."""
 import collections, concurrent.futures as cf, os, subprocess, sys, tempfile, time
 from pathlib import Path
 import requests
