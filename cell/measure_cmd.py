@@ -475,6 +475,11 @@ def measure_command(args, out) -> int:
     doc["stage_times_s"] = {"measure": time.perf_counter() - t0}
     job_id = new_job_id(name)
     report = report_doc(doc, targets, args.tolerance * UNITS_TO_M[args.units], job_id, name, started, utc_now())
+    al = report["alignment"]  # the frame's doubts and fallbacks, said here as in report.json and report.html
+    for r in al.get("reasons", []):
+        out.say(f"UNTRUSTED alignment to the layout: {r}")
+    for n in al.get("notes", []):
+        out.say(f"WARNING alignment to the layout: {n}")
     _write_outputs(Path(args.out), doc, targets, report)
     if args.archive is not None:
         doc["archive"] = str(_archive(args.archive, Path(args.out), job_id, name))

@@ -13,27 +13,18 @@ import pytest
 from fastapi.routing import APIRoute
 from fastapi.testclient import TestClient
 
-from webutil import seed_trend_archive
+from webutil import PASSWORDS, seed_trend_archive, security_site
 
 from cell.web.app import create_app
 from cell.web.deps import Config
 from cell.web.users import UserStore
 
-PASSWORDS = {"ada": "admin-pw-9f3k", "eve": "engineer-pw-2m", "olga": "operator-pw-7q"}
-ROLES = {"ada": "admin", "eve": "engineer", "olga": "operator"}
 PUBLIC = {("GET", "/login"), ("POST", "/login"), ("POST", "/api/token")}
 
 
 @pytest.fixture(scope="module")
 def site(tmp_path_factory):
-    base = tmp_path_factory.mktemp("web")
-    archive, programs = base / "archive", base / "programs"
-    programs.mkdir()
-    ids = seed_trend_archive(archive, n_parts=3)
-    store = UserStore(archive / "console.sqlite")
-    for name, pw in PASSWORDS.items():
-        store.add(name, ROLES[name], pw)
-    return archive, programs, ids
+    return security_site(tmp_path_factory.mktemp("web"))
 
 
 @pytest.fixture

@@ -17,14 +17,12 @@ import pytest
 import requests
 from fastapi.testclient import TestClient
 
-from webutil import Served, seed_trend_archive, tiny_program
+from webutil import PASSWORDS, Served, security_site, tiny_program
 
 from cell.web.app import create_app
 from cell.web.deps import Config
-from cell.web.users import MAX_CLIENT_FAILURES, MAX_FAILURES, UserStore
+from cell.web.users import MAX_CLIENT_FAILURES, MAX_FAILURES
 
-PASSWORDS = {"ada": "admin-pw-9f3k", "eve": "engineer-pw-2m", "olga": "operator-pw-7q"}
-ROLES = {"ada": "admin", "eve": "engineer", "olga": "operator"}
 
 
 class CountingHasher:
@@ -47,13 +45,7 @@ class CountingHasher:
 
 @pytest.fixture
 def site(tmp_path):
-    archive, programs = tmp_path / "archive", tmp_path / "programs"
-    programs.mkdir()
-    ids = seed_trend_archive(archive, n_parts=3)
-    store = UserStore(archive / "console.sqlite")
-    for name, pw in PASSWORDS.items():
-        store.add(name, ROLES[name], pw)
-    return archive, programs, ids
+    return security_site(tmp_path)
 
 
 @pytest.fixture

@@ -144,3 +144,23 @@ def chromium_path() -> str | None:
         if os.path.exists(p):
             return p
     return None
+
+
+#: the console's accounts in the security tests: one per role
+PASSWORDS = {"ada": "admin-pw-9f3k", "eve": "engineer-pw-2m", "olga": "operator-pw-7q"}
+ROLES = {"ada": "admin", "eve": "engineer", "olga": "operator"}
+
+
+def security_site(base: Path) -> tuple[Path, Path, list[str]]:
+    """An archive of three synthesized jobs with one account per role, and an empty programs folder, under ``base``:
+    ``(archive, programs, job ids)``."""
+    from cell.web.users import UserStore
+
+    archive, programs = base / "archive", base / "programs"
+    programs.mkdir(parents=True)
+    ids = seed_trend_archive(archive, n_parts=3)
+    store = UserStore(archive / "console.sqlite")
+    for name, pw in PASSWORDS.items():
+        store.add(name, ROLES[name], pw)
+    return archive, programs, ids
+
