@@ -52,9 +52,10 @@ def report_targets(job_index: int, n_targets: int, tol: float = 100e-6) -> list[
 
 
 def write_job(archive: Archive, job_id: str, job_index: int, n_targets: int = 20, serial: str | None = None,
-              part: str = PART, between=None) -> JobFolder:
+              part: str = PART, between=None, untrusted: bool = False) -> JobFolder:
     """Write one whole job into ``archive`` as the runner does; ``between(stage)`` is called after each
-    transition (the load test stops the database there). Returns the closed folder."""
+    transition (the load test stops the database there). ``untrusted``: the alignment to CAD not trusted (verdict
+    UNTRUSTED, every measured target undecided). Returns the closed folder."""
     f = JobFolder(archive.root / job_id)
     f.path.mkdir(parents=True)
     f.append("created", name=part, job_file="job.toml", backend="sim", serial=serial)
@@ -71,6 +72,10 @@ def write_job(archive: Archive, job_id: str, job_index: int, n_targets: int = 20
         if to == "REPORT":
             tl = report_targets(job_index, n_targets)
             verdict = "PASS" if all(t["pass"] for t in tl) else "FAIL"
+            if untrusted:
+                verdict = "UNTRUSTED"
+                for t in tl:
+                    t["decision"] = "undecided" if t["decision"] is not None else None
             atomic_write_json(f.file("report.json"), {
                 "job": {"id": job_id, "name": part, "part": part, "seed": job_index, "status": "DONE",
                         "started": list(f.records())[0]["t"], "finished": utc_now(), "versions": {}},

@@ -115,6 +115,28 @@ def test_every_target_value_comes_back_and_a_trend_is_one_query(tmp_path, url):
     a.close()
 
 
+def test_the_parts_statistics_leave_out_untrusted_jobs_and_count_them_apart(tmp_path, url):
+    """A job whose alignment to CAD was not trusted deviates in a frame nobody trusts: its targets are counted
+    ``undecided`` and left out of the mean and the spread (as the trend's Cp/Cpk leave them out)."""
+    a = _archive(tmp_path, url)
+    n_t = 8
+    for k in range(4):
+        write_job(a, f"job-{k:02d}", k, n_targets=n_t, untrusted=(k == 2))
+    reps = [json.loads((a.root / f"job-{k:02d}" / "report.json").read_text())["targets"] for k in range(4)]
+    assert all(t["decision"] in ("undecided", None) for t in reps[2])
+    summary = {r["id"]: r for r in a.index.part_summary(PART)}
+    for i in range(n_t):
+        kept = [rep[i] for k, rep in enumerate(reps) if k != 2 and rep[i]["measured"][0] is not None]
+        got = summary[f"T{i:03d}"]
+        assert got["n"] == len(kept)
+        assert got["undecided"] == (reps[2][i]["measured"][0] is not None)
+        assert got["failed"] == sum(not rep[i]["pass"] for rep in reps if rep[i]["measured"][0] is not None)
+        if kept:
+            np.testing.assert_allclose(got["deviation_mean"], np.mean([t["deviation"] for t in kept], axis=0),
+                                       rtol=1e-9, atol=1e-18)
+    a.close()
+
+
 def test_a_job_id_of_another_cell_is_never_overwritten(tmp_path, url):
     a1, a2 = _archive(tmp_path, url, "cell1"), _archive(tmp_path, url, "cell2")
     write_job(a1, "same-id", 1, n_targets=4)

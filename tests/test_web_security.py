@@ -120,6 +120,12 @@ def test_forms_and_scripts_without_the_csrf_token_are_refused(app, site):
         assert recs[-1]["event"] == "audit" and recs[-1]["user"] == "ada" and recs[-1]["action"] == "sign off"
         row = next(r for r in c.get("/archive").text.split("<tr>") if ids[1] in r)
         assert "ada " + recs[-1]["t"][:10] in row  # the archive shows who signed it off
+        # ... and, beside the targets beyond tolerance, those not measured (not counted as failed)
+        tl = json.loads((site[0] / ids[1] / "report.json").read_text())["targets"]
+        nm = sum(t["measured"][0] is None for t in tl)
+        failed = sum(t["measured"][0] is not None and not t["pass"] for t in tl)
+        assert "<th>failed</th><th>not measured</th>" in c.get("/archive").text
+        assert f"<td>{failed}</td><td>{nm}</td>" in row
         from cell.record.archive import Archive
 
         assert Archive(site[0]).verify(ids[1]) == []  # the folder stays closed (manifest rewritten)

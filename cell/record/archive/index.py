@@ -313,18 +313,29 @@ class ArchiveIndex:
 
         ``id``, ``n`` (jobs that measured it), ``mean`` and ``std`` (sample) of each deviation component
         (``deviation_mean``, ``deviation_std``: 3 each, m) and of the deviation's length
-        (``norm_mean``, ``norm_std``), ``failed`` (beyond tolerance), ``nonconforming``, ``inconclusive``.
-        The SPC of a whole part without reading one folder; ``std`` None below two jobs.
+        (``norm_mean``, ``norm_std``), ``failed`` (beyond tolerance), ``nonconforming``, ``inconclusive``,
+        ``undecided``. The SPC of a whole part without reading one folder; ``std`` None below two jobs.
+
+        ``n``, the means and the spreads take only decided measurements: a target ``undecided`` (its job's
+        alignment to CAD not trusted) or measured in an UNTRUSTED job deviates in a frame nobody trusts, so it is
+        counted in ``undecided`` and kept out of the statistics, as the trend's Cp/Cpk keep it out
+        (:mod:`cell.record.decisions`). ``failed`` counts every measured target beyond tolerance, as the jobs do.
         """
         t = targets.c
         f = sa.func
-        comps = [t.deviation_x, t.deviation_y, t.deviation_z, t.deviation_norm_m]
         measured = t.deviation_norm_m.is_not(None)
-        stmt = (sa.select(t.target_id, f.count(t.deviation_norm_m),
+        # decided: measured in a frame the job trusts (an older row of an UNTRUSTED job may carry a decision)
+        untrusted = sa.or_(t.decision == "undecided", jobs.c.verdict == "UNTRUSTED")
+        decided = sa.and_(measured, sa.not_(sa.func.coalesce(untrusted, False)))
+        comps = [sa.case((decided, c), else_=None)
+                 for c in (t.deviation_x, t.deviation_y, t.deviation_z, t.deviation_norm_m)]
+        stmt = (sa.select(t.target_id, f.count(comps[3]),
                           *[f.sum(c) for c in comps], *[f.sum(c * c) for c in comps],
                           f.sum(sa.case((sa.and_(measured, t.passed.is_(False)), 1), else_=0)),
-                          f.sum(sa.case((t.decision == "nonconforming", 1), else_=0)),
-                          f.sum(sa.case((t.decision == "inconclusive", 1), else_=0)))
+                          f.sum(sa.case((sa.and_(decided, t.decision == "nonconforming"), 1), else_=0)),
+                          f.sum(sa.case((sa.and_(decided, t.decision == "inconclusive"), 1), else_=0)),
+                          f.sum(sa.case((sa.and_(measured, sa.not_(decided)), 1), else_=0)))
+                .select_from(targets.join(jobs, jobs.c.id == t.job_id))
                 .where(t.part == part).group_by(t.target_id).order_by(t.target_id))
         if since is not None:
             stmt = stmt.where(t.finished >= _utc(since))
@@ -339,7 +350,8 @@ class ArchiveIndex:
             std = [float(np.sqrt(max(q - n * m * m, 0.0) / (n - 1))) if n > 1 else None for q, m in zip(sq, mean)]
             out.append({"id": r[0], "n": n, "deviation_mean": mean[:3], "deviation_std": std[:3],
                         "norm_mean": mean[3], "norm_std": std[3], "failed": int(r[10] or 0),
-                        "nonconforming": int(r[11] or 0), "inconclusive": int(r[12] or 0)})
+                        "nonconforming": int(r[11] or 0), "inconclusive": int(r[12] or 0),
+                        "undecided": int(r[13] or 0)})
         return out
 
     def parts(self) -> list[str]:
