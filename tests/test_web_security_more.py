@@ -257,3 +257,28 @@ def test_an_api_token_is_revoked_by_logging_out(app):
         # the audit says so
         audit = c.get("/api/audit", headers=_token(c, "eve")).json()["audit"]
         assert [a["user"] for a in audit if a["action"] == "token revoked"] == ["olga", "olga"]
+
+
+def test_the_session_lookup_runs_off_the_event_loop(app):
+    """Every authenticated request reads its session or token from SQLite, which may wait for a lock while a flood
+    of logins writes its attempts: the read runs in a worker thread, never on the event loop."""
+    import asyncio
+
+    users = app.state.users
+    lookup, on_loop = users.session, []
+
+    def spy(secret, kind):
+        try:
+            asyncio.get_running_loop()
+            on_loop.append(kind)
+        except RuntimeError:  # no loop in this thread: a worker's
+            on_loop.append(None)
+        return lookup(secret, kind)
+
+    with TestClient(app) as c:
+        users.session = spy
+        h = _token(c, "olga")
+        assert c.get("/api/jobs", headers=h).status_code == 200
+        _login(c, "olga")
+        assert c.get("/archive").status_code == 200
+    assert len(on_loop) >= 3 and on_loop.count(None) == len(on_loop), on_loop

@@ -96,12 +96,14 @@ async def caller(request: Request) -> Caller:
     session's CSRF token (form field ``csrf`` for pages, header ``X-CSRF-Token`` for scripts)."""
     users: UserStore = request.app.state.users
     token = bearer(request)
+    # the lookup reads SQLite, which may wait for a lock (a login flood writes its attempts): in a thread of the
+    # default pool, never on the event loop, and not in the logins' own threads, which a flood may keep busy
     if token is not None:
-        found = users.session(token, "api")
+        found = await anyio.to_thread.run_sync(users.session, token, "api")
         if found is None:
             raise Unauthorized("invalid or expired token")
         return Caller(found[0], None, "token")
-    found = users.session(request.cookies.get(COOKIE), "session")
+    found = await anyio.to_thread.run_sync(users.session, request.cookies.get(COOKIE), "session")
     if found is None:
         raise Unauthorized()
     c = Caller(found[0], found[1], "session")
