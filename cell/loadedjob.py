@@ -166,7 +166,7 @@ def load(job_path: str | Path, overrides: dict[str, str] | None = None) -> Loade
         taken = cell_taken(spec, Path(job_path))
         if taken["lens"] is not None:
             intrinsics = replace(intrinsics, **{k: v for k, v in taken["lens"].items() if k != "cov"})
-    return LoadedJob(
+    job = LoadedJob(
         spec=spec,
         path=Path(job_path),
         folder=folder,
@@ -179,3 +179,9 @@ def load(job_path: str | Path, overrides: dict[str, str] | None = None) -> Loade
         target_thickness_m=thickness,
         damaged_targets=damaged,
     )
+    from cell.setup import part_placement_error  # a part in the table or an obstacle is refused here, at LOAD
+
+    placed = part_placement_error(job)
+    if placed:
+        raise JobSpecError(f"{job_path}: {placed}")
+    return job

@@ -119,6 +119,52 @@ def collision_world(job: LoadedJob, clearance_m: float = 0.005) -> CollisionWorl
                           obstacles=obstacles, clearance_m=clearance_m)
 
 
+#: a part may touch the table or an obstacle by this much (its placement's own error, a locate's sigma) and pass
+PLACEMENT_TOL_M = 0.5e-3
+
+
+def part_placement_error(job: LoadedJob) -> str | None:
+    """One line saying how the part, placed by ``[cell] base_from_part``, goes into the table or a fixed obstacle of
+    the cell's collision world; None when it is clear of both (touching within :data:`PLACEMENT_TOL_M` is clear).
+
+    Nothing else checks the part against the cell: the collision world pairs only the robot's bodies with it, so a
+    part sunk into the table was planned, seen and reached through the table top (an outside check)."""
+    import coal
+
+    s, c = job.spec, job.spec.cell
+    k, u = s.scale, s.job.units
+    T = s.base_from_part()
+    mesh = job.part.mesh
+    v = np.asarray(mesh.vertices, dtype=float) @ T[:3, :3].T + T[:3, 3]
+    table = c.table_z * k
+    depth = table - float(v[:, 2].min())
+    if depth > PLACEMENT_TOL_M:
+        below = int(np.sum((job.part.targets.xyz @ T[:3, :3].T + T[:3, 3])[:, 2] < table))
+        return (f"the part goes {depth / k:.4g} {u} into the table (its lowest point at z = {v[:, 2].min() / k:.4g} "
+                f"{u}, the table top at [cell] table_z = {c.table_z:g}; {below} of {len(job.part.targets)} targets "
+                "below it): correct [cell] base_from_part so that the part rests on the table")
+    if not c.obstacles:
+        return None
+    from planning.kinematics import mesh_bvh
+
+    bvh = mesh_bvh(mesh)
+    part_tf = coal.Transform3s(T[:3, :3], T[:3, 3])
+    for o in c.obstacles:
+        B = pose_matrix(o.pose, k)
+        half = 0.5 * np.asarray(o.size, dtype=float) * k
+        inner = np.maximum(2 * (half - PLACEMENT_TOL_M), 1e-9)  # touching a face within the tolerance is clear
+        res = coal.CollisionResult()
+        coal.collide(bvh, part_tf, coal.Box(*inner), coal.Transform3s(B[:3, :3], B[:3, 3]), coal.CollisionRequest(),
+                     res)
+        local = np.abs((v - B[:3, 3]) @ B[:3, :3])  # the part's vertices in the box's frame
+        inside = np.min(half - local, axis=1)  # > 0: that far inside the box
+        if res.isCollision() or inside.max() > PLACEMENT_TOL_M:
+            how = (f"up to {inside.max() / k:.4g} {u} inside it" if inside.max() > 0 else "its faces cross the box")
+            return (f"the part intersects the cell's obstacle {o.name!r} ({how}): correct [cell] base_from_part (or "
+                    "the obstacle's pose in [cell] obstacles)")
+    return None
+
+
 def image_precision(job):
     """The planner's image precision: the detector model (``[camera] observation_weights = "model"``), else None."""
     from planning.uncertainty import ImagePrecision

@@ -362,6 +362,9 @@ def _mesh_bvh(mesh: trimesh.Trimesh) -> coal.BVHModelOBBRSS:
     return bvh
 
 
+mesh_bvh = _mesh_bvh  # the part's BVH for a check of the part itself against the cell (cell.setup)
+
+
 @dataclass
 class _Scene:
     """A pinocchio GeometryModel of robot + world, with its collision pairs."""
