@@ -156,6 +156,7 @@ def _a_job_of_the_cell_measures_through_its_calibration(tmp_path: Path, cell: Pa
     assert np.asarray(cf.cell.camera_lens.cov).shape == (9, 9)
     held = bundle["lens"]["held_uncertainty"]
     assert held["carried"] and held["axes"] >= 6 and 1.05 < held["sigma_growth_median"] < 3.0, held
+    assert len(held["added_variance_m2"]) == len(bundle["targets"])
     assert "held lens's uncertainty" in run.stderr
     assert bundle["intrinsics"]["fx_px"] == cf.cell.camera_lens.fx_px and bundle["intrinsics"]["k1"] == cf.cell.camera_lens.k1
     rep = json.loads((folder / "report.json").read_text())
@@ -163,6 +164,14 @@ def _a_job_of_the_cell_measures_through_its_calibration(tmp_path: Path, cell: Pa
     assert cal["status"] == "verified", cal  # the reverification above was made with this hand-eye
     assert cal["lens"]["k1"] == cf.cell.camera_lens.k1 and "hand-eye calibrated" in cal["measured_with"]
     assert rep["alignment"]["trusted"] and rep["verdict"] == "FAIL"  # the example's three real deviations
+    # predicted / achieved compares the images' precision, the held lens's share taken off both sides; the lens's
+    # share as planned and as carried is said beside it (decision 0062)
+    poa = rep["predicted_over_achieved"]
+    assert poa["held_lens"]["planned_growth_median"] > 1.0 and poa["held_lens"]["achieved_growth_median"] > 1.0
+    judged = [t for t in rep["targets"] if t["deviation"][0] is not None]
+    assert all(t["predicted_sigma_images_m"] < t["predicted_sigma_m"] for t in judged)
+    assert all(t["achieved_sigma_images_m"] < t["achieved_sigma_m"] for t in judged)
+    assert "the images&#x27; precision, without the held lens" in (folder / "report.html").read_text()
     html = (folder / "report.html").read_text()
     assert "Measured with" in html and 'id="lens-held"' not in html and not rep["lens"].get("held_note")
     ids, nominal, truth = truth_xyz_m(job)

@@ -232,6 +232,8 @@ def test_the_held_lens_columns_are_the_networks_response_to_a_lens_error():
     assert doc["carried"] and doc["axes"] == 8 and doc["sigma_growth_median"] > 1.0
     cols = res.covariance.U[:, :, -doc["axes"]:]
     assert np.allclose(res.cov - before, np.einsum("nak,nbk->nab", cols, cols), rtol=1e-9, atol=1e-20)
+    # each target's share, as REPORT and PLAN take it off for predicted / achieved (decision 0062)
+    assert np.allclose(doc["added_variance_m2"], np.trace(res.cov - before, axis1=1, axis2=2), rtol=1e-9, atol=1e-24)
     lam, V = np.linalg.eigh(cov)
     keep = lam > lam.max() * 1e-12
     for _ in range(2):  # a lens error drawn from the covariance: the network's response is the columns' combination

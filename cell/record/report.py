@@ -260,7 +260,8 @@ def _alerts(doc: dict) -> str:
     for said, tag, head in ((budget.get("detector_model_mismatch"), "model-mismatch", "Image precision"),
                             (budget.get("detector_model_shape"), "model-shape", "Image precision"),
                             (budget.get("detector_model_range"), "model-range", "Image precision"),
-                            (plan.get("note"), "prediction-off", "Plan")):
+                            (plan.get("note"), "prediction-off", "Plan"),
+                            ((plan.get("held_lens") or {}).get("note"), "prediction-held-lens", "Plan")):
         if said:
             out.append(f'<div class="warn" id="{tag}">{head}: {html.escape(said)}</div>')
     if doc.get("solver_fallback"):
@@ -322,8 +323,14 @@ def _alignment_facts(doc: dict) -> dict:
                         + ("trusted" if al.get("trusted") else "NOT TRUSTED")
                         + ("" if al.get("stable", True) else ", not stable")}
     if ratio.get("median") is not None:
+        held = ratio.get("held_lens") or {}
         out["Predicted / achieved sigma"] = (f"{ratio['median']:.2f} (median over {ratio['n']} targets; "
-                                             f"10-90 %: {ratio['p10']:.2f}-{ratio['p90']:.2f})")
+                                             f"10-90 %: {ratio['p10']:.2f}-{ratio['p90']:.2f})"
+                                             + ("" if held.get("total_median") is None else
+                                                f"; the images' precision, without the held lens's share "
+                                                f"(with it {held['total_median']:.2f}: the lens grew sigma "
+                                                f"x{held['achieved_growth_median']:.2f}, planned "
+                                                f"x{held['planned_growth_median']:.2f})"))
     if doc.get("snooping"):
         out["Rejected observations"] = f"{doc.get('n_rejected', 0)} (listed in bundle.json and in report.json rejected_observations)"
     return out

@@ -205,8 +205,9 @@ def lens_doc(job, bundle: dict) -> dict:
            "radial_check": b.get("radial_check"), "note": None, "focal_note": None}
     doc["note"] = (b.get("radial_check") or {}).get("note")  # the statement is not this lens's
     cells = bool((getattr(job, "cell", None) or {}).get("lens"))  # the job started from the cell's lens (decision 0056)
-    doc["held_uncertainty"] = b.get("held_uncertainty")  # the held lens's covariance carried (decision 0056)
     held = b.get("held_uncertainty") or {}
+    # the held lens's covariance carried (decision 0056); each target's share stays in bundle.json
+    doc["held_uncertainty"] = {k: v for k, v in held.items() if k != "added_variance_m2"} if held else None
     if cells and not names and not held.get("carried"):
         why = held.get("why") or "the cell file states no covariance for it"
         doc["held_note"] = (f"the lens is held as the cell's hand-eye calibration estimated it ([cell] camera_lens of "

@@ -169,12 +169,20 @@ def run(ctx) -> None:
         cov, n_rays, pre_facts = pred
         retro = ctx.job.part.targets.kind != "coded"
         unpredicted = []
-        for t, c_, n_, r_ in zip(doc["targets"], cov, n_rays, retro):
+        # the held lens's share of each target's variance (decision 0056): predicted / achieved compares the images'
+        # precision without it (decision 0062); the plan keeps its summary, each target its sigma without it
+        held = pre_facts.get("held_lens") or {}
+        lens_var = held.pop("added_variance_m2", None)
+        lens_var = np.zeros(len(cov)) if not lens_var or len(lens_var) != len(cov) else \
+            np.array([0.0 if v is None else float(v) for v in lens_var])
+        for t, c_, n_, r_, v_ in zip(doc["targets"], cov, n_rays, retro, lens_var):
             t["planned_cov"] = t["predicted_cov"]
             # a target the renders do not measure (or ADJUST's screening would drop) has no prediction: not the
             # search's optimistic one in its place
             t["predicted_cov"] = c_ if np.isfinite(c_).all() else None
             t["predicted_rays"] = int(n_)
+            if held.get("carried") and t["predicted_cov"] is not None:
+                t["predicted_sigma_images_m"] = float(np.sqrt(max(np.trace(c_) - v_, 0.0)))
             if r_ and t["predicted_cov"] is None:
                 unpredicted.append(t["id"])
         pre_facts["targets_not_predicted"] = unpredicted

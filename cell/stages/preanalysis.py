@@ -352,6 +352,8 @@ def measurement_prediction(job, part_from_cam: np.ndarray, progress=None, cache_
         facts["scale_bars_left_out"] = added.pop("scale_bars_left_out")
     if "dot_precision" in added:
         facts["dot_precision"] = added.pop("dot_precision")
+    if "held_lens" in added:  # the held lens's share (PLAN keeps each target's sigma without it, then the summary)
+        facts["held_lens"] = added.pop("held_lens")
     if added:
         facts["shared_misfit_targets"] = added.get("n_targets", 0)
         facts["scale_bar_ends"] = added.get("scale_bar_ends", [])

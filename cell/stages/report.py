@@ -295,12 +295,56 @@ def part_verdict(trusted: bool, ok: np.ndarray, passed: np.ndarray, judged: np.n
 PREDICTION_BAND = (0.75, 1.25)
 
 
+def held_lens_variance(bundle: dict) -> np.ndarray:
+    """Each target's variance (trace, m^2) the held lens's uncertainty added in ADJUST (bundle.json
+    ``lens.held_uncertainty.added_variance_m2``); zeros when the lens was not held or nothing was carried."""
+    n = len(bundle["targets"])
+    v = ((bundle.get("lens") or {}).get("held_uncertainty") or {}).get("added_variance_m2")
+    if not v or len(v) != n:
+        return np.zeros(n)
+    return np.array([0.0 if x is None else float(x) for x in v])
+
+
+def _held_lens_growth(plan: dict, bundle: dict, targets: list[dict]) -> dict:
+    """The held lens's share as the plan expected it and as ADJUST carried it (``held_lens``: the sigmas' median
+    growth each, the observations rejected, predicted / achieved with it (``total_median``), and a ``note`` when the
+    growths differ by more than :data:`PREDICTION_BAND` allows); {} when the lens was not held."""
+    planned = (((plan.get("prediction") or {}).get("facts") or {}).get("held_lens") or {})
+    carried = ((bundle.get("lens") or {}).get("held_uncertainty") or {})
+    if not (planned.get("carried") and carried.get("carried")):
+        return {}
+    gp, ga = float(planned["sigma_growth_median"]), float(carried["sigma_growth_median"])
+    tot = [t["predicted_sigma_m"] / t["achieved_sigma_m"] for t in targets
+           if np.isfinite(t["predicted_sigma_m"]) and np.isfinite(t["achieved_sigma_m"]) and t["achieved_sigma_m"] > 0]
+    out = {"planned_growth_median": gp, "achieved_growth_median": ga,
+           "total_median": float(np.median(tot)) if tot else None,
+           "rejected_observations": int(bundle.get("n_rejected") or 0), "note": None}
+    lo, hi = PREDICTION_BAND
+    if not lo <= gp / ga <= hi:
+        out["note"] = (f"the held lens's uncertainty grew the targets' sigma x{ga:.2f} (median) where the plan expected "
+                       f"x{gp:.2f}, so the plan's whole predicted sigma is {out['total_median']:.2f}x the achieved one "
+                       f"(the images' part alone: predicted_over_achieved): ADJUST's data snooping rejected "
+                       f"{out['rejected_observations']} observation(s), those the held lens describes worst (near the "
+                       "frame's corners its own uncertainty is many times a dot's noise), and the lens's share shrank "
+                       "with them" if gp > ga and out["rejected_observations"] else
+                       f"the held lens's uncertainty grew the targets' sigma x{ga:.2f} (median) where the plan expected "
+                       f"x{gp:.2f}: the images the network took are not the planned ones (check the images left out "
+                       "and the observations rejected)")
+    return {"held_lens": out}
+
+
+def _nan(v) -> float:
+    return float("nan") if v is None else float(v)
+
+
 def _predicted_over_achieved(targets: list[dict]) -> dict:
     """Predicted / achieved sigma over the measured targets: median, and the 10 / 90 % quantiles; ``note``: what a
     median outside :data:`PREDICTION_BAND` means (None inside it)."""
-    a = "achieved_sigma_images_m"  # the plan predicts the images' precision, without the temperatures' shared part
-    r = np.array([t["predicted_sigma_m"] / t[a] for t in targets
-                  if np.isfinite(t["predicted_sigma_m"]) and np.isfinite(t[a]) and t[a] > 0])
+    # the plan predicts the images' precision, without the temperatures' and the held lens's shared parts
+    a = "achieved_sigma_images_m"
+    p = [t.get("predicted_sigma_images_m", t["predicted_sigma_m"]) for t in targets]
+    r = np.array([pj / t[a] for pj, t in zip(p, targets)
+                  if pj is not None and np.isfinite(pj) and np.isfinite(t[a]) and t[a] > 0])
     if not len(r):
         return {"median": None, "p10": None, "p90": None, "n": 0, "band": list(PREDICTION_BAND), "note": None}
     m = float(np.median(r))
@@ -453,8 +497,10 @@ def write_report(ctx) -> tuple[str, list[str]]:
     # decision 0053: the part's and the bars' temperatures, shared by every own-material bar, in the covariance
     th_cols, th_w, _ = shared_columns(job.spec, K, bundle.get("scale_bars") or [])
     # what the plan predicts is the measurement's (images, network, certificates): predicted / achieved compares it
-    # without the temperatures' shared scale, which the plan does not know
-    achieved_images = np.sqrt(np.trace(cov, axis1=1, axis2=2))
+    # without the temperatures' shared scale, which the plan does not know, and without the held lens's share, whose
+    # size depends on the observations ADJUST's data snooping rejects where the held lens does not describe the
+    # images (the frame's corners): the plan cannot know which (decision 0062); both sides leave it out
+    achieved_images = np.sqrt(np.maximum(np.trace(cov, axis1=1, axis2=2) - held_lens_variance(bundle), 0.0))
     if len(th_w):
         pc = append_columns(pc, th_cols, th_w)
         cov = cov + np.einsum("nar,r,nbr->nab", th_cols, th_w, th_cols)
@@ -486,6 +532,7 @@ def write_report(ctx) -> tuple[str, list[str]]:
     level = al.sigma_level()
     predicted = {t["id"]: (np.sqrt(np.trace(t["predicted_cov"])) if t["predicted_cov"] is not None else np.nan)
                  for t in plan["targets"]}
+    predicted_images = {t["id"]: t.get("predicted_sigma_images_m", predicted[t["id"]]) for t in plan["targets"]}
     coded = job.part.targets.kind == "coded"  # identification aids: not measured, not judged
     bar_end = own_bar_ends(job)  # the ends of a bar of its own material: the bar's, not the part's (decision 0053)
     passed = ok & (dev_norm <= tol)
@@ -512,7 +559,8 @@ def write_report(ctx) -> tuple[str, list[str]]:
             "uncertainty_U_m": U[j], "decision": decision[j], "suspect": tid in suspect,
             "print_doubtful": printed.get(tid),
             "predicted_sigma_m": predicted.get(tid, np.nan), "achieved_sigma_m": achieved[j],
-            "achieved_sigma_images_m": achieved_images[j], "n_images": n_img[j],
+            "predicted_sigma_images_m": _nan(predicted_images.get(tid)), "achieved_sigma_images_m": achieved_images[j],
+            "n_images": n_img[j],
         })
     recs = list(f.records())
     started = next((r["t"] for r in recs if r["event"] == "created"), recs[0]["t"])
@@ -559,7 +607,7 @@ def write_report(ctx) -> tuple[str, list[str]]:
                                   for r in f.read_json("calibration.json")["images"] if "fallback_reason" in r],
         "predicted_sigma_max_m": plan["predicted_sigma_max_m"],
         "achieved_sigma_max_m": float(np.nanmax(achieved)),
-        "predicted_over_achieved": _predicted_over_achieved(targets),
+        "predicted_over_achieved": _predicted_over_achieved(targets) | _held_lens_growth(plan, bundle, targets),
         "stage_times_s": times,
         "cell_calibration": _calibration_status(ctx),
         "targets": targets,
@@ -594,7 +642,7 @@ def write_report(ctx) -> tuple[str, list[str]]:
         "deviations": R.figure_deviations(job.part.mesh, nominal[judged], np.nan_to_num(dev_norm[judged], nan=np.inf),
                                           tol[judged], passed[judged]),
         "ellipsoids": R.figure_ellipsoids(job.part.mesh, al.aligned[ok], cov[ok]),
-        "sigma": R.figure_sigma(np.array([t["predicted_sigma_m"] for t in targets], dtype=float),
+        "sigma": R.figure_sigma(np.array([t["predicted_sigma_images_m"] for t in targets], dtype=float),
                                 achieved_images[judged]),
         "residuals": R.figure_residuals(np.asarray(bundle["residuals_px"], dtype=float), rejected_mask(bundle)),
     }
@@ -624,6 +672,7 @@ def run(ctx) -> None:
     verdict, reasons = write_report(ctx)
     doc = ctx.folder.read_json("report.json")
     for note in ((doc.get("predicted_over_achieved") or {}).get("note"),  # the plan's prediction did not hold (issue 15)
+                 ((doc.get("predicted_over_achieved") or {}).get("held_lens") or {}).get("note"),
                  (doc.get("target_thickness") or {}).get("note"),  # a real cell's targets' thickness not given
                  (doc.get("thermal") or {}).get("note"),  # the part's size is not its CAD's (decision 0053)
                  (doc.get("thermal") or {}).get("part_scale_not_estimated"),

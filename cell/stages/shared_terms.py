@@ -89,7 +89,9 @@ def add_held_lens(res, img: np.ndarray, tgt: np.ndarray, uv: np.ndarray, config,
 
     ``img, tgt, uv``: the adjustment's observations (all of them; the rejected stay out); ``config``: its
     configuration (the lens held, the datum). Returns what was added: the axes used, each one's largest target move,
-    and how much the targets' sigmas grew. Nothing is added (``carried`` False, ``why``) when a re-adjustment does not
+    how much the targets' sigmas grew, and each target's added variance (``added_variance_m2``, the trace of its
+    term; None where its covariance is not finite: predicted / achieved compares the images' precision without it,
+    as without the temperatures' shared part). Nothing is added (``carried`` False, ``why``) when a re-adjustment does not
     converge or moves a target by a non-finite amount: a term from it would be a number nobody could trust.
     """
     C = np.asarray(lens_cov, dtype=float)
@@ -122,8 +124,10 @@ def add_held_lens(res, img: np.ndarray, tgt: np.ndarray, uv: np.ndarray, config,
     res.cov = res.cov + extra
     res.covariance = append_columns(res.covariance, cols, np.ones(cols.shape[2]))
     grow = np.sqrt((before + np.trace(extra[ok], axis1=1, axis2=2)) / np.maximum(before, 1e-300))
+    added = np.trace(extra, axis1=1, axis2=2)
     return {"carried": True, "axes": int(len(axes)), "largest_move_m": moved,
-            "sigma_growth_median": float(np.median(grow)), "sigma_growth_max": float(np.max(grow))}
+            "sigma_growth_median": float(np.median(grow)), "sigma_growth_max": float(np.max(grow)),
+            "added_variance_m2": [float(v) if o and np.isfinite(v) else None for v, o in zip(added, ok)]}
 
 
 def held_lens_line(doc: dict) -> str:
