@@ -99,14 +99,39 @@ def search_weights(job: LoadedJob) -> str:
     return job.spec.planning.search_weights or "sigma"
 
 
+def camera_box_pose(size_m, flange_from_cam: np.ndarray | None) -> np.ndarray:
+    """Where the camera's collision box (``[cell] camera_box``, its sides along the camera's x, y and optical axis)
+    sits on the flange: around the camera as the hand-eye ``flange_from_cam`` places it.
+
+    The box is centred on the optical axis through the projection centre and, along it, reaches from the flange
+    (where the axis crosses the flange's face, z = 0) to the box's length: the body behind the centre and the lens
+    in front of it. A centre farther from the flange than the box is long (a camera on an extension) gets the box
+    centred on it. Without a hand-eye (None), the box stands on the flange axis, half its length along it."""
+    size = np.asarray(size_m, dtype=float)
+    box = np.eye(4)
+    if flange_from_cam is None:
+        box[2, 3] = size[2] / 2
+        return box
+    R, c = np.asarray(flange_from_cam, dtype=float)[:3, :3], np.asarray(flange_from_cam, dtype=float)[:3, 3]
+    axis = R[:, 2]
+    back = c[2] / axis[2] if axis[2] > 1e-6 else np.inf  # from the centre back along the axis to the flange face
+    if not 0.0 <= back <= size[2]:
+        back = size[2] / 2
+    box[:3, :3] = R
+    box[:3, 3] = c + (size[2] / 2 - back) * axis
+    return box
+
+
 def robot_model(job: LoadedJob) -> RobotModel:
+    """The job's arm with its camera's collision box where the hand-eye puts the camera (:func:`camera_box_pose`;
+    before decision 0061 the box stood on the flange axis whatever the hand-eye, the example's projection centre on
+    its face)."""
     c = job.spec.cell
     k = job.spec.scale
     size = tuple(v * k for v in c.camera_box)
-    # the camera body: a box on the flange, centred half its length along the tool axis
-    box = np.eye(4)
-    box[2, 3] = size[2] / 2
-    return load_robot(c.robot, tool=ToolBox("camera", size, box), elbow_limit_rad=np.deg2rad(c.elbow_limit_deg))
+    hand_eye = job.spec.flange_from_cam() if c.flange_from_cam is not None else None
+    return load_robot(c.robot, tool=ToolBox("camera", size, camera_box_pose(size, hand_eye)),
+                      elbow_limit_rad=np.deg2rad(c.elbow_limit_deg))
 
 
 def collision_world(job: LoadedJob, clearance_m: float = 0.005) -> CollisionWorld:
