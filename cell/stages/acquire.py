@@ -62,6 +62,7 @@ def run(ctx) -> None:
                           frame_timeout_s=cam.frame_timeout_s, light_by_line=light_by_line)
     # the simulated arm is still the instant it arrives: a short hold proves it without slowing the sim down
     hold_s = c.settle_s if ctx.backend != "sim" else min(c.settle_s, SIM_HOLD_S)
+    first = True  # the first move of this run (a fresh job or a resume) starts wherever the arm is
     for k, s in enumerate(stations):
         sid = s["id"]
         if sid in done or sid in skipped:  # a station the robot could not reach is not tried again in this job
@@ -70,6 +71,9 @@ def run(ctx) -> None:
         q = np.asarray(s["joints"], dtype=float)
         ctx.folder.append("station_start", station=sid)
         after = next((t for t in stations[k + 1:] if t["id"] not in done and t["id"] not in skipped), None)
+        if first:
+            check_first_move(ctx, dev.robot, sid, q, plan_doc)
+            first = False
         if not _move_or_skip(ctx, dev.robot, sid, q, skipped, None if after is None else after["joints"]):
             continue
         for attempt in range(1, c.retakes + 2):
@@ -138,6 +142,40 @@ def _move_or_skip(ctx, robot, sid: str, q: np.ndarray, skipped: dict, q_next) ->
         ctx.log.log("warning", f"station {sid} skipped: {reason}")
         ctx.say(f"  WARNING station {sid} skipped: {reason}")
         return False
+
+
+def _deg(q) -> str:
+    return "[" + ", ".join(f"{v:.1f}" for v in np.rad2deg(np.asarray(q, dtype=float))) + "] deg"
+
+
+def check_first_move(ctx, robot, sid: str, q: np.ndarray, plan_doc: dict) -> None:
+    """Check the first move of ACQUIRE (of a job, or after ``cell resume``) from the arm's measured joints.
+
+    VALIDATE checked the tour from the plan's start pose (``execution.start_q``); the arm stands wherever it was
+    left, stopped or jogged. The move from there to the first station is checked as VALIDATE and the detour check
+    it (:func:`planning.execution.check_move`, the cell's collision world and clearance). Not free: ``DriverError``
+    before anything moves, telling the operator to jog the arm to the start pose. Free: journalled
+    (``first_move_checked``) and logged."""
+    from cell.setup import collision_world, robot_model
+    from planning.execution import MotionLimits, check_move, lever_arms
+
+    q_from = np.asarray(robot.state().joints_rad, dtype=float)
+    model, world = robot_model(ctx.job), collision_world(ctx.job)
+    chk = check_move(model, world, q_from, np.asarray(q, dtype=float), lever_arms(model),
+                     MotionLimits().check_resolution_rad, ("measured", sid), 0.0)
+    start = (plan_doc.get("execution") or {}).get("start_q")
+    a, b = chk.pair
+    if not chk.free:
+        raise DriverError(
+            f"the first move, from where the arm stands ({_deg(q_from)}) to station {sid}, is not collision-free: "
+            f"{a} vs {b} {chk.min_distance_m * 1e3:.1f} mm apart at {chk.at_fraction:.0%} of the move (clearance "
+            f"{world.clearance_m * 1e3:.0f} mm); nothing moved: jog the arm to the plan's start pose start_q "
+            f"{_deg(start) if start is not None else '(plan.json execution.start_q)'} and resume the job")
+    msg = (f"first move checked from the measured pose {_deg(q_from)} to station {sid}: collision-free, least "
+           f"clearance {chk.min_distance_m * 1e3:.1f} mm ({a} vs {b})")
+    ctx.folder.append("first_move_checked", station=sid, joints=q_from, min_distance_m=chk.min_distance_m,
+                      closest=[a, b], n_checks=chk.n_checks)
+    ctx.log.log("info", msg)
 
 
 def _check_detour(ctx, sid: str, qa: np.ndarray, qb: np.ndarray) -> None:
