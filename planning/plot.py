@@ -7,8 +7,6 @@ sigma, the search history, and the distribution of the target sigmas.
 """
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 
 import matplotlib
@@ -193,14 +191,11 @@ def plot_plan(part, plan, path_png, *, max_ellipsoids: int = 400, title: str | N
                  + (f", {int(bad.sum())} not measurable" if bad.any() else ""))
     fig.suptitle(title or f"network plan: {getattr(part, 'name', '')} (seed {plan.seed})")
     fig.tight_layout()
-    path_png.parent.mkdir(parents=True, exist_ok=True)
     png = figure_png(fig)  # one draw (tight_layout leaves a layout engine: savefig would draw twice)
-    fd, tmp = tempfile.mkstemp(dir=path_png.parent, prefix=path_png.name + ".", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(png)
-        os.replace(tmp, path_png)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    # the project's atomic writer (decision 0005): a dot-named temporary file, fsync'ed, renamed, the folder
+    # fsync'ed; in a job's stage it is journalled with its sha256 first. A kill before the rename leaves
+    # ``.plan.png.tmpPID``, which a resume removes (decision 0060). Imported here: planning needs no cell at import.
+    from cell.record.jobfolder import atomic_write_bytes
+
+    atomic_write_bytes(path_png, png)
     return path_png

@@ -56,6 +56,12 @@ def _fsync_dir(path: Path) -> None:
 _RECORDING: contextvars.ContextVar[tuple["JobFolder", str] | None] = contextvars.ContextVar("recording", default=None)
 
 
+def recording_now() -> "tuple[JobFolder, str] | None":
+    """The job folder whose stage runs in this thread, and the stage (None outside a job's stage): code that
+    has no handle on the job (a cache deep in a stage) journals what it must say there."""
+    return _RECORDING.get()
+
+
 def atomic_write_bytes(path: Path, data: bytes) -> None:
     """Write ``data`` to ``path`` so that a crash leaves the old file or the new one, never half of it.
 
@@ -255,14 +261,15 @@ class JobFolder:
             os.close(fd)
 
     def remove_partial_files(self) -> list[str]:
-        """Delete the temporary files of writes a killed session left unfinished (``.NAME.tmpPID``).
+        """Delete the temporary files of writes a killed session left unfinished (:func:`is_partial`:
+        ``.NAME.tmpPID`` of :func:`atomic_write_bytes`, and any ``*.tmp`` of another writer).
 
         Such a file never became the file it was meant to be (the rename did not happen);
         returns their paths relative to the folder.
         """
         gone = []
-        for p in sorted(self.path.rglob(".*.tmp*")):
-            if p.is_file():
+        for p in sorted(self.path.rglob("*")):
+            if p.is_file() and not p.is_symlink() and is_partial(p.name):
                 p.unlink()
                 gone.append(str(p.relative_to(self.path)))
         return gone
@@ -284,7 +291,7 @@ class JobFolder:
             rel = p.relative_to(self.path)
             if p.is_symlink() or not p.is_file() or any(part.startswith(".") for part in rel.parts):
                 continue
-            if rel.parts[0] == DAMAGED or p.name in (MANIFEST, JOURNAL) or _is_run_log(p.name):
+            if rel.parts[0] == DAMAGED or p.name in (MANIFEST, JOURNAL) or _is_run_log(p.name) or is_partial(p.name):
                 continue
             out.append(str(rel))
         return out
@@ -314,6 +321,9 @@ class JobFolder:
                     any(part.startswith(".") for part in p.relative_to(self.path).parts):
                 continue
             if rel in unverified:
+                continue
+            if is_partial(p.name):  # a write a killed session left unfinished: never vouched for
+                unverified[rel] = "a temporary file of a write that never finished (killed before its rename)"
                 continue
             sha = sha256_file(p)
             if rel in expected and expected[rel] != sha:
@@ -356,6 +366,12 @@ class JobFolder:
         for name, why in (doc.get("unverified") or {}).items():
             problems.append(f"{name}: not vouched for ({why})")
         return problems
+
+
+def is_partial(name: str) -> bool:
+    """Whether a file name is that of a write left unfinished: ``.NAME.tmpPID`` (:func:`atomic_write_bytes`),
+    ``.NAME.XXXX.tmp`` (``planning.cache``) or ``NAME.XXXX.tmp`` (any other writer's ``mkstemp``)."""
+    return (name.startswith(".") and ".tmp" in name) or name.endswith(".tmp")
 
 
 def _is_run_log(name: str) -> bool:
@@ -406,6 +422,11 @@ def _parse_line(raw: bytes) -> tuple[dict | None, str | None]:
 
 
 def new_job_id(name: str, now: float | None = None) -> str:
+    """``<local time>-<name>``: the name kept to ASCII letters, digits, '-' and '_' (what a job id may hold everywhere:
+    the archive's resolver, the console's routes): accents transliterated ('Bügel' -> 'Bugel'), anything else '-'."""
+    import unicodedata
+
     stamp = time.strftime("%Y-%m-%dT%H-%M-%S", time.localtime(now))
-    safe = "".join(c if c.isalnum() or c in "-_" else "-" for c in name)[:40]
+    ascii_name = unicodedata.normalize("NFKD", name).encode("ascii", "ignore").decode("ascii")
+    safe = "".join(c if (c.isascii() and c.isalnum()) or c in "-_" else "-" for c in ascii_name)[:40]
     return f"{stamp}-{safe}"
