@@ -28,7 +28,8 @@ from cell.record import integrity
 from cell.record.archive import Archive, check_archive_root, check_job_id
 from cell.record.jobfolder import (JobFolder, JournalDamaged, atomic_write_bytes, atomic_write_json, new_job_id,
                                    utc_now)
-from cell.record.runinfo import make_run_info, read_run_info, write_run_info
+from cell.record.runinfo import (RUN_INFO, describe, make_run_info, read_run_info, run_info_from_journal,
+                                 run_info_problem, write_run_info)
 from cell.record.runlog import RunLog, next_log_path
 from cell.stages import STAGE_FUNCTIONS
 from cell.states import STAGES, State, check_transition
@@ -432,14 +433,7 @@ def start_job(job_path: Path, archive_root: Path, backend: str | None, out, *, s
     check_cell_calibration(job, root, out)  # a cell whose reverification failed measures no part
     archive = open_archive(job, root, archive_url)
     stem = f"{info['cell_id']}-{job.spec.job.name}" if info["cell_id"] else job.spec.job.name
-    job_id = new_job_id(stem)
-    incoming = archive.root / ".incoming" / job_id
-    k = 1
-    while incoming.exists() or (archive.root / job_id).exists():
-        k += 1
-        job_id = f"{new_job_id(stem)}-{k}"
-        incoming = archive.root / ".incoming" / job_id
-    incoming.mkdir(parents=True)
+    job_id, incoming = _claim_job_folder(archive.root, stem)
     folder = JobFolder(incoming)
     lock = folder.lock()
     try:
@@ -447,6 +441,28 @@ def start_job(job_path: Path, archive_root: Path, backend: str | None, out, *, s
     finally:
         os.close(lock)
         archive.close()  # the index's connections end with the job (a console runs many in one process)
+
+
+def _claim_job_folder(root: Path, stem: str) -> tuple[str, Path]:
+    """A new job's id and its staging folder, created here. Two ``cell run`` of the same job in the same second
+    pick the same id: the folder's creation (``mkdir``, atomic) decides, and the one that loses takes the next
+    id (``-2``, ``-3``, ...) instead of failing (decision 0060)."""
+    (root / ".incoming").mkdir(parents=True, exist_ok=True)
+    job_id = new_job_id(stem)
+    k = 1
+    while True:
+        incoming = root / ".incoming" / job_id
+        if not (root / job_id).exists():
+            try:
+                incoming.mkdir()
+            except FileExistsError:  # another process took this id between the check and here
+                pass
+            else:
+                if not (root / job_id).exists():  # (its job cannot have moved into the archive meanwhile)
+                    return job_id, incoming
+                incoming.rmdir()
+        k += 1
+        job_id = f"{new_job_id(stem)}-{k}"
 
 
 def _start_staged(job_path: Path, job: LoadedJob, archive: Archive, folder: JobFolder, job_id: str,
@@ -530,6 +546,12 @@ def _resume_locked(job_id: str, archive: Archive, folder: JobFolder, out, operat
 
     # verify before acting: nothing is written until the record is known to be good enough
     found = integrity.check_stored(folder, recs)
+    # run.json (part, serial, operator) is a copy of the journal's created record: the journal restores it
+    run_info = run_info_from_journal(recs)
+    run_info_why = None if run_info is None else \
+        run_info_problem(folder.path, run_info, found.files.get(RUN_INFO, (None,))[0])
+    if run_info_why is not None:
+        found.files.pop(RUN_INFO, None)
     moved = bool(integrity.acquired(recs)) or any(r["event"] == "station_start" for r in recs)
     for rel, (why, stage) in sorted(found.files.items()):
         if rel in ("job.toml", "inputs.json") or rel.startswith("inputs/") or \
@@ -562,6 +584,8 @@ def _resume_locked(job_id: str, archive: Archive, folder: JobFolder, out, operat
     if torn:
         folder.append("note", text=f"cut the journal's last line, {torn} bytes of a record the killed session was "
                                    "writing")
+    if run_info_why is not None:
+        _rebuild_run_info(folder, run_info, run_info_why, out)
     reopen: list[State] = []
     for sid, why in sorted(found.stations.items()):
         image = integrity.acquired(recs)[sid]["image"]
@@ -595,6 +619,20 @@ def _resume_locked(job_id: str, archive: Archive, folder: JobFolder, out, operat
         return JobResult(job_id, status, runner.folder.path, unrecorded)
     out.say(f"job {job_id}: resuming at {start.value}")
     return runner.run(start, resumed_from=last_state)
+
+
+def _rebuild_run_info(folder: JobFolder, info: dict, why: str, out) -> None:
+    """Write run.json again from the journal's created record (decision 0060); a copy that disagreed is kept in
+    ``damaged/``. Journalled (``quarantined``, ``stored``, a note) and said in one line."""
+    moved_to = folder.quarantine(RUN_INFO)
+    if moved_to is not None:
+        folder.append("quarantined", file=RUN_INFO, why=why, moved_to=moved_to, stage=State.LOAD.value)
+    with folder.recording(State.LOAD.value):  # journalled with its sha256, as LOAD's files are
+        write_run_info(folder.path, info)
+    line = (f"run.json: {why}; rebuilt from the journal's created record ({describe(info)})"
+            + (f"; the file found is kept as {moved_to}" if moved_to else ""))
+    folder.append("note", text=line)
+    out.say(f"  {line}")
 
 
 def _cell_on_resume(folder: JobFolder, recs: list[dict], archive_root: Path, to_move: bool, job_id: str) -> list[str]:

@@ -53,3 +53,52 @@ def read_run_info(folder: Path) -> dict:
         return empty
     doc = json.loads(p.read_text())
     return empty | doc
+
+
+def run_info_from_journal(recs: list[dict]) -> dict | None:
+    """The run.json document a job's ``created`` record holds (it journals the same fields when the job starts);
+    None for a job from before run.json existed."""
+    created = next((r for r in recs if r.get("event") == "created"), None)
+    if created is None or not isinstance(created.get("part"), dict):
+        return None
+    return {"part": created["part"], "operator": created.get("operator"), "cell_id": created.get("cell_id")}
+
+
+def run_info_problem(folder: Path, info: dict, changed: str | None = None) -> str | None:
+    """What is wrong with the folder's run.json against ``info`` (:func:`run_info_from_journal`), or None.
+
+    ``changed``: why the journal's check of the stored files failed it, if it did (a copy whose fields agree but
+    whose bytes differ from the ones the journal vouches for is still not the file that was written)."""
+    p = Path(folder) / RUN_INFO
+    if not p.is_file():
+        return "missing"
+    try:
+        doc = json.loads(p.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, ValueError) as exc:
+        return f"cannot be read ({type(exc).__name__})"
+    if doc != info:
+        if not isinstance(doc, dict):
+            return "not a run.json document"
+        flat = _flat(info)
+        other = _flat(doc)
+        diff = [f"{k} {other.get(k)!r} (journal {flat.get(k)!r})" for k in sorted(set(flat) | set(other))
+                if flat.get(k) != other.get(k)]
+        return "disagrees with the journal's created record: " + ", ".join(diff[:4]) + (" ..." if len(diff) > 4 else "")
+    return changed
+
+
+def describe(info: dict) -> str:
+    """``part P rev R, serial S, operator O`` for one line."""
+    part = info.get("part") or {}
+    return (f"part {part.get('number')} rev {part.get('revision')}, serial {part.get('serial')}, "
+            f"operator {info.get('operator')}")
+
+
+def _flat(doc: dict) -> dict:
+    out = {}
+    for k, v in doc.items():
+        if isinstance(v, dict):
+            out |= {f"{k}.{k2}": v2 for k2, v2 in v.items()}
+        else:
+            out[k] = v
+    return out
