@@ -16,6 +16,7 @@ import tempfile
 import zipfile
 import zlib
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
@@ -57,10 +58,12 @@ def save_arrays(path: str | Path, arrays: dict[str, np.ndarray], *, compress: bo
     return path
 
 
-def load_arrays(path: str | Path, names: tuple[str, ...]) -> dict[str, np.ndarray] | None:
+def load_arrays(path: str | Path, names: tuple[str, ...],
+                on_damaged: Callable[[str], None] | None = None) -> dict[str, np.ndarray] | None:
     """The arrays ``names`` from the cache file at ``path``, or None when it is missing or damaged.
 
-    A damaged file is deleted (best effort) so that the rebuilt one replaces it.
+    A damaged file is deleted (best effort) so that the rebuilt one replaces it; ``on_damaged`` is told
+    why (one phrase) first, so that the caller can say that its cache was refused.
     """
     path = Path(path)
     if not path.is_file():
@@ -69,10 +72,15 @@ def load_arrays(path: str | Path, names: tuple[str, ...]) -> dict[str, np.ndarra
         with open(path, "rb") as fh, np.load(fh, allow_pickle=False) as z:
             arrays = {k: z[k] for k in z.files if k != _DIGEST}
             stored = str(z[_DIGEST])
-        if stored != digest(arrays) or any(k not in arrays for k in names):
-            raise ValueError("digest differs")
+        missing = [k for k in names if k not in arrays]
+        if missing:
+            raise KeyError(f"no array {missing[0]!r}")
+        if stored != digest(arrays):
+            raise ValueError("its digest differs from its arrays")
         return {k: arrays[k] for k in names}
-    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, zlib.error, NotImplementedError):
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, zlib.error, NotImplementedError) as exc:
+        if on_damaged is not None:
+            on_damaged(f"{type(exc).__name__}: {exc}")
         try:
             path.unlink()
         except OSError:

@@ -106,29 +106,40 @@ def _cache_key(job, poses: np.ndarray) -> str:
 
 
 def cached_rendered_rays(job, part_from_cam: np.ndarray, cache_dir, progress=None) -> PredictedRays:
-    """:func:`rendered_rays`, kept in ``cache_dir`` (keyed by everything they depend on, the code included)."""
+    """:func:`rendered_rays`, kept in ``cache_dir`` (keyed by everything they depend on, the code included).
+
+    Written and read as the planning caches are (:mod:`planning.cache`: a digest of every array, fsync'ed and
+    renamed): a damaged file (a flipped byte, a torn write) is refused, deleted and rendered again, and the job's
+    journal says so (a note in the stage that ran it), never a quietly different predicted sigma (decision 0060).
+    """
     import json
     from pathlib import Path
 
+    from planning.cache import load_arrays, save_arrays
+
+    names = ("obs_image", "obs_target", "bg_cov", "clipped_share", "ellipse", "cov", "line", "blur", "clip_bound")
     poses = np.asarray(part_from_cam, dtype=float)
     path = Path(cache_dir) / f"preanalysis-{_cache_key(job, poses)}.npz"
-    if path.exists():
+    damaged: list[str] = []
+    z = load_arrays(path, (*names, "facts"), on_damaged=damaged.append)
+    if z is not None:
         try:
-            with np.load(path) as z:
-                r = PredictedRays(z["obs_image"], z["obs_target"], z["bg_cov"], z["clipped_share"], z["ellipse"],
-                                  z["cov"], z["line"], z["blur"], z["clip_bound"])
-                r.facts = json.loads(str(z["facts"]))
+            r = PredictedRays(*(z[k] for k in names))
+            r.facts = json.loads(str(z["facts"]))
             return r
-        except (OSError, ValueError, KeyError):  # a torn or foreign file: measured again, rewritten
-            pass
+        except ValueError as exc:  # arrays that verify but do not read as rays: a foreign file
+            damaged.append(f"{type(exc).__name__}: {exc}")
+    if damaged:
+        from cell.record.jobfolder import recording_now
+
+        msg = (f"pre-analysis cache {path.name} refused ({damaged[0]}): deleted, the plan's images rendered and "
+               "measured again")
+        rec = recording_now()
+        if rec is not None:
+            rec[0].append("note", text=msg)
     r = rendered_rays(job, poses, progress)
     try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_suffix(f".{os.getpid()}.tmp.npz")
-        np.savez(tmp, obs_image=r.obs_image, obs_target=r.obs_target, bg_cov=r.bg_cov,
-                 clipped_share=r.clipped_share, ellipse=r.ellipse, cov=r.cov, line=r.line, blur=r.blur,
-                 clip_bound=r.clip_bound, facts=json.dumps(r.facts))
-        os.replace(tmp, path)
+        save_arrays(path, {k: getattr(r, k) for k in names} | {"facts": np.array(json.dumps(r.facts))})
     except OSError:  # a read-only cache: measured every time
         pass
     return r
