@@ -9,7 +9,8 @@ Layout::
     index.py     ArchiveIndex: the repository interface (below), shared by the backends
     sqlite.py    SQLiteIndex: embedded, one cell, the default (``sqlite:///DIR/index.sqlite``)
     postgres.py  PostgresIndex: a site of cells on one server (psycopg 3)
-    outbox.py    the jobs whose index write waits for the database
+    outbox.py    the jobs whose index write waits for the database (or for a person: refused, conflict)
+    urls.py      mask_url / scrub: a url or an error as it may be shown (no password)
     push.py      copying a job folder to shared storage (a path, or s3://... through fsspec)
     migrations/  alembic: the schema's history; every open upgrades to the newest revision
 
@@ -43,7 +44,11 @@ Reading (the web console and ``cell archive``), with ``ix = open_index(url)``:
 * ``ix.parts() -> list[str]``, ``ix.part_targets(part) -> list[str]``.
 * ``ix.close()``.
 
-A read when the database cannot be reached raises :class:`IndexUnavailable` (a ``CellError``).
+A read when the database cannot be reached (or does not answer within the backend's bound) raises
+:class:`IndexUnavailable`, one the database refuses :class:`IndexRefused` (both ``CellError``).
+A url is shown only through :func:`mask_url` (and free text through :func:`scrub`): never a password.
+Times a user filters by (``since``, ``until``) are read by :func:`user_time`: no zone is the cell's local
+time, and an ``until`` that is a date is that whole day.
 
 Writing (the job runner, ``cell archive sync``) goes through :class:`Archive`, which keeps the
 folder first and the index second: ``Archive(root, url).index_folder(path)`` writes one job in one
@@ -60,13 +65,14 @@ from pathlib import Path
 
 from cell.record.archive.folders import Archive
 from cell.record.archive.ids import INCOMING, JOB_ID_PATTERN, check_archive_root, check_job_id, resolve_job_id
-from cell.record.archive.index import ArchiveIndex, IndexConflict, IndexUnavailable
+from cell.record.archive.index import ArchiveIndex, IndexConflict, IndexRefused, IndexUnavailable, user_time
 from cell.record.archive.push import push_job
 from cell.record.archive.records import JobRecord, job_record
+from cell.record.archive.urls import mask_url, scrub
 
 __all__ = ["Archive", "ArchiveIndex", "INCOMING", "JOB_ID_PATTERN", "check_archive_root", "check_job_id",
-           "resolve_job_id", "IndexConflict", "IndexUnavailable", "JobRecord", "job_record", "open_index",
-           "push_job", "resolve_url", "default_url"]
+           "resolve_job_id", "IndexConflict", "IndexRefused", "IndexUnavailable", "JobRecord", "job_record",
+           "mask_url", "open_index", "push_job", "resolve_url", "default_url", "scrub", "user_time"]
 
 ENV_URL = "CELL_ARCHIVE_URL"
 
@@ -95,5 +101,8 @@ def open_index(url: str) -> ArchiveIndex:
     if url.startswith(("postgresql://", "postgresql+psycopg://", "postgres://")):
         from cell.record.archive.postgres import PostgresIndex
 
-        return PostgresIndex(url)
-    raise InputError(f"archive url {url.split('@')[-1]!r}: expected sqlite:///PATH or postgresql://USER@HOST:PORT/DB")
+        try:
+            return PostgresIndex(url)
+        except (ValueError, TypeError) as exc:  # a url SQLAlchemy cannot parse (a port that is not a number, ...)
+            raise InputError(f"archive url {mask_url(url)!r}: {scrub(exc, url)}") from None
+    raise InputError(f"archive url {mask_url(url)!r}: expected sqlite:///PATH or postgresql://USER@HOST:PORT/DB")

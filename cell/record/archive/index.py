@@ -4,11 +4,15 @@ Every write is one transaction: a job's row and all its target rows go in togeth
 all (a process killed mid-write leaves the job as it was before). Reads return plain dicts with
 times as ISO 8601 UTC strings, ready for JSON.
 
-When the database cannot be reached a write raises :class:`IndexUnavailable`; the caller
-(:class:`~cell.record.archive.folders.Archive`) then puts the job in its outbox.
+When the database cannot be reached (or does not answer within the backend's bound) a write raises
+:class:`IndexUnavailable`; when it refuses the write (a value longer than its column, a constraint,
+any other database error) :class:`IndexRefused`, whose message is the database's first line, never
+the statement or its values. The caller (:class:`~cell.record.archive.folders.Archive`) then puts
+the job in its outbox with the reason; the job itself goes on.
 """
 from __future__ import annotations
 
+import contextlib
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Iterable
@@ -28,6 +32,11 @@ class IndexUnavailable(CellError):
     """The archive's database cannot be reached (or is locked) now: the write waits in the outbox."""
 
 
+class IndexRefused(CellError):
+    """The database refused a write or a read (not a connection problem): a value too long for its column,
+    a constraint, a permission. The job waits in the outbox with this reason; retrying alone will not help."""
+
+
 class IndexConflict(CellError):
     """A job id the index already holds for another cell (the job ids of a site must be unique)."""
 
@@ -35,7 +44,9 @@ class IndexConflict(CellError):
 
 
 def _utc(t: Any) -> datetime | None:
-    """An ISO 8601 string or datetime as an aware UTC datetime (naive = UTC)."""
+    """An ISO 8601 string or datetime of a record (the journal's, the report's) as an aware UTC datetime (naive = UTC).
+
+    Times a user gives (``--since``, ``--until``, the console's dates) go through :func:`user_time` instead."""
     if t is None or t == "":
         return None
     if isinstance(t, str):
@@ -45,6 +56,33 @@ def _utc(t: Any) -> datetime | None:
             raise InputError(f"not an ISO 8601 time: {t!r}") from None
     if t.tzinfo is None:
         return t.replace(tzinfo=timezone.utc)
+    return t.astimezone(timezone.utc)
+
+
+def user_time(t: Any, *, end: bool = False) -> datetime | None:
+    """A time a user gives to filter by (``cell archive list --since/--until``, the console's from/to): one rule.
+
+    An ISO 8601 time or date; a time without a zone is the cell's local time (as the time in a job id is);
+    a date alone is its first instant (local), and with ``end`` (an ``until``) its whole day: the next day's
+    first instant, since ``until`` is exclusive. Returns an aware UTC datetime (None for None or "")."""
+    if t is None or t == "":
+        return None
+    date_only = False
+    if isinstance(t, str):
+        s = t.strip()
+        date_only = len(s) == 10 and s[4:5] == "-" and s[7:8] == "-"
+        try:
+            t = datetime.fromisoformat(s)
+        except ValueError:
+            raise InputError(f"not an ISO 8601 time or date (YYYY-MM-DD[THH:MM[:SS]][+HH:MM]): {s[:60]!r}") from None
+    if not isinstance(t, datetime):
+        raise InputError(f"not an ISO 8601 time or date: {t!r}")
+    if t.tzinfo is None:
+        t = t.astimezone()  # naive: the cell's local time
+    if date_only and end:
+        from datetime import timedelta
+
+        t = (t.replace(tzinfo=None) + timedelta(days=1)).astimezone()
     return t.astimezone(timezone.utc)
 
 
@@ -112,12 +150,27 @@ class ArchiveIndex:
 
         cfg = self._config()
         try:
-            with self._migration_guard() as conn:
+            with self._bounded(self.MIGRATION_BOUND_S), self._migration_guard() as conn:
                 if MigrationContext.configure(conn).get_current_revision() != self._head:
                     cfg.attributes["connection"] = conn
                     command.upgrade(cfg, "head")
         except (sa_exc.OperationalError, sa_exc.InterfaceError) as exc:
-            raise IndexUnavailable(f"{self.url}: cannot reach the archive database ({_first_line(exc)})") from exc
+            raise IndexUnavailable(f"{self.url}: cannot reach the archive database ({self._why(exc)})") from exc
+        except sa_exc.SQLAlchemyError as exc:
+            raise IndexRefused(f"{self.url}: the archive database refused its schema upgrade ({_first_line(exc)})") from exc
+
+    #: how long one write or read may take before it is given up (``IndexUnavailable``): a backend that can
+    #: bound its connections sets it (:class:`~cell.record.archive.postgres.PostgresIndex`); 0: unbounded
+    BOUND_S = 0.0
+    MIGRATION_BOUND_S = 0.0
+
+    def _bounded(self, seconds: float | None = None):
+        """A context that gives up the operation inside it after ``seconds`` (default :attr:`BOUND_S`)."""
+        return contextlib.nullcontext()
+
+    def _why(self, exc: BaseException) -> str:
+        """An error's first line (the backend may say it was its own bound that gave up)."""
+        return _first_line(exc)
 
     def _migration_guard(self):
         """A connection in a transaction that holds the database's migration lock (per backend)."""
@@ -134,23 +187,29 @@ class ArchiveIndex:
         try:
             return self.engine.begin()
         except (sa_exc.OperationalError, sa_exc.InterfaceError) as exc:
-            raise IndexUnavailable(f"{self.url}: cannot reach the archive database ({_first_line(exc)})") from exc
+            raise IndexUnavailable(f"{self.url}: cannot reach the archive database ({self._why(exc)})") from exc
 
     def _lock_row(self, conn, job_id: str):
         """The job's row (locked for this transaction where the database can), or None."""
         return conn.execute(sa.select(jobs.c.origin).where(jobs.c.id == job_id)).first()
 
     def _write(self, fn) -> None:
+        """``fn(conn)`` in one transaction, bounded (:attr:`BOUND_S`). An unreachable or silent database raises
+        :class:`IndexUnavailable`; any other database error :class:`IndexRefused` with the database's first line
+        (never the statement or its parameters, which hold the job's values)."""
         for attempt in range(3):
             try:
-                with self._begin() as conn:
+                with self._bounded(), self._begin() as conn:
                     fn(conn)
                 return
-            except sa_exc.IntegrityError:  # two writers inserted the same new id at once: the row now exists
+            except sa_exc.IntegrityError as exc:  # two writers inserted the same new id at once: the row now exists
                 if attempt == 2:
-                    raise
+                    raise IndexRefused(f"{self.url}: the archive database refused the write ({_first_line(exc)})") \
+                        from None
             except (sa_exc.OperationalError, sa_exc.InterfaceError) as exc:
-                raise IndexUnavailable(f"{self.url}: cannot write to the archive database ({_first_line(exc)})") from exc
+                raise IndexUnavailable(f"{self.url}: cannot write to the archive database ({self._why(exc)})") from exc
+            except sa_exc.SQLAlchemyError as exc:  # DataError (a value too long), ProgrammingError, ...
+                raise IndexRefused(f"{self.url}: the archive database refused the write ({_first_line(exc)})") from None
 
     @staticmethod
     def _check_origin(row, job_id: str, origin: str) -> None:
@@ -208,10 +267,12 @@ class ArchiveIndex:
     # --- reads ------------------------------------------------------------------
     def _read(self, stmt) -> list:
         try:
-            with self.engine.connect() as conn:
+            with self._bounded(), self.engine.connect() as conn:
                 return conn.execute(stmt).all()
         except (sa_exc.OperationalError, sa_exc.InterfaceError) as exc:
-            raise IndexUnavailable(f"{self.url}: cannot read the archive database ({_first_line(exc)})") from exc
+            raise IndexUnavailable(f"{self.url}: cannot read the archive database ({self._why(exc)})") from exc
+        except sa_exc.SQLAlchemyError as exc:
+            raise IndexRefused(f"{self.url}: the archive database refused a query ({_first_line(exc)})") from None
 
     @staticmethod
     def _filters(part=None, serial=None, verdict=None, status=None, since=None, until=None, cell_id=None,
@@ -223,16 +284,19 @@ class ArchiveIndex:
             if v is not None:
                 w.append(col == v)
         if since is not None:
-            w.append(jobs.c.started >= _utc(since))
+            w.append(jobs.c.started >= user_time(since))
         if until is not None:
-            w.append(jobs.c.started < _utc(until))
+            w.append(jobs.c.started < user_time(until, end=True))
         return w
 
     def list_jobs(self, *, part: str | None = None, serial: str | None = None, verdict: str | None = None,
                   status: str | None = None, since=None, until=None, cell_id: str | None = None,
                   origin: str | None = None, part_number: str | None = None, operator: str | None = None,
                   limit: int | None = 50, offset: int = 0, newest_first: bool = True) -> list[dict]:
-        """One page of jobs matching every filter given (``since`` <= started < ``until``), newest first."""
+        """One page of jobs matching every filter given (``since`` <= started < ``until``), newest first.
+
+        ``since``/``until``: datetimes or ISO 8601 text as :func:`user_time` reads them (no zone: local time;
+        ``until`` a date: that whole day)."""
         order = (jobs.c.started.desc(), jobs.c.id.desc()) if newest_first else (jobs.c.started.asc(), jobs.c.id.asc())
         stmt = sa.select(jobs).where(*self._filters(part, serial, verdict, status, since, until, cell_id, origin,
                                                     part_number, operator))
@@ -281,9 +345,9 @@ class ArchiveIndex:
         t = targets.c
         stmt = sa.select(*self._trend_columns()).where(t.part == part, t.target_id == target_id)
         if since is not None:
-            stmt = stmt.where(t.finished >= _utc(since))
+            stmt = stmt.where(t.finished >= user_time(since))
         if until is not None:
-            stmt = stmt.where(t.finished < _utc(until))
+            stmt = stmt.where(t.finished < user_time(until, end=True))
         if limit is not None:  # the newest ``limit`` points (still returned oldest first)
             stmt = stmt.order_by(t.finished.desc(), t.job_id.desc()).limit(int(limit))
         return self._trend_points(stmt)
@@ -338,9 +402,9 @@ class ArchiveIndex:
                 .select_from(targets.join(jobs, jobs.c.id == t.job_id))
                 .where(t.part == part).group_by(t.target_id).order_by(t.target_id))
         if since is not None:
-            stmt = stmt.where(t.finished >= _utc(since))
+            stmt = stmt.where(t.finished >= user_time(since))
         if until is not None:
-            stmt = stmt.where(t.finished < _utc(until))
+            stmt = stmt.where(t.finished < user_time(until, end=True))
         out = []
         for r in self._read(stmt):
             n = int(r[1])
@@ -397,6 +461,9 @@ class ArchiveIndex:
 
 
 def _first_line(exc: BaseException) -> str:
+    """The first line of a database error: its message, never the statement or its parameters (SQLAlchemy puts
+    those on later lines, the driver's own error has none); at most 300 characters."""
     orig = getattr(exc, "orig", None) or exc
     text = str(orig).strip().splitlines()
-    return text[0] if text else type(orig).__name__
+    line = text[0] if text else type(orig).__name__
+    return line if len(line) <= 300 else line[:300] + "..."
