@@ -2,8 +2,10 @@
 
 The folders and their manifests are the record; the index (SQLite next to them, or the site's
 PostgreSQL) can always be rebuilt from them (:meth:`Archive.reindex`). Every index write goes
-through :meth:`Archive._to_index`: when the database is away the job waits in the outbox
-(``.outbox/index/``) and is written at the next write that reaches it, or by :meth:`Archive.sync`.
+through :meth:`Archive._to_index`: when the database is away (or silent: the backend bounds every
+call), refuses the record, or holds the id for another cell, the job waits in the outbox
+(``.outbox/index/``, with the reason) and is written at the next write that reaches it, or by
+:meth:`Archive.sync`. No index error ever reaches the running job: the folder is the record.
 """
 from __future__ import annotations
 
@@ -15,10 +17,13 @@ from pathlib import Path
 
 import numpy as np
 
+from sqlalchemy import exc as sa_exc
+
 from calibration.errors import InputError
 from cell.record.archive.ids import INCOMING, JOB_ID_PATTERN, resolve_job_id
-from cell.record.archive.index import ArchiveIndex, IndexConflict, IndexUnavailable
+from cell.record.archive.index import ArchiveIndex, IndexConflict, IndexRefused, IndexUnavailable, _first_line
 from cell.record.archive.outbox import Outbox
+from cell.record.archive.urls import mask_url, scrub
 from cell.record.archive.records import job_record, manifest_sha256
 from cell.record.decisions import beyond, measured, trusted, undecided
 from cell.record.jobfolder import JOURNAL, JobFolder
@@ -49,6 +54,7 @@ class Archive:
         self._down_until = 0.0
         self.origin = f"{socket.gethostname()}:{self.root.resolve()}"
         self.messages: list[str] = []  # what the archive had to say (outbox, catch-up) for the caller
+        self._said: set[str] = set()  # outbox jobs already named as not indexable (said once per Archive)
         #: job id -> what is damaged in its folder, found by the last :meth:`reindex` / :meth:`catch_up`
         self.problems: dict[str, str] = {}
 
@@ -75,8 +81,19 @@ class Archive:
     #: ``CELL_ARCHIVE_RETRY_S`` sets it
     RETRY_AFTER_S = float(os.environ.get("CELL_ARCHIVE_RETRY_S", "5"))
 
+    def _say(self, text) -> str:
+        """``text`` without a password (the url's, or any url's in it)."""
+        return scrub(text, self.url)
+
+    @property
+    def shown_url(self) -> str:
+        """The archive's url as it may be shown (no password)."""
+        return mask_url(self.url)
+
     def _to_index(self, job_id: str, write) -> bool:
-        """Run ``write(index)``; on an unreachable database put ``job_id`` in the outbox. True if written."""
+        """Run ``write(index)``; True if written. Never raises for the index: when the database is away or silent,
+        refuses the record, or holds the id for another cell, ``job_id`` waits in the outbox with the reason, and
+        :attr:`messages` says so (the job that called goes on: its folder is the record)."""
         if time.monotonic() < self._down_until:
             self.outbox.add(job_id, "the archive database was unreachable moments ago")
             return False
@@ -86,19 +103,32 @@ class Archive:
             return True
         except IndexUnavailable as exc:
             self._down_until = time.monotonic() + self.RETRY_AFTER_S
-            self.outbox.add(job_id, str(exc))
-            self.messages.append(f"archive index unreachable: {job_id} waits in the outbox ({exc})")
-            return False
+            why = self._say(exc)
+            self.outbox.add(job_id, why)
+            self.messages.append(f"archive index unreachable: {job_id} waits in the outbox ({why})")
         except IndexConflict as exc:  # never overwrite another cell's job: keep it waiting, loudly
-            self.outbox.add(job_id, str(exc))
-            self.messages.append(str(exc))
-            return False
+            self._keep(job_id, exc, "conflict")
+        except (IndexRefused, InputError) as exc:  # a record the database (or the reader) refuses
+            self._keep(job_id, exc, "refused")
+        except sa_exc.SQLAlchemyError as exc:  # anything else of the database's: never the job's fault
+            self._keep(job_id, f"{type(exc).__name__}: {_first_line(exc)}", "refused")
+        return False
+
+    def _keep(self, job_id: str, exc, kind: str) -> None:
+        """``job_id`` stays in (or goes to) the outbox with a reason a person must act on; said once."""
+        why = self._say(exc)
+        self.outbox.add(job_id, why, kind)
+        if job_id not in self._said:
+            self._said.add(job_id)
+            self.messages.append(f"{job_id} cannot be indexed, it waits in the outbox: {why}")
 
     def drain(self) -> list[str]:
         """Index every job waiting in the outbox (oldest first); returns their ids.
 
         Stops at the first that cannot be written because the database is away (raises
-        ``IndexUnavailable``); a job whose folder is gone leaves the outbox with a message.
+        ``IndexUnavailable``); a job the database refuses (or another cell's id) is skipped and stays, with its
+        reason, for ``cell archive verify`` to name: it never stops the others or the write that drains.
+        A job whose folder is gone leaves the outbox with a message.
         """
         done = []
         for job_id in self.outbox.pending():
@@ -106,8 +136,16 @@ class Archive:
             if _is_job_folder(d):
                 try:
                     self.index.index_job(job_record(d.resolve(), self.origin))
-                except (IndexConflict, InputError) as exc:  # stays in the outbox; verify names it
-                    self.messages.append(f"outbox: {job_id} cannot be indexed: {exc}")
+                except IndexConflict as exc:  # stays in the outbox; verify names it
+                    self._keep(job_id, exc, "conflict")
+                    continue
+                except (IndexRefused, InputError) as exc:
+                    self._keep(job_id, exc, "refused")
+                    continue
+                except IndexUnavailable:
+                    raise
+                except sa_exc.SQLAlchemyError as exc:
+                    self._keep(job_id, f"{type(exc).__name__}: {_first_line(exc)}", "refused")
                     continue
             else:
                 self.messages.append(f"outbox: {job_id} has no folder in {self.root}; dropped from the outbox")
@@ -137,7 +175,11 @@ class Archive:
     def index_folder(self, path: Path) -> bool:
         """Write one job folder's record (row and target values, one transaction); False: it waits in the outbox."""
         path = Path(path)
-        rec = job_record(path.resolve(), self.origin)
+        try:
+            rec = job_record(path.resolve(), self.origin)
+        except InputError as exc:  # a folder the index cannot read: the folder stays the record
+            self._keep(path.name, exc, "refused")
+            return False
         if rec.problem:
             self.problems[path.name] = rec.problem
         return self._to_index(path.name, lambda ix: ix.index_job(rec))
@@ -154,8 +196,7 @@ class Archive:
         try:
             self.index_folder(path)
         except InputError as exc:  # a folder the index cannot read: the folder stays the record
-            self.outbox.add(path.name, str(exc))
-            self.messages.append(f"{path.name} cannot be indexed: {exc}")
+            self._keep(path.name, exc, "refused")
         if self.push_dest:
             try:
                 doc = self.push(path.name)
@@ -241,25 +282,56 @@ class Archive:
         """``cell archive sync``: drain the outbox, then index every folder the index lacks or holds stale.
 
         Stale: another manifest hash or state than the folder's, or fewer target rows than the row
-        claims. Returns {``drained``, ``indexed``, ``pending`` (still in the outbox), ``pushed``,
-        ``push_pending``, ``problems`` (folders indexed only as far as they read, one line each)}.
+        claims. A folder that does not match its own manifest (a report changed after the job) is not
+        re-indexed: the index keeps what it held, and the folder is named in ``skipped`` (as ``push`` refuses
+        it); one the index does not hold at all is indexed as far as it reads with the mismatch in its ``problem``
+        (listed, marked, never silently). A job the database refuses or another cell owns goes to the outbox with its reason and is
+        named in ``skipped`` too; the folders after it are indexed all the same.
+
+        Returns {``drained``, ``indexed``, ``pending`` (still in the outbox), ``skipped`` ([{``id``,
+        ``reason``}]: not indexed, a person must act), ``pushed``, ``push_pending``, ``problems`` (folders
+        indexed only as far as they read, one line each)}.
         """
         drained = self.drain()
         state = self.index.index_state(origin=self.origin)
-        indexed, problems = [], []
+        indexed, problems, skipped = [], [], {}
         for d in self._job_dirs():
             have = state.get(d.name)
             rec = job_record(d.resolve(), self.origin)
-            if rec.problem:
-                problems.append(f"{d.name}: {rec.problem}")
             if (have is None or have["manifest_sha256"] != rec.manifest_sha256 or have["status"] != rec.status
                     or (have["targets"] or 0) != have["target_rows"]
                     or (have["failed"] is not None and rec.failed is not None and have["failed"] != rec.failed)):
                 # (a failed count of before not-measured targets were told apart from failed ones is stale too)
-                self.index.index_job(rec)
+                changed = [p for p in JobFolder(d).verify_manifest() if "no manifest" not in p]
+                if changed:  # never index values the folder's own manifest does not vouch for, silently
+                    what = "does not match its manifest (" + "; ".join(changed[:3]) + (" ..." if len(changed) > 3 else "") + ")"
+                    if have is not None:  # the index keeps what it held when the job closed
+                        skipped[d.name] = f"{what}: not indexed, the index keeps its earlier row; see " \
+                                          f"'cell archive verify {d.name}'"
+                        continue
+                    # not in the index at all: listed as far as it reads, marked (list and console show the problem)
+                    rec.problem = "; ".join(x for x in (rec.problem, what) if x)
+                if rec.problem:
+                    problems.append(f"{d.name}: {rec.problem}")
+                try:
+                    self.index.index_job(rec)
+                except IndexConflict as exc:
+                    self._keep(d.name, exc, "conflict")
+                    continue
+                except IndexRefused as exc:
+                    self._keep(d.name, exc, "refused")
+                    continue
                 indexed.append(d.name)
+            elif rec.problem:
+                problems.append(f"{d.name}: {rec.problem}")
+        pending = self.outbox.pending()
+        for job_id in pending:
+            e = self.outbox.entry(job_id)
+            if e.get("kind") in ("conflict", "refused"):
+                skipped.setdefault(job_id, f"waits in the outbox: {self._say(e.get('reason'))}")
         pushed = self.drain_pushes()
-        return {"drained": drained, "indexed": indexed, "pending": self.outbox.pending(), "pushed": pushed,
+        return {"drained": drained, "indexed": indexed, "pending": pending,
+                "skipped": [{"id": k, "reason": v} for k, v in skipped.items()], "pushed": pushed,
                 "push_pending": self.push_outbox.pending(), "problems": problems}
 
     def verify_index(self) -> dict:
@@ -277,7 +349,10 @@ class Archive:
         for job_id, d in folders.items():
             checked += 1
             have = state.get(job_id)
-            if job_id in pending:
+            if job_id in pending:  # waiting for the database is no problem; refused or another cell's id is
+                e = self.outbox.entry(job_id)
+                if e.get("kind") in ("conflict", "refused"):
+                    problems.append(f"{job_id}: cannot be indexed, waits in the outbox: {self._say(e.get('reason'))}")
                 continue
             if have is None:
                 problems.append(f"{job_id}: folder not in the index (run 'cell archive sync')")

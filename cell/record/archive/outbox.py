@@ -1,7 +1,10 @@
 """The outbox: jobs of this cell whose index write is waiting for the database.
 
-One small file per job, ``<archive>/.outbox/index/<job_id>.json`` ({``job_id``, ``since``, ``reason``}),
-written atomically when a write to the index fails because the database cannot be reached. The
+One small file per job, ``<archive>/.outbox/index/<job_id>.json`` ({``job_id``, ``since``, ``reason``,
+``kind``}), written atomically when a write to the index fails: ``kind`` ``unreachable`` (the database is
+away or silent: the next write retries), ``refused`` (the database refused the record, e.g. a value too
+long for its column) or ``conflict`` (another cell's job has this id): these two wait for a person, and
+``cell archive verify`` counts them as problems. The reason never holds a password. The
 folder holds the job's truth, so the outbox holds no copy of it: draining re-reads the folder and
 writes its record in one transaction, then removes the file. A process killed between the two
 leaves the file, and the next drain writes the same record again (idempotent: one row per job).
@@ -22,11 +25,19 @@ class Outbox:
     def __init__(self, root: Path, kind: str = "index"):
         self.path = Path(root) / OUTBOX / kind
 
-    def add(self, job_id: str, reason: str) -> None:
+    def add(self, job_id: str, reason: str, kind: str = "unreachable") -> None:
+        """Put ``job_id`` in the outbox (or keep it there: the first failure's time, the newest reason)."""
         p = self.path / f"{job_id}.json"
-        if p.exists():  # keep the first failure's time
+        if p.exists():
+            old = self.entry(job_id)
+            if kind == "unreachable" or (old.get("reason") == reason and old.get("kind", "unreachable") == kind):
+                return  # waiting for the database: the first failure's reason says most
+            doc = {"job_id": job_id, "since": old.get("since") or utc_now(), "reason": reason, "kind": kind}
+            st = p.stat()
+            atomic_write_json(p, doc)
+            os.utime(p, ns=(st.st_atime_ns, st.st_mtime_ns))  # its place in the queue (oldest first) stays
             return
-        atomic_write_json(p, {"job_id": job_id, "since": utc_now(), "reason": reason})
+        atomic_write_json(p, {"job_id": job_id, "since": utc_now(), "reason": reason, "kind": kind})
 
     def pending(self) -> list[str]:
         """Job ids waiting, oldest first."""
