@@ -224,7 +224,10 @@ def build_parser() -> argparse.ArgumentParser:
     c.set_defaults(func=cmd_detect)
 
     c = sub.add_parser("archive", parents=[common],
-                       help="list, show, compare, verify archived jobs; sync the index; push a job to shared storage")
+                       help="list, show, compare, verify archived jobs; sync the index; push a job to shared storage",
+                       description="sync indexes every folder the index lacks or holds stale; a folder that does not "
+                                   "match its manifest, a job the database refuses or another cell's job id is not "
+                                   "indexed, named, and sync exits 1")
     c.add_argument("action", choices=["list", "show", "compare", "verify", "sync", "push"])
     c.add_argument("ids", nargs="*")
     c.add_argument("--repair", action="store_true",
@@ -235,7 +238,10 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--archive-url", help=url_help)
     for key in ("part", "serial", "verdict", "status", "since", "until", "cell-id"):
         c.add_argument(f"--{key}", help=f"list: only jobs with this {key}" if key not in ("since", "until") else
-                       f"list: jobs started {'at or after' if key == 'since' else 'before'} this ISO 8601 time")
+                       (f"list: jobs started {'at or after' if key == 'since' else 'before'} this ISO 8601 time or date; "
+                        "a time without a zone (2026-11-23T08:13) is the cell's local time, as in job ids"
+                        + ("; a date alone (2026-11-23) includes that whole day" if key == "until" else "")
+                        + " (the console reads them the same way)"))
     c.add_argument("--limit", type=int, default=None, help="list: at most this many jobs (newest first)")
     c.add_argument("--offset", type=int, default=0)
     c.add_argument("--to", help="push: the shared storage (a folder or s3://bucket/prefix; default CELL_ARCHIVE_PUSH)")

@@ -274,25 +274,40 @@ def _open_archive(args):
 def archive(args, out) -> int:
     from calibration.errors import InputError
 
+    from cell.record.archive import scrub
+
     a = _open_archive(args)
     try:
         return _archive_action(a, args, out)
+    except CellError as exc:  # one line, never a password (a url in a driver's message, a libpq ?password=)
+        exc.args = (scrub(exc, a.url), *exc.args[1:])
+        raise
     finally:
         for line in a.messages:
-            out.say(f"archive: {line}")
+            out.say(f"archive: {scrub(line, a.url)}")
         a.close()
 
 
 def _archive_action(a, args, out) -> int:
     from pathlib import Path
 
+    from calibration.errors import CellError
     from calibration.errors import InputError
     from cell.record.archive import INCOMING, check_job_id
 
     if getattr(args, "repair", False) and not (args.action == "verify" and args.ids):
         raise InputError("--repair goes with 'cell archive verify ID'")
     if args.action == "list":
+        from cell.record.archive import user_time
+
         filters = {k: getattr(args, k) for k in ("part", "serial", "verdict", "status", "since", "until", "cell_id")}
+        # one rule with the console: no zone is the cell's local time; --until DATE is that whole day
+        for k in ("since", "until"):
+            if filters[k] is not None:
+                try:
+                    filters[k] = user_time(filters[k], end=k == "until")
+                except InputError as exc:
+                    raise InputError(f"--{k}: {exc}") from None
         url = a.url
         if url.startswith("sqlite:///") and not Path(url[len("sqlite:///"):]).exists() and not a.root.is_dir():
             rows, total = [], 0  # no archive here yet: nothing to list, nothing created
@@ -311,7 +326,7 @@ def _archive_action(a, args, out) -> int:
                     r.pop("problem", None)
             if args.offset == 0 and not any(v is not None for v in filters.values()):
                 rows += a.staged_rows()
-        doc = {"archive": a.index.url if rows or total else url, "total": total, "jobs": rows,
+        doc = {"archive": a.shown_url, "total": total, "jobs": rows,
                "outbox": a.outbox.pending()}
         def human(d):
             for r in d["jobs"]:
@@ -349,6 +364,17 @@ def _archive_action(a, args, out) -> int:
         out.result(doc, lambda d: out.say(json.dumps(d, indent=1, default=str)))
         return 0
     if args.action == "compare":
+        for j in args.ids:  # another cell's job: the index holds it, but compare reads this cell's folders
+            check_job_id(j)
+            if not ((a.root / j).exists() or (a.root / INCOMING / j).exists()):
+                try:
+                    row = a.index.get_job(j)
+                except CellError:
+                    row = None
+                if row is not None and row.get("origin") != a.origin:
+                    raise InputError(f"{j}: another cell's job (from {row['origin']}): 'cell archive compare' reads "
+                                     f"this cell's job folders only; run it on that cell ('cell archive show {j}' "
+                                     "shows what the index holds)")
         doc = a.compare(args.ids)
         def human(d):
             if d.get("note"):
@@ -403,8 +429,12 @@ def _archive_action(a, args, out) -> int:
                     f"{len(d['pending'])} still waiting; pushed {len(d['pushed'])}, {len(d['push_pending'])} pushes waiting")
             for e in d["problems"]:
                 out.say(f"  {e} (indexed as far as it reads)")
+            for e in d["skipped"]:
+                out.say(f"  NOT INDEXED {e['id']}: {e['reason']}")
+            if d["skipped"]:
+                out.say(f"sync: {len(d['skipped'])} job(s) not indexed: {', '.join(e['id'] for e in d['skipped'])}")
         out.result(doc, human)
-        return 0 if not doc["pending"] and not doc["push_pending"] else 1
+        return 0 if not doc["pending"] and not doc["push_pending"] and not doc["skipped"] else 1
     if args.action == "push":
         if not args.ids:
             raise InputError("cell archive push takes one or more job ids")
