@@ -363,6 +363,8 @@ def _checked(path: Path, mesh: trimesh.Trimesh, scale: float, units: str) -> tri
 # --- targets ------------------------------------------------------------------
 
 _REQUIRED = ("id", "x", "y", "z", "nx", "ny", "nz")
+#: the longest target id: the archive index's column (``targets.target_id``)
+TARGET_ID_MAX = 100
 
 
 _OPTIONAL = ("kind", "tolerance", "code")
@@ -445,6 +447,9 @@ def load_targets(path: str | Path, units: str, max_targets: int = MAX_TARGETS) -
                     raise PartError(f"{path}:{lineno}: empty target id")
                 if not tid.isprintable():
                     raise PartError(f"{path}:{lineno}: target id {tid!r} holds a control character")
+                if len(tid) > TARGET_ID_MAX:
+                    raise PartError(f"{path}:{lineno}: target id {tid[:24]!r}... is {len(tid)} characters long; at most "
+                                    f"{TARGET_ID_MAX} (the archive index's limit for a target id)")
                 if k == "coded" and c < 0:
                     raise PartError(f"{path}:{lineno}: coded target {tid!r} needs a 'code' (ArUco id)")
                 ids.append(tid)
