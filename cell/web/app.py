@@ -11,6 +11,7 @@ from fastapi.templating import Jinja2Templates
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from calibration.errors import InputError
+from cell.record.archive import IndexRefused, IndexUnavailable, scrub
 from cell.web import api, pages
 from cell.web.deps import Config
 from cell.web.runner import Busy
@@ -110,6 +111,16 @@ def create_app(config: Config) -> FastAPI:
     @app.exception_handler(NotFound)
     async def not_found(request: Request, exc: NotFound):
         return _error(request, 404, str(exc))
+
+    @app.exception_handler(IndexUnavailable)
+    async def archive_down(request: Request, exc: IndexUnavailable):
+        # the site database is away: say so (503, retry later), no traceback in the log, never a password
+        return _error(request, 503, f"the site archive is not reachable: {scrub(exc, config.archive_url)}",
+                      {"Retry-After": "10"})
+
+    @app.exception_handler(IndexRefused)
+    async def archive_refused(request: Request, exc: IndexRefused):
+        return _error(request, 503, f"the site archive refused the query: {scrub(exc, config.archive_url)}")
 
     @app.exception_handler(InputError)
     async def bad_input(request: Request, exc: InputError):
