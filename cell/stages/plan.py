@@ -167,6 +167,9 @@ def run(ctx) -> None:
         ctx.say("  WARNING predicted precision from the search's limiting error propagation (pre-analysis failed)")
     if pred is not None:  # predicted = what the bundle will achieve: its rays, the detector's precision
         cov, n_rays, pre_facts = pred
+        if pre_facts.get("cache_refused"):  # a damaged cache file: rebuilt, and said (decision 0060)
+            ctx.log.log("warning", f"plan: {pre_facts['cache_refused']}")
+            ctx.say(f"  WARNING {pre_facts['cache_refused']}")
         retro = ctx.job.part.targets.kind != "coded"
         unpredicted = []
         # the held lens's share of each target's variance (decision 0056): predicted / achieved compares the images'

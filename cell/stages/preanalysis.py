@@ -142,6 +142,8 @@ def cached_rendered_rays(job, part_from_cam: np.ndarray, cache_dir, progress=Non
         save_arrays(path, {k: getattr(r, k) for k in names} | {"facts": np.array(json.dumps(r.facts))})
     except OSError:  # a read-only cache: measured every time
         pass
+    if damaged:  # PLAN says it on the console and in the run log too (plan.json prediction.facts.cache_refused)
+        r.facts = dict(r.facts) | {"cache_refused": msg}
     return r
 
 

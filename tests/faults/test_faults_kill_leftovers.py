@@ -274,5 +274,7 @@ def test_a_flipped_byte_in_the_preanalysis_cache_is_refused_rebuilt_and_journall
     assert np.all(rebuilt.cov == 0.0123456789)
     notes = [r["text"] for r in records(folder.path) if r["event"] == "note"]
     assert len(notes) == 1 and "pre-analysis cache" in notes[0] and "refused" in notes[0], notes
-    assert pre.cached_rendered_rays(None, np.eye(4)[None], cache) is not None and len(made) == 2  # rewritten
+    assert rebuilt.facts["cache_refused"] == notes[0]  # PLAN says it on the console and in the run log from there
+    again = pre.cached_rendered_rays(None, np.eye(4)[None], cache)
+    assert again is not None and len(made) == 2 and "cache_refused" not in again.facts  # rewritten, said once
     assert sorted(p.name for p in cache.iterdir()) == [path.name]  # no temporary file left
