@@ -104,3 +104,26 @@ def test_serve_archive_url_reaches_the_view_and_the_jobs_the_console_starts(tmp_
     finally:
         con.view.close()
     assert not Path(tmp_path / "archive" / "index.sqlite").exists()  # nothing indexed in the default database
+
+
+def test_serve_banner_masks_a_password_in_any_form_of_the_archive_url(tmp_path, monkeypatch):
+    """The start banner names the index without its password: user:pw@ and ?password= alike (an outside check saw
+    the query form printed in clear)."""
+    import types
+
+    import uvicorn
+
+    from cell.web import serve as serve_mod
+
+    said = []
+    monkeypatch.setattr(uvicorn, "run", lambda *a, **k: None)
+    monkeypatch.setattr("cell.web.app.create_app", lambda cfg: types.SimpleNamespace(
+        state=types.SimpleNamespace(users=types.SimpleNamespace(users=lambda: ["ada"]))))
+    out = types.SimpleNamespace(say=said.append)
+    for url in ("postgresql://cell:hunter2pw@db.example:5432/archive",
+                "postgresql://cell@db.example:5432/archive?password=hunter2pw&sslmode=require"):
+        args = types.SimpleNamespace(certfile=None, keyfile=None, host="127.0.0.1", port=8765, archive=str(tmp_path),
+                                     programs=str(tmp_path / "programs"), cell_id=None, archive_url=url)
+        assert serve_mod.serve(args, out) == 0
+    banner = "\n".join(said)
+    assert "hunter2pw" not in banner and banner.count("db.example:5432/archive") == 2, banner

@@ -31,6 +31,7 @@ def serve(args, out) -> int:
     if args.host not in ("127.0.0.1", "localhost", "::1") and not tls:
         out.say(f"warning: serving on {args.host} without TLS: passwords and sessions cross the network in clear")
     from cell.record.archive import resolve_url
+    from cell.record.archive.urls import mask_url
 
     url = resolve_url(getattr(args, "archive_url", None), Path(args.archive))  # --archive-url, else CELL_ARCHIVE_URL
     cfg = Config(archive=Path(args.archive), programs=Path(args.programs), cell_id=args.cell_id or os.environ.get("CELL_ID"),
@@ -40,7 +41,7 @@ def serve(args, out) -> int:
         out.say(f"no users yet: add one with  cell users add NAME --role admin --archive {args.archive}")
     scheme = "https" if tls else "http"
     out.say(f"console on {scheme}://{args.host}:{args.port}/  (archive {cfg.archive}, index "
-            f"{url.split('@')[-1]}, programs {cfg.programs})")
+            f"{mask_url(url)}, programs {cfg.programs})")
     proxy = os.environ.get(PROXY_ENV, "").strip()
     if proxy:
         out.say(f"behind a proxy at {proxy}: its X-Forwarded-For names the client")
