@@ -400,11 +400,15 @@ def _archive_action(a, args, out) -> int:
             doc = a.verify_index()
             def human(d):
                 out.say(f"{d['checked']} job folders, {d['indexed']} indexed, {len(d['outbox'])} in the outbox: "
-                        + ("index matches the folders" if d["intact"] else f"{len(d['problems'])} problem(s)"))
+                        + (f"{len(d['problems'])} problem(s)" if d["problems"] else "index matches the folders"))
                 for p in d["problems"]:
                     out.say(f"  {p}")
                 for p in d["damaged"]:
                     out.say(f"  {p} (a damaged folder: 'cell archive verify ID' says more)")
+                if d["unclosed"]:
+                    out.say(f"{len(d['unclosed'])} job(s) never closed:")
+                for p in d["unclosed"] + d["running"]:
+                    out.say(f"  {p}")
             out.result(doc, human)
             return 0 if doc["intact"] else 1
         if len(args.ids) != 1:

@@ -8,6 +8,7 @@ half-written job; push copies a job and checks it against its manifest.
 from __future__ import annotations
 
 import json
+import os
 import sqlite3
 import subprocess
 import sys
@@ -152,7 +153,8 @@ def test_verify_finds_a_half_written_job_and_sync_repairs_it(tmp_path, url):
     a = _archive(tmp_path, url)
     for k in range(3):
         write_job(a, f"job-{k}", k, n_targets=5)
-    assert a.verify_index() == {"checked": 3, "indexed": 3, "outbox": [], "problems": [], "damaged": [], "intact": True}
+    assert a.verify_index() == {"checked": 3, "indexed": 3, "outbox": [], "problems": [], "damaged": [], "unclosed": [],
+                                 "running": [], "intact": True}
     from cell.record.archive.tables import targets
 
     with a.index.engine.begin() as conn:  # what a write that is not one transaction would leave
@@ -170,7 +172,8 @@ def test_verify_finds_a_half_written_job_and_sync_repairs_it(tmp_path, url):
     assert "job-0: folder not in the index" in text and "job-3: folder not in the index" in text
     s = a.sync()
     assert sorted(s["indexed"]) == ["job-0", "job-1", "job-2", "job-3"] and s["pending"] == []
-    assert a.verify_index()["intact"]
+    v = a.verify_index()  # job-3 never closed (a journal with its created record only): said, with what to run
+    assert not v["problems"] and [u.split(":")[0] for u in v["unclosed"]] == ["job-3"], v
     a.close()
 
 
@@ -368,4 +371,60 @@ def test_a_folder_the_index_cannot_read_is_named_and_the_others_go_on(tmp_path):
     assert [p for p in v["damaged"] if "job-1" in p] and len(v["damaged"]) == 1
     # and its report is not the one its manifest closed the job with: a problem, whatever else reads (decision 0057)
     assert not v["intact"] and all(p.startswith("job-1: ") and "report.json" in p for p in v["problems"]), v
+    a.close()
+
+
+def test_a_kill_between_the_manifest_and_the_index_is_caught_up_by_the_listing(tmp_path):
+    """Killed after manifest.json and before the index's last write: the row says DONE without the manifest's hash,
+    the verdict or the targets (an outside check: the FAIL was missing from every query until 'cell archive sync').
+    The listing's catch-up indexes such a row again, and verify names it with what to run."""
+    a = _archive(tmp_path, f"sqlite:///{tmp_path / 'index.sqlite'}")
+    write_job(a, "job-00", 0, n_targets=6)
+    want = a.index.get_job("job-00")
+    with a.index.engine.begin() as con:
+        con.exec_driver_sql("UPDATE jobs SET manifest_sha256 = NULL, verdict = NULL, targets = NULL, failed = NULL "
+                            "WHERE id = 'job-00'")
+        con.exec_driver_sql("DELETE FROM targets WHERE job_id = 'job-00'")
+    v = a.verify_index()
+    assert any("another manifest" in p and "cell archive sync" in p for p in v["problems"]), v
+    assert [r["id"] for r in a.listing(verdict=want["verdict"])] == ["job-00"]  # caught up by the listing itself
+    row = a.index.get_job("job-00")
+    assert (row["verdict"], row["manifest_sha256"], row["targets"]) == (want["verdict"], want["manifest_sha256"], 6)
+    assert a.verify_index()["intact"]
+    a.close()
+
+
+def test_verify_names_a_job_killed_and_never_resumed_and_not_one_still_running(tmp_path):
+    """A job without a manifest (killed, never resumed) or still in .incoming is said with the resume to run, and
+    verify exits non-zero for it; a job whose process holds its lock is running, not abandoned."""
+    from cell.record.archive import INCOMING
+    from cell.record.jobfolder import JobFolder
+
+    a = _archive(tmp_path, f"sqlite:///{tmp_path / 'index.sqlite'}")
+    write_job(a, "job-00", 0, n_targets=4)
+    write_job(a, "job-01", 1, n_targets=4)
+    write_job(a, "job-02", 2, n_targets=4)
+    assert a.verify_index()["intact"]
+    (a.root / "job-01" / "manifest.json").unlink()  # killed before it closed
+    staged = JobFolder(a.root / INCOMING / "2026-11-25T09-00-00-bracket")
+    staged.path.mkdir(parents=True)
+    staged.append("created", name="bracket", job_file="job.toml", backend="sim", serial=None)
+    (a.root / "job-02" / "manifest.json").unlink()
+    fd = JobFolder(a.root / "job-02").lock()  # job-02 is running: this process holds its lock
+    try:
+        v = a.verify_index()
+    finally:
+        os.close(fd)
+    assert not v["intact"]
+    assert sorted(u.split(":")[0] for u in v["unclosed"]) == ["2026-11-25T09-00-00-bracket", "job-01"]
+    assert [r.split(":")[0] for r in v["running"]] == ["job-02"]
+    # what to run: a job past DONE is only closed (a resume would refuse it), the others resumed
+    assert "'cell archive verify job-01 --repair'" in v["unclosed"][0], v["unclosed"]
+    assert "'cell resume 2026-11-25T09-00-00-bracket --yes'" in v["unclosed"][1], v["unclosed"]
+    from jobutil import run_cell
+
+    run = run_cell("archive", "verify", "--archive", str(a.root), "--archive-url",
+                   f"sqlite:///{tmp_path / 'index.sqlite'}", timeout=120)
+    assert run.code == 1 and len(run.doc["unclosed"]) == 3, (run.doc, run.stderr)  # job-02's lock is let go
+    assert "never closed" in run.stderr
     a.close()

@@ -156,7 +156,7 @@ def test_a_cell_killed_mid_write_leaves_no_half_job(tmp_path, pg):
     assert all(s["target_rows"] in (0, 1500) for s in state.values())
     a.sync()  # the folders of the killed jobs are indexed as far as they got
     v = a.verify_index()
-    assert v["intact"], v["problems"]
+    assert not v["problems"], v["problems"]  # the killed cells' last jobs are listed unclosed, not problems
     a.close()
 
 

@@ -30,6 +30,9 @@ def _edit(archive: Path, job_id: str, fn) -> dict:
     doc = json.loads(p.read_text())
     fn(doc)
     p.write_text(json.dumps(doc))
+    from cell.record.jobfolder import JobFolder
+
+    JobFolder(archive / job_id).write_manifest()  # as a job that wrote this report would have closed it
     Archive(archive).reindex(only=archive / job_id)
     return doc
 
