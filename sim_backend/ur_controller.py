@@ -9,11 +9,18 @@ handshake: command id in ``input_int_register_0``, arguments in ``input_double_r
 
 Motion comes from the pin model of the arm (``planning.kinematics``): ``movej`` is a synchronised trapezoidal profile
 in joint space (leading joint at the given speed and acceleration), ``movel`` a trapezoidal profile along the straight
-line of the TCP with the orientation interpolated on SO(3), joints by IK (branch nearest the current joints).
-``time_scale`` > 1 runs the robot's clock faster than the wall.
+line of the TCP with the orientation interpolated on SO(3), joints by IK (branch nearest the current joints); the
+kernels are in :mod:`sim_backend.ur_motion`. ``time_scale`` > 1 runs the robot's clock faster than the wall. A motion
+runs at the pendant's speed slider (:attr:`LoopbackURController.speed_slider`, RTDE ``target_speed_fraction``; also set
+by the RTDE inputs ``speed_slider_mask`` / ``speed_slider_fraction``, as ur-rtde's ``RTDEIOInterface.setSpeedSlider``
+does) times the trajectory limiter's :attr:`~LoopbackURController.speed_scaling` (RTDE ``speed_scaling``); a stop
+does not.
 
-Faults to inject: :meth:`protective_stop`, :meth:`emergency_stop`, :meth:`drop_connections`, :meth:`stop_script`. The
-RTDE input watchdog that the script arms (``rtde_set_watchdog``) stops the program if the host stops writing.
+Faults to inject: :meth:`protective_stop`, :meth:`emergency_stop`, :meth:`drop_connections`, :meth:`stop_script`,
+:meth:`set_speed_slider` (0: the arm does not advance), :meth:`set_remote_control` (False: local mode; the dashboard's
+``is in remote control`` answers ``false`` and programs sent to 30003 are dropped, as a real e-Series drops its
+clients on 30001-30003). The RTDE input watchdog that the script arms (``rtde_set_watchdog``) stops the program if
+the host stops writing.
 
 Targets refused: ``is_within_safety_limits`` (ur-rtde's ``isJointsWithinSafetyLimits`` / ``isPoseWithinSafetyLimits``,
 commands 37 / 36) is false for joints outside the arm's limits, a pose without an IK branch inside them, and joint
@@ -36,15 +43,15 @@ import socket
 import struct
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from drivers.ur import matrix_to_pose, pose_to_matrix
-from drivers.ur import profile_duration as trapezoid_duration
 from sim_backend import rtde_protocol as rp
 from sim_backend.rtde_protocol import PLAYED_COMMANDS, ScriptContractError, check_control_script
+from sim_backend.ur_motion import _IKFailed, _JointMotion, _LinearMotion, _StopMotion
+from sim_backend.ur_motion import trapezoid, trapezoid_duration  # noqa: F401  (public names kept importable here)
 
 RTDE_PORT, DASHBOARD_PORT, SCRIPT_PORT = 30004, 29999, 30003
 
@@ -56,112 +63,6 @@ BIT_NORMAL, BIT_PROTECTIVE_STOP, BIT_ROBOT_ESTOP, BIT_ESTOP = 0, 2, 6, 7
 SAFETY_NORMAL, SAFETY_PROTECTIVE_STOP, SAFETY_ROBOT_EMERGENCY_STOP = 1, 3, 7
 ROBOT_MODE_RUNNING = 7
 JOINT_MODE_RUNNING = 253
-
-# ---------------------------------------------------------------- motion kernels
-
-def trapezoid(distance: float, v: float, a: float, t: np.ndarray | float) -> tuple[np.ndarray, np.ndarray]:
-    """Position and speed along a rest-to-rest trapezoidal (or triangular) profile.
-
-    distance: path length (>= 0); v, a: peak speed and acceleration (> 0); t: time(s) since start.
-    Returns (s, s_dot) with s clipped to [0, distance].
-    """
-    t = np.asarray(t, dtype=float)
-    if distance <= 0.0:
-        return np.zeros_like(t), np.zeros_like(t)
-    t_acc = v / a
-    if a * t_acc**2 >= distance:  # triangular: never reaches v
-        t_acc = np.sqrt(distance / a)
-        v = a * t_acc
-    t_flat = distance / v - t_acc
-    total = 2 * t_acc + t_flat
-    tc = np.clip(t, 0.0, total)
-    s_acc = 0.5 * a * np.minimum(tc, t_acc) ** 2
-    s_flat = v * np.clip(tc - t_acc, 0.0, t_flat)
-    t_dec = np.clip(tc - t_acc - t_flat, 0.0, t_acc)
-    s_dec = v * t_dec - 0.5 * a * t_dec**2
-    speed = np.where(tc < t_acc, a * tc, np.where(tc < t_acc + t_flat, v, v - a * t_dec))
-    return np.minimum(s_acc + s_flat + s_dec, distance), np.where(tc >= total, 0.0, speed)
-
-
-class _IKFailed(RuntimeError):
-    pass
-
-
-@dataclass
-class _JointMotion:
-    q0: np.ndarray
-    q1: np.ndarray
-    v: float
-    a: float
-    is_async: bool = False
-
-    def __post_init__(self):
-        self.span = float(np.max(np.abs(self.q1 - self.q0)))
-        self.duration = trapezoid_duration(self.span, self.v, self.a)
-
-    def at(self, t: float, model) -> tuple[np.ndarray, bool]:
-        if self.span == 0.0:
-            return self.q1.copy(), True
-        s, _ = trapezoid(self.span, self.v, self.a, t)
-        return self.q0 + (self.q1 - self.q0) * (float(s) / self.span), t >= self.duration
-
-
-@dataclass
-class _LinearMotion:
-    base_from_tcp0: np.ndarray
-    base_from_tcp1: np.ndarray
-    q_start: np.ndarray
-    v: float
-    a: float
-    flange_from_tcp: np.ndarray
-    is_async: bool = False
-    # rotation is given the path length of a point 0.1 m off the axis (an assumption of this emulator)
-    rot_radius_m: float = 0.1
-    q_prev: np.ndarray = field(init=False)
-
-    def __post_init__(self):
-        p0, p1 = self.base_from_tcp0[:3, 3], self.base_from_tcp1[:3, 3]
-        self.rotvec = Rotation.from_matrix(self.base_from_tcp0[:3, :3].T @ self.base_from_tcp1[:3, :3]).as_rotvec()
-        self.span = max(float(np.linalg.norm(p1 - p0)), float(np.linalg.norm(self.rotvec)) * self.rot_radius_m)
-        self.duration = trapezoid_duration(self.span, self.v, self.a)
-        self.q_prev = self.q_start.copy()
-        self.tcp_from_flange = np.linalg.inv(self.flange_from_tcp)
-
-    def at(self, t: float, model) -> tuple[np.ndarray, bool]:
-        if self.span == 0.0:
-            return self.q_prev.copy(), True
-        s, _ = trapezoid(self.span, self.v, self.a, t)
-        u = float(s) / self.span
-        target = np.eye(4)
-        target[:3, :3] = self.base_from_tcp0[:3, :3] @ Rotation.from_rotvec(u * self.rotvec).as_matrix()
-        target[:3, 3] = (1 - u) * self.base_from_tcp0[:3, 3] + u * self.base_from_tcp1[:3, 3]
-        branches = np.asarray(model.ik(target @ self.tcp_from_flange, self.q_prev)).reshape(-1, 6)
-        if branches.size == 0:
-            raise _IKFailed(f"movel: no inverse kinematics solution at {np.round(target[:3, 3], 4)} m")
-        diff = (branches - self.q_prev + np.pi) % (2 * np.pi) - np.pi
-        best = int(np.argmin(np.max(np.abs(diff), axis=1)))
-        if np.max(np.abs(diff[best])) > 0.5:
-            raise _IKFailed("movel: joint jump on the straight line (singularity or branch change)")
-        self.q_prev = self.q_prev + diff[best]
-        return self.q_prev.copy(), t >= self.duration
-
-
-@dataclass
-class _StopMotion:
-    q0: np.ndarray
-    qd0: np.ndarray
-    decel: float
-    is_async: bool = False
-
-    def __post_init__(self):
-        self.duration = float(np.max(np.abs(self.qd0))) / self.decel if self.decel > 0 else 0.0
-
-    def at(self, t: float, model) -> tuple[np.ndarray, bool]:
-        if self.duration <= 0.0:
-            return self.q0.copy(), True
-        tc = min(t, self.duration)
-        return self.q0 + self.qd0 * (tc - tc * tc / (2 * self.duration)), t >= self.duration
-
 
 @dataclass(frozen=True)
 class ScriptCommand:
@@ -218,7 +119,10 @@ class LoopbackURController:
         self._t = 0.0
         self._flange_from_tcp = np.eye(4)
         self._motion = None
-        self._motion_t0 = 0.0
+        self._motion_elapsed = 0.0  # seconds of the running motion's own clock (advanced at the slider's speed)
+        self.speed_slider = 1.0  # the pendant's speed slider (RTDE target_speed_fraction), 0..1
+        self.speed_scaling = 1.0  # the trajectory limiter's scaling (RTDE speed_scaling), 0..1
+        self.remote_control = True  # the pendant's remote / local switch (dashboard "is in remote control")
         self._runtime = STOPPED
         self._safety_bits = 1 << BIT_NORMAL
         self._safety_mode = SAFETY_NORMAL
@@ -378,6 +282,23 @@ class LoopbackURController:
             service.refuse_until = until
             service.drop_clients()
 
+    def set_speed_slider(self, fraction: float) -> None:
+        """Move the pendant's speed slider (0..1, RTDE ``target_speed_fraction``); at 0 a running motion stands."""
+        with self._lock:
+            self.speed_slider = float(np.clip(fraction, 0.0, 1.0))
+
+    def set_speed_scaling(self, scaling: float) -> None:
+        """The trajectory limiter's scaling (0..1, RTDE ``speed_scaling``), e.g. a safety limit slowing the arm."""
+        with self._lock:
+            self.speed_scaling = float(np.clip(scaling, 0.0, 1.0))
+
+    def set_remote_control(self, remote: bool) -> None:
+        """Turn the pendant's remote / local switch: False is local mode (programs sent to 30003 are dropped)."""
+        with self._lock:
+            self.remote_control = bool(remote)
+            if not remote:
+                self.messages.append("local mode: the pendant took control")
+
     def stop_script(self, reason: str = "injected: program stopped") -> None:
         """Stop the running program (runtime_state -> STOPPED) and halt the arm."""
         with self._lock:
@@ -449,7 +370,10 @@ class LoopbackURController:
             return
         q_old = self._q
         try:
-            q, done = self._motion.at(self._t - self._motion_t0, self.model)
+            # a stop decelerates whatever the slider says; a move advances at the slider's (and the limiter's) speed
+            rate = 1.0 if isinstance(self._motion, _StopMotion) else self.speed_slider * self.speed_scaling
+            self._motion_elapsed += dt * rate
+            q, done = self._motion.at(self._motion_elapsed, self.model)
         except _IKFailed as exc:
             self._end_program(f"runtime error: {exc}")
             return
@@ -580,7 +504,7 @@ class LoopbackURController:
             self.after_command(self.commands[-1])
 
     def _start_motion(self, motion, is_async: bool) -> None:
-        self._motion, self._motion_t0 = motion, self._t
+        self._motion, self._motion_elapsed = motion, 0.0
         if is_async:
             self._write_async_progress(0)
         else:
@@ -602,7 +526,8 @@ class LoopbackURController:
             "joint_temperatures": np.full(6, 30.0), "actual_execution_time": 0.1,
             "robot_mode": ROBOT_MODE_RUNNING, "joint_mode": [JOINT_MODE_RUNNING] * 6,
             "safety_mode": self._safety_mode, "safety_status": self._safety_mode,
-            "actual_tool_accelerometer": (0.0, 0.0, -9.81), "speed_scaling": 1.0, "target_speed_fraction": 1.0,
+            "actual_tool_accelerometer": (0.0, 0.0, -9.81), "speed_scaling": self.speed_scaling,
+            "target_speed_fraction": self.speed_slider,
             "actual_momentum": 0.0, "actual_main_voltage": 48.0, "actual_robot_voltage": 48.0,
             "actual_robot_current": 0.5, "actual_joint_voltage": np.full(6, 48.0),
             "runtime_state": self._runtime, "robot_status_bits": 0b1 | (0b10 if running else 0),
@@ -674,6 +599,8 @@ class LoopbackURController:
                 offset = self._script.reg_offset if self._script is not None else 0
                 if values.get(f"input_int_register_{offset}", 0) != 0:
                     self._command_recipe = recipe.names
+                if values.get("speed_slider_mask") == 1 and "speed_slider_fraction" in values:
+                    self.speed_slider = float(np.clip(values["speed_slider_fraction"], 0.0, 1.0))
                 if self._watchdog_var is not None and self._watchdog_var in values:
                     self._watchdog_last = time.monotonic()
         else:
@@ -701,7 +628,7 @@ class LoopbackURController:
         if cmd == "get serial number":
             return self.serial_number
         if cmd == "is in remote control":
-            return "true"
+            return "true" if self.remote_control else "false"
         if cmd == "get robot model":
             return "UR5"
         if cmd == "robotmode":
@@ -757,6 +684,9 @@ class LoopbackURController:
                     break
                 program, buffer = m.group(0), buffer[m.end():]
                 with self._lock:
+                    if not self.remote_control:  # local mode: a real e-Series drops its clients on 30001-30003
+                        self.messages.append("program refused: the robot is in local control")
+                        return
                     self.uploaded_scripts.append(program)
                     self._halt()
                     if self._script is not None:
