@@ -18,6 +18,12 @@ What this driver adds to ur-rtde:
   pipe), is ``MoveRefusedError`` and nothing is sent. Anything else stays a fault, also a
   program that stops before the arm moved (a runtime error and a stop from the pendant look
   the same over RTDE; decision 0028);
+* a move the arm could not make is refused at once with one line naming the cause: the teach
+  pendant's speed slider at (or near) 0 (RTDE ``target_speed_fraction``), or the robot in local
+  control (the dashboard's ``is in remote control``); during a move, a speed at 0 (RTDE
+  ``speed_scaling`` x ``target_speed_fraction``: the slider pulled down, a stop) for longer than
+  ``speed_zero_grace_s`` stops the move and names it instead of waiting out the deadline; a
+  slider below 100% stretches the move's deadline (decision 0063);
 * the cell's own limits (joint speed and acceleration, TCP speed and acceleration,
   a workspace box in the base frame for the flange) are checked before anything
   is sent (``LimitError``);
@@ -53,6 +59,7 @@ from calibration import errors
 from calibration.errors import DriverError, LimitError, MotionError, MoveRefusedError, NotConnectedError
 from drivers.motion import arm_moved, describe_change, joint_change_rad
 from drivers.protocols import RobotState, SafetyStatus
+from drivers.ur_worker import LOCAL_CONTROL, SPEED_ZERO, slider_problem
 
 # safety_status_bits (RTDE guide)
 BIT_PROTECTIVE_STOP, BIT_ROBOT_ESTOP, BIT_ESTOP, BIT_VIOLATION, BIT_FAULT = 2, 6, 7, 8, 9
@@ -148,12 +155,14 @@ class URRobot:
         stale_after_s: RTDE data whose timestamp has not advanced for this long is stale.
         stop_decel_rad_s2: deceleration of :meth:`stop` and of a stop at a deadline.
         position_tol: arrival tolerance (rad for joints, m for the flange position).
+        speed_zero_grace_s: how long (wall) the arm may stand still during a move at a speed of 0 (slider
+            pulled down, the controller's speed scaling at 0) before the move is stopped and the cause named.
     """
 
     def __init__(self, host: str, limits: CellLimits | None = None, deadline_s: float = 5.0, *,
                  model=None, robot: str = "ur5e", frequency_hz: float = 125.0, watchdog_hz: float = 5.0,
                  stale_after_s: float = 0.5, stop_decel_rad_s2: float = 4.0, position_tol: float = 1e-3,
-                 connect_timeout_s: float = 30.0):
+                 connect_timeout_s: float = 30.0, speed_zero_grace_s: float = 0.5):
         self.host = host
         self.limits = limits or CellLimits()
         self.deadline_s = float(deadline_s)
@@ -164,7 +173,8 @@ class URRobot:
         self.model = model
         self._options = {"host": host, "frequency_hz": frequency_hz, "watchdog_hz": watchdog_hz,
                          "stale_after_s": stale_after_s, "stop_decel": stop_decel_rad_s2,
-                         "position_tol": position_tol, "orientation_tol": 1e-3}
+                         "position_tol": position_tol, "orientation_tol": 1e-3,
+                         "speed_zero_grace_s": float(speed_zero_grace_s)}
         self.connect_timeout_s = connect_timeout_s
         self._worker: _Worker | None = None
         self._request_lock = threading.Lock()
@@ -196,6 +206,9 @@ class URRobot:
             self._request({"op": "connect", **self._options}, self.connect_timeout_s)
         except DriverError as exc:
             self._discard_worker(kill=True)
+            if LOCAL_CONTROL in str(exc):  # its own line says what to do
+                line = str(exc).removeprefix(f"UR at {self.host}: ")
+                raise NotConnectedError(f"UR at {self.host}: could not connect: {line}") from exc
             raise NotConnectedError(f"UR at {self.host}: could not connect ({exc}); check the address, that the "
                                     "robot is powered, in remote control and not stopped") from exc
 
@@ -233,14 +246,14 @@ class URRobot:
         if np.any(q < lower) or np.any(q > upper):
             raise LimitError(f"move_joints: target {np.round(q, 4).tolist()} rad is outside the joint limits; "
                              "nothing was sent to the robot")
-        start = self.state()
+        start, fraction = self._ready_state()
         # the controller moves on a straight line in joint space: check the flange along it
         path = start.joints_rad + np.linspace(0.0, 1.0, 25)[:, None] * (q - start.joints_rad)
         flange = np.array([np.asarray(self.model.fk(qi))[:3, 3] for qi in path])
         self.limits.check_box(flange, "move_joints")
         expected = profile_duration(float(np.max(np.abs(q - start.joints_rad))), speed_rad_s, accel_rad_s2)
         return self._move({"op": "move_joints", "target": q.tolist(), "speed": speed_rad_s,
-                           "accel": accel_rad_s2}, expected, start)
+                           "accel": accel_rad_s2}, expected / fraction, start)
 
     def move_pose(self, base_from_flange, speed_m_s: float, accel_m_s2: float) -> RobotState:
         target = np.asarray(base_from_flange, dtype=float)
@@ -254,14 +267,14 @@ class URRobot:
         if len(np.asarray(self.model.ik(target)).reshape(-1, 6)) == 0:
             raise LimitError(f"move_pose: {np.round(target[:3, 3], 3).tolist()} m is out of the arm's reach; "
                              "nothing was sent to the robot")
-        start = self.state()
+        start, fraction = self._ready_state()
         self.limits.check_box(start.base_from_flange[None, :3, 3], "move_pose (start)")
         length = float(np.linalg.norm(target[:3, 3] - start.base_from_flange[:3, 3]))
         angle = float(np.linalg.norm(Rotation.from_matrix(start.base_from_flange[:3, :3].T @ target[:3, :3])
                                      .as_rotvec()))
         expected = profile_duration(max(length, 0.1 * angle), speed_m_s, accel_m_s2)
         return self._move({"op": "move_pose", "target": matrix_to_pose(target).tolist(), "speed": speed_m_s,
-                           "accel": accel_m_s2}, expected, start)
+                           "accel": accel_m_s2}, expected / fraction, start)
 
     def stop(self) -> RobotState | None:
         """Decelerate and stop now, whatever the client is doing; returns the state once the arm is at rest.
@@ -304,6 +317,18 @@ class URRobot:
             pass
 
     # ------------------------------------------------------------ internals
+    def _ready_state(self) -> tuple[RobotState, float]:
+        """The state a move starts from, and the pendant's speed slider (``target_speed_fraction``, 0..1).
+
+        A slider at (or near) 0 is ``MotionError`` at once with its one line: the arm would stand still until
+        the deadline. (The child checks it again, and the remote control, just before it sends the move.)
+        """
+        value = self._request({"op": "state"}, self.deadline_s)
+        problem = slider_problem(value)
+        if problem is not None:
+            raise MotionError(f"UR at {self.host}: {problem}")
+        return self._to_state(value), max(float(value.get("target_speed_fraction", 1.0)), SPEED_ZERO)
+
     def _move(self, request: dict, expected_s: float, start: RobotState) -> RobotState:
         deadline = 1.5 * expected_s + self.deadline_s
         request["deadline_s"] = deadline

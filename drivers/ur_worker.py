@@ -16,8 +16,16 @@ a Ctrl-C is the parent's to handle (this process also runs in a session of its o
 Moves are sent asynchronously to the controller; the child then polls the RTDE
 state until the arm is at the target, checking on every poll: an interrupt from
 the parent, the safety bits, the program's runtime state, the freshness of the
-RTDE timestamp, and the move's deadline; and it kicks the controller's watchdog,
+RTDE timestamp, the speed the arm is let to run at (``speed_scaling`` x
+``target_speed_fraction``: at 0 for longer than a short grace the move is stopped
+and named), and the move's deadline; and it kicks the controller's watchdog,
 as it does while idle. When the pipe closes, the child exits at once.
+
+Before sending a move it also refuses one the arm could not make: the pendant's
+speed slider (``target_speed_fraction``) at or near 0, or a robot in local control
+(the dashboard's ``is in remote control``, asked through ur-rtde's
+``DashboardClient.isInRemoteControl()`` on PolyScope 5.6 and later, the versions
+that answer it). Decision 0063.
 """
 from __future__ import annotations
 
@@ -33,7 +41,15 @@ from drivers.motion import arm_moved, describe_change, joint_change_rad
 BIT_PROTECTIVE_STOP, BIT_ROBOT_ESTOP, BIT_ESTOP = 2, 6, 7
 RUNTIME_PLAYING = 2
 RECEIVE_VARIABLES = ["timestamp", "actual_q", "actual_qd", "actual_TCP_pose", "safety_status_bits",
-                     "runtime_state", "robot_mode", "safety_mode"]
+                     "runtime_state", "robot_mode", "safety_mode", "speed_scaling", "target_speed_fraction"]
+#: a speed fraction below this is "at 0": the pendant's slider (target_speed_fraction) before a move, and the speed the
+#: arm is let to run at (speed_scaling x target_speed_fraction) during one
+SPEED_ZERO = 0.01
+#: the dashboard answers ``is in remote control`` from PolyScope 5.6 on (ur-rtde asks it only there, as here)
+REMOTE_QUERY_SINCE = (5, 6)
+LOCAL_CONTROL = "the robot is in local control (dashboard 'is in remote control': false)"
+LOCAL_CONTROL_LINE = (f"{LOCAL_CONTROL}: switch the teach pendant from Local to Remote control, then resume the job; "
+                      "nothing was sent and the arm did not move")
 RUNTIME_NAMES = {0: "stopping", 1: "stopped", 2: "playing", 3: "pausing", 4: "paused", 5: "resuming"}
 
 
@@ -47,6 +63,37 @@ class _Fail(Exception):
     def __init__(self, kind: str, message: str):
         super().__init__(message)
         self.kind, self.message = kind, message
+
+
+def slider_problem(state: dict) -> str | None:
+    """The one line that refuses a move when the pendant's speed slider is at (or near) 0, else None."""
+    fraction = state.get("target_speed_fraction")
+    if fraction is None or fraction >= SPEED_ZERO:
+        return None
+    return (f"the speed slider on the teach pendant stands at {100 * fraction:.0f}% (RTDE target_speed_fraction "
+            f"{fraction:.3f}): the arm would not move; push the slider up (100% for the planned cycle time), then "
+            "resume the job; nothing was sent and the arm did not move")
+
+
+def standstill_line(state: dict, held_s: float) -> str:
+    """The one line that ends a move whose speed stood at 0 (slider pulled down, or the controller's scaling)."""
+    fraction, scaling = state["target_speed_fraction"], state["speed_scaling"]
+    if fraction < SPEED_ZERO:
+        return (f"the speed slider on the teach pendant was pulled down to {100 * fraction:.0f}% during the move "
+                f"(target_speed_fraction {fraction:.3f} for {held_s:.1f} s): the arm stood still; the move was "
+                "stopped and is not resumed: push the slider up, then resume the job")
+    return (f"the controller's speed scaling stood at {scaling:.3f} for {held_s:.1f} s during the move (RTDE "
+            f"speed_scaling; slider at {100 * fraction:.0f}%): the arm stood still (a stop, a safety limit or a "
+            "paused program); the move was stopped and is not resumed: check the pendant, then resume the job")
+
+
+def _version_tuple(text: str) -> tuple[int, ...]:
+    parts = []
+    for piece in text.strip().split("."):
+        if not piece.isdigit():
+            break
+        parts.append(int(piece))
+    return tuple(parts)
 
 
 def _rotvec_angle_between(a, b) -> float:
@@ -68,6 +115,8 @@ class Worker:
         self.conn = conn
         self.ctrl = None
         self.rcv = None
+        self.db = None  # ur-rtde's DashboardClient (port 29999): the remote-control question
+        self.polyscope: tuple[int, ...] = ()
         self.opts: dict = {}
         self._last_ts = None
         self._last_change = 0.0
@@ -171,7 +220,34 @@ class Worker:
                         f"{now - self._last_change:.2f} s (connection lost?); call connect() once the link is back")
         return {"timestamp": ts, "q": list(self.rcv.getActualQ()), "qd": list(self.rcv.getActualQd()),
                 "pose": list(self.rcv.getActualTCPPose()), "safety_bits": int(self.rcv.getSafetyStatusBits()),
-                "runtime_state": int(self.rcv.getRuntimeState())}
+                "runtime_state": int(self.rcv.getRuntimeState()),
+                "speed_scaling": float(self.rcv.getSpeedScaling()),
+                "target_speed_fraction": float(self.rcv.getTargetSpeedFraction())}
+
+    def _in_remote_control(self) -> bool | None:
+        """The dashboard's ``is in remote control`` (None: this PolyScope does not answer it, nor has the mode)."""
+        if self.db is None or self.polyscope < REMOTE_QUERY_SINCE or self.polyscope[0] != 5:
+            return None
+        for attempt in (1, 2):
+            try:
+                return bool(self.db.isInRemoteControl())
+            except RuntimeError as exc:  # the dashboard connection dropped: one new connection, then it is a fault
+                if attempt == 2:
+                    raise _Fail("NotConnectedError", f"the dashboard server (port 29999) did not answer 'is in "
+                                f"remote control' ({exc}); nothing was sent") from None
+                try:
+                    self.db.connect()
+                except RuntimeError:
+                    pass
+        return None
+
+    def _check_ready(self, state: dict) -> None:
+        """Refuse a move the arm could not make: the pendant's slider at 0, or the robot in local control."""
+        problem = slider_problem(state)
+        if problem is not None:
+            raise _Fail("MotionError", problem)
+        if self._in_remote_control() is False:
+            raise _Fail("MotionError", LOCAL_CONTROL_LINE)
 
     @staticmethod
     def _check_safe(state: dict, when: str) -> None:
@@ -200,11 +276,20 @@ class Worker:
     # ------------------------------------------------------------ operations
     def op_connect(self, msg: dict) -> dict:
         self.opts = msg
+        import dashboard_client
         import rtde_control
         import rtde_receive
 
         host, freq = msg["host"], float(msg["frequency_hz"])
         try:
+            # first the dashboard: local control is named here (ur-rtde's control interface would refuse it with
+            # "Please enable remote control", and not at all for 127.0.0.1)
+            self.db = dashboard_client.DashboardClient(host)
+            self.db.connect()
+            self.polyscope = _version_tuple(self.db.polyscopeVersion())
+            if self._in_remote_control() is False:
+                raise _Fail("NotConnectedError", f"{LOCAL_CONTROL}: switch the teach pendant from Local to Remote "
+                            "control, then connect again (ur-rtde uploads its control script only in remote control)")
             self.ctrl = rtde_control.RTDEControlInterface(host, freq)
             self.rcv = rtde_receive.RTDEReceiveInterface(host, freq, RECEIVE_VARIABLES)
         except RuntimeError as exc:
@@ -278,6 +363,7 @@ class Worker:
             raise _Fail("MotionError", "move refused: a stop was requested and not yet acknowledged")
         state = self._state()
         self._check_safe(state, "before the move")
+        self._check_ready(state)
         self._check_target(target, joint_space, state)
         if self.stop_requested:
             raise _Fail("MotionError", "move refused: a stop was requested and not yet acknowledged")
@@ -288,6 +374,9 @@ class Worker:
             state = self._wait_fresh(0.5)
             self._check_safe(state, "when the move was sent")
             raise _Fail("MotionError", "the controller did not accept the move (ur-rtde returned False)")
+        grace = float(self.opts.get("speed_zero_grace_s", 0.5))
+        still_since = None  # when the speed the arm is let to run at fell to 0
+        slowest = 1.0  # the least target_speed_fraction seen, for the deadline's message
         while True:
             if self.stop_requested or self._parent_closed():
                 self.last_rest = None
@@ -302,10 +391,21 @@ class Worker:
             if not self.ctrl.getAsyncOperationProgressEx().isAsyncOperationRunning() and \
                     self._arrived(state, target, joint_space):
                 return state
-            if time.monotonic() > deadline:
+            now = time.monotonic()
+            slowest = min(slowest, state["target_speed_fraction"])
+            if state["speed_scaling"] * state["target_speed_fraction"] >= SPEED_ZERO:
+                still_since = None
+            elif still_since is None:
+                still_since = now
+            elif now - still_since > grace:
                 self._try_stop()
+                raise _Fail("MotionError", standstill_line(state, now - still_since))
+            if now > deadline:
+                self._try_stop()
+                slider = (f" (the pendant's speed slider went down to {100 * slowest:.0f}% during it)"
+                          if slowest < 0.995 else "")
                 raise _Fail("MotionError", f"move did not reach its target within its deadline of "
-                            f"{msg['deadline_s']:.2f} s; the arm was stopped")
+                            f"{msg['deadline_s']:.2f} s{slider}; the arm was stopped")
             time.sleep(0.004)
 
     def _check_target(self, target: list, joint_space: bool, before: dict) -> None:
