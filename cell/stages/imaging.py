@@ -113,6 +113,9 @@ class DotMeasurement:
         named_turned_deg: how far (deg) the pose the dots were named from turned from the robot's, where the robot's
             pose left them off their projections and a resection named them again (:func:`naming_radial`); None: the
             robot's pose.
+        codes_seen: ``(target index, px, limit px)`` of every decoded coded marker of the part: how far its centre is
+            from the projection of its own target at the pose the named dots resect (the naming pose when too few),
+            and the distance beyond which it is not where the placement puts it (:func:`code_limit_px`; decision 0064).
         clip_bound: (k, 2) px, how far a clipped dot's centre may be off for its unknown level
             (``Detections.clip_bound``, decision 0050; zero for the others); ADJUST carries it; or None.
         outline: (k, 2) ``[chi2, n]`` of each dot's contour about its ellipse (``Detections.outline``; NaN: not
@@ -140,6 +143,7 @@ class DotMeasurement:
     eccentricity_px: np.ndarray | None = None
     naming_radial: tuple[float, float] | None = None
     named_turned_deg: float | None = None
+    codes_seen: list = field(default_factory=list)
 
     @property
     def n_shape(self) -> int:
@@ -287,12 +291,22 @@ def name_dots(det_uv: np.ndarray, part, intr: Intrinsics, cam_from_part: np.ndar
     t = part.targets
     det_uv = np.asarray(det_uv, dtype=float).reshape(-1, 2)
     seeable = VisibilityOptions(margin_px=0.0, incidence_max_rad=incidence_max_rad, min_target_px=1.0)
-    with_codes = coded_ids is not None and len(coded_ids) > 0
+    code_to_index = {int(c): i for i, c in enumerate(t.code) if c >= 0}
+    if coded_ids is not None and len(coded_ids):  # the part's codes only
+        own = np.array([int(c) in code_to_index for c in coded_ids], dtype=bool)
+        coded_ids = np.asarray(coded_ids, dtype=int)[own]
+        coded_uv = np.asarray(coded_uv, dtype=float).reshape(-1, 2)[own]
+    code_idx = np.array([code_to_index[int(c)] for c in coded_ids], dtype=int) if coded_ids is not None else \
+        np.zeros(0, dtype=int)
+    all_code_uv = np.zeros((0, 2)) if coded_uv is None else np.asarray(coded_uv, dtype=float).reshape(-1, 2)
+    with_codes = len(code_idx) > 0
 
     def named(lens, pose, in_view=None):
         if in_view is None:
             in_view = compute_visibility(part, lens, invert(pose)[None], seeable, occluder=occluder)[0]
         cand = np.flatnonzero((in_view & (t.code < 0)) | ((t.code >= 0) if with_codes else False))
+        if len(cand) == 0:  # nothing of the part in view from the pose (a part far off it, upside down): none named
+            return np.full(len(det_uv), -1, dtype=int)
         sub = identify_targets(det_uv, t.xyz[cand], t.code[cand], lens, pose, max_dist_px,
                                coded_ids=coded_ids if with_codes else None, coded_uv=coded_uv if with_codes else None)
         return np.where(sub >= 0, cand[np.maximum(sub, 0)], -1)
@@ -305,6 +319,11 @@ def name_dots(det_uv: np.ndarray, part, intr: Intrinsics, cam_from_part: np.ndar
     shift = common_shift(project(intr, cam_from_part, t.xyz[ids]), det_uv) if len(ids) else None
     if shift is not None:
         start = turned_by(intr, cam_from_part, shift)
+    if with_codes:  # markers off their own projections while others are on theirs do not steer the pose (F2, 0064)
+        off, limit = code_offsets(part, intr, start, code_idx, all_code_uv, max_dist_px)
+        near = off <= limit
+        if near.any() and not near.all():
+            coded_ids, coded_uv = coded_ids[near], all_code_uv[near]
     match = named(intr, start, in_view0 if start is cam_from_part else None)  # the robot's pose: seen once
     # a principal point off the data sheet's, or a lens whose distortion the job does not state, moves the image's
     # dots off their projections: the pose resected from the named dots, and where that is not enough a radial lens
@@ -348,12 +367,15 @@ def name_dots(det_uv: np.ndarray, part, intr: Intrinsics, cam_from_part: np.ndar
     uv = det_uv[dots] - bias
     keep = np.arange(len(dots))
     med = None
+    dots_pose = name_pose if naming is not None else start  # the pose the dots were named from
     if len(dots) >= RESECTION_MIN_DOTS:
         try:
             pose = refine_pose_pnp(intr, cam_from_part, t.xyz[tid], uv)
             med = float(np.median(np.linalg.norm(uv - project(intr, pose, t.xyz[tid]), axis=1)))
         except CalibrationError:
             med = float("inf")
+        if med <= RESECTION_MEDIAN_PX:
+            dots_pose = pose
         if not med <= RESECTION_MEDIAN_PX:
             dropped += [(int(i), f"the image's naming is inconsistent: resection median residual {med:.1f} px > "
                                  f"{RESECTION_MEDIAN_PX} px") for i in tid]
@@ -365,6 +387,10 @@ def name_dots(det_uv: np.ndarray, part, intr: Intrinsics, cam_from_part: np.ndar
         if det_clipped is not None:
             blur[np.asarray(det_clipped, dtype=float)[dots] > 0] = np.nan
             moments[np.asarray(det_clipped, dtype=float)[dots] > 0] = np.nan
+    codes_seen = []
+    if len(code_idx):  # each decoded marker against its own target's projection where the dots put the part (0064)
+        off, limit = code_offsets(part, intr, dots_pose, code_idx, all_code_uv, max_dist_px)
+        codes_seen = [(int(i), float(d), float(lim)) for i, d, lim in zip(code_idx, off, limit)]
     outline = centroid_chi2 = None
     if det_outline is not None:
         outline = np.asarray(det_outline, dtype=float).reshape(-1, 4)[dots, :2]
@@ -386,7 +412,32 @@ def name_dots(det_uv: np.ndarray, part, intr: Intrinsics, cam_from_part: np.ndar
                           None if det_clip_bound is None
                           else np.asarray(det_clip_bound, dtype=float).reshape(-1, 2)[dots], outline, centroid_chi2,
                           moments, bias[keep], None if naming_lens is None else (naming_lens.k1, naming_lens.k2),
-                          turned)
+                          turned, codes_seen)
+
+
+#: a decoded coded marker whose centre is more than this many imaged dot diameters (and more than the naming window)
+#: from the projection of its own target is not where the placement puts it: targets are spaced at least about two
+#: diameters apart (each dot's background ring), so a part one step of its layout off moves every marker by at least
+#: that, while a right placement leaves a marker within the naming's residual (0.0-1.2 px on the example; 0064)
+CODE_OFF_DIAMETERS = 2.0
+
+
+def code_offsets(part, intr: Intrinsics, cam_from_part: np.ndarray, idx: np.ndarray, uv: np.ndarray,
+                 window_px: float) -> tuple[np.ndarray, np.ndarray]:
+    """How far (px) each coded marker seen at ``uv: (c, 2)`` is from the projection of its own target ``idx: (c,)``
+    at ``cam_from_part``, and the limit beyond which it is not where that pose puts it: :data:`CODE_OFF_DIAMETERS`
+    imaged dot diameters at the marker's depth, at least ``window_px`` (the naming window)."""
+    idx = np.asarray(idx, dtype=int)
+    if len(idx) == 0:
+        return np.zeros(0), np.zeros(0)
+    xyz = part.targets.xyz[idx]
+    depth = xyz @ np.asarray(cam_from_part, dtype=float)[2, :3] + cam_from_part[2, 3]
+    off = np.full(len(idx), np.inf)
+    front = depth > 0
+    if front.any():
+        off[front] = np.linalg.norm(project(intr, cam_from_part, xyz[front]) - np.asarray(uv)[front], axis=1)
+    diameter = max(intr.fx_px, intr.fy_px) * part.target_diameter_m / np.maximum(depth, 1e-6)
+    return off, np.maximum(CODE_OFF_DIAMETERS * diameter, window_px)
 
 
 def surface_labeller(camera, part) -> SurfaceLabeller | None:

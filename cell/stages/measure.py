@@ -79,7 +79,9 @@ def run(ctx, keep: bool = False) -> None:
                     **({"outline": m.outline, "centroid_chi2": m.centroid_chi2} if m.outline is not None else {}),
                     "n_unidentified": m.n_unidentified, "n_partly_hidden": m.n_partly_hidden,
                     "n_shape_rejected": m.n_shape, "dropped": dropped,
-                    "resection_median_px": m.resection_median_px} | counts)
+                    "resection_median_px": m.resection_median_px,
+                    "codes_seen": [{"id": ids_all[i], "px": round(d, 2), "limit_px": round(lim, 1)}
+                                   for i, d, lim in m.codes_seen]} | counts)
         if m.n_shape or len(m.dropped) > m.n_partly_hidden:
             ctx.log.log("warning", f"{im['image']}: {len(m.dropped)} named dot(s) left unnamed: " + "; ".join(
                 f"{d['id']} {d['reason']}" for d in dropped[:6]) + (" ..." if len(dropped) > 6 else ""))
@@ -88,6 +90,9 @@ def run(ctx, keep: bool = False) -> None:
     by_reason = dropped_by_reason(out)
     atomic_write_json(ctx.folder.file("observations.json"), {"images": out, "n_dropped": sum(by_reason.values()),
                                                              "dropped_by_reason": by_reason})
+    off = codes_off_placement(out, job.part.targets)
+    if off is not None:  # the dots were named from a placement the job does not describe: not adjusted (0064)
+        raise CalibrationError(off)
     n = [len(o["ids"]) for o in out]
     ctx.folder.append("identification_dropped", total=sum(by_reason.values()), by_reason=by_reason)
     ctx.say(f"  {sum(n)} observations in {len(out)} images ({min(n)}..{max(n)} per image); "
@@ -119,6 +124,50 @@ def run(ctx, keep: bool = False) -> None:
     other = {k: v for k, v in by_reason.items() if k != "partly hidden (CAD)"}
     if other:
         ctx.say("  named dots left unnamed rather than misnamed: " + ", ".join(f"{v} {k}" for k, v in other.items()))
+
+
+#: a coded marker seen beyond its limit (``cell.stages.imaging.code_offsets``) in at least this share of the images
+#: that see it, and in at least CODE_OFF_MIN_IMAGES of them, is not where the placement puts it: one poor view (a
+#: grazing or partly hidden marker) is not a wrong placement (as ``cell locate`` judges marker views, decision 0045)
+CODE_OFF_SHARE = 0.5
+CODE_OFF_MIN_IMAGES = 2
+
+
+def codes_off_placement(images: list[dict], targets) -> str | None:
+    """One line when a decoded coded marker is not where the job's placement and targets file put it, else None.
+
+    ``images``: observations.json's records (``codes_seen``). The dots of every image are named from the job's
+    placement ([cell] base_from_part); a part placed one step of its layout off (a symmetric layout turned by its
+    pitch) is named dot by dot as its neighbours, consistently, and only its markers can tell (decision 0064)."""
+    seen: dict[str, list[tuple[float, float]]] = {}
+    for o in images:
+        for c in o.get("codes_seen", []):
+            seen.setdefault(c["id"], []).append((c["px"], c["limit_px"]))
+    bad, good = [], []
+    for tid, v in seen.items():
+        n_off = sum(d > lim for d, lim in v)
+        if n_off >= CODE_OFF_MIN_IMAGES and n_off >= CODE_OFF_SHARE * len(v):
+            px = sorted(d for d, lim in v if d > lim)
+            bad.append((tid, n_off, len(v), px[0], px[-1], min(lim for _, lim in v)))
+        else:
+            good.append(tid)
+    if not bad:
+        return None
+    code = {i: int(c) for i, c in zip(targets.ids, targets.code)}
+    what = ", ".join(f"code {code[t]} (target {t}) {lo:.0f}-{hi:.0f} px off in {k} of {n} images"
+                     for t, k, n, lo, hi, _ in sorted(bad, key=lambda b: code[b[0]]))
+    limit = min(b[5] for b in bad)
+    if good:  # other markers are where the placement puts them: the markers named are not where the file says
+        why = (f"they are not where the targets file puts them (the other marker(s) seen, {', '.join(sorted(good))}, "
+               "are where the placement puts them): check the file's code column against the markers stuck on the part "
+               "(swapped?) and correct it, or if the part is not where [cell] base_from_part says, run "
+               "`cell locate JOB --write`")
+    else:
+        why = ("the part is not where [cell] base_from_part says (moved, or turned by a step of its layout, so that "
+               "every dot would be named as its neighbour), or the targets file's codes are not where they are stuck: "
+               "run `cell locate JOB --write`, or correct the targets file")
+    return (f"coded marker(s) seen far from the projection of their own target (beyond {limit:.0f} px, two imaged dot "
+            f"diameters): {what}; {why}; not adjusted, since the dots were named from that placement")
 
 
 def centroid_kept(images: list[dict]) -> int:
