@@ -92,7 +92,7 @@ def estimate_part_placement(job: LoadedJob, devices, out, *, n_images: int = 4) 
             uvs.append(uv)
         tgt = np.concatenate(tgt_idx)
         if len(tgt) < 12:
-            raise CalibrationError(f"part placement: only {len(tgt)} dots identified in {len(B)} images (12 needed); "
+            raise InputError(f"part placement: only {len(tgt)} dots identified in {len(B)} images (12 needed); "
                                    "check the light and that the part's targets file matches the part")
         res = refine_hand_eye(lens, B, np.concatenate(img_idx), job.part.targets.xyz[tgt], np.concatenate(uvs), X, Y,
                               HandEyeOptions(sigma_px=job.spec.camera.sigma_px, fix_flange_from_cam=True))
@@ -345,6 +345,11 @@ def _placement_from_codes(job: LoadedJob, B: np.ndarray, markers: list, dots: li
         raise CalibrationError("part placement: no two views of the coded markers agree about where the part is; "
                                "check the code column of the targets file against the markers on the part")
     score, Y, use, rms, s0 = best
+    if score == 0:  # the markers agree, but no dot is where they put the part (F3, decision 0064)
+        raise InputError(f"part placement: the coded markers were not found where the part's dots expect them: no dot "
+                         f"is where {len(use)} agreeing marker view(s) put the part; check that the part is the job's "
+                         "part, right side up and within a few centimetres of [cell] base_from_part, and that the "
+                         "targets file's code column matches the markers on it")
     dropped = [{"image": int(img[v]), "target": t.ids[views[v][1]], "code": int(t.code[views[v][1]]),
                 "rms_px": float(rms[v])} for v in range(len(views)) if v not in set(use.tolist())]
     return Y, {"base_from_part": Y, "n_markers": int(len(use)), "images": int(len(set(img[use].tolist()))),
