@@ -103,16 +103,8 @@ NAME_MAX = 200
 
 
 class JobSection(_Strict):
-    name: str = Field(min_length=1)
-
-    @field_validator("name")
-    @classmethod
-    def _name_fits_the_archive(cls, v: str) -> str:
-        if len(v) > NAME_MAX:
-            raise ValueError(f"is {len(v)} characters long; at most {NAME_MAX} (the archive index's limit for a job's "
-                             "and a part's name)")
-        return v
-
+    name: str = Field(min_length=1, max_length=NAME_MAX, description="also the part's name; at most NAME_MAX "
+                      "characters, the archive index's limit")
     mesh: str = Field(description="the part: STEP/IGES (its own units honoured) or a mesh (STL/OBJ/PLY/GLB, in `units`)")
     tessellation_tolerance: float | None = Field(
         default=None, gt=0, description="STEP/IGES: largest distance of the tessellation from the surface, job units "

@@ -35,6 +35,29 @@ def digest(arrays: dict[str, np.ndarray]) -> str:
     return h.hexdigest()
 
 
+def write_bytes_atomic(path: str | Path, data: bytes) -> Path:
+    """Write ``data`` to ``path`` atomically and durably: a dot-named temporary file beside it (``.NAME.XXXX.tmp``,
+    which a resume removes after a kill), fsync'ed, renamed over ``path``, the folder fsync'ed."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    dir_fd = os.open(path.parent, os.O_RDONLY)
+    try:
+        os.fsync(dir_fd)
+    finally:
+        os.close(dir_fd)
+    return path
+
+
 def save_arrays(path: str | Path, arrays: dict[str, np.ndarray], *, compress: bool = False) -> Path:
     """Write ``arrays`` and their digest to ``path`` atomically and durably (fsync of file and folder)."""
     path = Path(path)

@@ -105,13 +105,14 @@ def _mesh(ax, mesh) -> None:
                                          linewidths=0.3))
 
 
-def plot_plan(part, plan, path_png, *, max_ellipsoids: int = 400, title: str | None = None) -> Path:
+def plot_plan(part, plan, path_png, *, max_ellipsoids: int = 400, title: str | None = None, write=None) -> Path:
     """Draw ``plan`` (a :class:`planning.planner.NetworkPlan`) around ``part`` into ``path_png``.
 
     The ellipsoids (1 sigma, from ``plan.cov``) are magnified so the largest is ~6% of
     the part's size; the factor is printed on the panel. With more than
     ``max_ellipsoids`` targets the worst ones and an even sample of the rest are drawn.
-    The file is written atomically. Returns the path.
+    The file is written atomically (``write(path, data)``: another atomic writer, e.g. a job folder's, which
+    journals it). Returns the path.
     """
     path_png = Path(path_png)
     fig = Figure(figsize=(14, 10), dpi=100)
@@ -192,10 +193,10 @@ def plot_plan(part, plan, path_png, *, max_ellipsoids: int = 400, title: str | N
     fig.suptitle(title or f"network plan: {getattr(part, 'name', '')} (seed {plan.seed})")
     fig.tight_layout()
     png = figure_png(fig)  # one draw (tight_layout leaves a layout engine: savefig would draw twice)
-    # the project's atomic writer (decision 0005): a dot-named temporary file, fsync'ed, renamed, the folder
-    # fsync'ed; in a job's stage it is journalled with its sha256 first. A kill before the rename leaves
-    # ``.plan.png.tmpPID``, which a resume removes (decision 0060). Imported here: planning needs no cell at import.
-    from cell.record.jobfolder import atomic_write_bytes
+    # atomically and durably (decision 0005): a dot-named temporary file, fsync'ed, renamed, the folder fsync'ed; a
+    # kill before the rename leaves a dot-named ``.tmp``, which a resume removes (decision 0060). ``write``: the
+    # caller's writer (a job's stage passes the job folder's, which journals the file with its sha256 first)
+    from planning.cache import write_bytes_atomic
 
-    atomic_write_bytes(path_png, png)
+    (write or write_bytes_atomic)(path_png, png)
     return path_png

@@ -8,7 +8,7 @@ import numpy as np
 
 from calibration.errors import PlanningError, ReachabilityError
 from cell.loadedjob import LoadedJob
-from cell.record.jobfolder import atomic_write_json
+from cell.record.jobfolder import atomic_write_bytes, atomic_write_json
 from cell.setup import collision_world, planner_options, robot_model
 from cell.stages.preanalysis import measurement_prediction
 from planning.planner import NetworkPlan, cheapest_network, plan_network
@@ -237,7 +237,7 @@ def run(ctx) -> None:
     try:
         from planning.plot import plot_plan
 
-        plot_plan(ctx.job.part, p, ctx.folder.file("figures/plan.png"))
+        plot_plan(ctx.job.part, p, ctx.folder.file("figures/plan.png"), write=atomic_write_bytes)
     except ImportError:
         pass
     ctx.say(f"  {len(p.station_ids)} stations; predicted sigma max {p.predicted_sigma_max_m * 1e6:.1f} um, "

@@ -61,3 +61,14 @@ def snapshot(folder: Path) -> dict[str, str]:
     """sha256 of every file under ``folder`` (relative path -> hex)."""
     return {str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
             for p in sorted(folder.rglob("*")) if p.is_file() and p.name != ".lock"}
+
+
+def staged_copy(finished: Path, archive: Path) -> Path:
+    """The finished job cut back to just after VALIDATE, in .incoming: stopped (or killed) before the robot moved."""
+    folder = copy_job(finished, archive)
+    kill_during_acquire(folder, 0)
+    cut_journal(folder, lambda r, i: not (r["event"] == "state" and r["to"] == "ACQUIRE"))
+    (archive / ".incoming").mkdir()
+    staged = archive / ".incoming" / folder.name
+    folder.rename(staged)
+    return staged

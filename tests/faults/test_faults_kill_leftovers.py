@@ -21,7 +21,7 @@ import pytest
 
 from cell.cli import main as cell_main
 from cell.record.jobfolder import JobFolder, _line_hash, sha256_file
-from faultutil import copy_job, cut_journal, kill_during_acquire
+from faultutil import copy_job, kill_during_acquire, staged_copy
 from jobutil import RecordingOutput, example_run, records
 
 SERIAL, OPERATOR = "SN-4711", "alice"
@@ -64,17 +64,6 @@ def _with_serial(folder: Path) -> dict:
     return info
 
 
-def _staged(finished: Path, archive: Path) -> Path:
-    """The finished job cut back to just after VALIDATE, in .incoming: killed before the robot moved."""
-    folder = copy_job(finished, archive)
-    kill_during_acquire(folder, 0)
-    cut_journal(folder, lambda r, i: not (r["event"] == "state" and r["to"] == "ACQUIRE"))
-    (archive / ".incoming").mkdir()
-    staged = archive / ".incoming" / folder.name
-    folder.rename(staged)
-    return staged
-
-
 def _resume_until_acquire(job_id: str, archive: Path) -> tuple[RecordingOutput, object]:
     """``cell resume``, aborted as soon as ACQUIRE reports progress."""
     from cell.job import abort_job, resume_job
@@ -103,7 +92,7 @@ def test_resume_rebuilds_run_json_from_the_created_record(finished, tmp_path, ca
         folder = copy_job(finished, archive)
         kill_during_acquire(folder, 3)
     else:  # killed before the robot moved (the tester's case), staged in .incoming
-        folder = _staged(finished, archive)
+        folder = staged_copy(finished, archive)
     info = _with_serial(folder)
     good = (folder / "run.json").read_bytes()
     if damage == "missing":
@@ -142,7 +131,7 @@ def test_resume_rebuilds_run_json_from_the_created_record(finished, tmp_path, ca
 
 def test_a_temporary_file_a_kill_left_beside_plan_png_is_removed_and_never_vouched_for(finished, tmp_path, capsys):
     archive = tmp_path / "archive"
-    folder = _staged(finished, archive)
+    folder = staged_copy(finished, archive)
     png = (folder / "figures" / "plan.png").read_bytes()
     left = ["figures/plan.png.k3j2_x1.tmp", "figures/.plan.png.tmp4242"]  # mkstemp's name, and the atomic writer's
     for rel in left:
@@ -185,13 +174,14 @@ def _fake_plan_and_part():
 
 
 def test_plan_png_is_written_by_the_atomic_writer_and_journalled(tmp_path, monkeypatch):
+    from cell.record.jobfolder import atomic_write_bytes
     from planning.plot import plot_plan
 
     part, plan = _fake_plan_and_part()
     folder = JobFolder(tmp_path / "job")
     folder.path.mkdir()
-    with folder.recording("PLAN"):
-        plot_plan(part, plan, folder.file("figures/plan.png"))
+    with folder.recording("PLAN"):  # as PLAN writes it: through the job folder's writer (planning imports no cell)
+        plot_plan(part, plan, folder.file("figures/plan.png"), write=atomic_write_bytes)
     png = folder.path / "figures" / "plan.png"
     stored = [r for r in records(folder.path) if r["event"] == "stored"]
     assert [(r["file"], r["sha256"], r["stage"]) for r in stored] == [("figures/plan.png", sha256_file(png), "PLAN")]
@@ -202,7 +192,7 @@ def test_plan_png_is_written_by_the_atomic_writer_and_journalled(tmp_path, monke
 
     monkeypatch.setattr(os, "replace", killed)
     with pytest.raises(KeyboardInterrupt):
-        plot_plan(part, plan, png)
+        plot_plan(part, plan, png, write=atomic_write_bytes)
     monkeypatch.undo()
     leftover = sorted(p.name for p in png.parent.iterdir() if p.name != "plan.png")
     assert leftover and all(n.startswith(".") for n in leftover), leftover

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from cell.cli import main as cell_main
-from faultutil import copy_job, cut_journal, kill_during_acquire, snapshot
+from faultutil import copy_job, cut_journal, kill_during_acquire, snapshot, staged_copy
 from jobutil import example_run, records, run_cell
 
 
@@ -178,23 +178,12 @@ def test_job_killed_after_done_is_closed_by_verify_repair(finished, tmp_path, ca
     assert code == 2 and "already DONE" in one_line(err)
 
 
-def _staged(finished: Path, archive: Path) -> Path:
-    """The finished job cut back to just after VALIDATE, in .incoming: stopped before the robot moved."""
-    folder = copy_job(finished, archive)
-    kill_during_acquire(folder, 0)
-    cut_journal(folder, lambda r, i: not (r["event"] == "state" and r["to"] == "ACQUIRE"))
-    (archive / ".incoming").mkdir()
-    staged = archive / ".incoming" / folder.name
-    folder.rename(staged)
-    return staged
-
-
 def test_staged_job_is_listed_and_resumable(finished, tmp_path, capsys):
     from cell.job import abort_job, resume_job
     from jobutil import RecordingOutput
 
     archive = tmp_path / "archive"
-    staged = _staged(finished, archive)
+    staged = staged_copy(finished, archive)
     code, doc, _ = cell(capsys, "archive", "list", "--archive", str(archive))
     row = next(r for r in doc["jobs"] if r["id"] == staged.name)
     assert row["staged"] and row["status"] == "VALIDATE"
@@ -216,7 +205,7 @@ def test_staged_job_is_listed_and_resumable(finished, tmp_path, capsys):
 
 def test_staged_job_is_closed_by_verify_repair(finished, tmp_path, capsys):
     archive = tmp_path / "archive"
-    staged = _staged(finished, archive)
+    staged = staged_copy(finished, archive)
     code, doc, err = cell(capsys, "archive", "verify", staged.name, "--archive", str(archive), "--repair")
     assert code == 0 and doc["intact"], (doc, err)
     assert "moved from .incoming" in doc["repaired"] and (archive / staged.name / "manifest.json").is_file()
