@@ -305,7 +305,9 @@ def _screen_and_adjust(ctx, obs, obs_image, obs_target, obs_uv, poses_all, intr0
             scr.scale_ok, scr.scale_reason = False, "; ".join(left[j] for j in range(nb))
         if scr.keep_images.sum() < 2:
             raise CalibrationError(f"bundle: {int(scr.keep_images.sum())} of {len(poses_all)} images usable "
-                                   "(see the screening reasons in the log); nothing to adjust")
+                                   "(see the screening reasons in the log); nothing to adjust: if the images show the "
+                                   "part, it may not be where [cell] base_from_part says (run `cell locate JOB "
+                                   "--write`), or the light and exposure hide its dots")
         try:
             res, sub = _adjust(ctx, scr, use, obs, obs_image, obs_target, obs_uv, rs.poses, intr0)
         except ScaleNotEstablishedError as exc:
