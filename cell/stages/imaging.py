@@ -319,11 +319,14 @@ def name_dots(det_uv: np.ndarray, part, intr: Intrinsics, cam_from_part: np.ndar
     shift = common_shift(project(intr, cam_from_part, t.xyz[ids]), det_uv) if len(ids) else None
     if shift is not None:
         start = turned_by(intr, cam_from_part, shift)
-    if with_codes:  # markers off their own projections while others are on theirs do not steer the pose (F2, 0064)
+    if with_codes:  # markers far off their own projections while others are on theirs do not steer the pose (F2, 0064)
         off, limit = code_offsets(part, intr, start, code_idx, all_code_uv, max_dist_px)
         near = off <= limit
-        if near.any() and not near.all():
-            coded_ids, coded_uv = coded_ids[near], all_code_uv[near]
+        # far: beyond STEER_OFF_FACTOR x the limit (swapped markers: 7x and more). A robot pose or hand-eye a little
+        # off leaves every marker near its limit (a hand-eye 2 mm off: 74.5 px for 70.3): all of them still steer
+        far = off > STEER_OFF_FACTOR * limit
+        if near.any() and far.any():
+            coded_ids, coded_uv = coded_ids[~far], all_code_uv[~far]
     match = named(intr, start, in_view0 if start is cam_from_part else None)  # the robot's pose: seen once
     # a principal point off the data sheet's, or a lens whose distortion the job does not state, moves the image's
     # dots off their projections: the pose resected from the named dots, and where that is not enough a radial lens
@@ -420,6 +423,10 @@ def name_dots(det_uv: np.ndarray, part, intr: Intrinsics, cam_from_part: np.ndar
 #: diameters apart (each dot's background ring), so a part one step of its layout off moves every marker by at least
 #: that, while a right placement leaves a marker within the naming's residual (0.0-1.2 px on the example; 0064)
 CODE_OFF_DIAMETERS = 2.0
+
+#: a marker leaves the naming pose's markers only when it is this many times beyond its limit while another is within
+#: its own: a marker swapped with another, not a pose a few pixels off (decision 0064)
+STEER_OFF_FACTOR = 2.0
 
 
 def code_offsets(part, intr: Intrinsics, cam_from_part: np.ndarray, idx: np.ndarray, uv: np.ndarray,
