@@ -35,15 +35,15 @@ def digest(arrays: dict[str, np.ndarray]) -> str:
     return h.hexdigest()
 
 
-def write_bytes_atomic(path: str | Path, data: bytes) -> Path:
-    """Write ``data`` to ``path`` atomically and durably: a dot-named temporary file beside it (``.NAME.XXXX.tmp``,
-    which a resume removes after a kill), fsync'ed, renamed over ``path``, the folder fsync'ed."""
+def _write_atomic(path: str | Path, fill: Callable) -> Path:
+    """``fill(f)`` into a dot-named temporary file beside ``path`` (``.NAME.XXXX.tmp``, which a resume removes after
+    a kill), fsync'ed, renamed over ``path``, the folder fsync'ed: atomic and durable."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
         with os.fdopen(fd, "wb") as f:
-            f.write(data)
+            fill(f)
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
@@ -56,29 +56,18 @@ def write_bytes_atomic(path: str | Path, data: bytes) -> Path:
     finally:
         os.close(dir_fd)
     return path
+
+
+def write_bytes_atomic(path: str | Path, data: bytes) -> Path:
+    """Write ``data`` to ``path`` atomically and durably (:func:`_write_atomic`)."""
+    return _write_atomic(path, lambda f: f.write(data))
 
 
 def save_arrays(path: str | Path, arrays: dict[str, np.ndarray], *, compress: bool = False) -> Path:
     """Write ``arrays`` and their digest to ``path`` atomically and durably (fsync of file and folder)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     arrays = {k: np.asarray(v) for k, v in arrays.items()}
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            (np.savez_compressed if compress else np.savez)(f, **arrays, **{_DIGEST: np.array(digest(arrays))})
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    dir_fd = os.open(path.parent, os.O_RDONLY)
-    try:
-        os.fsync(dir_fd)
-    finally:
-        os.close(dir_fd)
-    return path
+    save = np.savez_compressed if compress else np.savez
+    return _write_atomic(path, lambda f: save(f, **arrays, **{_DIGEST: np.array(digest(arrays))}))
 
 
 def load_arrays(path: str | Path, names: tuple[str, ...],

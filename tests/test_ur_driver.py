@@ -21,11 +21,13 @@ Q0 = np.array([0.0, -1.3, 1.6, -1.87, -1.57, 0.0])
 _hosts = (f"127.0.{k // 250}.{k % 250 + 2}" for k in itertools.cycle(range(20, 2000)))
 
 
-def start_controller(**kwargs) -> LoopbackURController:
-    """A controller on the next free loopback address (another test run may hold some)."""
+def start_controller(hosts=None, **kwargs) -> LoopbackURController:
+    """A controller on the next free loopback address of ``hosts`` (default this file's range; another test run may
+    hold some)."""
+    hosts = _hosts if hosts is None else hosts
     for _ in range(50):
         try:
-            return LoopbackURController(next(_hosts), model=MODEL, joints_rad=Q0, **kwargs).start()
+            return LoopbackURController(next(hosts), model=MODEL, joints_rad=Q0, **kwargs).start()
         except OSError:
             continue
     raise RuntimeError("no free loopback address for a UR controller")

@@ -18,6 +18,7 @@ from calibration.errors import MotionError, MoveRefusedError, NotConnectedError
 from drivers.ur import CellLimits, URRobot
 from planning.kinematics import load_robot
 from sim_backend.ur_controller import PLAYING, LoopbackURController
+from test_ur_driver import start_controller as _start_controller
 
 MODEL = load_robot("ur5e")
 Q0 = np.array([0.0, -1.3, 1.6, -1.87, -1.57, 0.0])
@@ -26,12 +27,8 @@ GRACE_S = 0.3
 
 
 def start_controller(**kwargs) -> LoopbackURController:
-    for _ in range(50):
-        try:
-            return LoopbackURController(next(_hosts), model=MODEL, joints_rad=Q0, **kwargs).start()
-        except OSError:
-            continue
-    raise RuntimeError("no free loopback address for a UR controller")
+    """test_ur_driver's, on an address range of this file's own (the two files may run on two workers at once)."""
+    return _start_controller(_hosts, **kwargs)
 
 
 @pytest.fixture
