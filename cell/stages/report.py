@@ -297,11 +297,14 @@ PREDICTION_BAND = (0.75, 1.25)
 
 def held_lens_variance(bundle: dict) -> np.ndarray:
     """Each target's variance (trace, m^2) the held lens's uncertainty added in ADJUST (bundle.json
-    ``lens.held_uncertainty.added_variance_m2``); zeros when the lens was not held or nothing was carried."""
+    ``lens.held_uncertainty.added_variance_m2``); zeros when the lens was not held or nothing was carried; None when
+    it was carried but the shares are not there (a bundle.json of an older version): then neither side of
+    predicted / achieved takes the lens's share off, rather than only one."""
     n = len(bundle["targets"])
-    v = ((bundle.get("lens") or {}).get("held_uncertainty") or {}).get("added_variance_m2")
+    held = (bundle.get("lens") or {}).get("held_uncertainty") or {}
+    v = held.get("added_variance_m2")
     if not v or len(v) != n:
-        return np.zeros(n)
+        return None if held.get("carried") else np.zeros(n)
     return np.array([0.0 if x is None else float(x) for x in v])
 
 
@@ -500,7 +503,9 @@ def write_report(ctx) -> tuple[str, list[str]]:
     # without the temperatures' shared scale, which the plan does not know, and without the held lens's share, whose
     # size depends on the observations ADJUST's data snooping rejects where the held lens does not describe the
     # images (the frame's corners): the plan cannot know which (decision 0062); both sides leave it out
-    achieved_images = np.sqrt(np.maximum(np.trace(cov, axis1=1, axis2=2) - held_lens_variance(bundle), 0.0))
+    lens_var = held_lens_variance(bundle)
+    achieved_images = np.sqrt(np.maximum(np.trace(cov, axis1=1, axis2=2) - (0.0 if lens_var is None else lens_var),
+                                         0.0))
     if len(th_w):
         pc = append_columns(pc, th_cols, th_w)
         cov = cov + np.einsum("nar,r,nbr->nab", th_cols, th_w, th_cols)
@@ -532,7 +537,8 @@ def write_report(ctx) -> tuple[str, list[str]]:
     level = al.sigma_level()
     predicted = {t["id"]: (np.sqrt(np.trace(t["predicted_cov"])) if t["predicted_cov"] is not None else np.nan)
                  for t in plan["targets"]}
-    predicted_images = {t["id"]: t.get("predicted_sigma_images_m", predicted[t["id"]]) for t in plan["targets"]}
+    predicted_images = {t["id"]: t.get("predicted_sigma_images_m", predicted[t["id"]]) if lens_var is not None
+                        else predicted[t["id"]] for t in plan["targets"]}
     coded = job.part.targets.kind == "coded"  # identification aids: not measured, not judged
     bar_end = own_bar_ends(job)  # the ends of a bar of its own material: the bar's, not the part's (decision 0053)
     passed = ok & (dev_norm <= tol)
