@@ -271,7 +271,8 @@ def scale_note(spec, scale: dict | None, applied_ppm: float | None) -> str | Non
                 "part_C, part_cte_ppm_per_K and the bars' cte_ppm_per_K, or the part is out of scale")
     if not own:
         return (f"{size}: the scale bars sit on the part (no cte_ppm_per_K) and expand with it, so a uniform "
-                "temperature does not explain it; the part is out of scale, or a bar's certificate is off")
+                "temperature does not explain it; the part is out of scale, a bar's certificate is off, or one of its "
+                "ends moved")
     temps = ", ".join(f"{ppm / c:+.1f} K from 20 C if {m} ({c} ppm/K)" for m, c in MATERIALS)
     return (f"{size}: {temps}. The deviations are at the measurement's temperature, not at 20 C: give [thermal] "
             "part_C and part_cte_ppm_per_K to report the part at 20 C, or the part is out of scale")

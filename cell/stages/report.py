@@ -95,7 +95,31 @@ def _scale_hint(job, measured: np.ndarray, pc: PointCovariance, tol, k: float, c
     hint = (f"with the part {sc['scale_ppm']:+.0f} ppm {'larger' if sc['scale_ppm'] > 0 else 'smaller'} than its CAD, "
             f"{int(trial.fit_mask.sum())} of {int(cand.sum())} targets agree with CAD and the frame would be trusted: "
             "see the part's scale")
-    return replace(out, reasons=out.reasons + (hint,))
+    return replace(out, reasons=out.reasons + (hint,) + bar_end_hints(job, trial))
+
+
+def bar_end_hints(job, trial: AlignmentOutcome) -> tuple[str, ...]:
+    """The scale bar ends on the part that the scaled frame ``trial`` leaves out while their bar's other end agrees.
+
+    A bar's length is certified between its two targets. One of them moved or stuck again since (F5 of decision 0064:
+    T0100 of the example 2 mm off) puts the whole measurement out of scale by the change over the bar's length, and
+    in the frame scaled back that end alone stays off its CAD place: the one target to check."""
+    dev, fit = trial.alignment.deviation, trial.fit_mask
+    nominal, ids = job.part.targets.xyz, job.part.targets.ids
+    hints = []
+    for a, b, length, _ in job.scale_bars:
+        off = [i for i in (a, b) if not fit[i] and np.all(np.isfinite(dev[i]))]
+        if len(off) != 1 or not fit[a + b - off[0]]:  # both ends out, or the other not in the frame: nothing to name
+            continue
+        i = off[0]
+        u = (nominal[b] - nominal[a]) / np.linalg.norm(nominal[b] - nominal[a])
+        along = float(dev[i] @ u) * (1.0 if i == b else -1.0)  # > 0: the bar between its targets is longer
+        hints.append(
+            f"scale bar {ids[a]}-{ids[b]}: in that frame its end {ids[i]} is {np.linalg.norm(dev[i]) * 1e6:.0f} um "
+            f"off its CAD place ({along * 1e6:+.0f} um along the bar, {along / length * 1e6:+.0f} ppm of its "
+            f"length) where its other end {ids[a + b - i]} agrees: an end moved or stuck again since its certificate "
+            "puts every coordinate out of scale; check that end's target")
+    return tuple(hints)
 
 
 def _standoff(X: np.ndarray, N: np.ndarray, n: np.ndarray) -> tuple[float, np.ndarray]:
