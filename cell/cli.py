@@ -242,6 +242,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "a time without a zone (2026-11-23T08:13) is the cell's local time, as in job ids"
                         + ("; a date alone (2026-11-23) includes that whole day" if key == "until" else "")
                         + " (the console reads them the same way)"))
+    c.add_argument("--adopt", action="store_true",
+                   help="with sync: re-own the jobs the index holds from another path or host when the folder's "
+                        "manifest is the indexed one (the archive moved, the host renamed); another cell's job is "
+                        "never adopted")
     c.add_argument("--limit", type=int, default=None, help="list: at most this many jobs (newest first)")
     c.add_argument("--offset", type=int, default=0)
     c.add_argument("--to", help="push: the shared storage (a folder or s3://bucket/prefix; default CELL_ARCHIVE_PUSH)")

@@ -427,10 +427,12 @@ def _archive_action(a, args, out) -> int:
                                                               "; ".join(d["problems"]))))
         return 0 if not problems else 1
     if args.action == "sync":
-        doc = a.sync()
+        doc = a.sync(adopt=args.adopt)
         def human(d):
             out.say(f"drained {len(d['drained'])} from the outbox, indexed {len(d['indexed'])} more, "
                     f"{len(d['pending'])} still waiting; pushed {len(d['pushed'])}, {len(d['push_pending'])} pushes waiting")
+            for e in d["adopted"]:
+                out.say(f"  adopted {e['id']}: the same job (its manifest) indexed from {e['from']}")
             for e in d["problems"]:
                 out.say(f"  {e} (indexed as far as it reads)")
             for e in d["skipped"]:

@@ -269,11 +269,38 @@ def test_sync_goes_past_another_cells_job_and_names_it(tmp_path, pg):
     assert doc["indexed"] == ["2099-01-01T00-00-01-cellB-bracket"]
     assert [s["id"] for s in doc["skipped"]] == ["2099-01-01T00-00-00-same"]
     assert "already in the archive index from" in doc["skipped"][0]["reason"]
+    assert "--adopt" not in doc["skipped"][0]["reason"]  # another cell's job (another manifest): never adopted
     code, out, err = _cli("archive", "sync", "--archive", str(tmp_path / "cellB"), "--archive-url", pg.url)
     assert code == 1 and "not indexed: 2099-01-01T00-00-00-same" in out + err
     code, out, err = _cli("archive", "verify", "--archive", str(tmp_path / "cellB"), "--archive-url", pg.url)
     assert code == 1 and "2099-01-01T00-00-00-same: cannot be indexed" in out + err
     assert "run 'cell archive sync'" not in out + err
+
+
+def test_a_moved_archive_is_named_as_the_same_jobs_and_adopted_only_when_asked(tmp_path, pg):
+    """F8: an archive moved to another folder (or a host renamed) holds the same jobs under another origin: sync
+    named them another cell's; it now says they are the same jobs (their manifests) and ``--adopt`` re-owns them."""
+    a = Archive(tmp_path / "old", pg.url)
+    for i in range(2):
+        write_job(a, f"2099-01-0{i + 1}T00-00-00-moved", i + 1, n_targets=3)
+    a.close()
+    shutil.move(tmp_path / "old", tmp_path / "new place")
+    code, out, err = _cli("archive", "sync", "--archive", str(tmp_path / "new place"), "--archive-url", pg.url,
+                          "--json")
+    doc = json.loads(out)
+    assert code == 1 and doc["indexed"] == [] and doc["adopted"] == [], err
+    assert len(doc["skipped"]) == 2 and all("the same job" in s["reason"] and "sync --adopt" in s["reason"]
+                                            for s in doc["skipped"]), doc["skipped"]
+    code, out, err = _cli("archive", "sync", "--adopt", "--archive", str(tmp_path / "new place"), "--archive-url",
+                          pg.url)
+    assert code == 0, out + err
+    said = out + err
+    assert said.count("adopted 2099-01-0") == 2 and str(tmp_path / "old") in said, said
+    b = Archive(tmp_path / "new place", pg.url)
+    rows = {r["id"]: r for r in b.index.list_jobs()}
+    assert {r["folder"] for r in rows.values()} == {str((tmp_path / "new place" / j).resolve()) for j in rows}
+    assert b.outbox.pending() == [] and b.verify_index()["intact"], b.verify_index()
+    b.close()
 
 
 def test_sync_never_indexes_a_report_changed_after_its_manifest(tmp_path, pg):

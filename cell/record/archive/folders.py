@@ -282,7 +282,7 @@ class Archive:
             rows.append(row)
         return rows
 
-    def sync(self) -> dict:
+    def sync(self, adopt: bool = False) -> dict:
         """``cell archive sync``: drain the outbox, then index every folder the index lacks or holds stale.
 
         Stale: another manifest hash or state than the folder's, or fewer target rows than the row
@@ -292,13 +292,17 @@ class Archive:
         (listed, marked, never silently). A job the database refuses or another cell owns goes to the outbox with its reason and is
         named in ``skipped`` too; the folders after it are indexed all the same.
 
+        A job the index holds from another origin with the folder's own manifest hash is the same job at another
+        path (the archive moved, the host renamed): named so, and re-owned with ``adopt`` (``sync --adopt``). A job
+        id of another origin with another manifest is another cell's job: never adopted.
+
         Returns {``drained``, ``indexed``, ``pending`` (still in the outbox), ``skipped`` ([{``id``,
-        ``reason``}]: not indexed, a person must act), ``pushed``, ``push_pending``, ``problems`` (folders
-        indexed only as far as they read, one line each)}.
+        ``reason``}]: not indexed, a person must act), ``adopted`` ([{``id``, ``from``}]), ``pushed``,
+        ``push_pending``, ``problems`` (folders indexed only as far as they read, one line each)}.
         """
         drained = self.drain()
         state = self.index.index_state(origin=self.origin)
-        indexed, problems, skipped = [], [], {}
+        indexed, problems, skipped, adopted = [], [], {}, []
         for d in self._job_dirs():
             have = state.get(d.name)
             rec = job_record(d.resolve(), self.origin)
@@ -320,8 +324,10 @@ class Archive:
                 try:
                     self.index.index_job(rec)
                 except IndexConflict as exc:
-                    self._keep(d.name, exc, "conflict")
-                    continue
+                    moved = self._moved(rec, str(d.resolve()), exc, adopt)
+                    if moved is None:
+                        continue
+                    adopted.append({"id": d.name, "from": moved})
                 except IndexRefused as exc:
                     self._keep(d.name, exc, "refused")
                     continue
@@ -335,8 +341,26 @@ class Archive:
                 skipped.setdefault(job_id, f"waits in the outbox: {self._say(e.get('reason'))}")
         pushed = self.drain_pushes()
         return {"drained": drained, "indexed": indexed, "pending": pending,
-                "skipped": [{"id": k, "reason": v} for k, v in skipped.items()], "pushed": pushed,
+                "skipped": [{"id": k, "reason": v} for k, v in skipped.items()], "adopted": adopted, "pushed": pushed,
                 "push_pending": self.push_outbox.pending(), "problems": problems}
+
+    def _moved(self, rec, folder: str, exc: IndexConflict, adopt: bool) -> str | None:
+        """A conflict on ``rec``'s id: the old origin when it was the same job moved and ``adopt`` re-owned it (then
+        indexed); else None, the job kept in the outbox with its reason (which names ``--adopt`` for the same job)."""
+        held = self.index.owner(rec.id)
+        same = held is not None and rec.manifest_sha256 is not None and held[1] == rec.manifest_sha256
+        if same and adopt:
+            self.index.adopt(rec.id, old_origin=held[0], origin=self.origin, folder=folder,
+                             manifest_sha256=rec.manifest_sha256)
+            self.index.index_job(rec)
+            self.outbox.done(rec.id)
+            return held[0]
+        if same:
+            exc = IndexConflict(f"{exc.args[0].split(': the cells of one site')[0]}: the same job (manifest "
+                                f"{rec.manifest_sha256[:12]} matches) at another path, the archive moved or the host "
+                                "was renamed: run 'cell archive sync --adopt' to re-own it here")
+        self._keep(rec.id, exc, "conflict")
+        return None
 
     def verify_index(self) -> dict:
         """``cell archive verify`` without a job id: the index against the folders of this cell.

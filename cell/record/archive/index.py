@@ -257,6 +257,24 @@ class ArchiveIndex:
 
         self._write(fn)
 
+    def owner(self, job_id: str) -> tuple[str, str | None] | None:
+        """The origin and manifest hash the index holds for ``job_id`` (None: it holds no such job)."""
+        rows = self._read(sa.select(jobs.c.origin, jobs.c.manifest_sha256).where(jobs.c.id == job_id))
+        return (rows[0].origin, rows[0].manifest_sha256) if rows else None
+
+    def adopt(self, job_id: str, *, old_origin: str, origin: str, folder: str, manifest_sha256: str) -> None:
+        """Re-own a job the index holds from ``old_origin`` for ``origin`` (an archive moved, a host renamed): only
+        the same job, the row's manifest hash equal to the folder's; ``IndexConflict`` otherwise."""
+        def fn(conn):
+            n = conn.execute(jobs.update().where(jobs.c.id == job_id, jobs.c.origin == old_origin,
+                                                 jobs.c.manifest_sha256 == manifest_sha256)
+                             .values(origin=origin, folder=folder, indexed_at=datetime.now(timezone.utc))).rowcount
+            if n != 1:
+                raise IndexConflict(f"job {job_id!r} is not held from {old_origin} with manifest "
+                                    f"{manifest_sha256[:12]}: not adopted")
+
+        self._write(fn)
+
     def delete_job(self, job_id: str) -> None:
         def fn(conn):
             conn.execute(targets.delete().where(targets.c.job_id == job_id))
