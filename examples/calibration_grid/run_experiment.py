@@ -1,6 +1,6 @@
 """The seed paper's calibration-grid experiments (its Figs. 5-8), on the simulated camera.
 
-    .venv/bin/python examples/calibration_grid/run_experiment.py [--quick] [--out DIR] [--seed N]
+    .venv/bin/python examples/calibration_grid/run_experiment.py [--quick] [--out DIR] [--seed N] [--jitter-px PX]
 
 The grid: 160 retro-reflective targets on two orthogonal panels (a floor and a back wall, 80 each
 on a 10 x 8 lattice) in a 33.7 x 26.2 x 26.2 cm volume. The camera: nominal values of a Pulnix
@@ -15,8 +15,15 @@ three sub-networks are adjusted and their error ellipsoids compared:
 * Fig. 8: images 1, 4 and 6, where image 4 sees only part of the grid, so some targets are
   measured by two images only.
 
+The image noise is the rendered physics only (photons, read noise, blur, 8-bit quantisation): no per-target
+jitter is added unless ``--jitter-px`` asks for it (the set-up before: 0.05 px). The image sigma the
+adjustments use is what the images deliver: the a posteriori sigma0 of the self-calibrating adjustment of all
+images (the repository's detector model was measured on larger dots than these; the run reports how far).
+
 Writes ``results.json``, ``figures/*.png`` and ``README.md`` next to this script (or to ``--out``).
-``--quick`` is the reduced version the test runs (a 60-target grid, 8 images).
+``--quick`` is the reduced version the test runs (a 60-target grid, 8 images). The README compares with the
+set-up before (0.05 px of jitter): ``results_jitter_0.05.json`` (this script with ``--jitter-px 0.05``) and
+``results_a808f80.json`` (the results.json last committed with that set-up, verbatim).
 """
 from __future__ import annotations
 
@@ -61,6 +68,15 @@ EXPOSURE_S = 0.005
 #: absolute threshold on the top-hat image (grey levels): the detector's automatic noise estimate takes the
 #: contrast between the lit grid and the black surround for noise (see the README)
 DETECTION = DetectionOptions(threshold=20.0, min_peak_snr=2.0)
+#: the a priori sigma the full (self-calibrating) adjustment starts from: only a unit, it estimates the variance
+#: factor from its residuals (a posteriori), and its sigma0 (pixels) does not depend on this value
+START_SIGMA_PX = 0.05
+#: the set-up before (0.05 px of per-target jitter), which the README compares with: this script with
+#: ``--jitter-px 0.05`` on today's code (the same code: only the jitter differs), and the last results.json committed
+#: with that set-up (commit a808f80, kept verbatim; the code has changed since)
+BEFORE_JSON = "results_jitter_0.05.json"
+BEFORE_COMMIT = "a808f80"
+BEFORE_COMMIT_JSON = f"results_{BEFORE_COMMIT}.json"
 
 
 def pulnix_tm6ex() -> Intrinsics:
@@ -138,9 +154,13 @@ def image_sequence(part: Part, n_images: int = 20) -> np.ndarray:
     return np.array((fixed + rest)[:n_images])
 
 
-def run(out: Path, quick: bool = False, seed: int = 0, image_sigma_px: float = 0.05, write_docs: bool = True,
+def run(out: Path, quick: bool = False, seed: int = 0, jitter_px: float = 0.0, write_docs: bool = True,
         save_images: bool = False) -> dict:
-    """Run the experiment; returns the results (also written to ``out/results.json``)."""
+    """Run the experiment; returns the results (also written to ``out/results.json``).
+
+    ``jitter_px``: per-target image jitter added by the simulator on top of the rendered noise (0: none, the
+    physics only; 0.05 was the set-up before).
+    """
     from sim_backend.sim_camera import RenderOptions, SimCamera
     from sim_backend.world import World
 
@@ -150,7 +170,7 @@ def run(out: Path, quick: bool = False, seed: int = 0, image_sigma_px: float = 0
     intr_true = pulnix_tm6ex()
     stations = image_sequence(part, n_images)
     world = World(part, np.eye(4), np.eye(4), intr_true, seed=seed)
-    camera = SimCamera(world, options=RenderOptions(image_sigma_px=image_sigma_px), exposure_s=EXPOSURE_S)
+    camera = SimCamera(world, options=RenderOptions(image_sigma_px=jitter_px), exposure_s=EXPOSURE_S)
     rng = np.random.default_rng(seed + 1)
     obs = pipeline.render_and_measure(camera, part, intr_true, stations, rng, detection=DETECTION,
                                       save_images=out / "images" if save_images else None)
@@ -164,16 +184,23 @@ def run(out: Path, quick: bool = False, seed: int = 0, image_sigma_px: float = 0
     ft_poses = np.array([r.cam_from_part for r in ft])
     t0 = time.perf_counter()
     full, _ = pipeline.adjust_subset(obs, list(range(n_images)), intr0, ft_poses, part.targets.xyz,
-                                     sigma_px=image_sigma_px, camera_model="OPENCV", self_calibrate=True,
+                                     sigma_px=START_SIGMA_PX, camera_model="OPENCV", self_calibrate=True,
                                      a_posteriori=True)
     t_full = time.perf_counter() - t0
     cal = full.intrinsics
+    # does the repository's measured detector model cover these dots? (sizes and incidences from the adjusted network)
+    coverage = pipeline.detector_model_coverage(full, obs, cal, part.targets.normals, part.target_diameter_m)
+    print(f"detector model (version {coverage['model_version']}, measured on {coverage['model_diameter_range_px'][0]:.1f}-"
+          f"{coverage['model_diameter_range_px'][1]:.1f} px dots): these dots are {coverage['diameter_px'][0]:.1f}-"
+          f"{coverage['diameter_px'][2]:.1f} px, {coverage['share_inside'] * 100:.0f}% of the observations inside its "
+          f"measured range; it predicts {coverage['model_rms_px_extrapolated']:.4f} px rms extrapolated, "
+          f"{coverage['model_rms_px_held']:.4f} px held at its range; the images give sigma0 {full.sigma0_px:.4f} px")
     print(f"Faugeras-Toscani: alpha_u {np.median([r.intrinsics.fx_px for r in ft]):.1f} px, alpha_v "
           f"{np.median([r.intrinsics.fy_px for r in ft]):.1f} px (true {intr_true.fx_px:.1f}, {intr_true.fy_px:.1f}); "
           f"rms {np.median([r.rms_px for r in ft]):.3f} px")
     print(f"self-calibrating bundle adjustment of {n_images} images: fx {cal.fx_px:.2f} fy {cal.fy_px:.2f} "
           f"cx {cal.cx_px:.2f} cy {cal.cy_px:.2f} k1 {cal.k1:+.4f}; sigma0 {full.sigma0_px:.4f} px; {t_full:.2f} s")
-    # the comparisons: calibration held fixed, a priori sigma = the full adjustment's sigma0
+    # the comparisons: calibration held fixed, a priori sigma = the full adjustment's sigma0 (what the images deliver)
     sigma = full.sigma0_px
     truth = world.true_xyz
     rays_all = obs.rays(n)
@@ -203,7 +230,9 @@ def run(out: Path, quick: bool = False, seed: int = 0, image_sigma_px: float = 0
           f"{tri['seen_by_2']['volume_um3_median']:.3g} um^3; {tri['seen_by_3']['n']} seen by 3, "
           f"{tri['seen_by_3']['volume_um3_median']:.3g} um^3")
     results.update({
-        "quick": quick, "seed": seed, "image_sigma_px": image_sigma_px,
+        "quick": quick, "seed": seed, "jitter_px": jitter_px,
+        "image_sigma": {"px": full.sigma0_px, "source": "sigma0 of the self-calibrating adjustment of all images",
+                        "start_sigma_px": START_SIGMA_PX, "detector_model": coverage},
         "grid": {"targets": n, "target_diameter_m": part.target_diameter_m,
                  "target_extent_m": np.ptp(part.targets.xyz, axis=0).tolist(),
                  "mesh_extent_m": np.ptp(part.mesh.vertices, axis=0).tolist()},
@@ -226,7 +255,7 @@ def run(out: Path, quick: bool = False, seed: int = 0, image_sigma_px: float = 0
     out.mkdir(parents=True, exist_ok=True)
     (out / "results.json").write_text(json.dumps(clean, indent=1))
     if write_docs:
-        (out / "README.md").write_text(readme(clean))
+        (out / "README.md").write_text(readme(clean, None if quick else load_before()))
     print(f"runtime {clean['runtime_s']:.1f} s; wrote {(out / 'results.json').name} in {out.name}/")
     return results
 
@@ -296,8 +325,98 @@ def _fmt(v: float, d: int = 3) -> str:
     return f"{v:.{d}g}"
 
 
-def readme(r: dict) -> str:
-    """The README of this example, every number from ``r`` (results.json)."""
+def load_before() -> dict | None:
+    """The runs of the set-up before next to this script: ``{"rerun": BEFORE_JSON, "commit": BEFORE_COMMIT_JSON}``
+    (each None when absent), or None when neither is there."""
+    runs = {k: (json.loads((HERE / f).read_text()) if (HERE / f).exists() else None)
+            for k, f in (("rerun", BEFORE_JSON), ("commit", BEFORE_COMMIT_JSON))}
+    return runs if any(runs.values()) else None
+
+
+def _key_figures(r: dict) -> list[tuple[str, str]]:
+    """(label, formatted value) of the figures the before / after table compares."""
+    c, fa, ct, cc = r["cases"], r["full_adjustment"], r["camera_true"], r["camera_calibrated"]
+    tri = c["partial_triple"]
+    rows = [("per-target image jitter (px)", f"{r.get('jitter_px', r.get('image_sigma_px'))}"),
+            ("sigma0 of the self-calibrating adjustment (px)", f"{fa['sigma0_px']:.4f}"),
+            ("observations rejected by data snooping (of all)", f"{fa['rejected']} of {fa['observations']}"),
+            ("Faugeras-Toscani rms (px, median)", f"{r['faugeras_toscani']['rms_px_median']:.3f}"),
+            ("self-calibrated fx, fy error (px)", f"{cc['fx_px'] - ct['fx_px']:+.2f}, {cc['fy_px'] - ct['fy_px']:+.2f}"),
+            ("self-calibrated cx, cy error (px)", f"{cc['cx_px'] - ct['cx_px']:+.2f}, {cc['cy_px'] - ct['cy_px']:+.2f}"),
+            ("all 20 images: true rms (um), inside 95%", f"{fa['truth']['rms_error_um']:.1f}, "
+                                                          f"{fa['truth']['inside_95'] * 100:.0f}%")]
+    for name, label in (("close_pair", "Fig. 6"), ("convergent_pair", "Fig. 7"), ("partial_triple", "Fig. 8")):
+        m, t = c[name]["all"], c[name]["truth"]
+        rows.append((f"{label}: volume median (um^3), elongation, major semi-axis (um)",
+                     f"{_fmt(m['volume_um3_median'])}, {m['elongation_median']:.2f}, {m['major_axis_um_median']:.1f}"))
+        rows.append((f"{label}: true rms (um), inside 95%", f"{t['rms_error_um']:.1f}, {t['inside_95'] * 100:.0f}%"))
+    rows.append(("Fig. 6 / Fig. 7 median volume", f"{c['close_pair']['all']['volume_um3_median'] / c['convergent_pair']['all']['volume_um3_median']:.0f}x"))
+    rows.append(("Fig. 8: seen by 2 / seen by 3 median volume",
+                 f"{tri['seen_by_2']['volume_um3_median'] / tri['seen_by_3']['volume_um3_median']:.1f}x"))
+    return rows
+
+
+def _changes(r: dict, before: dict | None) -> str:
+    """The section on what changed against the paper set-up (no jitter; where the image sigma comes from)."""
+    dm = r["image_sigma"]["detector_model"]
+    jitter = (f"**{r['jitter_px']} px of per-target image jitter** is added on top (`--jitter-px`), as asked for "
+              "this run" if r["jitter_px"] else
+              "**no per-target image jitter** is added (the set-up before added 0.05 px \"for what is not rendered\"; "
+              "`--jitter-px 0.05` restores it)")
+    text = f"""## What changed against the paper set-up: no added jitter, the image sigma measured
+
+The image noise is the simulator's physics only: photons, read noise, blur and 8-bit quantisation; {jitter}.
+The adjustments need an image sigma, and it is taken from what the images deliver.
+{pipeline.detector_model_text(dm, r['image_sigma']['px'], "The grid's 6 mm dots")}
+The image sigma is instead the **a posteriori sigma0 of the
+self-calibrating adjustment of all {r['full_adjustment']['images']} images**, {r['image_sigma']['px']:.4f} px: the
+residuals of this run's own images, with {r['full_adjustment']['observations'] - r['full_adjustment']['rejected']}
+observations against the camera's, the poses' and the targets' unknowns. That adjustment starts from an a priori
+{r['image_sigma']['start_sigma_px']} px, which is only a unit: it estimates its variance factor, and its sigma0 and
+covariance do not depend on the start. The three comparisons (Figs. 6-8) take that sigma0 as their a priori sigma.
+"""
+    if before is None:
+        return text
+    cols = [(k, v) for k, v in (("commit", before["commit"]), ("rerun", before["rerun"])) if v is not None]
+    heads = {"commit": f"before: commit {BEFORE_COMMIT}, 0.05 px jitter", "rerun": "before: today's code, 0.05 px jitter"}
+    figs = [_key_figures(v) for _, v in cols] + [_key_figures(r)]
+    rows = [f"| {lab} | " + " | ".join(f[i][1] for f in figs) + " |" for i, (lab, _) in enumerate(figs[-1])]
+    return text + f"""
+Before and after. Before: the set-up with 0.05 px of jitter, twice: as last committed
+(`results.json` of commit {BEFORE_COMMIT}, kept verbatim in `{BEFORE_COMMIT_JSON}`), and this script on today's code
+with `--jitter-px 0.05` (`{BEFORE_JSON}`: only the jitter differs from this run). The code has changed since
+{BEFORE_COMMIT}; the second column separates that from the jitter.
+
+| figure | {' | '.join(heads[k] for k, _ in cols)} | now{' (' + str(r['jitter_px']) + ' px jitter)' if r['jitter_px'] else ', no jitter'} |
+|---|{'---|' * len(cols)}---|
+{chr(10).join(rows)}
+
+{_scaling(r, before['rerun']) if before['rerun'] else ''}
+"""
+
+
+def _scaling(r: dict, before: dict) -> str:
+    """How the ellipsoids changed against the change of the image sigma alone (same network geometry)."""
+    k = before["full_adjustment"]["sigma0_px"] / r["full_adjustment"]["sigma0_px"]
+    parts = []
+    for name, label in (("close_pair", "Fig. 6"), ("convergent_pair", "Fig. 7"), ("partial_triple", "Fig. 8")):
+        vb, va = before["cases"][name]["all"]["volume_um3_median"], r["cases"][name]["all"]["volume_um3_median"]
+        parts.append(f"{label} {vb / va:.0f}x")
+    return (f"The image sigma fell {k:.1f}x; with the networks' geometry unchanged a covariance scales with its square "
+            f"and an ellipsoid's volume with its cube ({k ** 3:.0f}x). The median volumes fell {', '.join(parts)}; the "
+            "elongations and the ratios between the networks that the paper's figures show are set by the geometry "
+            "and are compared in the table.")
+
+
+def _labelled(cases: dict) -> dict:
+    """The comparisons keyed by the paper's figure names."""
+    names = {"close_pair": "Fig. 6, images 1 and 2", "convergent_pair": "Fig. 7, images 2 and 5",
+             "partial_triple": "Fig. 8, images 1, 4 and 6"}
+    return {names[k]: v for k, v in cases.items()}
+
+
+def readme(r: dict, before: dict | None = None) -> str:
+    """The README of this example, every number from ``r`` (results.json); ``before``: the run it is compared with."""
     c = r["cases"]
     ct, cc = r["camera_true"], r["camera_calibrated"]
     rows = []
@@ -315,9 +434,11 @@ def readme(r: dict) -> str:
     fa = r["full_adjustment"]
     ft = r["faugeras_toscani"]
     g = r["grid"]
+    jitter_note = (f"plus {r['jitter_px']} px of per-target image jitter, `--jitter-px`" if r["jitter_px"] else
+                   "no per-target image jitter")
     return f"""# Calibration grid: the seed paper's Figs. 5-8 reproduced on the simulated camera
 
-Generated by `.venv/bin/python examples/calibration_grid/run_experiment.py` (seed {r['seed']}); every
+Generated by `.venv/bin/python examples/calibration_grid/run_experiment.py{f" --jitter-px {r['jitter_px']}" if r['jitter_px'] else ""}` (seed {r['seed']}); every
 number below comes from that run (`results.json`). Do not edit by hand.
 
 ## Set-up
@@ -332,8 +453,7 @@ number below comes from that run (`results.json`). Do not edit by hand.
   the calibration has something to find). The Kinoptik lens and the Imaging Technology 150 frame grabber
   are not modelled beyond that.
 * **Images**: 20 stations 0.6-1.0 m from the grid (figure `figures/grid_and_stations.png`), rendered by
-  `SimCamera` (6 mm discs, 0.7 px blur, shot and read noise, 8 bits, plus {r['image_sigma_px']} px of
-  per-target image jitter for what is not rendered) and measured by the cell's detector (intensity-weighted
+  `SimCamera` (6 mm discs, 0.7 px blur, shot and read noise, 8 bits; {jitter_note}) and measured by the cell's detector (intensity-weighted
   centroid with eccentricity correction; the paper fitted a parametric model after Gruen 1985). The
   dots are named by projecting the nominal grid with a pose off the true one by 2 mm and 0.15 deg (standard deviations per axis).
 * **Calibration**: Faugeras-Toscani on each image (median alpha_u {ft['alpha_u_median']:.1f} px,
@@ -347,8 +467,9 @@ number below comes from that run (`results.json`). Do not edit by hand.
 * **Comparisons** (Figs. 6-8): the sub-networks are adjusted with that calibration held fixed (the
   seed's "cameras have undergone prior calibration"), starting from the Faugeras-Toscani poses,
   free-network datum, covariance scaled by the a priori sigma = {fa['sigma0_px']:.4f} px (the full
-  adjustment's sigma0), so that the networks are compared by their geometry.
+  adjustment's sigma0: what the images deliver, see below), so that the networks are compared by their geometry.
 
+{_changes(r, before)}
 ## Results
 
 Error ellipsoids at 1 sigma: semi-axes a >= b >= c; volume 4/3 pi a b c; elongation a / c. Medians over
@@ -374,6 +495,8 @@ What the paper shows, and what we get:
   times those of the {c['partial_triple']['seen_by_3']['n']} targets measured by three: the lack of
   uniformity the paper points out.
 
+Against the truth: {pipeline.honesty_text(_labelled(c), fa['sigma0_px'], _labelled(before['rerun']['cases']) if before and before['rerun'] else None)}
+
 Runtime of the whole script: {r['runtime_s']:.0f} s (rendering, measurement, {fa['images']} + 3 adjustments,
 figures) on this machine.
 """
@@ -385,8 +508,12 @@ def main() -> None:
     ap.add_argument("--quick", action="store_true", help="reduced grid and images (what the test runs)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--save-images", action="store_true", help="write the rendered images to OUT/images/")
+    ap.add_argument("--jitter-px", type=float, default=0.0,
+                    help="add this much per-target image jitter (px, per axis) on top of the rendered noise; "
+                         "default 0: the physics only (0.05: the set-up before)")
     a = ap.parse_args()
-    run(a.out, quick=a.quick, seed=a.seed, write_docs=not a.quick or a.out != HERE, save_images=a.save_images)
+    run(a.out, quick=a.quick, seed=a.seed, jitter_px=a.jitter_px, write_docs=not a.quick or a.out != HERE,
+        save_images=a.save_images)
 
 
 if __name__ == "__main__":

@@ -1,6 +1,6 @@
 """The seed paper's complex-object experiments (its Figs. 9-11), on the simulated cell with a UR5e.
 
-    .venv/bin/python examples/complex_object/run_experiment.py [--quick] [--out DIR] [--seed N]
+    .venv/bin/python examples/complex_object/run_experiment.py [--quick] [--out DIR] [--seed N] [--jitter-px PX]
 
 The object: a self-occluding block (a base with a pocket, a tower, a back wall and a ramp) whose
 features are measured in images. The paper printed quadrangular patterns and measured their
@@ -21,7 +21,17 @@ image by Faugeras-Toscani and bundle adjusted with covariance:
 The planned network's images also calibrate the camera (a self-calibrating adjustment); the two
 four-image networks are adjusted with that calibration held fixed. Writes ``results.json``,
 ``figures/*.png`` and ``README.md`` next to this script (or to ``--out``). ``--quick`` is the
-reduced version the test runs (fewer features, a 12-image planned network, a small search).
+reduced version the test runs (fewer features, a 16-image planned network, a small search).
+
+The image noise is the rendered physics only (photons, read noise, blur, 8-bit quantisation): no per-target
+jitter is added unless ``--jitter-px`` asks for it (the set-up before: 0.05 px). The image sigma is what the
+images deliver: the a posteriori sigma0 of the planned network's adjustment (the repository's detector model was
+measured on larger dots than these; the run reports how far). The planner's criterion with one sigma for every
+ray ranks networks the same whatever that sigma is (every covariance scales with its square), so the search runs
+with a unit sigma (:data:`SEARCH_SIGMA_PX`) before any image exists and its predictions are restated at the
+measured sigma0. The README compares with the set-up before (0.05 px of jitter): ``results_jitter_0.05.json``
+(this script with ``--jitter-px 0.05``) and ``results_a808f80.json`` (the results.json last committed with that
+set-up, verbatim).
 """
 from __future__ import annotations
 
@@ -62,7 +72,16 @@ BASE_FROM_PART = np.array([[1.0, 0, 0, 0.42], [0, 1.0, 0, 0.0], [0, 0, 1.0, 0.0]
 FLANGE_FROM_CAM = np.array([[1.0, 0, 0, 0.0], [0, 1.0, 0, 0.045], [0, 0, 1.0, 0.07], [0, 0, 0, 1.0]])
 EXPOSURE_S = 0.004
 DETECTION = DetectionOptions(threshold=20.0, min_peak_snr=2.0)
-SIGMA_PX = 0.05  # the sim's per-target image jitter, and the planner's image noise
+#: the planner's image sigma: a unit. With one sigma for every ray the criterion ranks networks the same whatever its
+#: value (the predicted covariances scale with its square), so the search runs before any image exists and its
+#: predicted sigmas are restated at the image sigma the planned network's images deliver (their sigma0)
+SEARCH_SIGMA_PX = 1.0
+#: the set-up before (0.05 px of per-target jitter), which the README compares with: this script with
+#: ``--jitter-px 0.05`` on today's code (the same code: only the jitter differs), and the last results.json committed
+#: with that set-up (commit a808f80, kept verbatim; the code has changed since)
+BEFORE_JSON = "results_jitter_0.05.json"
+BEFORE_COMMIT = "a808f80"
+BEFORE_COMMIT_JSON = f"results_{BEFORE_COMMIT}.json"
 
 
 def pulnix_tm9701() -> Intrinsics:
@@ -149,7 +168,12 @@ def hand_networks(sphere, reachable: np.ndarray, genes: np.ndarray) -> dict[str,
     return {"weak4": weak, "convergent4": conv}
 
 
-def run(out: Path, quick: bool = False, seed: int = 0, write_docs: bool = True) -> dict:
+def run(out: Path, quick: bool = False, seed: int = 0, write_docs: bool = True, jitter_px: float = 0.0) -> dict:
+    """Run the experiment; returns the results (also written to ``out/results.json``).
+
+    ``jitter_px``: per-target image jitter added by the simulator on top of the rendered noise (0: none, the
+    physics only; 0.05 was the set-up before).
+    """
     from dataclasses import replace
 
     from planning.planner import PlannerOptions, plan_network
@@ -166,7 +190,7 @@ def run(out: Path, quick: bool = False, seed: int = 0, write_docs: bool = True) 
     sphere = _sphere(part, intr)
     robot, cworld = _robot_and_world(part)
     vis_opts = VisibilityOptions(margin_px=8.0, incidence_max_rad=math.radians(60.0), min_target_px=3.0)
-    options = PlannerOptions(n_stations=n_planned, min_rays=3, incidence_max_rad=math.radians(60.0), sigma_px=SIGMA_PX,
+    options = PlannerOptions(n_stations=n_planned, min_rays=3, incidence_max_rad=math.radians(60.0), sigma_px=SEARCH_SIGMA_PX,
                              criterion="worst", visibility=vis_opts, sphere=sphere,
                              n_candidates=400 if quick else 1500, n_shells=2,
                              population=40 if quick else 80, generations=40 if quick else 150,
@@ -188,7 +212,8 @@ def run(out: Path, quick: bool = False, seed: int = 0, write_docs: bool = True) 
           f"fx {intr.fx_px:.1f} fy {intr.fy_px:.1f} px; robot UR5e: {reach.result.summary()}")
     print(f"planning {n_planned} images: {t_plan:.1f} s (visibility database {t_vis:.1f} s, reachability "
           f"{t_reach:.1f} s, search + exact check {t_search:.1f} s); predicted sigma max "
-          f"{plan.predicted_sigma_max_m * 1e6:.1f} um; {len(plan.unmeasurable_target_ids)} features no 3 reachable "
+          f"{plan.predicted_sigma_max_m * 1e6:.1f} um per px of image sigma; {len(plan.unmeasurable_target_ids)} "
+          "features no 3 reachable "
           f"stations can measure")
     nets = hand_networks(sphere, reach.reachable, db.genes)
     stations = {"weak4": sphere.poses(nets["weak4"]), "convergent4": sphere.poses(nets["convergent4"]),
@@ -200,7 +225,7 @@ def run(out: Path, quick: bool = False, seed: int = 0, write_docs: bool = True) 
         print(f"  {k}: {int(ok.sum())}/{len(ok)} stations reachable by the UR5e")
 
     world = World(part, BASE_FROM_PART, FLANGE_FROM_CAM, intr, seed=seed)
-    camera = SimCamera(world, options=RenderOptions(image_sigma_px=SIGMA_PX), exposure_s=EXPOSURE_S)
+    camera = SimCamera(world, options=RenderOptions(image_sigma_px=jitter_px), exposure_s=EXPOSURE_S)
     rng = np.random.default_rng(seed + 1)
     obs = {k: pipeline.render_and_measure(camera, part, intr, T, rng, detection=DETECTION) for k, T in stations.items()}
     # the camera is calibrated beforehand (the seed gives its calibration as an input; the grid example shows
@@ -210,10 +235,26 @@ def run(out: Path, quick: bool = False, seed: int = 0, write_docs: bool = True) 
                    for k, v in stations.items()}  # what the robot and hand-eye say, a little off
     poses_p, intr_ft, n_pnp = pipeline.initial_poses(part, obs["planned"], intr, robot_poses["planned"])
     t0 = time.perf_counter()
-    res_p, _ = pipeline.adjust_subset(obs["planned"], pipeline.usable_images(obs["planned"]), intr, poses_p,
-                                      part.targets.xyz, sigma_px=SIGMA_PX, camera_model="OPENCV", a_posteriori=True)
+    # a posteriori: the a priori sigma is only a unit (the variance factor is estimated); its sigma0 is the image sigma
+    res_p, sub_p = pipeline.adjust_subset(obs["planned"], pipeline.usable_images(obs["planned"]), intr, poses_p,
+                                          part.targets.xyz, sigma_px=SEARCH_SIGMA_PX, camera_model="OPENCV",
+                                          a_posteriori=True)
     t_ba = time.perf_counter() - t0
     cal = intr
+    image_sigma = res_p.sigma0_px
+    coverage = pipeline.detector_model_coverage(res_p, sub_p, intr, part.targets.normals, part.target_diameter_m)
+    # the search's choice does not depend on its one sigma: searched again at the measured one, it must choose the same
+    replan = plan_network(part, intr, replace(options, sigma_px=image_sigma), np.random.default_rng(seed),
+                          reachable=reach.reachable, db=db, seed=seed)
+    same_stations = bool(replan.part_from_cam.shape == plan.part_from_cam.shape
+                         and np.allclose(replan.part_from_cam, plan.part_from_cam, rtol=0.0, atol=1e-9))
+    print(f"the search at the measured sigma {image_sigma:.4f} px chose "
+          + ("the same stations" if same_stations else "**other** stations") + f" as at {SEARCH_SIGMA_PX} px")
+    print(f"detector model (version {coverage['model_version']}, measured on {coverage['model_diameter_range_px'][0]:.1f}-"
+          f"{coverage['model_diameter_range_px'][1]:.1f} px dots): these dots are {coverage['diameter_px'][0]:.1f}-"
+          f"{coverage['diameter_px'][2]:.1f} px, {coverage['share_inside'] * 100:.0f}% of the observations inside its "
+          f"measured range; it predicts {coverage['model_rms_px_extrapolated']:.4f} px rms extrapolated, "
+          f"{coverage['model_rms_px_held']:.4f} px held at its range; the images give sigma0 {image_sigma:.4f} px")
     print(f"bundle adjustment of the {n_planned} planned images with covariance: {t_ba:.2f} s "
           f"(solve {res_p.timings['solve']:.2f} s, covariance {res_p.timings['covariance']:.2f} s); "
           f"sigma0 {res_p.sigma0_px:.4f} px; Faugeras-Toscani median alpha_u {intr_ft.fx_px:.1f}, alpha_v "
@@ -226,9 +267,9 @@ def run(out: Path, quick: bool = False, seed: int = 0, write_docs: bool = True) 
         poses0, _, n_pnp_k = pipeline.initial_poses(part, obs[k], intr, robot_poses[k])
         used = pipeline.usable_images(obs[k])
         res, sub = pipeline.adjust_subset(obs[k], used, cal, poses0, part.targets.xyz,
-                                          sigma_px=res_p.sigma0_px, camera_model="OPENCV")
+                                          sigma_px=image_sigma, camera_model="OPENCV")
         covs[k] = res.cov
-        predicted, _ = _predicted(intr, T, part, vis_opts)
+        predicted, _ = _predicted(intr, T, part, vis_opts, image_sigma)
         rays = sub.rays(n)
         results["networks"][k] = {
             "images": len(T), "observations": int(len(sub.obs_uv)), "time_s": res.timings["total"],
@@ -253,7 +294,9 @@ def run(out: Path, quick: bool = False, seed: int = 0, write_docs: bool = True) 
               f"homogeneity (cv) {mc['homogeneity_cv']:.2f}, isotropy {mc['isotropy_median']:.2f}; "
               f"{results['networks'][k]['truth']['inside_95'] * 100:.0f}% inside the 95% ellipsoid")
     results.update({
-        "quick": quick, "seed": seed, "sigma_px": SIGMA_PX,
+        "quick": quick, "seed": seed, "jitter_px": jitter_px,
+        "image_sigma": {"px": image_sigma, "source": "sigma0 of the planned network's adjustment",
+                        "search_sigma_px": SEARCH_SIGMA_PX, "detector_model": coverage},
         "object": {"features": n, "extent_m": np.ptp(part.mesh.vertices, axis=0).tolist(),
                    "triangles": int(len(part.mesh.faces)), "feature_diameter_m": part.target_diameter_m},
         "camera_true": intr.to_dict(),
@@ -264,8 +307,9 @@ def run(out: Path, quick: bool = False, seed: int = 0, write_docs: bool = True) 
         "planning": {"images": n_planned, "time_s": t_plan, "visibility_s": t_vis, "reachability_s": t_reach,
                      "search_s": t_search, "timing": plan.timing, "generations": plan.search.get("generations"),
                      "evaluations": plan.search.get("n_evaluations"),
-                     "predicted_sigma_max_um": plan.predicted_sigma_max_m * 1e6,
-                     "predicted_sigma_mean_um": plan.predicted_sigma_mean_m * 1e6,
+                     "same_stations_at_image_sigma": same_stations,
+                     "predicted_sigma_max_um": plan.predicted_sigma_max_m * 1e6 * image_sigma / SEARCH_SIGMA_PX,
+                     "predicted_sigma_mean_um": plan.predicted_sigma_mean_m * 1e6 * image_sigma / SEARCH_SIGMA_PX,
                      "unmeasurable": len(plan.unmeasurable_target_ids)},
         "bundle_planned": {"time_s": t_ba, "timings": res_p.timings, "sigma0_px": res_p.sigma0_px,
                                    "observations": int(len(obs["planned"].obs_uv)),
@@ -279,18 +323,18 @@ def run(out: Path, quick: bool = False, seed: int = 0, write_docs: bool = True) 
     out.mkdir(parents=True, exist_ok=True)
     (out / "results.json").write_text(json.dumps(results, indent=1))
     if write_docs:
-        (out / "README.md").write_text(readme(results))
+        (out / "README.md").write_text(readme(results, None if quick else load_before()))
     print(f"runtime {results['runtime_s']:.1f} s; wrote {(out / 'results.json').name} in {out.name}/")
     results["_covs"] = covs
     return results
 
 
-def _predicted(intr, T, part, vis_opts):
+def _predicted(intr, T, part, vis_opts, sigma_px: float):
     from planning.uncertainty import covariance_for_network
     from planning.visibility import compute_visibility
 
     vis = compute_visibility(part, intr, T, vis_opts)
-    return covariance_for_network(intr, T, part.targets.xyz, vis, SIGMA_PX, min_rays=2)
+    return covariance_for_network(intr, T, part.targets.xyz, vis, sigma_px, min_rays=2)
 
 
 def invert_all(T: np.ndarray) -> np.ndarray:
@@ -336,8 +380,103 @@ def _figures(out: Path, part: Part, stations: dict, covs: dict, results: dict) -
     plt.close(fig)
 
 
-def readme(r: dict) -> str:
-    """The README of this example, every number from ``r`` (results.json)."""
+def load_before() -> dict | None:
+    """The runs of the set-up before next to this script: ``{"rerun": BEFORE_JSON, "commit": BEFORE_COMMIT_JSON}``
+    (each None when absent), or None when neither is there."""
+    runs = {k: (json.loads((HERE / f).read_text()) if (HERE / f).exists() else None)
+            for k, f in (("rerun", BEFORE_JSON), ("commit", BEFORE_COMMIT_JSON))}
+    return runs if any(runs.values()) else None
+
+
+def _key_figures(r: dict) -> list[tuple[str, str]]:
+    """(label, formatted value) of the figures the before / after table compares."""
+    b, p, nets = r["bundle_planned"], r["planning"], r["networks"]
+    rows = [("per-target image jitter (px)", f"{r.get('jitter_px', r.get('sigma_px'))}"),
+            ("image sigma: sigma0 of the planned network (px)", f"{b['sigma0_px']:.4f}"),
+            ("planned network: observations rejected by data snooping", f"{b['rejected']} of {b['observations']}"),
+            ("planner's predicted sigma max (um, at that network's image sigma)", f"{p['predicted_sigma_max_um']:.1f}"),
+            ("features all three networks measure", f"{r['common_features']}")]
+    for k, label in (("weak4", "Fig. 9"), ("convergent4", "Fig. 10"), ("planned", "Fig. 11")):
+        v = nets[k]
+        c, t = v["common"], v["truth"]
+        rows.append((f"{label}: features measured; sigma median, max on the common (um)",
+                     f"{v['measured']}; {c['sigma_um_median']:.1f}, {c['sigma_um_max']:.1f}"))
+        rows.append((f"{label}: homogeneity (cv), isotropy on the common", f"{c['homogeneity_cv']:.2f}, "
+                                                                           f"{c['isotropy_median']:.2f}"))
+        rows.append((f"{label}: true rms (um), inside 95%, median d^2", f"{t['rms_error_um']:.1f}, "
+                                                                      f"{t['inside_95'] * 100:.0f}%, {t['median_d2']:.2f}"))
+    return rows
+
+
+def _changes(r: dict, before: dict | None) -> str:
+    """The section on what changed against the paper set-up (no jitter; where the image sigma comes from)."""
+    dm, b = r["image_sigma"]["detector_model"], r["bundle_planned"]
+    jitter = (f"**{r['jitter_px']} px of per-target image jitter** is added on top (`--jitter-px`), as asked for "
+              "this run" if r["jitter_px"] else
+              "**no per-target image jitter** is added (the set-up before added 0.05 px; `--jitter-px 0.05` "
+              "restores it)")
+    text = f"""## What changed against the paper set-up: no added jitter, the image sigma measured
+
+The image noise is the simulator's physics only: photons, read noise, blur and 8-bit quantisation; {jitter}.
+The planner's criterion and the adjustments need an image sigma, and it is taken from what the images deliver.
+{pipeline.detector_model_text(dm, r['image_sigma']['px'], "In the planned network's images the 4 mm features")}
+The image sigma is instead the **a posteriori
+sigma0 of the planned network's adjustment**, {r['image_sigma']['px']:.4f} px: the residuals of this run's own
+{r['planning']['images']} images ({b['observations'] - b['rejected']} observations kept). That adjustment starts
+from an a priori {r['image_sigma']['search_sigma_px']} px, only a unit: it estimates its variance factor. The
+comparisons of the three networks take that sigma0 as their a priori sigma.
+
+The planner needs its sigma before any image exists. With one sigma for every ray (the job path's default,
+`[planning] search_weights = "sigma"`) its criterion ranks networks the same whatever the sigma is, since every
+predicted covariance scales with its square: the search runs with a unit sigma of
+{r['image_sigma']['search_sigma_px']} px, and its predicted sigmas (`planning.predicted_sigma_*`,
+`predicted_limiting_sigma_um_median`) are restated at the measured sigma0. The run checks this: searched again at
+the measured sigma0, the planner chose {"the same" if r['planning']['same_stations_at_image_sigma'] else
+"**other**"} {r['planning']['images']} stations.
+"""
+    if before is None:
+        return text
+    j = before.get("jitter_px", before.get("sigma_px"))
+    cols = [(k, v) for k, v in (("commit", before["commit"]), ("rerun", before["rerun"])) if v is not None]
+    heads = {"commit": f"before: commit {BEFORE_COMMIT}, 0.05 px jitter", "rerun": "before: today's code, 0.05 px jitter"}
+    figs = [_key_figures(v) for _, v in cols] + [_key_figures(r)]
+    rows = [f"| {lab} | " + " | ".join(f[i][1] for f in figs) + " |" for i, (lab, _) in enumerate(figs[-1])]
+    return text + f"""
+Before and after. Before: the set-up with 0.05 px of jitter, twice: as last committed
+(`results.json` of commit {BEFORE_COMMIT}, kept verbatim in `{BEFORE_COMMIT_JSON}`), and this script on today's code
+with `--jitter-px 0.05` (`{BEFORE_JSON}`: only the jitter differs from this run). The code has changed since
+{BEFORE_COMMIT}; the second column separates that from the jitter.
+
+| figure | {' | '.join(heads[k] for k, _ in cols)} | now{' (' + str(r['jitter_px']) + ' px jitter)' if r['jitter_px'] else ', no jitter'} |
+|---|{'---|' * len(cols)}---|
+{chr(10).join(rows)}
+
+{_scaling(r, before['rerun']) if before['rerun'] else ''}
+"""
+
+
+def _same_stations(a: dict, b: dict) -> bool:
+    """Whether two runs' network has the same stations (adjusted projection centres within 1 mm)."""
+    ea, eb = np.asarray(a["eyes"]), np.asarray(b["eyes"])
+    return ea.shape == eb.shape and bool(np.all(np.linalg.norm(ea - eb, axis=1) < 1e-3))
+
+
+def _scaling(r: dict, before: dict) -> str:
+    """How the networks' sigmas changed against the change of the image sigma alone."""
+    k = before["bundle_planned"]["sigma0_px"] / r["bundle_planned"]["sigma0_px"]
+    parts = []
+    for key, label in (("weak4", "weak"), ("convergent4", "convergent"), ("planned", "planned")):
+        ratio = before["networks"][key]["common"]["sigma_um_median"] / r["networks"][key]["common"]["sigma_um_median"]
+        same = _same_stations(before["networks"][key], r["networks"][key])
+        parts.append(f"{ratio:.1f}x ({label}; " + ("the same stations" if same else
+                                                    "**other stations** than before: the planner has changed since") + ")")
+    return (f"The image sigma fell {k:.1f}x; with the same stations a sigma falls by that factor. The median sigma on "
+            f"the common features fell {', '.join(parts)}.")
+
+
+
+def readme(r: dict, before: dict | None = None) -> str:
+    """The README of this example, every number from ``r`` (results.json); ``before``: the run it is compared with."""
     nets = r["networks"]
     ct, ft = r["camera_true"], r["faugeras_toscani_planned"]
     labels = {"weak4": "Fig. 9: 4 weakly convergent", "convergent4": "Fig. 10: 4 convergent",
@@ -352,9 +491,11 @@ def readme(r: dict) -> str:
                     f"{v['truth']['rms_error_um']:.1f} | {v['truth']['inside_95'] * 100:.0f}% |")
     p, b = r["planning"], r["bundle_planned"]
     w, cv, pl = nets["weak4"]["common"], nets["convergent4"]["common"], nets["planned"]["common"]
+    jitter_note = (f"plus {r['jitter_px']} px of per-target image jitter (`--jitter-px`)" if r["jitter_px"] else
+                   "no per-target image jitter")
     return f"""# Complex object: the seed paper's Figs. 9-11 reproduced on the simulated cell
 
-Generated by `.venv/bin/python examples/complex_object/run_experiment.py` (seed {r['seed']}); every
+Generated by `.venv/bin/python examples/complex_object/run_experiment.py{f" --jitter-px {r['jitter_px']}" if r['jitter_px'] else ""}` (seed {r['seed']}); every
 number below comes from that run (`results.json`). Do not edit by hand.
 
 ## Set-up, and where it differs from the paper
@@ -367,21 +508,24 @@ number below comes from that run (`results.json`). Do not edit by hand.
   calibration and adjustment are as in the paper; the image measurement is not.
 * **Camera**: nominal Pulnix TM-9701 with a 16 mm lens, as we assume it: {ct['width']} x {ct['height']} pixels of
   11.6 x 13.6 um, fx = {ct['fx_px']:.1f} px, fy = {ct['fy_px']:.1f} px, k1 = {ct['k1']} (assumed). Rendered with
-  {r['sigma_px']} px of per-target image jitter, blur, shot and read noise.
+  blur, shot and read noise and 8-bit quantisation; {jitter_note}.
 * **Robot**: a **UR5e** (the paper used a Staubli RX60B), camera on the flange, part 0.42 m in front of the base.
   Of {r['robot']['candidates']} candidate stations on the viewing sphere (0.36-0.50 m, elevation 15-85 deg),
   {r['robot']['reachable']} are reachable without collision; the planner uses only those, and every station of the
   three networks is re-checked.
 * **Networks**: Fig. 9, four stations within about 12 degrees of one direction; Fig. 10, four stations 90 degrees
   apart in azimuth at 45 degrees elevation; Fig. 11, {p['images']} stations from the evolutionary planner (criterion
-  "worst": the largest predicted sigma; at least 3 rays per feature; incidence <= 60 deg).
+  "worst": the largest predicted sigma; at least 3 rays per feature; incidence <= 60 deg; one image sigma for every
+  ray, see below).
 * **Adjustment**: as in the paper the camera is calibrated beforehand (see the calibration grid example); its
   interior orientation is held at the true values. Each image is calibrated by Faugeras-Toscani (planned network:
   median alpha_u {ft['alpha_u_median']:.1f}, alpha_v {ft['alpha_v_median']:.1f} px, true {ct['fx_px']:.1f},
   {ct['fy_px']:.1f}; an image with fewer than 8 features or coplanar ones is oriented by solvePnP from the robot's
   pose instead: {ft['images_oriented_by_pnp']} in the planned network), which starts a bundle adjustment with
-  free-network datum and covariance, a priori sigma {b['sigma0_px']:.4f} px (the planned network's sigma0).
+  free-network datum and covariance, a priori sigma {b['sigma0_px']:.4f} px (the planned network's sigma0: what the
+  images deliver, see below).
 
+{_changes(r, before)}
 ## Results
 
 sigma = sqrt(a^2 + b^2 + c^2) of a feature's 1-sigma error ellipsoid (a >= b >= c); homogeneity = coefficient of
@@ -396,7 +540,7 @@ features whose true error lies in their 95% ellipsoid.
 
 ![Figs. 9-11](figures/ellipsoids_fig9_10_11.png)
 
-{_verdict(r)}
+{_verdict(r, before)}
 
 ## Time, next to the paper's
 
@@ -410,7 +554,7 @@ Whole script: {r['runtime_s']:.0f} s.
 """
 
 
-def _verdict(r: dict) -> str:
+def _verdict(r: dict, before: dict | None = None) -> str:
     """The comparison with the paper's claims, in words chosen by the numbers (nothing asserted unmeasured)."""
     nets = r["networks"]
     w, cv, pl = (nets[k]["common"] for k in ("weak4", "convergent4", "planned"))
@@ -445,6 +589,11 @@ def _verdict(r: dict) -> str:
                               "the covariance is optimistic: the image measurements carry systematic errors (dots "
                               "near an edge of a face sit on an uneven lit background; oblique dots) that the "
                               "stochastic model (independent image noise) does not hold."))
+    names = {"weak4": "Fig. 9, 4 weakly convergent", "convergent4": "Fig. 10, 4 convergent", "planned": "Fig. 11, planned"}
+    old = before["rerun"] if before else None
+    lines.append("* All three networks against the truth: " + pipeline.honesty_text(
+        {names[k]: v for k, v in nets.items()}, r["bundle_planned"]["sigma0_px"],
+        {names[k]: v for k, v in old["networks"].items()} if old else None))
     return "\n".join(lines)
 
 
@@ -453,8 +602,11 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=HERE)
     ap.add_argument("--quick", action="store_true", help="reduced object, network and search (what the test runs)")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--jitter-px", type=float, default=0.0,
+                    help="add this much per-target image jitter (px, per axis) on top of the rendered noise; "
+                         "default 0: the physics only (0.05: the set-up before)")
     a = ap.parse_args()
-    run(a.out, quick=a.quick, seed=a.seed, write_docs=not a.quick or a.out != HERE)
+    run(a.out, quick=a.quick, seed=a.seed, write_docs=not a.quick or a.out != HERE, jitter_px=a.jitter_px)
 
 
 if __name__ == "__main__":
