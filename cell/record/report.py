@@ -286,6 +286,13 @@ def _alerts(doc: dict) -> str:
         out.append('<div class="warn" id="identification-dropped">Named dots left unnamed by MEASURE rather than '
                    "misnamed: " + html.escape(", ".join(f"{v} {k}" for k, v in unusual.items()))
                    + " (by image below)</div>")
+    smeared = [d for d in dr.get("images") or [] if d.get("smear")]
+    if smeared:  # decision 0067
+        out.append('<div class="warn" id="smeared">Images left out because their dots are smeared (the camera moved '
+                   "during the exposure: the robot not settled, or its mount vibrating; raise [cell] settle_s, or "
+                   "shorten [camera] exposure_s): " + html.escape("; ".join(
+                       f"{d['image']} ({d['station']}): ~{d['smear']['length_px']:.1f} px along "
+                       f"{d['smear']['direction_deg']:.0f} deg" for d in smeared)) + "</div>")
     kept = lo.get("start_pose_kept") or []
     if kept:
         listed = "; ".join(f"{d['image']}: {d['reason']}" for d in kept[:6]) + ("; ..." if len(kept) > 6 else "")

@@ -13,23 +13,29 @@ moments) and ``eccentricity_px`` (k, 2: the eccentricity taken off its centre), 
 the eccentricity again through the adjusted lens (decision 0054), ``clip_bound_px`` (k, 2: how far a clipped dot's
 centre may be off for its unknown level, zero for the others; ADJUST carries it; decision 0050), ``outline`` (k, 2:
 ``[chi2, n]`` of each dot's contour about its fitted ellipse) and ``centroid_chi2`` (k: its centroid against that
-ellipse's centre; null for a dot centred by its ellipse): a target's print is judged by them (decision 0051), counts,
+ellipse's centre; null for a dot centred by its ellipse): a target's print is judged by them (decision 0051), ``smear``
+(the directional spread the image's dots share beyond their ellipses, :func:`calibration.smear.image_smear`; an image
+whose dots are smeared, the camera moving during the exposure, has every named dot dropped; decision 0067), counts,
 ``background_mask`` (only when ``[camera] background_mask = "cad"``: "cad", or "none (...)" for an image measured
 unmasked because too few dots were named to label it from; docs/decisions/0035),
 ``dropped``: list of {``id``, ``reason``} (dots that were named and then left unnamed: partly hidden,
 shape unlike the target's ellipse, the image's naming inconsistent, a background ring too small to bound the
-centre's error), ``resection_median_px``};
+centre's error, the image smeared), ``resection_median_px``};
 ``n_dropped`` (all images) and ``dropped_by_reason`` at the top level.
 """
 from __future__ import annotations
+
+from dataclasses import replace
 
 import cv2
 import numpy as np
 
 from calibration.camera import invert
 from calibration.errors import CalibrationError
+from calibration.smear import deviatoric_excess, image_smear
+from calibration.targets import DetectionOptions, detect_dots, ellipse_moments, refine_pose_pnp
 from cell.record.jobfolder import atomic_write_json
-from cell.stages.imaging import detection_options, measure_image, surface_labeller
+from cell.stages.imaging import _name_detections, detection_options, masked_labels, surface_labeller
 from planning.visibility import Occluder
 
 
@@ -51,10 +57,10 @@ def run(ctx, keep: bool = False) -> None:
     # images measured before (a closed-loop round adds images to a measured network): kept as they are
     path = ctx.folder.file("observations.json")
     before = {o["image"]: o for o in ctx.folder.read_json("observations.json")["images"]} if keep and path.exists() else {}
-    out = []
+    measured = []  # (k, acquisition record, measurement, counts, the dots' excess over their ellipses)
     for k, im in enumerate(acq["images"]):
         if im["image"] in before:
-            out.append(before[im["image"]])
+            measured.append((k, im, None, None, None))
             continue
         ctx.progress("measure", k / len(acq["images"]))
         kept = ctx.cache.get("frames", {}).get(im["image"])  # this session's ACQUIRE: the same pixels, decoded
@@ -63,8 +69,20 @@ def run(ctx, keep: bool = False) -> None:
         if img is None:
             raise CalibrationError(f"{im['image']}: cannot read the image")
         cam_from_part = invert(invert(bfp) @ np.asarray(im["base_from_flange"], dtype=float) @ ffc)
-        m, counts = measure_image(img, job.part, job.intrinsics, cam_from_part, occluder, detection=detection,
-                                  coded_family=job.spec.job.coded_family, surfaces=surfaces)
+        m, counts, excess = measure_with_excess(img, job.part, job.intrinsics, cam_from_part, occluder, detection,
+                                                job.spec.job.coded_family, surfaces)
+        measured.append((k, im, m, counts, excess))
+    smears = judge_smears([e for *_, e in measured], job.part, job.intrinsics)  # decision 0067
+    out = []
+    for (k, im, m, counts, _), smear in zip(measured, smears):
+        if m is None:
+            out.append(before[im["image"]])
+            continue
+        if smear.get("smeared"):  # its centres are moved along the smear, which no sigma covers: none measured
+            m = _left_out(m, f"smeared: {smear_words(smear)}")
+            msg = smeared_message(im["image"], im["station"], smear)
+            ctx.log.log("warning", msg)
+            ctx.say(f"  WARNING {msg}")
         names = [ids_all[int(i)] for i in m.target]
         dropped = [{"id": ids_all[i], "reason": why} for i, why in m.dropped]
         out.append({"station": im["station"], "image": im["image"], "ids": names, "uv": m.uv, "cov_px2": m.cov,
@@ -77,12 +95,12 @@ def run(ctx, keep: bool = False) -> None:
                     **({"named_turned_deg": m.named_turned_deg} if m.named_turned_deg is not None else {}),
                     **({"clip_bound_px": m.clip_bound} if m.clip_bound is not None else {}),
                     **({"outline": m.outline, "centroid_chi2": m.centroid_chi2} if m.outline is not None else {}),
-                    "n_unidentified": m.n_unidentified, "n_partly_hidden": m.n_partly_hidden,
+                    "smear": smear, "n_unidentified": m.n_unidentified, "n_partly_hidden": m.n_partly_hidden,
                     "n_shape_rejected": m.n_shape, "dropped": dropped,
                     "resection_median_px": m.resection_median_px,
                     "codes_seen": [{"id": ids_all[i], "px": round(d, 2), "limit_px": round(lim, 1)}
                                    for i, d, lim in m.codes_seen]} | counts)
-        if m.n_shape or len(m.dropped) > m.n_partly_hidden:
+        if (m.n_shape or len(m.dropped) > m.n_partly_hidden) and not smear.get("smeared"):
             ctx.log.log("warning", f"{im['image']}: {len(m.dropped)} named dot(s) left unnamed: " + "; ".join(
                 f"{d['id']} {d['reason']}" for d in dropped[:6]) + (" ..." if len(dropped) > 6 else ""))
         ctx.log.detections(im["station"], names, m.uv)
@@ -188,10 +206,95 @@ def dropped_by_reason(images: list[dict]) -> dict[str, int]:
     """How many named dots each check left unnamed, over ``images`` (observations.json's records)."""
     kinds = {"partly hidden": "partly hidden (CAD)", "shape": "shape unlike the target's ellipse",
              "the image's naming": "in images whose naming is inconsistent",
-             "background not measurable": "background not measurable (ring < 8 px)"}
+             "background not measurable": "background not measurable (ring < 8 px)",
+             "smeared": "in images smeared by the camera's motion"}
     out: dict[str, int] = {}
     for o in images:
         for d in o.get("dropped", []):
             k = next((v for p, v in kinds.items() if d["reason"].startswith(p)), "other")
             out[k] = out.get(k, 0) + 1
     return out
+
+
+def measure_with_excess(img, part, intr, cam_from_part, occluder, detection, coded_family, surfaces):
+    """:func:`cell.stages.imaging.measure_image`'s steps (the detection, the naming, with ``surfaces`` the masked
+    detection again), keeping the detections: the named dots' second moments judge whether the image is smeared
+    (:func:`dots_excess`, :func:`judge_smears`). Returns (measurement, counts, the dots' excess)."""
+    opts = detection or DetectionOptions()
+    det = detect_dots(img, opts)
+    args = (part, intr, cam_from_part, occluder, 25.0, float(np.deg2rad(85.0)), coded_family, True)
+    m, counts = _name_detections(img, det, *args)
+    if surfaces is not None:
+        labels = masked_labels(surfaces, part, intr, m)
+        if labels is not None:
+            det = detect_dots(img, opts, labels=labels)
+            m, counts = _name_detections(img, det, *args)
+        counts["background_mask"] = "cad" if labels is not None else "none (no pose to label with)"
+    counts["noise_levels"] = None if det.noise_levels is None else [float(v) for v in det.noise_levels]
+    return m, counts, dots_excess(det, m, part, intr)
+
+
+def dots_excess(det, m, part, intr) -> dict | None:
+    """What judges whether ``m``'s image is smeared (:func:`judge_smears`): its named dots' second moments
+    (``det.axes``, found by each one's detected centre, ``m.uv`` plus the eccentricity taken off), their targets, their
+    centres, the robot's pose and which dots judge (clipped dots and dots centred by their contour's ellipse, clipped
+    or next to an edge, do not). None: no named dot."""
+    from scipy.spatial import cKDTree
+
+    k = len(m.target)
+    if k == 0 or len(det.uv) == 0:
+        return None
+    uv = np.asarray(m.uv, dtype=float) + np.asarray(m.eccentricity_px, dtype=float)
+    d, j = cKDTree(det.uv).query(uv)
+    use = d < 1e-6
+    if m.clipped_share is not None:
+        use &= np.asarray(m.clipped_share, dtype=float) <= 0
+    if m.ellipse is not None:
+        use &= ~np.asarray(m.ellipse, dtype=bool)
+    return {"axes": det.axes[np.minimum(j, len(det.uv) - 1)], "target": np.asarray(m.target), "uv": uv,
+            "centre": np.asarray(m.uv, dtype=float), "pose": m.cam_from_part, "use": use}
+
+
+def judge_smears(excess: list, part, intr) -> list[dict]:
+    """observations.json's ``smear`` record of each image (:func:`calibration.smear.image_smear`) from its dots
+    (:func:`dots_excess`; None: an image kept from before, or without a named dot: {}): each dot's deviatoric excess
+    over its target's ellipse at the pose the image's named dots resect with the job's lens."""
+    t, out = part.targets, []
+    for e in excess:
+        if e is None:
+            out.append({})
+            continue
+        xyz, nrm = t.xyz[e["target"]], t.normals[e["target"]]
+        pose = e["pose"]
+        if len(xyz) >= 6:
+            try:
+                pose = refine_pose_pnp(intr, e["pose"], xyz, e["centre"])
+            except CalibrationError:
+                pass
+        pred = ellipse_moments(intr, pose, xyz, nrm, part.target_diameter_m / 2)
+        out.append(image_smear(deviatoric_excess(e["axes"], pred), e["use"]))
+    return out
+
+
+def smear_words(smear: dict) -> str:
+    """"its dots are smeared by ~L px along D deg" for a judged ``smear`` record."""
+    return (f"its dots are smeared by ~{smear['length_px']:.1f} px along {smear['direction_deg']:.0f} deg (image u "
+            f"towards v; {smear['n_dots']} dots, z^2 {smear['z2']:.0f})")
+
+
+def smeared_message(image: str, station: str, smear: dict) -> str:
+    """The console's and the run log's line for an image left out because its dots are smeared (decision 0067)."""
+    return (f"image {image} (station {station}): {smear_words(smear)}: the camera moved during the exposure (the "
+            "robot not settled, or its mount vibrating); its centres would be moved along the smear, which no stated "
+            "sigma covers: left out of the adjustment; raise [cell] settle_s (or lower settle_speed_rad_s), shorten "
+            "[camera] exposure_s, or stiffen the mount, and run the job again to retake it")
+
+
+def _left_out(m, reason: str):
+    """``m`` with none of its named dots measured: each one dropped with ``reason``."""
+    none = np.zeros(0, dtype=int)
+    kw = {k: (None if getattr(m, k) is None else getattr(m, k)[none])
+          for k in ("cov", "bg_cov", "clipped_share", "ellipse", "blur_px2", "clip_bound", "outline", "centroid_chi2",
+                    "moments_px2", "eccentricity_px")}
+    return replace(m, target=m.target[none], uv=np.asarray(m.uv)[none], **kw,
+                   dropped=list(m.dropped) + [(int(i), reason) for i in m.target])

@@ -411,7 +411,8 @@ def rejected_mask(bundle: dict) -> np.ndarray:
 def identification_drops(obs: dict) -> dict:
     """report.json's ``identification_dropped``: the named dots MEASURE left unnamed (observations.json
     ``dropped``): ``n_dropped``, ``by_reason`` and, per image with any, ``image``, ``station``, ``n_dropped``,
-    ``by_reason`` (the reasons' kinds of :func:`cell.stages.measure.dropped_by_reason`)."""
+    ``by_reason`` (the reasons' kinds of :func:`cell.stages.measure.dropped_by_reason`) and, for an image left out
+    because its dots are smeared, its ``smear`` record (decision 0067)."""
     from cell.stages.measure import dropped_by_reason
 
     images = []
@@ -419,7 +420,7 @@ def identification_drops(obs: dict) -> dict:
         if o.get("dropped"):
             by = dropped_by_reason([o])
             images.append({"image": o["image"], "station": o.get("station"), "n_dropped": sum(by.values()),
-                           "by_reason": by})
+                           "by_reason": by, **({"smear": o["smear"]} if (o.get("smear") or {}).get("smeared") else {})})
     by_reason = dropped_by_reason(obs.get("images", []))
     return {"n_dropped": sum(by_reason.values()), "by_reason": by_reason, "images": images}
 
