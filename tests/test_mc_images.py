@@ -2,7 +2,8 @@
 
 Forty times, a 48-target calibration field (two orthogonal panels) is photographed from ten
 stations by the simulated camera with a fresh noise seed: discs rendered exactly, 0.7 px blur,
-shot and read noise, 8 bits, plus the cell's default 0.03 px per-target image jitter. Every run
+shot and read noise, 8 bits: the rendered physics only, no per-target image jitter ([sim] image_sigma_px's
+default, 0). Every run
 goes through the cell's measurement chain (dot detection, identification from an approximate
 pose, eccentricity correction, Faugeras-Toscani per image, self-calibrating bundle adjustment
 with covariance). Pooled over the runs, the squared Mahalanobis distance of each target's true
@@ -28,7 +29,7 @@ from calibration.bundle import BundleConfig, BundleOptions, ControlPoints, bundl
 
 ROOT = Path(__file__).resolve().parents[1]
 RUNS = 40
-IMAGE_JITTER_PX = 0.03  # the jobs' default [sim] image_sigma_px
+IMAGE_JITTER_PX = 0.0  # the jobs' default [sim] image_sigma_px: the noise is the rendered physics
 
 
 def _experiment():
