@@ -479,6 +479,19 @@ def measure_image(image: np.ndarray, part, intr: Intrinsics, cam_from_part_appro
     Returns the measurement and counts for the record (dots, coded markers seen; with ``surfaces``, whether the
     image was masked).
     """
+    m, counts, _ = measure_image_detections(image, part, intr, cam_from_part_approx, occluder, detection=detection,
+                                            max_dist_px=max_dist_px, incidence_max_rad=incidence_max_rad,
+                                            coded_family=coded_family, shape_check=shape_check, surfaces=surfaces)
+    return m, counts
+
+
+def measure_image_detections(image: np.ndarray, part, intr: Intrinsics, cam_from_part_approx: np.ndarray,
+                             occluder: Occluder, *, detection: DetectionOptions | None = None,
+                             max_dist_px: float = 25.0, incidence_max_rad: float = float(np.deg2rad(85.0)),
+                             coded_family: str = "aruco", shape_check: bool = True,
+                             surfaces: SurfaceLabeller | None = None):
+    """:func:`measure_image`, with the detections the measurement was named from (the last detection: the masked
+    one with ``surfaces``): (measurement, counts, detections). MEASURE judges a smeared image by their moments."""
     det = detect_dots(image, detection or DetectionOptions())
     m, counts = _name_detections(image, det, part, intr, cam_from_part_approx, occluder, max_dist_px,
                                  incidence_max_rad, coded_family, shape_check)
@@ -492,7 +505,7 @@ def measure_image(image: np.ndarray, part, intr: Intrinsics, cam_from_part_appro
         counts["background_mask"] = "cad" if labels is not None else "none (no pose to label with)"
     # the pixel noise's line that the centres' covariances propagated (decision 0047): in the record, with its fallback
     counts["noise_levels"] = None if det.noise_levels is None else [float(v) for v in det.noise_levels]
-    return m, counts
+    return m, counts, det
 
 
 def masked_labels(surfaces: SurfaceLabeller, part, intr: Intrinsics, m: DotMeasurement) -> np.ndarray | None:

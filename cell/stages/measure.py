@@ -33,9 +33,9 @@ import numpy as np
 from calibration.camera import invert
 from calibration.errors import CalibrationError
 from calibration.smear import deviatoric_excess, image_smear
-from calibration.targets import DetectionOptions, detect_dots, ellipse_moments, refine_pose_pnp
+from calibration.targets import ellipse_moments, refine_pose_pnp
 from cell.record.jobfolder import atomic_write_json
-from cell.stages.imaging import _name_detections, detection_options, masked_labels, surface_labeller
+from cell.stages.imaging import detection_options, measure_image_detections, surface_labeller
 from planning.visibility import Occluder
 
 
@@ -217,20 +217,10 @@ def dropped_by_reason(images: list[dict]) -> dict[str, int]:
 
 
 def measure_with_excess(img, part, intr, cam_from_part, occluder, detection, coded_family, surfaces):
-    """:func:`cell.stages.imaging.measure_image`'s steps (the detection, the naming, with ``surfaces`` the masked
-    detection again), keeping the detections: the named dots' second moments judge whether the image is smeared
-    (:func:`dots_excess`, :func:`judge_smears`). Returns (measurement, counts, the dots' excess)."""
-    opts = detection or DetectionOptions()
-    det = detect_dots(img, opts)
-    args = (part, intr, cam_from_part, occluder, 25.0, float(np.deg2rad(85.0)), coded_family, True)
-    m, counts = _name_detections(img, det, *args)
-    if surfaces is not None:
-        labels = masked_labels(surfaces, part, intr, m)
-        if labels is not None:
-            det = detect_dots(img, opts, labels=labels)
-            m, counts = _name_detections(img, det, *args)
-        counts["background_mask"] = "cad" if labels is not None else "none (no pose to label with)"
-    counts["noise_levels"] = None if det.noise_levels is None else [float(v) for v in det.noise_levels]
+    """:func:`cell.stages.imaging.measure_image`, keeping the detections: the named dots' second moments judge whether
+    the image is smeared (:func:`dots_excess`, :func:`judge_smears`). Returns (measurement, counts, the dots' excess)."""
+    m, counts, det = measure_image_detections(img, part, intr, cam_from_part, occluder, detection=detection,
+                                              coded_family=coded_family, surfaces=surfaces)
     return m, counts, dots_excess(det, m, part, intr)
 
 
