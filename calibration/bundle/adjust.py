@@ -17,6 +17,7 @@ from calibration.bundle.covariance import _result
 from calibration.bundle.datum import _datum_stage
 from calibration.bundle.normal import _Layout, _linearise, _State
 from calibration.bundle.solve import _solve
+from calibration.bundle.stability import interior_stability
 from calibration.bundle.snooping import (
     _statistics,
     critical_values,
@@ -231,10 +232,26 @@ def _bundle_adjust(obs_image, obs_target, obs_uv, intrinsics, cam_from_part, poi
     res.obs_sigma_px, res.variance_components, res.snooping = sig, vc, snoop
     res.test_dof, res.rejected_test = test_dof, np.where(rejected, rejected_T, np.nan)
     res.solver_fallback = solver_fallback
+    res.interior_stability = _stability(state, lin, lay, obs_image[act_obs], obs_target[act_obs], sig[act_obs],
+                                        stats["s02"], options)
     _say_snooping(snoop, config, options, rejected, obs_target)
     if weighted:  # sigma0 in pixels: of an observation of the rms a priori sigma (equal weights: options.sigma_px)
         res.sigma0_px = float(np.sqrt(stats["s02"] * mean_variance(sig[act_obs])))
     return res
+
+
+def _stability(state, lin, lay, img, tgt, sig, s02, options) -> dict:
+    """The test of one interior orientation for all images (:mod:`calibration.bundle.stability`); one that cannot run
+    says why (never silently left out)."""
+    if not options.interior_stability:
+        return {"tested": False, "significant": False, "reason": "not asked (BundleOptions.interior_stability)"}
+    t0 = time.perf_counter()
+    try:
+        out = interior_stability(state, lin, lay, img, tgt, sig, s02)
+    except (np.linalg.LinAlgError, ValueError, FloatingPointError) as exc:
+        out = {"tested": False, "significant": False, "reason": f"the test failed: {exc}"}
+    out["seconds"] = time.perf_counter() - t0
+    return out
 
 
 def _warm_round(state, x0, lay, config, args, sigma, active_pts, options, snoop) -> tuple[object, bool | None]:

@@ -84,6 +84,8 @@ class BundleOptions:
         vce_min_redundancy: a group with less redundancy (sum over its coordinates) takes the pooled
             variance factor of all groups instead of its own.
         vce_tolerance: the estimation stops when every group's sigma changes by less than this (relative).
+        interior_stability: test the final adjustment for a change of the interior orientation during the
+            acquisition (:mod:`calibration.bundle.stability`; ``result.interior_stability``).
     """
 
     sigma_px: float = 0.05
@@ -102,6 +104,7 @@ class BundleOptions:
     vce_iterations: int = 15
     vce_min_redundancy: float = 50.0
     vce_tolerance: float = 0.005
+    interior_stability: bool = True
 
 
 @dataclass(frozen=True)
@@ -186,6 +189,9 @@ class BundleResult:
             because they are determined far worse than the others (:data:`calibration.bundle.covariance.WEAK_DATUM`).
             ``points`` are then in the same datum as the covariance: the similarity onto the approximate coordinates
             is fitted over the other targets only.
+        interior_stability: the test of one interior orientation for all images against a change of the principal
+            distance and point after some image (capture order; :func:`calibration.bundle.stability.interior_stability`):
+            ``tested``, ``statistic``, ``critical``, ``first_changed``, ``change_px``, ``significant`` ...
     """
 
     points: np.ndarray
@@ -213,6 +219,7 @@ class BundleResult:
     variance_factor: float = 1.0  # what ``cov`` and ``covariance`` were scaled by (a posteriori s0^2, or 1)
     test_dof: np.ndarray | None = None  # (q,) each statistic's degrees of freedom (1: rank-one block; 0: untestable)
     rejected_test: np.ndarray | None = None  # (q,) the statistic a rejected observation was rejected with
+    interior_stability: dict | None = None  # the lens's stability over the acquisition (calibration.bundle.stability)
 
     def error_ellipsoids(self, k: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
         """Semi-axes ``(n, 3)`` (metres, ascending, times ``k``) and axis directions ``(n, 3, 3)`` (columns)."""

@@ -310,6 +310,8 @@ def _alerts(doc: dict) -> str:
     ln = doc.get("lens") or {}
     if ln.get("note"):  # decision 0054: the images refute the radial lens model
         out.append(f'<div class="alert" id="lens-alert">Lens: {html.escape(ln["note"])}</div>')
+    if ln.get("stability_note"):  # decision 0066: the lens changed during the acquisition
+        out.append(f'<div class="alert" id="lens-stability">Lens: {html.escape(ln["stability_note"])}</div>')
     if ln.get("focal_note"):
         out.append(f'<div class="warn" id="lens-focal">Lens: {html.escape(ln["focal_note"])}</div>')
     if ln.get("held_note"):

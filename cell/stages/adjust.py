@@ -25,7 +25,7 @@ from cell.stages.scalebars import (bar_name, bars_doc, protected_entries, say_ba
 from cell.stages.model_shape import geometry_classes, model_mismatch, range_check, reweighted, shape_check
 from cell.stages.outline import outline_doc, outline_doubtful, outline_reason, say_doubtful
 from cell.stages.lens import (LENS_BLUR_READJUST, LENS_CENTRE_READJUST, camera_model, choose_start, lens_blur,
-                              lens_centres, radial_check)
+                              lens_centres, radial_check, say_stability, stability_doc)
 from cell.stages.screen import Resection, Screening, reinstated, resect, screen_network
 from cell.thermal import resolve_probe
 
@@ -446,6 +446,9 @@ def run_bundle(ctx) -> dict:
         ctx.say(f"  {held_lens_line(held_lens)}" if held_lens["carried"] else f"  WARNING {held_lens_line(held_lens)}")
     lens |= {"radial_check": radial_check(res, img, tgt, uv, BundleOptions(sigma_px=job.spec.camera.sigma_px),
                                           bundle_config(job, use))}
+    lens["interior_stability"] = stability_doc(res.interior_stability, obs["images"], kept_images,
+                                               job.intrinsics.pixel_size_m)  # the lens moved during the job? (0066)
+    say_stability(ctx, lens["interior_stability"])
     rc = lens["radial_check"] or {}
     if rc.get("note") or rc.get("tested") is False:  # a check that could not run is said, not taken for a clean lens
         said = rc.get("note") or f"the radial lens model could not be checked: {rc.get('reason')}"

@@ -136,7 +136,8 @@ def radial_check(res, img, tgt, uv, options, config) -> dict | None:
     sig = None if res.obs_sigma_px is None else np.asarray(res.obs_sigma_px)[keep]
     try:
         brown = bundle_adjust(img[keep], tgt[keep], uv[keep], res.intrinsics, res.cam_from_part, res.points,
-                              replace(options, snooping=False), replace(config, camera_model="OPENCV_K3"),
+                              replace(options, snooping=False, interior_stability=False),
+                              replace(config, camera_model="OPENCV_K3"),
                               obs_sigma_px=sig)
     except CalibrationError as e:  # the check could not run: said, not taken for a clean lens
         return {"model": "radial", "tested": False, "reason": f"the brown adjustment failed: {e}"}
@@ -173,6 +174,49 @@ def radial_check(res, img, tgt, uv, options, config) -> dict | None:
     return doc
 
 
+def stability_doc(st: dict | None, images: list[dict], kept_images, pixel_size_m: float | None) -> dict:
+    """bundle.json's ``lens.interior_stability``: the bundle's test of one lens for all images against a change of the
+    principal distance and point during the acquisition (:func:`calibration.bundle.stability.interior_stability`),
+    with the change point named by its images and stations (``images``: observations.json's, ``kept_images``: the
+    adjustment's images among them, in capture order), the principal distance's change in um, and ``note`` (what
+    ADJUST warns and report.json ``lens.stability_note`` carries) when it is significant; a test that did not run says
+    why (``tested`` False, ``reason``)."""
+    if st is None:
+        return {"tested": False, "significant": False, "reason": "the adjustment did not run the test"}
+    doc = dict(st)
+    if not st.get("tested"):
+        return doc
+    k = int(st["first_changed"])
+    before, after = (images[int(kept_images[k - 1])], images[int(kept_images[k])])
+    doc["between"] = [{"image": x["image"], "station": x["station"]} for x in (before, after)]
+    doc["statistics"] = {images[int(kept_images[int(j)])]["image"]: t for j, t in st["statistics"].items()}
+    d, s = st["change_px"], st["change_sigma_px"]
+    um = 1e6 * pixel_size_m if pixel_size_m else None
+    doc["principal_distance_change_um"] = d[0] * um if um else None
+    doc["principal_distance_change_sigma_um"] = s[0] * um if um else None
+    if st["significant"]:
+        pd = (f"{d[0] * um:+.2f} um (+- {s[0] * um:.2f})" if um else f"{d[0]:+.3f} px (+- {s[0]:.3f})")
+        doc["note"] = (f"the lens changed during the acquisition between images {before['image']} (station "
+                       f"{before['station']}) and {after['image']} (station {after['station']}): principal distance "
+                       f"{pd}, principal point ({d[1]:+.2f}, {d[2]:+.2f}) px (+- {s[1]:.2f}, {s[2]:.2f}); chi-square "
+                       f"{st['statistic']:.1f} > {st['critical']:.1f}: its focus or zoom ring moved, or the camera's "
+                       "mount; the coordinates rest on one lens for all images and their uncertainty does not carry the "
+                       "change; lock the lens's rings and run the job again")
+    return doc
+
+
+def say_stability(ctx, st: dict) -> None:
+    """ADJUST's console and run log: a lens that changed during the acquisition (a warning), a test that could not
+    run (said, not taken for a stable lens)."""
+    if st.get("note"):
+        ctx.log.log("warning", st["note"])
+        ctx.say(f"  WARNING {st['note']}")
+    elif not st.get("tested"):
+        msg = f"the lens's stability over the acquisition was not tested: {st.get('reason')}"
+        ctx.log.log("info", msg)
+        ctx.say(f"  {msg}")
+
+
 #: a principal distance this far from the nominal focal length is said (focusing an 8 mm lens at 300-700 mm moves
 #: it by 1.2-2.7 %; a lens of another focal length is 25 % or more off: calibration.plausibility refuses it)
 FOCAL_NOTE = 0.05
@@ -204,6 +248,10 @@ def lens_doc(job, bundle: dict) -> dict:
            "distortion_at_corner_px": float(np.max(np.linalg.norm(shift, axis=1))),
            "radial_check": b.get("radial_check"), "note": None, "focal_note": None}
     doc["note"] = (b.get("radial_check") or {}).get("note")  # the statement is not this lens's
+    # one lens for all images, tested against a change during the acquisition (decision 0066)
+    doc["interior_stability"] = {k: v for k, v in (b.get("interior_stability") or {}).items() if k != "statistics"} \
+        or None
+    doc["stability_note"] = (b.get("interior_stability") or {}).get("note")
     cells = bool((getattr(job, "cell", None) or {}).get("lens"))  # the job started from the cell's lens (decision 0056)
     held = b.get("held_uncertainty") or {}
     # the held lens's covariance carried (decision 0056); each target's share stays in bundle.json
