@@ -12,12 +12,15 @@ def _human_check(doc: dict, out) -> None:
     m = p["mesh"]
     size = " x ".join(f"{v * 1000:.1f}" for v in p["size_m"])
     out.say(f"job    {doc['job']['name']}  ({doc['job']['file']}, units {doc['job']['units']}, seed {doc['job']['seed']})")
-    out.say(f"part   {p['name']}: {size} mm, {m['faces']} faces, watertight={m['watertight']}, "
+    bodies = f", {m['bodies']} bod{'y' if m['bodies'] == 1 else 'ies'}" if "bodies" in m else ""
+    out.say(f"part   {p['name']}: {size} mm, {m['faces']} faces{bodies}, watertight={m['watertight']}, "
             f"winding consistent={m['winding_consistent']}, degenerate faces={m['degenerate_faces']}")
-    if not m["watertight"]:
-        out.say(f"part   WARNING the mesh is open: {m['boundary_edges']} edges with one face, in {m['boundary_loops']} "
-                "border(s). A sheet has its borders; a solid must have none, else rays pass through its openings and "
-                "the plan counts targets as seen through the part: repair the mesh or export it closed")
+    from planning.part import mesh_warnings
+
+    for w in mesh_warnings(m):  # open, faces twice, non-manifold, bodies on each other, faces flipped (decision 0068)
+        out.say(f"part   WARNING {w}")
+    if p.get("normals_warning"):
+        out.say(f"targets WARNING {p['normals_warning']}")
     if (p.get("symmetry") or {}).get("warning"):  # decision 0058: a placement one step off names dots wrongly
         out.say(f"targets WARNING {p['symmetry']['warning']}")
     kinds = ", ".join(f"{v} {k}" for k, v in p["targets_by_kind"].items())
@@ -88,6 +91,17 @@ def check(args, out) -> int:
             what += (f"; {len(none)} of them ({', '.join(none[:3])}{', ...' if len(none) > 3 else ''}) are covered by "
                      "the part's own surface along their normal: check that they lie on the surface with outward "
                      f"normals and that the units are right (the part is {size:.1f} mm across in {doc['job']['units']})")
+            m = doc["part"]["mesh"]
+            if m.get("duplicate_faces"):  # a second body on the first covers its targets (decision 0068)
+                what += f"; the mesh gives {m['duplicate_faces']} faces twice (the part exported twice?)"
+            elif m.get("bodies", 1) > 1:
+                pair = m.get("overlapping_bodies") or []
+                what += (f"; the mesh holds {m['bodies']} bodies" + (f", {pair[0][0]} and {pair[0][1]} overlapping (the "
+                         "part given twice?)" if pair else "") + ": a second body may be what covers them")
+        else:
+            from planning.part import units_hint
+
+            what += units_hint(max(doc["part"]["size_m"]), doc["job"]["units"])
         if job.spec.planning.unmeasurable != "report":
             act = ("correct the targets file or the units" if len(none) == len(bad) else
                    "lower [planning] min_rays, raise [planning] incidence_max_deg, widen [planning] elevation_min_deg / "

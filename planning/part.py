@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import csv
 import math
-import struct
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -18,10 +17,12 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from calibration.errors import PartError
-from planning.cad import IGES_SUFFIXES, STEP_SUFFIXES, load_brep
+from planning.cad import (IGES_SUFFIXES, STEP_SUFFIXES, check_mesh_file, load_brep, mesh_bodies, mesh_warnings,
+                          orientation_line)
 from planning.target_sampling import spaced_with_clearance
 
-__all__ = ["UNITS_TO_M", "Targets", "Part", "load_mesh", "load_targets", "sample_targets", "load_part", "make_bracket", "mesh_health"]
+__all__ = ["UNITS_TO_M", "Targets", "Part", "load_mesh", "load_targets", "sample_targets", "load_part", "make_bracket", "mesh_health",
+           "mesh_warnings"]
 
 UNITS_TO_M = {"m": 1.0, "mm": 1e-3, "cm": 1e-2, "um": 1e-6, "in": 0.0254, "ft": 0.3048}
 
@@ -92,6 +93,7 @@ class Part:
     coded_size_m: float = 0.02
     source: str = ""
     _sphere: tuple | None = field(default=None, repr=False)
+    normals_warning: str | None = None  # the targets' normals somewhat off the surface's (decision 0068)
 
     @property
     def centre(self) -> np.ndarray:
@@ -117,6 +119,7 @@ class Part:
             "mesh": mesh_health(self.mesh),
             "target_diameter_m": self.target_diameter_m,
             "coded_size_m": self.coded_size_m,
+            "normals_warning": self.normals_warning,
         }
 
 
@@ -130,155 +133,35 @@ def mesh_health(mesh: trimesh.Trimesh) -> dict:
         "area_m2": float(mesh.area),
         "volume_m3": float(mesh.volume) if mesh.is_watertight else None,
         "degenerate_faces": int((mesh.area_faces <= 1e-18).sum()),
-    } | _openings(mesh)
+    } | _openings(mesh) | mesh_bodies(mesh)
 
 
 def _openings(mesh: trimesh.Trimesh) -> dict:
-    """Edges with one face (an open mesh's border) and the loops they make. A sheet has one loop per border;
-    a solid with faces missing has openings the ray tracing sees through."""
+    """Edges with one face (an open mesh's border) and the loops they make, and edges of more than two faces
+    (non-manifold: a body given twice, or touching another along an edge). A sheet has one loop per border; a solid
+    with faces missing has openings the ray tracing sees through."""
     if mesh.is_watertight:
-        return {"boundary_edges": 0, "boundary_loops": 0}
+        return {"boundary_edges": 0, "boundary_loops": 0, "nonmanifold_edges": 0}
     edges = mesh.edges_sorted[trimesh.grouping.group_rows(mesh.edges_sorted, require_count=1)]
     loops = trimesh.graph.connected_components(edges, min_len=1) if len(edges) else []
-    return {"boundary_edges": int(len(edges)), "boundary_loops": int(len(loops))}
+    shared = np.bincount(trimesh.grouping.unique_rows(mesh.edges_sorted)[1])
+    return {"boundary_edges": int(len(edges)), "boundary_loops": int(len(loops)),
+            "nonmanifold_edges": int((shared > 2).sum())}
+
+
+#: a part smaller or larger than these (metres) makes a refusal ask whether the job's units are right
+PLAUSIBLE_SIZE_M = (0.02, 2.0)
+
+
+def units_hint(size_m: float, units: str | None) -> str:
+    """``"; the part is 11.8 mm across in mm: are the units right ([job] units)?"`` when ``size_m`` (the part's
+    largest extent) is implausible for a part in the cell, else empty (decision 0068)."""
+    if units not in UNITS_TO_M or PLAUSIBLE_SIZE_M[0] <= size_m <= PLAUSIBLE_SIZE_M[1]:
+        return ""
+    return f"; the part is {size_m / UNITS_TO_M[units]:.4g} {units} across in {units}: are the units right ([job] units)?"
 
 
 # --- mesh -------------------------------------------------------------------
-
-
-def _check_stl_header(path: Path, data: bytes) -> None:
-    """Binary STL: the face count in the header must match the file's length."""
-    if data[:5].lower() == b"solid" and b"facet" in data[:1000]:
-        return  # ASCII STL
-    if len(data) < 84:
-        raise PartError(f"{path}: STL file is truncated ({len(data)} bytes, a binary STL needs at least 84)")
-    (n,) = struct.unpack("<I", data[80:84])
-    expected = 84 + 50 * n
-    if n == 0:
-        raise PartError(f"{path}: binary STL header says it has 0 faces")
-    if len(data) != expected:
-        raise PartError(
-            f"{path}: binary STL header says {n} faces ({expected} bytes) but the file has {len(data)} bytes: "
-            "truncated or corrupt"
-        )
-
-
-def _check_text(path: Path, data: bytes, suffix: str) -> None:
-    """A text mesh format must be text: bytes that are not UTF-8 (random data, a binary file renamed) are
-    refused here, naming the line, instead of surfacing as a decoder's error from inside trimesh."""
-    if suffix == ".ply":
-        end = data.find(b"end_header")
-        if end < 0:
-            raise PartError(f"{path}: PLY file without 'end_header': truncated or not a PLY file")
-        if b"format ascii" not in data[:end]:
-            return  # binary PLY: only its header is text
-        data = data[:end]
-    try:
-        data.decode("utf-8")
-    except UnicodeDecodeError as exc:
-        line = data.count(b"\n", 0, exc.start) + 1
-        raise PartError(f"{path}:{line}: not a text {suffix[1:].upper()} file (binary data at byte {exc.start}); "
-                        "is it the right file?") from None
-    if b"\0" in data:
-        line = data.count(b"\n", 0, data.index(b"\0")) + 1
-        raise PartError(f"{path}:{line}: not a text {suffix[1:].upper()} file (a NUL byte); is it the right file?")
-
-
-def _check_declared_counts(path: Path, data: bytes, suffix: str) -> None:
-    """ASCII PLY and OFF: the file must hold as many vertices and faces as its header declares (trimesh reads a
-    truncated one as the part's first few faces). Records are counted as written, before any polygon is
-    triangulated (a quad is one face here, two triangles in the mesh)."""
-    if suffix == ".ply":
-        end = data.find(b"end_header")
-        if end < 0 or b"format ascii" not in data[:end]:
-            return
-        elements: list[tuple[str, int, list[bool]]] = []  # name, count, per property: is it a list
-        for line in data[:end].decode("utf-8", "replace").splitlines():
-            tok = line.split()
-            if len(tok) >= 3 and tok[0] == "element":
-                try:
-                    elements.append((tok[1], int(tok[2]), []))
-                except ValueError:
-                    raise PartError(f"{path}: PLY header line {line.strip()!r}: the count is not an integer") from None
-            elif len(tok) >= 2 and tok[0] == "property" and elements:
-                elements[-1][2].append(tok[1] == "list")
-        body = data[data.find(b"\n", end) + 1:].split()
-        pos = 0
-        for name, count, props in elements:
-            for i in range(count):
-                for is_list in props:
-                    if is_list:
-                        try:
-                            pos += 1 + int(float(body[pos]))
-                        except (IndexError, ValueError):
-                            pos = len(body) + 1
-                    else:
-                        pos += 1
-                if pos > len(body):
-                    _fewer(path, name, count, i)
-        return
-    lines = [ln.split("#")[0].split() for ln in data.decode("utf-8", "replace").splitlines()]
-    lines = [t for t in lines if t]
-    if not lines or not lines[0][0].upper().endswith("OFF") or "BINARY" in (t.upper() for t in lines[0]):
-        return
-    head = lines[0][1:] or (lines[1] if len(lines) > 1 else [])
-    rest = lines[1:] if lines[0][1:] else lines[2:]
-    try:
-        n_v, n_f = int(head[0]), int(head[1])
-    except (IndexError, ValueError):
-        raise PartError(f"{path}: OFF header without its vertex and face counts") from None
-    if len(rest) < n_v:
-        _fewer(path, "vertex", n_v, len(rest))
-    faces = rest[n_v:n_v + n_f]
-    held = len(faces)
-    if faces:
-        try:
-            held -= len(faces[-1]) < 1 + int(faces[-1][0])  # the last line cut short
-        except ValueError:
-            held -= 1
-    if held < n_f:
-        _fewer(path, "face", n_f, held)
-
-
-def _fewer(path: Path, element: str, declared: int, held: int) -> None:
-    plural = {"vertex": "vertices", "face": "faces"}.get(element, f"{element} records")
-    raise PartError(f"{path}: the file holds fewer {plural} than its header declares ({held} of {declared}): "
-                    "truncated or corrupt")
-
-
-def _check_obj_indices(path: Path, text: str) -> None:
-    """OBJ: face indices are 1-based (or negative); 0 or out of range is an error."""
-    n_v = 0
-    for lineno, line in enumerate(text.splitlines(), 1):
-        if line.startswith("v "):
-            n_v += 1
-        elif line.startswith("f "):
-            for tok in line.split()[1:]:
-                head = tok.split("/")[0]
-                try:
-                    idx = int(head)
-                except ValueError:
-                    raise PartError(f"{path}:{lineno}: face index {head!r} is not an integer") from None
-                if idx == 0:
-                    raise PartError(f"{path}:{lineno}: face index 0 (OBJ indices start at 1)")
-                if idx > n_v or idx < -n_v:
-                    raise PartError(f"{path}:{lineno}: face index {idx} out of range (only {n_v} vertices so far)")
-
-
-def _check_raw_vertices(path: Path, data: bytes, suffix: str) -> None:
-    """Find non-finite vertex coordinates that trimesh would drop silently."""
-    if suffix == ".stl" and not (data[:5].lower() == b"solid" and b"facet" in data[:1000]):
-        n = struct.unpack("<I", data[80:84])[0]
-        rec = np.frombuffer(data[84 : 84 + 50 * n], dtype=np.dtype([("n", "<f4", 3), ("v", "<f4", 9), ("a", "<u2")]))
-        bad = ~np.isfinite(rec["v"]).all(axis=1)
-        if bad.any():
-            raise PartError(f"{path}: face {int(np.flatnonzero(bad)[0])} has a non-finite (NaN/inf) vertex coordinate")
-    elif suffix in (".obj", ".stl", ".ply"):
-        text = data.decode("latin-1")
-        for lineno, line in enumerate(text.splitlines(), 1):
-            s = line.strip().lower()
-            if s.startswith(("v ", "vertex ")) and ("nan" in s or "inf" in s):
-                raise PartError(f"{path}:{lineno}: non-finite (NaN/inf) vertex coordinate")
 
 
 def load_mesh(path: str | Path, units: str, tessellation_tolerance: float | None = None) -> trimesh.Trimesh:
@@ -296,7 +179,7 @@ def load_mesh(path: str | Path, units: str, tessellation_tolerance: float | None
     if units not in UNITS_TO_M:
         raise PartError(f"{path}: unknown units {units!r} (use one of {', '.join(UNITS_TO_M)})")
     if not path.is_file():
-        raise PartError(f"{path}: mesh file not found")
+        raise PartError(f"{path}: mesh file not found" + _backslash(path))
     suffix = path.suffix.lower()
     if suffix not in (".stl", ".obj", ".ply", ".glb", ".gltf", ".off") + STEP_SUFFIXES + IGES_SUFFIXES:
         raise PartError(f"{path}: unsupported CAD format {suffix!r} (use STEP, IGES, STL, OBJ, PLY or GLB)")
@@ -317,15 +200,7 @@ def _load_mesh(path: Path, units: str, suffix: str, tessellation_tolerance: floa
     if suffix in STEP_SUFFIXES + IGES_SUFFIXES:
         tol = None if tessellation_tolerance is None else tessellation_tolerance * UNITS_TO_M[units]
         return _checked(path, load_brep(path, tol), 1.0, "the file's own")
-    if suffix == ".stl":
-        _check_stl_header(path, data)
-    if suffix in (".obj", ".off") or suffix in (".stl", ".ply") and data[:5].lower() in (b"solid", b"ply\nf", b"ply\rf"):
-        _check_text(path, data, suffix)
-    if suffix == ".obj":
-        _check_obj_indices(path, data.decode("latin-1"))
-    if suffix in (".ply", ".off"):
-        _check_declared_counts(path, data, suffix)
-    _check_raw_vertices(path, data, suffix)
+    check_mesh_file(path, data, suffix)
     try:
         loaded = trimesh.load(str(path), force="mesh", process=False)
     except MemoryError:
@@ -387,6 +262,30 @@ def _columns(path: Path, header: list[str]) -> dict[str, int]:
     return col
 
 
+def _backslash(path: Path) -> str:
+    """A Windows path (``parts\\bracket.stl``, ``C:\\...``) in a job file: say to write it with "/"."""
+    return ("; write paths with \"/\" (a backslash is no separator here), relative to the job file" if "\\" in str(path)
+            else "")
+
+
+def _header_advice(header: list[str]) -> str:
+    """Why a targets file's header lacks the columns: another separator, or names not in lower case."""
+    for sep, name in ((";", "semicolons"), ("\t", "tabs")):
+        if len(header) == 1 and sep in header[0]:
+            return f": the separator must be a comma (this file uses {name}; save it as CSV, comma-separated)"
+    if all(c in [h.lower() for h in header] for c in _REQUIRED):
+        return ": the column names are lower case (id,x,y,z,nx,ny,nz,kind,tolerance,code)"
+    return ""
+
+
+def _number(path: Path, lineno: int, column: str, text: str) -> float:
+    try:
+        return float(text)
+    except ValueError:
+        what = "is empty" if not text.strip() else f"holds {text.strip()!r}, not a number"
+        raise PartError(f"{path}:{lineno}: column {column!r} {what}") from None
+
+
 def load_targets(path: str | Path, units: str, max_targets: int = MAX_TARGETS) -> Targets:
     """Read ``id,x,y,z,nx,ny,nz[,kind][,tolerance][,code]`` (lengths in ``units``).
 
@@ -396,28 +295,37 @@ def load_targets(path: str | Path, units: str, max_targets: int = MAX_TARGETS) -
     """
     path = Path(path)
     if not path.is_file():
-        raise PartError(f"{path}: targets file not found")
+        raise PartError(f"{path}: targets file not found" + _backslash(path))
     scale = UNITS_TO_M[units]
     ids: list[str] = []
     num: list[tuple[float, ...]] = []
     kind: list[str] = []
     code: list[int] = []
     isfinite = math.isfinite
+    with path.open("rb") as f:
+        if f.read(2) in (b"\xff\xfe", b"\xfe\xff"):
+            raise PartError(f"{path}: the targets file is UTF-16 text: save it as CSV UTF-8 (comma-separated)")
     try:
         with path.open(newline="", encoding="utf-8-sig") as f:
             reader = csv.reader(f)
             header = [c.strip() for c in next(reader, [])]
+            first = 2
+            if ",".join(header).lower().startswith("sep="):  # Excel's separator line
+                if ",".join(header).lower() != "sep=,":
+                    raise PartError(f"{path}:1: {','.join(header)!r}: the separator must be a comma")
+                header, first = [c.strip() for c in next(reader, [])], 3
             missing = [c for c in _REQUIRED if c not in header]
             if missing:
-                raise PartError(f"{path}: targets CSV lacks column(s) {', '.join(missing)} (needs id,x,y,z,nx,ny,nz)")
+                raise PartError(f"{path}:{first - 1}: targets CSV lacks column(s) {', '.join(missing)} (needs "
+                                f"id,x,y,z,nx,ny,nz); its header is {','.join(header)!r}" + _header_advice(header))
             col = _columns(path, header)
             i_id = col["id"]
             i_num = [col[c] for c in ("x", "y", "z", "nx", "ny", "nz")]
             i_kind, i_tol, i_code = col.get("kind"), col.get("tolerance"), col.get("code")
             width = len(header)
-            for lineno, row in enumerate(reader, 2):
-                if not row or len(row) == 1 and not row[0].strip():
-                    continue  # a blank line
+            for lineno, row in enumerate(reader, first):
+                if not any(v.strip() for v in row):
+                    continue  # a blank line, or one of empty cells only (a spreadsheet's ",,,,")
                 if len(ids) >= max_targets:
                     raise PartError(f"{path}:{lineno}: more than {max_targets} targets (the most a job can hold)")
                 if len(row) > width and any(v.strip() for v in row[width:]):
@@ -425,14 +333,14 @@ def load_targets(path: str | Path, units: str, max_targets: int = MAX_TARGETS) -
                                     "(a comma inside a value, or a column without a name?)")
                 if len(row) < width:
                     row = row + [""] * (width - len(row))
-                try:
-                    values = tuple(float(row[i]) for i in i_num)
-                    t_raw = row[i_tol].strip() if i_tol is not None else ""
-                    t = float(t_raw) * scale if t_raw else math.nan
-                    c_raw = row[i_code].strip() if i_code is not None else ""
-                    c = int(c_raw) if c_raw else -1
-                except ValueError as exc:
-                    raise PartError(f"{path}:{lineno}: {exc}") from None
+                values = tuple(_number(path, lineno, header[i], row[i]) for i in i_num)
+                t_raw = row[i_tol].strip() if i_tol is not None else ""
+                t = _number(path, lineno, "tolerance", t_raw) * scale if t_raw else math.nan
+                c_raw = row[i_code].strip() if i_code is not None else ""
+                c = _number(path, lineno, "code", c_raw) if c_raw else -1
+                if c != int(c):
+                    raise PartError(f"{path}:{lineno}: column 'code': {c_raw!r} is not a whole number (an ArUco id)")
+                c = int(c)
                 if not all(isfinite(v) for v in values):
                     raise PartError(f"{path}:{lineno}: non-finite coordinate or normal")
                 if t_raw and not (isfinite(t) and t > 0):
@@ -456,7 +364,10 @@ def load_targets(path: str | Path, units: str, max_targets: int = MAX_TARGETS) -
                 num.append(values + (t,))
                 kind.append(k)
                 code.append(c)
-    except (csv.Error, UnicodeDecodeError) as exc:
+    except UnicodeDecodeError as exc:
+        raise PartError(f"{path}: not UTF-8 text (byte 0x{exc.object[exc.start]:02x}: cp1252 / Latin-1?): save it as "
+                        "CSV UTF-8") from None
+    except csv.Error as exc:
         raise PartError(f"{path}: not a readable targets CSV ({exc})") from None
     if not ids:
         raise PartError(f"{path}: no targets")
@@ -516,9 +427,9 @@ def load_deviations(path: Path, ids: list[str], scale: float) -> np.ndarray:
 
 
 def check_targets(mesh: trimesh.Trimesh, targets: Targets, source: str = "targets", *,
-                  target_diameter_m: float = 0.0, coded_size_m: float = 0.0) -> None:
-    """Duplicate ids, targets off the surface, normals pointing into the part, dots under a coded
-    marker or overlapping each other -> ``PartError``."""
+                  target_diameter_m: float = 0.0, coded_size_m: float = 0.0, units: str | None = None) -> str | None:
+    """Duplicate ids, targets off the surface, normals far from the surface's (:func:`_check_normals`), dots under
+    a coded marker or overlapping each other -> ``PartError``; returns a warning for normals somewhat off, or None."""
     seen: dict[str, int] = {}
     for i, t in enumerate(targets.ids):
         if t in seen:
@@ -543,7 +454,8 @@ def check_targets(mesh: trimesh.Trimesh, targets: Targets, source: str = "target
         if len(close):
             a, b = int(close[0]), int(nn[close[0], 1])
             raise PartError(f"{source}: targets {targets.ids[a]!r} and {targets.ids[b]!r} overlap "
-                            f"({np.linalg.norm(targets.xyz[a] - targets.xyz[b]) * 1e3:.2f} mm apart)")
+                            f"({np.linalg.norm(targets.xyz[a] - targets.xyz[b]) * 1e3:.2f} mm apart)"
+                            + units_hint(float(np.max(mesh.extents)), units))
     coded = np.flatnonzero(targets.kind == "coded")
     if coded_size_m > 0 and len(coded):
         reach = coded_size_m * (0.5 + 1 / 6) * np.sqrt(2) + target_diameter_m / 2  # marker + quiet zone corner
@@ -557,12 +469,68 @@ def check_targets(mesh: trimesh.Trimesh, targets: Targets, source: str = "target
             j = int(bad[0])
             raise PartError(f"{source}: target {targets.ids[j]!r} lies under the coded marker "
                             f"{targets.ids[int(coded[j_near[j, np.argmin(d[j])]])]!r} (closer than {reach * 1e3:.1f} mm)")
-    face_n = mesh.face_normals[tri]
-    inward = np.flatnonzero(np.einsum("ij,ij->i", face_n, targets.normals) < -0.5)
-    if len(inward):
-        raise PartError(
-            f"{source}: {len(inward)} target normal(s) point into the part, e.g. {targets.ids[int(inward[0])]!r}"
-        )
+    return _check_normals(mesh, targets, source, tri, dist, target_diameter_m)
+
+
+#: a targets file's normal this far from the surface's (degrees) is said, and beyond the second refused (decision 0068)
+NORMAL_WARN_DEG, NORMAL_REFUSE_DEG = 20.0, 60.0
+
+
+def _normal_angles(mesh: trimesh.Trimesh, targets: Targets, tri: np.ndarray, dist: np.ndarray,
+                   near_m: float) -> np.ndarray:
+    """(n,) degrees between each target's normal and the surface's: the face under it, or, beyond
+    :data:`NORMAL_WARN_DEG`, the closest of the faces around that face's corners within ``near_m`` of the target's
+    nearest (a target at a sharp edge lies on either face)."""
+    ang = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", mesh.face_normals[tri], targets.normals), -1, 1)))
+    for chunk in np.array_split(np.flatnonzero(ang > NORMAL_WARN_DEG), max(1, int(np.sum(ang > NORMAL_WARN_DEG)) // 2000)):
+        if not len(chunk):
+            continue
+        cand = mesh.vertex_faces[mesh.faces[tri[chunk]]].reshape(len(chunk), -1)  # -1 pads
+        ok = cand >= 0
+        rows = np.repeat(np.arange(len(chunk)), ok.sum(axis=1))
+        pts = trimesh.triangles.closest_point(mesh.triangles[cand[ok]], targets.xyz[chunk][rows])
+        d = np.linalg.norm(pts - targets.xyz[chunk][rows], axis=1)
+        a = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", mesh.face_normals[cand[ok]], targets.normals[chunk][rows]),
+                                         -1, 1)))
+        a[d > dist[chunk][rows] + near_m] = np.inf
+        best = np.full(len(chunk), np.inf)
+        np.minimum.at(best, rows, a)
+        ang[chunk] = np.minimum(ang[chunk], best)
+    return ang
+
+
+def _check_normals(mesh: trimesh.Trimesh, targets: Targets, source: str, tri: np.ndarray, dist: np.ndarray,
+                   target_diameter_m: float) -> str | None:
+    """Each target's normal against the surface's (:func:`_normal_angles`): beyond :data:`NORMAL_REFUSE_DEG` a
+    ``PartError`` (the mesh's orientation first when its faces are not consistently oriented, or when every target
+    faces against an open mesh that cannot tell its inside), beyond :data:`NORMAL_WARN_DEG` the warning returned.
+    The thickness correction moves each target along its normal and the planner's incidences use it."""
+    ang = _normal_angles(mesh, targets, tri, dist, max(1e-5, 0.25 * target_diameter_m))
+    far = np.flatnonzero(ang > NORMAL_REFUSE_DEG)
+    order = np.argsort(-ang, kind="stable")
+
+    def named(idx):
+        idx = [i for i in order if i in set(idx)]
+        return ", ".join(targets.ids[i] for i in idx[:5]) + (f" and {len(idx) - 5} more" if len(idx) > 5 else "")
+
+    if len(far):
+        against = f"{len(far)} target normal(s) face away from the surface ({named(far)}: up to {ang.max():.0f} deg)"
+        if not mesh.is_winding_consistent:
+            raise PartError(f"{source}: {orientation_line(mesh_bodies(mesh)['flipped_faces'])}; {against} because "
+                            "of it")
+        if (ang > 150).all() and not mesh.is_watertight:
+            raise PartError(f"{source}: every target's normal is opposite to the mesh's faces: the mesh is open, so "
+                            "whether it is inside out cannot be told; re-export it with outward normals, or, if it is "
+                            "right, check the targets file's nx, ny, nz columns (pointing into the part?)")
+        raise PartError(f"{source}: the targets file's normals of {named(far)} are {ang.max():.0f} deg from the "
+                        f"surface's ({len(far)} beyond {NORMAL_REFUSE_DEG:.0f} deg): check the nx, ny, nz columns "
+                        "(swapped? another frame? pointing into the part?)")
+    warn = np.flatnonzero(ang > NORMAL_WARN_DEG)
+    if len(warn):
+        return (f"the targets file's normals of {named(warn)} are up to {ang.max():.0f} deg from the surface's "
+                f"({len(warn)} beyond {NORMAL_WARN_DEG:.0f} deg): the targets' thickness and the plan's incidence "
+                "angles follow them; check the nx, ny, nz columns")
+    return None
 
 
 def sample_targets(
@@ -646,7 +614,7 @@ def load_part(
 ) -> Part:
     """Load and check a part: mesh plus targets (from a CSV, or ``n_targets`` sampled with ``seed``)."""
     mesh = load_mesh(mesh_path, units, tessellation_tolerance)
-    if mesh.is_watertight and mesh.volume < 0:  # every face turned inward (the targets' normals were blamed)
+    if mesh.is_watertight and mesh.is_winding_consistent and mesh.volume < 0:  # every face turned inward (the targets' normals were blamed)
         raise PartError(f"{mesh_path}: the mesh is inside out (a closed surface whose faces point inward: volume "
                         f"{mesh.volume:.3g} m^3); export it with outward normals, or fix it (e.g. trimesh's "
                         "fix_normals)")
@@ -666,7 +634,8 @@ def load_part(
     if len(targets) < MIN_TARGETS:
         raise PartError(f"{source}: {len(targets)} target(s); a job needs at least {MIN_TARGETS} (an image is "
                         f"oriented from {MIN_TARGETS} or more)")
-    check_targets(mesh, targets, source, target_diameter_m=target_diameter_m, coded_size_m=coded_size_m)
+    normals_note = check_targets(mesh, targets, source, target_diameter_m=target_diameter_m, coded_size_m=coded_size_m,
+                                 units=units)
     return Part(
         name=name or Path(mesh_path).stem,
         mesh=mesh,
@@ -674,6 +643,7 @@ def load_part(
         target_diameter_m=target_diameter_m,
         coded_size_m=coded_size_m,
         source=str(mesh_path),
+        normals_warning=normals_note,
     )
 
 
