@@ -29,7 +29,10 @@ def _human_check(doc: dict, out) -> None:
     out.say(f"targets {p['targets']} ({kinds}), dot {p['target_diameter_m'] * 1000:.1f} mm{thick}, "
             f"code {p['coded_size_m'] * 1000:.1f} mm")
     c = doc["camera"]
-    out.say(f"camera {c['width']} x {c['height']} px, f = {c['fx_px']:.1f} px, sigma {c['sigma_px']} px")
+    weights = c.get("observation_weights")
+    said = (f"image sigma from the detector model; {c['sigma_px']} px for the network search ([camera] sigma_px)"
+            if weights == "model" else f"image sigma {c['sigma_px']} px ({weights} weights)")
+    out.say(f"camera {c['width']} x {c['height']} px, f = {c['fx_px']:.1f} px, {said}")
     out.say(f"cell   {doc['cell']['robot']} ({doc['cell']['backend']}), {doc['cell']['obstacles']} obstacle(s)")
     if doc["cell"].get("taken_from_cell_file"):  # the cell's hand-eye and lens (decision 0056)
         from cell.cellcal.jobcell import taken_line

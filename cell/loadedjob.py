@@ -76,7 +76,8 @@ class LoadedJob:
             # decision 0058: a layout that maps onto itself names every dot as its neighbour when the part is placed
             # one step off, and no image can tell
             "part": self.part.summary() | {"symmetry": symmetry_summary(t.xyz, t.normals, t.code)},
-            "camera": self.intrinsics.to_dict() | {"sigma_px": s.camera.sigma_px},
+            "camera": self.intrinsics.to_dict() | {"sigma_px": s.camera.sigma_px,
+                                                   "observation_weights": s.camera.observation_weights},
             "cell": {"robot": s.cell.robot, "backend": s.cell.backend, "obstacles": len(s.cell.obstacles),
                      "taken_from_cell_file": self.cell},
             "scale_bars": [{"a": self.part.targets.ids[a], "b": self.part.targets.ids[b], "length_m": L}
