@@ -160,7 +160,7 @@ def open_devices(job: LoadedJob, backend: str, *, seed_offset: int = 0) -> Devic
             c = s.camera
             camera = GenICamCamera(c.device, producer=c.producer, pixel_format=c.pixel_format, exposure_s=c.exposure_s,
                                    gain_db=c.gain_db, trigger=c.trigger, strobe_line=c.strobe_line,
-                                   timeout_s=c.frame_timeout_s)
+                                   timeout_s=c.frame_timeout_s, expected_size=(c.width, c.height))
             world = None
         elif s.camera.device is not None:
             from drivers.opencv_camera import OpenCVCamera

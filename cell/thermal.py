@@ -171,13 +171,35 @@ def agreeing(deviation: np.ndarray, nominal: np.ndarray, blocks: np.ndarray, use
 
 #: readings averaged at each end of ACQUIRE (the readout's own noise is ~0.01 K; five average a loose contact's flicker)
 PROBE_READINGS = 5
+PROBE_AGREE_MIN = 3  # fewer readings of a block that agree: the probe is not read, the job faults
+PROBE_BAND_SIGMAS = 3.0  # a reading farther than this many part_sigma_K from its block's median is an outlier ...
+PROBE_BAND_MIN_K = 0.1  # ... or than this, whichever is larger (a small part_sigma_K against the readout's noise)
+
+
+def agreeing_readings(values, sigma_K: float) -> tuple[float, float, list[float], list[float], float]:
+    """The readings of one probe block that agree: those within ``max(PROBE_BAND_SIGMAS x sigma_K, PROBE_BAND_MIN_K)``
+    of their median. Returns ``(mean of them, their sample standard deviation, them, the others, the band)``; one
+    glitch (-200 C sensor-open, a 0.000 dropout) does not move the median, so it is left out, not averaged in."""
+    vals = [float(v) for v in values]
+    med = float(np.median(vals))
+    band = max(PROBE_BAND_SIGMAS * float(sigma_K), PROBE_BAND_MIN_K)
+    kept = [v for v in vals if abs(v - med) <= band]
+    out = [v for v in vals if abs(v - med) > band]
+    mean = float(np.mean(kept)) if kept else med
+    sd = float(np.std(kept, ddof=1)) if len(kept) > 1 else 0.0
+    return mean, sd, kept, out, band
 
 
 def read_probe(ctx, thermometer, when: str) -> None:
     """ACQUIRE: the part's thermometer read (``[thermal] part_C = "probe"``) at the ``"start"`` or the ``"end"``,
     journalled (``part_temperature``) and logged. A resumed job keeps the start it read. At the end, a change beyond
     ``part_sigma_K`` since the start is said: the part was not soaked (:func:`resolve_probe` takes it into the
-    sigma). A probe that does not answer faults the job (the job asked for it): resume reads it again."""
+    sigma). A probe that does not answer faults the job (the job asked for it): resume reads it again.
+
+    ``PROBE_READINGS`` readings; those beyond the band of :func:`agreeing_readings` from their median are named as
+    outliers and left out (console, run log, journal ``outliers``); fewer than ``PROBE_AGREE_MIN`` that agree fault
+    ACQUIRE. The scatter of those kept is journalled (``sd_K``), said beyond ``part_sigma_K``, and carried into the
+    sigma by :func:`resolve_probe`."""
     th = ctx.job.spec.thermal
     if th is None or th.part_C != "probe":
         return
@@ -186,16 +208,31 @@ def read_probe(ctx, thermometer, when: str) -> None:
         return
     if thermometer is None:
         raise DriverError("[thermal] part_C = \"probe\" but the cell has no thermometer ([cell] thermometer_port)")
-    mean, sd = thermometer.read_mean_C(PROBE_READINGS)
+    values = [float(thermometer.read_C()) for _ in range(PROBE_READINGS)]
+    mean, sd, kept, out, band = agreeing_readings(values, th.part_sigma_K)
+    shown = ", ".join(f"{v:.3f}" for v in values)
+    if len(kept) < PROBE_AGREE_MIN:
+        raise DriverError(f"the part's thermometer ({thermometer.name}) gave {PROBE_READINGS} readings at the {when} "
+                          f"of ACQUIRE that do not agree: only {len(kept)} within {band:.2f} K of their median "
+                          f"{float(np.median(values)):.3f} C ({shown} C); check the probe's contact and cable")
     if not -30.0 <= mean <= 90.0:  # the job's own range for part_C: a probe off the part, or a wrong channel
         raise DriverError(f"the part's thermometer ({thermometer.name}) reads {mean:.2f} C at the {when} of ACQUIRE: "
                           "no part in a measuring cell is at that (-30..90 C); check that the probe is on the part")
-    if sd > th.part_sigma_K:  # a loose contact flickers: the mean is taken, its scatter said
-        msg = (f"the part's thermometer scattered by {sd:.2f} K over {PROBE_READINGS} readings at the {when} of ACQUIRE "
-               f"(more than part_sigma_K = {th.part_sigma_K} K): check the probe's contact")
+    if out:
+        msg = (f"the part's thermometer gave {len(out)} of {PROBE_READINGS} readings at the {when} of ACQUIRE beyond "
+               f"{band:.2f} K of the others' median ({', '.join(f'{v:.3f}' for v in out)} C among {shown} C): left "
+               f"out as outliers, the temperature is the mean of the {len(kept)} that agree; check the probe's "
+               "contact and cable")
         ctx.log.log("warning", msg)
         ctx.say(f"  WARNING {msg}")
-    ctx.folder.append("part_temperature", when=when, C=mean, sd_K=sd, n=PROBE_READINGS, device=thermometer.name)
+    if sd > th.part_sigma_K:  # a loose contact flickers: the mean is taken, its scatter said and in the sigma
+        msg = (f"the part's thermometer scattered by {sd:.2f} K over {len(kept)} readings at the {when} of ACQUIRE "
+               f"(more than part_sigma_K = {th.part_sigma_K} K): check the probe's contact; the scatter is in the "
+               "temperature's sigma")
+        ctx.log.log("warning", msg)
+        ctx.say(f"  WARNING {msg}")
+    ctx.folder.append("part_temperature", when=when, C=mean, sd_K=sd, n=len(kept), device=thermometer.name,
+                      readings=values, outliers=out)
     ctx.log.log("info", f"part temperature at the {when} of ACQUIRE: {mean:.3f} C ({thermometer.name})")
     ctx.say(f"  part temperature ({when}): {mean:.2f} C")
     start = next((r["C"] for r in recs if r["when"] == "start"), None)
@@ -209,7 +246,8 @@ def read_probe(ctx, thermometer, when: str) -> None:
 
 def resolve_probe(job, journal):
     """The job with ``[thermal] part_C = "probe"`` replaced by the readings ACQUIRE journalled: the mean of the start
-    and the end, its sigma ``sqrt(part_sigma_K^2 + change^2 / 12)`` (a steady drift between them), and the bars of
+    and the end, its sigma ``sqrt(part_sigma_K^2 + change^2 / 12 + scatter^2)`` (a steady drift between them; the
+    larger standard deviation of the readings kept at the start or the end, ``sd_K``), and the bars of
     their own material at that temperature. Unchanged without a probe (the journal is not read). ``journal``: the job
     folder (its ``records()``) or the records. ``CalibrationError`` when ACQUIRE read none."""
     from dataclasses import replace
@@ -226,13 +264,16 @@ def resolve_probe(job, journal):
                                "(ACQUIRE reads it first); give part_C in deg C to adjust without it")
     vals = [start["C"]] + ([end["C"]] if end is not None else [])
     change = vals[-1] - vals[0]
-    spec = job.spec.model_copy(update={"thermal": th.model_copy(update={
-        "part_C": float(np.mean(vals)), "part_sigma_K": float(np.hypot(th.part_sigma_K, change / np.sqrt(12)))})})
+    scatter = max(float(r.get("sd_K") or 0.0) for r in (start, end) if r is not None)
+    sigma = float(np.sqrt(th.part_sigma_K ** 2 + change ** 2 / 12 + scatter ** 2))
+    spec = job.spec.model_copy(update={"thermal": th.model_copy(update={"part_C": float(np.mean(vals)),
+                                                                        "part_sigma_K": sigma})})
     k = spec.scale
     bars = tuple((a, b, *bar_at_measurement(spec, bar, bar.length * k, bar.sigma * k))
                  for (_, bar), (a, b, *_) in zip(spec.job.bars(), job.scale_bars))
     return replace(job, spec=spec, scale_bars=bars, probe={"start_C": vals[0], "end_C": vals[-1] if end else None,
-                                                           "device": start.get("device"), "change_K": change})
+                                                           "device": start.get("device"), "change_K": change,
+                                                           "scatter_K": scatter})
 
 
 def part_scale(deviation: np.ndarray, nominal: np.ndarray, cov: PointCovariance, use: np.ndarray) -> dict | None:

@@ -29,9 +29,19 @@ RT-20 series) and, for the error numbers, the same family's VTR1 manual (section
   timing parameter was out of range and has been adjusted to a valid value.
 
 Not taken from the manual (not in the pages read): the exact spacing of the ``ST`` line (the driver
-parses ``KEY value`` pairs separated by commas, tolerant of spacing) and the ``MD`` numbers other
-than 1 = pulse and 2 = switched (continuous is taken as 0, selected as 3). Our cell uses pulse mode:
-the camera's strobe output (or :meth:`GardasoftRT.strobe`'s ``TR``) triggers one flash per exposure.
+parses ``KEY value`` pairs separated by commas, tolerant of spacing; a controller seen answers
+``CH1,MD0,S 50.0, 0.0,DL1.000ms,...``, one line per channel when it lists several, so the lines are
+parsed per channel and the one asked for is taken) and the ``MD`` numbers other than 1 = pulse and
+2 = switched (continuous is taken as 0, selected as 3). Our cell uses pulse mode: the camera's strobe
+output (or :meth:`GardasoftRT.strobe`'s ``TR``) triggers one flash per exposure. The ``RT`` delay
+range is 0.02..999 ms (the manual); the default delay is its least, 0.02 ms.
+
+The pulse settings are volatile unless saved (``AW``): a controller that lost its power for a moment
+comes back in its saved (or power-on: continuous at 0 %) settings, accepts ``TR`` and never flashes.
+So the settings are read back (``ST``) after they are sent and before each exposure
+(:meth:`GardasoftRT.arm` re-sends them when they were lost and says so in what it returns), and
+:meth:`GardasoftRT.check` reads them after an exposure, so that a frame taken with the light not armed
+is known.
 
 Every reply is checked: no ``>`` in time -> ``NoReplyError``; bytes that are not a reply ->
 ``GarbledReplyError``; ``Err n`` -> ``DeviceRefusedError`` with the manual's meaning (``Err 5``:
@@ -89,14 +99,33 @@ def max_pulse_ms(brightness_pct: float) -> float:
     return 0.0
 
 
-def parse_status(text: str) -> dict:
-    """``CH 1, MD 1, S 100%, DL 0.01ms, PU 2.00ms, ...`` -> {"CH": "1", "MD": "1", "S": "100%", ...}."""
+def _parse_line(line: str) -> dict:
     out = {}
-    for item in text.replace("\r", " ").replace("\n", ",").split(","):
+    for item in line.split(","):
         m = re.fullmatch(r"\s*([A-Z]{1,3})\s*:?\s*(\S.*?)\s*", item)
         if m:
             out[m.group(1)] = m.group(2)
     return out
+
+
+def parse_status(text: str, channel: int | None = None) -> dict:
+    """``CH 1, MD 1, S 100%, DL 0.02ms, PU 2.00ms, ...`` -> {"CH": "1", "MD": "1", "S": "100%", ...}.
+
+    A reply of several lines (one per channel) is parsed line by line, never merged: ``channel`` picks the line
+    whose ``CH`` it is. Without ``channel``, a reply must hold one line. ``ValueError`` when the channel's line is
+    not there, or several lines and no channel."""
+    lines = [_parse_line(ln) for ln in text.replace("\r", "\n").split("\n") if ln.strip()]
+    lines = [d for d in lines if d]
+    if channel is not None:
+        mine = [d for d in lines if d.get("CH", "").strip() == str(int(channel))]
+        if len(mine) == 1:
+            return mine[0]
+        if not mine and len(lines) == 1 and "CH" not in lines[0]:
+            return lines[0]  # a one-line reply that does not name its channel: the one asked for
+        raise ValueError(f"no single status line of channel {channel} in {text!r}")
+    if len(lines) > 1:
+        raise ValueError(f"{len(lines)} status lines in {text!r}; say which channel")
+    return lines[0] if lines else {}
 
 
 def _ms(value: str) -> float:
@@ -228,14 +257,14 @@ class GardasoftRT:
         channel: output channel of the light (1..8).
         trigger_input: the controller's trigger input wired to the camera's strobe line (``RPc,i``).
         brightness_pct: pulse brightness in % of the light's rating (<= 1000, see :data:`PULSE_LIMITS`).
-        delay_s: delay from trigger to pulse.
+        delay_s: delay from trigger to pulse (the RT range: 0.02..999 ms).
         retrigger_s: minimum time between two triggers (None: leave the device's).
         timeout_s: how long to wait for each reply's prompt.
     """
 
     def __init__(self, port: str | None = None, *, host: str | None = None, tcp_port: int = TCP_PORT,
                  channel: int = 1, trigger_input: int | None = None, brightness_pct: float = 100.0,
-                 delay_s: float = 1e-5, retrigger_s: float | None = None, timeout_s: float = 0.5, baud: int = BAUD):
+                 delay_s: float = 2e-5, retrigger_s: float | None = None, timeout_s: float = 0.5, baud: int = BAUD):
         if (port is None) == (host is None):
             raise DriverError("light controller: give either a serial port or a host")
         self.transport = SerialTransport(port, baud) if port is not None else TcpTransport(host, tcp_port)
@@ -244,6 +273,7 @@ class GardasoftRT:
         self.timeout_s = float(timeout_s)
         self.device_id: str | None = None
         self._pulse_ms: float | None = None
+        self.rearmed = 0  # times the controller was found to have lost its pulse settings and was re-armed
         self._lock = threading.Lock()
         if not 1 <= self.channel <= 8:
             raise DriverError(f"light controller on {self.transport.where}: channel {channel} is not 1..8")
@@ -355,8 +385,8 @@ class GardasoftRT:
     def status(self) -> dict:
         """``STc`` parsed: {"mode": str, "brightness_pct", "delay_s", "pulse_s", "retrigger_s", "input", "raw"}."""
         raw = self.command(f"ST{self.channel}")
-        st = parse_status(raw)
         try:
+            st = parse_status(raw, self.channel)
             return {"mode": MODES.get(int(st["MD"]), st["MD"]), "brightness_pct": float(st["S"].rstrip("%")),
                     "delay_s": _ms(st["DL"]) / 1e3, "pulse_s": _ms(st["PU"]) / 1e3,
                     "retrigger_s": _ms(st["RT"]) / 1e3 if "RT" in st else None,
@@ -387,12 +417,57 @@ class GardasoftRT:
         self.brightness_pct = fraction * 100.0
         self._pulse_ms = None
 
-    def arm(self, duration_s: float) -> None:
-        """Pulse mode with a pulse of ``duration_s``, fired by the trigger input (the camera's strobe line)."""
-        if self._pulse_ms is None or abs(self._pulse_ms - duration_s * 1e3) > 1e-6:
-            self.set_pulse(duration_s)
+    def arm(self, duration_s: float) -> str | None:
+        """Pulse mode with a pulse of ``duration_s``, fired by the trigger input (the camera's strobe line) or
+        :meth:`trigger`, and checked on the controller (``ST``).
 
-    def strobe(self, duration_s: float) -> None:
-        """One flash of ``duration_s`` now: pulse mode (sent only when it changed) and a software trigger."""
-        self.arm(duration_s)
+        Sent when it changed, then read back: a controller that does not show it raises ``DriverError``. When it
+        was sent before, it is read back only: a controller that lost it (a power blip: back to continuous at
+        0 %) is re-armed, and the line saying what it had found is returned (None when it was as armed)."""
+        if self._pulse_ms is None or abs(self._pulse_ms - duration_s * 1e3) > 1e-6:
+            self._send_and_verify(duration_s, inputs=False)  # connect() set the trigger input
+            return None
+        found = self.check()
+        if found is None:
+            return None
+        self._send_and_verify(duration_s, inputs=True)
+        self.rearmed += 1
+        return f"{self.name}: {found}: it lost its settings (a power blip?); re-armed"
+
+    def check(self) -> str | None:
+        """The channel's settings read back (``ST``) against the pulse last armed: None when they agree (or none was
+        armed), else what the controller has instead, in words."""
+        if self._pulse_ms is None:
+            return None
+        st = self.status()
+        want = {"mode": "pulse", "brightness_pct": self.brightness_pct, "pulse_s": self._pulse_ms * 1e-3,
+                "delay_s": self.delay_s}
+        bad = [k for k in ("mode", "brightness_pct", "pulse_s", "delay_s")
+               if (st[k] != want[k] if k == "mode" else abs(st[k] - want[k]) > 6e-7 + 2e-3 * abs(want[k])
+                   + (0.05 if k == "brightness_pct" else 0.0))]
+        if self.trigger_input is not None and st["input"] is not None and st["input"] != int(self.trigger_input):
+            bad.append("input")
+        if not bad:
+            return None
+        return (f"channel {self.channel} reads {st['mode']} mode at {st['brightness_pct']:g} %, pulse "
+                f"{st['pulse_s'] * 1e3:.3f} ms, delay {st['delay_s'] * 1e3:.3f} ms"
+                + (f", input {st['input']}" if self.trigger_input is not None else "")
+                + f" (armed: pulse mode at {self.brightness_pct:g} %, pulse {self._pulse_ms:.3f} ms, delay "
+                f"{self.delay_s * 1e3:.3f} ms" + (f", input {self.trigger_input}" if self.trigger_input is not None
+                                                  else "") + ")")
+
+    def _send_and_verify(self, duration_s: float, inputs: bool) -> None:
+        if inputs and self.trigger_input is not None:
+            self.command(f"RP{self.channel},{int(self.trigger_input)}")
+        self.set_pulse(duration_s)
+        found = self.check()
+        if found is not None:
+            self._pulse_ms = None
+            raise DriverError(f"{self.name}: the pulse settings were sent and accepted, but {found}")
+
+    def strobe(self, duration_s: float) -> str | None:
+        """One flash of ``duration_s`` now: pulse mode (sent when it changed, read back always; see :meth:`arm`,
+        whose finding it returns) and a software trigger."""
+        note = self.arm(duration_s)
         self.trigger()
+        return note

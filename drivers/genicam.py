@@ -18,9 +18,16 @@ What the driver does:
   with the exposure;
 - stamps each frame with the host time of its trigger (or request) and of its arrival, and the
   device's own timestamp and frame id when the producer gives them;
-- detects incomplete frames (harvesters' INCOMPLETE_BUFFER event), lost frames (a gap in the
-  frame ids), frames in the wrong pixel format or of the wrong size, and timeouts, each as its
-  own ``DriverError`` naming the camera; nothing of such a frame reaches the caller;
+- takes each frame's bytes as the camera sent them from the GenTL buffer and unpacks them once
+  (:mod:`drivers.pixels`); where a consumer does not expose them, harvesters' ``Component2DImage.data``,
+  which harvesters has already expanded to one uint16 per pixel for the 10..16-bit and packed formats,
+  is taken as it is, never unpacked a second time (:func:`drivers.pixels.from_component`);
+- detects incomplete frames (harvesters' INCOMPLETE_BUFFER event, or fewer pixels than the frame's
+  size), lost frames (a gap in the frame ids), frames in the wrong pixel format, frames whose size or
+  offset is not the one configured at connect (``Width``/``Height``/``OffsetX``/``OffsetY`` read back
+  after configuring; ``expected_size``: the size the caller's lens model is for, checked at connect),
+  and timeouts, each as its own ``DriverError`` naming the camera; nothing of such a frame reaches
+  the caller;
 - turns a device that vanished (cable pull, power loss) into ``CameraLostError`` and reopens
   the same camera by its key on :meth:`reconnect` (and on the next :meth:`capture`);
 - acquires every buffer in a ``with`` block, so it is queued back to the producer on every path.
@@ -40,7 +47,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from calibration.errors import DriverError, InputError, NotConnectedError
-from drivers.pixels import MONO_FORMATS, PixelFormatUnsupported, bit_depth, expected_bytes, unpack
+from drivers.pixels import (
+    MONO_FORMATS,
+    PixelFormatUnsupported,
+    ShortBufferError,
+    bit_depth,
+    expected_bytes,
+    from_component,
+)
 from drivers.protocols import Frame
 
 ENV_PATH = "GENICAM_GENTL64_PATH"
@@ -76,6 +90,10 @@ class PixelFormatError(DriverError):
 
 class FeatureError(DriverError):
     """The device lacks a feature the configuration asks for, or refused a value."""
+
+
+class FrameGeometryError(DriverError):
+    """The frame's size or offset is not the one configured (binning, an ROI changed behind the driver)."""
 
 
 def simulated_producer() -> str | None:
@@ -197,13 +215,17 @@ class GenICamCamera:
             default ``fault`` with a trigger, ``count`` in free run (where any fresh frame will do).
         packet_size: GigE Vision stream packet size in bytes (``GevSCPSPacketSize``, SFNC 2:
             ``DeviceStreamChannelPacketSize``); with jumbo frames (MTU 9000) 8192 or the camera's maximum.
+        expected_size: ``(width, height)`` the frames must have (the job's lens model is for that image);
+            the camera's ``Width``/``Height`` after configuring are checked against it at connect
+            (``FrameGeometryError``). Every frame is checked against the size (and offset, where the
+            producer or the node map tells it) read back at connect, with or without it.
     """
 
     def __init__(self, device: str | None = None, *, producer: str | Sequence[str] | None = None,
                  pixel_format: str = "Mono8", exposure_s: float | None = None, gain_db: float | None = None,
                  roi: Roi | None = None, trigger: str = "off", strobe_line: str | None = None,
                  timeout_s: float = 2.0, num_buffers: int = 4, on_frame_loss: str | None = None,
-                 packet_size: int | None = None):
+                 packet_size: int | None = None, expected_size: tuple[int, int] | None = None):
         try:
             bit_depth(pixel_format)
         except PixelFormatUnsupported as exc:
@@ -215,6 +237,8 @@ class GenICamCamera:
         self.trigger, self.strobe_line = trigger, strobe_line
         self.timeout_s, self.num_buffers = float(timeout_s), int(num_buffers)
         self.packet_size = packet_size
+        self.expected_size = None if expected_size is None else (int(expected_size[0]), int(expected_size[1]))
+        self.geometry: dict = {}  # Width/Height/OffsetX/OffsetY read back at connect (None where the device has none)
         self.on_frame_loss = on_frame_loss or ("count" if trigger == "off" else "fault")
         if self.on_frame_loss not in ("fault", "count"):
             raise InputError(f"camera {device}: on_frame_loss {on_frame_loss!r} is not fault or count")
@@ -266,6 +290,7 @@ class GenICamCamera:
                 try:
                     ia.num_buffers = max(self.num_buffers, ia.min_num_buffers)
                     self._configure(ia.remote_device.node_map)
+                    self.geometry = self._read_geometry(ia.remote_device.node_map)
                     self._watch_incomplete(ia)
                     ia.start()
                 except BaseException:
@@ -366,6 +391,23 @@ class GenICamCamera:
             self._set(nm, "LineSelector", self.strobe_line, "the strobe output")
             self._set(nm, "LineMode", "Output", "the strobe output")
             self._set(nm, "LineSource", "ExposureActive", "the strobe output")
+
+    def _read_geometry(self, nm) -> dict:
+        """Width/Height/OffsetX/OffsetY as the device has them now (offsets None where it has no such node); checks
+        ``expected_size``."""
+        geo = {}
+        for n in ("Width", "Height", "OffsetX", "OffsetY"):
+            try:
+                geo[n] = int(nm.get_node(n).value) if nm.has_node(n) else None
+            except _genicam_errors() as exc:
+                raise FeatureError(f"{self.name}: cannot read {n} ({exc})") from None
+        if geo["Width"] is None or geo["Height"] is None:
+            raise FeatureError(f"{self.name}: the device has no Width/Height node, needed to check the frame size")
+        if self.expected_size is not None and (geo["Width"], geo["Height"]) != self.expected_size:
+            w, h = self.expected_size
+            raise FrameGeometryError(f"{self.name}: delivers {geo['Width']}x{geo['Height']} frames, expected {w}x{h} "
+                                     "(the lens model's image size); set the camera's ROI / binning, or the size")
+        return geo
 
     def _watch_incomplete(self, ia) -> None:
         from harvesters.core import Callback
@@ -501,11 +543,16 @@ class GenICamCamera:
         if fmt != self.pixel_format:
             raise PixelFormatError(f"{self.name}: frame in {fmt}, configured {self.pixel_format}; another program "
                                    "changed the camera's settings?")
-        need = expected_bytes(fmt, width, height)
-        if raw.size < need:
-            raise IncompleteFrameError(f"{self.name}: frame holds {raw.size} of the {need} bytes of a {width}x{height} "
-                                       f"{fmt} image")
-        image = unpack(raw, fmt, width, height)
+        self._check_geometry(facts)
+        if facts.get("x_padding"):
+            raw = self._strip_padding(raw, fmt, width, height, int(facts["x_padding"]))
+        try:
+            image = from_component(raw, fmt, width, height)
+        except ShortBufferError as exc:
+            raise IncompleteFrameError(f"{self.name}: frame holds {exc.have} of the {exc.need} {exc.unit} of a "
+                                       f"{width}x{height} {fmt} image") from None
+        except PixelFormatUnsupported as exc:
+            raise PixelFormatError(f"{self.name}: {exc}") from None
         meta = {"camera": self.info.get("serial"), "model": self.info.get("model"), "frame_id": self._last_frame_id,
                 "pixel_format": fmt, "bit_depth": bit_depth(fmt), "device_timestamp_ns": facts["timestamp_ns"],
                 "lost_frames": lost, "trigger": self.trigger, "triggered_host_s": triggered_s,
@@ -514,10 +561,38 @@ class GenICamCamera:
                      exposure_s=float(self.exposure_s or 0.0), meta=meta)
 
 
+    def _strip_padding(self, raw: np.ndarray, fmt: str, width: int, height: int, pad: int) -> np.ndarray:
+        """The frame's bytes without the ``pad`` bytes that end each line (GenTL ``padding_x``)."""
+        line = expected_bytes(fmt, width, 1)
+        if raw.dtype != np.uint8 or (width * bit_depth(fmt)) % 8:
+            raise PixelFormatError(f"{self.name}: frame lines carry {pad} padding byte(s) each, which this driver "
+                                   f"cannot remove from {fmt} {width}x{height} data; switch the camera's line padding off")
+        need = (line + pad) * height
+        if raw.size < need:
+            raise IncompleteFrameError(f"{self.name}: frame holds {raw.size} of the {need} bytes of a {width}x{height} "
+                                       f"{fmt} image with {pad} padding byte(s) a line")
+        return np.ascontiguousarray(raw[:need].reshape(height, line + pad)[:, :line]).ravel()
+
+    def _check_geometry(self, facts: dict) -> None:
+        """The frame's size (and offset, where known) must be the one read back at connect."""
+        geo = self.geometry
+        if not geo:  # not connected through connect() (a unit test of _frame): only the expected size, if given
+            geo = {"Width": self.expected_size[0], "Height": self.expected_size[1]} if self.expected_size else {}
+        got, want = (facts["width"], facts["height"]), (geo.get("Width"), geo.get("Height"))
+        if None not in want and got != want:
+            raise FrameGeometryError(f"{self.name}: frame of {got[0]}x{got[1]} pixels, configured {want[0]}x{want[1]}; "
+                                     "binning or the ROI changed behind the driver?")
+        for key, n in (("x_offset", "OffsetX"), ("y_offset", "OffsetY")):
+            if facts.get(key) is not None and geo.get(n) is not None and facts[key] != geo[n]:
+                raise FrameGeometryError(f"{self.name}: frame at {n} {facts[key]}, configured {geo[n]}; the ROI "
+                                         "moved behind the driver?")
+
+
 def _buffer_facts(buf, *, with_data: bool) -> dict:
     """Frame id, device timestamp, and (``with_data``) the first image component's format, size and a copy of its
     bytes, read while the buffer is held. Optional GenTL facts a producer does not keep are None."""
-    out: dict = {"frame_id": None, "timestamp_ns": None, "format": None, "width": 0, "height": 0, "raw": None}
+    out: dict = {"frame_id": None, "timestamp_ns": None, "format": None, "width": 0, "height": 0, "raw": None,
+                 "x_offset": None, "y_offset": None, "x_padding": 0}
     try:
         out["frame_id"] = int(buf.frame_id)
     except Exception:  # frame ids are optional in GenTL
@@ -531,11 +606,46 @@ def _buffer_facts(buf, *, with_data: bool) -> dict:
     comps = buf.payload.components if buf.payload is not None else []
     if comps:
         c = comps[0]
-        out.update(format=str(c.data_format), width=int(c.width), height=int(c.height),
-                   raw=np.array(c.data, copy=True).view(np.uint8).ravel())
+        out.update(format=str(c.data_format), width=int(c.width), height=int(c.height), raw=_wire_bytes(c))
+        if out["raw"] is None and c.data is not None:
+            # harvesters' data is already the pixel format's expand(): uint16 pixels for 10..16 bit and packed
+            # formats, uint8 for Mono8; copied as it is (its dtype tells drivers.pixels.from_component what it holds)
+            out["raw"] = np.array(c.data, copy=True).ravel()
+        for key in ("x_offset", "y_offset", "x_padding"):  # from the buffer's info; optional in GenTL
+            try:
+                v = getattr(c, key)
+                out[key] = None if v is None else int(v)
+            except Exception:  # a producer (and node map) without it: not checked
+                pass
+        out["x_padding"] = out["x_padding"] or 0
     return out
+
+
+def _wire_bytes(c) -> np.ndarray | None:
+    """A copy of the image component's bytes as the camera sent them (the GenTL buffer's, from the component's data
+    offset; as many as the producer filled), or None where the consumer does not expose them.
+
+    Taken in preference to harvesters' ``Component2DImage.data``, which is already expanded (so never to be unpacked
+    again) and which harvesters 1.4.3 cuts short for Mono10Packed (it counts 1.25 bytes a pixel, the format has 1.5)
+    and leaves line padding in; the bytes are unpacked once, by :mod:`drivers.pixels`."""
+    gentl = getattr(c, "_buffer", None)
+    try:
+        rb = gentl.raw_buffer
+        part = getattr(c, "_part", None)
+        if part is not None:
+            offset, count = int(part.data_offset), int(part.data_size)
+        else:
+            offset = 0
+            try:
+                count = int(gentl.size_filled)
+            except Exception:  # a producer that does not say how much it filled: the whole buffer
+                count = len(rb)
+        return np.frombuffer(rb, dtype=np.uint8, count=count, offset=offset).copy()
+    except Exception:  # not a GenTL buffer we can read: harvesters' own data is used
+        return None
 
 
 __all__ = ["GenICamCamera", "Roi", "list_cameras", "find_producers", "simulated_producer", "describe",
            "ProducerMissingError", "CameraNotFoundError", "CameraLostError", "FrameTimeoutError",
-           "IncompleteFrameError", "FrameLostError", "PixelFormatError", "FeatureError", "MONO_FORMATS"]
+           "IncompleteFrameError", "FrameLostError", "PixelFormatError", "FeatureError", "FrameGeometryError",
+           "MONO_FORMATS"]

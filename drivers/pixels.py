@@ -29,6 +29,14 @@ class PixelFormatUnsupported(ValueError):
     """The format is not one of the monochrome formats this module unpacks."""
 
 
+class ShortBufferError(ValueError):
+    """The buffer holds less than one image of its format and size (a truncated frame is never padded)."""
+
+    def __init__(self, message: str, have: int = 0, need: int = 0, unit: str = "bytes"):
+        super().__init__(message)
+        self.have, self.need, self.unit = have, need, unit
+
+
 def bit_depth(fmt: str) -> int:
     try:
         return BIT_DEPTH[fmt]
@@ -60,7 +68,8 @@ def unpack(raw: np.ndarray | bytes, fmt: str, width: int, height: int) -> np.nda
         else np.ascontiguousarray(raw).view(np.uint8).ravel()
     need = expected_bytes(fmt, width, height)
     if data.size < need:
-        raise ValueError(f"{fmt} {width}x{height} needs {need} bytes, the buffer holds {data.size}")
+        raise ShortBufferError(f"{fmt} {width}x{height} needs {need} bytes, the buffer holds {data.size}",
+                               int(data.size), need, "bytes")
     data = data[:need]
     n = int(width) * int(height)
     if fmt == "Mono8":
@@ -75,6 +84,38 @@ def unpack(raw: np.ndarray | bytes, fmt: str, width: int, height: int) -> np.nda
         out = _unpack10p(data, n)
     else:  # GigE Vision Mono10Packed / Mono12Packed
         out = _unpack_gev_packed(data, n, bit_depth(fmt))
+    return out.reshape(int(height), int(width))
+
+
+def from_component(data: np.ndarray, fmt: str, width: int, height: int) -> np.ndarray:
+    """The image of a harvesters image component's ``data``, as ``(height, width)`` with the sensor's values.
+
+    harvesters (1.4.x, ``Component2DImage``) hands ``data`` already through the pixel format's own ``expand``: one
+    uint16 per pixel for Mono10..16 *and* for the packed formats (Mono10p/12p, Mono10Packed/12Packed), one uint8 per
+    pixel for Mono8. Its dtype says which it is: uint16 -> pixel values (taken as they are, never unpacked again);
+    uint8 -> the wire's bytes (Mono8, or a consumer that hands the raw buffer), unpacked by :func:`unpack`.
+    Raises :class:`ShortBufferError` for fewer pixels (bytes) than one image and ``PixelFormatUnsupported`` for a
+    dtype that fits neither (a Mono8 frame in 16-bit words, a float array ...).
+    """
+    arr = np.asarray(data)
+    bits = bit_depth(fmt)
+    if arr.dtype == np.uint8:
+        return unpack(arr.ravel(), fmt, width, height)
+    n = int(width) * int(height)
+    if arr.dtype != np.uint16 or bits == 8:
+        raise PixelFormatUnsupported(f"{fmt} {width}x{height}: the consumer handed {arr.dtype} data, neither the "
+                                     "bytes of the frame (uint8) nor one 16-bit word per pixel")
+    flat = arr.ravel()
+    if flat.size < n:
+        raise ShortBufferError(f"{fmt} {width}x{height} needs {n} pixels, the buffer holds {flat.size}",
+                               int(flat.size), n, "pixels")
+    out = flat[:n].astype(np.uint16)
+    if bits < 16:
+        if fmt in ("Mono10", "Mono12", "Mono14"):  # LSB-aligned words: the bits above are not pixel data (as unpack)
+            out &= np.uint16((1 << bits) - 1)
+        elif int(out.max(initial=0)) >= (1 << bits):  # an expanded packed format cannot exceed its depth
+            raise PixelFormatUnsupported(f"{fmt} {width}x{height}: a pixel of {int(out.max())} exceeds {bits} bits; "
+                                         "the frame is not in this format")
     return out.reshape(int(height), int(width))
 
 

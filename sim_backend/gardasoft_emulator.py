@@ -6,11 +6,15 @@ It follows the command set documented in :mod:`drivers.gardasoft` command by com
 manual's error numbers: ``Err 2`` for an unknown command, ``Err 4`` for a wrong number of
 parameters, ``Err 3`` for a number it cannot read, ``Err 1`` for a value out of range (channel,
 brightness, a pulse longer than the RT limits allow at that brightness), ``Err 5`` when it adjusts a
-timing parameter (a delay outside 0.01..999 ms is clamped). Commands end in CR, may be joined by
-``;``, and every reply ends with the prompt ``>``. ``VR`` answers ``RT820-20 (HW02) V031``.
+timing parameter (a delay outside the manual's 0.02..999 ms is clamped to it). Commands end in CR, may
+be joined by ``;``, and every reply ends with the prompt ``>``. ``VR`` answers ``RT820-20 (HW02) V031``.
+``STc`` answers in the shape a controller was seen to (``CH1,MD1,S 100.0, 0.0,DL0.020ms,PU2.000ms,...``).
 
 Faults to inject: ``fault = "no_reply"`` (reads, never answers), ``"garbled"`` (answers line noise),
-and :meth:`unplug` (the port, or the listening socket and every connection, go away).
+:meth:`unplug` (the port, or the listening socket and every connection, go away), and
+:meth:`RTController.power_cycle` (a power blip: every channel back to the settings saved with ``AW``,
+or to the power-on defaults, continuous at 0 %; ``power_cycle_at_trigger = n`` does it as the n-th
+``TR`` arrives, before it is acted on).
 """
 from __future__ import annotations
 
@@ -47,7 +51,7 @@ def _number(text: str, unit: str = "ms") -> float:
 class Channel:
     mode: int = 0  # 0 continuous, 1 pulse, 2 switched, 3 selected
     brightness_pct: float = 0.0
-    delay_ms: float = 0.01
+    delay_ms: float = 0.02
     pulse_ms: float = 1.0
     retrigger_ms: float = 0.0
     trigger_input: int = 1
@@ -77,10 +81,23 @@ class RTController:
     saved: bool = False
     last_event: tuple | None = None
     fault: str | None = None
+    power_cycle_at_trigger: int | None = None  # the n-th TR finds the controller just power-cycled (a test hook)
+    triggers: int = 0  # TR commands received
+    power_cycles: int = 0
 
     def __post_init__(self):
         self.channels = {c: Channel() for c in range(1, self.n_channels + 1)}
+        self._saved_channels: dict | None = None
         self._lock = threading.Lock()
+
+    def power_cycle(self) -> None:
+        """A power blip: the volatile settings are lost; every channel comes back as saved by ``AW`` (or as at
+        power-on: continuous mode at 0 %)."""
+        from dataclasses import replace
+
+        saved = self._saved_channels
+        self.channels = {c: (replace(saved[c]) if saved else Channel()) for c in range(1, self.n_channels + 1)}
+        self.power_cycles += 1
 
     def _channel(self, text: str) -> Channel:
         try:
@@ -142,7 +159,10 @@ class RTController:
                 raise _Err(4)
             return self.model
         if op == "AW":
+            from dataclasses import replace
+
             self.saved = True
+            self._saved_channels = {c: replace(ch) for c, ch in self.channels.items()}
             return ""
         if op == "GR":
             ev, self.last_event = self.last_event, None
@@ -165,8 +185,8 @@ class RTController:
             limit = next((w for pct, w in MAX_PULSE_MS if s <= pct), 0.0)
             if not 0.0 < s <= 1000.0 or not 0.0 < p <= limit:
                 raise _Err(1)
-            adjusted = not 0.01 <= d <= 999.0
-            ch.mode, ch.pulse_ms, ch.delay_ms, ch.brightness_pct = 1, p, min(max(d, 0.01), 999.0), s
+            adjusted = not 0.02 <= d <= 999.0  # the manual's delay range
+            ch.mode, ch.pulse_ms, ch.delay_ms, ch.brightness_pct = 1, p, min(max(d, 0.02), 999.0), s
             ch.retrigger_ms = round(r * 10.0) / 10.0  # steps of 100 us
             if adjusted:
                 raise _Err(5)
@@ -187,6 +207,9 @@ class RTController:
             if len(args) != 1:
                 raise _Err(4)
             c = int(self._channel_no(args[0]))
+            self.triggers += 1
+            if self.triggers == self.power_cycle_at_trigger:
+                self.power_cycle()
             if self.channels[c].mode == 1:
                 self._fire(c, "TR")
             return ""
@@ -197,8 +220,8 @@ class RTController:
                 return "TM 0, TP 20.00ms"
             c = self._channel_no(args[0])
             ch = self.channels[c]
-            return (f"CH {c}, MD {ch.mode}, S {ch.brightness_pct:g}%, DL {ch.delay_ms:.2f}ms, PU {ch.pulse_ms:.3f}ms, "
-                    f"RT {ch.retrigger_ms:.1f}ms, IP {ch.trigger_input}, FL 0, CS 0.00A, RA 1.00A")
+            return (f"CH{c},MD{ch.mode},S {ch.brightness_pct:.1f}, 0.0,DL{ch.delay_ms:.3f}ms,PU{ch.pulse_ms:.3f}ms,"
+                    f"RT{ch.retrigger_ms:.1f}ms,IP{ch.trigger_input},FL0,CS0.00A,RA1.00A")
         raise _Err(2)
 
     def _channel_no(self, text: str) -> int:

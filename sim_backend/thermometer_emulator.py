@@ -16,7 +16,9 @@ readout does, and a reply lets the driver say so at once instead of timing out. 
 resistance of a PT100 (IEC 60751, R0 = 100 ohm) at the probe's temperature.
 
 Faults to inject: ``fault = "no_reply"`` (reads, never answers), ``"garbled"`` (answers line noise ending in
-CR LF, as at a wrong baud rate), and :meth:`ThermometerEmulator.unplug` (the port goes away under the client).
+CR LF, as at a wrong baud rate), :meth:`ThermometerEmulator.unplug` (the port goes away under the client), and
+``glitches = {n: value_C}`` (the n-th reading served, from 1, reads ``value_C`` instead: a sensor-open or dropout
+value such as -200 or 0 C).
 """
 from __future__ import annotations
 
@@ -98,6 +100,7 @@ class ThermometerEmulator:
         self.unit = unit.upper()
         self.fault = fault
         self.readings: list[Reading] = []
+        self.glitches: dict[int, float] = {}  # reading number (from 1) -> the value it reads instead, deg C
         self.received: list[str] = []
         self.port: str | None = None
         self._rng = random.Random(seed)
@@ -125,6 +128,7 @@ class ThermometerEmulator:
 
     def _reading(self) -> tuple[float, str]:
         celsius = self.true_C() + (self._rng.gauss(0.0, self.noise_K) if self.noise_K > 0 else 0.0)
+        celsius = float(self.glitches.get(len(self.readings) + 1, celsius))
         shown = f"{from_celsius(celsius, self.unit):8.3f}"
         text = f"t: {shown} {self.unit}"
         self.readings.append(Reading(float(shown), self.unit, celsius, text))

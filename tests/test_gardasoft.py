@@ -40,14 +40,15 @@ def test_pulse_mode_strobe_and_status(kind):
         assert isinstance(light, Light)
         assert light.device_id == "RT820-20 (HW02) V031"
         light.strobe(0.002)
-        light.strobe(0.002)  # same pulse: only the trigger is sent again
+        light.strobe(0.002)  # same pulse: read back (ST), then only the trigger is sent again
         st = light.status()
         assert st["mode"] == "pulse" and st["input"] == 2
         assert st["pulse_s"] == pytest.approx(0.002) and st["brightness_pct"] == pytest.approx(250.0)
-        assert st["delay_s"] == pytest.approx(1e-5)
+        assert st["delay_s"] == pytest.approx(2e-5)  # the RT range's least delay, 0.02 ms
         assert [(p.channel, p.width_s, p.brightness_pct, p.source) for p in em.controller.pulses] == \
             [(3, pytest.approx(0.002), 250.0, "TR")] * 2
-        assert em.controller.received == ["VR", "RP3,2", "RT3,2.000,0.010,250", "TR3", "TR3", "ST3"]
+        # the settings read back after they are sent and before each trigger (a controller that lost them is found)
+        assert em.controller.received == ["VR", "RP3,2", "RT3,2.000,0.020,250", "ST3", "TR3", "ST3", "TR3", "ST3"]
         # the camera's strobe line on input 2 fires channel 3
         assert em.controller.input_edge(2) == 1 and em.controller.input_edge(1) == 0
         light.set_continuous(40)

@@ -239,7 +239,7 @@ def test_a_probe_reading_becomes_the_parts_temperature_with_its_change_in_the_si
     assert job.spec.thermal.part_C == pytest.approx(26.0)
     assert job.spec.thermal.part_sigma_K == pytest.approx(np.hypot(0.5, 0.4 / np.sqrt(12)))
     assert job.probe == {"start_C": 25.8, "end_C": 26.2, "device": "Fluke 1522 readout on /dev/pts/9",
-                         "change_K": pytest.approx(0.4)}
+                         "change_K": pytest.approx(0.4), "scatter_K": 0.0}
     stated = load(job_variant(tmp_path / "s", {"job": {"scale_bar": CARBON}, "thermal": WARM}))
     assert job.scale_bars[0][2] == pytest.approx(stated.scale_bars[0][2], rel=1e-12)
     assert resolve_probe(job, recs) is job and resolve_probe(stated, recs) is stated
@@ -336,7 +336,9 @@ def test_a_probe_reading_off_any_part_faults_and_a_scattering_one_is_said(tmp_pa
     ctx = SimpleNamespace(job=job, say=said.append, log=SimpleNamespace(log=lambda level, m: logged.append((level, m))),
                           folder=SimpleNamespace(records=lambda: list(journal),
                                                  append=lambda event, **f: journal.append({"event": event} | f)))
-    for true_C, noise_K in ((150.0, 0.005), (26.0, 1.0)):
+    # 0.3 K of flicker: beyond part_sigma_K (said) but within the 3 x 0.2 K band where readings agree (1 K flicker
+    # no longer agrees: tests/test_device_faults2.py faults on it)
+    for true_C, noise_K in ((150.0, 0.005), (26.0, 0.3)):
         with ThermometerEmulator(temperature_C=true_C, noise_K=noise_K, seed=3) as emu:
             probe = FlukeReadout(emu.port)
             probe.connect()

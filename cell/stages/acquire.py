@@ -59,7 +59,8 @@ def run(ctx) -> None:
     cam = ctx.job.spec.camera
     light_by_line = dev.light is not None and c.light_input is not None
     taker = ExposureTaker(dev.robot, dev.camera, dev.light, exposure_s=cam.exposure_s,
-                          frame_timeout_s=cam.frame_timeout_s, light_by_line=light_by_line)
+                          frame_timeout_s=cam.frame_timeout_s, light_by_line=light_by_line,
+                          frame_size=(cam.width, cam.height), on_notice=lambda sid, line: _light_rearmed(ctx, sid, line))
     # the simulated arm is still the instant it arrives: a short hold proves it without slowing the sim down
     hold_s = c.settle_s if ctx.backend != "sim" else min(c.settle_s, SIM_HOLD_S)
     first = True  # the first move of this run (a fresh job or a resume) starts wherever the arm is
@@ -119,6 +120,14 @@ def run(ctx) -> None:
     if len(images) < 2:
         raise DriverError(f"{len(images)} of {len(stations)} stations taken; nothing to measure")
     atomic_write_json(ctx.folder.file("acquisition.json"), {"images": images, "skipped": missed})
+
+
+def _light_rearmed(ctx, sid: str, line: str) -> None:
+    """The light controller had lost its pulse settings (a power blip) and was re-armed before station ``sid``'s
+    exposure: said on the console, in the run log and in the journal (``light_rearmed``)."""
+    ctx.folder.append("light_rearmed", station=sid, detail=line)
+    ctx.log.log("warning", f"station {sid}: {line}")
+    ctx.say(f"  WARNING station {sid}: {line}")
 
 
 def _move_or_skip(ctx, robot, sid: str, q: np.ndarray, skipped: dict, q_next) -> bool:

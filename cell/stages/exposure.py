@@ -5,13 +5,18 @@ Settling is judged on the controller's clock: every joint slower than ``speed_to
 ``actual_qd`` where the robot reports speeds, else the change between successive readings) without a
 break for ``hold_s``. The frame must come after its trigger and within ``exposure + frame_timeout`` of it,
 must not repeat a frame already taken (same frame id, or a timestamp not after the previous frame's),
-and the arm must not have moved between the settled reading and the reading after the frame. Anything
-else is a :class:`FrameFault` naming the station and what went wrong; the caller retakes the station,
-so a frame is never stored as another station's.
+and the arm must not have moved between the settled reading and the reading after the frame. Its size must be
+the job's camera's (``frame_size``; without it, the session's first frame's): binning or an ROI changed behind the
+cell would put every image point elsewhere. The light controller's pulse settings are read back before each
+exposure (one that lost them, a power blip, is re-armed and that is said through ``on_notice``) and after it: a
+frame taken while the light was not armed may be unlit. Anything else is a :class:`FrameFault` naming the station
+and what went wrong; the caller retakes the station, so a frame is never stored as another station's.
 """
 from __future__ import annotations
 
+import sys
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -50,6 +55,8 @@ class Exposure:
     joints_rad: list | None = None
     settled_for_s: float | None = None
     max_joint_speed_rad_s: float | None = None
+    light_note: str | None = None  # the light controller had lost its settings and was re-armed before this exposure
+    frame_size: list | None = None  # [width, height] of the frame delivered
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -100,27 +107,43 @@ def _speed(cur: RobotState, prev: RobotState | None) -> float:
 class ExposureTaker:
     """Takes the exposures of one session; remembers the frames taken so that none is used twice."""
 
-    def __init__(self, robot, camera, light, *, exposure_s: float, frame_timeout_s: float, light_by_line: bool):
+    def __init__(self, robot, camera, light, *, exposure_s: float, frame_timeout_s: float, light_by_line: bool,
+                 frame_size: tuple[int, int] | None = None, on_notice: Callable[[str, str], None] | None = None):
+        """``frame_size``: ``(width, height)`` of the job's camera (None: the first frame's); ``on_notice(station,
+        line)``: says what the light controller was found in and re-armed from (None: the line goes to stderr)."""
         self.robot, self.camera, self.light = robot, camera, light
         self.exposure_s, self.frame_timeout_s = float(exposure_s), float(frame_timeout_s)
         self.light_by_line = light_by_line
+        self.frame_size = None if frame_size is None else (int(frame_size[0]), int(frame_size[1]))
+        self.on_notice = on_notice
         self._frame_ids: set = set()
         self._last_frame_s = -np.inf
+        self._first_size: tuple[int, int] | None = None
         if light is not None and light_by_line:
             light.arm(self.exposure_s)  # pulse mode: the camera's strobe line fires each flash
+
+    def _notice(self, station: str, line: str) -> None:
+        if self.on_notice is not None:
+            self.on_notice(station, line)
+        else:
+            print(f"WARNING station {station}: {line}", file=sys.stderr, flush=True)
 
     def take(self, station: str, attempt: int, settled: RobotState, settled_host_s: float,
              peak_speed: float, hold_s: float) -> tuple[Frame, Exposure]:
         """Trigger, capture, check; ``FrameFault`` (with the exposure record in ``.record``) on a bad frame."""
-        light = "none"
+        light, note = "none", None
+        if self.light is not None and self.light_by_line:  # read back (re-armed when lost) before the exposure
+            note = self.light.arm(self.exposure_s)
+            light = "camera strobe line"
         trigger_s = time.time()
         if self.light is not None and not self.light_by_line:
-            self.light.strobe(self.exposure_s)  # pulse now (controller software trigger), exposure follows
+            note = self.light.strobe(self.exposure_s)  # pulse now (controller software trigger), exposure follows
             light = "software trigger"
-        elif self.light is not None:
-            light = "camera strobe line"
+        if note:
+            self._notice(station, note)
         rec = Exposure(station=station, attempt=attempt, outcome="ok", detail="", trigger_host_s=trigger_s, light=light,
-                       exposure_s=self.exposure_s, settled_for_s=hold_s, max_joint_speed_rad_s=peak_speed)
+                       exposure_s=self.exposure_s, settled_for_s=hold_s, max_joint_speed_rad_s=peak_speed,
+                       light_note=note or None)
         try:
             frame = self.camera.capture()
         except NotConnectedError:
@@ -129,6 +152,20 @@ class ExposureTaker:
             rec.outcome, rec.detail = "missing", str(exc)
             raise self._fault(rec, f"station {station}: no frame ({exc})") from None
         received_s = time.time()
+        lost = self.light.check() if self.light is not None and hasattr(self.light, "check") else None
+        if lost:
+            rec.outcome = "unlit"
+            raise self._fault(rec, f"station {station}: after the exposure, {getattr(self.light, 'name', 'the light')}:"
+                                   f" {lost}: it lost its settings, the light may not have flashed")
+        h, w = np.shape(frame.image)[:2]
+        rec.frame_size = [int(w), int(h)]
+        want = self.frame_size or self._first_size
+        if want is not None and (w, h) != want:
+            rec.outcome = "size"
+            size = (f"the job's camera is {want[0]}x{want[1]} ([camera] width x height)" if self.frame_size else
+                    f"this session's first frame was {want[0]}x{want[1]}")
+            raise self._fault(rec, f"station {station}: the camera delivered a {w}x{h} frame, {size}: binning or the "
+                                   "ROI changed behind the cell?")
         meta = frame.meta or {}
         t_frame = float(meta.get("triggered_host_s", frame.timestamp_s))
         rec.frame_host_s, rec.frame_id = float(frame.timestamp_s), meta.get("frame_id")
@@ -159,6 +196,8 @@ class ExposureTaker:
         rec.joints_rad = np.asarray(settled.joints_rad, dtype=float).tolist()
         if key is not None:
             self._frame_ids.add(key)
+        if want is None:  # no size from the job: the session's first frame sets it
+            self._first_size = (int(w), int(h))
         self._last_frame_s = float(frame.timestamp_s)
         return frame, rec
 
