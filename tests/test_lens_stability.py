@@ -147,3 +147,13 @@ def test_adjust_warns_of_a_lens_that_slipped_midway_and_records_it_in_bundle_jso
     st = run_bundle(ctx)["lens"]["interior_stability"]
     assert st["tested"] and not st["significant"] and "note" not in st
     assert not any("lens changed" in str(x) for x in said)
+
+
+def test_a_lens_that_moved_makes_a_pass_incomplete_and_says_why_and_leaves_a_fail():
+    from cell.stages.report import lens_verdict
+
+    moved = {"note": None, "stability_note": "the lens changed during the acquisition between images ..."}
+    verdict, reasons = lens_verdict(moved, "PASS", [])
+    assert verdict == "INCOMPLETE" and any("lens.stability_note" in r for r in reasons)
+    assert lens_verdict(moved, "FAIL", ["T0105 beyond"]) == ("FAIL", ["T0105 beyond", reasons[0]])
+    assert lens_verdict({"note": None, "stability_note": None}, "PASS", []) == ("PASS", [])

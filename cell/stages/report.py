@@ -607,10 +607,7 @@ def write_report(ctx) -> tuple[str, list[str]]:
         verdict_reasons = list(verdict_reasons) + [f"the part measures {scale['scale_ppm']:+.0f} ppm against its CAD "
                                                    "(report.json thermal.note)"]
     lens = lens_doc(job, bundle)
-    if lens["note"]:  # the images refute the radial lens model: the statement is not this lens's (decision 0054)
-        verdict_reasons = list(verdict_reasons) + ["the lens has terms its radial model does not carry: the targets' "
-                                                   "coordinates and uncertainties are off (report.json lens.note)"]
-        verdict = "INCOMPLETE" if verdict == "PASS" else verdict
+    verdict, verdict_reasons = lens_verdict(lens, verdict, verdict_reasons)
     doc = {
         "job": {"id": f.job_id, "name": job.spec.job.name, "part": job.part.name, "seed": job.spec.job.seed,
                 "sim_seed": job.spec.sim.seed if ctx.backend == "sim" else None, "backend": ctx.backend,
@@ -696,6 +693,22 @@ def write_report(ctx) -> tuple[str, list[str]]:
 
     atomic_write_bytes(f.file("report.html"), R.render_html(to_jsonable(doc), figs, interactive).encode())
     return verdict, verdict_reasons
+
+
+def lens_verdict(lens: dict, verdict: str, reasons) -> tuple[str, list]:
+    """The verdict and its reasons with what report.json's ``lens`` says against the statement: a PASS becomes
+    INCOMPLETE (the measurement does not show that the part conforms) when the images refute the radial lens model
+    (``note``, decision 0054) or the lens changed during the acquisition (``stability_note``, decision 0066)."""
+    reasons = list(reasons)
+    if lens.get("note"):
+        reasons.append("the lens has terms its radial model does not carry: the targets' coordinates and uncertainties "
+                       "are off (report.json lens.note)")
+    if lens.get("stability_note"):
+        reasons.append("the lens changed during the acquisition: the targets' coordinates and uncertainties rest on "
+                       "one lens for all images (report.json lens.stability_note)")
+    if (lens.get("note") or lens.get("stability_note")) and verdict == "PASS":
+        verdict = "INCOMPLETE"
+    return verdict, reasons
 
 
 def run(ctx) -> None:
