@@ -41,7 +41,7 @@ def test_protective_stop_mid_job_faults_with_cause_and_resume_after_unlock_compl
     proc = subprocess.Popen([*cell_command(), "run", str(job), "--archive", str(archive), "--yes", "--json"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=child_env())
     try:
-        deadline = time.monotonic() + 120
+        deadline = time.monotonic() + 240  # LOAD and PLAN first: slow on a loaded machine (a CI with two workers)
         folder = None
         while time.monotonic() < deadline and proc.poll() is None:
             dirs = [d for d in archive.iterdir() if d.is_dir() and not d.name.startswith(".")] if archive.exists() else []
