@@ -15,7 +15,8 @@ station (:attr:`Augmentation.bound_sigma`, a proof, not a heuristic).
 
 The choice itself is greedy with an exact score (every candidate evaluated against every target still
 short: closed-form 3x3 inversions, vectorised), followed by a pruning pass that drops any added station
-the others make unnecessary. Tests compare its station count with an exhaustive search on small cases.
+the others make unnecessary (one whose removal leaves no target further from its requirement: partial gains
+towards a target that needs more stations than one round allows are kept). Tests compare its station count with an exhaustive search on small cases.
 
 Arrays: ``N_have: (n, 3, 3)`` information achieved per target (1/m^2; zeros for a target not measured),
 ``rays_have: (n,)`` surviving rays per target, ``required: (n,)`` required sigma (m), ``info: (m, n, 6)``
@@ -78,6 +79,10 @@ class Augmentation:
         bound_sigma: (n,) the smallest sigma any set of valid candidates can give (taken + all valid).
         unreachable: targets short whose bound still misses the requirement: no reachable station helps.
         met_after: (n,) whether each short target meets its requirement with ``added`` (prediction).
+        facts: ``stopped`` why the greedy search stopped: "met" (every target it could fix is predicted met),
+            "max_new" (the round's limit: targets the bound says stations can fix are still short, ``added`` holds
+            the partial gains), "no gain" (no single candidate improves them), "unreachable" (only targets the
+            bound proves no candidate can fix).
     """
 
     added: np.ndarray
@@ -166,17 +171,26 @@ def plan_extra_stations(N_have: np.ndarray, rays_have: np.ndarray, required: np.
             added.append(int(cand[k]))
             N += infoT[k]
             rays += visT[k]
-        # prune: drop stations the others make unnecessary (latest-added last to go)
+        s_end, ok_end = _sigma(N, rays, min_rays, UT)
+        left = _deficiency(s_end, ok_end, rays, req, min_rays) > 0
+        stopped = "met" if not left.any() else ("max_new" if len(added) >= max_new else "no gain")
+        # prune: drop a station the others make unnecessary: without it no target is further from its requirement
+        # (latest-added last to go). A station that brings a target still short closer is kept: its partial gain is
+        # what the next round builds on (decision 0070; pruning it left a target that needs more stations than one
+        # round allows with nothing, and the loop ended claiming no station helps)
         for c in list(added):
             rest = [a for a in added if a != c]
             Nr = N_have[T] + (info[rest][:, T].astype(float).sum(axis=0) if rest else 0.0)
             rr = rays_have[T] + (visible[rest][:, T].sum(axis=0) if rest else 0)
             s, ok = _sigma(Nr, rr, min_rays, UT)
             s_full, ok_full = _sigma(N, rays, min_rays, UT)
-            met_full = (s_full <= req) & ok_full
-            if np.all(((s <= req) & ok) | ~met_full):  # nothing that was met becomes short
+            d_full = _deficiency(s_full, ok_full, rays, req, min_rays)
+            d_rest = _deficiency(s, ok, rr, req, min_rays)
+            if np.all(d_rest <= d_full + 1e-12):  # nothing that was met becomes short, no partial gain is lost
                 added = rest
                 N, rays = Nr, rr
+    else:
+        stopped = "met" if not short.any() else "unreachable"
     N_after = N_have + (info[added].astype(float).sum(axis=0) if added else 0.0)
     rays_after = rays_have + (visible[added].sum(axis=0) if added else 0)
     sigma_after, ok_after = _sigma(N_after, rays_after, min_rays, U)
@@ -186,4 +200,5 @@ def plan_extra_stations(N_have: np.ndarray, rays_have: np.ndarray, required: np.
                         sigma_before=np.where(ok0, sigma0, np.inf), sigma_after=sigma_after, bound_sigma=bound,
                         unreachable=unreachable, met_after=met_after,
                         facts={"candidates_valid": int(valid.sum()), "targets_short": int(short.sum()),
-                               "targets_unreachable": int(unreachable.sum())})
+                               "targets_unreachable": int(unreachable.sum()), "stopped": stopped,
+                               "limited_by_max_new": stopped == "max_new"})

@@ -464,6 +464,21 @@ def _dropped_table(doc: dict) -> str:
             f"<td><b>{dr.get('n_dropped', 0)}</b></td>{total}</tr></table>")
 
 
+def _requirement_html(doc: dict) -> str:
+    """The precision the job asked for and how many targets the measurement brought within it (decision 0070)."""
+    pr = doc.get("precision_requirement")
+    if not pr:
+        return ""
+    req = pr.get("required_sigma_m")
+    short = pr.get("short") or []
+    return (f'<p id="precision-requirement"><b>Precision requirement</b>: required sigma '
+            f"{_fmt_um(req) + ' um' if req else 'per target'} ({html.escape(pr['source'])}"
+            f"{'' if pr.get('closed_loop') else '; closed loop off'}): {pr['n_met']} of {pr['n_judged']} target(s) "
+            "within it" + (f"; {len(short)} measured less precisely than required: "
+                          + html.escape(", ".join(short[:12]) + (" ..." if len(short) > 12 else "")) if short else "")
+            + (f"; {len(pr.get('not_measured') or [])} not measured" if pr.get("not_measured") else "") + ".</p>")
+
+
 def _closed_loop_html(doc: dict) -> str:
     """The closed loop's rounds and the targets that still miss their requirement (with why)."""
     cl = doc.get("closed_loop")
@@ -502,15 +517,18 @@ def render_html(doc: dict, figures: dict[str, str], interactive: str = "") -> st
     listed = [t for i, t in enumerate(ordered)
               if i < TABLE_ROWS or not t["pass"] or t.get("decision") == "inconclusive" or t["measured"][0] is None]
     more = len(ordered) - len(listed)
+    req_col = doc.get("precision_requirement") is not None
     for t in listed:
         cls = "" if t["pass"] else ' class="fail"'
+        req = (f"<td>{_fmt_um(t.get('required_sigma_m'))}{'' if t.get('required_met') else ' short'}</td>"
+               if req_col else "")
         rows.append(
             f"<tr{cls}><td class=l>{html.escape(t['id'])}</td>"
             + "".join(f"<td>{_num(v, 1000, 4)}</td>" for v in t["measured"])
             + "".join(f"<td>{_num(v, 1e6, 1)}</td>" for v in t["deviation"])
             + f"<td>{_fmt_um(t['deviation_norm_m'])}</td><td>{_fmt_um(t['tolerance_m'])}</td>"
             f"<td>{_fmt_um(t.get('uncertainty_U_m'))}</td>"
-            f"<td>{_fmt_um(t['achieved_sigma_m'])}</td><td>{_fmt_um(t['predicted_sigma_m'])}</td>"
+            f"<td>{_fmt_um(t['achieved_sigma_m'])}</td>{req}<td>{_fmt_um(t['predicted_sigma_m'])}</td>"
             f"<td>{t['n_images']}</td><td class=l>{_status(t)}</td></tr>"
         )
     stages = "".join(f"<tr><td class=l>{html.escape(k)}</td><td>{v:.2f}</td></tr>" for k, v in doc["stage_times_s"].items())
@@ -534,14 +552,14 @@ def render_html(doc: dict, figures: dict[str, str], interactive: str = "") -> st
 <style>{_CSS}</style></head><body>
 <h1>Inspection report: {html.escape(j['name'])}</h1>
 <div class="verdict {verdict}" id="verdict">{verdict}: {_headline(doc)}{_inconclusive(doc)}</div>
-{_verdict_reasons(doc)}{_alerts(doc)}
+{_verdict_reasons(doc)}{_requirement_html(doc)}{_alerts(doc)}
 <h2>Job</h2><table class="kv">{kv}</table>
 <h2>Figures</h2><div class="figs">{figs}</div>
 {_rejected_table(doc)}{_dropped_table(doc)}
 <h2>Targets</h2>
 <table id="targets"><tr><th>id</th><th>measured x [mm]</th><th>measured y [mm]</th><th>measured z [mm]</th>
 <th>dx [um]</th><th>dy [um]</th><th>dz [um]</th><th>|d| [um]</th><th>tol [um]</th><th>U (k=2) [um]</th>
-<th>sigma [um]</th><th>predicted [um]</th><th>images</th><th></th></tr>
+<th>sigma [um]</th>{'<th>required sigma [um]</th>' if req_col else ''}<th>predicted [um]</th><th>images</th><th></th></tr>
 {''.join(rows)}</table>
 {f'<p id="more-targets">{more} more targets within tolerance (smaller deviations) are not listed here: report.json has every target.</p>' if more else ''}
 {_closed_loop_html(doc)}<h2>Time per stage</h2><table class="kv">{stages}</table>

@@ -73,7 +73,10 @@ def run(ctx) -> None:
         ctx.folder.append("station_start", station=sid)
         after = next((t for t in stations[k + 1:] if t["id"] not in done and t["id"] not in skipped), None)
         if first:
-            check_first_move(ctx, dev.robot, sid, q, plan_doc)
+            via = s.get("validated_from_q")  # a loop station: its round was validated from there (decision 0070)
+            if via is None and s.get("round") is not None:  # recorded before 0070: the last station taken before it
+                via = next((t["joints"] for t in reversed(stations[:k]) if t["id"] in done), None)
+            check_first_move(ctx, dev.robot, sid, q, plan_doc, via=via)
             first = False
         if not _move_or_skip(ctx, dev.robot, sid, q, skipped, None if after is None else after["joints"]):
             continue
@@ -157,14 +160,18 @@ def _deg(q) -> str:
     return "[" + ", ".join(f"{v:.1f}" for v in np.rad2deg(np.asarray(q, dtype=float))) + "] deg"
 
 
-def check_first_move(ctx, robot, sid: str, q: np.ndarray, plan_doc: dict) -> None:
+def check_first_move(ctx, robot, sid: str, q: np.ndarray, plan_doc: dict, via=None) -> None:
     """Check the first move of ACQUIRE (of a job, or after ``cell resume``) from the arm's measured joints.
 
     VALIDATE checked the tour from the plan's start pose (``execution.start_q``); the arm stands wherever it was
     left, stopped or jogged. The move from there to the first station is checked as VALIDATE and the detour check
     it (:func:`planning.execution.check_move`, the cell's collision world and clearance). Not free: ``DriverError``
     before anything moves, telling the operator to jog the arm to the start pose. Free: journalled
-    (``first_move_checked``) and logged."""
+    (``first_move_checked``) and logged.
+
+    A closed-loop station (``via``: plan.json ``validated_from_q``, the pose its round was validated from, decision
+    0070) whose direct move is not free is reached through that pose when both legs are: the round's tour was
+    validated from there, not from the plan's start pose. Otherwise the advice names that pose."""
     from cell.setup import collision_world, robot_model
     from planning.execution import MotionLimits, check_move, lever_arms
 
@@ -174,12 +181,29 @@ def check_first_move(ctx, robot, sid: str, q: np.ndarray, plan_doc: dict) -> Non
                      MotionLimits().check_resolution_rad, ("measured", sid), 0.0)
     start = (plan_doc.get("execution") or {}).get("start_q")
     a, b = chk.pair
+    if not chk.free and via is not None:
+        via = np.asarray(via, dtype=float)
+        legs = [check_move(model, world, x, y, lever_arms(model), MotionLimits().check_resolution_rad,
+                           ("measured", sid), 0.0) for x, y in ((q_from, via), (via, np.asarray(q, dtype=float)))]
+        if all(leg.free for leg in legs):
+            c = ctx.job.spec.cell
+            robot.move_joints(via, c.max_joint_speed_rad_s, c.max_joint_accel_rad_s2)
+            msg = (f"first move to station {sid} from {_deg(q_from)} is not collision-free ({a} vs {b}); went through "
+                   f"{_deg(via)}, the pose its closed-loop round was validated from (both legs collision-free)")
+            ctx.folder.append("first_move_checked", station=sid, joints=q_from, via=via,
+                              min_distance_m=min(leg.min_distance_m for leg in legs), closest=list(legs[0].pair),
+                              n_checks=sum(leg.n_checks for leg in legs))
+            ctx.log.log("info", msg)
+            ctx.say(f"  {msg}")
+            return
     if not chk.free:
         raise DriverError(
             f"the first move, from where the arm stands ({_deg(q_from)}) to station {sid}, is not collision-free: "
             f"{a} vs {b} {chk.min_distance_m * 1e3:.1f} mm apart at {chk.at_fraction:.0%} of the move (clearance "
-            f"{world.clearance_m * 1e3:.0f} mm); nothing moved: jog the arm to the plan's start pose start_q "
-            f"{_deg(start) if start is not None else '(plan.json execution.start_q)'} and resume the job")
+            f"{world.clearance_m * 1e3:.0f} mm); nothing moved: jog the arm to "
+            + (f"{_deg(via)}, the pose the station's closed-loop round was validated from," if via is not None else
+               f"the plan's start pose start_q {_deg(start) if start is not None else '(plan.json execution.start_q)'}")
+            + " and resume the job")
     msg = (f"first move checked from the measured pose {_deg(q_from)} to station {sid}: collision-free, least "
            f"clearance {chk.min_distance_m * 1e3:.1f} mm ({a} vs {b})")
     ctx.folder.append("first_move_checked", station=sid, joints=q_from, min_distance_m=chk.min_distance_m,

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from calibration.camera import invert
-from calibration.errors import CalibrationError
+from calibration.errors import CalibrationError, RecordError
 from calibration.faugeras_toscani import faugeras_toscani, orient_without_ft
 from cell.record.jobfolder import atomic_write_json
 
@@ -25,6 +25,16 @@ CONSISTENT_PX = 3.0
 CONSISTENT_MIN = 12
 
 
+def refuse_duplicates(file: str, what: str, names) -> None:
+    """A record that lists one station or image twice (a round of the closed loop written twice before decision 0070)
+    is refused with one line naming the file and the names, never adjusted as if they were two."""
+    names = [str(n) for n in names]
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup:
+        raise RecordError(f"{file} lists {len(dup)} {what}(s) more than once ({', '.join(dup[:6])}"
+                          f"{' ...' if len(dup) > 6 else ''}): the record is damaged; the job cannot go on from it")
+
+
 def run(ctx) -> None:
     """Faugeras-Toscani per image: interior and exterior orientation from the nominal targets.
 
@@ -40,7 +50,11 @@ def run(ctx) -> None:
     """
     job = ctx.job
     obs = ctx.folder.read_json("observations.json")
-    acq = {a["station"]: a for a in ctx.folder.read_json("acquisition.json")["images"]}
+    acq_images = ctx.folder.read_json("acquisition.json")["images"]
+    for file, ims in (("acquisition.json", acq_images), ("observations.json", obs["images"])):
+        refuse_duplicates(file, "station", [a["station"] for a in ims])
+        refuse_duplicates(file, "image", [a["image"] for a in ims])
+    acq = {a["station"]: a for a in acq_images}
     index = job.part.targets.index()
     res = []
     for o in obs["images"]:

@@ -41,6 +41,40 @@ def _requirement(job) -> np.ndarray:
     return required_sigma(job.part, planner_options(job))
 
 
+def stated_requirement(job) -> tuple[np.ndarray | None, str]:
+    """Each target's required sigma (m) when the job states a requirement, and where it comes from; ``(None, "")``
+    when it states none. Stated: ``[planning] required_sigma``, ``mode = "cheapest"`` (tolerance / 10), or the closed
+    loop asked for. The closed loop being off does not drop it: REPORT checks it all the same (decision 0070)."""
+    p = job.spec.planning
+    if p.required_sigma is None and p.mode != "cheapest" and not p.closed_loop_on():
+        return None, ""
+    source = ("[planning] required_sigma" if p.required_sigma is not None
+              else "tolerance / 10 (the targets file or [report] tolerance)")
+    return _requirement(job), source
+
+
+def requirement_doc(job, required, source: str, achieved: np.ndarray, ok: np.ndarray, judged: np.ndarray,
+                    targets: list[dict]) -> dict | None:
+    """report.json ``precision_requirement`` (None when the job states none), and each judged target's
+    ``required_sigma_m`` and ``required_met`` (set on ``targets``, report.json's target dicts). Judged on the
+    report's ``achieved_sigma_m`` (the sigma every record shows); a target not measured is not met."""
+    if required is None:
+        return None
+    ids = list(job.part.targets.ids)
+    where = {tid: k for k, tid in enumerate(ids)}
+    with np.errstate(invalid="ignore"):
+        met = ok & (achieved <= required * (1 + 1e-9))
+    for t in targets:
+        j = where[t["id"]]
+        t["required_sigma_m"], t["required_met"] = float(required[j]), bool(met[j])
+    short = [ids[j] for j in np.flatnonzero(judged & ok & ~met)]
+    uniform = bool(np.allclose(required, required[0]))
+    return {"required_sigma_m": float(required[0]) if uniform else None, "source": source,
+            "closed_loop": bool(job.spec.planning.closed_loop_on()), "judged_on": "achieved_sigma_m",
+            "n_judged": int(judged.sum()), "n_met": int((judged & met).sum()), "short": short,
+            "not_measured": [ids[j] for j in np.flatnonzero(judged & ~ok)]}
+
+
 def _achieved(bundle: dict, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per target: covariance (n, 3, 3) (nan where not measured), sigma (inf where not measured), rays."""
     cov = np.full((n, 3, 3), np.nan)
@@ -212,7 +246,8 @@ def _plan_round(ctx, rnd: int, bundle: dict, required: np.ndarray, exclude: set[
             t = job.part.targets
             seen_all &= _incidence(db, t.xyz[measured_all], t.normals[measured_all]) <= limit
         valid &= seen_all.sum(axis=1) >= LINK_STATION
-    for i in exclude:
+    refused = _refused_candidates(ctx, db)
+    for i in exclude | refused:
         valid[i] = False
     N6, measured = information_from_covariance(cov[cols])
     measured &= ~ends[cols]
@@ -231,6 +266,13 @@ def _plan_round(ctx, rnd: int, bundle: dict, required: np.ndarray, exclude: set[
              "bound_sigma_m": {ids[int(cols[j])]: (float(aug.bound_sigma[j]) if np.isfinite(aug.bound_sigma[j])
                                                   else None) for j in np.flatnonzero(aug.unreachable)},
              "predicted_fixed": [ids[int(cols[j])] for j in np.flatnonzero(aug.met_after & aug.short)],
+             # what the round's stations are predicted to give the targets they can help (decision 0070: compared
+             # with what the round achieved)
+             "predicted_sigma_m": {ids[int(cols[j])]: float(aug.sigma_after[j])
+                                   for j in np.flatnonzero(aug.short & ~aug.unreachable)
+                                   if np.isfinite(aug.sigma_after[j])},
+             "stopped": aug.facts.get("stopped"), "max_stations": int(p.closed_loop_max_stations),
+             "candidates_refused_excluded": sorted(int(i) for i in refused),
              "image_sigma_px": sigma_px, "candidates_valid": int(valid.sum()),
              "candidate_rule": (f"reachable without collision, seeing it within the plan's limits"
                                 + ("" if limit is None else f" and within the {np.degrees(limit):.1f} deg incidence "
@@ -261,11 +303,73 @@ def _plan_round(ctx, rnd: int, bundle: dict, required: np.ndarray, exclude: set[
         return [], facts
     sub = apply_to_plan({"stations": [{"id": sid, "part_from_cam": T.tolist()} for sid, T in zip(new_ids, pfc)]}, ep)
     base = max(int(s["order"]) for s in ctx.folder.read_json("plan.json")["stations"]) + 1
-    stations = [dict(s, order=base + int(s["order"]), round=rnd, candidate=int(i))
+    stations = [dict(s, order=base + int(s["order"]), round=rnd, candidate=int(i), validated_from_q=here_q.tolist())
                 for s, i in zip(sub["stations"], aug.added)]
     facts["stations_added"] = new_ids
+    facts["stations_planned"] = new_ids
+    facts["validated_from_q"] = here_q.tolist()  # the round's first move was checked from here (decision 0070)
     facts["cycle_time_s"] = float(ep.cycle_time_s)
     return stations, facts
+
+
+def _refused_candidates(ctx, db) -> set[int]:
+    """Candidates of the stations the robot refused in this job (journal ``station_skipped``): a loop station by its
+    ``candidate``, a planned one by its pose. They are not chosen again (decision 0070: they were, every round)."""
+    skipped = {r["station"] for r in ctx.folder.records() if r["event"] == "station_skipped"}
+    out: set[int] = set()
+    for st in ctx.folder.read_json("plan.json")["stations"]:
+        if st["id"] not in skipped:
+            continue
+        if st.get("candidate") is not None:
+            out.add(int(st["candidate"]))
+        else:
+            T = np.asarray(st["part_from_cam"], dtype=float)
+            out |= set(int(i) for i in np.flatnonzero(np.all(np.abs(db.part_from_cam - T) < 1e-6, axis=(1, 2))))
+    return out
+
+
+def _plan_stations(ctx) -> list[dict]:
+    """plan.json's stations, refused loudly when one id is there twice (decision 0070)."""
+    from cell.stages.calibrate import refuse_duplicates
+
+    stations = ctx.folder.read_json("plan.json")["stations"]
+    refuse_duplicates("plan.json", "station", [s["id"] for s in stations])
+    return stations
+
+
+def _commit_round(ctx, doc: dict, path, rec: dict) -> None:
+    """Put a round's stations into plan.json: only those not there yet (a kill between the two writes leaves them
+    there, or not), then mark the round planned. closed_loop.json holds the round's intent (status "planning" and
+    its stations) before plan.json is written, so a kill at any point resumes without re-planning it under the same
+    ids (decision 0070)."""
+    plan_doc = ctx.folder.read_json("plan.json")
+    have = {s["id"]: s for s in plan_doc["stations"]}
+    for st in rec.get("stations", []):
+        old = have.get(st["id"])
+        if old is not None and old.get("candidate") != st.get("candidate"):
+            from calibration.errors import RecordError
+
+            raise RecordError(f"plan.json station {st['id']} is candidate {old.get('candidate')}, closed_loop.json's "
+                              f"round {rec['round']} says {st.get('candidate')}: the record is damaged")
+    new = [st for st in rec.get("stations", []) if st["id"] not in have]
+    if new:
+        plan_doc["stations"] = plan_doc["stations"] + new
+        atomic_write_json(ctx.folder.file("plan.json"), plan_doc)
+    rec["status"] = "planned"
+    atomic_write_json(path, doc)
+
+
+def _recovered_round(ctx, rnd: int, stations: list[dict], short_ids: list[str]) -> dict | None:
+    """A round whose stations are in plan.json but not in closed_loop.json (a kill between the two writes of a job
+    recorded before decision 0070): taken as planned, not planned again under the same ids."""
+    mine = [s for s in stations if s.get("round") == rnd]
+    if not mine:
+        return None
+    sids = [s["id"] for s in mine]
+    ctx.log.log("warning", f"closed loop round {rnd}: its stations {', '.join(sids)} are in plan.json but the round "
+                           "was not recorded (a kill between the two writes); going on with them")
+    return {"round": rnd, "status": "planned", "targets_short": short_ids, "stations_added": sids,
+            "stations_planned": sids, "recovered_from_plan": True, "predicted_fixed": [], "predicted_sigma_m": {}}
 
 
 def run(ctx) -> None:
@@ -278,6 +382,7 @@ def run(ctx) -> None:
     required = _requirement(job)
     n = len(job.part.targets.ids)
     ids = list(job.part.targets.ids)
+    where = {tid: k for k, tid in enumerate(ids)}
     path = ctx.folder.file(NAME)
     doc = ctx.folder.read_json(NAME) if path.exists() else {"enabled": True, "rounds": []}
     if not doc.get("enabled"):
@@ -288,7 +393,10 @@ def run(ctx) -> None:
     for rec in doc["rounds"]:
         exclude |= set(rec.get("excluded", []))
     while True:
-        pending = doc["rounds"][-1] if doc["rounds"] and doc["rounds"][-1].get("status") == "planned" else None
+        last = doc["rounds"][-1] if doc["rounds"] else None
+        if last is not None and last.get("status") == "planning":  # killed between its two writes: finish them
+            _commit_round(ctx, doc, path, last)
+        pending = last if last is not None and last.get("status") == "planned" else None
         if pending is None:
             done_rounds = sum(1 for r in doc["rounds"] if r.get("status") == "done")
             bundle = ctx.folder.read_json("bundle.json")
@@ -299,6 +407,11 @@ def run(ctx) -> None:
             t0 = time.perf_counter()
             ctx.progress("close_loop", 0.0)
             rnd = done_rounds + 1
+            pending = _recovered_round(ctx, rnd, _plan_stations(ctx), [ids[int(t)] for t in np.flatnonzero(short)])
+            if pending is not None:
+                doc["rounds"].append(pending)
+                atomic_write_json(path, doc)
+        if pending is None:
             stations, facts = _plan_round(ctx, rnd, bundle, required, exclude)
             if "excluded" in facts:  # the robot could not take them after all: plan again without them
                 exclude |= set(facts["excluded"])
@@ -312,23 +425,30 @@ def run(ctx) -> None:
                     break
                 continue
             if not stations:
-                ctx.log.log("warning", f"closed loop round {rnd}: no reachable station helps the "
-                                       f"{len(facts['targets_short'])} target(s) short")
-                ctx.say(f"  round {rnd}: no reachable station helps the {len(facts['targets_short'])} target(s) short")
+                k = len(facts["targets_short"])
+                msg = (f"round {rnd}: no reachable station can bring the {k} target(s) short within their requirement "
+                       "(the bound: every reachable candidate added)" if facts.get("stopped") == "unreachable" else
+                       f"round {rnd}: no single reachable station improves the {k} target(s) short")
+                ctx.log.log("warning", f"closed loop {msg}")
+                ctx.say(f"  {msg}")
                 doc["rounds"].append(facts | {"status": "nothing to add", "stations_added": [], "targets_fixed": [],
                                               "time_s": time.perf_counter() - t0})
                 atomic_write_json(path, doc)
                 break
-            plan_doc = ctx.folder.read_json("plan.json")
-            plan_doc["stations"] = plan_doc["stations"] + stations
-            atomic_write_json(ctx.folder.file("plan.json"), plan_doc)
-            pending = facts | {"status": "planned", "planning_time_s": time.perf_counter() - t0}
+            # the round's intent first (closed_loop.json, with its stations), then plan.json: a kill between the writes
+            # resumes with the round, never plans it again under the same ids (decision 0070)
+            pending = facts | {"status": "planning", "stations": stations,
+                               "planning_time_s": time.perf_counter() - t0}
             doc["rounds"].append(pending)
             atomic_write_json(path, doc)
+            _commit_round(ctx, doc, path, pending)
             ctx.log.log("info", f"closed loop round {rnd}: {len(stations)} station(s) for "
                                 f"{len(facts['targets_short'])} target(s) short")
             ctx.say(f"  round {rnd}: {len(facts['targets_short'])} target(s) short of the requirement; "
-                    f"{len(stations)} extra station(s) {', '.join(facts['stations_added'])}")
+                    f"{len(stations)} extra station(s) {', '.join(facts['stations_added'])}"
+                    + (f" (more would help: at most [planning] closed_loop_max_stations = {p.closed_loop_max_stations} "
+                       "per round)" if facts.get("stopped") == "max_new" else ""))
+        _plan_stations(ctx)  # refuses a plan.json that lists a station twice
         # take, measure, orient the round's stations, then adjust the whole network again
         t1 = time.perf_counter()
         acquire_run(ctx)
@@ -338,23 +458,71 @@ def run(ctx) -> None:
         bundle = ctx.folder.read_json("bundle.json")
         _, sigma, rays = _achieved(bundle, n)
         now_short = _short(sigma, rays, required, p.min_rays, _judged(job)) | _scale_ends(job, bundle)
-        where = {tid: k for k, tid in enumerate(ids)}
         fixed = [t for t in pending["targets_short"] if not now_short[where[t]]]
+        _settle_round(ctx, pending, sigma, now_short, where)
         pending.update(status="done", targets_fixed=fixed,
                        time_s=pending.get("planning_time_s", 0.0) + time.perf_counter() - t1)
         atomic_write_json(path, doc)
         ctx.say(f"  round {pending['round']}: {len(fixed)} of {len(pending['targets_short'])} target(s) now within "
                 "the requirement")
-    # what still misses, and why
+    _unmet(ctx, doc, path, required, n)
+
+
+def _settle_round(ctx, pending: dict, sigma: np.ndarray, now_short: np.ndarray, where: dict) -> None:
+    """After a round's acquisition: only the stations whose image was taken count as added; those the robot refused
+    are listed apart with the reason; the round's prediction against what it achieved (decision 0070)."""
+    taken = {a["station"] for a in ctx.folder.read_json("acquisition.json")["images"]}
+    skipped = {r["station"]: r["reason"] for r in ctx.folder.records() if r["event"] == "station_skipped"}
+    planned = pending.get("stations_planned", pending.get("stations_added", []))
+    cand = {s["id"]: s.get("candidate") for s in pending.get("stations", [])}
+    pending["stations_added"] = [s for s in planned if s in taken]
+    pending["stations_refused"] = [{"id": s, "candidate": cand.get(s), "reason": skipped.get(s, "not taken")}
+                                   for s in planned if s not in taken]
+    if pending["stations_refused"]:
+        msg = (f"closed loop round {pending['round']}: {len(pending['stations_refused'])} of {len(planned)} station(s) "
+               f"not taken: " + "; ".join(f"{r['id']} ({r['reason']})" for r in pending["stations_refused"][:4])
+               + "; their candidates are not chosen again")
+        ctx.log.log("warning", msg)
+        ctx.say(f"  WARNING {msg}")
+    pred = pending.get("predicted_sigma_m") or {}
+    pending["achieved_sigma_m"] = {t: (float(sigma[where[t]]) if np.isfinite(sigma[where[t]]) else None) for t in pred}
+    missed = [t for t in pending.get("predicted_fixed", []) if now_short[where[t]]]
+    pending["prediction_missed"] = missed
+    if missed:
+        def um(v):
+            return "not measured" if v is None or not np.isfinite(v) else f"{v * 1e6:.2f} um"
+        msg = (f"closed loop round {pending['round']}: the prediction did not hold for {len(missed)} of the "
+               f"{len(pending.get('predicted_fixed', []))} target(s) it meant to bring within the requirement"
+               + (" (stations refused)" if pending["stations_refused"] else "") + ": "
+               + ", ".join(f"{t} predicted {um(pred.get(t))}, achieved {um(pending['achieved_sigma_m'].get(t))}"
+                           for t in missed[:6]) + (" ..." if len(missed) > 6 else ""))
+        ctx.log.log("warning", msg)
+        ctx.say(f"  WARNING {msg}")
+
+
+def _unmet(ctx, doc: dict, path, required: np.ndarray, n: int) -> None:
+    """What still misses after the loop, and why (the bound, too few rays, refused stations, the per-round limit,
+    a prediction that failed, or the round limit); closed_loop.json ``unmet``, the console and the run log."""
+    job = ctx.job
+    p = job.spec.planning
+    ids = list(job.part.targets.ids)
     bundle = ctx.folder.read_json("bundle.json")
     _, sigma, rays = _achieved(bundle, n)
     ends = _scale_ends(job, bundle)
     short = _short(sigma, rays, required, p.min_rays, _judged(job)) | ends
     proofs: dict[str, float | None] = {}
     rule: dict[str, str] = {}
+    refused_for: dict[str, list[str]] = {}
     for r in doc["rounds"]:
         proofs.update(r.get("bound_sigma_m", {}))
         rule.update({tid: r.get("candidate_rule", "reachable") for tid in r.get("bound_sigma_m", {})})
+        if r.get("stations_refused"):
+            for tid in r.get("predicted_fixed", []) or r.get("targets_short", []):
+                refused_for.setdefault(tid, []).extend(f"{x['id']}: {x['reason']}" for x in r["stations_refused"])
+    planned = [r for r in doc["rounds"] if r.get("status") in ("done", "nothing to add")]
+    last = planned[-1] if planned else {}
+    n_rounds = sum(1 for r in doc["rounds"] if r.get("status") == "done")
+    limit = f"after {n_rounds} round(s) (limit [planning] closed_loop_rounds = {p.closed_loop_rounds})"
     unmet = []
     for t in np.flatnonzero(short):
         tid = ids[int(t)]
@@ -367,17 +535,31 @@ def run(ctx) -> None:
                       f"no reachable station can: with every reachable candidate added the best possible sigma is "
                       f"{b * 1e6:.1f} um > required {required[t] * 1e6:.1f} um ("
                       + (s_um if not np.isfinite(sigma[t]) else f"{s_um} achieved") + f"; candidates: {rule[tid]})")
+        elif tid in refused_for:
+            reason = (f"{s_um} > required {required[t] * 1e6:.1f} um: the robot refused the station(s) planned for it "
+                      f"({'; '.join(refused_for[tid][:3])}); {limit}")
         elif rays[t] < p.min_rays:
-            reason = f"{rays[t]} ray(s) of the {p.min_rays} required after {len(doc['rounds'])} round(s)"
+            reason = f"{rays[t]} ray(s) of the {p.min_rays} required {limit}"
+        elif last.get("stopped") == "max_new" and tid in last.get("targets_short", []) \
+                and tid not in last.get("predicted_fixed", []):
+            reason = (f"{s_um} > required {required[t] * 1e6:.1f} um: it needs more stations than [planning] "
+                      f"closed_loop_max_stations = {p.closed_loop_max_stations} allow per round, {limit}")
+        elif tid in last.get("prediction_missed", []):
+            pv = (last.get("predicted_sigma_m") or {}).get(tid)
+            reason = (f"{s_um} > required {required[t] * 1e6:.1f} um: the round's stations were predicted to give "
+                      f"{'?' if pv is None else f'{pv * 1e6:.1f}'} um (the prediction did not hold), {limit}")
         else:
-            reason = (f"{s_um} > required {required[t] * 1e6:.1f} um after {len(doc['rounds'])} round(s) "
-                      f"(limit [planning] closed_loop_rounds = {p.closed_loop_rounds})")
+            reason = f"{s_um} > required {required[t] * 1e6:.1f} um {limit}"
         unmet.append({"id": tid, "reason": reason, "sigma_m": float(sigma[t]) if np.isfinite(sigma[t]) else None,
                       "required_m": float(required[t])})
     doc["unmet"] = unmet
     atomic_write_json(path, doc)
     ctx.progress("close_loop", 1.0)
     added = sum(len(r.get("stations_added", [])) for r in doc["rounds"] if r.get("status") == "done")
-    ctx.say(f"  closed loop: {len(doc['rounds'])} round(s), {added} extra station(s); "
-            + (f"{len(unmet)} target(s) still short: " + ", ".join(u["id"] for u in unmet[:8])
-               + (" ..." if len(unmet) > 8 else "") if unmet else "every target within its requirement"))
+    refused = sum(len(r.get("stations_refused", [])) for r in doc["rounds"])
+    msg = (f"closed loop: {len(doc['rounds'])} round(s), {added} extra station(s) taken"
+           + (f" ({refused} refused by the robot)" if refused else "") + "; "
+           + (f"{len(unmet)} target(s) still short: " + ", ".join(u["id"] for u in unmet[:8])
+              + (" ..." if len(unmet) > 8 else "") if unmet else "every target within its requirement"))
+    ctx.log.log("warning" if unmet else "info", msg)
+    ctx.say(f"  {msg}")

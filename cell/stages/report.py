@@ -14,6 +14,7 @@ from calibration.errors import CalibrationError
 from calibration.robust_alignment import AlignmentOutcome, frame_alignment, robust_best_fit, rps_align, rps_locks
 from cell.record import report as R
 from cell.record.jobfolder import atomic_write_bytes, atomic_write_json, utc_now
+from cell.stages.close_loop import requirement_doc, stated_requirement
 from cell.stages.lens import lens_doc
 from cell.thermal import agreeing, own_bar_ends, part_scale, resolve_probe, shared_columns, thermal_doc
 
@@ -272,12 +273,14 @@ def conformance(deviation: np.ndarray, deviation_cov: np.ndarray, tol: np.ndarra
 
 
 def part_verdict(trusted: bool, ok: np.ndarray, passed: np.ndarray, judged: np.ndarray, decision: list,
-                 suspect: np.ndarray, ids) -> tuple[str, list[str]]:
+                 suspect: np.ndarray, ids, requirement: tuple | None = None) -> tuple[str, list[str]]:
     """The part's verdict and why, from each target's measurement (``ok``), ``passed`` (|d| <= tolerance),
     ``decision`` (ISO 14253-1, per target) and ``suspect`` (observations data snooping could not verify).
+    ``requirement``: ``(required (n,), achieved (n,), source)`` sigmas (m) when the job states a precision requirement.
 
     UNTRUSTED (the frame), else FAIL (a target beyond its tolerance), else INCOMPLETE (a target not measured,
-    suspect, or within U of its tolerance: the measurement does not show that the part conforms), else PASS.
+    suspect, within U of its tolerance, or measured less precisely than its requirement asks: the measurement does
+    not show that the part conforms to the precision asked, decision 0070), else PASS.
     The verdict set is the one the archive, the console and QIF read (decision 0030): a part with undecided
     targets is not a new kind of verdict, it is an inspection that did not decide every target.
     """
@@ -286,6 +289,11 @@ def part_verdict(trusted: bool, ok: np.ndarray, passed: np.ndarray, judged: np.n
     fail = judged & ok & ~passed
     missing = judged & ~ok
     near = judged & ok & ~suspect & np.array([d == "inconclusive" for d in decision], dtype=bool)
+    unmet = np.zeros(len(ok), dtype=bool)
+    if requirement is not None:
+        req, ach = (np.asarray(a, dtype=float) for a in requirement[:2])
+        with np.errstate(invalid="ignore"):
+            unmet = judged & ok & ~(ach <= req * (1 + 1e-9))  # a nan sigma of a measured target is short too
 
     def some(mask, what):
         idx = np.flatnonzero(mask)
@@ -305,11 +313,16 @@ def part_verdict(trusted: bool, ok: np.ndarray, passed: np.ndarray, judged: np.n
                                              "their images are not a clean dot: report.json target_print)"))
     if (near & passed).any():
         reasons.append(some(near & passed, "within U of their tolerance (ISO 14253-1 cannot decide)"))
+    if unmet.any():
+        idx = np.flatnonzero(unmet)
+        reasons.append(f"{len(idx)} target(s) measured less precisely than required ({requirement[2]}): "
+                       + ", ".join(f"{ids[j]} {ach[j] * 1e6:.2f} um > {req[j] * 1e6:.2f} um" for j in idx[:6])
+                       + (" ..." if len(idx) > 6 else ""))
     if not trusted:
         return "UNTRUSTED", reasons
     if fail.any():
         return "FAIL", reasons
-    if missing.any() or (suspect | near).any():
+    if missing.any() or (suspect | near | unmet).any():
         return "INCOMPLETE", reasons
     return "PASS", reasons
 
@@ -495,7 +508,13 @@ def _closed_loop(f) -> dict | None:
         return None
     rounds = [{"round": r["round"], "status": r["status"], "stations_added": r.get("stations_added", []),
                "targets_short": r.get("targets_short", []), "targets_fixed": r.get("targets_fixed", []),
-               "time_s": r.get("time_s"), "incidence_limit_learned_deg": r.get("incidence_limit_learned_deg")}
+               "time_s": r.get("time_s"), "incidence_limit_learned_deg": r.get("incidence_limit_learned_deg"),
+               "stations_refused": r.get("stations_refused", []), "stopped": r.get("stopped"),
+               # the round's prediction for the targets it meant to fix, and what it achieved (decision 0070)
+               "prediction": {t: {"predicted_sigma_m": (r.get("predicted_sigma_m") or {}).get(t),
+                                  "achieved_sigma_m": (r.get("achieved_sigma_m") or {}).get(t)}
+                              for t in r.get("predicted_fixed", [])},
+               "prediction_missed": r.get("prediction_missed", [])}
               for r in cl["rounds"]]
     return {"required_sigma_m": cl.get("required_sigma_m"), "rounds": rounds,
             "unmet": [{"id": u["id"], "reason": u["reason"]} for u in cl.get("unmet", [])]}
@@ -601,8 +620,10 @@ def write_report(ctx) -> tuple[str, list[str]]:
             times[r["stage"]] = times.get(r["stage"], 0.0) + r["duration_s"]
     judged = ~coded & ~bar_end
     scale = measured_scale(job, outcome, ok & judged & ~np.isin(ids, list(suspect) + list(printed)))
+    required, req_source = stated_requirement(job)
     verdict, verdict_reasons = part_verdict(outcome.trusted, ok, passed, judged, decision,
-                                            np.array([t in suspect for t in ids]), ids)
+                                            np.array([t in suspect for t in ids]), ids,
+                                            None if required is None else (required, achieved, req_source))
     if scale is not None and scale["significant"] and verdict != "PASS":  # judged at the measurement's scale: said
         verdict_reasons = list(verdict_reasons) + [f"the part measures {scale['scale_ppm']:+.0f} ppm against its CAD "
                                                    "(report.json thermal.note)"]
@@ -662,6 +683,7 @@ def write_report(ctx) -> tuple[str, list[str]]:
                      "targets": sc.get("dropped_targets", []), "images": sc.get("dropped_images", []),
                      "start_pose_kept": (sc.get("resection") or {}).get("start_kept", [])},
     }
+    doc["precision_requirement"] = requirement_doc(job, required, req_source, achieved, ok, judged, targets)
     loop = _closed_loop(f)
     if loop is not None:
         doc["closed_loop"] = loop
@@ -725,6 +747,12 @@ def run(ctx) -> None:
         if note:
             ctx.log.log("warning", note)
             ctx.say(f"  WARNING {note}")
+    pr = doc.get("precision_requirement")
+    if pr:  # said whether the closed loop ran or not (decision 0070)
+        msg = (f"precision requirement ({pr['source']}): {pr['n_met']} of {pr['n_judged']} target(s) within it"
+               + ("" if pr["closed_loop"] else "; the closed loop is off ([planning] closed_loop = false)"))
+        ctx.log.log("info" if pr["n_met"] == pr["n_judged"] else "warning", msg)
+        ctx.say(f"  {msg}")
     if verdict != "PASS" and reasons:
         msg = f"verdict {verdict}: " + "; ".join(reasons)
         if verdict in ("INCOMPLETE", "UNTRUSTED"):
