@@ -439,3 +439,26 @@ def plot_ellipsoids(ax, part, cov: np.ndarray, points: np.ndarray, eyes: np.ndar
     ax.set_box_aspect((1, 1, 1))
     ax.set_title(title, fontsize=9)
     ax.tick_params(labelsize=6)
+
+
+def before_after(r: dict, before: dict, now: list, then: list, commit: str, commit_json: str, rerun_json: str,
+                 scaling: str) -> str:
+    """The README's before / after table of a paper example: ``before`` {"commit": results or None, "rerun": results or
+    None} (the set-up with 0.05 px of jitter as last committed, and today's code with ``--jitter-px 0.05``), ``now``
+    and ``then`` their key figures ([(label, value)], one list per column present), ``scaling`` a paragraph after."""
+    heads = {"commit": f"before: commit {commit}, 0.05 px jitter", "rerun": "before: today's code, 0.05 px jitter"}
+    cols = [k for k in ("commit", "rerun") if before.get(k) is not None]
+    figs = then + [now]
+    rows = [f"| {lab} | " + " | ".join(f[i][1] for f in figs) + " |" for i, (lab, _) in enumerate(now)]
+    return f"""
+Before and after. Before: the set-up with 0.05 px of jitter, twice: as last committed
+(`results.json` of commit {commit}, kept verbatim in `{commit_json}`), and this script on today's code
+with `--jitter-px 0.05` (`{rerun_json}`: only the jitter differs from this run). The code has changed since
+{commit}; the second column separates that from the jitter.
+
+| figure | {' | '.join(heads[k] for k in cols)} | now{' (' + str(r['jitter_px']) + ' px jitter)' if r['jitter_px'] else ', no jitter'} |
+|---|{'---|' * len(cols)}---|
+{chr(10).join(rows)}
+
+{scaling}
+"""

@@ -436,23 +436,9 @@ the measured sigma0, the planner chose {"the same" if r['planning']['same_statio
 """
     if before is None:
         return text
-    j = before.get("jitter_px", before.get("sigma_px"))
-    cols = [(k, v) for k, v in (("commit", before["commit"]), ("rerun", before["rerun"])) if v is not None]
-    heads = {"commit": f"before: commit {BEFORE_COMMIT}, 0.05 px jitter", "rerun": "before: today's code, 0.05 px jitter"}
-    figs = [_key_figures(v) for _, v in cols] + [_key_figures(r)]
-    rows = [f"| {lab} | " + " | ".join(f[i][1] for f in figs) + " |" for i, (lab, _) in enumerate(figs[-1])]
-    return text + f"""
-Before and after. Before: the set-up with 0.05 px of jitter, twice: as last committed
-(`results.json` of commit {BEFORE_COMMIT}, kept verbatim in `{BEFORE_COMMIT_JSON}`), and this script on today's code
-with `--jitter-px 0.05` (`{BEFORE_JSON}`: only the jitter differs from this run). The code has changed since
-{BEFORE_COMMIT}; the second column separates that from the jitter.
-
-| figure | {' | '.join(heads[k] for k, _ in cols)} | now{' (' + str(r['jitter_px']) + ' px jitter)' if r['jitter_px'] else ', no jitter'} |
-|---|{'---|' * len(cols)}---|
-{chr(10).join(rows)}
-
-{_scaling(r, before['rerun']) if before['rerun'] else ''}
-"""
+    return text + pipeline.before_after(r, before, _key_figures(r), [_key_figures(before[k]) for k in ("commit", "rerun") if before.get(k)],
+                                        BEFORE_COMMIT, BEFORE_COMMIT_JSON, BEFORE_JSON,
+                                        _scaling(r, before["rerun"]) if before["rerun"] else "")
 
 
 def _same_stations(a: dict, b: dict) -> bool:
