@@ -462,3 +462,13 @@ with `--jitter-px 0.05` (`{rerun_json}`: only the jitter differs from this run).
 
 {scaling}
 """
+
+
+def load_before(here, rerun_json: str, commit_json: str) -> dict | None:
+    """The runs of a paper example's set-up before, next to its script in ``here``: ``{"rerun": ..., "commit": ...}``
+    (each None when absent), or None when neither is there."""
+    import json
+
+    runs = {k: (json.loads((here / f).read_text()) if (here / f).exists() else None)
+            for k, f in (("rerun", rerun_json), ("commit", commit_json))}
+    return runs if any(runs.values()) else None

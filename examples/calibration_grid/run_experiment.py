@@ -326,11 +326,8 @@ def _fmt(v: float, d: int = 3) -> str:
 
 
 def load_before() -> dict | None:
-    """The runs of the set-up before next to this script: ``{"rerun": BEFORE_JSON, "commit": BEFORE_COMMIT_JSON}``
-    (each None when absent), or None when neither is there."""
-    runs = {k: (json.loads((HERE / f).read_text()) if (HERE / f).exists() else None)
-            for k, f in (("rerun", BEFORE_JSON), ("commit", BEFORE_COMMIT_JSON))}
-    return runs if any(runs.values()) else None
+    """The runs of the set-up before next to this script (:func:`pipeline.load_before`)."""
+    return pipeline.load_before(HERE, BEFORE_JSON, BEFORE_COMMIT_JSON)
 
 
 def _key_figures(r: dict) -> list[tuple[str, str]]:

@@ -381,11 +381,8 @@ def _figures(out: Path, part: Part, stations: dict, covs: dict, results: dict) -
 
 
 def load_before() -> dict | None:
-    """The runs of the set-up before next to this script: ``{"rerun": BEFORE_JSON, "commit": BEFORE_COMMIT_JSON}``
-    (each None when absent), or None when neither is there."""
-    runs = {k: (json.loads((HERE / f).read_text()) if (HERE / f).exists() else None)
-            for k, f in (("rerun", BEFORE_JSON), ("commit", BEFORE_COMMIT_JSON))}
-    return runs if any(runs.values()) else None
+    """The runs of the set-up before next to this script (:func:`pipeline.load_before`)."""
+    return pipeline.load_before(HERE, BEFORE_JSON, BEFORE_COMMIT_JSON)
 
 
 def _key_figures(r: dict) -> list[tuple[str, str]]:
