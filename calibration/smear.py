@@ -24,7 +24,8 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["Z2_LIMIT", "VARIANCE_FLOOR_PX2", "MIN_DOTS", "deviatoric_excess", "image_smear", "smear_length_px"]
+__all__ = ["Z2_LIMIT", "VARIANCE_FLOOR_PX2", "MIN_DOTS", "HALVES_ANGLE_DEG", "HALVES_RATIO", "deviatoric_excess",
+           "homogeneous", "image_smear", "smear_length_px"]
 
 #: the common deviatoric excess over its standard error, squared (chi-square with 2 dof): above it the image's dots
 #: share a direction. 2 dof: 0.1 % at 13.8; a high bar, the floor below decides on clean images
@@ -32,8 +33,13 @@ Z2_LIMIT = 25.0
 #: the smear's variance (px^2) along its direction above which an image is smeared: 1.5x the largest clean image
 #: measured (decision 0067: 0.198 on the example, 0.235 on a generated part; a uniform smear of 2 px has 0.33)
 VARIANCE_FLOOR_PX2 = 0.35
-#: an image with fewer unclipped named dots is not judged (its record says so)
-MIN_DOTS = 8
+#: an image with fewer unclipped named dots is not judged (its record says so): two halves of eight each
+MIN_DOTS = 16
+#: the halves of an image's dots (nearer and farther from the principal point; smaller and larger) agree on a smear
+#: within this angle and this factor of its variance (:func:`homogeneous`): the tester's smeared images 4-10 deg and
+#: 1.4-1.8x apart, a clean plate's false ones 25-78 deg and 3.4-10x
+HALVES_ANGLE_DEG = 20.0
+HALVES_RATIO = 2.5
 _MAD_TO_SIGMA = 1.4826
 _MEDIAN_EFFICIENCY = 1.2533  # the standard error of a normal sample's median over the mean's
 
@@ -50,7 +56,34 @@ def deviatoric_excess(measured: np.ndarray, predicted: np.ndarray) -> np.ndarray
     return np.stack([0.5 * (E[:, 0, 0] - E[:, 1, 1]), E[:, 0, 1]], axis=1)
 
 
-def image_smear(dev: np.ndarray, use: np.ndarray | None = None) -> dict:
+def _common(dev: np.ndarray) -> tuple[float, float]:
+    """The smear's variance along its direction and its direction (deg) from the median deviatoric excess."""
+    a, b = float(np.median(dev[:, 0])), float(np.median(dev[:, 1]))
+    return 2.0 * float(np.hypot(a, b)), float(np.degrees(0.5 * np.arctan2(b, a))) % 180.0
+
+
+def homogeneous(dev: np.ndarray, *keys: np.ndarray) -> tuple[bool, list[dict]]:
+    """Whether the dots' deviatoric excess is one tensor across the image: for each ``key`` (a dot's distance from the
+    principal point, its predicted size), the dots below and above its median give the same smear within
+    :data:`HALVES_ANGLE_DEG` and a factor :data:`HALVES_RATIO`. A camera's motion adds the same spread to every dot; a
+    shape the prediction misses (a lens the job does not state, a steep view of small far dots) grows with the dot's
+    place or size, and the halves disagree (decision 0067: a clean plate's images 78 deg and 3-10x apart)."""
+    halves, ok = [], True
+    for key in keys:
+        lo = key < np.median(key)
+        (v1, d1), (v2, d2) = _common(dev[lo]), _common(dev[~lo])
+        gap = abs(d1 - d2) % 180.0
+        gap = min(gap, 180.0 - gap)
+        agree = (min(v1, v2) > 0.5 * VARIANCE_FLOOR_PX2 and gap <= HALVES_ANGLE_DEG
+                 and max(v1, v2) <= HALVES_RATIO * min(v1, v2))
+        halves.append({"variance_px2": [round(v1, 4), round(v2, 4)], "direction_deg": [round(d1, 1), round(d2, 1)],
+                       "agree": bool(agree)})
+        ok &= agree
+    return ok, halves
+
+
+def image_smear(dev: np.ndarray, use: np.ndarray | None = None, radius: np.ndarray | None = None,
+                size: np.ndarray | None = None) -> dict:
     """The smear the dots of one image share.
 
     ``dev: (k, 2)`` each dot's deviatoric excess (:func:`deviatoric_excess`), ``use: (k,)`` bool the dots to judge by (unclipped, finite; None: all finite ones).
@@ -74,6 +107,11 @@ def image_smear(dev: np.ndarray, use: np.ndarray | None = None) -> dict:
     z2 = (ma / se[0]) ** 2 + (mb / se[1]) ** 2
     var = 2.0 * float(np.hypot(ma, mb))
     direction = float(np.degrees(0.5 * np.arctan2(mb, ma))) % 180.0
-    return {"n_dots": n, "variance_px2": round(var, 4), "length_px": round(smear_length_px(var), 2),
-            "direction_deg": round(direction, 1), "z2": round(float(z2), 1),
-            "smeared": bool(z2 > Z2_LIMIT and var > VARIANCE_FLOOR_PX2)}
+    keys = [np.asarray(k, dtype=float).reshape(-1)[ok] for k in (radius, size) if k is not None]
+    same, halves = homogeneous(dev[ok], *keys) if keys else (True, [])
+    out = {"n_dots": n, "variance_px2": round(var, 4), "length_px": round(smear_length_px(var), 2),
+           "direction_deg": round(direction, 1), "z2": round(float(z2), 1),
+           "smeared": bool(z2 > Z2_LIMIT and var > VARIANCE_FLOOR_PX2 and same)}
+    if halves:
+        out["halves"] = halves  # by distance from the principal point, then by size: one tensor or not
+    return out

@@ -262,7 +262,9 @@ def judge_smears(excess: list, part, intr) -> list[dict]:
             except CalibrationError:
                 pass
         pred = ellipse_moments(intr, pose, xyz, nrm, part.target_diameter_m / 2)
-        out.append(image_smear(deviatoric_excess(e["axes"], pred), e["use"]))
+        radius = np.hypot(e["uv"][:, 0] - intr.cx_px, e["uv"][:, 1] - intr.cy_px)
+        size = np.sqrt(np.trace(pred, axis1=1, axis2=2))
+        out.append(image_smear(deviatoric_excess(e["axes"], pred), e["use"], radius=radius, size=size))
     return out
 
 
