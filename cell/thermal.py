@@ -208,7 +208,7 @@ def read_probe(ctx, thermometer, when: str) -> None:
         return
     if thermometer is None:
         raise DriverError("[thermal] part_C = \"probe\" but the cell has no thermometer ([cell] thermometer_port)")
-    values = [float(thermometer.read_C()) for _ in range(PROBE_READINGS)]
+    values = [float(v) for v in thermometer.read_n_C(PROBE_READINGS)]
     mean, sd, kept, out, band = agreeing_readings(values, th.part_sigma_K)
     shown = ", ".join(f"{v:.3f}" for v in values)
     if len(kept) < PROBE_AGREE_MIN:

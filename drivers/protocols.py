@@ -116,12 +116,16 @@ class Light(Protocol):
     def set_intensity(self, fraction: float) -> None:
         """Set the light's intensity in ``[0, 1]``."""
 
-    def strobe(self, duration_s: float) -> None:
-        """Fire one flash of ``duration_s`` now (a software trigger of the controller)."""
+    def strobe(self, duration_s: float) -> str | None:
+        """Fire one flash of ``duration_s`` now (a software trigger of the controller); a line saying the settings
+        the controller had lost and were set again, else None."""
 
-    def arm(self, duration_s: float) -> None:
+    def arm(self, duration_s: float) -> str | None:
         """Pulse mode: one flash of ``duration_s`` per edge on the controller's trigger input (the camera's
-        strobe line), so the light fires with the exposure itself."""
+        strobe line), so the light fires with the exposure itself; read back, re-armed (and said) when lost."""
+
+    def check(self) -> str | None:
+        """After an exposure: what the controller's read-back differs in from what was armed (None: as armed)."""
 
 
 @runtime_checkable
@@ -141,3 +145,6 @@ class Thermometer(Protocol):
 
     def read_C(self) -> float:
         """The current reading in deg C; raises ``DriverError`` on no reply, a garbled one, or a non-temperature."""
+
+    def read_n_C(self, n: int = 5, interval_s: float = 0.0) -> list[float]:
+        """``n`` readings in deg C, as read (the caller judges them: one glitch must not move a mean)."""

@@ -40,7 +40,6 @@ reply -> ``GarbledReplyError`` naming them; the readout set to ohms -> ``NotATem
 from __future__ import annotations
 
 import re
-import statistics
 import threading
 import time
 
@@ -237,14 +236,14 @@ class FlukeReadout:
                                     "baud rate, the cable, and that the readout's time stamp is on")
         return self._temperature(m.group(1), m.group(2), "t", text), " ".join(m.group(3).split())
 
-    def read_mean_C(self, n: int = 5, interval_s: float = 0.0) -> tuple[float, float]:
-        """The mean and the sample standard deviation (K; 0 for one reading) of ``n`` readings ``interval_s``
-        apart: a loose contact's flicker shows in the deviation instead of hiding in one reading."""
+    def read_n_C(self, n: int = 5, interval_s: float = 0.0) -> list[float]:
+        """``n`` readings ``interval_s`` apart, as read: no mean here, since one glitch (a sensor-open -200 C, a
+        0.000 dropout) would move it; the caller judges them (``cell.thermal.agreeing_readings``: the median's band)."""
         if n < 1:
-            raise DriverError(f"{self.name}: read_mean_C needs n >= 1 readings, not {n}")
+            raise DriverError(f"{self.name}: read_n_C needs n >= 1 readings, not {n}")
         values = []
         for i in range(n):
             if i and interval_s > 0:
                 time.sleep(interval_s)
             values.append(self.read_C())
-        return statistics.fmean(values), (statistics.stdev(values) if n > 1 else 0.0)
+        return values

@@ -152,7 +152,7 @@ class ExposureTaker:
             rec.outcome, rec.detail = "missing", str(exc)
             raise self._fault(rec, f"station {station}: no frame ({exc})") from None
         received_s = time.time()
-        lost = self.light.check() if self.light is not None and hasattr(self.light, "check") else None
+        lost = self.light.check() if self.light is not None else None
         if lost:
             rec.outcome = "unlit"
             raise self._fault(rec, f"station {station}: after the exposure, {getattr(self.light, 'name', 'the light')}:"
