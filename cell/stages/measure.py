@@ -116,6 +116,12 @@ def run(ctx, keep: bool = False) -> None:
     ctx.say(f"  {sum(n)} observations in {len(out)} images ({min(n)}..{max(n)} per image); "
             f"{sum(o['n_partly_hidden'] for o in out)} partly hidden dots dropped, "
             f"{sum(o['n_unidentified'] for o in out)} other blobs (marker pieces, edges) ignored")
+    unjudged = [o["image"] for o in out if (o.get("smear") or {}).get("why")]
+    if unjudged:  # said, not silent: a smear there would go unseen (decision 0067)
+        msg = (f"{len(unjudged)} image(s) with too few unclipped named dots to judge a smear (camera motion during the "
+               f"exposure) from: {', '.join(unjudged[:6])}" + (" ..." if len(unjudged) > 6 else ""))
+        ctx.log.log("info", msg)
+        ctx.say(f"  {msg}")
     n_ell = sum(int(np.sum(o.get("ellipse_centre", []))) for o in out)
     if n_ell:
         ctx.say(f"  {n_ell} dots centred by the ellipse of their contour (clipped, or next to an edge: decision 0037)")
